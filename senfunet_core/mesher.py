@@ -25,3 +25,115 @@ class Mesh:
     @property
     def n_faces(self) -> int:
         return int(self.faces.shape[0])
+
+
+def cell_mask(observed: np.ndarray) -> np.ndarray:
+    """B x n^3 observed corners -> B x (n-1)^3 cells whose 8 corners are all observed."""
+    o = observed
+    cells = o[:, :-1, :-1, :-1] & o[:, 1:, :-1, :-1] & o[:, :-1, 1:, :-1] & o[:, :-1, :-1, 1:]
+    return cells & o[:, 1:, 1:, :-1] & o[:, 1:, :-1, 1:] & o[:, :-1, 1:, 1:] & o[:, 1:, 1:, 1:]
+
+
+@dataclass
+class BlockTriangles:
+    """Marching-cubes output of a batch of blocks, before splitting or welding."""
+
+    vertices_vox: np.ndarray  # Vx3 float64 global voxel coordinates
+    faces: np.ndarray  # Fx3 int64 into vertices_vox
+    vertex_block: np.ndarray  # V index of each vertex's block in the batch
+    face_block: np.ndarray  # F
+    vertex_values: np.ndarray | None  # V interpolated extra value (e.g. alpha) or None
+
+
+def marching_cubes_blocks(tsdf: np.ndarray, observed: np.ndarray, block_origin_vox: np.ndarray,
+                          extra: np.ndarray | None = None) -> BlockTriangles:
+    """Marching cubes at level 0 over B blocks at once.
+
+    tsdf, observed, extra: B x (s+1)^3 samples: each block's s^3 voxels plus one more layer from
+    its +x, +y, +z neighbours, so every cell a block owns is complete and neighbouring blocks'
+    meshes meet exactly (a vertex on a seam is computed from the same two samples by both).
+    Only cells whose 8 corners are observed produce triangles. block_origin_vox: Bx3 int, the
+    global voxel index of each block's local (0, 0, 0).
+    """
+    from skimage.measure import marching_cubes
+
+    n_blocks, n = tsdf.shape[0], tsdf.shape[1]
+    empty = BlockTriangles(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                           None if extra is None else np.zeros(0))
+    cells = cell_mask(observed)
+    if n_blocks == 0 or not cells.any():
+        return empty
+    # Blocks are stacked along x; skimage visits a cell when the mask is set at the cell's far
+    # corner (x+1, y+1, z+1), so the mask is the cell mask shifted by one. Cells straddling two
+    # stacked blocks never get a mask bit.
+    mask = np.zeros((n_blocks, n, n, n), dtype=bool)
+    mask[:, 1:, 1:, 1:] = cells
+    volume = np.ascontiguousarray(tsdf, dtype=np.float32).reshape(n_blocks * n, n, n)
+    values = volume[mask.reshape(volume.shape)]
+    if values.size == 0 or values.min() > 0 or values.max() < 0:
+        return empty
+    verts, faces, _, _ = marching_cubes(volume, level=0.0, mask=mask.reshape(volume.shape))
+    if len(faces) == 0:
+        return empty
+    vertex_block = np.floor(verts[:, 0] / n).astype(np.int64).clip(0, n_blocks - 1)
+    local = verts.astype(np.float64)
+    local[:, 0] -= vertex_block * n
+    vertex_values = None
+    if extra is not None:
+        vertex_values = _interpolate(extra.astype(np.float32), vertex_block, local)
+    global_vox = local + np.asarray(block_origin_vox, dtype=np.float64)[vertex_block]
+    return BlockTriangles(global_vox, faces.astype(np.int64), vertex_block, vertex_block[faces[:, 0]], vertex_values)
+
+
+def _interpolate(volumes: np.ndarray, block: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """Trilinear interpolation of B x n^3 volumes at per-vertex local coordinates."""
+    n = volumes.shape[1]
+    i0 = np.floor(local).astype(np.int64).clip(0, n - 2)
+    t = local - i0
+    out = np.zeros(len(local))
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                w = (t[:, 0] if dx else 1 - t[:, 0]) * (t[:, 1] if dy else 1 - t[:, 1]) * (t[:, 2] if dz else 1 - t[:, 2])
+                out += w * volumes[block, i0[:, 0] + dx, i0[:, 1] + dy, i0[:, 2] + dz]
+    return out
+
+
+def weld(vertices_vox: np.ndarray, faces: np.ndarray, vertex_values: np.ndarray | None = None
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Merge the copies of a vertex made by neighbouring blocks and drop triangles that collapse.
+
+    Every marching-cubes vertex lies on a grid edge: two of its voxel coordinates are integers.
+    The edge (its lower end and axis) identifies the vertex; positions alone do not, since two
+    blocks may interpolate the same edge from opposite ends and differ in the last bits.
+    """
+    if len(vertices_vox) == 0:
+        return vertices_vox, faces, vertex_values
+    off_grid = np.abs(vertices_vox - np.round(vertices_vox))
+    axis = np.argmax(off_grid, axis=1)
+    on_node = off_grid.max(axis=1) < 1e-4  # the surface passes through a sample exactly
+    base = np.round(vertices_vox).astype(np.int64)
+    rows = np.arange(len(base))
+    base[rows, axis] = np.floor(vertices_vox[rows, axis]).astype(np.int64)
+    base[on_node] = np.round(vertices_vox[on_node]).astype(np.int64)
+    axis[on_node] = 3
+    keys = np.concatenate([base, axis[:, None]], axis=1)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    faces = inverse[faces]
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    values = None if vertex_values is None else vertex_values[first]
+    return vertices_vox[first], faces[keep], values
+
+
+def alpha_colors(alpha: np.ndarray) -> np.ndarray:
+    """Sensor weighting as colour: alpha 1 (trust sensor 1) amber, alpha 0 (sensor 2) blue."""
+    a = np.clip(np.asarray(alpha, dtype=np.float32), 0, 1)[:, None]
+    sensor_1 = np.array([1.0, 0.72, 0.1], np.float32)
+    sensor_2 = np.array([0.15, 0.4, 1.0], np.float32)
+    return a * sensor_1 + (1 - a) * sensor_2
+
+
+def to_mesh(vertices_vox: np.ndarray, faces: np.ndarray, voxel_size_m: float, vertex_alpha: np.ndarray | None) -> Mesh:
+    colors = None if vertex_alpha is None else alpha_colors(vertex_alpha)
+    return Mesh((vertices_vox * voxel_size_m).astype(np.float32), faces.astype(np.int32), colors)

@@ -1,0 +1,124 @@
+"""The two learned parts of SenFuNet: a 2D feature net per sensor and the 3D weighting net G.
+
+Architectures follow the paper (section 3 b, c) and the released checkpoints:
+- FeatureNet: 6 residual blocks of conv3x3-tanh-conv3x3-tanh with 4 channels, zero padding;
+  input depth (1 channel) or depth + RGB (4 channels); per-pixel L2 normalisation; the raw
+  depth appended -> 5 channels.
+- WeightingNet: Conv3d 12->32 k3, ReLU, Conv3d 32->16 k3, ReLU, Conv3d 16->1 k1, sigmoid.
+  The paper pads with replication; on sparse blocks we evaluate the same weights without
+  padding on a 2-voxel halo (see `alpha_on_blocks`), which equals the padded whole-grid
+  evaluation wherever the grid has a margin of unobserved (all-zero) voxels.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+N_FEATURE_CHANNELS = 4  # learned channels; the depth is appended to make n = 5
+N_FEATURES = N_FEATURE_CHANNELS + 1
+N_RESIDUAL_BLOCKS = 6
+WEIGHTING_HALO = 2  # receptive field 5^3: alpha depends on inputs within 2 voxels
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "tof_stereo.pt"
+
+
+class FeatureNet(nn.Module):
+    """Per-sensor 2D feature extractor: depth (+RGB) image -> 5 features per pixel."""
+
+    def __init__(self, uses_rgb: bool) -> None:
+        super().__init__()
+        self.uses_rgb = uses_rgb
+        in_channels = 4 if uses_rgb else 1
+        c = N_FEATURE_CHANNELS
+        self.blocks = nn.ModuleList(
+            nn.ModuleList([nn.Conv2d(in_channels if i == 0 else c, c, 3, padding=1), nn.Conv2d(c, c, 3, padding=1)])
+            for i in range(N_RESIDUAL_BLOCKS)
+        )
+
+    def forward(self, depth_m: torch.Tensor, rgb01: torch.Tensor | None = None) -> torch.Tensor:
+        """depth_m: Bx1xHxW (invalid pixels 0); rgb01: Bx3xHxW in 0..1 -> Bx5xHxW."""
+        x = torch.cat([depth_m, rgb01], dim=1) if self.uses_rgb else depth_m
+        previous = None
+        for conv_a, conv_b in self.blocks:
+            x = torch.tanh(conv_b(torch.tanh(conv_a(x))))
+            if previous is not None:  # each block's output is added to the next block's output
+                x = x + previous
+            previous = x
+        x = F.normalize(x, p=2, dim=1, eps=1e-8)
+        return torch.cat([x, depth_m], dim=1)
+
+
+class WeightingNet(nn.Module):
+    """G: per-voxel [F_1, tanh(W_1), F_2, tanh(W_2)] (12 channels) -> sensor weighting alpha."""
+
+    def __init__(self, n_sensors: int = 2) -> None:
+        super().__init__()
+        in_channels = n_sensors * (N_FEATURES + 1)
+        self.conv1 = nn.Conv3d(in_channels, 32, 3)
+        self.conv2 = nn.Conv3d(32, 16, 3)
+        self.conv3 = nn.Conv3d(16, 1, 1)
+
+    def forward(self, x: torch.Tensor, pad: bool = True) -> torch.Tensor:
+        """x: BxCxDxHxW -> alpha Bx1xDxHxW (pad=True, the paper's replicate padding)
+        or Bx1x(D-4)x(H-4)x(W-4) (pad=False, for halo-padded sparse blocks)."""
+        for conv in (self.conv1, self.conv2):
+            if pad:
+                x = F.pad(x, (1, 1, 1, 1, 1, 1), mode="replicate")
+            x = F.relu(conv(x))
+        return torch.sigmoid(self.conv3(x))
+
+
+def weighting_input(features: list[torch.Tensor], weights: list[torch.Tensor]) -> torch.Tensor:
+    """Concatenate [F_i, tanh(W_i)] over sensors along the last axis: (..., 5) + (...) -> (..., 12)."""
+    parts = []
+    for feature, weight in zip(features, weights):
+        parts += [feature, torch.tanh(weight).unsqueeze(-1)]
+    return torch.cat(parts, dim=-1)
+
+
+def make_networks(sensor_uses_rgb: tuple[bool, ...], seed: int = 0) -> tuple[nn.ModuleList, WeightingNet]:
+    """Freshly initialised (untrained) networks, reproducible from `seed`."""
+    generator_state = torch.random.get_rng_state()
+    torch.manual_seed(seed)
+    try:
+        feature_nets = nn.ModuleList(FeatureNet(uses_rgb) for uses_rgb in sensor_uses_rgb)
+        weighting_net = WeightingNet(len(sensor_uses_rgb))
+    finally:
+        torch.random.set_rng_state(generator_state)
+    return feature_nets, weighting_net
+
+
+def save_weights(path: str | Path, sensors: tuple[str, ...], feature_nets: nn.ModuleList, weighting_net: WeightingNet,
+                 meta: dict | None = None) -> None:
+    state = {
+        "sensors": list(sensors),
+        "sensor_uses_rgb": [net.uses_rgb for net in feature_nets],
+        "feature_nets": [net.state_dict() for net in feature_nets],
+        "weighting_net": weighting_net.state_dict(),
+        "meta": meta or {},
+    }
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    torch.save(state, path)
+
+
+def load_weights(path: str | Path, feature_nets: nn.ModuleList, weighting_net: WeightingNet) -> dict:
+    """Load a weights file into existing networks; returns its metadata. Raises ValueError on mismatch."""
+    from .errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"weights file {path} does not exist; pass a trained .pt file or weights=None for random init")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        if len(state["feature_nets"]) != len(feature_nets):
+            raise InputError(f"{path} holds {len(state['feature_nets'])} feature nets, the engine has {len(feature_nets)} sensors")
+        for net, net_state in zip(feature_nets, state["feature_nets"]):
+            net.load_state_dict(net_state)
+        weighting_net.load_state_dict(state["weighting_net"])
+    except InputError:
+        raise
+    except Exception as err:  # corrupt file, wrong architecture
+        raise InputError(f"cannot load weights from {path}: {err}") from err
+    return {"sensors": state.get("sensors"), "sensor_uses_rgb": state.get("sensor_uses_rgb"), **state.get("meta", {})}

@@ -1,0 +1,430 @@
+"""Message handling shared by the live node and bag replay: messages in, ready frames out.
+
+No rclpy Node here (only duck-typed message objects, via `conversions`), and no wall clock:
+every decision depends on message stamps and arrival order alone, so the same message sequence
+always gives the same frames, live or replayed.
+
+Per sensor:
+- `camera_info` is cached (the latest one wins);
+- depth images are decoded on arrival, checked, resized to the working resolution and put in a
+  bounded queue (the oldest frame is dropped when it is full);
+- colour images wait in a short buffer and are matched to depth by the nearest stamp;
+- poses go to a sorted buffer; a frame leaves the queue once a pose at or after its stamp
+  exists, with the pose interpolated at the depth stamp (lerp + slerp). A frame is dropped when
+  the sensor's stream time has moved more than `pose_max_wait_s` past it with no such pose.
+
+Counters per sensor: `received` (depth images), `integrated` (reported back by the caller with
+`mark_integrated`), `dropped[reason]` (messages of any stream discarded, by reason; see
+`DROP_REASONS`). A stamp jumping backwards by more than `time_jump_s` (a bag restarting) flushes
+all queues and pose buffers and is reported as a `TimeJump` item ahead of the frames that follow
+it, so the caller can reset its map or carry on.
+
+Typical use::
+
+    ingest = Ingest(IngestConfig(sensors=("tof", "stereo")))
+    ingest.add_camera_info("tof", info_msg)
+    ingest.add_pose("tof", pose_msg)
+    ingest.add_depth("tof", depth_msg)
+    for item in ingest.pop_ready():
+        if isinstance(item, TimeJump): ...          # reset or ignore
+        else: engine.integrate(item.sensor, item.depth_m, item.K, item.T_world_camera, item.rgb)
+"""
+from __future__ import annotations
+
+import bisect
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from senfunet_ros import conversions as conv
+
+__all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest"]
+
+DROP_REASONS: tuple[str, ...] = (
+    "no_camera_info",  # depth arrived before any camera_info of its sensor
+    "bad_encoding",  # depth or colour encoding unsupported, or the image is malformed
+    "size_mismatch",  # depth size differs from its camera_info size
+    "all_invalid",  # no valid depth pixel at all
+    "bad_pose",  # pose message with NaN/inf or a non-unit quaternion
+    "pose_timeout",  # no pose after the frame arrived within pose_max_wait_s of stream time
+    "pose_gap",  # the poses around the frame are further than pose_tolerance_s from it
+    "queue_full",  # the frame queue overflowed; the oldest frame goes
+    "out_of_order",  # depth stamp older than the previous one of the same sensor
+    "duplicate",  # depth stamp equal to the previous one of the same sensor
+    "time_jump",  # frames flushed because time jumped backwards
+    "engine_error",  # the engine rejected the frame (reported by the caller)
+)
+
+
+@dataclass(frozen=True)
+class IngestConfig:
+    """How messages become frames. Times are seconds of message stamps, never wall time."""
+
+    sensors: tuple[str, ...] = ("tof", "stereo")
+    working_size: tuple[int, int] = (0, 0)  # (width, height) frames are resized to; 0 = native
+    queue_size: int = 30  # frames waiting for a pose, per sensor
+    pose_buffer_size: int = 2000  # poses kept per sensor (20 s at 100 Hz)
+    pose_tolerance_s: float = 0.1  # max distance from a frame to the poses it is interpolated from
+    pose_max_wait_s: float = 1.0  # a frame waits this long (stream time) for a later pose
+    color_tolerance_s: float = 0.02  # max stamp distance of a colour image to its depth image
+    time_jump_s: float = 1.0  # a stamp this far behind its stream's last one means a restart
+    pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
+
+    def __post_init__(self) -> None:
+        if not self.sensors or len(set(self.sensors)) != len(self.sensors):
+            raise ValueError(f"sensors must be distinct names, got {self.sensors}")
+        if self.queue_size < 1 or self.pose_buffer_size < 2:
+            raise ValueError("queue_size must be >= 1 and pose_buffer_size >= 2")
+        if min(self.working_size) < 0:
+            raise ValueError(f"working_size must be (width, height) >= 0, got {self.working_size}")
+
+
+@dataclass
+class Frame:
+    """A depth frame ready for the engine (the engine's conventions: see docs/architecture.md)."""
+
+    sensor: str
+    stamp_ns: int
+    depth_m: np.ndarray  # HxW float32 metres, 0 = invalid
+    rgb: np.ndarray | None  # HxWx3 uint8 or None
+    K: np.ndarray  # 3x3 float64 for this depth resolution
+    T_world_camera: np.ndarray  # 4x4 float64
+
+
+@dataclass(frozen=True)
+class TimeJump:
+    """Stamps of `stream` on `sensor` went back from `from_ns` to `to_ns`: all buffers were flushed."""
+
+    sensor: str
+    stream: str  # "depth", "color" or "pose"
+    from_ns: int
+    to_ns: int
+
+
+@dataclass
+class SensorCounters:
+    received: int = 0  # depth images received
+    integrated: int = 0  # frames the caller integrated
+    color_received: int = 0
+    pose_received: int = 0
+    time_jumps: int = 0  # time jumps first seen on this sensor's streams
+    dropped: dict[str, int] = field(default_factory=lambda: {reason: 0 for reason in DROP_REASONS})
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "received": self.received,
+            "integrated": self.integrated,
+            "color_received": self.color_received,
+            "pose_received": self.pose_received,
+            "time_jumps": self.time_jumps,
+            "dropped": dict(self.dropped),
+        }
+
+
+@dataclass
+class _Pending:
+    stamp_ns: int
+    depth_m: np.ndarray
+    K: np.ndarray
+
+
+class _SensorState:
+    def __init__(self, config: IngestConfig) -> None:
+        self.counters = SensorCounters()
+        self.camera_info: tuple[np.ndarray, tuple[int, int]] | None = None
+        self.queue: deque[_Pending] = deque()
+        self.colors: deque[tuple[int, np.ndarray]] = deque(maxlen=max(4, config.queue_size))
+        self.pose_stamps: list[int] = []  # sorted
+        self.poses: list[np.ndarray] = []  # 4x4, parallel to pose_stamps
+        self.last_ns: dict[str, int | None] = {"depth": None, "color": None, "pose": None}
+        self.color_seen = False
+
+    def stream_now_ns(self) -> int | None:
+        """The sensor's stream time: the newest stamp seen on any of its streams."""
+        stamps = [s for s in self.last_ns.values() if s is not None]
+        return max(stamps) if stamps else None
+
+    def flush(self) -> int:
+        n = len(self.queue)
+        self.queue.clear()
+        self.colors.clear()
+        self.pose_stamps.clear()
+        self.poses.clear()
+        self.last_ns = {"depth": None, "color": None, "pose": None}
+        return n
+
+
+def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> unit quaternion (x, y, z, w), numerically stable for any angle."""
+    m = R
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.asarray(q, dtype=np.float64)
+    return q / np.linalg.norm(q)
+
+
+def _matrix_from_quat(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
+    """Pose at fraction s in [0, 1] from T0 to T1: lerp of translation, slerp of rotation."""
+    q0 = _quat_from_matrix(T0[:3, :3])
+    q1 = _quat_from_matrix(T1[:3, :3])
+    dot = float(np.dot(q0, q1))
+    if dot < 0.0:  # take the short way round
+        q1, dot = -q1, -dot
+    if dot > 0.9995:  # nearly equal: lerp is exact enough and avoids dividing by sin(~0)
+        q = q0 + s * (q1 - q0)
+    else:
+        theta = np.arccos(dot)
+        q = (np.sin((1 - s) * theta) * q0 + np.sin(s * theta) * q1) / np.sin(theta)
+    T = np.eye(4)
+    T[:3, :3] = _matrix_from_quat(q / np.linalg.norm(q))
+    T[:3, 3] = (1 - s) * T0[:3, 3] + s * T1[:3, 3]
+    return T
+
+
+class Ingest:
+    """Per-sensor queues, caches and counters; thread-safe (callbacks add, a timer pops)."""
+
+    def __init__(self, config: IngestConfig) -> None:
+        self.config = config
+        self._lock = threading.Lock()
+        self._sensors = {name: _SensorState(config) for name in config.sensors}
+        self._jumps: list[TimeJump] = []
+
+    # -- inputs ---------------------------------------------------------------------------
+
+    def _state(self, sensor: str) -> _SensorState:
+        try:
+            return self._sensors[sensor]
+        except KeyError:
+            raise ValueError(f"unknown sensor '{sensor}'; configured sensors are {list(self._sensors)}") from None
+
+    def _check_time(self, state: _SensorState, sensor: str, stream: str, stamp_ns: int) -> str | None:
+        """Time-jump detection for one stream. Returns a drop reason or None. Lock held."""
+        last = state.last_ns[stream]
+        if last is not None and stamp_ns < last - int(self.config.time_jump_s * 1e9):
+            jump = TimeJump(sensor, stream, last, stamp_ns)
+            self._jumps.append(jump)
+            state.counters.time_jumps += 1
+            for other in self._sensors.values():  # a restart concerns every sensor
+                other.counters.dropped["time_jump"] += other.flush()
+            state.last_ns[stream] = stamp_ns
+            return None
+        if stream == "depth" and last is not None:
+            if stamp_ns == last:
+                return "duplicate"
+            if stamp_ns < last:
+                return "out_of_order"
+        state.last_ns[stream] = stamp_ns if last is None else max(last, stamp_ns)
+        return None
+
+    def add_camera_info(self, sensor: str, msg: Any) -> None:
+        """Cache K and the image size. Raises ValueError (nothing cached) when the message is bad."""
+        K, size = conv.intrinsics_from_camera_info(msg)
+        with self._lock:
+            self._state(sensor).camera_info = (K, size)
+
+    def add_depth(self, sensor: str, msg: Any) -> str | None:
+        """Queue one depth image. Returns the drop reason, or None when it was queued."""
+        stamp_ns = conv.stamp_to_ns(msg.header.stamp)
+        with self._lock:
+            state = self._state(sensor)
+            state.counters.received += 1
+            reason = self._check_time(state, sensor, "depth", stamp_ns)
+            if reason is None:
+                reason, pending = self._decode_depth(state, msg, stamp_ns)
+            if reason is not None:
+                state.counters.dropped[reason] += 1
+                return reason
+            if len(state.queue) >= self.config.queue_size:
+                state.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
+                state.counters.dropped["queue_full"] += 1
+            state.queue.append(pending)
+            return None
+
+    def _decode_depth(self, state: _SensorState, msg: Any, stamp_ns: int) -> tuple[str | None, Any]:
+        if state.camera_info is None:
+            return "no_camera_info", None
+        K, info_size = state.camera_info
+        try:
+            depth_m = conv.depth_from_image(msg)
+        except ValueError:
+            return "bad_encoding", None
+        height, width = depth_m.shape
+        if (width, height) != info_size:
+            return "size_mismatch", None
+        if not np.any(depth_m > 0.0):
+            return "all_invalid", None
+        target = self._working_size((width, height))
+        if target != (width, height):
+            depth_m = conv.resize_depth(depth_m, target)
+            K = conv.scale_intrinsics(K, (width, height), target)
+        return None, _Pending(stamp_ns, depth_m, K)
+
+    def _working_size(self, native: tuple[int, int]) -> tuple[int, int]:
+        width, height = self.config.working_size
+        return (width or native[0], height or native[1])
+
+    def add_color(self, sensor: str, msg: Any) -> str | None:
+        """Buffer one colour image for matching. Returns the drop reason, or None."""
+        stamp_ns = conv.stamp_to_ns(msg.header.stamp)
+        with self._lock:
+            state = self._state(sensor)
+            state.counters.color_received += 1
+            self._check_time(state, sensor, "color", stamp_ns)
+            try:
+                rgb = conv.rgb_from_image(msg)
+            except ValueError:
+                state.counters.dropped["bad_encoding"] += 1
+                return "bad_encoding"
+            state.color_seen = True
+            state.colors.append((stamp_ns, rgb))
+            return None
+
+    def add_pose(self, sensor: str, msg: Any) -> str | None:
+        """Add one pose message (PoseStamped, Odometry or TransformStamped). Returns the drop reason."""
+        with self._lock:
+            state = self._state(sensor)
+            state.counters.pose_received += 1
+            try:
+                stamp_ns, T = self.config.pose_parser(msg)
+            except (ValueError, AttributeError):
+                state.counters.dropped["bad_pose"] += 1
+                return "bad_pose"
+            self._check_time(state, sensor, "pose", stamp_ns)
+            i = bisect.bisect_left(state.pose_stamps, stamp_ns)
+            if i < len(state.pose_stamps) and state.pose_stamps[i] == stamp_ns:
+                state.poses[i] = T  # a republished pose: the newest wins
+            else:
+                state.pose_stamps.insert(i, stamp_ns)
+                state.poses.insert(i, T)
+            excess = len(state.pose_stamps) - self.config.pose_buffer_size
+            if excess > 0:
+                del state.pose_stamps[:excess]
+                del state.poses[:excess]
+            return None
+
+    # -- outputs --------------------------------------------------------------------------
+
+    def pop_ready(self) -> list[Frame | TimeJump]:
+        """Time jumps seen since the last call, then every frame that can be posed, in stamp order.
+
+        Frames still waiting for a pose (or a colour image) stay queued; frames that waited too
+        long are dropped and counted.
+        """
+        with self._lock:
+            jumps, self._jumps = self._jumps, []
+            frames: list[Frame] = []
+            for name, state in self._sensors.items():
+                frames.extend(self._pop_sensor(name, state))
+        order = {name: i for i, name in enumerate(self.config.sensors)}
+        frames.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+        return [*jumps, *frames]
+
+    def _pop_sensor(self, name: str, state: _SensorState) -> list[Frame]:
+        cfg = self.config
+        tolerance_ns = int(cfg.pose_tolerance_s * 1e9)
+        max_wait_ns = int(cfg.pose_max_wait_s * 1e9)
+        color_tolerance_ns = int(cfg.color_tolerance_s * 1e9)
+        now_ns = state.stream_now_ns()
+        out: list[Frame] = []
+        while state.queue:
+            pending = state.queue[0]
+            t = pending.stamp_ns
+            waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
+            stamps = state.pose_stamps
+            i = bisect.bisect_left(stamps, t)
+            if i == len(stamps):  # no pose at or after the frame yet
+                if waited_too_long:
+                    state.queue.popleft()
+                    state.counters.dropped["pose_timeout"] += 1
+                    continue
+                break  # later frames are newer: they wait too
+            if stamps[i] == t:
+                T = state.poses[i]
+            elif i == 0 or t - stamps[i - 1] > tolerance_ns or stamps[i] - t > tolerance_ns:
+                state.queue.popleft()
+                state.counters.dropped["pose_gap"] += 1
+                continue
+            else:
+                s = (t - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
+                T = interpolate_pose(state.poses[i - 1], state.poses[i], s)
+            # Colour is published next to depth; give it the chance to arrive unless waiting longer
+            # would exceed the limit (then the frame goes without colour).
+            if state.color_seen and not waited_too_long:
+                last_color = state.last_ns["color"]
+                if last_color is None or last_color < t:  # the colour stream has not reached t yet
+                    break
+            rgb = self._match_color(state, t, color_tolerance_ns, pending.depth_m.shape)
+            state.queue.popleft()
+            out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T))
+        return out
+
+    def _match_color(self, state: _SensorState, t: int, tolerance_ns: int, shape: tuple[int, ...]) -> np.ndarray | None:
+        best: tuple[int, np.ndarray] | None = None
+        for stamp, rgb in state.colors:
+            if abs(stamp - t) <= tolerance_ns and (best is None or abs(stamp - t) < abs(best[0] - t)):
+                best = (stamp, rgb)
+        # Colours older than this frame can never match a later one.
+        while state.colors and state.colors[0][0] < t - tolerance_ns:
+            state.colors.popleft()
+        if best is None:
+            return None
+        rgb = best[1]
+        height, width = shape
+        if rgb.shape[:2] != (height, width):
+            rgb = conv.resize_rgb(rgb, (width, height))
+        return rgb
+
+    # -- bookkeeping ----------------------------------------------------------------------
+
+    def mark_integrated(self, sensor: str) -> None:
+        with self._lock:
+            self._state(sensor).counters.integrated += 1
+
+    def mark_dropped(self, sensor: str, reason: str) -> None:
+        if reason not in DROP_REASONS:
+            raise ValueError(f"unknown drop reason '{reason}'; use one of {DROP_REASONS}")
+        with self._lock:
+            self._state(sensor).counters.dropped[reason] += 1
+
+    def counters(self) -> dict[str, dict[str, Any]]:
+        """A snapshot: sensor -> SensorCounters.as_dict() plus `queue_depth`."""
+        with self._lock:
+            return {
+                name: {**state.counters.as_dict(), "queue_depth": len(state.queue)}
+                for name, state in self._sensors.items()
+            }
+
+    def queue_depths(self) -> dict[str, int]:
+        with self._lock:
+            return {name: len(state.queue) for name, state in self._sensors.items()}
+
+    def clear_frames(self) -> None:
+        """Forget queued frames and colour images (a map reset); poses and camera_info stay."""
+        with self._lock:
+            for state in self._sensors.values():
+                state.queue.clear()
+                state.colors.clear()

@@ -1,0 +1,398 @@
+"""The engine against analytic geometry: TSDF values, fusion, filter, incremental alpha, meshes, state."""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from senfunet_core import networks
+from senfunet_core.engine import EngineConfig, SenFuNet
+from senfunet_core.errors import InputError
+from senfunet_core.fusion import fuse
+from senfunet_core.grid import BLOCK
+from senfunet_core.mesher import Mesh, weld
+
+VOXEL = 0.01
+
+
+def pinhole(f_px: float, size: int = 128) -> np.ndarray:
+    c = (size - 1) / 2
+    return np.array([[f_px, 0, c], [0, f_px, c], [0, 0, 1.0]])
+
+
+def look_at(eye, target, up=(0, 0, 1)) -> np.ndarray:
+    """Camera-to-world pose of an optical frame (z forward, x right, y down) at eye looking at target."""
+    eye, target, up = (np.asarray(v, float) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    if abs(np.dot(z, up)) > 0.99:
+        up = np.array([0, 1.0, 0])
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+def ray_directions_world(K, T, size):
+    v, u = np.mgrid[0:size, 0:size].astype(float)
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    return d_cam @ T[:3, :3].T  # z-component 1 in camera frame: t along it is the z-depth
+
+
+def render_sphere(centre, radius, K, T, size=128) -> np.ndarray:
+    d = ray_directions_world(K, T, size)
+    o = T[:3, 3]
+    oc = o - np.asarray(centre)
+    a = (d * d).sum(-1)
+    b = 2 * (d @ oc)
+    c = oc @ oc - radius**2
+    disc = b * b - 4 * a * c
+    t = (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a)
+    return np.where(disc > 0, t, 0).astype(np.float32)
+
+
+def render_plane_z(z_plane, K, T, size=128) -> np.ndarray:
+    """Depth of the horizontal plane z = z_plane (camera looking down)."""
+    d = ray_directions_world(K, T, size)
+    t = (z_plane - T[2, 3]) / d[..., 2]
+    return np.where(t > 0, t, 0).astype(np.float32)
+
+
+def constant_alpha(engine: SenFuNet, alpha: float) -> None:
+    """Make the weighting net output `alpha` everywhere (a known weighting for the fusion tests)."""
+    with torch.no_grad():
+        engine.weighting_net.conv3.weight.zero_()
+        engine.weighting_net.conv3.bias.fill_(math.log(alpha / (1 - alpha)))
+
+
+def engine_for_tests(**overrides) -> SenFuNet:
+    config = replace(EngineConfig(sensor_uses_rgb=(False, False), depth_min_m=(0.05, 0.05)), **overrides)
+    return SenFuNet(config, weights=None)
+
+
+SPHERE_C, SPHERE_R = np.array([0.0, 0.0, 0.0]), 0.3
+
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    polar, azimuth = np.arccos(1 - 2 * i / n), np.pi * (1 + 5**0.5) * i
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
+
+
+SPHERE_VIEWS = [look_at(SPHERE_C + 0.9 * d, SPHERE_C) for d in fibonacci_directions(26)]
+SPHERE_K = pinhole(160.0)  # rays denser than voxels: every voxel near the surface gets a sample
+
+
+@pytest.fixture(scope="module")
+def sphere_engine() -> SenFuNet:
+    engine = engine_for_tests()
+    K = SPHERE_K
+    for T in SPHERE_VIEWS:
+        depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+        for sensor in engine.config.sensors:  # identical frames: every voxel is in C12, nothing filtered
+            engine.integrate(sensor, depth, K, T)
+    return engine
+
+
+def test_plane_tsdf_matches_analytic_distance():
+    engine = engine_for_tests()
+    K = pinhole(400.0)  # narrow field of view: the projective distance is close to the true one
+    T = look_at((0.03, 0.02, 1.0), (0.03, 0.02, 0.0))
+    engine.integrate("tof", render_plane_z(0.0, K, T), K, T)
+    centres, tsdf = engine.voxel_values("tof")
+    expected = centres[:, 2]  # signed distance to the plane z = 0, positive on the camera side
+    near = np.abs(expected) <= 0.03
+    assert near.sum() > 1000
+    err = np.abs(tsdf[near] - expected[near])
+    assert err.max() < VOXEL
+    assert err.mean() < 0.3 * VOXEL
+    # samples are written from +band/2 in front to 3 voxels behind the surface
+    assert tsdf.max() == pytest.approx(0.05, abs=1e-6)
+    assert tsdf.min() == pytest.approx(-0.03, abs=1e-6)
+
+
+def test_sphere_tsdf_matches_analytic_distance():
+    # The TSDF is projective (distance along the ray): it equals the true distance where rays meet
+    # the surface head-on, so compare where the surface faces the camera within 30 degrees.
+    engine = engine_for_tests()
+    K = pinhole(200.0)
+    eye = np.array([0.0, -1.0, 0.2])
+    T = look_at(eye, SPHERE_C)
+    engine.integrate("tof", render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
+    centres, tsdf = engine.voxel_values("tof")
+    radial = centres - SPHERE_C
+    expected = np.linalg.norm(radial, axis=1) - SPHERE_R
+    towards_camera = eye - centres
+    cos_incidence = np.sum(radial * towards_camera, axis=1) / (
+        np.linalg.norm(radial, axis=1) * np.linalg.norm(towards_camera, axis=1))
+    near = (np.abs(expected) <= 0.02) & (cos_incidence > math.cos(math.radians(30)))
+    assert near.sum() > 1000
+    err = np.abs(tsdf[near] - expected[near])
+    assert err.max() < VOXEL
+    assert err.mean() < 0.3 * VOXEL
+
+
+def test_sphere_mesh_is_one_closed_surface(sphere_engine):
+    mesh = sphere_engine.extract_mesh("fused")
+    v, f = mesh.vertices, mesh.faces
+    assert mesh.n_faces > 5000
+    assert len(np.unique(v, axis=0)) == len(v)  # no duplicate vertices at block seams
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    unique_edges, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)  # closed, manifold
+    assert len(v) - len(unique_edges) + len(f) == 2  # Euler characteristic of a sphere
+    radii = np.linalg.norm(v - SPHERE_C, axis=1)
+    assert np.abs(radii - SPHERE_R).max() < VOXEL
+    # spans many blocks, so seams were really crossed
+    assert len(np.unique(np.floor(v / (BLOCK * VOXEL)), axis=0)) > 50
+
+
+def test_incremental_block_meshes_equal_whole_mesh():
+    engine = engine_for_tests()
+    K = SPHERE_K
+    shown: dict = {}
+    for T in SPHERE_VIEWS[:5]:
+        depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+        engine.integrate("tof", depth, K, T)
+        engine.integrate("stereo", depth + 0.004, K, T)
+        update = engine.update()
+        for key in update.removed:
+            shown.pop(key)
+        shown.update(update.changed)
+    whole = engine.extract_mesh("fused")
+    joined = join_block_meshes(list(shown.values()))
+    assert joined.n_faces == whole.n_faces > 1000
+    np.testing.assert_allclose(np.unique(joined.vertices, axis=0), np.unique(whole.vertices, axis=0), atol=1e-5)
+
+
+def join_block_meshes(pieces: list[Mesh]) -> Mesh:
+    """Per-block meshes (as the node publishes them) welded into one."""
+    offsets = np.cumsum([0] + [m.n_vertices for m in pieces])
+    vertices = np.concatenate([m.vertices for m in pieces]).astype(np.float64) / VOXEL
+    faces = np.concatenate([m.faces + o for m, o in zip(pieces, offsets)])
+    vertices, faces, _ = weld(vertices, faces)
+    return Mesh((vertices * VOXEL).astype(np.float32), faces)
+
+
+def dense_alpha(engine: SenFuNet) -> dict[tuple, float]:
+    """The weighting net over one dense grid covering every block plus a zero margin (the paper's way)."""
+    grid = engine.grid
+    coords = grid.coords[: grid.n_blocks]
+    lo = coords.min(0).values * BLOCK - 3
+    hi = (coords.max(0).values + 1) * BLOCK + 3
+    dims = (hi - lo).tolist()
+    channels = []
+    for i in range(2):
+        feat = torch.zeros((*dims, networks.N_FEATURES))
+        weight = torch.zeros(dims)
+        for slot in range(grid.n_blocks):
+            o = (coords[slot] * BLOCK - lo).tolist()
+            sl = (slice(o[0], o[0] + BLOCK), slice(o[1], o[1] + BLOCK), slice(o[2], o[2] + BLOCK))
+            feat[sl] = grid.pools[f"feat{i}"][slot].view(BLOCK, BLOCK, BLOCK, -1)
+            weight[sl] = grid.pools[f"weight{i}"][slot].view(BLOCK, BLOCK, BLOCK)
+        channels.append((feat, weight))
+    x = networks.weighting_input([c[0] for c in channels], [c[1] for c in channels])
+    with torch.no_grad():
+        alpha = engine.weighting_net(x.permute(3, 0, 1, 2).unsqueeze(0), pad=True)[0, 0]
+    return alpha, lo
+
+
+def test_incremental_alpha_equals_whole_grid_alpha():
+    engine = engine_for_tests()
+    with torch.no_grad():  # larger random weights than the default init, so alpha varies a lot
+        for p in engine.weighting_net.parameters():
+            p.mul_(3.0)
+    K = SPHERE_K
+    for i, T in enumerate(SPHERE_VIEWS[:4]):
+        depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+        engine.integrate("tof" if i % 2 == 0 else "stereo", depth, K, T)
+        engine.update()  # incremental: only the blocks touched since the previous update
+    alpha, lo = dense_alpha(engine)
+    grid = engine.grid
+    incremental = grid.pools["alpha"][: grid.n_blocks].view(-1, BLOCK, BLOCK, BLOCK)
+    worst = 0.0
+    spread = []
+    for slot in range(grid.n_blocks):
+        o = (grid.coords[slot] * BLOCK - lo).tolist()
+        whole = alpha[o[0]:o[0] + BLOCK, o[1]:o[1] + BLOCK, o[2]:o[2] + BLOCK]
+        worst = max(worst, float((whole - incremental[slot]).abs().max()))
+        spread.append(whole)
+    assert worst < 1e-5
+    assert float(torch.stack(spread).std()) > 0.01  # alpha is not trivially constant
+
+
+def test_fusion_equation_on_c12_c1_c2():
+    engine = engine_for_tests(border_px=0)
+    constant_alpha(engine, 0.3)
+    K = pinhole(200.0)
+    T = look_at((0, 0, 1.0), (0, 0, 0))
+    depth_1 = render_plane_z(0.0, K, T)
+    depth_2 = render_plane_z(0.02, K, T)
+    depth_1[:, 80:] = 0  # sensor 1 sees the left part, sensor 2 the right part: C1, C12 and C2 all exist
+    depth_2[:, :48] = 0
+    engine.integrate("tof", depth_1, K, T)
+    engine.integrate("stereo", depth_2, K, T)
+    grid = engine.grid
+    n = grid.n_blocks
+    v1, w1 = grid.pools["tsdf0"][:n].flatten(), grid.pools["weight0"][:n].flatten()
+    v2, w2 = grid.pools["tsdf1"][:n].flatten(), grid.pools["weight1"][:n].flatten()
+    centres = grid.voxel_centres(torch.arange(n), VOXEL).reshape(-1, 3).numpy()
+    keys_by_position = {tuple(np.round(c / VOXEL).astype(int)): i for i, c in enumerate(centres)}
+    got_centres, got = engine.voxel_values("fused", filtered=False)
+    idx = np.array([keys_by_position[tuple(np.round(c / VOXEL).astype(int))] for c in got_centres])
+    v1, w1, v2, w2 = (t.numpy()[idx] for t in (v1, w1, v2, w2))
+    c12, c1, c2 = (w1 > 0) & (w2 > 0), (w1 > 0) & (w2 == 0), (w1 == 0) & (w2 > 0)
+    assert c12.sum() > 100 and c1.sum() > 100 and c2.sum() > 100
+    np.testing.assert_allclose(got[c12], 0.3 * v1[c12] + 0.7 * v2[c12], atol=1e-6)
+    np.testing.assert_allclose(got[c1], v1[c1], atol=1e-7)
+    np.testing.assert_allclose(got[c2], v2[c2], atol=1e-7)
+    # the outlier filter: alpha 0.3 < 0.5 drops exactly the sensor-1-only voxels
+    kept, _ = engine.voxel_values("fused", filtered=True)
+    assert len(kept) == int(c12.sum() + c2.sum())
+    constant_alpha(engine, 0.7)
+    engine._alpha_pending.append(torch.arange(n))  # the net changed: re-evaluate everywhere
+    kept, _ = engine.voxel_values("fused", filtered=True)
+    assert len(kept) == int(c12.sum() + c1.sum())
+
+
+def test_outlier_filter_boundaries():
+    v1 = torch.tensor([0.1, 0.1, 0.1, 0.0, 0.0, 0.0, 0.2, 0.0])
+    w1 = torch.tensor([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 2.0, 0.0])
+    v2 = torch.tensor([0.0, 0.0, 0.0, -0.1, -0.1, -0.1, -0.2, 0.0])
+    w2 = torch.tensor([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 3.0, 0.0])
+    alpha = torch.tensor([0.49, 0.5, 0.51, 0.49, 0.5, 0.51, 0.25, 0.9])
+    out = fuse(v1, w1, v2, w2, alpha, apply_filter=True)
+    assert out.observed.tolist() == [False, True, True, True, True, False, True, False]
+    assert out.tsdf_m[6].item() == pytest.approx(0.25 * 0.2 + 0.75 * -0.2)
+    assert fuse(v1, w1, v2, w2, alpha, apply_filter=False).observed.tolist() == [True] * 7 + [False]
+
+
+def test_running_average_and_weight_clip():
+    engine = engine_for_tests(w_max=3.0)
+    K = pinhole(400.0)
+    T = look_at((0, 0, 1.0), (0, 0, 0))
+    planes_z = (0.0, -0.01, -0.02, -0.03, -0.04)  # moving away: the voxel at z=0 stays in front
+    for z in planes_z:
+        engine.integrate("tof", render_plane_z(z, K, T), K, T)
+    weights = engine.grid.pools["weight0"][: engine.grid.n_blocks]
+    assert weights.max().item() == 3.0
+    # a voxel seen by every frame: average with the clipped weight, (W*V + v) / (W + 1), W <= 3
+    centres, tsdf = engine.voxel_values("tof")
+    probe = np.argmin(np.linalg.norm(centres - np.array([0.0, 0.0, 0.0]), axis=1))
+    expected = 0.0
+    for i, z in enumerate(planes_z):
+        w = min(i, 3)
+        expected = (w * expected - z) / (w + 1)
+    assert tsdf[probe] == pytest.approx(expected, abs=1e-5)
+
+
+def test_save_and_load_give_identical_meshes(sphere_engine, tmp_path):
+    path = tmp_path / "state.pt"
+    sphere_engine.save(path)
+    loaded = SenFuNet.load(path)
+    for which in ("fused", "tof", "tsdf_fusion"):
+        a, b = sphere_engine.extract_mesh(which), loaded.extract_mesh(which)
+        np.testing.assert_array_equal(a.vertices, b.vertices)
+        np.testing.assert_array_equal(a.faces, b.faces)
+    # a resumed session re-sends its whole mesh on the first update
+    update = loaded.update()
+    assert join_block_meshes(list(update.changed.values())).n_faces == sphere_engine.extract_mesh("fused").n_faces
+    with pytest.raises(InputError, match="cannot read"):
+        SenFuNet.load(tmp_path / "missing.pt")
+
+
+def grid_snapshot(engine: SenFuNet) -> list[torch.Tensor]:
+    return [engine.grid.coords[: engine.grid.n_blocks].clone()] + [
+        p[: engine.grid.n_blocks].clone() for p in engine.grid.pools.values()]
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda d, K, T, rgb: (d[None], K, T, rgb), "2-D"),
+    (lambda d, K, T, rgb: (d.astype(np.uint16), K, T, rgb), "float32"),
+    (lambda d, K, T, rgb: (d, K * np.array([[0, 1, 1], [1, 1, 1], [1, 1, 1]]), T, rgb), "focal"),
+    (lambda d, K, T, rgb: (d, -K, T, rgb), "focal"),
+    (lambda d, K, T, rgb: (d, K[:2], T, rgb), "3x3"),
+    (lambda d, K, T, rgb: (d, K, np.full((4, 4), np.nan), rgb), "finite"),
+    (lambda d, K, T, rgb: (d, K, T * 2, rgb), "rigid"),
+    (lambda d, K, T, rgb: (d, K, T, np.zeros((10, 10, 3), np.uint8)), "rgb"),
+    (lambda d, K, T, rgb: (d, K, T, np.zeros((*d.shape, 3), np.float32)), "rgb"),
+])
+def test_bad_input_raises_and_leaves_grids_untouched(sphere_engine, mutate, message):
+    K = SPHERE_K
+    T = SPHERE_VIEWS[0]
+    depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+    before = grid_snapshot(sphere_engine)
+    args = mutate(depth, K, T, None)
+    with pytest.raises(ValueError, match=message):
+        sphere_engine.integrate("tof", *args)
+    with pytest.raises(ValueError, match="unknown sensor"):
+        sphere_engine.integrate("lidar", depth, K, T)
+    for a, b in zip(before, grid_snapshot(sphere_engine)):
+        assert torch.equal(a, b)
+
+
+def test_invalid_depth_pixels_are_skipped():
+    engine = engine_for_tests(border_px=0)
+    K = pinhole(200.0)
+    T = look_at((0, 0, 1.0), (0, 0, 0))
+    depth = render_plane_z(0.0, K, T)
+    bad = depth.copy()
+    bad[::3, ::3] = np.nan
+    bad[1::3, ::3] = np.inf
+    bad[2::3, ::3] = -1.0
+    bad[::3, 1::3] = 0.0
+    assert engine.integrate("tof", np.full_like(depth, np.nan), K, T) == 0
+    engine.integrate("tof", bad, K, T)
+    centres, tsdf = engine.voxel_values("tof")
+    assert np.all(np.isfinite(tsdf)) and len(tsdf) > 1000
+    reference = engine_for_tests(border_px=0)
+    good_only = np.where(np.isfinite(bad) & (bad > 0), bad, 0).astype(np.float32)
+    reference.integrate("tof", good_only, K, T)
+    assert len(reference.voxel_values("tof")[1]) == len(tsdf)
+
+
+def test_weight_cloud_fields(sphere_engine):
+    cloud = sphere_engine.weight_cloud()
+    n = len(cloud.positions_m)
+    assert n > 0 and cloud.alpha.shape == (n,) and cloud.weights.shape == (n, 2)
+    assert np.all((cloud.weights > 0).any(axis=1))
+    assert np.all((cloud.alpha >= 0) & (cloud.alpha <= 1))
+    near = sphere_engine.weight_cloud(max_abs_tsdf_m=VOXEL)
+    assert 0 < len(near.positions_m) < n
+
+
+def test_reset_empties_the_map(tmp_path):
+    engine = engine_for_tests()
+    K = SPHERE_K
+    T = SPHERE_VIEWS[0]
+    for sensor in engine.config.sensors:
+        engine.integrate(sensor, render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
+    assert engine.update().changed
+    engine.reset()
+    update = engine.update()
+    assert update.cleared and not update.changed
+    assert engine.extract_mesh("tof").n_faces == 0
+
+
+def test_core_imports_no_ros():
+    code = ("import sys, senfunet_core.engine, senfunet_core.integrator, senfunet_core.mesher;"
+            "bad = [m for m in sys.modules if m.split('.')[0] in "
+            "('rclpy', 'sensor_msgs', 'geometry_msgs', 'visualization_msgs', 'rosbags', 'senfunet_ros')];"
+            "print(bad); sys.exit(1 if bad else 0)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_weighting_net_has_the_paper_parameter_count():
+    net = networks.WeightingNet()
+    assert sum(p.numel() for p in net.parameters()) == 24257
+    for uses_rgb, expected in ((False, 1668), (True, 1776)):
+        assert sum(p.numel() for p in networks.FeatureNet(uses_rgb).parameters()) == expected
