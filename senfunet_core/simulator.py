@@ -27,7 +27,7 @@ from senfunet_core.mesher import Mesh
 __all__ = [
     "Primitive", "Surface", "Scene", "make_scene", "scene_sdf", "gt_tsdf", "gt_mesh",
     "SensorFrame", "Sequence", "simulate_sequence", "render_view", "intrinsics",
-    "write_dataset", "load_dataset", "SENSORS", "STEREO_BASELINE_M", "TOF_OFFSET_X_M",
+    "write_dataset", "load_dataset", "simulate_tof_depth", "simulate_stereo_depth", "SENSORS", "STEREO_BASELINE_M", "TOF_OFFSET_X_M",
 ]
 
 SENSORS = ("tof", "stereo")
@@ -738,6 +738,19 @@ def _stereo_depth(scene: Scene, T_left: np.ndarray, K: np.ndarray, width: int, h
     return depth.astype(np.float32), rgb_l
 
 
+def simulate_tof_depth(scene: Scene, T_world_camera: np.ndarray, K: np.ndarray, width: int, height: int,
+                       rng: np.random.Generator) -> np.ndarray:
+    """One ToF depth image (H,W) float32 (0 = invalid) seen from the ToF optical frame pose."""
+    view = render_view(scene, T_world_camera, K, width, height, with_rgb=False)
+    return _tof_depth(view, K, scene, rng)
+
+
+def simulate_stereo_depth(scene: Scene, T_world_camera: np.ndarray, K: np.ndarray, width: int, height: int,
+                          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """One SGBM depth image (H,W) float32 (0 = invalid) and the left rgb, from the left camera pose."""
+    return _stereo_depth(scene, np.asarray(T_world_camera, np.float64), K, width, height, rng, _sgbm(scene))
+
+
 def intrinsics_scaled(K: np.ndarray, s: int) -> np.ndarray:
     """K of an image s times larger covering the same field of view (pixel centres preserved)."""
     K2 = np.array(K, dtype=np.float64)
@@ -760,8 +773,8 @@ def _translation(x: float, y: float, z: float) -> np.ndarray:
 class _Trajectory:
     """Device (= stereo left optical frame) pose as a smooth function of time.
 
-    Walks the scene's corridor loop at 0.25-0.7 m/s (slowing in tight turns so the device turns at
-    most ~40 deg/s), looking sideways into the room with a slowly varying yaw offset, at 1.5 m
+    Walks the scene's corridor loop at 0.1-0.85 m/s (slowing in tight turns so the path turns at
+    most ~20 deg/s), looking sideways into the room with a slowly varying yaw offset, at 1.5 m
     (+- ~0.15), pitched ~10-25 deg down. Dense 2 ms samples, linearly interpolated.
     """
 
@@ -777,9 +790,11 @@ class _Trajectory:
         heading = np.append(hk, hk[-1] + (np.angle(np.exp(1j * (hk[0] - hk[-1])))))  # close the loop
         kappa = np.abs(np.gradient(heading, s_knots))
         self.dt = 0.002
-        self.t = np.arange(t0, t1 + self.dt, self.dt)
+        # always start at a fixed time, so the pose at a stamp does not depend on the window asked for
+        start = min(t0, -1.0)
+        self.t = np.arange(start, t1 + 0.25 + self.dt, self.dt)
         n = len(self.t)
-        tt = self.t - t0
+        tt = self.t
 
         def smooth(amp: float, fmin: float, fmax: float, k: int = 3) -> np.ndarray:
             out = np.zeros(n)
@@ -787,15 +802,15 @@ class _Trajectory:
                 out += np.sin(2 * np.pi * rng.uniform(fmin, fmax) * tt + rng.uniform(0, 2 * np.pi))
             return amp * out / k
 
-        v0 = rng.uniform(0.3, 0.6)
-        speed = np.clip(v0 + smooth(0.25, 0.03, 0.15), 0.08, 0.7)  # includes slow scanning phases
+        v0 = rng.uniform(0.5, 0.8)
+        speed = np.clip(v0 + smooth(0.5, 0.03, 0.12), 0.1, 0.85)  # walking with slow scanning phases
         direction = 1.0 if rng.random() < 0.5 else -1.0
         s = np.empty(n)
         s[0] = rng.uniform(0, length)
-        max_turn = np.deg2rad(35.0)
+        max_turn = np.deg2rad(35.0) * 0.6
         for i in range(1, n):  # 1 scalar op per 2 ms sample; cheap
             k = np.interp(s[i - 1] % length, s_knots, kappa)
-            vi = min(speed[i], max_turn / max(k, 1e-6) * 0.6)
+            vi = min(speed[i], max_turn / max(k, 1e-6))
             s[i] = s[i - 1] + direction * vi * self.dt
         sm = np.mod(s, length)
         x = np.interp(sm, s_knots, loop_c[:, 0])
@@ -808,7 +823,7 @@ class _Trajectory:
         x = x + lat * -np.sin(hd)
         y = y + lat * np.cos(hd)
         side = rng.choice([-1.0, 1.0])  # look to the inside or the outside of the loop, swinging between
-        yaw_off = side * np.deg2rad(rng.uniform(20, 70)) + smooth(np.deg2rad(70), 0.02, 0.06)
+        yaw_off = side * np.deg2rad(rng.uniform(20, 70)) + smooth(np.deg2rad(80), 0.04, 0.12)
         yaw = hd + yaw_off
         yaw = np.convolve(np.pad(yaw, 50, mode="edge"), np.ones(101) / 101, "valid")  # 0.2 s smoothing
         z = 1.5 + smooth(0.15, 0.02, 0.1) + 0.01 * np.sin(2 * np.pi * 1.8 * tt)  # slow + step bob
@@ -883,8 +898,11 @@ def simulate_sequence(scene: Scene, seed: int, *, duration_s: float = 10.0, tof_
                       stereo_rate_hz: float = 20.0, pose_rate_hz: float = 100.0, width: int = 256,
                       height: int = 256) -> Sequence:
     """Simulate both sensors over duration_s seconds (stamps in [0, duration_s))."""
-    if duration_s <= 0 or min(tof_rate_hz, stereo_rate_hz, pose_rate_hz) <= 0 or width < 16 or height < 16:
-        raise InputError("duration, rates must be > 0 and images at least 16x16")
+    if duration_s <= 0 or min(tof_rate_hz, stereo_rate_hz, pose_rate_hz) <= 0:
+        raise InputError("duration_s and the rates must be > 0")
+    if width < SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE or height < 16:
+        # SGBM needs the image wider than its disparity range plus half a block
+        raise InputError(f"images must be at least {SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE} x 16, got {width} x {height}")
     rng = np.random.default_rng([seed, 3])
     pose_margin = 2.0 / pose_rate_hz + 0.02
     traj = _Trajectory(scene, seed, -pose_margin - 0.01, duration_s + pose_margin + 0.01)
