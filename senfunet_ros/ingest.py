@@ -45,6 +45,7 @@ __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters"
 
 DROP_REASONS: tuple[str, ...] = (
     "no_camera_info",  # depth arrived before any camera_info of its sensor
+    "bad_camera_info",  # camera_info without a usable K or size
     "bad_encoding",  # depth or colour encoding unsupported, or the image is malformed
     "size_mismatch",  # depth size differs from its camera_info size
     "all_invalid",  # no valid depth pixel at all
@@ -64,7 +65,8 @@ class IngestConfig:
     """How messages become frames. Times are seconds of message stamps, never wall time."""
 
     sensors: tuple[str, ...] = ("tof", "stereo")
-    working_size: tuple[int, int] = (0, 0)  # (width, height) frames are resized to; 0 = native
+    # (width, height) frames are resized to; both 0 = native size, one 0 = keep the aspect ratio
+    working_size: tuple[int, int] = (0, 0)
     queue_size: int = 30  # frames waiting for a pose, per sensor
     pose_buffer_size: int = 2000  # poses kept per sensor (20 s at 100 Hz)
     pose_tolerance_s: float = 0.1  # max distance from a frame to the poses it is interpolated from
@@ -240,11 +242,16 @@ class Ingest:
         state.last_ns[stream] = stamp_ns if last is None else max(last, stamp_ns)
         return None
 
-    def add_camera_info(self, sensor: str, msg: Any) -> None:
-        """Cache K and the image size. Raises ValueError (nothing cached) when the message is bad."""
-        K, size = conv.intrinsics_from_camera_info(msg)
+    def add_camera_info(self, sensor: str, msg: Any) -> str | None:
+        """Cache K and the image size. Returns the drop reason, or None when it was cached."""
         with self._lock:
-            self._state(sensor).camera_info = (K, size)
+            state = self._state(sensor)
+            try:
+                state.camera_info = conv.intrinsics_from_camera_info(msg)
+            except (ValueError, AttributeError):
+                state.counters.dropped["bad_camera_info"] += 1
+                return "bad_camera_info"
+            return None
 
     def add_depth(self, sensor: str, msg: Any) -> str | None:
         """Queue one depth image. Returns the drop reason, or None when it was queued."""
@@ -285,6 +292,10 @@ class Ingest:
 
     def _working_size(self, native: tuple[int, int]) -> tuple[int, int]:
         width, height = self.config.working_size
+        if width and not height:
+            height = max(1, round(native[1] * width / native[0]))
+        elif height and not width:
+            width = max(1, round(native[0] * height / native[1]))
         return (width or native[0], height or native[1])
 
     def add_color(self, sensor: str, msg: Any) -> str | None:

@@ -1,0 +1,32 @@
+"""Launch the SenFuNet fusion node with a parameter file (needs a full ROS 2 install).
+
+    ros2 launch senfunet_ros senfunet.launch.py
+    ros2 launch senfunet_ros senfunet.launch.py params:=/path/to/my.yaml use_sim_time:=true
+"""
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
+
+
+def generate_launch_description() -> LaunchDescription:
+    default_params = os.path.join(get_package_share_directory("senfunet_ros"), "config", "default.yaml")
+    params = LaunchConfiguration("params")
+    use_sim_time = LaunchConfiguration("use_sim_time")
+    return LaunchDescription([
+        DeclareLaunchArgument("params", default_value=default_params,
+                              description="parameter file (ros__parameters under 'senfunet')"),
+        DeclareLaunchArgument("use_sim_time", default_value="false", description="follow /clock"),
+        Node(
+            package="senfunet_ros",
+            executable="fusion_node",
+            name="senfunet",  # the parameter file's top-level key
+            output="screen",
+            emulate_tty=True,
+            parameters=[params, {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
+        ),
+    ])

@@ -1,0 +1,33 @@
+"""`senfunet node`: the live fusion node with a parameter file."""
+from __future__ import annotations
+
+import argparse
+
+HELP = "run the live fusion node (subscribes to the sensors, publishes ~/mesh, ~/weights, ~/status)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--params", metavar="YAML", help="ROS parameter file (ros__parameters under 'senfunet'), "
+                        "e.g. config/default.yaml")
+    parser.add_argument("--use-sim-time", action="store_true", help="follow /clock (for `senfunet play`)")
+    parser.add_argument("ros_args", nargs=argparse.REMAINDER,
+                        help="further ROS arguments after --, e.g. -- --ros-args -p voxel_size_m:=0.02")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from senfunet_ros.node import main  # rclpy and torch load only when the node runs
+
+    ros_args: list[str] = []
+    if args.params:
+        path = Path(args.params)
+        if not path.is_file():
+            print(f"senfunet node: parameter file {path} not found; pass e.g. --params config/default.yaml")
+            return 2
+        ros_args += ["--params-file", str(path)]
+    if args.use_sim_time:
+        ros_args += ["-p", "use_sim_time:=true"]
+    extra = [a for a in (args.ros_args or []) if a not in ("--", "--ros-args")]
+    ros_args += extra
+    return main(["senfunet", "--ros-args", *ros_args] if ros_args else ["senfunet"])

@@ -1,0 +1,426 @@
+"""The live fusion node: subscriptions enqueue, timers integrate and publish.
+
+Constructed in one order: parameters, engine, subscriptions, timers, publishers, services.
+Callbacks only hand messages to `Ingest` (bounded queues); the integration timer drains them
+into the engine; the slower mesh timer runs `engine.update()` and publishes the changed blocks.
+Each timer has its own callback group under a MultiThreadedExecutor, and one lock guards the
+engine. No callback raises: failures are counted and logged, throttled per cause.
+
+Topics (see ../shared/DESIGN.md, the interface contract):
+  in:  /<s>/depth, /<s>/color, /<s>/camera_info, /<s>/pose    (names from parameters)
+  out: ~/mesh (MarkerArray, transient local), ~/weights (PointCloud2), ~/status (DiagnosticArray)
+  srv: ~/save_mesh, ~/reset (std_srvs/Trigger)
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped, TransformStamped
+from nav_msgs.msg import Odometry
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from senfunet_ros import conversions as conv
+from senfunet_ros import params as P
+from senfunet_ros.ingest import DROP_REASONS, Frame, Ingest, IngestConfig, TimeJump
+
+__all__ = ["FusionNode", "main"]
+
+_POSE_MSGS = {"pose_stamped": PoseStamped, "odometry": Odometry, "transform_stamped": TransformStamped}
+_WARN_PERIOD_S = 5.0  # one warning per cause per this many seconds
+
+# Best effort + volatile subscriptions match both reliable and best-effort publishers (and
+# volatile or transient-local ones); keep-last bounds what piles up if a callback lags.
+_SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_EFFORT,
+                         durability=DurabilityPolicy.VOLATILE)
+_POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.BEST_EFFORT,
+                       durability=DurabilityPolicy.VOLATILE)
+# The map: reliable and kept for late subscribers. Depth > 1 so a burst (delta then snapshot) is
+# not overwritten before a slow reader acknowledged it.
+_MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=4, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+_CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+_STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+
+
+class _Timing:
+    """Last and exponentially averaged duration of one stage, milliseconds."""
+
+    def __init__(self) -> None:
+        self.last_ms = 0.0
+        self.mean_ms = 0.0
+        self.count = 0
+
+    def add(self, seconds: float) -> None:
+        ms = seconds * 1e3
+        self.last_ms = ms
+        self.mean_ms = ms if self.count == 0 else 0.9 * self.mean_ms + 0.1 * ms
+        self.count += 1
+
+
+class FusionNode(Node):
+    """SenFuNet as a ROS 2 node. See the module docstring for its interface."""
+
+    def __init__(self, node_name: str = P.NODE_NAME, **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self._warned_at: dict[tuple[str, ...], float] = {}
+        self._warn_lock = threading.Lock()
+        # 1. parameters
+        self.settings = P.declare(self)
+        self._log_parameters()
+        # 2. engine and ingest
+        self._engine_lock = threading.Lock()
+        self.engine = self._make_engine()
+        s = self.settings
+        self.ingest = Ingest(IngestConfig(
+            sensors=s.sensor_names,
+            working_size=(s.working_width, s.working_height),
+            queue_size=s.queue_size,
+            pose_buffer_size=s.pose_buffer_size,
+            pose_tolerance_s=s.pose_tolerance_s,
+            pose_max_wait_s=s.pose_max_wait_s,
+            color_tolerance_s=s.color_tolerance_s,
+            time_jump_s=s.time_jump_s,
+            pose_parser=conv.POSE_PARSERS[s.pose_type],
+        ))
+        self.latest_stamp_ns = 0  # latest integrated sensor time: the stamp of every output
+        self.timings = {name: _Timing() for name in ("integrate", "update", "weights", "encode", "publish")}
+        self.frames_failed = 0
+        self.time_jumps = 0
+        self._last_counters = self.ingest.counters()
+        self._blocks: dict[tuple[int, int, int], Any] = {}  # block key -> Mesh: what subscribers hold
+        self._mesh_subscribers = 0
+        self._next_mesh_s = 0.0  # monotonic time before which mesh ticks are skipped
+        self._mesh_lock = threading.Lock()  # one mesh publication at a time (timer vs. reset service)
+        # 3. subscriptions: they only enqueue
+        self._subs_group = ReentrantCallbackGroup()
+        self._subscriptions_keep = []
+        pose_msg = _POSE_MSGS[s.pose_type]
+        for sensor in s.sensors:
+            name = sensor.name
+            self._subscriptions_keep += [
+                self.create_subscription(CameraInfo, sensor.camera_info_topic,
+                                         self._guard(name, "camera_info", self.ingest.add_camera_info), _SENSOR_QOS,
+                                         callback_group=self._subs_group),
+                self.create_subscription(Image, sensor.depth_topic, self._guard(name, "depth", self.ingest.add_depth),
+                                         _SENSOR_QOS, callback_group=self._subs_group),
+                self.create_subscription(pose_msg, sensor.pose_topic, self._guard(name, "pose", self.ingest.add_pose),
+                                         _POSE_QOS, callback_group=self._subs_group),
+            ]
+            if sensor.color_topic:
+                self._subscriptions_keep.append(self.create_subscription(
+                    Image, sensor.color_topic, self._guard(name, "color", self.ingest.add_color), _SENSOR_QOS,
+                    callback_group=self._subs_group))
+        # 4. timers, each in its own group so a long mesh update never stalls integration
+        self._integrate_timer = self.create_timer(1.0 / s.integrate_rate_hz, self._integrate_tick,
+                                                  callback_group=MutuallyExclusiveCallbackGroup())
+        self._mesh_timer = self.create_timer(1.0 / s.mesh_rate_hz, self._mesh_tick,
+                                             callback_group=MutuallyExclusiveCallbackGroup())
+        self._status_timer = self.create_timer(1.0 / s.status_rate_hz, self._status_tick,
+                                               callback_group=MutuallyExclusiveCallbackGroup())
+        # 5. publishers
+        self.mesh_pub = self.create_publisher(MarkerArray, "~/mesh", _MESH_QOS)
+        self.weights_pub = self.create_publisher(PointCloud2, "~/weights", _CLOUD_QOS)
+        self.status_pub = self.create_publisher(DiagnosticArray, "~/status", _STATUS_QOS)
+        # 6. services
+        services_group = MutuallyExclusiveCallbackGroup()
+        self.create_service(Trigger, "~/save_mesh", self._save_mesh_srv, callback_group=services_group)
+        self.create_service(Trigger, "~/reset", self._reset_srv, callback_group=services_group)
+        self.get_logger().info(
+            f"fusing {list(s.sensor_names)} into '{s.fixed_frame}' with weights: {self.engine.weights_source}")
+
+    # -- set-up ---------------------------------------------------------------------------------
+
+    def _log_parameters(self) -> None:
+        lines = [f"  {name}: {value!r}" for name, value in self.settings.values.items()]
+        use_sim_time = self.get_parameter("use_sim_time").value
+        self.get_logger().info("parameters:\n" + "\n".join(lines + [f"  use_sim_time: {use_sim_time!r}"]))
+
+    def _make_engine(self) -> Any:
+        import torch  # heavy: imported when a node is made, not when this module is
+
+        from senfunet_core.engine import EngineConfig, SenFuNet
+
+        s = self.settings
+        device = s.device
+        if device.startswith("cuda") and not torch.cuda.is_available():
+            self.get_logger().warning(f"device '{device}' requested but CUDA is not available: using cpu")
+            device = "cpu"
+        config = EngineConfig(
+            sensors=s.sensor_names,
+            sensor_uses_rgb=tuple(name in s.rgb_sensors for name in s.sensor_names),
+            depth_min_m=tuple(sensor.depth_min_m for sensor in s.sensors),
+            depth_max_m=tuple(sensor.depth_max_m for sensor in s.sensors),
+            voxel_size_m=s.voxel_size_m,
+            band_m=s.band_m,
+            device=device,
+        )
+        weights: str | None = None if s.weights.lower() in ("none", "") else s.weights
+        if weights is None:
+            self.get_logger().warning("parameter weights = 'none': the networks are untrained")
+        return SenFuNet(config, weights=weights)
+
+    # -- warnings -------------------------------------------------------------------------------
+
+    def _warn(self, key: tuple[str, ...], message: str) -> None:
+        """At most one warning per key per _WARN_PERIOD_S (wall time: sim time may stand still)."""
+        now = time.monotonic()
+        with self._warn_lock:
+            if now - self._warned_at.get(key, -1e9) < _WARN_PERIOD_S:
+                return
+            self._warned_at[key] = now
+        self.get_logger().warning(message)
+
+    def _guard(self, sensor: str, stream: str, add: Callable[[str, Any], Any]) -> Callable[[Any], None]:
+        """A subscription callback that enqueues and never raises."""
+
+        def callback(msg: Any) -> None:
+            try:
+                add(sensor, msg)
+            except Exception as err:  # a malformed message must not kill the executor thread
+                self._warn((sensor, stream, "exception"), f"{sensor} {stream}: message ignored: {err!r}")
+
+        return callback
+
+    def _warn_new_drops(self) -> None:
+        counters = self.ingest.counters()
+        for sensor, now in counters.items():
+            before = self._last_counters.get(sensor, {}).get("dropped", {})
+            for reason, count in now["dropped"].items():
+                new = count - before.get(reason, 0)
+                if new > 0:
+                    self._warn((sensor, reason), f"{sensor}: dropped {new} message(s): {reason} "
+                               f"({count} so far; see ~/status)")
+        self._last_counters = counters
+
+    # -- timers ---------------------------------------------------------------------------------
+
+    def _integrate_tick(self) -> None:
+        try:
+            for item in self.ingest.pop_ready():
+                if isinstance(item, TimeJump):
+                    self._on_time_jump(item)
+                else:
+                    self._integrate(item)
+            self._warn_new_drops()
+        except Exception as err:  # never let the timer die
+            self._warn(("integrate_tick",), f"integration step failed: {err!r}")
+
+    def _integrate(self, frame: Frame) -> None:
+        start = time.perf_counter()
+        try:
+            with self._engine_lock:
+                self.engine.integrate(frame.sensor, frame.depth_m, frame.K, frame.T_world_camera, frame.rgb)
+        except Exception as err:  # InputError or worse: this frame is lost, the map is not
+            self.frames_failed += 1
+            self.ingest.mark_dropped(frame.sensor, "engine_error")
+            self._warn((frame.sensor, "engine"), f"{frame.sensor}: frame at {frame.stamp_ns * 1e-9:.3f} s "
+                       f"rejected by the engine: {err}")
+            return
+        self.timings["integrate"].add(time.perf_counter() - start)
+        self.ingest.mark_integrated(frame.sensor)
+        self.latest_stamp_ns = max(self.latest_stamp_ns, frame.stamp_ns)
+
+    def _on_time_jump(self, jump: TimeJump) -> None:
+        self.time_jumps += 1
+        action = self.settings.on_time_jump
+        self.get_logger().warning(
+            f"time jumped back on {jump.sensor} {jump.stream}: {jump.from_ns * 1e-9:.3f} s -> {jump.to_ns * 1e-9:.3f} s "
+            f"(a bag restarting?); queued frames flushed, map {'reset' if action == 'reset' else 'kept'} "
+            "(parameter on_time_jump)")
+        if action == "reset":
+            with self._engine_lock:
+                self.engine.reset()
+        self.latest_stamp_ns = jump.to_ns
+
+    def _mesh_tick(self) -> None:
+        # Integration comes first: when an update took long, skip ticks so that mesh updates hold
+        # the engine for at most about a third of the time and the frame queues do not grow.
+        if time.monotonic() < self._next_mesh_s:
+            return
+        try:
+            start = time.monotonic()
+            self.publish_mesh()
+            end = time.monotonic()
+            self._next_mesh_s = end + 2.0 * (end - start)
+        except Exception as err:
+            self._warn(("mesh_tick",), f"mesh update failed: {err!r}")
+
+    def publish_mesh(self) -> None:
+        """engine.update() -> ~/mesh (changed blocks, or a full snapshot for new subscribers) and ~/weights."""
+        with self._mesh_lock:
+            start = time.perf_counter()
+            want_cloud = self.weights_pub.get_subscription_count() > 0
+            with self._engine_lock:
+                update = self.engine.update()
+                t_update = time.perf_counter()
+                cloud = None
+                if want_cloud:
+                    band = self.settings.weights_band_m
+                    cloud = self.engine.weight_cloud(band if band > 0 else None)
+                stamp_ns = self.latest_stamp_ns
+            t_cloud = time.perf_counter()
+            self.timings["update"].add(t_update - start)
+            if cloud is not None:
+                self.timings["weights"].add(t_cloud - t_update)
+            if update.cleared:
+                self._blocks.clear()
+            for key in update.removed:
+                self._blocks.pop(key, None)
+            self._blocks.update(update.changed)
+            frame_id = self.settings.fixed_frame
+            subscribers = self.mesh_pub.get_subscription_count()
+            data = None
+            if subscribers > self._mesh_subscribers:
+                # Someone new joined: transient local only holds the last few deltas, so send it all.
+                data = conv.marker_array_cdr(self._blocks, (), stamp_ns=stamp_ns, frame_id=frame_id,
+                                             delete_all_first=True)
+            elif update.cleared or update.changed or update.removed:
+                data = conv.marker_array_cdr(update.changed, update.removed, stamp_ns=stamp_ns, frame_id=frame_id,
+                                             delete_all_first=update.cleared)
+            self._mesh_subscribers = subscribers
+            cloud_data = None
+            if cloud is not None:
+                cloud_data = conv.point_cloud2_cdr(cloud.positions_m, cloud.alpha, cloud.weights,
+                                                   self.settings.sensor_names, stamp_ns=stamp_ns, frame_id=frame_id)
+            t_encode = time.perf_counter()
+            if data is not None or cloud_data is not None:
+                self.timings["encode"].add(t_encode - t_cloud)
+            if data is not None:
+                self.mesh_pub.publish(data)
+            if cloud_data is not None:
+                self.weights_pub.publish(cloud_data)
+            if data is not None or cloud_data is not None:
+                self.timings["publish"].add(time.perf_counter() - t_encode)
+
+    def _status_tick(self) -> None:
+        try:
+            self.status_pub.publish(self.status())
+        except Exception as err:
+            self._warn(("status_tick",), f"status failed: {err!r}")
+
+    def status(self) -> DiagnosticArray:
+        """Per-sensor counters and queue depths, then the pipeline's timings."""
+        msg = DiagnosticArray()
+        sec, nanosec = conv.ns_to_stamp(self.latest_stamp_ns)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+        msg.header.frame_id = self.settings.fixed_frame
+        hardware_id = self.get_fully_qualified_name()
+        for sensor, c in self.ingest.counters().items():
+            dropped = sum(c["dropped"].values())
+            level = DiagnosticStatus.OK if c["integrated"] > 0 and dropped == 0 else DiagnosticStatus.WARN
+            summary = f"{c['integrated']} of {c['received']} frames integrated, {dropped} messages dropped"
+            values = [KeyValue(key=k, value=str(c[k])) for k in
+                      ("received", "integrated", "queue_depth", "color_received", "pose_received", "time_jumps")]
+            values += [KeyValue(key=f"dropped.{reason}", value=str(c["dropped"][reason])) for reason in DROP_REASONS]
+            msg.status.append(DiagnosticStatus(level=level, name=f"senfunet: {sensor}", message=summary,
+                                               hardware_id=hardware_id, values=values))
+        values = [KeyValue(key=f"{stage}_ms", value=f"{t.last_ms:.1f} (mean {t.mean_ms:.1f})")
+                  for stage, t in self.timings.items()]
+        values += [KeyValue(key="mesh_blocks", value=str(len(self._blocks))),
+                   KeyValue(key="time_jumps", value=str(self.time_jumps)),
+                   KeyValue(key="frames_failed", value=str(self.frames_failed))]
+        values += [KeyValue(key=f"engine.{k}_ms", value=f"{v * 1e3:.1f}")
+                   for k, v in dict(getattr(self.engine, "timings_s", {})).items()]
+        msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name="senfunet: pipeline",
+                                           message=f"{len(self._blocks)} mesh blocks", hardware_id=hardware_id,
+                                           values=values))
+        return msg
+
+    # -- services -------------------------------------------------------------------------------
+
+    def save_meshes(self, output_dir: str | Path | None = None) -> list[Path]:
+        """Fused (filtered), per-sensor and TSDF Fusion meshes as PLY files; returns their paths."""
+        from senfunet_core.ply import write_ply
+
+        out = Path(output_dir or self.settings.output_dir).expanduser()
+        out.mkdir(parents=True, exist_ok=True)
+        names = {"fused": "mesh", **{s: s for s in self.settings.sensor_names}, "tsdf_fusion": "tsdf_fusion"}
+        with self._engine_lock:  # extraction only; files are written without holding up integration
+            meshes = {name: self.engine.extract_mesh(which) for which, name in names.items()}
+        paths = []
+        for name, mesh in meshes.items():
+            path = out / f"{name}.ply"
+            write_ply(path, mesh)
+            paths.append(path)
+        return paths
+
+    def _save_mesh_srv(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            paths = self.save_meshes()
+            response.success = True
+            response.message = "wrote " + ", ".join(str(p) for p in paths)
+            self.get_logger().info(response.message)
+        except Exception as err:
+            response.success = False
+            response.message = f"saving failed: {err}; check parameter output_dir"
+            self.get_logger().error(response.message)
+        return response
+
+    def reset_map(self) -> None:
+        """Forget the map and queued frames; subscribers get a DELETEALL right away."""
+        with self._engine_lock:
+            self.engine.reset()
+        self.ingest.clear_frames()
+        self.publish_mesh()
+
+    def _reset_srv(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            self.reset_map()
+            response.success, response.message = True, "map reset"
+            self.get_logger().info("map reset by ~/reset")
+        except Exception as err:
+            response.success, response.message = False, f"reset failed: {err}"
+            self.get_logger().error(response.message)
+        return response
+
+
+def spin(node: FusionNode, num_threads: int = 6) -> None:
+    """Spin until shutdown; enough threads that subscriptions run while both timers are busy."""
+    executor = MultiThreadedExecutor(num_threads=num_threads)
+    executor.add_node(node)
+    try:
+        executor.spin()
+    finally:
+        executor.shutdown()
+
+
+def main(args: list[str] | None = None) -> int:
+    """`ros2 run senfunet_ros fusion_node [--ros-args ...]`."""
+    rclpy.init(args=args)
+    node: FusionNode | None = None
+    try:
+        node = FusionNode()
+        spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as err:  # bad parameters (InputError is a ValueError too): say which, no traceback
+        print(f"senfunet: cannot start: {err}", flush=True)
+        return 2
+    finally:
+        if node is not None:
+            if node.settings.save_on_shutdown:
+                try:
+                    paths = node.save_meshes()
+                    print("senfunet: saved " + ", ".join(str(p) for p in paths), flush=True)
+                except Exception as err:
+                    print(f"senfunet: saving on shutdown failed: {err}", flush=True)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,175 @@
+"""The node's parameters as data: one table of (name, default, help).
+
+The help text becomes the ROS ParameterDescriptor description, `config/default.yaml` mirrors the
+table (a test checks both), and `declare(node)` returns the values as a frozen `Settings`.
+Names containing `{sensor}` exist once per entry of `sensors`, e.g. `tof.depth_topic`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+__all__ = ["Param", "GLOBAL_PARAMS", "SENSOR_PARAMS", "NODE_NAME", "expanded_defaults", "Settings", "declare"]
+
+NODE_NAME = "senfunet"
+POSE_TYPES = ("pose_stamped", "odometry", "transform_stamped")
+ON_TIME_JUMP = ("reset", "ignore")
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    default: Any
+    help: str
+
+
+GLOBAL_PARAMS: tuple[Param, ...] = (
+    Param("sensors", ["tof", "stereo"], "sensor names, sensor 1 first (alpha is the weight of sensor 1)"),
+    Param("rgb_sensors", ["stereo"], "sensors whose feature net also takes the colour image (as the weights were trained)"),
+    Param("pose_type", "pose_stamped", "pose message type on every pose topic: pose_stamped | odometry | transform_stamped"),
+    Param("fixed_frame", "map", "frame the poses are given in; frame_id of every output"),
+    Param("voxel_size_m", 0.01, "voxel side length in metres"),
+    Param("band_m", 0.1, "length of the ray segment integrated around each depth measurement, metres"),
+    Param("working_width", 256, "images are resized to this width (K scaled); 0 = native"),
+    Param("working_height", 0, "images are resized to this height; 0 = native, or keep the aspect ratio if the width is set"),
+    Param("queue_size", 30, "frames per sensor waiting for their pose; the oldest is dropped beyond this"),
+    Param("pose_buffer_size", 2000, "poses kept per sensor for interpolation"),
+    Param("pose_tolerance_s", 0.1, "max time between a depth stamp and the poses interpolated around it"),
+    Param("pose_max_wait_s", 1.0, "a frame waits this long (sensor time) for a pose after its stamp, then is dropped"),
+    Param("color_tolerance_s", 0.02, "max stamp difference between a depth image and the colour image matched to it"),
+    Param("time_jump_s", 1.0, "a stamp this far behind the previous one of its stream means time jumped back (bag restart)"),
+    Param("on_time_jump", "reset", "what a backward time jump does to the map: reset | ignore"),
+    Param("integrate_rate_hz", 30.0, "rate of the timer that integrates queued frames"),
+    Param("mesh_rate_hz", 1.0, "rate of mesh and weight-cloud updates"),
+    Param("status_rate_hz", 1.0, "rate of ~/status diagnostics"),
+    Param("weights_band_m", 0.02, "~/weights holds voxels with |fused TSDF| at most this (near the surface); 0 = all observed"),
+    Param("output_dir", "senfunet_output", "directory ~/save_mesh writes PLY files into"),
+    Param("weights", "default", "network weights file; 'default' = the shipped weights, 'none' = untrained"),
+    Param("device", "cpu", "torch device: cpu | cuda (falls back to cpu with a warning)"),
+    Param("save_on_shutdown", False, "write the PLY files into output_dir when the node stops"),
+)
+
+SENSOR_PARAMS: tuple[Param, ...] = (
+    Param("{sensor}.depth_topic", "/{sensor}/depth", "depth image topic (32FC1 metres or 16UC1 millimetres)"),
+    Param("{sensor}.color_topic", "/{sensor}/color", "colour image topic (rgb8, bgr8, mono8); empty = none"),
+    Param("{sensor}.camera_info_topic", "/{sensor}/camera_info", "camera_info topic of the depth image"),
+    Param("{sensor}.pose_topic", "/{sensor}/pose", "pose of the sensor's optical frame in fixed_frame"),
+    Param("{sensor}.depth_min_m", 0.1, "depth below this is ignored, metres"),
+    Param("{sensor}.depth_max_m", 5.0, "depth beyond this is ignored, metres"),
+)
+
+
+def _fill(value: Any, sensor: str) -> Any:
+    return value.replace("{sensor}", sensor) if isinstance(value, str) else value
+
+
+def expanded_defaults(sensors: Sequence[str] | None = None) -> dict[str, tuple[Any, str]]:
+    """Every parameter name -> (default, help), with per-sensor names expanded."""
+    if sensors is None:
+        sensors = GLOBAL_PARAMS[0].default
+    out = {p.name: (p.default, p.help) for p in GLOBAL_PARAMS}
+    for sensor in sensors:
+        for p in SENSOR_PARAMS:
+            out[_fill(p.name, sensor)] = (_fill(p.default, sensor), p.help)
+    return out
+
+
+@dataclass(frozen=True)
+class SensorSettings:
+    name: str
+    depth_topic: str
+    color_topic: str
+    camera_info_topic: str
+    pose_topic: str
+    depth_min_m: float
+    depth_max_m: float
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Parameter values after declaration and checking."""
+
+    values: dict[str, Any]  # every parameter by name
+    sensors: tuple[SensorSettings, ...]
+
+    def __getattr__(self, name: str) -> Any:  # settings.voxel_size_m etc.
+        try:
+            return self.__dict__["values"][name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    @property
+    def sensor_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.sensors)
+
+
+def _coerce(name: str, value: Any, default: Any) -> Any:
+    """Values in the type of their default, so `mesh_rate_hz: 1` in YAML works."""
+    try:
+        if isinstance(default, bool):
+            if isinstance(value, str):
+                return value.strip().lower() in ("1", "true", "yes", "on")
+            return bool(value)
+        if isinstance(default, int):
+            return int(value)
+        if isinstance(default, float):
+            return float(value)
+        if isinstance(default, list):
+            return [str(v) for v in value]
+        return str(value)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"parameter '{name}' = {value!r} is not a {type(default).__name__}: {err}") from err
+
+
+def check(values: dict[str, Any]) -> None:
+    """Reject values the node cannot run with, saying which and why."""
+    sensors = values["sensors"]
+    if len(sensors) != 2 or len(set(sensors)) != 2:
+        raise ValueError(f"parameter 'sensors' needs two distinct names, got {sensors}")
+    if values["pose_type"] not in POSE_TYPES:
+        raise ValueError(f"parameter 'pose_type' = {values['pose_type']!r}; use one of {POSE_TYPES}")
+    if values["on_time_jump"] not in ON_TIME_JUMP:
+        raise ValueError(f"parameter 'on_time_jump' = {values['on_time_jump']!r}; use one of {ON_TIME_JUMP}")
+    for name in ("voxel_size_m", "band_m", "integrate_rate_hz", "mesh_rate_hz", "status_rate_hz",
+                 "pose_tolerance_s", "pose_max_wait_s", "time_jump_s"):
+        if not values[name] > 0:
+            raise ValueError(f"parameter '{name}' must be > 0, got {values[name]}")
+    if values["queue_size"] < 1 or values["working_width"] < 0 or values["working_height"] < 0:
+        raise ValueError("queue_size must be >= 1 and working_width/height >= 0")
+    for sensor in sensors:
+        lo, hi = values[f"{sensor}.depth_min_m"], values[f"{sensor}.depth_max_m"]
+        if not 0 <= lo < hi:
+            raise ValueError(f"{sensor}: depth range [{lo}, {hi}] m is empty; set depth_min_m < depth_max_m")
+
+
+def declare(node: Any) -> Settings:
+    """Declare every parameter on an rclpy node (help as the descriptor) and read them back."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    def one(name: str, default: Any, help_text: str) -> Any:
+        # dynamic typing: YAML integers for float parameters (and the like) are coerced, not refused
+        descriptor = ParameterDescriptor(description=help_text, dynamic_typing=True)
+        value = node.declare_parameter(name, default, descriptor).value
+        return _coerce(name, default if value is None else value, default)
+
+    values: dict[str, Any] = {}
+    for p in GLOBAL_PARAMS:
+        values[p.name] = one(p.name, p.default, p.help)
+    for sensor in values["sensors"]:  # per-sensor names depend on the sensors parameter
+        for p in SENSOR_PARAMS:
+            name = _fill(p.name, sensor)
+            values[name] = one(name, _fill(p.default, sensor), p.help)
+    check(values)
+    sensors = tuple(
+        SensorSettings(
+            name=s,
+            depth_topic=values[f"{s}.depth_topic"],
+            color_topic=values[f"{s}.color_topic"],
+            camera_info_topic=values[f"{s}.camera_info_topic"],
+            pose_topic=values[f"{s}.pose_topic"],
+            depth_min_m=values[f"{s}.depth_min_m"],
+            depth_max_m=values[f"{s}.depth_max_m"],
+        )
+        for s in values["sensors"]
+    )
+    return Settings(values=values, sensors=sensors)

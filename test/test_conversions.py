@@ -1,0 +1,196 @@
+"""senfunet_ros.conversions: messages <-> numpy, without a node."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped, TransformStamped
+from nav_msgs.msg import Odometry
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from visualization_msgs.msg import Marker, MarkerArray
+
+from senfunet_core.mesher import Mesh
+from senfunet_ros import conversions as conv
+
+
+def image(array: np.ndarray, encoding: str, *, pad: int = 0, bigendian: bool = False) -> Image:
+    """An Image with `pad` bytes of row padding."""
+    h, w = array.shape[:2]
+    a = array.astype(array.dtype.newbyteorder(">" if bigendian else "<"))
+    rows = a.reshape(h, -1).view(np.uint8)
+    padded = np.zeros((h, rows.shape[1] + pad), np.uint8)
+    padded[:, : rows.shape[1]] = rows
+    msg = Image(height=h, width=w, encoding=encoding, is_bigendian=int(bigendian), step=padded.shape[1])
+    msg.data = padded.tobytes()
+    return msg
+
+
+@pytest.mark.parametrize("bigendian", [False, True])
+def test_depth_32fc1_with_padding_and_invalid(bigendian: bool) -> None:
+    depth = np.arange(12, dtype=np.float32).reshape(3, 4) * 0.5
+    depth[0, 1], depth[1, 1], depth[2, 2], depth[2, 3] = np.nan, np.inf, -1.0, 0.0
+    out = conv.depth_from_image(image(depth, "32FC1", pad=6, bigendian=bigendian))
+    assert out.dtype == np.float32 and out.shape == (3, 4)
+    expected = np.where(np.isfinite(depth) & (depth > 0), depth, 0)
+    np.testing.assert_array_equal(out, expected)
+
+
+@pytest.mark.parametrize("bigendian", [False, True])
+def test_depth_16uc1_millimetres(bigendian: bool) -> None:
+    mm = np.array([[0, 1000, 2500], [65535, 1, 300]], dtype=np.uint16)
+    out = conv.depth_from_image(image(mm, "16UC1", pad=2, bigendian=bigendian))
+    np.testing.assert_allclose(out, mm.astype(np.float32) / 1000, rtol=1e-6)
+    assert out[0, 0] == 0
+
+
+def test_depth_errors_say_what_to_do() -> None:
+    with pytest.raises(ValueError, match="32FC1"):
+        conv.depth_from_image(image(np.zeros((2, 2), np.uint8), "8UC1"))
+    msg = image(np.ones((4, 4), np.float32), "32FC1")
+    msg.data = bytes(msg.data)[:20]
+    with pytest.raises(ValueError, match="truncated"):
+        conv.depth_from_image(msg)
+    msg = image(np.ones((4, 4), np.float32), "32FC1")
+    msg.step = 8
+    with pytest.raises(ValueError, match="step"):
+        conv.depth_from_image(msg)
+
+
+def test_colour_encodings() -> None:
+    rgb = np.random.default_rng(0).integers(0, 255, (3, 5, 3), dtype=np.uint8)
+    np.testing.assert_array_equal(conv.rgb_from_image(image(rgb, "rgb8", pad=1)), rgb)
+    np.testing.assert_array_equal(conv.rgb_from_image(image(rgb[:, :, ::-1].copy(), "bgr8", pad=3)), rgb)
+    grey = rgb[:, :, 0].copy()
+    out = conv.rgb_from_image(image(grey, "mono8", pad=3))
+    assert out.shape == (3, 5, 3) and np.all(out == grey[:, :, None])
+    with pytest.raises(ValueError, match="rgb8"):
+        conv.rgb_from_image(image(grey, "yuv422"))
+
+
+def test_camera_info() -> None:
+    info = CameraInfo(width=640, height=480, k=[500.0, 0, 320, 0, 510, 240, 0, 0, 1])
+    K, size = conv.intrinsics_from_camera_info(info)
+    assert size == (640, 480) and K[1, 1] == 510 and K[0, 2] == 320
+    with pytest.raises(ValueError, match="focal"):
+        conv.intrinsics_from_camera_info(CameraInfo(width=640, height=480))  # all-zero K
+
+
+def test_resize_keeps_projection() -> None:
+    K = np.array([[128.0, 0, 127.5], [0, 128.0, 127.5], [0, 0, 1]])
+    K2 = conv.scale_intrinsics(K, (256, 256), (128, 64))
+    p = np.array([0.3, -0.2, 1.5])
+    u, v = (K @ p)[:2] / p[2]
+    u2, v2 = (K2 @ p)[:2] / p[2]
+    # the same point, in pixel-centre coordinates of the smaller image
+    assert u2 == pytest.approx((u + 0.5) * 0.5 - 0.5) and v2 == pytest.approx((v + 0.5) * 0.25 - 0.5)
+    depth = np.zeros((4, 4), np.float32)
+    depth[:2, :2] = 1.0
+    small = conv.resize_depth(depth, (2, 2))
+    np.testing.assert_array_equal(small, [[1, 0], [0, 0]])  # nearest: no blended depths
+    big = conv.resize_depth(depth, (8, 8))
+    assert set(np.unique(big)) <= {0.0, 1.0}
+    rgb = np.full((4, 4, 3), 200, np.uint8)
+    assert conv.resize_rgb(rgb, (3, 2)).shape == (2, 3, 3)
+    assert np.all(conv.resize_rgb(rgb, (3, 2)) == 200)
+
+
+def _quat_z(angle_rad: float) -> tuple[float, float, float, float]:
+    return (0.0, 0.0, math.sin(angle_rad / 2), math.cos(angle_rad / 2))
+
+
+def test_pose_messages() -> None:
+    x, y, z, w = _quat_z(math.pi / 2)
+    ps = PoseStamped()
+    ps.header.stamp.sec, ps.header.stamp.nanosec = 3, 250
+    ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = 1.0, 2.0, 3.0
+    ps.pose.orientation.x, ps.pose.orientation.y, ps.pose.orientation.z, ps.pose.orientation.w = x, y, z, w
+    stamp, T = conv.pose_from_pose_stamped(ps)
+    assert stamp == 3_000_000_250
+    np.testing.assert_allclose(T[:3, 3], [1, 2, 3])
+    np.testing.assert_allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)  # 90 deg about z
+    odom = Odometry()
+    odom.header.stamp = ps.header.stamp
+    odom.pose.pose = ps.pose
+    tf = TransformStamped()
+    tf.header.stamp = ps.header.stamp
+    tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = 1.0, 2.0, 3.0
+    tf.transform.rotation = ps.pose.orientation
+    for msg in (odom, tf):
+        s2, T2 = conv.pose_from_msg(msg)
+        assert s2 == stamp
+        np.testing.assert_allclose(T2, T)
+    assert conv.pose_from_msg(ps)[0] == stamp
+
+    ps.pose.position.x = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        conv.pose_from_pose_stamped(ps)
+    ps.pose.position.x = 1.0
+    ps.pose.orientation.w = 0.0
+    ps.pose.orientation.z = 0.5
+    with pytest.raises(ValueError, match="unit quaternion"):
+        conv.pose_from_pose_stamped(ps)
+    with pytest.raises(ValueError, match="not a pose"):
+        conv.pose_from_msg(CameraInfo())
+
+
+def _mesh(seed: int, n_vertices: int = 30, n_faces: int = 20) -> Mesh:
+    rng = np.random.default_rng(seed)
+    return Mesh(rng.random((n_vertices, 3), dtype=np.float32),
+                rng.integers(0, n_vertices, (n_faces, 3)).astype(np.int32),
+                rng.random((n_vertices, 3), dtype=np.float32))
+
+
+def test_marker_array_round_trip() -> None:
+    meshes = {(0, 1, 2): _mesh(0), (-3, 1025, 7): _mesh(1)}
+    data = conv.marker_array_cdr(meshes, [(4, 4, 4)], stamp_ns=12_000_000_005, frame_id="map")
+    assert isinstance(data, bytes)
+    msg = deserialize_message(data, MarkerArray)
+    actions = [m.action for m in msg.markers]
+    assert actions.count(Marker.DELETE) == 1 and actions.count(Marker.ADD) == 2
+    by_id = {(m.ns, m.id): m for m in msg.markers}
+    for key, mesh in meshes.items():
+        marker = by_id[conv.block_marker_id(key)]
+        assert marker.type == Marker.TRIANGLE_LIST and marker.header.frame_id == "map"
+        assert (marker.header.stamp.sec, marker.header.stamp.nanosec) == (12, 5)
+        assert marker.pose.orientation.w == 1.0 and marker.scale.x == 1.0
+        points = np.array([[p.x, p.y, p.z] for p in marker.points])
+        np.testing.assert_allclose(points, mesh.vertices[mesh.faces.reshape(-1)], rtol=1e-6)
+        colours = np.array([[c.r, c.g, c.b, c.a] for c in marker.colors])
+        np.testing.assert_allclose(colours[:, :3], mesh.colors[mesh.faces.reshape(-1)], rtol=1e-6)
+        assert np.all(colours[:, 3] == 1.0)
+    # ids are a function of the key alone, and distinct
+    ids = {conv.block_marker_id(k) for k in [(0, 0, 0), (1, 0, 0), (1024, 0, 0), (-1, 0, 0), (0, -1, 0)]}
+    assert len(ids) == 5 and conv.block_marker_id((5, 6, 7)) == conv.block_marker_id((5, 6, 7))
+
+
+def test_marker_delete_all_and_empty_block() -> None:
+    msg = deserialize_message(conv.delete_all_marker_array_cdr(stamp_ns=0, frame_id="map"), MarkerArray)
+    assert [m.action for m in msg.markers] == [Marker.DELETEALL]
+    data = conv.marker_array_cdr({(1, 1, 1): Mesh.empty(), (2, 2, 2): _mesh(2)}, [], stamp_ns=1, frame_id="odom",
+                                 delete_all_first=True)
+    msg = deserialize_message(data, MarkerArray)
+    assert [m.action for m in msg.markers] == [Marker.DELETEALL, Marker.DELETE, Marker.ADD]
+    assert msg.markers[1].id == conv.block_marker_id((1, 1, 1))[1]
+
+
+def test_point_cloud2_round_trip() -> None:
+    rng = np.random.default_rng(3)
+    pos = rng.random((7, 3), dtype=np.float32)
+    alpha = rng.random(7, dtype=np.float32)
+    weights = rng.random((7, 2), dtype=np.float32)
+    data = conv.point_cloud2_cdr(pos, alpha, weights, ["tof", "stereo"], stamp_ns=2_000_000_000, frame_id="map")
+    msg = deserialize_message(data, PointCloud2)
+    assert [f.name for f in msg.fields] == ["x", "y", "z", "alpha", "weight_tof", "weight_stereo"]
+    assert all(f.datatype == 7 and f.count == 1 for f in msg.fields)  # FLOAT32
+    assert (msg.height, msg.width, msg.point_step, msg.row_step) == (1, 7, 24, 168)
+    table = np.frombuffer(bytes(msg.data), "<f4").reshape(7, 6)
+    np.testing.assert_array_equal(table[:, :3], pos)
+    np.testing.assert_array_equal(table[:, 3], alpha)
+    np.testing.assert_array_equal(table[:, 4:], weights)
+    empty = deserialize_message(conv.point_cloud2_cdr(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)),
+                                                      ["a", "b"], stamp_ns=0, frame_id="map"), PointCloud2)
+    assert empty.width == 0 and len(empty.data) == 0
+    with pytest.raises(ValueError, match="weight column"):
+        conv.point_cloud2_cdr(pos, alpha, weights[:, :1], ["tof", "stereo"], stamp_ns=0, frame_id="map")

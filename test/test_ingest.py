@@ -1,0 +1,197 @@
+"""senfunet_ros.ingest: messages in, posed frames out, every drop counted; no node, no clock."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo, Image
+
+from senfunet_ros.ingest import Frame, Ingest, IngestConfig, TimeJump, interpolate_pose
+
+MS = 1_000_000  # nanoseconds
+
+
+def _stamp(msg, t_ns: int) -> None:
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
+
+
+def depth_msg(t_ns: int, value: float = 1.0, shape: tuple[int, int] = (8, 10), encoding: str = "32FC1") -> Image:
+    h, w = shape
+    msg = Image(height=h, width=w, encoding=encoding, step=w * 4)
+    msg.data = np.full((h, w), value, "<f4").tobytes()
+    _stamp(msg, t_ns)
+    return msg
+
+
+def color_msg(t_ns: int, value: int = 50, shape: tuple[int, int] = (8, 10)) -> Image:
+    h, w = shape
+    msg = Image(height=h, width=w, encoding="rgb8", step=w * 3)
+    msg.data = np.full((h, w, 3), value, np.uint8).tobytes()
+    _stamp(msg, t_ns)
+    return msg
+
+
+def info_msg(shape: tuple[int, int] = (8, 10)) -> CameraInfo:
+    h, w = shape
+    return CameraInfo(width=w, height=h, k=[10.0, 0, (w - 1) / 2, 0, 10.0, (h - 1) / 2, 0, 0, 1])
+
+
+def pose_msg(t_ns: int, x: float = 0.0, yaw_rad: float = 0.0) -> PoseStamped:
+    msg = PoseStamped()
+    _stamp(msg, t_ns)
+    msg.pose.position.x = x
+    msg.pose.orientation.z, msg.pose.orientation.w = math.sin(yaw_rad / 2), math.cos(yaw_rad / 2)
+    return msg
+
+
+def make(**kwargs) -> Ingest:
+    ingest = Ingest(IngestConfig(sensors=("tof", "stereo"), **kwargs))
+    for s in ("tof", "stereo"):
+        assert ingest.add_camera_info(s, info_msg()) is None
+    return ingest
+
+
+def frames(items) -> list[Frame]:
+    return [i for i in items if isinstance(i, Frame)]
+
+
+def test_frame_waits_for_later_pose_then_is_interpolated() -> None:
+    ingest = make()
+    ingest.add_pose("tof", pose_msg(0, x=0.0, yaw_rad=0.0))
+    assert ingest.add_depth("tof", depth_msg(25 * MS)) is None
+    assert ingest.pop_ready() == []  # no pose after the frame yet
+    assert ingest.queue_depths()["tof"] == 1
+    ingest.add_pose("tof", pose_msg(100 * MS, x=1.0, yaw_rad=math.pi / 2))
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.sensor == "tof" and frame.stamp_ns == 25 * MS
+    np.testing.assert_allclose(frame.T_world_camera[:3, 3], [0.25, 0, 0])
+    yaw = math.atan2(frame.T_world_camera[1, 0], frame.T_world_camera[0, 0])
+    assert yaw == pytest.approx(math.pi / 8)  # slerp: a quarter of the way
+    assert frame.depth_m.dtype == np.float32 and frame.rgb is None
+    ingest.mark_integrated("tof")
+    assert ingest.counters()["tof"]["integrated"] == 1 and ingest.counters()["tof"]["received"] == 1
+
+
+def test_interpolate_pose_endpoints_and_short_way() -> None:
+    T0, T1 = np.eye(4), np.eye(4)
+    T1[:3, :3] = [[-1, 0, 0], [0, -1, 0], [0, 0, 1]]  # 180 deg about z
+    T1[:3, 3] = [2, 0, 0]
+    np.testing.assert_allclose(interpolate_pose(T0, T1, 0.0), T0, atol=1e-12)
+    np.testing.assert_allclose(interpolate_pose(T0, T1, 1.0), T1, atol=1e-12)
+    R = interpolate_pose(T0, T1, 0.5)[:3, :3]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+
+
+def test_pose_timeout_and_gap() -> None:
+    ingest = make(pose_max_wait_s=0.5, pose_tolerance_s=0.05)
+    ingest.add_depth("tof", depth_msg(0))  # no pose stream at all
+    ingest.add_depth("tof", depth_msg(600 * MS))  # stream time moves on past the limit
+    assert ingest.pop_ready() == []
+    assert ingest.counters()["tof"]["dropped"]["pose_timeout"] == 1
+    ingest.add_pose("tof", pose_msg(400 * MS))
+    ingest.add_pose("tof", pose_msg(800 * MS))  # 200 ms from the frame: beyond the tolerance
+    assert ingest.pop_ready() == []
+    assert ingest.counters()["tof"]["dropped"]["pose_gap"] == 1
+    assert ingest.queue_depths()["tof"] == 0
+
+
+@pytest.mark.parametrize("case", ["no_camera_info", "bad_encoding", "size_mismatch", "all_invalid",
+                                  "bad_pose", "bad_camera_info"])
+def test_bad_inputs_are_counted(case: str) -> None:
+    ingest = Ingest(IngestConfig(sensors=("tof", "stereo")))
+    if case != "no_camera_info":
+        ingest.add_camera_info("tof", info_msg())
+    if case == "bad_pose":
+        msg = pose_msg(0)
+        msg.pose.orientation.w = float("nan")
+        assert ingest.add_pose("tof", msg) == "bad_pose"
+    elif case == "bad_camera_info":
+        assert ingest.add_camera_info("tof", CameraInfo(width=10, height=8)) == "bad_camera_info"
+    else:
+        msg = {
+            "no_camera_info": depth_msg(0),
+            "bad_encoding": depth_msg(0, encoding="rgb8"),
+            "size_mismatch": depth_msg(0, shape=(4, 4)),
+            "all_invalid": depth_msg(0, value=float("nan")),
+        }[case]
+        assert ingest.add_depth("tof", msg) == case
+    counters = ingest.counters()["tof"]
+    assert counters["dropped"][case] == 1
+    assert sum(counters["dropped"].values()) == 1 and counters["queue_depth"] == 0
+
+
+def test_out_of_order_duplicate_and_queue_full() -> None:
+    ingest = make(queue_size=2)
+    assert ingest.add_depth("tof", depth_msg(100 * MS)) is None
+    assert ingest.add_depth("tof", depth_msg(100 * MS)) == "duplicate"
+    assert ingest.add_depth("tof", depth_msg(50 * MS)) == "out_of_order"
+    ingest.add_depth("tof", depth_msg(150 * MS))
+    ingest.add_depth("tof", depth_msg(200 * MS))  # third in a queue of two: the oldest goes
+    dropped = ingest.counters()["tof"]["dropped"]
+    assert (dropped["duplicate"], dropped["out_of_order"], dropped["queue_full"]) == (1, 1, 1)
+    ingest.add_pose("tof", pose_msg(140 * MS))
+    ingest.add_pose("tof", pose_msg(210 * MS))
+    assert [f.stamp_ns for f in frames(ingest.pop_ready())] == [150 * MS, 200 * MS]
+
+
+def test_time_jump_flushes_and_is_reported_first() -> None:
+    ingest = make(time_jump_s=1.0)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    ingest.add_depth("tof", depth_msg(5100 * MS))
+    ingest.add_depth("stereo", depth_msg(5050 * MS))
+    ingest.add_depth("tof", depth_msg(10 * MS))  # the bag restarted
+    ingest.add_pose("tof", pose_msg(0))
+    ingest.add_pose("tof", pose_msg(20 * MS))
+    items = ingest.pop_ready()
+    assert isinstance(items[0], TimeJump) and items[0].from_ns == 5100 * MS and items[0].to_ns == 10 * MS
+    assert [f.stamp_ns for f in frames(items)] == [10 * MS]
+    c = ingest.counters()
+    assert c["tof"]["time_jumps"] == 1
+    assert c["tof"]["dropped"]["time_jump"] == 1 and c["stereo"]["dropped"]["time_jump"] == 1
+    assert ingest.pop_ready() == []  # reported once
+
+
+def test_colour_matched_by_nearest_stamp_and_resized() -> None:
+    ingest = make(color_tolerance_s=0.02, working_size=(5, 0))
+    ingest.add_pose("stereo", pose_msg(0))
+    ingest.add_pose("stereo", pose_msg(200 * MS))
+    ingest.add_color("stereo", color_msg(90 * MS, value=1))
+    ingest.add_depth("stereo", depth_msg(100 * MS))
+    assert ingest.pop_ready() == []  # the colour stream has not reached the depth stamp: wait
+    ingest.add_color("stereo", color_msg(103 * MS, value=2))
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.rgb is not None and np.all(frame.rgb == 2)  # 3 ms beats 10 ms
+    assert frame.depth_m.shape == (4, 5) and frame.rgb.shape == (4, 5, 3)  # aspect ratio kept
+    assert frame.K[0, 0] == pytest.approx(5.0)
+
+
+def test_frames_in_stamp_order_and_deterministic() -> None:
+    def run() -> list[tuple[str, int, float]]:
+        ingest = make()
+        out = []
+        rng = np.random.default_rng(7)
+        for s in ("tof", "stereo"):
+            ingest.add_pose(s, pose_msg(0))
+        for i in range(40):
+            for s, offset in (("tof", 3), ("stereo", 7)):
+                t = (i * 33 + offset) * MS
+                ingest.add_depth(s, depth_msg(t, value=1.0 + rng.random()))
+                ingest.add_pose(s, pose_msg(t + 10 * MS, x=i * 0.01))
+            if i % 5 == 0:
+                out += [(f.sensor, f.stamp_ns, float(f.T_world_camera[0, 3])) for f in frames(ingest.pop_ready())]
+        out += [(f.sensor, f.stamp_ns, float(f.T_world_camera[0, 3])) for f in frames(ingest.pop_ready())]
+        return out
+
+    first = run()
+    assert first == run()
+    assert len(first) == 80
+    for s in ("tof", "stereo"):
+        stamps = [t for name, t, _ in first if name == s]
+        assert stamps == sorted(stamps)
+
+
+def test_unknown_sensor_is_a_value_error() -> None:
+    with pytest.raises(ValueError, match="configured sensors"):
+        make().add_depth("lidar", depth_msg(0))
