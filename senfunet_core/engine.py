@@ -20,13 +20,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from . import networks
 from .errors import InputError
 from .fusion import fuse
-from .grid import BLOCK, BLOCK_VOXELS, NEIGHBOUR_OFFSETS, BlockGrid
+from .grid import BLOCK, BLOCK_VOXELS, NEIGHBOUR_OFFSETS, BlockGrid, local_grid
 from .integrator import (IntegratorConfig, aggregate_pixel_values, check_frame, frame_samples, integrate_into,
-                         valid_depth_mask, voxel_slots)
+                         running_average, valid_depth_mask, voxel_slots)
 from .mesher import Mesh, marching_cubes_blocks, to_mesh, weld
 
 log = logging.getLogger("senfunet.engine")
@@ -34,6 +35,10 @@ log = logging.getLogger("senfunet.engine")
 TSDF_FUSION = "tsdf_fusion"
 FUSED = "fused"
 # Blocks whose cells read a block: itself and its -x, -y, -z neighbours.
+# A block with at least this many alpha targets is evaluated densely (~1.5 ms per block, all 512
+# voxels) instead of by sparse gathers (~20-40 us per target on this CPU).
+_DENSE_ALPHA_TARGETS = 48
+_STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 _MESH_READERS = torch.tensor([[-dx, -dy, -dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
 
 
@@ -55,6 +60,14 @@ class EngineConfig:
     alpha_batch_blocks: int = 512  # blocks per weighting-net batch (memory vs. speed)
     mesh_batch_blocks: int = 4096  # blocks per marching-cubes call
     seed: int = 0  # initialisation of untrained networks
+    torch_threads: int = 1  # torch intra-op threads the engine sets (0: leave torch's setting); 1 fits 2 shared cores
+    storage_dtype: str = "float16"  # feature and weight-counter pools ("float16" halves them; counters stay exact)
+    alpha_voxels: str = "all"  # which voxels near a change get alpha re-evaluated: "all" (equals the whole-grid
+    #   evaluation on every voxel); "observed" (observed voxels: all that fusion, filter, meshes and clouds read);
+    #   "surface" (corners of cells whose 8 corners are observed and whose sensor TSDFs straddle 0: all that the
+    #   fused mesh, its filter and its colours read; alpha elsewhere may be stale)
+    alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
+    #                               (max-norm over [F, tanh(W)], summed over frames); 0 = exact
 
     @property
     def integrator(self) -> IntegratorConfig:
@@ -74,6 +87,14 @@ class EngineConfig:
             raise InputError("voxel_size_m, band_m must be > 0, n_samples >= 2, w_max >= 1")
         if not 0 <= self.n_samples_behind <= (self.n_samples - 1) // 2:
             raise InputError("n_samples_behind must be between 0 and (n_samples - 1) / 2")
+        if self.storage_dtype not in _STORAGE_DTYPES:
+            raise InputError(f"storage_dtype must be one of {sorted(_STORAGE_DTYPES)}, got '{self.storage_dtype}'")
+        if self.storage_dtype == "float16" and self.w_max > 2048:
+            raise InputError("w_max above 2048 needs storage_dtype float32 (float16 counts exactly only to 2048)")
+        if self.alpha_voxels not in ("all", "observed", "surface"):
+            raise InputError(f"alpha_voxels must be 'all', 'observed' or 'surface', got '{self.alpha_voxels}'")
+        if not self.alpha_tolerance >= 0 or self.torch_threads < 0:
+            raise InputError("alpha_tolerance must be >= 0 and torch_threads >= 0")
 
 
 @dataclass
@@ -92,6 +113,18 @@ class WeightCloud:
     weights: np.ndarray  # N x n_sensors float32 weight counters
 
 
+def _window_reduce(x: torch.Tensor, k: int, op) -> torch.Tensor:
+    """B x S x S x S -> B x (S-k+1)^3: `op` (logical_or, logical_and, minimum, maximum) over each
+    k^3 window, as three separable passes of shifted slices (much faster than max_pool3d on CPU)."""
+    for dim in (1, 2, 3):
+        m = x.shape[dim] - k + 1
+        out = x.narrow(dim, 0, m)
+        for i in range(1, k):
+            out = op(out, x.narrow(dim, i, m))
+        x = out
+    return x
+
+
 def resolve_device(name: str) -> torch.device:
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise InputError(f"device '{name}' requested but CUDA is not available; use device 'cpu'")
@@ -105,6 +138,8 @@ class SenFuNet:
         config.validate()
         self.config = config
         self.device = resolve_device(config.device)
+        if config.torch_threads > 0 and torch.get_num_threads() != config.torch_threads:
+            torch.set_num_threads(config.torch_threads)
         self.feature_nets, self.weighting_net = networks.make_networks(config.sensor_uses_rgb, config.seed)
         self.weights_source = "random initialisation (untrained)"
         if weights == "default":
@@ -121,7 +156,11 @@ class SenFuNet:
         channels: dict[str, tuple[int, ...]] = {"tsdf_base": (), "weight_base": (), "alpha": ()}
         for i in range(len(config.sensors)):
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
-        self.grid = BlockGrid(channels, self.device)
+        storage = _STORAGE_DTYPES[config.storage_dtype]
+        dtypes = {name: storage for name in channels if name.startswith(("feat", "weight"))}
+        self.grid = BlockGrid(channels, self.device, dtypes=dtypes)
+        self._drift = torch.zeros(0, device=self.device)  # per voxel (slot*512+local): input change since its alpha
+        self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0}
         self.timings_s: dict[str, float] = {}
         self.frames_integrated = {name: 0 for name in config.sensors}
         self._reset_pending()
@@ -152,9 +191,9 @@ class SenFuNet:
         pixel_features = self._pixel_features(s, depth, rgb).flatten(1)[:, samples.pixel_index].T  # P x 5
         voxel_features = aggregate_pixel_values(samples, pixel_features)
         t2 = time.perf_counter()
-        integrate_into(self.grid, flat, f"tsdf{s}", f"weight{s}", samples.tsdf_m, cfg.w_max, f"feat{s}", voxel_features)
+        self._integrate_sensor(s, flat, samples.tsdf_m, voxel_features)
         integrate_into(self.grid, flat, "tsdf_base", "weight_base", samples.tsdf_m, cfg.w_max)
-        self._alpha_pending.append(torch.unique_consecutive(flat // BLOCK_VOXELS))
+        self._alpha_changed.append(torch.unique_consecutive(flat // BLOCK_VOXELS))
         self.frames_integrated[sensor] += 1
         t3 = time.perf_counter()
         self.timings_s.update(integrate_samples=t1 - t0, feature_net=t2 - t1, integrate_update=t3 - t2)
@@ -167,6 +206,8 @@ class SenFuNet:
         self._refresh_alpha()
         t1 = time.perf_counter()
         slots = self._take_mesh_pending()
+        self.counters["mesh_blocks"] += int(slots.numel())
+        self.counters["mesh_blocks_last"] = int(slots.numel())
         result = MeshUpdate(cleared=self._cleared)
         self._cleared = False
         for start in range(0, slots.numel(), self.config.mesh_batch_blocks):
@@ -244,6 +285,7 @@ class SenFuNet:
     def reset(self) -> None:
         """Forget everything fused; the next update reports `cleared`."""
         self.grid.clear()
+        self._drift = torch.zeros(0, device=self.device)
         self.frames_integrated = {name: 0 for name in self.config.sensors}
         self._reset_pending()
         self._cleared = True
@@ -312,7 +354,8 @@ class SenFuNet:
             raise InputError(f"unknown mesh '{which}'; choose {FUSED}, {TSDF_FUSION} or one of {list(self.config.sensors)}")
 
     def _reset_pending(self) -> None:
-        self._alpha_pending: list[torch.Tensor] = []
+        self._alpha_pending: list[torch.Tensor] = []  # blocks to re-evaluate entirely (e.g. the net changed)
+        self._alpha_changed: list[torch.Tensor] = []  # blocks integrated into: re-evaluate around their drift
         self._mesh_pending: list[torch.Tensor] = []
         self._meshed: set[tuple[int, int, int]] = set()
         self._cleared = False
@@ -328,25 +371,205 @@ class SenFuNet:
                 rgb01 = torch.from_numpy(rgb).to(self.device).permute(2, 0, 1).unsqueeze(0).float() / 255.0
         return net(depth.view(1, 1, *depth.shape), rgb01)[0]
 
+    def _integrate_sensor(self, s: int, flat: torch.Tensor, tsdf_update: torch.Tensor,
+                          feature_update: torch.Tensor) -> None:
+        """integrate_into for one sensor's TSDF, weight and features (same running averages), reading
+        each pool once, and accumulating each voxel's weighting-net input change into `_drift`."""
+        pools = self.grid.pools
+        tsdf, weight = pools[f"tsdf{s}"].view(-1), pools[f"weight{s}"].view(-1)
+        feature = pools[f"feat{s}"].view(-1, networks.N_FEATURES)
+        old_weight = weight[flat].float()
+        old_features = feature[flat].float()
+        new_features = running_average(old_features, old_weight, feature_update).to(feature.dtype)
+        feature[flat] = new_features
+        old_tsdf = tsdf[flat]
+        new_tsdf = running_average(old_tsdf, old_weight, tsdf_update)
+        tsdf[flat] = new_tsdf
+        new_weight = torch.clamp(old_weight + 1, max=self.config.w_max)
+        weight[flat] = new_weight.to(weight.dtype)
+        self._ensure_drift_capacity()
+        change = (new_features.float() - old_features).abs_().amax(dim=1)
+        change = torch.maximum(change, (torch.tanh(new_weight) - torch.tanh(old_weight)).abs_())
+        change = torch.maximum(change, (new_tsdf - old_tsdf).abs_())
+        # events that can add a voxel to the observed or surface sets (first observation, TSDF sign
+        # change) always refresh alpha around it, whatever the tolerance: a voxel that joins these
+        # sets never keeps an alpha it was not evaluated with
+        joins = (old_weight == 0) | (torch.signbit(new_tsdf) != torch.signbit(old_tsdf))
+        change = torch.where(joins, torch.full_like(change, float("inf")), change)
+        self._drift.index_put_((flat,), change, accumulate=True)
+
+    def _ensure_drift_capacity(self) -> None:
+        needed = self.grid.capacity * BLOCK_VOXELS
+        if self._drift.numel() < needed:
+            grown = torch.zeros(needed, device=self.device)
+            grown[: self._drift.numel()] = self._drift
+            self._drift = grown
+
     def _refresh_alpha(self) -> None:
-        """Re-evaluate alpha on the blocks whose weighting-net inputs changed."""
-        if not self._alpha_pending:
+        """Re-evaluate alpha wherever a weighting-net input changed within 2 voxels (more than
+        `alpha_tolerance`, summed since the voxel's inputs were last used)."""
+        if not self._alpha_pending and not self._alpha_changed:
             return
-        changed = torch.unique(torch.cat(self._alpha_pending))
-        self._alpha_pending = []
-        slots = self.grid.dilate(changed, NEIGHBOUR_OFFSETS)
+        changed = torch.unique(torch.cat(self._alpha_pending + self._alpha_changed))
+        forced = torch.unique(torch.cat(self._alpha_pending)) if self._alpha_pending else changed[:0]
+        self._alpha_pending, self._alpha_changed = [], []
+        self._ensure_drift_capacity()
+        tol = self.config.alpha_tolerance
+        drift = self._drift.view(-1, BLOCK_VOXELS)
+        if forced.numel():
+            drift[forced] = float("inf")
+        dirty = drift[changed] > tol  # C x 512
+        keep = dirty.any(dim=1)
+        changed_dirty, dirty = changed[keep], dirty[keep]
+        # neighbour blocks reached by a dirty voxel's 5^3 neighbourhood
+        d = dirty.view(-1, BLOCK, BLOCK, BLOCK)
+        halo = networks.WEIGHTING_HALO
+        lo_x, hi_x = d[:, :halo].flatten(1).any(1), d[:, -halo:].flatten(1).any(1)
+        reach = []
+        for ox, oy, oz in NEIGHBOUR_OFFSETS.tolist():
+            sub = d
+            sub = sub[:, :halo] if ox < 0 else sub[:, -halo:] if ox > 0 else sub
+            sub = sub[:, :, :halo] if oy < 0 else sub[:, :, -halo:] if oy > 0 else sub
+            sub = sub[:, :, :, :halo] if oz < 0 else sub[:, :, :, -halo:] if oz > 0 else sub
+            reach.append(sub.flatten(1).any(1))
+        del lo_x, hi_x
+        reach = torch.stack(reach, dim=1)  # C x 27
+        neighbours = self.grid.neighbour_slots(changed_dirty)
+        targets = neighbours[reach & (neighbours >= 0)]
+        slots = torch.unique(targets)
+        if self.config.alpha_voxels != "all":
+            self._alpha_observed(slots, tol, surface_only=self.config.alpha_voxels == "surface")
+        else:
+            self._alpha_blocks(slots)
+        # the inputs of these voxels are now the ones alpha was evaluated with
+        drift[changed_dirty] = torch.where(dirty, torch.zeros((), device=self.device), drift[changed_dirty])
+        self.counters["alpha_blocks"] += int(slots.numel())
+        self._mesh_pending.append(changed)  # the TSDF changed here, whatever alpha did
+        self._mesh_pending.append(slots)
+
+    def _weighting_inputs(self, batch: torch.Tensor) -> torch.Tensor:
+        """B x 12 x 12^3 weighting-net input windows (each block with a 2-voxel halo), float32."""
         n = len(self.config.sensors)
         names = [name for i in range(n) for name in (f"feat{i}", f"weight{i}")]
         halo = networks.WEIGHTING_HALO
+        size = BLOCK + 2 * halo
+        gathered = [g.float() for g in self.grid.gather(batch, names, -halo, size)]
+        x = networks.weighting_input(gathered[0::2], gathered[1::2])  # B x size^3 x 12
+        return x
+
+    def _alpha_blocks(self, slots: torch.Tensor) -> None:
+        """Alpha on every voxel of the given blocks (dense convolutions on halo-padded windows)."""
         alpha_pool = self.grid.pools["alpha"]
+        size = BLOCK + 2 * networks.WEIGHTING_HALO
         for start in range(0, slots.numel(), self.config.alpha_batch_blocks):
             batch = slots[start:start + self.config.alpha_batch_blocks]
-            gathered = self.grid.gather(batch, names, -halo, BLOCK + 2 * halo)
-            x = networks.weighting_input(gathered[0::2], gathered[1::2])  # B x size^3 x 12
-            size = BLOCK + 2 * halo
+            x = self._weighting_inputs(batch)
             x = x.view(len(batch), size, size, size, -1).permute(0, 4, 1, 2, 3).contiguous()
             alpha_pool[batch] = self.weighting_net(x, pad=False).reshape(len(batch), BLOCK_VOXELS)
-        self._mesh_pending.append(slots)
+            self.counters["alpha_voxels"] += int(batch.numel()) * BLOCK_VOXELS
+
+    def _window(self, neighbours: torch.Tensor, name: str, lo: int, size: int) -> torch.Tensor:
+        """B x size^3 (x channel shape) of pool `name` around each block (neighbours: B x 27 slots),
+        zeros where no block exists."""
+        code, index = local_grid(lo, size, self.device)
+        voxel_slot = neighbours[:, code]
+        pool = self.grid.pools[name]
+        flat = voxel_slot.clamp(min=0) * BLOCK_VOXELS + index.unsqueeze(0)
+        values = pool.view(-1, *pool.shape[2:])[flat]
+        present = (voxel_slot >= 0).view(*voxel_slot.shape, *([1] * (values.dim() - 2)))
+        return values * present.to(values.dtype) if values.dtype != torch.bool else values & present
+
+    def _surface_voxels(self, neighbours: torch.Tensor) -> torch.Tensor:
+        """B x 512: voxels that are a corner of a cell whose 8 corners are observed and whose
+        corner TSDFs (each sensor's, where observed) include values <= 0 and >= 0. Only these
+        cells can produce fused triangles, whatever alpha is (the fused value lies between V1 and V2)."""
+        size, b = BLOCK + 2, neighbours.shape[0]
+        shape = (b, size, size, size)
+        lo = hi = observed = None
+        for i in range(len(self.config.sensors)):
+            tsdf = self._window(neighbours, f"tsdf{i}", -1, size).view(shape)
+            seen = (self._window(neighbours, f"weight{i}", -1, size) > 0).view(shape)
+            v_lo = torch.where(seen, tsdf, torch.full_like(tsdf, float("inf")))
+            v_hi = torch.where(seen, tsdf, torch.full_like(tsdf, float("-inf")))
+            lo = v_lo if lo is None else torch.minimum(lo, v_lo)
+            hi = v_hi if hi is None else torch.maximum(hi, v_hi)
+            observed = seen if observed is None else observed | seen
+        cells = (_window_reduce(observed, 2, torch.logical_and) & (_window_reduce(lo, 2, torch.minimum) <= 0)
+                 & (_window_reduce(hi, 2, torch.maximum) >= 0))  # B x 9^3 cells
+        return _window_reduce(cells, 2, torch.logical_or).reshape(b, BLOCK_VOXELS)
+
+    def _alpha_observed(self, slots: torch.Tensor, tol: float, surface_only: bool = False) -> None:
+        """Alpha on the observed voxels of the given blocks within 2 voxels of a changed input
+        (with surface_only: only those `_surface_voxels` marks), as sparse convolutions: gather
+        the 3^3 neighbourhoods, one matrix product per layer."""
+        grid, halo = self.grid, networks.WEIGHTING_HALO
+        size, inner = BLOCK + 2 * halo, BLOCK + 2  # input window 12^3, hidden window 10^3
+        net = self.weighting_net
+        w1 = net.conv1.weight.permute(2, 3, 4, 1, 0).reshape(-1, net.conv1.out_channels)  # 27*12 x 32
+        w2 = net.conv2.weight.permute(2, 3, 4, 1, 0).reshape(-1, net.conv2.out_channels)  # 27*32 x 16
+        w3 = net.conv3.weight.reshape(net.conv3.out_channels, -1).T  # 16 x 1
+        r3 = torch.arange(3, device=self.device)
+        off_in = (r3.view(3, 1, 1) * size * size + r3.view(1, 3, 1) * size + r3.view(1, 1, 3)).reshape(-1)
+        off_hid = (r3.view(3, 1, 1) * inner * inner + r3.view(1, 3, 1) * inner + r3.view(1, 1, 3)).reshape(-1)
+        code, index = local_grid(-halo, size, self.device)
+        n = len(self.config.sensors)
+        alpha_flat = grid.pools["alpha"].view(-1)
+        chunk = 32768
+        for start in range(0, slots.numel(), self.config.alpha_batch_blocks):
+            batch = slots[start:start + self.config.alpha_batch_blocks]
+            neighbours = grid.neighbour_slots(batch)
+            # targets: observed voxels whose 5^3 receptive field holds a changed input
+            window = neighbours[:, code]
+            dirty = (self._drift[window.clamp(min=0) * BLOCK_VOXELS + index.unsqueeze(0)] > tol) & (window >= 0)
+            near = _window_reduce(dirty.view(-1, size, size, size), 2 * halo + 1, torch.logical_or)
+            target = near.reshape(-1, BLOCK_VOXELS)
+            observed = grid.pools["weight0"][batch] > 0
+            for i in range(1, n):
+                observed |= grid.pools[f"weight{i}"][batch] > 0
+            target &= observed
+            if surface_only:
+                has = target.any(dim=1)
+                batch, neighbours, target = batch[has], neighbours[has], target[has]
+                if batch.numel():
+                    target &= self._surface_voxels(neighbours)
+            count = target.sum(dim=1)
+            dense = count >= _DENSE_ALPHA_TARGETS  # cheaper as one dense block evaluation (exact too)
+            if bool(dense.any()):
+                self._alpha_blocks(batch[dense])
+            has = (count > 0) & ~dense
+            batch, neighbours, target = batch[has], neighbours[has], target[has]
+            b = batch.numel()
+            if b == 0:
+                continue
+            # weighting-net inputs of the 12^3 windows: B*12^3 x 12
+            parts = []
+            for i in range(n):
+                parts.append(self._window(neighbours, f"feat{i}", -halo, size).float())
+                parts.append(torch.tanh(self._window(neighbours, f"weight{i}", -halo, size).float()).unsqueeze(-1))
+            x = torch.cat(parts, dim=-1).reshape(b * size ** 3, -1)
+            # hidden-layer positions the targets read: their 3^3 neighbourhoods in the 10^3 window
+            t_pad = F.pad(target.view(b, BLOCK, BLOCK, BLOCK), (2, 2, 2, 2, 2, 2))
+            hidden_needed = _window_reduce(t_pad, 3, torch.logical_or).reshape(b, -1)  # B x 10^3
+            hb, hp = torch.nonzero(hidden_needed, as_tuple=True)
+            hx, hy, hz = hp // (inner * inner), (hp // inner) % inner, hp % inner
+            base = hb * size ** 3 + hx * size * size + hy * size + hz
+            hidden = torch.zeros((b * inner ** 3, w1.shape[1]), device=self.device)
+            hidden_rows = hb * inner ** 3 + hp
+            for c0 in range(0, base.numel(), chunk):
+                rows = base[c0:c0 + chunk]
+                patches = x[(rows.unsqueeze(1) + off_in.unsqueeze(0)).view(-1)].view(rows.numel(), -1)
+                hidden[hidden_rows[c0:c0 + chunk]] = torch.relu_(torch.addmm(net.conv1.bias, patches, w1))
+            tb, tp = torch.nonzero(target, as_tuple=True)
+            tx, ty, tz = tp // (BLOCK * BLOCK), (tp // BLOCK) % BLOCK, tp % BLOCK
+            tbase = tb * inner ** 3 + tx * inner * inner + ty * inner + tz
+            out = torch.empty(tbase.numel(), device=self.device)
+            for c0 in range(0, tbase.numel(), chunk):
+                rows = tbase[c0:c0 + chunk]
+                patches = hidden[(rows.unsqueeze(1) + off_hid.unsqueeze(0)).view(-1)].view(rows.numel(), -1)
+                h2 = torch.relu_(torch.addmm(net.conv2.bias, patches, w2))
+                out[c0:c0 + chunk] = torch.sigmoid_(torch.addmm(net.conv3.bias, h2, w3)).squeeze(1)
+            alpha_flat[batch[tb] * BLOCK_VOXELS + tp] = out
+            self.counters["alpha_voxels"] += int(tbase.numel())
 
     def _take_mesh_pending(self) -> torch.Tensor:
         if not self._mesh_pending:

@@ -66,9 +66,12 @@ class BlockGrid:
     """Blocks and their channels. Slots are never freed except by `clear`."""
 
     def __init__(self, channels: dict[str, tuple[int, ...]], device: torch.device | str = "cpu",
-                 initial_capacity: int = 256) -> None:
+                 initial_capacity: int = 256, dtypes: dict[str, torch.dtype] | None = None,
+                 growth: float = 1.5) -> None:
         self.device = torch.device(device)
         self.channel_shapes = dict(channels)
+        self.channel_dtypes = {name: (dtypes or {}).get(name, torch.float32) for name in self.channel_shapes}
+        self.growth = max(float(growth), 1.1)  # capacity factor when the pools grow (memory slack vs. copies)
         self._initial_capacity = initial_capacity
         self.clear()
 
@@ -79,7 +82,7 @@ class BlockGrid:
         self.coords = torch.zeros((cap, 3), dtype=torch.int64, device=self.device)
         self._sorted_keys = torch.zeros(0, dtype=torch.int64, device=self.device)
         self._sorted_slots = torch.zeros(0, dtype=torch.int64, device=self.device)
-        self.pools = {name: torch.zeros((cap, BLOCK_VOXELS, *shape), device=self.device)
+        self.pools = {name: torch.zeros((cap, BLOCK_VOXELS, *shape), dtype=self.channel_dtypes[name], device=self.device)
                       for name, shape in self.channel_shapes.items()}
 
     # -- lookup and allocation ------------------------------------------------------------
@@ -115,7 +118,7 @@ class BlockGrid:
     def _reserve(self, n_blocks: int) -> None:
         if n_blocks <= self.capacity:
             return
-        cap = max(n_blocks, 2 * self.capacity)
+        cap = max(n_blocks, int(self.growth * self.capacity) + 1)
         for name, pool in self.pools.items():
             grown = torch.zeros((cap, *pool.shape[1:]), dtype=pool.dtype, device=self.device)
             grown[: self.n_blocks] = pool[: self.n_blocks]
@@ -173,7 +176,7 @@ class BlockGrid:
         coords = state["coords"].to(self.device)
         slots = self.allocate_keys(block_keys(coords))
         for name in self.pools:
-            self.pools[name][slots] = state[f"pool.{name}"].to(self.device)
+            self.pools[name][slots] = state[f"pool.{name}"].to(self.device, self.pools[name].dtype)
 
     def nbytes(self) -> int:
         """Bytes held by the pools and index (allocated capacity)."""

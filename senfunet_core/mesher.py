@@ -72,17 +72,59 @@ def marching_cubes_blocks(tsdf: np.ndarray, observed: np.ndarray, block_origin_v
     values = volume[mask.reshape(volume.shape)]
     if values.size == 0 or values.min() > 0 or values.max() < 0:
         return empty
-    verts, faces, _, _ = marching_cubes(volume, level=0.0, mask=mask.reshape(volume.shape))
+    try:
+        verts, faces, _, _ = marching_cubes(volume, level=0.0, mask=mask.reshape(volume.shape))
+    except RuntimeError:  # skimage requires min < 0 < max strictly (e.g. values touch 0 but never cross)
+        return empty
     if len(faces) == 0:
         return empty
     vertex_block = np.floor(verts[:, 0] / n).astype(np.int64).clip(0, n_blocks - 1)
     local = verts.astype(np.float64)
     local[:, 0] -= vertex_block * n
+    local = _exact_edge_positions(np.asarray(tsdf, dtype=np.float32), vertex_block, local)
     vertex_values = None
     if extra is not None:
         vertex_values = _interpolate(extra.astype(np.float32), vertex_block, local)
     global_vox = local + np.asarray(block_origin_vox, dtype=np.float64)[vertex_block]
     return BlockTriangles(global_vox, faces.astype(np.int64), vertex_block, vertex_block[faces[:, 0]], vertex_values)
+
+
+def _exact_edge_positions(volumes: np.ndarray, block: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """Recompute each vertex from its grid edge's two samples in float64.
+
+    skimage returns float32 positions in the stacked volume, whose last bits depend on where a
+    block sat in the stack (up to ~1e-3 voxel for large batches): recomputing from the block's own
+    samples makes a vertex independent of batching, so incremental and whole meshes agree exactly.
+    """
+    if len(local) == 0:
+        return local
+    n = volumes.shape[1]
+    off_grid = np.abs(local - np.round(local))
+    axis = np.argmax(off_grid, axis=1)
+    on_edge = off_grid.max(axis=1) >= 1e-4
+    rows = np.nonzero(on_edge)[0]
+    if len(rows) == 0:
+        return local
+    ax = axis[rows]
+    base = np.round(local[rows]).astype(np.int64)
+    base[np.arange(len(rows)), ax] = np.floor(local[rows, ax]).astype(np.int64)
+    base = base.clip(0, n - 1)
+    upper = base.copy()
+    upper[np.arange(len(rows)), ax] += 1
+    inside = upper[np.arange(len(rows)), ax] <= n - 1
+    rows, ax, base, upper = rows[inside], ax[inside], base[inside], upper[inside]
+    b = block[rows]
+    va = volumes[b, base[:, 0], base[:, 1], base[:, 2]].astype(np.float64)
+    vb = volumes[b, upper[:, 0], upper[:, 1], upper[:, 2]].astype(np.float64)
+    denom = va - vb
+    ok = denom != 0
+    t = np.zeros_like(va)
+    t[ok] = np.clip(va[ok] / denom[ok], 0.0, 1.0)
+    out = local.copy()
+    exact = base.astype(np.float64)
+    exact[np.arange(len(rows)), ax] += t
+    out[rows[ok]] = exact[ok]
+    return out
 
 
 def _interpolate(volumes: np.ndarray, block: np.ndarray, local: np.ndarray) -> np.ndarray:

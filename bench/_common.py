@@ -1,0 +1,54 @@
+"""Shared helpers of the benchmark scripts: machine description and docs/performance.md sections."""
+from __future__ import annotations
+
+import os
+import platform
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PERFORMANCE_MD = ROOT / "docs" / "performance.md"
+HEADER = """# Performance
+
+Written by the benchmark scripts (`bench/engine.py`, `bench/realtime.py`); each section is replaced
+when its script runs again. Timings are wall-clock on the machine named in the section; on a
+shared machine they are noisy (see the load average recorded with them).
+"""
+
+
+def machine() -> str:
+    import torch
+
+    cpu = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    load = "n/a"
+    try:
+        load = " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        pass
+    return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__} "
+            f"({torch.get_num_threads()} intra-op threads), load average {load} at the start")
+
+
+def command() -> str:
+    return " ".join([".venv/bin/python", os.path.relpath(sys.argv[0], ROOT), *sys.argv[1:]])
+
+
+def write_section(title: str, body: str, path: Path = PERFORMANCE_MD) -> None:
+    """Replace (or append) the section `## title` of docs/performance.md."""
+    text = path.read_text() if path.is_file() else HEADER
+    section = f"## {title}\n\n{body.strip()}\n"
+    pattern = re.compile(rf"^## {re.escape(title)}\n.*?(?=^## |\Z)", re.S | re.M)
+    if pattern.search(text):
+        text = pattern.sub(lambda _: section + "\n", text).rstrip() + "\n"
+    else:
+        text = text.rstrip() + "\n\n" + section
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)

@@ -1,0 +1,135 @@
+"""Engine micro-benchmark (issue 2 item 5): integration time per 256x256 frame per sensor, alpha
+throughput, meshing time per block, bytes per observed voxel.
+
+    .venv/bin/python bench/engine.py                  # sample bag frames (or a simulated room), writes docs/performance.md
+    .venv/bin/python bench/engine.py --frames 40 --no-write
+
+Frames come from the sample bag through the node's Ingest (as `senfunet replay` reads them) or,
+without a bag, from `senfunet_core.simulator`. The alpha figures are given for the exact
+configuration (alpha_voxels="all", alpha_tolerance=0: every voxel within 2 voxels of a change) and
+for the fast one the node uses (see docs/performance.md and test/test_equivalence.py).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench._common import ROOT, command, machine, write_section  # noqa: E402
+
+
+def load_frames(bag: Path, n: int, seed: int):
+    """[(sensor, depth, K, T, rgb)] of the first n frames in arrival order."""
+    if (bag / "metadata.yaml").is_file() or bag.suffix == ".mcap":
+        from senfunet_ros.bagio import open_bag
+        from senfunet_ros.ingest import Frame, Ingest
+        from senfunet_ros.replay import TopicRouter, ingest_config, load_settings
+
+        settings = load_settings(None)
+        frames = []
+        with open_bag(bag) as reader:
+            router = TopicRouter(settings, reader.topics, bag)
+            ingest = Ingest(ingest_config(settings))
+            for msg in reader.messages(router.topics):
+                decoded = router.decode(msg)
+                if decoded is not None:
+                    router.dispatch(ingest, *decoded)
+                    frames += [(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb) for f in ingest.pop_ready()
+                               if isinstance(f, Frame)]
+                if len(frames) >= n:
+                    break
+        return frames[:n], f"`{bag.relative_to(ROOT) if bag.is_relative_to(ROOT) else bag}`"
+    from senfunet_core import simulator as sim
+
+    seq = sim.simulate_sequence(sim.make_scene(seed), seed, duration_s=n / 35 + 0.1)
+    return [(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb) for f in seq.frames[:n]], f"simulated room (seed {seed})"
+
+
+def measure(frames, config, weights, update_every: int) -> dict:
+    from senfunet_core.engine import SenFuNet
+
+    engine = SenFuNet(config, weights=weights)
+    per_sensor: dict[str, list[float]] = {}
+    feature: dict[str, list[float]] = {}
+    alpha_s = mesh_s = 0.0
+    alpha_voxels = mesh_blocks = 0
+    for i, (sensor, depth, K, T, rgb) in enumerate(frames):
+        t0 = time.perf_counter()
+        engine.integrate(sensor, depth, K, T, rgb)
+        per_sensor.setdefault(sensor, []).append(time.perf_counter() - t0)
+        feature.setdefault(sensor, []).append(engine.timings_s.get("feature_net", 0.0))
+        if (i + 1) % update_every == 0 or i == len(frames) - 1:
+            before = engine.counters["alpha_voxels"]
+            update = engine.update()
+            alpha_s += engine.timings_s["alpha"]
+            mesh_s += engine.timings_s["mesh"]
+            alpha_voxels += engine.counters["alpha_voxels"] - before
+            mesh_blocks += engine.counters.get("mesh_blocks_last", len(update.changed) + len(update.removed))
+    stats = engine.stats()
+    return {
+        "integrate_ms": {s: 1e3 * float(np.median(v[1:] if len(v) > 1 else v)) for s, v in per_sensor.items()},
+        "feature_ms": {s: 1e3 * float(np.median(v[1:] if len(v) > 1 else v)) for s, v in feature.items()},
+        "alpha_s": alpha_s, "alpha_voxels": alpha_voxels, "alpha_vox_per_s": alpha_voxels / max(alpha_s, 1e-9),
+        "mesh_s": mesh_s, "mesh_blocks": mesh_blocks, "mesh_ms_per_block": 1e3 * mesh_s / max(mesh_blocks, 1),
+        "observed": stats["observed_voxels"], "blocks": stats["blocks"],
+        "bytes_per_observed_voxel": stats["bytes_per_observed_voxel"],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--bag", default=str(ROOT / "bags" / "sim_room"))
+    ap.add_argument("--frames", type=int, default=36, help="frames of both sensors, in arrival order")
+    ap.add_argument("--update-every", type=int, default=12, help="engine.update() after this many frames")
+    ap.add_argument("--seed", type=int, default=4242, help="simulated room when there is no bag")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--fast-tolerance", type=float, default=0.02)
+    ap.add_argument("--no-write", dest="write", action="store_false")
+    args = ap.parse_args()
+    from senfunet_core.engine import EngineConfig
+
+    frames, source = load_frames(Path(args.bag), args.frames, args.seed)
+    try:
+        from senfunet_ros.replay import engine_config, engine_weights, load_settings
+
+        settings = load_settings(None)
+        base, weights = engine_config(settings), engine_weights(settings)
+    except Exception:  # the ROS layer is optional here
+        base, weights = EngineConfig(), "default"
+    configs = {
+        "exact (alpha_voxels=all, tolerance 0)": replace(base, alpha_voxels="all", alpha_tolerance=0.0,
+                                                         torch_threads=args.threads),
+        f"fast (alpha_voxels=surface, tolerance {args.fast_tolerance:g})":
+            replace(base, alpha_voxels="surface", alpha_tolerance=args.fast_tolerance, torch_threads=args.threads),
+    }
+    results = {name: measure(frames, cfg, weights, args.update_every) for name, cfg in configs.items()}
+    lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
+             f"Frames: the first {len(frames)} depth frames (256x256, both sensors, arrival order) of {source}; "
+             f"update() every {args.update_every} frames; torch threads {args.threads}; medians over frames "
+             "(first frame of each sensor excluded).", "",
+             "| | " + " | ".join(results) + " |", "|---" * (len(results) + 1) + "|"]
+
+    def row(name, fn):
+        lines.append(f"| {name} | " + " | ".join(fn(r) for r in results.values()) + " |")
+
+    row("integrate per frame (ms)", lambda r: ", ".join(f"{s} {v:.1f}" for s, v in r["integrate_ms"].items()))
+    row("- of which feature net (ms)", lambda r: ", ".join(f"{s} {v:.1f}" for s, v in r["feature_ms"].items()))
+    row("alpha: voxels evaluated / time", lambda r: f"{r['alpha_voxels']} in {r['alpha_s']:.2f} s")
+    row("alpha throughput (voxels/s)", lambda r: f"{r['alpha_vox_per_s']:.3g}")
+    row("alpha time per frame (ms)", lambda r: f"{1e3 * r['alpha_s'] / len(frames):.1f}")
+    row("meshing per block (ms)", lambda r: f"{r['mesh_ms_per_block']:.3f} ({r['mesh_blocks']} blocks)")
+    row("blocks / observed voxels", lambda r: f"{r['blocks']} / {r['observed']}")
+    row("bytes per observed voxel", lambda r: f"{r['bytes_per_observed_voxel']:.0f}")
+    text = "\n".join(lines)
+    print(text)
+    if args.write:
+        write_section("Engine", text)
+
+
+if __name__ == "__main__":
+    main()

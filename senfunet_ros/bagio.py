@@ -1,0 +1,555 @@
+"""Reading and writing recordings without ROS: rosbag2 folders (mcap or sqlite3) and bare `.mcap` files.
+
+Reading gives raw CDR bytes per message in recorded order; turning them into message objects is
+the caller's job (replay deserialises them into rclpy classes, play publishes the bytes as they
+are). Writing turns a simulated `Sequence` into the contract's topic layout (../shared/DESIGN.md):
+
+    /<s>/camera_info   sensor_msgs/msg/CameraInfo   before each depth image, same stamp
+    /<s>/depth         sensor_msgs/msg/Image        tof: 16UC1 millimetres, stereo: 32FC1 metres (NaN invalid)
+    /stereo/color      sensor_msgs/msg/Image        rgb8 left image, same stamp as its depth
+    /<s>/pose          geometry_msgs/msg/PoseStamped  optical frame in `map`, its own rate
+
+Convention: times are integer nanoseconds. `log_time_ns` is when the recorder received a message
+(what /clock replays); header stamps are sensor times. Every message of a written bag has its
+own log time (stamp plus a per-stream latency, ties broken by 1 ns), so mcap and sqlite3 copies
+of one bag come back in the same order.
+
+Errors: `BagError` (one line saying which file or topic is wrong and what to do) when a bag cannot
+be opened or written; `BagBrokenError` from `BagReader.messages` when a bag breaks midway (the
+messages before the break have been yielded). A truncated `.mcap` without its summary is read
+sequentially up to the break.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, Callable, Collection, Iterator, NamedTuple
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from senfunet_core.simulator import Sequence
+
+__all__ = [
+    "BagError",
+    "BagBrokenError",
+    "TopicInfo",
+    "BagMessage",
+    "BagReader",
+    "open_bag",
+    "bag_storage_file",
+    "message_class",
+    "normalize_msgtype",
+    "write_sequence_bag",
+    "copy_bag",
+    "DEFAULT_START_NS",
+    "STORAGES",
+]
+
+STORAGES = ("mcap", "sqlite3")
+# Simulated time 0 is written as this wall time (2023-11-14): ROS treats time 0 as "no clock yet".
+DEFAULT_START_NS = 1_700_000_000 * 1_000_000_000
+# Recorder latency per stream (stamp -> log time): colour before the stereo matcher's depth.
+_LATENCY_NS = {"pose": 2_000_000, "camera_info": 4_000_000, "color": 6_000_000,
+               "depth_tof": 8_000_000, "depth_stereo": 25_000_000}
+
+
+class BagError(ValueError):
+    """A bag cannot be read or written. str(err) is one line: which file or topic, what to do.
+
+    A ValueError (bad input), so callers that report bad parameters report bad bags too."""
+
+
+class BagBrokenError(BagError):
+    """The bag broke midway (truncated or corrupt); `messages_read` messages came before the break."""
+
+    def __init__(self, message: str, messages_read: int) -> None:
+        super().__init__(message)
+        self.messages_read = messages_read
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    name: str
+    msgtype: str  # ROS 2 spelling, e.g. sensor_msgs/msg/Image
+    count: int  # messages recorded (from the bag's index; 0 if unknown)
+    msgdef: str = ""  # message definition text, if the bag stores it
+    digest: str = ""  # RIHS01 type hash, if the bag stores it
+
+
+class BagMessage(NamedTuple):
+    topic: str
+    msgtype: str
+    log_time_ns: int
+    data: bytes  # CDR, with its 4-byte encapsulation header
+
+
+def normalize_msgtype(msgtype: str) -> str:
+    """`pkg/Name` (ROS 1 style) -> `pkg/msg/Name`; ROS 2 names unchanged."""
+    parts = msgtype.split("/")
+    if len(parts) == 2:
+        return f"{parts[0]}/msg/{parts[1]}"
+    return msgtype
+
+
+def message_class(msgtype: str) -> type:
+    """The rclpy message class of `pkg/msg/Name`; BagError if it is not installed."""
+    parts = normalize_msgtype(msgtype).split("/")
+    if len(parts) != 3 or not all(parts):
+        raise BagError(f"message type '{msgtype}' is not a ROS 2 type name (pkg/msg/Name)")
+    package, kind, name = parts
+    try:
+        module = importlib.import_module(f"{package}.{kind}")
+        cls = getattr(module, name)
+    except (ImportError, AttributeError):
+        raise BagError(
+            f"message type '{msgtype}' is unknown here; install its package "
+            f"(pip install ros-jazzy-{package.replace('_', '-')}) or leave the topic out"
+        ) from None
+    return cls
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+
+
+def bag_storage_file(path: str | Path) -> Path:
+    """The storage file of a one-file bag: the `.mcap`/`.db3` inside a folder, or the file itself."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    files = sorted([*path.glob("*.mcap"), *path.glob("*.db3")])
+    if len(files) != 1:
+        raise BagError(f"{path}: expected one .mcap or .db3 file in the bag folder, found {len(files)}")
+    return files[0]
+
+
+class _Source:
+    """One way of reading a bag: topics up front, then messages in recorded order."""
+
+    storage: str
+    topics: dict[str, TopicInfo]
+    message_count: int
+    start_ns: int
+    end_ns: int
+
+    def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+class _RosbagsSource(_Source):
+    """rosbags' reader: rosbag2 folders of either storage and bare .mcap/.db3 files (indexed)."""
+
+    def __init__(self, path: Path) -> None:
+        from rosbags.rosbag2 import Reader
+
+        self._reader = Reader(path)
+        self._reader.open()
+        reader = self._reader
+        if path.is_file():
+            self.storage = "mcap" if path.suffix == ".mcap" else "sqlite3"
+        else:
+            self.storage = _folder_storage(path)
+        self.message_count = int(reader.message_count)
+        self.start_ns = int(reader.start_time) if self.message_count else 0
+        self.end_ns = int(reader.end_time) if self.message_count else 0
+        self.topics = {}
+        for conn in reader.connections:
+            old = self.topics.get(conn.topic)
+            count = int(conn.msgcount) + (old.count if old else 0)
+            self.topics[conn.topic] = TopicInfo(conn.topic, normalize_msgtype(conn.msgtype), count,
+                                                getattr(conn.msgdef, "data", "") or "", conn.digest or "")
+
+    def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
+        conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
+        if not conns:
+            return
+        for conn, timestamp, data in self._reader.messages(connections=conns):
+            yield BagMessage(conn.topic, normalize_msgtype(conn.msgtype), int(timestamp), bytes(data))
+
+    def close(self) -> None:
+        self._reader.close()
+
+
+def _folder_storage(path: Path) -> str:
+    try:
+        from ruamel.yaml import YAML
+
+        meta = YAML(typ="safe").load((path / "metadata.yaml").read_text())
+        return str(meta["rosbag2_bagfile_information"]["storage_identifier"])
+    except Exception:
+        return "unknown"
+
+
+class _McapStreamSource(_Source):
+    """Sequential reading of an .mcap file without a summary (recording killed, file truncated).
+
+    A first pass finds the channels and counts messages up to the break; `messages` then yields
+    them in file order and raises BagBrokenError where the file breaks.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.storage = "mcap"
+        self._channels: dict[int, tuple[str, str]] = {}
+        counts: dict[int, int] = {}
+        self.start_ns, self.end_ns = 0, 0
+        self.break_error: str | None = None
+        first = True
+        try:
+            for record in self._records():
+                name = type(record).__name__
+                if name == "Message":
+                    counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+                    if first:
+                        self.start_ns, first = record.log_time, False
+                    self.end_ns = max(self.end_ns, record.log_time)
+        except Exception as err:  # the break: remember it, messages() raises it in order
+            self.break_error = _describe(err)
+        self.message_count = sum(counts.values())
+        self.topics = {}
+        for cid, (topic, msgtype) in self._channels.items():
+            old = self.topics.get(topic)
+            self.topics[topic] = TopicInfo(topic, msgtype, counts.get(cid, 0) + (old.count if old else 0),
+                                           self._schema_text.get(cid, ""))
+
+    def _records(self) -> Iterator[Any]:
+        from mcap.stream_reader import StreamReader
+
+        schemas: dict[int, tuple[str, str]] = {}
+        self._schema_text: dict[int, str] = {}
+        with self.path.open("rb") as stream:
+            for record in StreamReader(stream, record_size_limit=2**31).records:
+                name = type(record).__name__
+                if name == "Schema":
+                    schemas[record.id] = (record.name, record.data.decode("utf-8", "replace"))
+                elif name == "Channel":
+                    msgtype, text = schemas.get(record.schema_id, ("", ""))
+                    self._channels[record.id] = (record.topic, normalize_msgtype(msgtype))
+                    self._schema_text[record.id] = text
+                yield record
+
+    def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
+        read = 0
+        try:
+            for record in self._records():
+                if type(record).__name__ != "Message":
+                    continue
+                read += 1
+                topic, msgtype = self._channels.get(record.channel_id, ("", ""))
+                if topics is None or topic in topics:
+                    yield BagMessage(topic, msgtype, int(record.log_time), bytes(record.data))
+        except Exception as err:
+            raise BagBrokenError(f"{self.path}: the file breaks after {read} messages ({_describe(err)}); "
+                                 "it was truncated or damaged, e.g. a recording that was killed", read) from None
+        if self.break_error is not None:  # pragma: no cover - the first pass saw it, so the second does too
+            raise BagBrokenError(f"{self.path}: the file breaks after {read} messages ({self.break_error})", read)
+
+
+def _describe(err: BaseException) -> str:
+    if type(err).__name__ == "EndOfFile":  # mcap's reader says nothing more
+        return "unexpected end of file"
+    text = str(err).strip().rstrip(".") or type(err).__name__
+    return text.splitlines()[0]
+
+
+def _mcap_is_unindexed(path: Path) -> bool:
+    """True if an .mcap file starts right but lacks its footer (a truncated recording)."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(8)
+            f.seek(0, 2)
+            size = f.tell()
+            f.seek(max(0, size - 8))
+            tail = f.read(8)
+    except OSError:
+        return False
+    magic = b"\x89MCAP0\r\n"
+    return head == magic and tail != magic
+
+
+class BagReader:
+    """An open bag. Context manager; `messages()` yields `BagMessage`s in recorded order.
+
+        with open_bag("bags/sim_room") as bag:
+            print(bag.topics)
+            for msg in bag.messages(topics={"/tof/depth"}):
+                ...
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._source: _Source | None = None
+        self.note: str | None = None  # how the bag was read, when not the normal way
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def open(self) -> "BagReader":
+        path = self.path
+        if not path.exists():
+            raise BagError(f"{path}: no such bag; pass a rosbag2 folder (with metadata.yaml) or a .mcap file")
+        if path.is_dir():
+            if (path / "metadata.yaml").is_file():
+                self._source = self._open_rosbags(path)
+            else:
+                storage = bag_storage_file(path) if any(path.glob("*.mcap")) or any(path.glob("*.db3")) else None
+                if storage is None:
+                    raise BagError(f"{path}: not a rosbag2 folder (no metadata.yaml and no .mcap or .db3 file)")
+                self.note = f"{path} has no metadata.yaml; reading {storage.name} directly"
+                self._source = self._open_rosbags(storage)
+        elif path.suffix in (".mcap", ".db3"):
+            self._source = self._open_rosbags(path)
+        else:
+            raise BagError(f"{path}: not a bag; pass a rosbag2 folder or a .mcap file")
+        return self
+
+    def _open_rosbags(self, path: Path) -> _Source:
+        import sqlite3
+
+        from rosbags.rosbag2 import ReaderError
+
+        mcap_file = path if path.suffix == ".mcap" else None
+        if path.is_dir() and _folder_storage(path) == "mcap":
+            try:
+                mcap_file = bag_storage_file(path)
+            except BagError:
+                mcap_file = None
+        if mcap_file is not None and _mcap_is_unindexed(mcap_file):
+            source = _McapStreamSource(mcap_file)
+            if not source.topics:
+                raise BagError(f"{mcap_file}: truncated before any topic was recorded; nothing to read")
+            return source
+        try:
+            return _RosbagsSource(path)
+        except FileNotFoundError as err:
+            raise BagError(f"{path}: {_describe(err)}") from None
+        except (ReaderError, sqlite3.Error, OSError, KeyError, ValueError, TypeError) as err:
+            what = "an sqlite3 database" if path.suffix == ".db3" else "a readable bag"
+            raise BagError(f"{path}: not {what}: {_describe(err)}; the file is damaged or not a rosbag2 recording") from None
+        except Exception as err:  # anything else the storage libraries raise on garbage
+            raise BagError(f"{path}: cannot read the bag: {_describe(err)}") from None
+
+    def close(self) -> None:
+        if self._source is not None:
+            self._source.close()
+            self._source = None
+
+    def __enter__(self) -> "BagReader":
+        return self.open()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    # -- contents -------------------------------------------------------------------------------
+
+    @property
+    def _src(self) -> _Source:
+        if self._source is None:
+            raise BagError(f"{self.path}: bag is not open")
+        return self._source
+
+    @property
+    def storage(self) -> str:
+        return self._src.storage
+
+    @property
+    def topics(self) -> dict[str, TopicInfo]:
+        return dict(self._src.topics)
+
+    @property
+    def message_count(self) -> int:
+        return self._src.message_count
+
+    @property
+    def start_ns(self) -> int:
+        return self._src.start_ns
+
+    @property
+    def end_ns(self) -> int:
+        return self._src.end_ns
+
+    @property
+    def duration_s(self) -> float:
+        return max(0, self.end_ns - self.start_ns) * 1e-9
+
+    def messages(self, topics: Collection[str] | None = None) -> Iterator[BagMessage]:
+        """Messages of `topics` (all if None) in recorded order. BagBrokenError where the bag breaks."""
+        read = 0
+        iterator = self._src.messages(None if topics is None else set(topics))
+        while True:
+            try:
+                msg = next(iterator)
+            except StopIteration:
+                return
+            except BagBrokenError:
+                raise
+            except Exception as err:
+                raise BagBrokenError(f"{self.path}: the bag breaks after {read} messages ({_describe(err)}); "
+                                     "it was truncated or damaged", read) from None
+            read += 1
+            yield msg
+
+
+def open_bag(path: str | Path) -> BagReader:
+    """Open a bag for reading (a context manager). BagError says what is wrong with it."""
+    return BagReader(path).open()
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+
+
+def _writer(path: Path, storage: str, compress: bool) -> Any:
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+    if storage not in STORAGES:
+        raise BagError(f"storage '{storage}' is not supported; use one of {STORAGES}")
+    if path.exists():
+        raise BagError(f"{path} exists already; remove it or choose another bag path")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3)
+    if compress and storage == "mcap":  # zstd chunks inside the mcap file: still one plain .mcap
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    return writer
+
+
+def _typestore() -> Any:
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def write_sequence_bag(seq: "Sequence", path: str | Path, *, storage: str = "mcap", compress: bool = True,
+                       start_time_ns: int = DEFAULT_START_NS, fixed_frame: str = "map",
+                       progress: Callable[[int, int], None] | None = None) -> Path:
+    """Write a simulated sequence as a rosbag2 folder in the contract's topic layout; returns `path`.
+
+    Frame stamps become `start_time_ns + stamp_s`. `progress(done, total)` is called per frame.
+    """
+    path = Path(path)
+    store = _typestore()
+    T = store.types
+    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
+    Image, CameraInfo = T["sensor_msgs/msg/Image"], T["sensor_msgs/msg/CameraInfo"]
+    RegionOfInterest = T["sensor_msgs/msg/RegionOfInterest"]
+    PoseStamped, Pose = T["geometry_msgs/msg/PoseStamped"], T["geometry_msgs/msg/Pose"]
+    Point, Quaternion = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"]
+
+    def header(stamp_ns: int, frame_id: str) -> Any:
+        sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+        return Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+    def ns(stamp_s: float) -> int:
+        return start_time_ns + int(round(stamp_s * 1e9))
+
+    # (log_ns, order, topic, msgtype, message): built first, sorted, then written
+    pending: list[tuple[int, int, str, str, Any]] = []
+    order = 0
+
+    def add(log_ns: int, topic: str, msgtype: str, msg: Any) -> None:
+        nonlocal order
+        pending.append((log_ns, order, topic, msgtype, msg))
+        order += 1
+
+    from senfunet_ros.ingest import _quat_from_matrix  # one rotation -> quaternion convention for the project
+
+    for sensor, stamps in seq.pose_stamps_s.items():
+        for stamp_s, T_wc in zip(stamps, seq.pose_T_world_camera[sensor]):
+            q = _quat_from_matrix(np.asarray(T_wc)[:3, :3])
+            t = np.asarray(T_wc)[:3, 3]
+            stamp = ns(float(stamp_s))
+            msg = PoseStamped(header=header(stamp, fixed_frame),
+                              pose=Pose(position=Point(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+                                        orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                                               w=float(q[3]))))
+            add(stamp + _LATENCY_NS["pose"], f"/{sensor}/pose", "geometry_msgs/msg/PoseStamped", msg)
+
+    frames = list(seq.frames)
+    for frame in frames:
+        s = frame.sensor
+        stamp = ns(frame.stamp_s)
+        optical = f"{s}_optical_frame"
+        height, width = frame.depth_m.shape
+        K = np.asarray(frame.K, dtype=np.float64)
+        info = CameraInfo(
+            header=header(stamp, optical), height=height, width=width, distortion_model="plumb_bob",
+            d=np.zeros(5), k=K.reshape(-1).copy(), r=np.eye(3).reshape(-1),
+            p=np.array([K[0, 0], 0, K[0, 2], 0, 0, K[1, 1], K[1, 2], 0, 0, 0, 1, 0], dtype=np.float64),
+            binning_x=0, binning_y=0,
+            roi=RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+        add(stamp + _LATENCY_NS["camera_info"], f"/{s}/camera_info", "sensor_msgs/msg/CameraInfo", info)
+        depth = np.asarray(frame.depth_m, dtype=np.float32)
+        valid = np.isfinite(depth) & (depth > 0)
+        if s == "tof":  # 16UC1 millimetres, 0 invalid (what Kinect-type drivers publish)
+            raw = np.where(valid, np.clip(np.rint(depth * 1000.0), 0, 65535), 0).astype("<u2")
+            encoding, step = "16UC1", width * 2
+        else:  # 32FC1 metres, NaN invalid (what stereo drivers publish)
+            raw = np.where(valid, depth, np.nan).astype("<f4")
+            encoding, step = "32FC1", width * 4
+        image = Image(header=header(stamp, optical), height=height, width=width, encoding=encoding,
+                      is_bigendian=0, step=step, data=raw.view(np.uint8).reshape(-1))
+        add(stamp + _LATENCY_NS[f"depth_{'tof' if s == 'tof' else 'stereo'}"], f"/{s}/depth",
+            "sensor_msgs/msg/Image", image)
+        if frame.rgb is not None:
+            rgb = np.ascontiguousarray(frame.rgb, dtype=np.uint8)
+            color = Image(header=header(stamp, optical), height=rgb.shape[0], width=rgb.shape[1], encoding="rgb8",
+                          is_bigendian=0, step=rgb.shape[1] * 3, data=rgb.reshape(-1))
+            add(stamp + _LATENCY_NS["color"], f"/{s}/color", "sensor_msgs/msg/Image", color)
+
+    pending.sort(key=lambda item: (item[0], item[1]))
+    writer = _writer(path, storage, compress)
+    connections: dict[str, Any] = {}
+    last_ns = -1
+    n_frames, done = len(frames), 0
+    try:
+        with writer:
+            for log_ns, _, topic, msgtype, msg in pending:
+                conn = connections.get(topic)
+                if conn is None:
+                    conn = connections[topic] = writer.add_connection(topic, msgtype, typestore=store)
+                log_ns = max(log_ns, last_ns + 1)  # every message its own log time
+                last_ns = log_ns
+                writer.write(conn, log_ns, store.serialize_cdr(msg, msgtype))
+                if progress is not None and topic.endswith("/depth"):
+                    done += 1
+                    progress(done, n_frames)
+    except OSError as err:
+        raise BagError(f"{path}: cannot write the bag: {_describe(err)}") from None
+    return path
+
+
+def copy_bag(src: str | Path, dst: str | Path, *, storage: str = "mcap", compress: bool = True,
+             topics: Collection[str] | None = None, stop_ns: int | None = None,
+             max_messages: int | None = None) -> Path:
+    """Copy a bag (all or some topics, up to a log time or a message count) into a new rosbag2 folder."""
+    dst = Path(dst)
+    store = None
+    with open_bag(src) as bag:
+        infos = bag.topics
+        writer = _writer(dst, storage, compress)
+        connections: dict[str, Any] = {}
+        written = 0
+        with writer:
+            for msg in bag.messages(topics):
+                if stop_ns is not None and msg.log_time_ns >= stop_ns:
+                    break
+                if max_messages is not None and written >= max_messages:
+                    break
+                conn = connections.get(msg.topic)
+                if conn is None:
+                    info = infos[msg.topic]
+                    if info.msgdef and info.digest:
+                        conn = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef, rihs01=info.digest)
+                    else:
+                        store = store or _typestore()
+                        conn = writer.add_connection(msg.topic, msg.msgtype, typestore=store)
+                    connections[msg.topic] = conn
+                writer.write(conn, msg.log_time_ns, msg.data)
+                written += 1
+    return dst

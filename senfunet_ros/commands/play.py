@@ -1,0 +1,141 @@
+"""`senfunet play BAG`: publish a recording on its topics with /clock, paced in real time x rate."""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+HELP = "publish a recorded bag on its topics with /clock (for nodes using use_sim_time), at a chosen rate"
+
+_CLOCK_PERIOD_S = 0.01  # /clock keeps ticking at this (wall) period while waiting for the next message
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bag", metavar="BAG", help="rosbag2 folder (mcap or sqlite3) or a .mcap file")
+    parser.add_argument("--rate", type=float, default=1.0, metavar="R", help="playback speed factor (default 1.0)")
+    parser.add_argument("--loop", action="store_true", help="start over when the bag ends (until Ctrl-C)")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="publish only these topics")
+    parser.add_argument("--no-clock", action="store_true", help="do not publish /clock")
+    parser.add_argument("--wait-subscribers", type=float, default=0.0, metavar="S",
+                        help="wait up to S seconds until every topic has a subscriber before starting (default 0)")
+    parser.add_argument("--delay", type=float, default=0.0, metavar="S", help="sleep S seconds before publishing")
+    parser.add_argument("--quiet", action="store_true", help="print only errors")
+
+
+def _error(text: str) -> int:
+    print(f"senfunet play: {text}", file=sys.stderr)
+    return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    from senfunet_ros.bagio import BagError, open_bag
+
+    if not args.rate > 0:
+        return _error(f"--rate must be > 0, got {args.rate}")
+    try:
+        reader = open_bag(args.bag)
+    except BagError as err:
+        return _error(str(err))
+    with reader:
+        return _play(reader, args)
+
+
+def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader, imported lazily
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from senfunet_ros.bagio import BagBrokenError, BagError, message_class
+
+    say = (lambda text: None) if args.quiet else (lambda text: print(f"senfunet play: {text}", file=sys.stderr))
+    if reader.note:
+        say(f"note: {reader.note}")
+    topics = reader.topics
+    if args.topics:
+        unknown = [t for t in args.topics if t not in topics]
+        if unknown:
+            return _error(f"{reader.path}: no topic {', '.join(unknown)}; the bag has {', '.join(sorted(topics))}")
+        topics = {t: topics[t] for t in args.topics}
+    classes: dict[str, type] = {}
+    unknown: dict[str, str] = {}
+    for topic, info in sorted(topics.items()):
+        try:
+            classes[topic] = message_class(info.msgtype)
+        except BagError:
+            unknown[topic] = info.msgtype
+    types = ", ".join(sorted(set(unknown.values())))
+    if not classes:
+        return _error(f"{reader.path}: none of its topics has a message type installed here ({types}); "
+                      "install their packages (pip install ros-jazzy-<package>)")
+    if unknown:
+        say(f"skipping {', '.join(unknown)}: message types not installed here ({types})")
+
+    rclpy.init(args=None)
+    node = None
+    try:
+        node = rclpy.create_node("senfunet_play", start_parameter_services=False)
+        # Reliable matches reliable and best-effort subscribers; volatile like a live driver.
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+        publishers = {t: node.create_publisher(cls, t, qos) for t, cls in classes.items()}
+        clock_pub = None
+        if not args.no_clock:
+            from rosgraph_msgs.msg import Clock
+
+            clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+            clock_msg = Clock()
+
+        def publish_clock(stamp_ns: int) -> None:
+            if clock_pub is not None:
+                clock_msg.clock.sec, clock_msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+                clock_pub.publish(clock_msg)
+
+        if args.wait_subscribers > 0:
+            deadline = time.monotonic() + args.wait_subscribers
+            while time.monotonic() < deadline:
+                if all(p.get_subscription_count() > 0 for p in publishers.values()):
+                    break
+                time.sleep(0.05)
+            lonely = [t for t, p in publishers.items() if p.get_subscription_count() == 0]
+            if lonely:
+                say(f"no subscriber yet on {', '.join(lonely)}; playing anyway")
+        if args.delay > 0:
+            time.sleep(args.delay)
+
+        say(f"playing {reader.path} ({reader.storage}, {reader.duration_s:.1f} s, {len(publishers)} topics) "
+            f"at rate {args.rate:g}{' in a loop' if args.loop else ''}")
+        total, passes, broken = 0, 0, None
+        start_ns = reader.start_ns
+        while True:
+            wall0 = time.monotonic()
+            publish_clock(start_ns)
+            try:
+                for msg in reader.messages(publishers.keys()):
+                    due = wall0 + (msg.log_time_ns - start_ns) * 1e-9 / args.rate
+                    while True:  # sleep until due, ticking /clock meanwhile
+                        wait = due - time.monotonic()
+                        if wait <= 0:
+                            break
+                        time.sleep(min(wait, _CLOCK_PERIOD_S))
+                        if wait > _CLOCK_PERIOD_S:
+                            now_ns = start_ns + int((time.monotonic() - wall0) * args.rate * 1e9)
+                            publish_clock(min(now_ns, msg.log_time_ns))
+                    publish_clock(msg.log_time_ns)
+                    publishers[msg.topic].publish(msg.data)  # raw CDR straight from the bag
+                    total += 1
+            except BagBrokenError as err:
+                broken = str(err)
+            passes += 1
+            if broken or not args.loop:
+                break
+        time.sleep(0.2)  # let reliable writers hand the last messages over before the node goes away
+        say(f"published {total} messages in {passes} pass(es)")
+        if broken:
+            return _error(broken)
+        return 0
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 130
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

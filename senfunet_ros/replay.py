@@ -1,0 +1,588 @@
+"""Offline replay: a recording through the node's own message handling into the engine.
+
+The bag's raw CDR bytes are deserialised into the real rclpy message classes (the same objects a
+live subscription delivers) and handed to `senfunet_ros.ingest.Ingest` exactly like the node's
+subscription callbacks do; the ready frames are drained into the engine after every message.
+Ingest decides by stamps and arrival order only, so one bag always gives the same frames and,
+with torch pinned to a fixed thread count, the same mesh bytes.
+
+    result = replay_bag("bags/sim_room", "out/replay", gt="bags/sim_room_gt.ply")
+    result.stats["sensors"]["tof"]["integrated"]
+
+`BagFeeder` is the same routing for the live node's `bag` parameter: it releases the bag's
+messages at the recorded pace (times a rate) from a timer and pushes them into the node's Ingest.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from senfunet_ros import conversions as conv
+from senfunet_ros import params as P
+from senfunet_ros.bagio import BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype, open_bag
+from senfunet_ros.ingest import Frame, Ingest, IngestConfig, TimeJump
+
+__all__ = [
+    "load_settings",
+    "ingest_config",
+    "engine_config",
+    "Route",
+    "TopicRouter",
+    "ReplayResult",
+    "replay_bag",
+    "BagFeeder",
+    "MESH_FILES",
+]
+
+_POSE_TYPES = {
+    "pose_stamped": "geometry_msgs/msg/PoseStamped",
+    "odometry": "nav_msgs/msg/Odometry",
+    "transform_stamped": "geometry_msgs/msg/TransformStamped",
+}
+_IMAGE = "sensor_msgs/msg/Image"
+_CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters without a node
+
+
+def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def _read_params_file(path: Path) -> dict[str, Any]:
+    """The `ros__parameters` of a ROS 2 parameter file (node `senfunet` or `/**`), flattened."""
+    import yaml
+
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as err:
+        raise ValueError(f"{path}: cannot read the parameter file: {err.strerror}") from None
+    except yaml.YAMLError as err:
+        raise ValueError(f"{path}: not valid YAML: {str(err).splitlines()[0]}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected '{P.NODE_NAME}: ros__parameters: ...' at the top")
+    for key in (P.NODE_NAME, f"/{P.NODE_NAME}", "/**"):
+        node = doc.get(key)
+        if isinstance(node, dict) and isinstance(node.get("ros__parameters"), dict):
+            return _flatten(node["ros__parameters"])
+    nodes = [v for v in doc.values() if isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict)]
+    if len(nodes) == 1:
+        return _flatten(nodes[0]["ros__parameters"])
+    raise ValueError(f"{path}: no '{P.NODE_NAME}: ros__parameters:' section")
+
+
+def load_settings(params_file: str | Path | None = None, overrides: dict[str, Any] | None = None) -> P.Settings:
+    """The node's parameters from a parameter file (or the defaults), checked like the node does.
+
+    Unknown names are refused (a typo would otherwise be ignored silently). ValueError on bad values.
+    """
+    given: dict[str, Any] = {}
+    if params_file is not None:
+        given.update(_read_params_file(Path(params_file)))
+    given.update(overrides or {})
+    given.pop("use_sim_time", None)
+    sensors = [str(s) for s in given.get("sensors", P.GLOBAL_PARAMS[0].default)]
+    table = P.expanded_defaults(sensors)
+    unknown = sorted(set(given) - set(table))
+    if unknown:
+        where = f" in {params_file}" if params_file else ""
+        raise ValueError(f"unknown parameter(s) {unknown}{where}; see config/default.yaml for the names")
+    values = {name: P._coerce(name, given.get(name, default), default) for name, (default, _) in table.items()}
+    P.check(values)
+    sensor_settings = tuple(
+        P.SensorSettings(name=s, depth_topic=values[f"{s}.depth_topic"], color_topic=values[f"{s}.color_topic"],
+                         camera_info_topic=values[f"{s}.camera_info_topic"], pose_topic=values[f"{s}.pose_topic"],
+                         depth_min_m=values[f"{s}.depth_min_m"], depth_max_m=values[f"{s}.depth_max_m"])
+        for s in values["sensors"])
+    return P.Settings(values=values, sensors=sensor_settings)
+
+
+def ingest_config(settings: P.Settings) -> IngestConfig:
+    """Ingest configured as the node configures it."""
+    s = settings
+    return IngestConfig(
+        sensors=s.sensor_names,
+        working_size=(s.working_width, s.working_height),
+        queue_size=s.queue_size,
+        pose_buffer_size=s.pose_buffer_size,
+        pose_tolerance_s=s.pose_tolerance_s,
+        pose_max_wait_s=s.pose_max_wait_s,
+        color_tolerance_s=s.color_tolerance_s,
+        time_jump_s=s.time_jump_s,
+        pose_parser=conv.POSE_PARSERS[s.pose_type],
+    )
+
+
+def engine_config(settings: P.Settings) -> Any:
+    """EngineConfig as the node builds it (device 'cuda' falls back to 'cpu' when there is none)."""
+    import torch
+
+    from senfunet_core.engine import EngineConfig
+
+    s = settings
+    device = s.device
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        device = "cpu"
+    return EngineConfig(
+        sensors=s.sensor_names,
+        sensor_uses_rgb=tuple(name in s.rgb_sensors for name in s.sensor_names),
+        depth_min_m=tuple(sensor.depth_min_m for sensor in s.sensors),
+        depth_max_m=tuple(sensor.depth_max_m for sensor in s.sensors),
+        voxel_size_m=s.voxel_size_m,
+        band_m=s.band_m,
+        device=device,
+    )
+
+
+def engine_weights(settings: P.Settings) -> str | None:
+    return None if settings.weights.lower() in ("none", "") else settings.weights
+
+
+# --------------------------------------------------------------------------------------------
+# Topics -> Ingest
+
+
+@dataclass(frozen=True)
+class Route:
+    topic: str
+    sensor: str
+    stream: str  # "camera_info", "depth", "color" or "pose"
+    msgtype: str
+    msg_class: type
+
+
+class TopicRouter:
+    """Which bag topic feeds which sensor stream; checks the bag has what the node needs.
+
+    Raises BagError (one line) when a sensor's depth, camera_info or pose topic is missing or
+    has the wrong or an unknown type. Colour topics are optional. Other topics are ignored.
+    """
+
+    def __init__(self, settings: P.Settings, topics: dict[str, TopicInfo], bag_path: str | Path) -> None:
+        self.bag_path = Path(bag_path)
+        self.routes: dict[str, Route] = {}
+        self.undecodable: dict[str, int] = {}
+        pose_type = _POSE_TYPES[settings.pose_type]
+        missing: list[str] = []
+        for sensor in settings.sensors:
+            wanted = [("camera_info", sensor.camera_info_topic, _CAMERA_INFO, True),
+                      ("depth", sensor.depth_topic, _IMAGE, True),
+                      ("pose", sensor.pose_topic, pose_type, True),
+                      ("color", sensor.color_topic, _IMAGE, False)]
+            for stream, topic, expected, required in wanted:
+                if not topic:
+                    continue
+                info = topics.get(topic)
+                if info is None or (required and info.count == 0):
+                    if required:
+                        missing.append(topic)
+                    continue
+                msgtype = normalize_msgtype(info.msgtype)
+                if msgtype != expected:
+                    raise BagError(self._type_error(topic, msgtype, expected, stream, settings))
+                self.routes[topic] = Route(topic, sensor.name, stream, msgtype, message_class(msgtype))
+        if missing:
+            have = sorted(topics)
+            shown = ", ".join(have[:12]) + (f" (+{len(have) - 12} more)" if len(have) > 12 else "")
+            raise BagError(
+                f"{self.bag_path}: no messages on {', '.join(missing)}; the bag has: {shown or 'no topics'}; "
+                "map the topics with --params (e.g. tof.depth_topic: /camera/depth)")
+        self.ignored = {t: i.msgtype for t, i in topics.items() if t not in self.routes}
+
+    def _type_error(self, topic: str, msgtype: str, expected: str, stream: str, settings: P.Settings) -> str:
+        if stream == "pose":
+            alt = next((name for name, t in _POSE_TYPES.items() if t == msgtype), None)
+            if alt is not None:
+                return (f"{self.bag_path}: topic {topic} is {msgtype} but parameter pose_type is "
+                        f"'{settings.pose_type}'; set pose_type: {alt} with --params")
+        try:
+            message_class(msgtype)
+            known = True
+        except BagError:
+            known = False
+        what = f"has type {msgtype}" + ("" if known else ", unknown here,")
+        return f"{self.bag_path}: topic {topic} {what} but the node takes {expected} there; record {expected} or remap the topic with --params"
+
+    @property
+    def topics(self) -> set[str]:
+        return set(self.routes)
+
+    def decode(self, msg: BagMessage) -> tuple[Route, Any] | None:
+        """(route, rclpy message), or None for an unrouted topic or bytes that do not deserialise."""
+        from rclpy.serialization import deserialize_message
+
+        route = self.routes.get(msg.topic)
+        if route is None:
+            return None
+        try:
+            return route, deserialize_message(msg.data, route.msg_class)
+        except Exception:
+            self.undecodable[msg.topic] = self.undecodable.get(msg.topic, 0) + 1
+            return None
+
+    @staticmethod
+    def dispatch(ingest: Ingest, route: Route, message: Any) -> str | None:
+        """Hand one message to Ingest as the node's subscription callback does; returns the drop reason."""
+        if route.stream == "depth":
+            return ingest.add_depth(route.sensor, message)
+        if route.stream == "color":
+            return ingest.add_color(route.sensor, message)
+        if route.stream == "pose":
+            return ingest.add_pose(route.sensor, message)
+        return ingest.add_camera_info(route.sensor, message)
+
+
+# --------------------------------------------------------------------------------------------
+# Replay
+
+
+MESH_FILES = {"fused": "mesh"}  # engine mesh name -> file stem (sensors and tsdf_fusion keep their names)
+
+
+@dataclass
+class ReplayResult:
+    stats: dict[str, Any]
+    meshes: dict[str, Any] = field(default_factory=dict)  # file stem -> Mesh
+    files: dict[str, Path] = field(default_factory=dict)  # file stem -> path
+    error: str | None = None  # the bag broke midway or nothing could be fused
+    interrupted: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None and not self.interrupted
+
+
+class _Drain:
+    """Ready frames -> engine, as the node's integration timer does; counts and times."""
+
+    def __init__(self, engine: Any, ingest: Ingest, on_time_jump: str) -> None:
+        self.engine, self.ingest, self.on_time_jump = engine, ingest, on_time_jump
+        self.integrate_s = 0.0
+        self.time_jumps = 0
+        self.engine_errors: list[str] = []
+
+    def __call__(self) -> int:
+        from senfunet_core.errors import SenFuNetError
+
+        n = 0
+        for item in self.ingest.pop_ready():
+            if isinstance(item, TimeJump):
+                self.time_jumps += 1
+                if self.on_time_jump == "reset":
+                    self.engine.reset()
+                continue
+            frame: Frame = item
+            start = time.perf_counter()
+            try:
+                self.engine.integrate(frame.sensor, frame.depth_m, frame.K, frame.T_world_camera, frame.rgb)
+            except (SenFuNetError, ValueError) as err:
+                self.ingest.mark_dropped(frame.sensor, "engine_error")
+                if len(self.engine_errors) < 10:
+                    self.engine_errors.append(f"{frame.sensor} at {frame.stamp_ns * 1e-9:.3f} s: {err}")
+                continue
+            finally:
+                self.integrate_s += time.perf_counter() - start
+            self.ingest.mark_integrated(frame.sensor)
+            n += 1
+        return n
+
+
+def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | None = None,
+               gt: str | Path | None = None, progress: bool = True, threads: int = 1,
+               weights: str | None = None, log: Callable[[str], None] | None = None) -> ReplayResult:
+    """Fuse a recording as fast as possible and write DIR/mesh.ply, DIR/<sensor>.ply,
+    DIR/tsdf_fusion.ply and DIR/stats.json (plus mesh metrics against `gt` if given).
+
+    Raises BagError before anything is fused if the bag cannot be used, ValueError for bad
+    parameters. A bag that breaks midway still gets its meshes: `result.error` says where it broke.
+    `threads` pins torch's CPU threads: the mesh bytes depend on it, so keep it fixed (default 1).
+    """
+    from tqdm import tqdm
+
+    from senfunet_core.ply import read_ply
+
+    t_start = time.perf_counter()
+    log = log or (lambda text: None)
+    settings = load_settings(params, {"weights": weights} if weights is not None else None)
+    gt_mesh = None
+    if gt is not None:
+        try:
+            gt_mesh = read_ply(gt)
+        except FileNotFoundError:
+            raise ValueError(f"{gt}: no such ground-truth mesh") from None
+        except Exception as err:
+            raise ValueError(f"{gt}: cannot read the ground-truth mesh: {err}") from None
+    out = Path(out_dir)
+    with open_bag(bag) as reader:
+        TopicRouter(settings, reader.topics, bag)  # a BagError comes before the heavy imports
+    import torch  # noqa: E402 - heavy: only once the bag is known to be usable
+
+    from senfunet_core.engine import SenFuNet
+
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(max(1, int(threads)))
+    try:
+        with open_bag(bag) as reader:
+            if reader.note:
+                log(f"note: {reader.note}")
+            router = TopicRouter(settings, reader.topics, bag)
+            engine = SenFuNet(engine_config(settings), weights=engine_weights(settings))
+            ingest = Ingest(ingest_config(settings))
+            drain = _Drain(engine, ingest, settings.on_time_jump)
+            total = sum(reader.topics[t].count for t in router.topics)
+            bag_info = {"path": str(bag), "storage": reader.storage, "messages": reader.message_count,
+                        "duration_s": round(reader.duration_s, 6), "start_ns": reader.start_ns, "note": reader.note}
+            error, interrupted, read = None, False, 0
+            t_loop = time.perf_counter()
+            with tqdm(total=total, unit="msg", desc="replay", disable=not progress, dynamic_ncols=True,
+                      mininterval=0.5) as bar:
+                try:
+                    for msg in reader.messages(router.topics):
+                        read += 1
+                        bar.update(1)
+                        decoded = router.decode(msg)
+                        if decoded is None:
+                            continue
+                        route, message = decoded
+                        try:
+                            router.dispatch(ingest, route, message)
+                        except ValueError:  # a malformed message: Ingest refuses it like the node's callback
+                            router.undecodable[msg.topic] = router.undecodable.get(msg.topic, 0) + 1
+                            continue
+                        if route.stream != "camera_info" and drain():
+                            bar.set_postfix(frames=sum(engine.frames_integrated.values()), refresh=False)
+                except BagBrokenError as err:
+                    error = str(err)
+                except KeyboardInterrupt:
+                    interrupted = True
+                drain()
+            t_read = time.perf_counter() - t_loop
+    finally:
+        torch.set_num_threads(previous_threads)
+
+    counters = ingest.counters()
+    n_integrated = sum(c["integrated"] for c in counters.values())
+    result = ReplayResult(stats={}, error=error, interrupted=interrupted)
+    timings: dict[str, Any] = {"read_decode_s": round(t_read - drain.integrate_s, 3),
+                               "integrate_s": round(drain.integrate_s, 3),
+                               "integrate_per_frame_ms": round(1e3 * drain.integrate_s / max(n_integrated, 1), 2)}
+    if result.error is None and not interrupted and read < total:
+        result.error = (f"{bag}: only {read} of the {total} recorded messages on the fused topics could be read; "
+                        "the file is damaged")
+    if n_integrated == 0 and result.error is None:
+        dropped = "; ".join(f"{s}: " + (", ".join(f"{n} {r}" for r, n in c["dropped"].items() if n) or "no frames")
+                            for s, c in counters.items())
+        result.error = f"{bag}: no frame could be fused ({dropped}); see {out / 'stats.json'}"
+    out.mkdir(parents=True, exist_ok=True)
+    if n_integrated:
+        torch.set_num_threads(max(1, int(threads)))
+        try:
+            extract: dict[str, float] = {}
+            for which in ("fused", *settings.sensor_names, "tsdf_fusion"):
+                t0 = time.perf_counter()
+                result.meshes[MESH_FILES.get(which, which)] = engine.extract_mesh(which)
+                extract[MESH_FILES.get(which, which)] = round(time.perf_counter() - t0, 3)
+            timings["extract_s"] = extract
+        finally:
+            torch.set_num_threads(previous_threads)
+        from senfunet_core.ply import write_ply
+
+        t0 = time.perf_counter()
+        for stem, mesh in result.meshes.items():
+            path = out / f"{stem}.ply"
+            write_ply(path, mesh)
+            result.files[stem] = path
+        timings["write_s"] = round(time.perf_counter() - t0, 3)
+
+    metrics, gt_info = None, None
+    if gt_mesh is not None and result.meshes:
+        from senfunet_core.evaluation import observed_gt_vertices
+        from senfunet_core.metrics import mesh_metrics
+
+        t0 = time.perf_counter()
+        # As `senfunet evaluate` (the paper's protocol): the GT cropped to the surface the
+        # recording observed, the same crop for every mesh.
+        gt_vertices = observed_gt_vertices(engine, gt_mesh.vertices)
+        gt_info = {"path": str(gt), "vertices": gt_mesh.n_vertices, "vertices_observed": int(len(gt_vertices)),
+                   "tau_m": 0.02}
+        if len(gt_vertices):
+            metrics = {stem: {k: round(float(v), 4) for k, v in mesh_metrics(mesh.vertices, gt_vertices).items()}
+                       for stem, mesh in result.meshes.items()}
+        timings["metrics_s"] = round(time.perf_counter() - t0, 3)
+    timings["total_s"] = round(time.perf_counter() - t_start, 3)
+
+    sensors = {}
+    for name, c in counters.items():
+        sensors[name] = {
+            "received": c["received"], "integrated": c["integrated"],
+            "dropped": {reason: n for reason, n in c["dropped"].items()},
+            "dropped_total": sum(c["dropped"].values()),
+            "pending_at_end": c["queue_depth"],  # frames still waiting for a pose when the bag ended
+            "color_received": c["color_received"], "pose_received": c["pose_received"],
+            "time_jumps": c["time_jumps"],
+        }
+    result.stats = {
+        "bag": bag_info,
+        "complete": result.ok,
+        "error": result.error,
+        "interrupted": interrupted,
+        "messages_read": read,
+        "params": str(params) if params else None,
+        "weights": engine.weights_source,
+        "torch_threads": int(threads),
+        "sensors": sensors,
+        "topics": {t: {"type": r.msgtype, "sensor": r.sensor, "stream": r.stream,
+                       "undecodable": router.undecodable.get(t, 0)} for t, r in sorted(router.routes.items())},
+        "ignored_topics": dict(sorted(router.ignored.items())),
+        "time_jumps": drain.time_jumps,
+        "engine_errors": drain.engine_errors,
+        "engine": engine.stats(),
+        "meshes": {stem: {"file": str(result.files[stem]), "vertices": m.n_vertices, "faces": m.n_faces}
+                   for stem, m in result.meshes.items()},
+        "gt": gt_info,
+        "metrics": metrics,
+        "timings": timings,
+    }
+    (out / "stats.json").write_text(json.dumps(result.stats, indent=2, default=_json_default) + "\n")
+    result.files["stats"] = out / "stats.json"
+    return result
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    if isinstance(value, tuple):
+        return list(value)
+    return str(value)
+
+
+# --------------------------------------------------------------------------------------------
+# Feeding the live node from a bag
+
+
+class BagFeeder:
+    """Releases a bag's messages into a node's Ingest at the recorded pace, from a timer.
+
+        feeder = BagFeeder(path, node.settings, rate=1.0, loop=False)    # BagError if unusable
+        # in a timer callback (e.g. every 10 ms):
+        feeder.feed(node.ingest, time.monotonic())
+        if feeder.done: ...                   # bag finished (never with loop), or broke: feeder.error
+
+    The first call anchors the bag's first message to `now_s`; after that a message is due when
+    (its log time - the bag's start) / rate has passed. `rate <= 0` means as fast as the node
+    keeps up: `feed` releases messages up to the next depth image, and only while every
+    sensor's queue holds fewer than `backlog` frames. With `loop`, the bag starts over when it
+    ends (its stamps jump back, which Ingest reports as a TimeJump: the node resets or not per
+    its on_time_jump parameter).
+    """
+
+    def __init__(self, bag: str | Path, settings: P.Settings, *, rate: float = 1.0, loop: bool = False,
+                 max_batch: int = 500, backlog: int = 2) -> None:
+        self.path = Path(bag)
+        self.rate = float(rate)
+        self.loop = bool(loop)
+        self.max_batch = int(max_batch)
+        self.backlog = int(backlog)
+        self._reader = open_bag(bag)
+        try:
+            self.router = TopicRouter(settings, self._reader.topics, bag)
+        except BagError:
+            self._reader.close()
+            raise
+        self._start_ns = self._reader.start_ns
+        self._span_ns = max(1, self._reader.end_ns - self._reader.start_ns)
+        self._iter = self._reader.messages(self.router.topics)
+        self._pending: BagMessage | None = None
+        self._anchor_s: float | None = None
+        self._offset_ns = 0  # bag time added per completed loop
+        self.loops = 0
+        self.fed = 0
+        self.done = False
+        self.error: str | None = None
+        self.last_log_time_ns: int | None = None  # recorded time of the last released message
+
+    def _peek(self) -> BagMessage | None:
+        if self._pending is None and not self.done:
+            try:
+                self._pending = next(self._iter)
+            except StopIteration:
+                if self.loop and self.fed:
+                    self.loops += 1
+                    self._offset_ns += self._span_ns
+                    self._iter = self._reader.messages(self.router.topics)
+                    return self._peek()
+                self._finish()
+            except BagBrokenError as err:
+                self.error = str(err)
+                self._finish()
+        return self._pending
+
+    def _finish(self) -> None:
+        self.done = True
+        self._reader.close()
+
+    def due_messages(self, now_s: float, *, ingest: Ingest | None = None) -> list[tuple[Route, Any]]:
+        """Messages whose time has come, deserialised (route, rclpy message), in recorded order."""
+        if self._anchor_s is None:
+            self._anchor_s = now_s
+        out: list[tuple[Route, Any]] = []
+        if self.rate <= 0 and ingest is not None:
+            if max(ingest.queue_depths().values(), default=0) >= self.backlog:
+                return out
+        elapsed_ns = (now_s - self._anchor_s) * 1e9 * self.rate if self.rate > 0 else float("inf")
+        while len(out) < self.max_batch:
+            msg = self._peek()
+            if msg is None:
+                break
+            if msg.log_time_ns - self._start_ns + self._offset_ns > elapsed_ns:
+                break
+            self._pending = None
+            self.last_log_time_ns = msg.log_time_ns
+            self.fed += 1
+            decoded = self.router.decode(msg)
+            if decoded is not None:
+                out.append(decoded)
+                if self.rate <= 0 and decoded[0].stream == "depth":
+                    break  # one frame per call when going as fast as the node keeps up
+        return out
+
+    def feed(self, ingest: Ingest, now_s: float) -> int:
+        """Push the due messages into `ingest`; returns how many were pushed."""
+        n = 0
+        for route, message in self.due_messages(now_s, ingest=ingest):
+            try:
+                TopicRouter.dispatch(ingest, route, message)
+            except ValueError:
+                self.router.undecodable[route.topic] = self.router.undecodable.get(route.topic, 0) + 1
+                continue
+            n += 1
+        return n
+
+    @property
+    def progress(self) -> float:
+        """Fraction of the current pass through the bag, 0..1."""
+        if self.done:
+            return 1.0
+        if self.last_log_time_ns is None:
+            return 0.0
+        return min(1.0, (self.last_log_time_ns - self._start_ns) / self._span_ns)
+
+    def close(self) -> None:
+        if not self.done:
+            self._finish()

@@ -1,0 +1,293 @@
+"""Bag reading and writing (senfunet_ros.bagio), the sample bag, and each bad bag's one-line error."""
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from senfunet_ros.bagio import BagBrokenError, BagError, copy_bag, open_bag, write_sequence_bag
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "bags" / "sim_room"
+SAMPLE_GT = REPO / "bags" / "sim_room_gt.ply"
+CONTRACT_TOPICS = {
+    "/tof/depth": "sensor_msgs/msg/Image",
+    "/tof/camera_info": "sensor_msgs/msg/CameraInfo",
+    "/tof/pose": "geometry_msgs/msg/PoseStamped",
+    "/stereo/depth": "sensor_msgs/msg/Image",
+    "/stereo/color": "sensor_msgs/msg/Image",
+    "/stereo/camera_info": "sensor_msgs/msg/CameraInfo",
+    "/stereo/pose": "geometry_msgs/msg/PoseStamped",
+}
+# Small and fast: the bad-bag replays only need to get as far as the engine.
+TINY_PARAMS = "senfunet:\n  ros__parameters:\n    working_width: 64\n    voxel_size_m: 0.04\n    weights: none\n"
+
+
+def _digest(bag: Path) -> list[tuple[str, int, str]]:
+    with open_bag(bag) as reader:
+        return [(m.topic, m.log_time_ns, hashlib.sha1(m.data).hexdigest()) for m in reader.messages()]
+
+
+@pytest.fixture(scope="module")
+def prefix(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The sample's first 0.6 s as an mcap rosbag2 folder."""
+    with open_bag(SAMPLE) as reader:
+        stop = reader.start_ns + 600_000_000
+    return copy_bag(SAMPLE, tmp_path_factory.mktemp("bags") / "prefix", stop_ns=stop)
+
+
+@pytest.fixture(scope="module")
+def tiny_params(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("params") / "tiny.yaml"
+    path.write_text(TINY_PARAMS)
+    return path
+
+
+def _replay(bag: Path | str, out: Path, params: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "replay", str(bag), "--out", str(out),
+                           "--params", str(params), "--no-progress"], capture_output=True, text=True, timeout=300)
+
+
+def _one_line_error(proc: subprocess.CompletedProcess) -> str:
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("senfunet replay: ")
+    return lines[0]
+
+
+# -- the sample -------------------------------------------------------------------------------
+
+
+def test_sample_bag_layout_and_size():
+    size = sum(f.stat().st_size for f in SAMPLE.rglob("*") if f.is_file())
+    assert size + SAMPLE_GT.stat().st_size < 30e6
+    with open_bag(SAMPLE) as reader:
+        assert reader.storage == "mcap"
+        assert {t: i.msgtype for t, i in reader.topics.items()} == CONTRACT_TOPICS
+        counts = {t: i.count for t, i in reader.topics.items()}
+        duration = reader.duration_s
+    assert 12 <= counts["/tof/depth"] / duration <= 16  # asynchronous ~15 Hz ToF
+    assert 15 <= counts["/stereo/depth"] / duration <= 21  # ~15-20 Hz stereo with colour
+    assert counts["/stereo/color"] == counts["/stereo/depth"]
+    assert counts["/tof/camera_info"] == counts["/tof/depth"]
+    assert counts["/tof/pose"] / duration > 90  # pose stream at its own rate
+
+
+def test_sample_message_contents(prefix: Path):
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from senfunet_ros import conversions as conv
+
+    depth_stamps: dict[str, list[int]] = {"tof": [], "stereo": []}
+    with open_bag(prefix) as reader:
+        log_times = []
+        for msg in reader.messages():
+            log_times.append(msg.log_time_ns)
+            sensor, stream = msg.topic.strip("/").split("/")
+            if stream == "depth":
+                image = deserialize_message(msg.data, Image)
+                depth = conv.depth_from_image(image)
+                assert image.encoding == ("16UC1" if sensor == "tof" else "32FC1")
+                assert depth.shape == (256, 256) and 0.1 < np.median(depth[depth > 0]) < 6.0
+                depth_stamps[sensor].append(conv.stamp_to_ns(image.header.stamp))
+            elif stream == "color":
+                assert deserialize_message(msg.data, Image).encoding == "rgb8"
+            elif stream == "camera_info":
+                info = deserialize_message(msg.data, CameraInfo)
+                K, size = conv.intrinsics_from_camera_info(info)
+                assert size == (256, 256) and K[0, 0] == pytest.approx(128.0)
+            elif stream == "pose":
+                from geometry_msgs.msg import PoseStamped
+
+                assert deserialize_message(msg.data, PoseStamped).header.frame_id == "map"
+    assert all(b > a for a, b in zip(log_times, log_times[1:]))  # each message its own log time
+    assert not set(depth_stamps["tof"]) & set(depth_stamps["stereo"])  # asynchronous sensors
+
+
+def test_storages_and_bare_mcap_read_identically(prefix: Path, tmp_path: Path):
+    sqlite = copy_bag(prefix, tmp_path / "prefix_sqlite3", storage="sqlite3")
+    bare = next(prefix.glob("*.mcap"))
+    reference = _digest(prefix)
+    assert len(reference) > 100
+    with open_bag(sqlite) as reader:
+        assert reader.storage == "sqlite3"
+    assert _digest(sqlite) == reference
+    assert _digest(bare) == reference
+
+
+def test_folder_without_metadata_reads_its_file(prefix: Path, tmp_path: Path):
+    folder = tmp_path / "no_metadata"
+    folder.mkdir()
+    mcap = next(prefix.glob("*.mcap"))
+    (folder / mcap.name).write_bytes(mcap.read_bytes())
+    with open_bag(folder) as reader:
+        assert reader.note and "metadata.yaml" in reader.note
+    assert _digest(folder) == _digest(prefix)
+
+
+def test_write_sequence_bag_round_trip(tmp_path: Path):
+    from senfunet_core import simulator as sim
+    from senfunet_ros.replay import TopicRouter, ingest_config, load_settings
+    from senfunet_ros.ingest import Frame, Ingest
+
+    scene = sim.make_scene(5)
+    seq = sim.simulate_sequence(scene, 5, duration_s=0.25, tof_rate_hz=15, stereo_rate_hz=20)
+    bags = {storage: write_sequence_bag(seq, tmp_path / storage, storage=storage) for storage in ("mcap", "sqlite3")}
+    assert _digest(bags["mcap"]) == _digest(bags["sqlite3"])
+    with pytest.raises(BagError, match="exists already"):
+        write_sequence_bag(seq, bags["mcap"])
+    # Through the node's message handling, every frame comes back with its pose and depth.
+    settings = load_settings()
+    ingest = Ingest(ingest_config(settings))
+    frames: list[Frame] = []
+    with open_bag(bags["mcap"]) as reader:
+        router = TopicRouter(settings, reader.topics, bags["mcap"])
+        for msg in reader.messages(router.topics):
+            router.dispatch(ingest, *router.decode(msg))
+            frames += [f for f in ingest.pop_ready() if isinstance(f, Frame)]
+    frames.sort(key=lambda f: f.stamp_ns)  # frames leave Ingest when posed, per sensor in order
+    assert [(f.sensor, round(f.stamp_ns * 1e-9 - 1_700_000_000, 6)) for f in frames] == \
+        [(f.sensor, round(f.stamp_s, 6)) for f in seq.frames]
+    for got, want in zip(frames, seq.frames):
+        assert np.abs(got.T_world_camera - want.T_world_camera).max() < 1e-3
+        tolerance = 6e-4 if want.sensor == "tof" else 1e-6  # ToF is stored in whole millimetres
+        assert np.abs(got.depth_m - want.depth_m).max() <= tolerance
+        assert (got.rgb is None) == (want.rgb is None)
+
+
+# -- bad bags: one line, no traceback, exit code 2 ----------------------------------------------
+
+
+def test_missing_path(tmp_path: Path, tiny_params: Path):
+    line = _one_line_error(_replay(tmp_path / "nope", tmp_path / "out", tiny_params))
+    assert "nope: no such bag" in line
+
+
+@pytest.mark.parametrize("name, content, expected", [
+    ("garbage.mcap", os.urandom(4096), "garbage.mcap: not a readable bag"),
+    ("garbage.db3", b"SQLite format 2\x00" + bytes(4080), "garbage.db3: not an sqlite3 database"),
+    ("notes.txt", b"hello", "notes.txt: not a bag"),
+])
+def test_corrupt_files(tmp_path: Path, tiny_params: Path, name: str, content: bytes, expected: str):
+    path = tmp_path / name
+    path.write_bytes(content)
+    assert expected in _one_line_error(_replay(path, tmp_path / "out", tiny_params))
+
+
+def test_empty_folder(tmp_path: Path, tiny_params: Path):
+    (tmp_path / "empty").mkdir()
+    assert "not a rosbag2 folder" in _one_line_error(_replay(tmp_path / "empty", tmp_path / "out", tiny_params))
+
+
+@pytest.mark.parametrize("as_folder", [False, True])
+def test_truncated_mcap_writes_what_was_fused(prefix: Path, tmp_path: Path, tiny_params: Path, as_folder: bool):
+    data = next(prefix.glob("*.mcap")).read_bytes()
+    if as_folder:  # a recording killed mid-way: metadata.yaml claims more than the file holds
+        bag = tmp_path / "killed"
+        bag.mkdir()
+        (bag / "metadata.yaml").write_text((prefix / "metadata.yaml").read_text())
+        (bag / f"{prefix.name}.mcap").write_bytes(data[: int(len(data) * 0.6)])
+    else:
+        bag = tmp_path / "cut.mcap"
+        bag.write_bytes(data[: int(len(data) * 0.6)])
+    out = tmp_path / "out"
+    if as_folder:  # in-process: the replay core reports the break and still writes the meshes
+        from senfunet_ros.replay import replay_bag
+
+        result = replay_bag(bag, out, params=tiny_params, progress=False)
+        assert not result.ok and "breaks after" in result.error
+    else:  # the command: one line, exit code 2
+        line = _one_line_error(_replay(bag, out, tiny_params))
+        assert "breaks after" in line and "wrote the meshes fused so far" in line
+    for name in ("mesh", "tof", "stereo", "tsdf_fusion"):
+        assert (out / f"{name}.ply").stat().st_size > 0
+    import json
+
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["complete"] is False and "breaks after" in stats["error"]
+    assert 0 < stats["sensors"]["tof"]["integrated"] < 10
+
+
+def test_truncated_mcap_raises_broken_error_midway(prefix: Path, tmp_path: Path):
+    data = next(prefix.glob("*.mcap")).read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    with open_bag(cut) as reader:
+        read = 0
+        with pytest.raises(BagBrokenError) as info:
+            for _ in reader.messages():
+                read += 1
+    assert info.value.messages_read == read > 0
+
+
+def test_bag_without_expected_topics(prefix: Path, tmp_path: Path, tiny_params: Path):
+    tof_only = copy_bag(prefix, tmp_path / "tof_only", topics=["/tof/depth", "/tof/camera_info", "/tof/pose"])
+    line = _one_line_error(_replay(tof_only, tmp_path / "out", tiny_params))
+    assert "no messages on /stereo/camera_info, /stereo/depth, /stereo/pose" in line
+    assert "--params" in line
+
+
+def _bag_with_custom_depth_type(path: Path, prefix: Path) -> Path:
+    """The prefix, but /tof/depth recorded as a message type nobody has installed."""
+    from rosbags.rosbag2 import Writer
+
+    with open_bag(prefix) as reader, Writer(path, version=9) as writer:
+        conns = {}
+        for msg in reader.messages():
+            if msg.topic not in conns:
+                info = reader.topics[msg.topic]
+                if msg.topic == "/tof/depth":
+                    conns[msg.topic] = writer.add_connection(msg.topic, "acme_msgs/msg/DepthImage",
+                                                             msgdef="float32[] depth\n", rihs01="RIHS01_" + "0" * 64)
+                else:
+                    conns[msg.topic] = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef,
+                                                             rihs01=info.digest)
+            writer.write(conns[msg.topic], msg.log_time_ns, msg.data)
+    return path
+
+
+def test_unknown_message_type(prefix: Path, tmp_path: Path, tiny_params: Path):
+    bag = _bag_with_custom_depth_type(tmp_path / "custom", prefix)
+    line = _one_line_error(_replay(bag, tmp_path / "out", tiny_params))
+    assert "topic /tof/depth has type acme_msgs/msg/DepthImage, unknown here," in line
+    assert "sensor_msgs/msg/Image" in line
+
+
+def test_wrong_pose_type_names_the_parameter(prefix: Path, tmp_path: Path):
+    from senfunet_ros.replay import TopicRouter, load_settings
+
+    with open_bag(prefix) as reader:
+        topics = dict(reader.topics)
+    topics["/tof/pose"] = topics["/tof/pose"].__class__("/tof/pose", "nav_msgs/msg/Odometry", 10)
+    with pytest.raises(BagError, match="set pose_type: odometry"):
+        TopicRouter(load_settings(), topics, prefix)
+    TopicRouter(load_settings(overrides={"pose_type": "odometry", "stereo.pose_topic": "/tof/pose"}), topics, prefix)
+
+
+def test_play_bad_bags(prefix: Path, tmp_path: Path):
+    def play(bag: Path) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "play", str(bag)],
+                              capture_output=True, text=True, timeout=120)
+
+    proc = play(tmp_path / "missing")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip() == f"senfunet play: {tmp_path / 'missing'}: no such bag; " \
+        "pass a rosbag2 folder (with metadata.yaml) or a .mcap file"
+    only_custom = tmp_path / "only_custom"
+    from rosbags.rosbag2 import Writer
+
+    with Writer(only_custom, version=9) as writer:
+        conn = writer.add_connection("/x", "acme_msgs/msg/Thing", msgdef="int32 a\n", rihs01="RIHS01_" + "0" * 64)
+        writer.write(conn, 1, b"\x00\x01\x00\x00\x01\x00\x00\x00")
+    proc = play(only_custom)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip() == f"senfunet play: {only_custom}: none of its topics has a message type installed " \
+        "here (acme_msgs/msg/Thing); install their packages (pip install ros-jazzy-<package>)"

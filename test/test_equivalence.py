@@ -1,0 +1,157 @@
+"""The engine's shortcuts against the straightforward computation.
+
+The straightforward computation is `EngineConfig(alpha_voxels="all", alpha_tolerance=0)`: the
+weighting net re-evaluated on every voxel within 2 voxels of any change (which equals the
+whole-grid evaluation, see test_engine.py). The shortcuts:
+- alpha_voxels="observed": only observed voxels -> identical alpha there, identical fusion and meshes;
+- alpha_voxels="surface": only corners of cells that can hold fused triangles -> identical fused mesh
+  (vertices, faces, colours), stale alpha elsewhere;
+- alpha_tolerance > 0: alpha around a voxel is refreshed only once its inputs drifted more than the
+  tolerance -> a fused mesh close to the exact one, within the tolerance stated below.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from senfunet_core.engine import EngineConfig, SenFuNet
+
+VOXEL = 0.01
+SIZE = 96
+K = np.array([[60.0, 0, (SIZE - 1) / 2], [0, 60.0, (SIZE - 1) / 2], [0, 0, 1.0]])
+CENTRE = np.array([0.0, 0.0, 0.0])
+RADIUS = 0.3
+FLOOR_Z = -0.3
+# Tolerance of alpha_tolerance=TOL (see test_tolerance_keeps_the_mesh_close)
+TOL = 0.02
+
+
+def look_at(eye, target, up=(0, 0, 1)) -> np.ndarray:
+    eye, target, up = (np.asarray(v, float) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+def render(T: np.ndarray) -> np.ndarray:
+    """z-depth of a sphere standing on a floor plane."""
+    v, u = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1) @ T[:3, :3].T
+    o = T[:3, 3]
+    oc = o - CENTRE
+    a, b, c = (d * d).sum(-1), 2 * (d @ oc), oc @ oc - RADIUS ** 2
+    disc = b * b - 4 * a * c
+    t_sphere = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
+    t_floor = np.where(d[..., 2] < -1e-6, (FLOOR_Z - o[2]) / np.where(d[..., 2] < -1e-6, d[..., 2], -1), np.inf)
+    t = np.minimum(t_sphere, t_floor)
+    return np.where(np.isfinite(t), t, 0).astype(np.float32)
+
+
+def frames(n: int = 6):
+    """Both sensors from views around the object: sensor 2 noisier and with outliers, so alpha and
+    the filter matter."""
+    rng = np.random.default_rng(7)
+    out = []
+    for i in range(n):
+        angle = 2 * math.pi * i / n
+        T = look_at((1.0 * math.cos(angle), 1.0 * math.sin(angle), 0.5), CENTRE)
+        depth = render(T)
+        tof = depth + rng.normal(0, 0.002, depth.shape).astype(np.float32) * (depth > 0)
+        stereo = depth + rng.normal(0, 0.006, depth.shape).astype(np.float32) * (depth > 0)
+        outliers = rng.random(depth.shape) < 0.02
+        stereo[outliers] *= rng.uniform(0.7, 1.3, int(outliers.sum())).astype(np.float32)
+        rgb = rng.integers(0, 256, (SIZE, SIZE, 3), dtype=np.uint8)
+        out += [("tof", tof, None, T), ("stereo", stereo, rgb, T)]
+    return out
+
+
+def run(**overrides):
+    config = replace(EngineConfig(depth_min_m=(0.05, 0.05), depth_max_m=(1.5, 1.5), border_px=2), **overrides)
+    engine = SenFuNet(config, weights=None)
+    with torch.no_grad():  # larger weights than the default init: alpha spreads around 0.5, the filter acts
+        for p in engine.weighting_net.parameters():
+            p.mul_(3.0)
+    shown = {}
+    for i, (sensor, depth, rgb, T) in enumerate(frames()):
+        engine.integrate(sensor, depth, K, T, rgb)
+        if i % 3 == 2:  # incremental updates, as the node runs them
+            update = engine.update()
+            for key in update.removed:
+                shown.pop(key, None)
+            shown.update(update.changed)
+    update = engine.update()
+    for key in update.removed:
+        shown.pop(key, None)
+    shown.update(update.changed)
+    return engine, shown
+
+
+@pytest.fixture(scope="module")
+def exact():
+    return run(alpha_voxels="all", alpha_tolerance=0.0)
+
+
+def sorted_mesh(mesh):
+    """Vertices (with colours) and faces in a canonical order, to compare meshes exactly."""
+    order = np.lexsort(mesh.vertices.T[::-1])
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    faces = np.sort(rank[mesh.faces], axis=1)
+    faces = faces[np.lexsort(faces.T[::-1])]
+    return mesh.vertices[order], mesh.colors[order], faces
+
+
+def test_observed_mode_equals_exact(exact):
+    engine, _ = run(alpha_voxels="observed", alpha_tolerance=0.0)
+    ref = exact[0]
+    n = ref.grid.n_blocks
+    assert engine.grid.n_blocks == n
+    observed = (ref.grid.pools["weight0"][:n] > 0) | (ref.grid.pools["weight1"][:n] > 0)
+    diff = (engine.grid.pools["alpha"][:n] - ref.grid.pools["alpha"][:n]).abs()[observed]
+    assert float(diff.max()) < 1e-5
+    c_ref, v_ref = ref.voxel_values("fused", filtered=True)
+    c, v = engine.voxel_values("fused", filtered=True)
+    np.testing.assert_array_equal(c, c_ref)
+    np.testing.assert_allclose(v, v_ref, atol=1e-6)
+    # less work than the exact run
+    assert engine.counters["alpha_voxels"] < ref.counters["alpha_voxels"]
+
+
+def test_surface_mode_gives_the_exact_fused_mesh(exact):
+    engine, shown = run(alpha_voxels="surface", alpha_tolerance=0.0)
+    ref, ref_shown = exact
+    a, b = sorted_mesh(engine.extract_mesh("fused")), sorted_mesh(ref.extract_mesh("fused"))
+    assert len(b[2]) > 2000
+    np.testing.assert_array_equal(a[2], b[2])  # same triangles
+    np.testing.assert_allclose(a[0], b[0], atol=1e-6)  # same vertices
+    np.testing.assert_allclose(a[1], b[1], atol=1e-4)  # same colours (alpha at the vertices)
+    # the incremental block meshes (what the node publishes) are the same too
+    assert set(shown) == set(ref_shown)
+    for key, mesh in ref_shown.items():
+        assert mesh.n_faces == shown[key].n_faces
+    assert engine.counters["alpha_voxels"] < 0.5 * ref.counters["alpha_voxels"]
+
+
+def test_tolerance_keeps_the_mesh_close(exact):
+    """alpha_tolerance=TOL: every vertex of either mesh lies within 1 mm of the other mesh's
+    vertices for >= 99% of them and within 1 voxel for all but 0.5%."""
+    engine, _ = run(alpha_voxels="surface", alpha_tolerance=TOL)
+    ref = exact[0]
+    mesh, ref_mesh = engine.extract_mesh("fused"), ref.extract_mesh("fused")
+    assert ref_mesh.n_faces > 2000
+    d1, _ = cKDTree(ref_mesh.vertices).query(mesh.vertices)
+    d2, _ = cKDTree(mesh.vertices).query(ref_mesh.vertices)
+    d = np.concatenate([d1, d2])
+    assert np.mean(d <= 0.001) >= 0.99
+    assert np.mean(d <= VOXEL) >= 0.995
+    assert abs(mesh.n_faces - ref_mesh.n_faces) <= 0.01 * ref_mesh.n_faces
