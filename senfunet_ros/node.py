@@ -22,6 +22,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
@@ -123,12 +124,15 @@ class FusionNode(Node):
                 self._subscriptions_keep.append(self.create_subscription(
                     Image, sensor.color_topic, self._guard(name, "color", self.ingest.add_color), _SENSOR_QOS,
                     callback_group=self._subs_group))
-        # 4. timers, each in its own group so a long mesh update never stalls integration
-        self._integrate_timer = self.create_timer(1.0 / s.integrate_rate_hz, self._integrate_tick,
+        # 4. timers, each in its own group so a long mesh update never stalls integration. They run
+        # on the steady clock: with use_sim_time, /clock stops when a bag ends, and queued frames
+        # must still be integrated and meshed.
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._integrate_timer = self.create_timer(1.0 / s.integrate_rate_hz, self._integrate_tick, clock=steady,
                                                   callback_group=MutuallyExclusiveCallbackGroup())
-        self._mesh_timer = self.create_timer(1.0 / s.mesh_rate_hz, self._mesh_tick,
+        self._mesh_timer = self.create_timer(1.0 / s.mesh_rate_hz, self._mesh_tick, clock=steady,
                                              callback_group=MutuallyExclusiveCallbackGroup())
-        self._status_timer = self.create_timer(1.0 / s.status_rate_hz, self._status_tick,
+        self._status_timer = self.create_timer(1.0 / s.status_rate_hz, self._status_tick, clock=steady,
                                                callback_group=MutuallyExclusiveCallbackGroup())
         # 5. publishers
         self.mesh_pub = self.create_publisher(MarkerArray, "~/mesh", _MESH_QOS)
