@@ -33,7 +33,7 @@ from visualization_msgs.msg import MarkerArray
 
 from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
-from senfunet_ros.ingest import DROP_REASONS, Frame, Ingest, IngestConfig, TimeJump
+from senfunet_ros.ingest import DROP_REASONS, Frame, Ingest, TimeJump
 
 __all__ = ["FusionNode", "main"]
 
@@ -85,17 +85,7 @@ class FusionNode(Node):
         self._engine_lock = threading.Lock()
         self.engine = self._make_engine()
         s = self.settings
-        self.ingest = Ingest(IngestConfig(
-            sensors=s.sensor_names,
-            working_size=(s.working_width, s.working_height),
-            queue_size=s.queue_size,
-            pose_buffer_size=s.pose_buffer_size,
-            pose_tolerance_s=s.pose_tolerance_s,
-            pose_max_wait_s=s.pose_max_wait_s,
-            color_tolerance_s=s.color_tolerance_s,
-            time_jump_s=s.time_jump_s,
-            pose_parser=conv.POSE_PARSERS[s.pose_type],
-        ))
+        self.ingest = Ingest(P.ingest_config(self.settings))
         self.latest_stamp_ns = 0  # latest integrated sensor time: the stamp of every output
         self.timings = {name: _Timing() for name in ("integrate", "update", "weights", "encode", "publish")}
         self.frames_failed = 0
@@ -155,26 +145,14 @@ class FusionNode(Node):
     def _make_engine(self) -> Any:
         import torch  # heavy: imported when a node is made, not when this module is
 
-        from senfunet_core.engine import EngineConfig, SenFuNet
+        from senfunet_core.engine import SenFuNet
 
-        s = self.settings
-        device = s.device
-        if device.startswith("cuda") and not torch.cuda.is_available():
-            self.get_logger().warning(f"device '{device}' requested but CUDA is not available: using cpu")
-            device = "cpu"
-        config = EngineConfig(
-            sensors=s.sensor_names,
-            sensor_uses_rgb=tuple(name in s.rgb_sensors for name in s.sensor_names),
-            depth_min_m=tuple(sensor.depth_min_m for sensor in s.sensors),
-            depth_max_m=tuple(sensor.depth_max_m for sensor in s.sensors),
-            voxel_size_m=s.voxel_size_m,
-            band_m=s.band_m,
-            device=device,
-        )
-        weights: str | None = None if s.weights.lower() in ("none", "") else s.weights
+        if self.settings.device.startswith("cuda") and not torch.cuda.is_available():
+            self.get_logger().warning(f"device '{self.settings.device}' requested but CUDA is not available: using cpu")
+        weights = P.engine_weights(self.settings)
         if weights is None:
             self.get_logger().warning("parameter weights = 'none': the networks are untrained")
-        return SenFuNet(config, weights=weights)
+        return SenFuNet(P.engine_config(self.settings), weights=weights)
 
     # -- warnings -------------------------------------------------------------------------------
 

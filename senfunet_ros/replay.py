@@ -22,10 +22,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
+from senfunet_ros.params import engine_config, engine_weights, ingest_config
 from senfunet_ros.bagio import BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype, open_bag
-from senfunet_ros.ingest import Frame, Ingest, IngestConfig, TimeJump
+from senfunet_ros.ingest import Frame, Ingest, TimeJump
 
 __all__ = [
     "load_settings",
@@ -109,47 +109,6 @@ def load_settings(params_file: str | Path | None = None, overrides: dict[str, An
                          depth_min_m=values[f"{s}.depth_min_m"], depth_max_m=values[f"{s}.depth_max_m"])
         for s in values["sensors"])
     return P.Settings(values=values, sensors=sensor_settings)
-
-
-def ingest_config(settings: P.Settings) -> IngestConfig:
-    """Ingest configured as the node configures it."""
-    s = settings
-    return IngestConfig(
-        sensors=s.sensor_names,
-        working_size=(s.working_width, s.working_height),
-        queue_size=s.queue_size,
-        pose_buffer_size=s.pose_buffer_size,
-        pose_tolerance_s=s.pose_tolerance_s,
-        pose_max_wait_s=s.pose_max_wait_s,
-        color_tolerance_s=s.color_tolerance_s,
-        time_jump_s=s.time_jump_s,
-        pose_parser=conv.POSE_PARSERS[s.pose_type],
-    )
-
-
-def engine_config(settings: P.Settings) -> Any:
-    """EngineConfig as the node builds it (device 'cuda' falls back to 'cpu' when there is none)."""
-    import torch
-
-    from senfunet_core.engine import EngineConfig
-
-    s = settings
-    device = s.device
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        device = "cpu"
-    return EngineConfig(
-        sensors=s.sensor_names,
-        sensor_uses_rgb=tuple(name in s.rgb_sensors for name in s.sensor_names),
-        depth_min_m=tuple(sensor.depth_min_m for sensor in s.sensors),
-        depth_max_m=tuple(sensor.depth_max_m for sensor in s.sensors),
-        voxel_size_m=s.voxel_size_m,
-        band_m=s.band_m,
-        device=device,
-    )
-
-
-def engine_weights(settings: P.Settings) -> str | None:
-    return None if settings.weights.lower() in ("none", "") else settings.weights
 
 
 # --------------------------------------------------------------------------------------------

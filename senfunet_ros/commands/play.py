@@ -128,7 +128,12 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
             passes += 1
             if broken or not args.loop:
                 break
-        time.sleep(0.2)  # let reliable writers hand the last messages over before the node goes away
+        # Reliable writers keep what slow readers have not acknowledged; hand it over before exiting.
+        from rclpy.duration import Duration
+
+        ack_deadline = time.monotonic() + 5.0
+        for publisher in publishers.values():
+            publisher.wait_for_all_acked(Duration(seconds=max(0.0, ack_deadline - time.monotonic())))
         say(f"published {total} messages in {passes} pass(es)")
         if broken:
             return _error(broken)
