@@ -23,7 +23,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -96,7 +96,9 @@ class FusionNode(Node):
         self._next_mesh_s = 0.0  # monotonic time before which mesh ticks are skipped
         self._mesh_lock = threading.Lock()  # one mesh publication at a time (timer vs. reset service)
         # 3. subscriptions: they only enqueue
-        self._subs_group = ReentrantCallbackGroup()
+        # One mutually exclusive group: enqueueing is cheap, and two threads running callbacks of
+        # one subscription at once could hand its messages to Ingest out of order.
+        self._subs_group = MutuallyExclusiveCallbackGroup()
         self._subscriptions_keep = []
         pose_msg = _POSE_MSGS[s.pose_type]
         for sensor in s.sensors:
