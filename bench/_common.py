@@ -20,14 +20,9 @@ shared machine they are noisy (see the load average recorded with them).
 def machine() -> str:
     import torch
 
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    from senfunet_core.evaluation import cpu_model
+
+    cpu = cpu_model()
     load = "n/a"
     try:
         load = " ".join(Path("/proc/loadavg").read_text().split()[:3])

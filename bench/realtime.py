@@ -46,8 +46,6 @@ def large_bag(cache: Path, seed: int, room: tuple[float, float, float], seconds:
 
 
 def run_case(args: argparse.Namespace) -> dict:
-    import torch
-
     from senfunet_core.engine import SenFuNet
     from senfunet_ros import conversions as conv
     from senfunet_ros.bagio import open_bag

@@ -284,17 +284,21 @@ def write_figure(engine, path: str | Path, scene=None) -> None:
     render_mesh_png(meshes, path, titles=titles, width_px=2000, height_px=440, view=(-60.0, 60.0))
 
 
-def machine_description() -> str:
-    import os
-
-    cpu = platform.processor() or platform.machine()
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo, else what platform knows."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
+                return line.split(":", 1)[1].strip()
     except OSError:
         pass
+    return platform.processor() or platform.machine()
+
+
+def machine_description() -> str:
+    import os
+
+    cpu = cpu_model()
     return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__} "
             f"(CPU, {torch.get_num_threads()} threads)")
 

@@ -159,7 +159,7 @@ class _SensorState:
         return n
 
 
-def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     """Rotation matrix -> unit quaternion (x, y, z, w), numerically stable for any angle."""
     m = R
     trace = m[0, 0] + m[1, 1] + m[2, 2]
@@ -190,8 +190,8 @@ def _matrix_from_quat(q: np.ndarray) -> np.ndarray:
 
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
     """Pose at fraction s in [0, 1] from T0 to T1: lerp of translation, slerp of rotation."""
-    q0 = _quat_from_matrix(T0[:3, :3])
-    q1 = _quat_from_matrix(T1[:3, :3])
+    q0 = quat_from_matrix(T0[:3, :3])
+    q1 = quat_from_matrix(T1[:3, :3])
     dot = float(np.dot(q0, q1))
     if dot < 0.0:  # take the short way round
         q1, dot = -q1, -dot

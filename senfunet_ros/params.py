@@ -103,7 +103,7 @@ class Settings:
         return tuple(s.name for s in self.sensors)
 
 
-def _coerce(name: str, value: Any, default: Any) -> Any:
+def coerce(name: str, value: Any, default: Any) -> Any:
     """Values in the type of their default, so `mesh_rate_hz: 1` in YAML works."""
     try:
         if isinstance(default, bool):
@@ -150,7 +150,7 @@ def declare(node: Any) -> Settings:
         # dynamic typing: YAML integers for float parameters (and the like) are coerced, not refused
         descriptor = ParameterDescriptor(description=help_text, dynamic_typing=True)
         value = node.declare_parameter(name, default, descriptor).value
-        return _coerce(name, default if value is None else value, default)
+        return coerce(name, default if value is None else value, default)
 
     values: dict[str, Any] = {}
     for p in GLOBAL_PARAMS:

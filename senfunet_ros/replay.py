@@ -101,7 +101,7 @@ def load_settings(params_file: str | Path | None = None, overrides: dict[str, An
     if unknown:
         where = f" in {params_file}" if params_file else ""
         raise ValueError(f"unknown parameter(s) {unknown}{where}; see config/default.yaml for the names")
-    values = {name: P._coerce(name, given.get(name, default), default) for name, (default, _) in table.items()}
+    values = {name: P.coerce(name, given.get(name, default), default) for name, (default, _) in table.items()}
     P.check(values)
     sensor_settings = tuple(
         P.SensorSettings(name=s, depth_topic=values[f"{s}.depth_topic"], color_topic=values[f"{s}.color_topic"],

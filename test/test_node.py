@@ -140,13 +140,13 @@ def _stamp(msg: Any, t_s: float) -> None:
 
 
 def _pose_msg(t_s: float, T: np.ndarray) -> PoseStamped:
-    from senfunet_ros.ingest import _quat_from_matrix
+    from senfunet_ros.ingest import quat_from_matrix
 
     msg = PoseStamped()
     _stamp(msg, t_s)
     msg.header.frame_id = "map"
     msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in T[:3, 3])
-    q = _quat_from_matrix(T[:3, :3])
+    q = quat_from_matrix(T[:3, :3])
     o = msg.pose.orientation
     o.x, o.y, o.z, o.w = (float(v) for v in q)
     return msg

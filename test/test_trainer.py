@@ -1,7 +1,6 @@
 """Training: the paper's loss terms, the chunk rule, and a few steps lowering the loss."""
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import pytest
