@@ -96,9 +96,8 @@ class FusionNode(Node):
         self._next_mesh_s = 0.0  # monotonic time before which mesh ticks are skipped
         self._mesh_lock = threading.Lock()  # one mesh publication at a time (timer vs. reset service)
         # 3. subscriptions: they only enqueue
-        # One mutually exclusive group: enqueueing is cheap, and two threads running callbacks of
-        # one subscription at once could hand its messages to Ingest out of order.
-        self._subs_group = MutuallyExclusiveCallbackGroup()
+        # Each subscription has its own mutually exclusive group: streams run in parallel, but one
+        # stream's messages never overlap, so they reach Ingest in arrival order.
         self._subscriptions_keep = []
         pose_msg = _POSE_MSGS[s.pose_type]
         for sensor in s.sensors:
@@ -106,16 +105,16 @@ class FusionNode(Node):
             self._subscriptions_keep += [
                 self.create_subscription(CameraInfo, sensor.camera_info_topic,
                                          self._guard(name, "camera_info", self.ingest.add_camera_info), _SENSOR_QOS,
-                                         callback_group=self._subs_group),
+                                         callback_group=MutuallyExclusiveCallbackGroup()),
                 self.create_subscription(Image, sensor.depth_topic, self._guard(name, "depth", self.ingest.add_depth),
-                                         _SENSOR_QOS, callback_group=self._subs_group),
+                                         _SENSOR_QOS, callback_group=MutuallyExclusiveCallbackGroup()),
                 self.create_subscription(pose_msg, sensor.pose_topic, self._guard(name, "pose", self.ingest.add_pose),
-                                         _POSE_QOS, callback_group=self._subs_group),
+                                         _POSE_QOS, callback_group=MutuallyExclusiveCallbackGroup()),
             ]
             if sensor.color_topic:
                 self._subscriptions_keep.append(self.create_subscription(
                     Image, sensor.color_topic, self._guard(name, "color", self.ingest.add_color), _SENSOR_QOS,
-                    callback_group=self._subs_group))
+                    callback_group=MutuallyExclusiveCallbackGroup()))
         # 4. timers, each in its own group so a long mesh update never stalls integration. They run
         # on the steady clock: with use_sim_time, /clock stops when a bag ends, and queued frames
         # must still be integrated and meshed.
