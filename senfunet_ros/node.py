@@ -42,7 +42,9 @@ _WARN_PERIOD_S = 5.0  # one warning per cause per this many seconds
 
 # Best effort + volatile subscriptions match both reliable and best-effort publishers (and
 # volatile or transient-local ones); keep-last bounds what piles up if a callback lags.
-_SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_EFFORT,
+# Depth 30 (~1-2 s of images, ~8 MB of 256x256 float depth): executor threads can be held up by
+# the GIL during a mesh update, and a shallow reader queue then silently overwrites frames.
+_SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=30, reliability=ReliabilityPolicy.BEST_EFFORT,
                          durability=DurabilityPolicy.VOLATILE)
 _POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.BEST_EFFORT,
                        durability=DurabilityPolicy.VOLATILE)
