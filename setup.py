@@ -17,7 +17,7 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
     ],
-    install_requires=["numpy", "scipy", "scikit-image", "pyyaml", "tqdm"],
+    install_requires=["numpy", "scipy", "numba", "scikit-image", "pyyaml", "tqdm"],
     python_requires=">=3.10",
     zip_safe=False,
     entry_points={

@@ -5,41 +5,44 @@
     update = engine.update()                                    # alpha, fusion, meshing of changed blocks
     mesh = engine.extract_mesh("fused")                         # or a sensor name, or "tsdf_fusion"
 
-Incremental update: a frame marks the blocks it touched. `update` re-evaluates the weighting
-net on those blocks and their 26 neighbours (alpha depends on inputs within 2 voxels, less than
-a block), each with a 2-voxel halo, which equals evaluating it over the whole grid; then it
-re-meshes every block whose cells read a changed alpha or TSDF (the changed blocks and their
--x, -y, -z neighbours, since a block's cells reach one voxel into its +x, +y, +z neighbours).
+Incremental update: a frame marks the blocks it touched, and every voxel accumulates how much its
+weighting-net inputs drifted (see `alpha`). `update` re-evaluates alpha on the voxels within 2 of
+a drifted one (each block with a 2-voxel halo, which equals evaluating the net over the whole
+grid); then it re-meshes every block whose cells read a changed alpha or TSDF (the changed blocks
+and their -x, -y, -z neighbours, since a block's cells reach one voxel into its +x, +y, +z
+neighbours).
+
+Threads: `integrate` may run in one thread while `update` (or an extraction) runs in another.
+Integration holds the data lock only while its kernels write the grid (not during the feature
+net); an update holds it only to read input windows and to write alpha, never while the networks
+or marching cubes run. Updates and extractions are serialised among themselves.
 """
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from . import networks
+from .alpha import MODES, consume_drift, stale_levels, weighting_windows
 from .errors import InputError
-from .fusion import fuse
-from .grid import BLOCK, BLOCK_VOXELS, NEIGHBOUR_OFFSETS, BlockGrid, local_grid
-from .integrator import (IntegratorConfig, aggregate_pixel_values, check_frame, frame_samples, integrate_into,
-                         running_average, valid_depth_mask, voxel_slots)
+from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
+from .grid import BlockGrid, kernel_view, neighbour_table
+from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .mesher import Mesh, marching_cubes_blocks, to_mesh, weld
 
 log = logging.getLogger("senfunet.engine")
 
 TSDF_FUSION = "tsdf_fusion"
 FUSED = "fused"
-# Blocks whose cells read a block: itself and its -x, -y, -z neighbours.
-# A block with at least this many alpha targets is evaluated densely (~1.5 ms per block, all 512
-# voxels) instead of by sparse gathers (~20-40 us per target on this CPU).
-_DENSE_ALPHA_TARGETS = 48
-_STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
-_MESH_READERS = torch.tensor([[-dx, -dy, -dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+# Neighbour-table codes of the blocks whose marching-cubes cells read a block: itself and its
+# -x, -y, -z neighbours (code 9*(dx+1) + 3*(dy+1) + (dz+1), offsets in {-1, 0}).
+_MESH_READER_CODES = np.array([9 * dx + 3 * dy + dz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
 
 
 @dataclass(frozen=True)
@@ -56,12 +59,11 @@ class EngineConfig:
     n_samples_behind: int = 3  # samples written behind the surface
     w_max: float = 500.0  # weight counter clip
     border_px: int = 10  # masked image border
-    device: str = "cpu"  # "cpu" or "cuda"
-    alpha_batch_blocks: int = 512  # blocks per weighting-net batch (memory vs. speed)
-    mesh_batch_blocks: int = 4096  # blocks per marching-cubes call
+    device: str = "cpu"  # where the networks run: "cpu" or "cuda" (the grids stay in CPU memory)
+    alpha_batch_blocks: int = 128  # blocks per weighting-net batch (memory vs. how long readers hold the grid)
+    mesh_batch_blocks: int = 2048  # blocks per marching-cubes call
     seed: int = 0  # initialisation of untrained networks
     torch_threads: int = 1  # torch intra-op threads the engine sets (0: leave torch's setting); 1 fits 2 shared cores
-    storage_dtype: str = "float16"  # feature and weight-counter pools ("float16" halves them; counters stay exact)
     alpha_voxels: str = "all"  # which voxels near a change get alpha re-evaluated: "all" (equals the whole-grid
     #   evaluation on every voxel); "observed" (observed voxels: all that fusion, filter, meshes and clouds read);
     #   "surface" (corners of cells whose 8 corners are observed and whose sensor TSDFs straddle 0: all that the
@@ -87,10 +89,8 @@ class EngineConfig:
             raise InputError("voxel_size_m, band_m must be > 0, n_samples >= 2, w_max >= 1")
         if not 0 <= self.n_samples_behind <= (self.n_samples - 1) // 2:
             raise InputError("n_samples_behind must be between 0 and (n_samples - 1) / 2")
-        if self.storage_dtype not in _STORAGE_DTYPES:
-            raise InputError(f"storage_dtype must be one of {sorted(_STORAGE_DTYPES)}, got '{self.storage_dtype}'")
-        if self.storage_dtype == "float16" and self.w_max > 2048:
-            raise InputError("w_max above 2048 needs storage_dtype float32 (float16 counts exactly only to 2048)")
+        if self.w_max > 2048:
+            raise InputError("w_max must be at most 2048 (weight counters are float16, exact up to 2048)")
         if self.alpha_voxels not in ("all", "observed", "surface"):
             raise InputError(f"alpha_voxels must be 'all', 'observed' or 'surface', got '{self.alpha_voxels}'")
         if not self.alpha_tolerance >= 0 or self.torch_threads < 0:
@@ -111,18 +111,6 @@ class WeightCloud:
     positions_m: np.ndarray  # Nx3 float32 voxel centres
     alpha: np.ndarray  # N float32 sensor weighting (weight of sensor 1)
     weights: np.ndarray  # N x n_sensors float32 weight counters
-
-
-def _window_reduce(x: torch.Tensor, k: int, op) -> torch.Tensor:
-    """B x S x S x S -> B x (S-k+1)^3: `op` (logical_or, logical_and, minimum, maximum) over each
-    k^3 window, as three separable passes of shifted slices (much faster than max_pool3d on CPU)."""
-    for dim in (1, 2, 3):
-        m = x.shape[dim] - k + 1
-        out = x.narrow(dim, 0, m)
-        for i in range(1, k):
-            out = op(out, x.narrow(dim, i, m))
-        x = out
-    return x
 
 
 def resolve_device(name: str) -> torch.device:
@@ -153,15 +141,19 @@ class SenFuNet:
             self.weights_source = str(weights)
         self.feature_nets.to(self.device).eval()
         self.weighting_net.to(self.device).eval()
-        channels: dict[str, tuple[int, ...]] = {"tsdf_base": (), "weight_base": (), "alpha": ()}
+        # drift: per voxel, how much its weighting-net inputs changed since alpha around it was evaluated
+        channels: dict[str, tuple[int, ...]] = {"tsdf_base": (), "weight_base": (), "alpha": (), "drift": ()}
         for i in range(len(config.sensors)):
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
-        storage = _STORAGE_DTYPES[config.storage_dtype]
-        dtypes = {name: storage for name in channels if name.startswith(("feat", "weight"))}
-        self.grid = BlockGrid(channels, self.device, dtypes=dtypes)
-        self._drift = torch.zeros(0, device=self.device)  # per voxel (slot*512+local): input change since its alpha
+        # features and weight counters in half precision (counters stay exact up to 2048)
+        dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight", "drift"))}
+        # alpha 0.5 until evaluated: a plain average, and the outlier filter keeps every voxel
+        self.grid = BlockGrid(channels, dtypes=dtypes, fill={"alpha": 0.5})
+        self._data_lock = threading.Lock()  # the grid: integration vs. readers
+        self._update_lock = threading.RLock()  # one update or extraction at a time
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0}
-        self.timings_s: dict[str, float] = {}
+        self.timings_s: dict[str, float] = {}  # stage -> seconds of its last run
+        self.total_s: dict[str, float] = {}  # stage -> seconds summed over all runs
         self.frames_integrated = {name: 0 for name in config.sensors}
         self._reset_pending()
 
@@ -178,73 +170,72 @@ class SenFuNet:
         check_frame(depth_m, K, T_world_camera, rgb)
         cfg = self.config
         t0 = time.perf_counter()
-        depth = torch.from_numpy(np.ascontiguousarray(depth_m, dtype=np.float32)).to(self.device)
-        depth = torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0).clamp_(min=0.0)
-        valid = valid_depth_mask(depth, cfg.border_px, cfg.depth_min_m[s], cfg.depth_max_m[s])
+        depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        valid = valid_depth_mask(torch.from_numpy(depth), cfg.border_px, cfg.depth_min_m[s], cfg.depth_max_m[s])
         if not bool(valid.any()):
             return 0
-        K_t = torch.as_tensor(np.asarray(K, dtype=np.float64), device=self.device)
-        T_t = torch.as_tensor(np.asarray(T_world_camera, dtype=np.float64), device=self.device)
-        samples = frame_samples(depth, valid, K_t, T_t, cfg.integrator)
-        flat = voxel_slots(self.grid, samples.keys)  # may raise InputError before anything is written
+        check_key_range(depth[valid.numpy()].max(), K, T_world_camera, depth.shape, cfg.band_m)
+        features = self._pixel_features(s, torch.from_numpy(depth).to(self.device), rgb).cpu().numpy()
         t1 = time.perf_counter()
-        pixel_features = self._pixel_features(s, depth, rgb).flatten(1)[:, samples.pixel_index].T  # P x 5
-        voxel_features = aggregate_pixel_values(samples, pixel_features)
-        t2 = time.perf_counter()
-        self._integrate_sensor(s, flat, samples.tsdf_m, voxel_features)
-        integrate_into(self.grid, flat, "tsdf_base", "weight_base", samples.tsdf_m, cfg.w_max)
-        self._alpha_changed.append(torch.unique_consecutive(flat // BLOCK_VOXELS))
-        self.frames_integrated[sensor] += 1
-        t3 = time.perf_counter()
-        self.timings_s.update(integrate_samples=t1 - t0, feature_net=t2 - t1, integrate_update=t3 - t2)
-        return int(flat.numel())
+        with self._data_lock:
+            update = integrate_frame(self.grid, depth, features, K, T_world_camera,
+                                     (cfg.depth_min_m[s], cfg.depth_max_m[s]), cfg.integrator,
+                                     (f"tsdf{s}", f"weight{s}", f"feat{s}"))
+            self._grow_flags()
+            self._alpha_pending[update.touched_slots] = True
+            self.frames_integrated[sensor] += 1
+        self._timed(feature_net=t1 - t0, integrate=time.perf_counter() - t1)
+        return update.voxels_updated
 
     @torch.inference_mode()
-    def update(self) -> MeshUpdate:
-        """Alpha, fusion and meshing over the blocks changed since the last update."""
-        t0 = time.perf_counter()
-        self._refresh_alpha()
-        t1 = time.perf_counter()
-        slots = self._take_mesh_pending()
-        self.counters["mesh_blocks"] += int(slots.numel())
-        self.counters["mesh_blocks_last"] = int(slots.numel())
-        result = MeshUpdate(cleared=self._cleared)
-        self._cleared = False
-        for start in range(0, slots.numel(), self.config.mesh_batch_blocks):
-            batch = slots[start:start + self.config.mesh_batch_blocks]
-            tris = self._mesh_batch(batch, FUSED, filtered=True)
-            coords = self.grid.coords[batch].tolist()
-            order = np.argsort(tris.vertex_block, kind="stable")
-            v_starts = np.searchsorted(tris.vertex_block[order], np.arange(len(batch) + 1))
-            f_order = np.argsort(tris.face_block, kind="stable")
-            f_starts = np.searchsorted(tris.face_block[f_order], np.arange(len(batch) + 1))
-            remap = np.empty(len(order), np.int64)
-            for b, key in enumerate(map(tuple, coords)):
-                vertex_ids = order[v_starts[b]:v_starts[b + 1]]
-                face_ids = f_order[f_starts[b]:f_starts[b + 1]]
-                if len(face_ids) == 0:
-                    if key in self._meshed:
-                        self._meshed.discard(key)
-                        result.removed.append(key)
-                    continue
-                remap[vertex_ids] = np.arange(len(vertex_ids))
-                faces = remap[tris.faces[face_ids]]
-                alpha = tris.vertex_values[vertex_ids]
-                result.changed[key] = to_mesh(tris.vertices_vox[vertex_ids], faces, self.config.voxel_size_m, alpha)
-                self._meshed.add(key)
-        self.timings_s.update(alpha=t1 - t0, mesh=time.perf_counter() - t1)
-        return result
+    def update(self, alpha_budget_s: float | None = None) -> MeshUpdate:
+        """Alpha, fusion and meshing over the blocks changed since the last update.
+
+        alpha_budget_s: at most about this long re-evaluating alpha (the live node's choice); the
+        blocks left over keep their previous alpha (0.5, a plain average, where never evaluated)
+        until a later update, oldest first. None: all of them (exact, deterministic)."""
+        with self._update_lock:
+            t0 = time.perf_counter()
+            self._refresh_alpha(alpha_budget_s)
+            t1 = time.perf_counter()
+            with self._data_lock:
+                slots = self._take_mesh_pending()
+                coords = self.grid.coords[slots].numpy().copy()
+            self.counters["mesh_blocks"] += len(slots)
+            self.counters["mesh_blocks_last"] = len(slots)
+            result = MeshUpdate(cleared=self._cleared)
+            self._cleared = False
+            for start in range(0, len(slots), self.config.mesh_batch_blocks):
+                batch = slots[start:start + self.config.mesh_batch_blocks]
+                tris = self._mesh_batch(batch, FUSED, filtered=True)
+                v_start, f_start = tris.vertex_offsets, tris.face_offsets
+                # the whole batch at once; each block's Mesh holds views into it
+                whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
+                                self.config.voxel_size_m, tris.vertex_values)
+                for b, key in enumerate(map(tuple, coords[start:start + len(batch)].tolist())):
+                    if f_start[b] == f_start[b + 1]:
+                        if key in self._meshed:
+                            self._meshed.discard(key)
+                            result.removed.append(key)
+                        continue
+                    vertices = slice(v_start[b], v_start[b + 1])
+                    result.changed[key] = Mesh(whole.vertices[vertices], whole.faces[f_start[b]:f_start[b + 1]],
+                                               whole.colors[vertices])
+                    self._meshed.add(key)
+            self._timed(alpha=t1 - t0, mesh=time.perf_counter() - t1)
+            return result
 
     @torch.inference_mode()
     def extract_mesh(self, which: str = FUSED, filtered: bool = True) -> Mesh:
         """The whole mesh of `which`: "fused", a sensor name, or "tsdf_fusion" (the baseline)."""
         self._check_which(which)
-        if which == FUSED:
-            self._refresh_alpha()
-        parts = []
-        slots = torch.arange(self.grid.n_blocks, device=self.device)
-        for start in range(0, slots.numel(), self.config.mesh_batch_blocks):
-            parts.append(self._mesh_batch(slots[start:start + self.config.mesh_batch_blocks], which, filtered))
+        with self._update_lock:
+            if which == FUSED:
+                self._refresh_alpha()
+            parts = []
+            slots = np.arange(self.grid.n_blocks)
+            for start in range(0, len(slots), self.config.mesh_batch_blocks):
+                parts.append(self._mesh_batch(slots[start:start + self.config.mesh_batch_blocks], which, filtered))
         if not parts:
             return Mesh.empty()
         offsets = np.cumsum([0] + [len(p.vertices_vox) for p in parts])
@@ -258,49 +249,60 @@ class SenFuNet:
     def voxel_values(self, which: str = FUSED, filtered: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Centres (N x 3, metres) and TSDF values (N) of the observed voxels of `which`."""
         self._check_which(which)
-        if which == FUSED:
-            self._refresh_alpha()
-        slots = torch.arange(self.grid.n_blocks, device=self.device)
-        tsdf, observed = self._values(self._whole_blocks(slots, self._channels(which)), which, filtered)
-        centres = self.grid.voxel_centres(slots, self.config.voxel_size_m)
-        return centres[observed].cpu().numpy(), tsdf[observed].cpu().numpy()
+        with self._update_lock:
+            if which == FUSED:
+                self._refresh_alpha()
+            with self._data_lock:
+                slots = torch.arange(self.grid.n_blocks)
+                tsdf, observed = self._values(self._whole_blocks(slots, self._channels(which)), which, filtered)
+                centres = self.grid.voxel_centres(slots, self.config.voxel_size_m)
+                return centres[observed].numpy(), tsdf[observed].numpy()
 
     @torch.inference_mode()
     def weight_cloud(self, max_abs_tsdf_m: float | None = None) -> WeightCloud:
         """Voxels observed by any sensor: position, alpha and each sensor's weight counter.
         With max_abs_tsdf_m, only voxels whose unfiltered fused |TSDF| is at most that."""
-        self._refresh_alpha()
-        slots = torch.arange(self.grid.n_blocks, device=self.device)
-        blocks = self._whole_blocks(slots, self._channels(FUSED))
+        with self._update_lock:
+            self._refresh_alpha()
+            with self._data_lock:
+                slots = torch.arange(self.grid.n_blocks)
+                blocks = self._whole_blocks(slots, self._channels(FUSED))
+                centres = self.grid.voxel_centres(slots, self.config.voxel_size_m)
         n = len(self.config.sensors)
         weights = torch.stack([blocks[f"weight{i}"] for i in range(n)], dim=-1)
         keep = (weights > 0).any(dim=-1)
         if max_abs_tsdf_m is not None:
             tsdf, _ = self._values(blocks, FUSED, filtered=False)
             keep &= tsdf.abs() <= max_abs_tsdf_m
-        centres = self.grid.voxel_centres(slots, self.config.voxel_size_m)
-        return WeightCloud(centres[keep].cpu().numpy(), blocks["alpha"][keep].cpu().numpy().astype(np.float32),
-                           weights[keep].cpu().numpy().astype(np.float32))
+        return WeightCloud(centres[keep].numpy(), blocks["alpha"][keep].numpy().astype(np.float32),
+                           weights[keep].numpy().astype(np.float32))
+
+    def invalidate_alpha(self) -> None:
+        """The weighting net changed (new weights): the next update re-evaluates alpha everywhere."""
+        with self._data_lock:
+            self._stale[: self.grid.n_blocks] = 2
 
     def reset(self) -> None:
         """Forget everything fused; the next update reports `cleared`."""
-        self.grid.clear()
-        self._drift = torch.zeros(0, device=self.device)
-        self.frames_integrated = {name: 0 for name in self.config.sensors}
-        self._reset_pending()
-        self._cleared = True
+        with self._update_lock, self._data_lock:
+            self.grid.clear()
+            self.frames_integrated = {name: 0 for name in self.config.sensors}
+            self._reset_pending()
+            self._cleared = True
 
     def save(self, path: str | Path) -> None:
         """The whole engine state (config, grids, networks) in one file, written atomically."""
-        self._refresh_alpha()
-        state = {
-            "format": "senfunet-engine-1",
-            "config": asdict(self.config),
-            "grid": self.grid.state_dict(),
-            "feature_nets": [net.state_dict() for net in self.feature_nets],
-            "weighting_net": self.weighting_net.state_dict(),
-            "frames_integrated": dict(self.frames_integrated),
-        }
+        with self._update_lock:
+            self._refresh_alpha()
+            with self._data_lock:
+                state = {
+                    "format": "senfunet-engine-1",
+                    "config": asdict(self.config),
+                    "grid": self.grid.state_dict(),
+                    "feature_nets": [net.state_dict() for net in self.feature_nets],
+                    "weighting_net": self.weighting_net.state_dict(),
+                    "frames_integrated": dict(self.frames_integrated),
+                }
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".tmp")
@@ -331,14 +333,17 @@ class SenFuNet:
         engine.weights_source = f"{path} (saved state)"
         engine.grid.load_state_dict(state["grid"])
         engine.frames_integrated.update(state["frames_integrated"])
-        engine._mesh_pending.append(torch.arange(engine.grid.n_blocks, device=engine.device))
+        engine._grow_flags()
+        engine._evaluated[: engine.grid.n_blocks] = True  # alpha is part of the saved state
+        engine._mesh_pending[: engine.grid.n_blocks] = True
         return engine
 
     def stats(self) -> dict:
         n = len(self.config.sensors)
-        weights = torch.stack([self.grid.pools[f"weight{i}"][: self.grid.n_blocks] for i in range(n)])
-        observed = int((weights > 0).any(dim=0).sum())
-        nbytes = self.grid.nbytes()
+        with self._data_lock:
+            weights = torch.stack([self.grid.pools[f"weight{i}"][: self.grid.n_blocks] for i in range(n)])
+            observed = int((weights > 0).any(dim=0).sum())
+            nbytes = self.grid.nbytes()
         return {"blocks": self.grid.n_blocks, "observed_voxels": observed, "grid_bytes": nbytes,
                 "bytes_per_observed_voxel": nbytes / max(observed, 1), "frames_integrated": dict(self.frames_integrated)}
 
@@ -354,11 +359,27 @@ class SenFuNet:
             raise InputError(f"unknown mesh '{which}'; choose {FUSED}, {TSDF_FUSION} or one of {list(self.config.sensors)}")
 
     def _reset_pending(self) -> None:
-        self._alpha_pending: list[torch.Tensor] = []  # blocks to re-evaluate entirely (e.g. the net changed)
-        self._alpha_changed: list[torch.Tensor] = []  # blocks integrated into: re-evaluate around their drift
-        self._mesh_pending: list[torch.Tensor] = []
+        # per block, as long as the grid's capacity (see _grow_flags)
+        self._alpha_pending = np.zeros(0, bool)  # integrated into since the last alpha schedule
+        # alpha to re-evaluate: 0 no, 1 inputs drifted, 2 new or sign-changed voxels, 3 never evaluated
+        self._stale = np.zeros(0, np.int8)
+        self._evaluated = np.zeros(0, bool)  # alpha evaluated at least once
+        self._stale_since = np.zeros(0, np.int64)  # the schedule that made it stale (oldest first)
+        self._mesh_pending = np.zeros(0, bool)  # TSDF or alpha changed since it was meshed
+        self._schedules = 0
         self._meshed: set[tuple[int, int, int]] = set()
         self._cleared = False
+        self._grow_flags()
+
+    def _grow_flags(self) -> None:
+        """Per-block flags as long as the grid's capacity (call with the data lock held)."""
+        grow = self.grid.capacity - len(self._stale)
+        if grow > 0:
+            self._alpha_pending = np.concatenate([self._alpha_pending, np.zeros(grow, bool)])
+            self._stale = np.concatenate([self._stale, np.zeros(grow, np.int8)])
+            self._evaluated = np.concatenate([self._evaluated, np.zeros(grow, bool)])
+            self._stale_since = np.concatenate([self._stale_since, np.zeros(grow, np.int64)])
+            self._mesh_pending = np.concatenate([self._mesh_pending, np.zeros(grow, bool)])
 
     def _pixel_features(self, s: int, depth: torch.Tensor, rgb: np.ndarray | None) -> torch.Tensor:
         """5 x H x W features of one frame."""
@@ -371,212 +392,77 @@ class SenFuNet:
                 rgb01 = torch.from_numpy(rgb).to(self.device).permute(2, 0, 1).unsqueeze(0).float() / 255.0
         return net(depth.view(1, 1, *depth.shape), rgb01)[0]
 
-    def _integrate_sensor(self, s: int, flat: torch.Tensor, tsdf_update: torch.Tensor,
-                          feature_update: torch.Tensor) -> None:
-        """integrate_into for one sensor's TSDF, weight and features (same running averages), reading
-        each pool once, and accumulating each voxel's weighting-net input change into `_drift`."""
-        pools = self.grid.pools
-        tsdf, weight = pools[f"tsdf{s}"].view(-1), pools[f"weight{s}"].view(-1)
-        feature = pools[f"feat{s}"].view(-1, networks.N_FEATURES)
-        old_weight = weight[flat].float()
-        old_features = feature[flat].float()
-        new_features = running_average(old_features, old_weight, feature_update).to(feature.dtype)
-        feature[flat] = new_features
-        old_tsdf = tsdf[flat]
-        new_tsdf = running_average(old_tsdf, old_weight, tsdf_update)
-        tsdf[flat] = new_tsdf
-        new_weight = torch.clamp(old_weight + 1, max=self.config.w_max)
-        weight[flat] = new_weight.to(weight.dtype)
-        self._ensure_drift_capacity()
-        change = (new_features.float() - old_features).abs_().amax(dim=1)
-        change = torch.maximum(change, (torch.tanh(new_weight) - torch.tanh(old_weight)).abs_())
-        change = torch.maximum(change, (new_tsdf - old_tsdf).abs_())
-        # events that can add a voxel to the observed or surface sets (first observation, TSDF sign
-        # change) always refresh alpha around it, whatever the tolerance: a voxel that joins these
-        # sets never keeps an alpha it was not evaluated with
-        joins = (old_weight == 0) | (torch.signbit(new_tsdf) != torch.signbit(old_tsdf))
-        change = torch.where(joins, torch.full_like(change, float("inf")), change)
-        self._drift.index_put_((flat,), change, accumulate=True)
+    def _timed(self, **stages: float) -> None:
+        self.timings_s.update(stages)
+        for name, seconds in stages.items():
+            self.total_s[name] = self.total_s.get(name, 0.0) + seconds
 
-    def _ensure_drift_capacity(self) -> None:
-        needed = self.grid.capacity * BLOCK_VOXELS
-        if self._drift.numel() < needed:
-            grown = torch.zeros(needed, device=self.device)
-            grown[: self._drift.numel()] = self._drift
-            self._drift = grown
+    def _views(self, *names: str) -> list[np.ndarray]:
+        """Flat kernel views of pools (fetch them under the data lock: pools move when they grow)."""
+        return [kernel_view(self.grid.pools[name]).reshape(-1) for name in names]
 
-    def _refresh_alpha(self) -> None:
-        """Re-evaluate alpha wherever a weighting-net input changed within 2 voxels (more than
-        `alpha_tolerance`, summed since the voxel's inputs were last used)."""
-        if not self._alpha_pending and not self._alpha_changed:
+    def _refresh_alpha(self, budget_s: float | None = None) -> None:
+        """Re-evaluate alpha on the stale blocks: never evaluated ones first, then those with newly
+        observed or sign-changed voxels, then drifted ones; oldest first within each level. With a
+        budget (seconds), stop after the batch that exhausts it: the rest stays stale for later."""
+        cfg = self.config
+        with self._data_lock:
+            self._schedule_alpha()
+            stale = np.flatnonzero(self._stale[: self.grid.n_blocks])
+            order = stale[np.lexsort((self._stale_since[stale], -self._stale[stale]))]
+        start = time.perf_counter()
+        done = 0
+        for first in range(0, len(order), cfg.alpha_batch_blocks):
+            if budget_s is not None and time.perf_counter() - start > budget_s:
+                break
+            batch = order[first:first + cfg.alpha_batch_blocks]
+            with self._data_lock:
+                grid = self.grid
+                neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, batch)
+                windows = weighting_windows(neighbours, *self._views("feat0", "weight0", "feat1", "weight1"))
+            x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x 12 x 12^3, channels last
+            alpha = self.weighting_net(x, pad=False).reshape(len(batch), -1).cpu().numpy()
+            with self._data_lock:  # every voxel of a block is evaluated: its alpha is up to date
+                self.grid.pools["alpha"].numpy()[batch] = alpha
+                self._stale[batch] = 0
+                self._evaluated[batch] = True
+                self._mesh_pending[batch] = True
+            done += len(batch)
+        self.counters["alpha_blocks"] += done
+        self.counters["alpha_voxels"] += done * 512
+        self.counters["alpha_backlog_blocks"] = len(order) - done
+
+    def _schedule_alpha(self) -> None:
+        """Turn the drift of the blocks integrated since the last call into stale blocks: those
+        with a voxel within 2 of a drifted one (see `alpha.stale_levels`). Data lock held."""
+        cfg = self.config
+        changed = np.flatnonzero(self._alpha_pending[: self.grid.n_blocks])
+        if len(changed) == 0:
             return
-        changed = torch.unique(torch.cat(self._alpha_pending + self._alpha_changed))
-        forced = torch.unique(torch.cat(self._alpha_pending)) if self._alpha_pending else changed[:0]
-        self._alpha_pending, self._alpha_changed = [], []
-        self._ensure_drift_capacity()
-        tol = self.config.alpha_tolerance
-        drift = self._drift.view(-1, BLOCK_VOXELS)
-        if forced.numel():
-            drift[forced] = float("inf")
-        dirty = drift[changed] > tol  # C x 512
-        keep = dirty.any(dim=1)
-        changed_dirty, dirty = changed[keep], dirty[keep]
-        # neighbour blocks reached by a dirty voxel's 5^3 neighbourhood
-        d = dirty.view(-1, BLOCK, BLOCK, BLOCK)
-        halo = networks.WEIGHTING_HALO
-        lo_x, hi_x = d[:, :halo].flatten(1).any(1), d[:, -halo:].flatten(1).any(1)
-        reach = []
-        for ox, oy, oz in NEIGHBOUR_OFFSETS.tolist():
-            sub = d
-            sub = sub[:, :halo] if ox < 0 else sub[:, -halo:] if ox > 0 else sub
-            sub = sub[:, :, :halo] if oy < 0 else sub[:, :, -halo:] if oy > 0 else sub
-            sub = sub[:, :, :, :halo] if oz < 0 else sub[:, :, :, -halo:] if oz > 0 else sub
-            reach.append(sub.flatten(1).any(1))
-        del lo_x, hi_x
-        reach = torch.stack(reach, dim=1)  # C x 27
-        neighbours = self.grid.neighbour_slots(changed_dirty)
-        targets = neighbours[reach & (neighbours >= 0)]
-        slots = torch.unique(targets)
-        if self.config.alpha_voxels != "all":
-            self._alpha_observed(slots, tol, surface_only=self.config.alpha_voxels == "surface")
-        else:
-            self._alpha_blocks(slots)
-        # the inputs of these voxels are now the ones alpha was evaluated with
-        drift[changed_dirty] = torch.where(dirty, torch.zeros((), device=self.device), drift[changed_dirty])
-        self.counters["alpha_blocks"] += int(slots.numel())
-        self._mesh_pending.append(changed)  # the TSDF changed here, whatever alpha did
-        self._mesh_pending.append(slots)
+        self._alpha_pending[changed] = False
+        grid = self.grid
+        around = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, changed)
+        candidates = np.unique(around[around >= 0])
+        neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, candidates)
+        levels = stale_levels(neighbours, *self._views("drift", "tsdf0", "weight0", "tsdf1", "weight1"),
+                              cfg.alpha_tolerance, MODES[cfg.alpha_voxels])
+        consume_drift(changed, self._views("drift")[0], cfg.alpha_tolerance)
+        self._mesh_pending[changed] = True  # the TSDF changed here, whatever alpha does
+        self._schedules += 1
+        levels[(levels > 0) & ~self._evaluated[candidates]] = 3  # shows the 0.5 placeholder: first
+        newly = candidates[(levels > 0) & (self._stale[candidates] == 0)]
+        self._stale_since[newly] = self._schedules
+        self._stale[candidates] = np.maximum(self._stale[candidates], levels)
 
-    def _weighting_inputs(self, batch: torch.Tensor) -> torch.Tensor:
-        """B x 12 x 12^3 weighting-net input windows (each block with a 2-voxel halo), float32."""
-        n = len(self.config.sensors)
-        names = [name for i in range(n) for name in (f"feat{i}", f"weight{i}")]
-        halo = networks.WEIGHTING_HALO
-        size = BLOCK + 2 * halo
-        gathered = [g.float() for g in self.grid.gather(batch, names, -halo, size)]
-        x = networks.weighting_input(gathered[0::2], gathered[1::2])  # B x size^3 x 12
-        return x
-
-    def _alpha_blocks(self, slots: torch.Tensor) -> None:
-        """Alpha on every voxel of the given blocks (dense convolutions on halo-padded windows)."""
-        alpha_pool = self.grid.pools["alpha"]
-        size = BLOCK + 2 * networks.WEIGHTING_HALO
-        for start in range(0, slots.numel(), self.config.alpha_batch_blocks):
-            batch = slots[start:start + self.config.alpha_batch_blocks]
-            x = self._weighting_inputs(batch)
-            x = x.view(len(batch), size, size, size, -1).permute(0, 4, 1, 2, 3).contiguous()
-            alpha_pool[batch] = self.weighting_net(x, pad=False).reshape(len(batch), BLOCK_VOXELS)
-            self.counters["alpha_voxels"] += int(batch.numel()) * BLOCK_VOXELS
-
-    def _window(self, neighbours: torch.Tensor, name: str, lo: int, size: int) -> torch.Tensor:
-        """B x size^3 (x channel shape) of pool `name` around each block (neighbours: B x 27 slots),
-        zeros where no block exists."""
-        code, index = local_grid(lo, size, self.device)
-        voxel_slot = neighbours[:, code]
-        pool = self.grid.pools[name]
-        flat = voxel_slot.clamp(min=0) * BLOCK_VOXELS + index.unsqueeze(0)
-        values = pool.view(-1, *pool.shape[2:])[flat]
-        present = (voxel_slot >= 0).view(*voxel_slot.shape, *([1] * (values.dim() - 2)))
-        return values * present.to(values.dtype) if values.dtype != torch.bool else values & present
-
-    def _surface_voxels(self, neighbours: torch.Tensor) -> torch.Tensor:
-        """B x 512: voxels that are a corner of a cell whose 8 corners are observed and whose
-        corner TSDFs (each sensor's, where observed) include values <= 0 and >= 0. Only these
-        cells can produce fused triangles, whatever alpha is (the fused value lies between V1 and V2)."""
-        size, b = BLOCK + 2, neighbours.shape[0]
-        shape = (b, size, size, size)
-        lo = hi = observed = None
-        for i in range(len(self.config.sensors)):
-            tsdf = self._window(neighbours, f"tsdf{i}", -1, size).view(shape)
-            seen = (self._window(neighbours, f"weight{i}", -1, size) > 0).view(shape)
-            v_lo = torch.where(seen, tsdf, torch.full_like(tsdf, float("inf")))
-            v_hi = torch.where(seen, tsdf, torch.full_like(tsdf, float("-inf")))
-            lo = v_lo if lo is None else torch.minimum(lo, v_lo)
-            hi = v_hi if hi is None else torch.maximum(hi, v_hi)
-            observed = seen if observed is None else observed | seen
-        cells = (_window_reduce(observed, 2, torch.logical_and) & (_window_reduce(lo, 2, torch.minimum) <= 0)
-                 & (_window_reduce(hi, 2, torch.maximum) >= 0))  # B x 9^3 cells
-        return _window_reduce(cells, 2, torch.logical_or).reshape(b, BLOCK_VOXELS)
-
-    def _alpha_observed(self, slots: torch.Tensor, tol: float, surface_only: bool = False) -> None:
-        """Alpha on the observed voxels of the given blocks within 2 voxels of a changed input
-        (with surface_only: only those `_surface_voxels` marks), as sparse convolutions: gather
-        the 3^3 neighbourhoods, one matrix product per layer."""
-        grid, halo = self.grid, networks.WEIGHTING_HALO
-        size, inner = BLOCK + 2 * halo, BLOCK + 2  # input window 12^3, hidden window 10^3
-        net = self.weighting_net
-        w1 = net.conv1.weight.permute(2, 3, 4, 1, 0).reshape(-1, net.conv1.out_channels)  # 27*12 x 32
-        w2 = net.conv2.weight.permute(2, 3, 4, 1, 0).reshape(-1, net.conv2.out_channels)  # 27*32 x 16
-        w3 = net.conv3.weight.reshape(net.conv3.out_channels, -1).T  # 16 x 1
-        r3 = torch.arange(3, device=self.device)
-        off_in = (r3.view(3, 1, 1) * size * size + r3.view(1, 3, 1) * size + r3.view(1, 1, 3)).reshape(-1)
-        off_hid = (r3.view(3, 1, 1) * inner * inner + r3.view(1, 3, 1) * inner + r3.view(1, 1, 3)).reshape(-1)
-        code, index = local_grid(-halo, size, self.device)
-        n = len(self.config.sensors)
-        alpha_flat = grid.pools["alpha"].view(-1)
-        chunk = 32768
-        for start in range(0, slots.numel(), self.config.alpha_batch_blocks):
-            batch = slots[start:start + self.config.alpha_batch_blocks]
-            neighbours = grid.neighbour_slots(batch)
-            # targets: observed voxels whose 5^3 receptive field holds a changed input
-            window = neighbours[:, code]
-            dirty = (self._drift[window.clamp(min=0) * BLOCK_VOXELS + index.unsqueeze(0)] > tol) & (window >= 0)
-            near = _window_reduce(dirty.view(-1, size, size, size), 2 * halo + 1, torch.logical_or)
-            target = near.reshape(-1, BLOCK_VOXELS)
-            observed = grid.pools["weight0"][batch] > 0
-            for i in range(1, n):
-                observed |= grid.pools[f"weight{i}"][batch] > 0
-            target &= observed
-            if surface_only:
-                has = target.any(dim=1)
-                batch, neighbours, target = batch[has], neighbours[has], target[has]
-                if batch.numel():
-                    target &= self._surface_voxels(neighbours)
-            count = target.sum(dim=1)
-            dense = count >= _DENSE_ALPHA_TARGETS  # cheaper as one dense block evaluation (exact too)
-            if bool(dense.any()):
-                self._alpha_blocks(batch[dense])
-            has = (count > 0) & ~dense
-            batch, neighbours, target = batch[has], neighbours[has], target[has]
-            b = batch.numel()
-            if b == 0:
-                continue
-            # weighting-net inputs of the 12^3 windows: B*12^3 x 12
-            parts = []
-            for i in range(n):
-                parts.append(self._window(neighbours, f"feat{i}", -halo, size).float())
-                parts.append(torch.tanh(self._window(neighbours, f"weight{i}", -halo, size).float()).unsqueeze(-1))
-            x = torch.cat(parts, dim=-1).reshape(b * size ** 3, -1)
-            # hidden-layer positions the targets read: their 3^3 neighbourhoods in the 10^3 window
-            t_pad = F.pad(target.view(b, BLOCK, BLOCK, BLOCK), (2, 2, 2, 2, 2, 2))
-            hidden_needed = _window_reduce(t_pad, 3, torch.logical_or).reshape(b, -1)  # B x 10^3
-            hb, hp = torch.nonzero(hidden_needed, as_tuple=True)
-            hx, hy, hz = hp // (inner * inner), (hp // inner) % inner, hp % inner
-            base = hb * size ** 3 + hx * size * size + hy * size + hz
-            hidden = torch.zeros((b * inner ** 3, w1.shape[1]), device=self.device)
-            hidden_rows = hb * inner ** 3 + hp
-            for c0 in range(0, base.numel(), chunk):
-                rows = base[c0:c0 + chunk]
-                patches = x[(rows.unsqueeze(1) + off_in.unsqueeze(0)).view(-1)].view(rows.numel(), -1)
-                hidden[hidden_rows[c0:c0 + chunk]] = torch.relu_(torch.addmm(net.conv1.bias, patches, w1))
-            tb, tp = torch.nonzero(target, as_tuple=True)
-            tx, ty, tz = tp // (BLOCK * BLOCK), (tp // BLOCK) % BLOCK, tp % BLOCK
-            tbase = tb * inner ** 3 + tx * inner * inner + ty * inner + tz
-            out = torch.empty(tbase.numel(), device=self.device)
-            for c0 in range(0, tbase.numel(), chunk):
-                rows = tbase[c0:c0 + chunk]
-                patches = hidden[(rows.unsqueeze(1) + off_hid.unsqueeze(0)).view(-1)].view(rows.numel(), -1)
-                h2 = torch.relu_(torch.addmm(net.conv2.bias, patches, w2))
-                out[c0:c0 + chunk] = torch.sigmoid_(torch.addmm(net.conv3.bias, h2, w3)).squeeze(1)
-            alpha_flat[batch[tb] * BLOCK_VOXELS + tp] = out
-            self.counters["alpha_voxels"] += int(tbase.numel())
-
-    def _take_mesh_pending(self) -> torch.Tensor:
-        if not self._mesh_pending:
-            return torch.zeros(0, dtype=torch.int64, device=self.device)
-        changed = torch.unique(torch.cat(self._mesh_pending))
-        self._mesh_pending = []
-        return self.grid.dilate(changed, _MESH_READERS)
+    def _take_mesh_pending(self) -> np.ndarray:
+        """Blocks to re-mesh: those whose cells read a changed block (call with the data lock held)."""
+        pending = np.flatnonzero(self._mesh_pending[: self.grid.n_blocks])
+        if len(pending) == 0:
+            return pending
+        self._mesh_pending[pending] = False
+        grid = self.grid
+        readers = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, pending)[:, _MESH_READER_CODES]
+        return np.unique(readers[readers >= 0])
 
     def _channels(self, which: str) -> list[str]:
         """The channels `_values` reads for `which`."""
@@ -601,12 +487,21 @@ class SenFuNet:
         s = self._sensor_index(which)
         return blocks[f"tsdf{s}"], blocks[f"weight{s}"] > 0
 
-    def _mesh_batch(self, slots: torch.Tensor, which: str, filtered: bool):
-        names = self._channels(which)
-        gathered = dict(zip(names, self.grid.gather(slots, names, 0, BLOCK + 1)))
-        tsdf, observed = self._values(gathered, which, filtered)
-        n = BLOCK + 1
-        shape = (len(slots), n, n, n)
-        extra = gathered["alpha"].reshape(shape).cpu().numpy() if which == FUSED else None
-        return marching_cubes_blocks(tsdf.reshape(shape).cpu().numpy(), observed.reshape(shape).cpu().numpy(),
-                                     (self.grid.coords[slots] * BLOCK).cpu().numpy(), extra)
+    def _mesh_batch(self, slots: np.ndarray, which: str, filtered: bool):
+        """Marching cubes over the given blocks of `which` (reads the grid under the data lock)."""
+        with self._data_lock:
+            grid = self.grid
+            neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
+            if which == FUSED:
+                mode, names = WINDOW_FUSED, ("tsdf0", "weight0", "tsdf1", "weight1", "alpha")
+            else:
+                mode = WINDOW_BASE if which == TSDF_FUSION else WINDOW_SENSOR
+                tsdf, weight = self._channels(which)
+                names = (tsdf, weight, tsdf, weight, "alpha")
+            t0 = time.perf_counter()
+            tsdf, observed, alpha = mesh_windows(neighbours, mode, filtered, *self._views(*names))
+            origins = grid.coords[slots].numpy() * 8
+        t1 = time.perf_counter()
+        triangles = marching_cubes_blocks(tsdf, observed, origins, alpha if which == FUSED else None)
+        self._timed(fusion=t1 - t0, marching_cubes=time.perf_counter() - t1)
+        return triangles

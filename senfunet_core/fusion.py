@@ -9,7 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
+import numpy as np
 import torch
+
+from .grid import f16_to_f32
 
 
 @dataclass
@@ -36,3 +40,50 @@ def fuse(tsdf_1: torch.Tensor, weight_1: torch.Tensor, tsdf_2: torch.Tensor, wei
     if apply_filter:
         observed = observed & ~(c1 & (alpha < 0.5)) & ~(c2 & (alpha > 0.5))
     return Fused(tsdf, observed, c12, c1, c2)
+
+
+# Which surface a mesh window shows: the fused one, one sensor's, or the TSDF Fusion baseline.
+WINDOW_FUSED, WINDOW_SENSOR, WINDOW_BASE = 0, 1, 2
+
+
+@numba.njit(cache=True, nogil=True)
+def mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, tsdf_1: np.ndarray, weight_1: np.ndarray,
+                 tsdf_2: np.ndarray, weight_2: np.ndarray, alpha: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per block, the 9^3 samples marching cubes reads (its 8^3 voxels and one layer of its +x, +y,
+    +z neighbours): TSDF, observed mask and alpha, each B x 9 x 9 x 9.
+
+    which: WINDOW_FUSED (eq. 1, with the outlier filter when apply_filter), WINDOW_SENSOR or
+    WINDOW_BASE (tsdf_1/weight_1 hold that surface's channels; the rest is ignored). Weights are
+    float16 bits (int16)."""
+    n_blocks = neighbours.shape[0]
+    tsdf = np.zeros((n_blocks, 9, 9, 9), np.float32)
+    observed = np.zeros((n_blocks, 9, 9, 9), np.bool_)
+    alpha_out = np.zeros((n_blocks, 9, 9, 9), np.float32)
+    for b in range(n_blocks):
+        for x in range(9):
+            for y in range(9):
+                for z in range(9):
+                    bx, by, bz = x // 8, y // 8, z // 8
+                    slot = neighbours[b, (bx + 1) * 9 + (by + 1) * 3 + bz + 1]
+                    if slot < 0:
+                        continue
+                    v = slot * 512 + (x - 8 * bx) * 64 + (y - 8 * by) * 8 + (z - 8 * bz)
+                    seen_1 = f16_to_f32(weight_1[v]) > 0
+                    if which != WINDOW_FUSED:
+                        tsdf[b, x, y, z] = tsdf_1[v] if seen_1 else 0.0
+                        observed[b, x, y, z] = seen_1
+                        continue
+                    seen_2 = f16_to_f32(weight_2[v]) > 0
+                    a = alpha[v]
+                    alpha_out[b, x, y, z] = a
+                    if seen_1 and seen_2:
+                        tsdf[b, x, y, z] = a * tsdf_1[v] + (1.0 - a) * tsdf_2[v]
+                        observed[b, x, y, z] = True
+                    elif seen_1:
+                        tsdf[b, x, y, z] = tsdf_1[v]
+                        observed[b, x, y, z] = not (apply_filter and a < 0.5)
+                    elif seen_2:
+                        tsdf[b, x, y, z] = tsdf_2[v]
+                        observed[b, x, y, z] = not (apply_filter and a > 0.5)
+    return tsdf, observed, alpha_out

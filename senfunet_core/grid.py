@@ -1,15 +1,28 @@
-"""Sparse voxel grid: 8^3-voxel blocks allocated on demand, found through sorted int64 keys.
+"""Sparse voxel grid: 8^3-voxel blocks allocated on demand, found through an open-addressing hash.
 
 Memory follows the observed surface: only blocks that some ray sample touched exist. Every
 per-voxel quantity is a "channel": a pool tensor of shape (capacity, 512, *channel_shape), where
-row `slot` holds one block's voxels in x-major order (local index = 64*x + 8*y + z).
+row `slot` holds one block's voxels in x-major order (local index = 64*x + 8*y + z). Pools live
+on the CPU: the compiled kernels (integrator, alpha windows, mesher) read and write them through
+zero-copy numpy views; float16 channels are handed to the kernels as their int16 bit patterns
+(`f16_to_f32` / `f32_to_f16` convert one value, in hardware where the CPU can).
 
 Convention: voxel (i, j, k) has its centre at (i, j, k) * voxel_size_m; block (a, b, c) holds the
 voxels 8a..8a+7, 8b..8b+7, 8c..8c+7.
 """
 from __future__ import annotations
 
+import math
+import mmap
+import platform
+
+import numba
+import numpy as np
 import torch
+from llvmlite import binding as llvm
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
 from .errors import InputError
 
@@ -18,10 +31,15 @@ BLOCK_VOXELS = BLOCK**3
 _COORD_BITS = 17  # per axis: +-65,536 blocks, i.e. +-5 km at 1 cm voxels
 _COORD_OFFSET = 1 << (_COORD_BITS - 1)
 _COORD_MASK = (1 << _COORD_BITS) - 1
+EMPTY_KEY = -1  # free hash-table entry (real keys are >= 0)
+_MAX_LOAD = 0.5  # hash-table load factor before it doubles
+_INITIAL_TABLE = 1 << 12
+
+# -- keys -------------------------------------------------------------------------------------------
 
 
 def block_keys(block_coords: torch.Tensor) -> torch.Tensor:
-    """Nx3 int64 block coordinates -> N int64 keys whose order is lexicographic in (a, b, c)."""
+    """Nx3 int64 block coordinates -> N int64 keys (>= 0) whose order is lexicographic in (a, b, c)."""
     shifted = block_coords + _COORD_OFFSET
     if shifted.numel() and (int(shifted.min()) < 0 or int(shifted.max()) > _COORD_MASK):
         raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
@@ -40,6 +58,202 @@ def voxel_keys(voxels: torch.Tensor) -> torch.Tensor:
     blocks = torch.div(voxels, BLOCK, rounding_mode="floor")
     local = voxels - blocks * BLOCK
     return block_keys(blocks) * BLOCK_VOXELS + (local[:, 0] * 64 + local[:, 1] * 8 + local[:, 2])
+
+
+@numba.njit(inline="always")
+def coords_key(a: int, b: int, c: int) -> int:
+    """The key of block (a, b, c), or -1 when it lies outside the key range (numba)."""
+    a += _COORD_OFFSET
+    b += _COORD_OFFSET
+    c += _COORD_OFFSET
+    if a < 0 or b < 0 or c < 0 or a > _COORD_MASK or b > _COORD_MASK or c > _COORD_MASK:
+        return -1
+    return (a << (2 * _COORD_BITS)) | (b << _COORD_BITS) | c
+
+
+# -- the hash table (numba) ---------------------------------------------------------------------------
+
+
+@numba.njit(inline="always")
+def _bucket(key: int, mask: int) -> int:
+    # Fibonacci hashing: keys of neighbouring blocks differ in low bits of each axis field
+    return ((key * -7046029254386353131) >> 20) & mask
+
+
+@numba.njit(inline="always")
+def hash_find(table_keys: np.ndarray, table_slots: np.ndarray, key: int) -> int:
+    """Slot of `key`, -1 when absent."""
+    mask = table_keys.shape[0] - 1
+    i = _bucket(key, mask)
+    while True:
+        k = table_keys[i]
+        if k == key:
+            return table_slots[i]
+        if k == EMPTY_KEY:
+            return -1
+        i = (i + 1) & mask
+
+
+@numba.njit(inline="always")
+def hash_find_or_add(table_keys: np.ndarray, table_slots: np.ndarray, key: int, state: np.ndarray,
+                     slot_keys: np.ndarray) -> int:
+    """Slot of `key`, adding the block with the next free slot when absent. state = [n_blocks,
+    n_entries_max]; returns -1 (nothing changed) when the table or the slot arrays are full."""
+    mask = table_keys.shape[0] - 1
+    i = _bucket(key, mask)
+    while True:
+        k = table_keys[i]
+        if k == key:
+            return table_slots[i]
+        if k == EMPTY_KEY:
+            break
+        i = (i + 1) & mask
+    slot = state[0]
+    if slot >= state[1] or slot >= slot_keys.shape[0]:
+        return -1
+    table_keys[i] = key
+    table_slots[i] = slot
+    slot_keys[slot] = key
+    state[0] = slot + 1
+    return slot
+
+
+@numba.njit(cache=True, nogil=True)
+def _find_many(table_keys: np.ndarray, table_slots: np.ndarray, keys: np.ndarray, out: np.ndarray) -> None:
+    for n in range(keys.shape[0]):
+        out[n] = hash_find(table_keys, table_slots, keys[n]) if keys[n] >= 0 else -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_many(table_keys: np.ndarray, table_slots: np.ndarray, keys: np.ndarray, state: np.ndarray,
+              slot_keys: np.ndarray, out: np.ndarray) -> int:
+    for n in range(keys.shape[0]):
+        slot = hash_find_or_add(table_keys, table_slots, keys[n], state, slot_keys)
+        if slot < 0:
+            return n
+        out[n] = slot
+    return keys.shape[0]
+
+
+@numba.njit(cache=True, nogil=True)
+def _rehash(slot_keys: np.ndarray, n_blocks: int, table_keys: np.ndarray, table_slots: np.ndarray) -> None:
+    mask = table_keys.shape[0] - 1
+    for slot in range(n_blocks):
+        i = _bucket(slot_keys[slot], mask)
+        while table_keys[i] != EMPTY_KEY:
+            i = (i + 1) & mask
+        table_keys[i] = slot_keys[slot]
+        table_slots[i] = slot
+
+
+@numba.njit(cache=True, nogil=True)
+def neighbour_table(table_keys: np.ndarray, table_slots: np.ndarray, slot_keys: np.ndarray,
+                    slots: np.ndarray) -> np.ndarray:
+    """B x 27 slots of each block's neighbours at offsets (dx, dy, dz) in -1..1, index
+    9*(dx+1) + 3*(dy+1) + (dz+1) (13 is the block itself); -1 where absent."""
+    out = np.empty((slots.shape[0], 27), np.int64)
+    for n in range(slots.shape[0]):
+        key = slot_keys[slots[n]]
+        a = ((key >> (2 * _COORD_BITS)) & _COORD_MASK) - _COORD_OFFSET
+        b = ((key >> _COORD_BITS) & _COORD_MASK) - _COORD_OFFSET
+        c = (key & _COORD_MASK) - _COORD_OFFSET
+        for code in range(27):
+            k = coords_key(a + code // 9 - 1, b + (code // 3) % 3 - 1, c + code % 3 - 1)
+            out[n, code] = hash_find(table_keys, table_slots, k) if k >= 0 else -1
+    return out
+
+
+# -- half precision in kernels (numba has no float16 type) ------------------------------------------
+
+
+@intrinsic
+def _f32_to_f16_hw(typingctx, x):  # noqa: ANN001 (numba intrinsic)
+    """float32 -> float16 bits in one instruction (x86 F16C, AArch64), through LLVM's half type."""
+    def codegen(context, builder, signature, args):  # noqa: ANN001
+        return builder.bitcast(builder.fptrunc(args[0], ir.HalfType()), ir.IntType(16))
+    return types.int16(types.float32), codegen
+
+
+@intrinsic
+def _f16_to_f32_hw(typingctx, bits):  # noqa: ANN001
+    def codegen(context, builder, signature, args):  # noqa: ANN001
+        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
+    return types.float32(types.int16), codegen
+
+
+_F16_TABLE = np.arange(1 << 16, dtype=np.uint16).view(np.float16).astype(np.float32)
+
+
+@numba.njit(inline="always")
+def _f16_to_f32_soft(bits: int) -> float:
+    return _F16_TABLE[bits & 0xFFFF]
+
+
+@numba.njit(inline="always")
+def _f32_to_f16_soft(x: float) -> int:
+    """Rounds to nearest even like numpy's astype (x is exact in float64, so no double rounding)."""
+    if x != x:
+        return 0x7E00
+    negative = x < 0.0 or (x == 0.0 and math.copysign(1.0, x) < 0.0)
+    a = abs(np.float64(x))
+    if a == np.inf:
+        h = 0x7C00
+    elif a == 0.0:
+        h = 0
+    else:
+        m, e = math.frexp(a)  # a = m * 2^e, m in [0.5, 1)
+        exponent = e + 14
+        if exponent >= 1:
+            mantissa = np.int64(np.rint((2.0 * m - 1.0) * 1024.0))
+            if mantissa == 1024:
+                exponent, mantissa = exponent + 1, 0
+            h = 0x7C00 if exponent >= 31 else (exponent << 10) | mantissa
+        else:  # subnormal; 1024 rounds up into the smallest normal, which is the right encoding
+            h = np.int64(np.rint(a * 16777216.0))
+    if negative:
+        h |= 0x8000
+    return h - 0x10000 if h >= 0x8000 else h
+
+
+def _hardware_half() -> bool:
+    machine = platform.machine().lower()
+    if machine in ("aarch64", "arm64"):
+        return True
+    if machine in ("x86_64", "amd64"):
+        return bool(llvm.get_host_cpu_features().get("f16c", False))
+    return False
+
+
+# float16 bit pattern (int16) <-> float32 value, chosen once for this CPU
+if _hardware_half():
+    f32_to_f16, f16_to_f32 = _f32_to_f16_hw, _f16_to_f32_hw
+else:  # pragma: no cover - CPUs without half conversions
+    f32_to_f16, f16_to_f32 = _f32_to_f16_soft, _f16_to_f32_soft
+
+
+def kernel_view(pool: torch.Tensor) -> np.ndarray:
+    """The numpy view a kernel works on: float32 as is, float16 as int16 bit patterns."""
+    if pool.dtype == torch.float16:
+        return pool.view(torch.int16).numpy()
+    return pool.numpy()
+
+
+def _zeros(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+    """A zero pool whose memory is committed only where it is written: an anonymous mapping (the
+    kernel hands out zero pages on first touch), so a generous capacity costs address space, not
+    memory, and pools rarely need to grow (a copy of everything). Transparent huge pages are
+    requested for it: 512x fewer page faults and TLB misses when frames touch new blocks."""
+    numpy_dtype = {torch.float32: np.float32, torch.float16: np.float16, torch.int64: np.int64}[dtype]
+    nbytes = max(int(np.prod(shape)) * np.dtype(numpy_dtype).itemsize, 1)
+    memory = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    if hasattr(mmap, "MADV_HUGEPAGE"):
+        memory.madvise(mmap.MADV_HUGEPAGE)
+    array = np.frombuffer(memory, dtype=numpy_dtype, count=int(np.prod(shape))).reshape(shape)
+    with torch.inference_mode(False):  # grid state must stay writable outside inference mode
+        return torch.from_numpy(array)
+
+
+# -- neighbourhoods in local coordinates ------------------------------------------------------------
 
 
 def local_grid(lo: int, size: int, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,15 +277,22 @@ NEIGHBOUR_OFFSETS = torch.stack(
 
 
 class BlockGrid:
-    """Blocks and their channels. Slots are never freed except by `clear`."""
+    """Blocks and their channels. Slots are never freed except by `clear`.
+
+    Not thread-safe by itself: the engine serialises writers (allocation, integration) against
+    readers that hold on to pool views.
+    """
 
     def __init__(self, channels: dict[str, tuple[int, ...]], device: torch.device | str = "cpu",
-                 initial_capacity: int = 256, dtypes: dict[str, torch.dtype] | None = None,
-                 growth: float = 1.5) -> None:
-        self.device = torch.device(device)
+                 initial_capacity: int = 1 << 18, dtypes: dict[str, torch.dtype] | None = None,
+                 growth: float = 2.0, fill: dict[str, float] | None = None) -> None:
+        if torch.device(device).type != "cpu":
+            raise InputError("voxel grids live in CPU memory; run the networks on CUDA through the engine's device")
+        self.device = torch.device("cpu")
         self.channel_shapes = dict(channels)
         self.channel_dtypes = {name: (dtypes or {}).get(name, torch.float32) for name in self.channel_shapes}
         self.growth = max(float(growth), 1.1)  # capacity factor when the pools grow (memory slack vs. copies)
+        self.fill = dict(fill or {})  # value of a channel in a new block (default 0)
         self._initial_capacity = initial_capacity
         self.clear()
 
@@ -79,65 +300,80 @@ class BlockGrid:
         cap = self._initial_capacity
         self.capacity = cap
         self.n_blocks = 0
-        self.coords = torch.zeros((cap, 3), dtype=torch.int64, device=self.device)
-        self._sorted_keys = torch.zeros(0, dtype=torch.int64, device=self.device)
-        self._sorted_slots = torch.zeros(0, dtype=torch.int64, device=self.device)
-        self.pools = {name: torch.zeros((cap, BLOCK_VOXELS, *shape), dtype=self.channel_dtypes[name], device=self.device)
+        self.slot_keys = np.full(cap, EMPTY_KEY, np.int64)
+        self.coords = _zeros((cap, 3), torch.int64)
+        self.table_keys = np.full(_INITIAL_TABLE, EMPTY_KEY, np.int64)
+        self.table_slots = np.full(_INITIAL_TABLE, -1, np.int64)
+        self.pools = {name: _zeros((cap, BLOCK_VOXELS, *shape), self.channel_dtypes[name])
                       for name, shape in self.channel_shapes.items()}
 
     # -- lookup and allocation ------------------------------------------------------------
     def lookup_keys(self, keys: torch.Tensor) -> torch.Tensor:
         """Slots of the given block keys, -1 where the block does not exist."""
-        if self._sorted_keys.numel() == 0:
-            return torch.full_like(keys, -1)
-        pos = torch.searchsorted(self._sorted_keys, keys).clamp_(max=self._sorted_keys.numel() - 1)
-        found = self._sorted_keys[pos] == keys
-        return torch.where(found, self._sorted_slots[pos], torch.full_like(keys, -1))
+        out = np.empty(keys.numel(), np.int64)
+        _find_many(self.table_keys, self.table_slots, np.ascontiguousarray(keys.reshape(-1).numpy(), np.int64), out)
+        return torch.from_numpy(out).reshape(keys.shape)
 
     def lookup(self, block_coords: torch.Tensor) -> torch.Tensor:
         return self.lookup_keys(block_keys(block_coords))
 
     def allocate_keys(self, unique_keys: torch.Tensor) -> torch.Tensor:
-        """Slots of the given (unique) block keys, allocating the missing blocks."""
-        slots = self.lookup_keys(unique_keys)
-        missing = slots < 0
-        n_new = int(missing.sum())
-        if n_new:
-            new_keys = unique_keys[missing]
-            self._reserve(self.n_blocks + n_new)
-            new_slots = torch.arange(self.n_blocks, self.n_blocks + n_new, device=self.device)
-            self.coords[new_slots] = keys_to_coords(new_keys)
-            self.n_blocks += n_new
-            keys = torch.cat([self._sorted_keys, new_keys])
-            order = torch.argsort(keys)
-            self._sorted_keys = keys[order]
-            self._sorted_slots = torch.cat([self._sorted_slots, new_slots])[order]
-            slots[missing] = new_slots
-        return slots
+        """Slots of the given block keys, allocating the missing blocks."""
+        keys = np.ascontiguousarray(unique_keys.reshape(-1).numpy(), np.int64)
+        out = np.empty(len(keys), np.int64)
+        done = 0
+        while done < len(keys):
+            self.reserve(self.n_blocks + len(keys) - done)
+            state = np.array([self.n_blocks, self.max_blocks_before_rehash()], np.int64)
+            done += _add_many(self.table_keys, self.table_slots, keys[done:], state, self.slot_keys, out[done:])
+            self.commit_new_blocks(int(state[0]))
+        return torch.from_numpy(out)
 
-    def _reserve(self, n_blocks: int) -> None:
-        if n_blocks <= self.capacity:
-            return
-        cap = max(n_blocks, int(self.growth * self.capacity) + 1)
-        for name, pool in self.pools.items():
-            grown = torch.zeros((cap, *pool.shape[1:]), dtype=pool.dtype, device=self.device)
-            grown[: self.n_blocks] = pool[: self.n_blocks]
-            self.pools[name] = grown
-        coords = torch.zeros((cap, 3), dtype=torch.int64, device=self.device)
-        coords[: self.n_blocks] = self.coords[: self.n_blocks]
-        self.coords = coords
-        self.capacity = cap
+    def max_blocks_before_rehash(self) -> int:
+        return int(_MAX_LOAD * len(self.table_keys))
+
+    def commit_new_blocks(self, n_blocks: int) -> None:
+        """Record blocks a kernel added through `hash_find_or_add` (slots n_blocks_before..n_blocks-1)."""
+        if n_blocks > self.n_blocks:
+            new = torch.from_numpy(self.slot_keys[self.n_blocks:n_blocks])
+            self.coords[self.n_blocks:n_blocks] = keys_to_coords(new)
+            for name, value in self.fill.items():
+                self.pools[name][self.n_blocks:n_blocks] = value
+            self.n_blocks = n_blocks
+
+    def reserve(self, n_blocks: int) -> None:
+        """Room for n_blocks: pools, slot arrays and a hash table below its load limit."""
+        if n_blocks > self.capacity:
+            cap = max(n_blocks, int(self.growth * self.capacity) + 1)
+            for name, pool in self.pools.items():
+                grown = _zeros((cap, *pool.shape[1:]), pool.dtype)
+                grown[: self.n_blocks] = pool[: self.n_blocks]
+                self.pools[name] = grown
+            coords = _zeros((cap, 3), torch.int64)
+            coords[: self.n_blocks] = self.coords[: self.n_blocks]
+            self.coords = coords
+            slot_keys = np.full(cap, EMPTY_KEY, np.int64)
+            slot_keys[: self.n_blocks] = self.slot_keys[: self.n_blocks]
+            self.slot_keys = slot_keys
+            self.capacity = cap
+        if n_blocks > self.max_blocks_before_rehash():
+            size = len(self.table_keys)
+            while n_blocks > _MAX_LOAD * size:
+                size *= 2
+            self.table_keys = np.full(size, EMPTY_KEY, np.int64)
+            self.table_slots = np.full(size, -1, np.int64)
+            _rehash(self.slot_keys, self.n_blocks, self.table_keys, self.table_slots)
 
     # -- neighbourhoods ---------------------------------------------------------------------
     def neighbour_slots(self, slots: torch.Tensor) -> torch.Tensor:
         """Bx27 slots of each block's 26 neighbours and itself (-1 where absent)."""
-        coords = self.coords[slots].unsqueeze(1) + NEIGHBOUR_OFFSETS.to(self.device).unsqueeze(0)
-        return self.lookup(coords.reshape(-1, 3)).reshape(-1, 27)
+        s = np.ascontiguousarray(slots.reshape(-1).numpy(), np.int64)
+        return torch.from_numpy(neighbour_table(self.table_keys, self.table_slots, self.slot_keys, s))
 
     def gather(self, slots: torch.Tensor, names: list[str], lo: int, size: int) -> list[torch.Tensor]:
         """For each block, the cube of voxels lo..lo+size-1 (local coordinates, may reach into the
         neighbours) of each named channel: B x size^3 x *channel_shape, zeros where no block exists."""
-        code, index = local_grid(lo, size, self.device)
+        code, index = local_grid(lo, size)
         neighbours = self.neighbour_slots(slots)  # Bx27
         voxel_slot = neighbours[:, code]  # B x size^3
         present = voxel_slot >= 0
@@ -148,20 +384,20 @@ class BlockGrid:
             values = pool.reshape(-1, *pool.shape[2:])[flat.reshape(-1)]
             values = values.reshape(*flat.shape, *pool.shape[2:])
             mask = present.reshape(*present.shape, *([1] * (values.dim() - 2)))
-            out.append(torch.where(mask, values, torch.zeros((), dtype=values.dtype, device=values.device)))
+            out.append(torch.where(mask, values, torch.zeros((), dtype=values.dtype)))
         return out
 
     def dilate(self, slots: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
         """Existing slots of the blocks at `slots` + each offset (Kx3), unique and sorted."""
         if slots.numel() == 0:
             return slots
-        coords = self.coords[slots].unsqueeze(1) + offsets.to(self.device).unsqueeze(0)
+        coords = self.coords[slots].unsqueeze(1) + offsets.unsqueeze(0)
         found = self.lookup(coords.reshape(-1, 3))
         return torch.unique(found[found >= 0])
 
     def voxel_centres(self, slots: torch.Tensor, voxel_size_m: float) -> torch.Tensor:
         """B x 512 x 3 world positions of the voxel centres of the given blocks."""
-        r = torch.arange(BLOCK, device=self.device)
+        r = torch.arange(BLOCK)
         lx, ly, lz = torch.meshgrid(r, r, r, indexing="ij")
         local = torch.stack([lx, ly, lz], dim=-1).reshape(1, BLOCK_VOXELS, 3)
         return ((self.coords[slots] * BLOCK).unsqueeze(1) + local).to(torch.float32) * voxel_size_m
@@ -169,16 +405,15 @@ class BlockGrid:
     # -- state ---------------------------------------------------------------------------------
     def state_dict(self) -> dict:
         n = self.n_blocks
-        return {"coords": self.coords[:n].cpu(), **{f"pool.{k}": v[:n].cpu() for k, v in self.pools.items()}}
+        return {"coords": self.coords[:n].clone(), **{f"pool.{k}": v[:n].clone() for k, v in self.pools.items()}}
 
     def load_state_dict(self, state: dict) -> None:
         self.clear()
-        coords = state["coords"].to(self.device)
-        slots = self.allocate_keys(block_keys(coords))
+        slots = self.allocate_keys(block_keys(state["coords"]))
         for name in self.pools:
-            self.pools[name][slots] = state[f"pool.{name}"].to(self.device, self.pools[name].dtype)
+            self.pools[name][slots] = state[f"pool.{name}"].to(self.pools[name].dtype)
 
     def nbytes(self) -> int:
-        """Bytes held by the pools and index (allocated capacity)."""
-        total = self.coords.numel() * 8 + self._sorted_keys.numel() * 16
-        return total + sum(p.numel() * p.element_size() for p in self.pools.values())
+        """Bytes of the blocks in use and the index (pool pages beyond them are never committed)."""
+        per_block = sum(p[0].numel() * p.element_size() for p in self.pools.values()) + 3 * 8 + 8
+        return self.n_blocks * per_block + self.table_keys.nbytes + self.table_slots.nbytes

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import torch
 
 from .errors import InputError
-from .grid import BLOCK_VOXELS, BlockGrid, voxel_keys
+from .grid import (BLOCK_VOXELS, BlockGrid, coords_key, f16_to_f32, f32_to_f16, hash_find_or_add, kernel_view,
+                   voxel_keys)
 
 
 @dataclass(frozen=True)
@@ -70,6 +72,17 @@ def check_frame(depth_m: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray, 
         if not isinstance(rgb, np.ndarray) or rgb.shape != (*depth_m.shape, 3) or rgb.dtype != np.uint8:
             raise InputError(f"rgb must be uint8 of shape {(*depth_m.shape, 3)} like the depth, got "
                              f"{getattr(rgb, 'dtype', type(rgb))} {getattr(rgb, 'shape', '')}")
+
+
+def check_key_range(max_depth_m: float, K: np.ndarray, T_world_camera: np.ndarray, shape: tuple[int, int],
+                    band_m: float, limit_m: float = 5000.0) -> None:
+    """Raise InputError when a frame's samples could leave the grid's key range (+-5 km at 1 cm
+    voxels, checked at 5 km whatever the voxel size) -- before anything is allocated."""
+    h, w = shape
+    half_fov = np.hypot(max(K[0, 2], w - K[0, 2]) / K[0, 0], max(K[1, 2], h - K[1, 2]) / K[1, 1])
+    reach = float(max_depth_m) * float(np.sqrt(1.0 + half_fov ** 2)) + band_m
+    if np.any(np.abs(np.asarray(T_world_camera)[:3, 3]) + reach > limit_m):
+        raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
 
 
 def valid_depth_mask(depth_m: torch.Tensor, border_px: int, min_m: float, max_m: float) -> torch.Tensor:
@@ -156,3 +169,207 @@ def integrate_into(grid: BlockGrid, flat: torch.Tensor, tsdf_name: str, weight_n
         feature[flat] = running_average(feature[flat], old_weight, feature_update)
     tsdf[flat] = running_average(tsdf[flat], old_weight, tsdf_update)
     weight[flat] = torch.clamp(old_weight + 1, max=w_max)
+
+
+# ------------------------------------------------------------------------------------------------
+# Compiled integration (the engine's path): the same computation as the functions above, as two
+# numba kernels over one frame, without sorting. `locate_samples` snaps every ray sample to its
+# voxel (allocating blocks in the hash table) and groups the samples by block; `update_voxels`
+# averages each voxel's samples of this frame and applies the running averages block by block.
+# ------------------------------------------------------------------------------------------------
+
+
+@numba.njit(cache=True, nogil=True)
+def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, border_px: int, K: np.ndarray,
+                   T_world_camera: np.ndarray, offsets_m: np.ndarray, voxel_size_m: float, table_keys: np.ndarray,
+                   table_slots: np.ndarray, state: np.ndarray, slot_keys: np.ndarray, slot_to_touched: np.ndarray,
+                   touched_slots: np.ndarray, sample_flat: np.ndarray, sample_touched: np.ndarray,
+                   pixel_index: np.ndarray) -> tuple[int, int, bool]:
+    """Voxel of every sample of every valid pixel (P pixels x S samples, flat pool index
+    slot*512 + local) and the frame's touched blocks. Returns (P, number of touched blocks, ok);
+    ok is False when the hash table or the slot arrays ran full (grow them and call again: the
+    blocks added so far stay valid)."""
+    h, w = depth_m.shape
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    R = T_world_camera[:3, :3]
+    t = T_world_camera[:3, 3]
+    n_samples = offsets_m.shape[0]
+    n_pixels = 0
+    n_touched = 0
+    inv_voxel = 1.0 / voxel_size_m
+    last_key, last_slot = np.int64(-1), np.int64(-1)  # consecutive samples mostly share a block
+    for v in range(border_px, h - border_px):
+        for u in range(border_px, w - border_px):
+            z = np.float64(depth_m[v, u])
+            if not (z > 0.0 and z >= depth_min_m and z <= depth_max_m):  # NaN fails every comparison
+                continue
+            x = (u - cx) / fx * z
+            y = (v - cy) / fy * z
+            px = x * R[0, 0] + y * R[0, 1] + z * R[0, 2] + t[0]
+            py = x * R[1, 0] + y * R[1, 1] + z * R[1, 2] + t[1]
+            pz = x * R[2, 0] + y * R[2, 1] + z * R[2, 2] + t[2]
+            dx, dy, dz = px - t[0], py - t[1], pz - t[2]
+            norm = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
+            dx, dy, dz = dx / norm, dy / norm, dz / norm
+            base = n_pixels * n_samples
+            for k in range(n_samples):
+                o = offsets_m[k]
+                i = np.int64(np.rint((px + o * dx) * inv_voxel))
+                j = np.int64(np.rint((py + o * dy) * inv_voxel))
+                l = np.int64(np.rint((pz + o * dz) * inv_voxel))
+                key = coords_key(i >> 3, j >> 3, l >> 3)
+                if key == last_key:
+                    slot = last_slot
+                else:
+                    if key < 0:
+                        return n_pixels, n_touched, False
+                    slot = hash_find_or_add(table_keys, table_slots, key, state, slot_keys)
+                    if slot < 0:
+                        return n_pixels, n_touched, False
+                    last_key, last_slot = key, slot
+                touched = slot_to_touched[slot]
+                if touched < 0:
+                    touched = n_touched
+                    slot_to_touched[slot] = touched
+                    touched_slots[touched] = slot
+                    n_touched += 1
+                sample_flat[base + k] = slot * 512 + ((i & 7) << 6) + ((j & 7) << 3) + (l & 7)
+                sample_touched[base + k] = touched
+            pixel_index[n_pixels] = v * w + u
+            n_pixels += 1
+    return n_pixels, n_touched, True
+
+
+_F16_OF_COUNT = np.arange(2049, dtype=np.float16).view(np.int16)  # weight counters 0..2048 as float16 bits
+
+
+@numba.njit(cache=True, nogil=True)
+def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample_touched: np.ndarray,
+                  sample_tsdf_m: np.ndarray, pixel_index: np.ndarray, pixel_features: np.ndarray,
+                  touched_slots: np.ndarray, tsdf: np.ndarray, weight: np.ndarray, features: np.ndarray,
+                  tsdf_base: np.ndarray, weight_base: np.ndarray, drift: np.ndarray, w_max: float) -> int:
+    """Per voxel: the mean of this frame's samples (TSDF value and the pixel's features), then the
+    running averages of the sensor's TSDF, weight and features and of the TSDF Fusion baseline.
+    drift[voxel] accumulates the largest change of a weighting-net input (features, tanh(weight))
+    or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
+    Weights, features and drift are float16 bit patterns (int16); pixel_features: (H*W) x C float32.
+    Returns the number of voxels updated."""
+    n_samples = sample_tsdf_m.shape[0]
+    n_channels = pixel_features.shape[1]
+    total = n_pixels * n_samples
+    # counting sort of the samples by touched block
+    start = np.zeros(n_touched + 1, np.int64)
+    for n in range(total):
+        start[sample_touched[n] + 1] += 1
+    for b in range(n_touched):
+        start[b + 1] += start[b]
+    fill = start[:-1].copy()
+    order = np.empty(total, np.int64)
+    for n in range(total):
+        b = sample_touched[n]
+        order[fill[b]] = n
+        fill[b] += 1
+    count = np.zeros(512, np.int64)
+    sum_tsdf = np.zeros(512, np.float32)
+    sum_features = np.zeros((512, n_channels), np.float32)
+    updated = 0
+    for b in range(n_touched):
+        base_index = touched_slots[b] * 512
+        for m in range(start[b], start[b + 1]):
+            n = order[m]
+            local = sample_flat[n] - base_index
+            if count[local] == 0:
+                sum_tsdf[local] = 0.0
+                sum_features[local, :] = 0.0
+            count[local] += 1
+            sum_tsdf[local] += sample_tsdf_m[n % n_samples]
+            p = pixel_index[n // n_samples]
+            for c in range(n_channels):
+                sum_features[local, c] += pixel_features[p, c]
+        for local in range(512):
+            cnt = count[local]
+            if cnt == 0:
+                continue
+            count[local] = 0
+            updated += 1
+            voxel = base_index + local
+            inv_count = np.float32(1.0) / np.float32(cnt)
+            old_weight = f16_to_f32(weight[voxel])
+            keep = old_weight / (old_weight + np.float32(1.0))  # running average: keep*old + add*update
+            add = np.float32(1.0) / (old_weight + np.float32(1.0))
+            change = np.float32(0.0)
+            for c in range(n_channels):
+                index = voxel * n_channels + c
+                old = f16_to_f32(features[index])
+                bits = f32_to_f16(keep * old + add * (sum_features[local, c] * inv_count))
+                features[index] = bits
+                new = f16_to_f32(bits)
+                change = max(change, abs(new - old))
+            mean_tsdf = sum_tsdf[local] * inv_count
+            old_tsdf = tsdf[voxel]
+            new_tsdf = keep * old_tsdf + add * mean_tsdf
+            tsdf[voxel] = new_tsdf
+            new_weight = min(old_weight + np.float32(1.0), w_max)
+            weight[voxel] = _F16_OF_COUNT[int(new_weight)]
+            if old_weight < 10.0:  # beyond, tanh(W) changes by less than 1e-8 per observation
+                change = max(change, abs(np.tanh(new_weight) - np.tanh(old_weight)))
+            change = max(change, abs(new_tsdf - old_tsdf))
+            if old_weight == 0.0 or (new_tsdf < 0.0) != (old_tsdf < 0.0):
+                change = np.inf  # the voxel may join the observed or the surface set: always re-evaluate
+            drift[voxel] = f32_to_f16(f16_to_f32(drift[voxel]) + change)
+            base_weight = f16_to_f32(weight_base[voxel])
+            base_add = np.float32(1.0) / (base_weight + np.float32(1.0))
+            tsdf_base[voxel] = (np.float32(1.0) - base_add) * tsdf_base[voxel] + base_add * mean_tsdf
+            weight_base[voxel] = _F16_OF_COUNT[int(min(base_weight + np.float32(1.0), w_max))]
+    return updated
+
+
+@dataclass
+class FrameUpdate:
+    """What one compiled integration changed."""
+
+    voxels_updated: int
+    touched_slots: np.ndarray  # int64 slots of the blocks the frame's samples touched
+
+
+def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.ndarray, K: np.ndarray,
+                    T_world_camera: np.ndarray, depth_range_m: tuple[float, float], config: IntegratorConfig,
+                    channels: tuple[str, str, str], drift: str = "drift") -> FrameUpdate:
+    """Integrate one frame into `grid` with the compiled kernels.
+
+    depth_m: H x W float32 (invalid pixels anything outside depth_range_m, NaN, inf);
+    pixel_features: C x H x W float32; channels: the sensor's (tsdf, weight, feature) pool names;
+    the TSDF Fusion baseline goes to "tsdf_base"/"weight_base". Raises InputError (grid untouched
+    but for empty blocks that may have been allocated) when samples fall outside the key range.
+    """
+    h, w = depth_m.shape
+    offsets_m = config.sample_offsets().numpy().astype(np.float64) * config.step_m
+    n_max = h * w * len(offsets_m)
+    sample_flat = np.empty(n_max, np.int64)
+    sample_touched = np.empty(n_max, np.int32)
+    pixel_index = np.empty(h * w, np.int64)
+    depth = np.ascontiguousarray(depth_m, np.float32)
+    K64 = np.ascontiguousarray(K, np.float64)
+    T64 = np.ascontiguousarray(T_world_camera, np.float64)
+    while True:
+        slot_to_touched = np.full(grid.capacity, -1, np.int32)
+        touched_slots = np.empty(grid.capacity, np.int64)
+        state = np.array([grid.n_blocks, min(grid.max_blocks_before_rehash(), grid.capacity)], np.int64)
+        n_pixels, n_touched, ok = locate_samples(
+            depth, depth_range_m[0], depth_range_m[1], config.border_px, K64, T64, offsets_m, config.voxel_size_m,
+            grid.table_keys, grid.table_slots, state, grid.slot_keys, slot_to_touched, touched_slots, sample_flat,
+            sample_touched, pixel_index)
+        grid.commit_new_blocks(int(state[0]))
+        if ok:
+            break
+        if state[0] < state[1]:  # not full: a sample left the key range
+            raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
+        grid.reserve(max(int(grid.capacity * grid.growth) + 1, grid.n_blocks + 1024))
+    tsdf, weight, feature = (kernel_view(grid.pools[name]) for name in channels)
+    features = np.ascontiguousarray(pixel_features.reshape(pixel_features.shape[0], -1).T, np.float32)  # HW x C
+    updated = update_voxels(n_pixels, n_touched, sample_flat, sample_touched, -offsets_m, pixel_index, features,
+                            touched_slots, tsdf.reshape(-1), weight.reshape(-1), feature.reshape(-1),
+                            kernel_view(grid.pools["tsdf_base"]).reshape(-1),
+                            kernel_view(grid.pools["weight_base"]).reshape(-1),
+                            kernel_view(grid.pools[drift]).reshape(-1), config.w_max)
+    return FrameUpdate(int(updated), touched_slots[:n_touched].copy())

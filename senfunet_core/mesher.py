@@ -1,9 +1,35 @@
-"""Triangle meshes and marching cubes over sparse blocks."""
+"""Triangle meshes and marching cubes over sparse blocks.
+
+Marching cubes here is our own: the triangulation table is generated at import time from the
+rules below (`_build_tables`), and a numba kernel (`_kernel`) meshes a whole batch of blocks in
+one call (about 2 us per 8^3 block crossed by a surface on the development machine, over 20x
+faster than the scikit-image path it replaced: see bench/mesher.py).
+
+Conventions of the extracted surface (TSDF level 0):
+- A corner is *inside* when its value is < 0; a value of exactly 0 counts as outside (free). The
+  same test decides every edge and every cell, so the mesh stays closed; a vertex can then land
+  exactly on a sample (t = 0 or 1), where `weld` merges the vertices of the edges meeting there.
+- A vertex on the grid edge from sample lo to sample hi (hi = lo + one step along the edge's axis)
+  sits at lo + t, t = v_lo / (v_lo - v_hi), computed in float64 always from the lower end; its
+  global coordinate is float(global index of lo) + t. Two blocks sharing an edge therefore give
+  bit-identical vertices, whatever the batching.
+- Ambiguous cell faces (two diagonal corners inside, the other two outside) are resolved by the
+  face's bilinear saddle (asymptotic decider): the inside corners are connected across the face
+  iff |v_a * v_b| > |v_c * v_d| for the inside diagonal (a, b) and the outside diagonal (c, d).
+  The rule reads only the face's 4 values (exact float64 products), so the two cells sharing a
+  face agree and the union of blocks is watertight.
+- Faces are counter-clockwise seen from the free side: the normal (v1 - v0) x (v2 - v0) points
+  towards increasing TSDF.
+"""
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
+import numba
 import numpy as np
+
+from .errors import InputError
 
 
 @dataclass
@@ -36,108 +62,413 @@ def cell_mask(observed: np.ndarray) -> np.ndarray:
 
 @dataclass
 class BlockTriangles:
-    """Marching-cubes output of a batch of blocks, before splitting or welding."""
+    """Marching-cubes output of a batch of B blocks, before splitting or welding.
+
+    Vertices and faces are grouped by block in batch order: block b owns the vertices
+    vertex_offsets[b]:vertex_offsets[b+1] and the faces face_offsets[b]:face_offsets[b+1], and its
+    faces index only its own vertices (indices into the whole vertex array).
+    """
 
     vertices_vox: np.ndarray  # Vx3 float64 global voxel coordinates
     faces: np.ndarray  # Fx3 int64 into vertices_vox
-    vertex_block: np.ndarray  # V index of each vertex's block in the batch
-    face_block: np.ndarray  # F
-    vertex_values: np.ndarray | None  # V interpolated extra value (e.g. alpha) or None
+    vertex_values: np.ndarray | None  # V float64 interpolated extra value (e.g. alpha) or None
+    vertex_offsets: np.ndarray  # B+1 int64
+    face_offsets: np.ndarray  # B+1 int64
+
+    @functools.cached_property
+    def vertex_block(self) -> np.ndarray:
+        """V int64: the block (index in the batch) of each vertex, non-decreasing."""
+        return _block_of(self.vertex_offsets)
+
+    @functools.cached_property
+    def face_block(self) -> np.ndarray:
+        """F int64: the block of each face, non-decreasing."""
+        return _block_of(self.face_offsets)
+
+
+def _block_of(offsets: np.ndarray) -> np.ndarray:
+    return np.repeat(np.arange(len(offsets) - 1, dtype=np.int64), np.diff(offsets))
+
+
+# -- the triangulation table, generated ---------------------------------------------------------------
+#
+# Cube corner c has local offset (c & 1, c >> 1 & 1, c >> 2 & 1); a case is the 8-bit mask of the
+# inside corners (bit c set when corner c is < 0). Edge e runs from corner _EDGE_LO[e] one step
+# along axis _EDGE_AXIS[e]. Face f = 2 * axis + side is the cube face where that axis' offset is
+# `side`; its corners in canonical order (c00, c10, c01, c11) span its two other axes u < v.
+#
+# For every case and every choice on its ambiguous faces, `_cell_triangles`: takes the crossed
+# edges; pairs them on each face (2 crossed edges: one segment; 4: one segment around each inside
+# corner when the inside corners are separated, around each outside corner when connected);
+# orients each segment so that, seen from outside the cube, the outside corners are on its left
+# (the surface normal then points to the outside, i.e. to increasing TSDF); chains the segments
+# into closed loops (each crossed edge starts one segment and ends one); and triangulates each
+# loop, as a fan where possible. A chord between two vertices on a common cube face (only
+# possible on an ambiguous face whose two segments belong to one loop) could also be used by the
+# neighbouring cell across that face, giving an edge with 4 triangles: such a chord is allowed
+# only between the two segment *starts*; the neighbour traverses the shared segments reversed, so
+# it can only join the other two vertices.
+
+_CORNER_OFFSET = [(c & 1, (c >> 1) & 1, (c >> 2) & 1) for c in range(8)]
+_EDGE_LO = [lo for axis in range(3) for lo in range(8) if not (lo >> axis) & 1]
+_EDGE_AXIS = [axis for axis in range(3) for lo in range(8) if not (lo >> axis) & 1]
+_EDGE_HI = [lo | 1 << axis for lo, axis in zip(_EDGE_LO, _EDGE_AXIS)]
+
+
+def _face_corners(f: int) -> list[int]:
+    axis, side = divmod(f, 2)
+    u, v = (a for a in range(3) if a != axis)
+    c00 = side << axis
+    return [c00, c00 | 1 << u, c00 | 1 << v, c00 | 1 << u | 1 << v]
+
+
+_FACE_CORNERS = [_face_corners(f) for f in range(6)]
+_FACE_EDGES = [[e for e in range(12) if _EDGE_LO[e] in _FACE_CORNERS[f] and _EDGE_HI[e] in _FACE_CORNERS[f]]
+               for f in range(6)]
+_EDGE_FACES = [frozenset(f for f in range(6) if e in _FACE_EDGES[f]) for e in range(12)]
+_EDGE_MIDPOINT = [tuple(0.5 if a == _EDGE_AXIS[e] else float(x) for a, x in enumerate(_CORNER_OFFSET[_EDGE_LO[e]]))
+                  for e in range(12)]
+
+
+def _cross(a, b) -> tuple[float, float, float]:
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _ambiguous_faces(inside: list[bool]) -> list[int]:
+    """Faces whose diagonal corners agree and adjacent corners differ (all 4 face edges crossed)."""
+    out = []
+    for f in range(6):
+        c00, c10, c01, c11 = (inside[c] for c in _FACE_CORNERS[f])
+        if c00 == c11 and c10 == c01 and c00 != c10:
+            out.append(f)
+    return out
+
+
+def _cell_triangles(inside: list[bool], connected: dict[int, bool]) -> list[tuple[int, int, int]]:
+    """Triangles (as edge triples, counter-clockwise seen from outside) of one cell.
+
+    connected[f]: on ambiguous face f, whether the inside corners are joined across the face.
+    """
+    crossed = [e for e in range(12) if inside[_EDGE_LO[e]] != inside[_EDGE_HI[e]]]
+    is_crossed = set(crossed)
+    nxt: dict[int, int] = {}
+    starts: set[tuple[int, int]] = set()  # (face, edge starting a segment on that face)
+    for f in range(6):
+        on_face = [e for e in _FACE_EDGES[f] if e in is_crossed]
+        if not on_face:
+            continue
+        if len(on_face) == 2:
+            segments = [tuple(on_face)]
+        else:  # ambiguous face: cut off each corner of the separated kind
+            cut_inside = not connected[f]
+            segments = [tuple(e for e in on_face if c in (_EDGE_LO[e], _EDGE_HI[e]))
+                        for c in _FACE_CORNERS[f] if inside[c] == cut_inside]
+        axis, side = divmod(f, 2)
+        normal = [0.0, 0.0, 0.0]
+        normal[axis] = 1.0 if side else -1.0  # outward normal of the face
+        for p, q in segments:
+            pp, qq = _EDGE_MIDPOINT[p], _EDGE_MIDPOINT[q]
+            left = _cross(normal, [b - a for a, b in zip(pp, qq)])
+            outside_corner = _CORNER_OFFSET[_EDGE_HI[p] if inside[_EDGE_LO[p]] else _EDGE_LO[p]]
+            if sum(x * (c - a) for x, c, a in zip(left, outside_corner, pp)) < 0:
+                p, q = q, p
+            assert p not in nxt, "two segments leave one edge"
+            nxt[p] = q
+            starts.add((f, p))
+    assert sorted(nxt) == crossed and sorted(nxt.values()) == crossed, "segments do not form loops"
+
+    def chord_ok(a: int, b: int) -> bool:  # see the comment above _CORNER_OFFSET
+        common = _EDGE_FACES[a] & _EDGE_FACES[b]
+        return not common or all((f, a) in starts and (f, b) in starts for f in common)
+
+    triangles: list[tuple[int, int, int]] = []
+    todo = set(crossed)
+    while todo:
+        loop = [min(todo)]
+        while nxt[loop[-1]] != loop[0]:
+            loop.append(nxt[loop[-1]])
+        todo -= set(loop)
+        found = _triangulate(loop, chord_ok)
+        assert found is not None, f"no triangulation of loop {loop}"
+        triangles += found
+    return triangles
+
+
+def _triangulate(poly: list[int], chord_ok) -> list[tuple[int, int, int]] | None:
+    """Triangles of a polygon (in its order) whose diagonals all pass chord_ok: a fan when one
+    works, else any valid triangulation."""
+    m = len(poly)
+    if m == 3:
+        return [tuple(poly)]
+    for s in range(m):
+        apex = poly[s]
+        ring = poly[s:] + poly[:s]
+        if all(chord_ok(apex, ring[k]) for k in range(2, m - 1)):
+            return [(apex, ring[k], ring[k + 1]) for k in range(1, m - 1)]
+    for k in range(2, m):  # the triangle on side (poly[0], poly[1]) with apex poly[k]
+        if (k > 2 and not chord_ok(poly[1], poly[k])) or (k < m - 1 and not chord_ok(poly[k], poly[0])):
+            continue
+        left = _triangulate(poly[1:k + 1], chord_ok) if k > 2 else []
+        right = _triangulate(poly[k:] + poly[:1], chord_ok) if k < m - 1 else []
+        if left is not None and right is not None:
+            return [(poly[0], poly[1], poly[k])] + left + right
+    return None
+
+
+def _build_tables() -> dict[str, np.ndarray]:
+    """Kernel tables: for case c (inside mask), its ambiguous faces amb_face[c, :amb_count[c]];
+    entry case_offset[c] + s holds the triangles when bit a of s says the inside corners of
+    ambiguous face a are connected: tri_count[entry] triangles, edges tri_edge[entry, 3t:3t+3]."""
+    case_offset = np.zeros(257, np.int32)
+    amb_count = np.zeros(256, np.int32)
+    amb_face = np.full((256, 6), -1, np.int32)
+    entries: list[list[tuple[int, int, int]]] = []
+    for case in range(256):
+        inside = [bool(case >> c & 1) for c in range(8)]
+        ambiguous = _ambiguous_faces(inside)
+        amb_count[case] = len(ambiguous)
+        amb_face[case, :len(ambiguous)] = ambiguous
+        case_offset[case] = len(entries)
+        for sub in range(1 << len(ambiguous)):
+            entries.append(_cell_triangles(inside, {f: bool(sub >> a & 1) for a, f in enumerate(ambiguous)}))
+    case_offset[256] = len(entries)
+    max_tris = max(len(t) for t in entries)
+    tri_count = np.array([len(t) for t in entries], np.int32)
+    tri_edge = np.zeros((len(entries), 3 * max_tris), np.int32)  # padded with edge 0
+    for i, tris in enumerate(entries):
+        flat = [e for tri in tris for e in tri]
+        tri_edge[i, :len(flat)] = flat
+    return {"case_offset": case_offset, "amb_count": amb_count, "amb_face": amb_face,
+            "face_corner": np.array(_FACE_CORNERS, np.int32), "tri_count": tri_count, "tri_edge": tri_edge,
+            "edge_lo": np.array(_EDGE_LO, np.int32), "edge_axis": np.array(_EDGE_AXIS, np.int32),
+            "corner_offset": np.array(_CORNER_OFFSET, np.int64)}
+
+
+_TABLES = _build_tables()
+
+
+# -- the kernel ------------------------------------------------------------------------------------
+
+
+_DE_BRUIJN = 0x03F79D71B4CB0A89  # index of the lowest set bit x & -x: _LOW_BIT[(x & -x) * _DE_BRUIJN >> 58 & 63]
+_LOW_BIT = np.zeros(64, np.int64)
+for _i in range(64):
+    _LOW_BIT[((1 << _i) * _DE_BRUIJN % (1 << 64)) >> 58] = _i
+del _i
+
+
+@functools.lru_cache(maxsize=None)
+def _kernel(n: int):
+    """The marching-cubes kernel for blocks of n^3 samples (2 <= n <= 16) and its n-dependent
+    tables: (fill, coff, tri_key, max_block_v, max_block_f). n is a constant of the compiled code
+    (numba caches one version per n): with n = 9 known, index arithmetic folds and the per-column
+    loops unroll, which makes the kernel about 1.3x faster than with n a variable."""
+    nn = n * n
+    n3 = nn * n
+    sample_bits = sum(1 << (4 * k) for k in range(n))  # bit 4k: sample k of a column
+    cells_in_column = sum(1 << (4 * k) for k in range(n - 1))  # bit 4k: cell k of a column
+    pad = n + 1
+
+    @numba.njit(cache=True, nogil=True)
+    def fill(tsdf, observed, origin, extra, has_extra, case_offset, amb_count, amb_face, face_corner, tri_count,
+             tri_key, coff, low_bit, verts, values, faces, vertex_offsets, face_offsets, max_block_v, max_block_f,
+             counts):
+        """Mesh blocks counts[0].. into the buffers until one might not fit; counts: (next block,
+        vertices, faces).
+
+        Per block, each column (i, j) of n samples along z becomes two bit masks (inside,
+        observed) with sample k at bit 4k; bit operations on them give the complete cells of each
+        column of cells, then the grid edges that need a vertex (crossed, in a complete cell),
+        then the cells to triangulate (complete, with inside and outside corners), whose case (8
+        corner bits) is one byte of the four neighbouring columns' masks interleaved: corner
+        dx + 2 dy + 4 dz of cell k is bit 4 (k + dz) + dx + 2 dy.
+        """
+        n_blocks = tsdf.shape[0]
+        inside_col = np.zeros(nn + pad, np.int64)  # column (i, j): bit 4k when sample (i, j, k) is inside
+        observed_col = np.empty(nn, np.int64)
+        complete_col = np.zeros(nn + pad, np.int64)  # at pad + i n + j: bit 4k when cell (i, j, k) is
+        # complete; zero for i or j = n - 1 and in the padding, so neighbours need no bounds tests
+        edge_vertex = np.empty(3 * n3, np.int64)  # vertex of grid edge (axis, lower sample), this block
+        stride = np.array([nn, n, 1], np.int64)
+        code = np.empty(n3, np.uint8)  # per sample: bit 0 inside, bit 1 observed
+        nv = counts[1]
+        nf = counts[2]
+        b = counts[0]
+        while b < n_blocks:
+            if nv + max_block_v > verts.shape[0] or nf + max_block_f > faces.shape[0]:
+                break
+            vertex_offsets[b] = nv
+            face_offsets[b] = nf
+            ts = tsdf[b]
+            ob = observed[b]
+            ox = origin[b, 0]
+            oy = origin[b, 1]
+            oz = origin[b, 2]
+            for p in range(n3):  # (vectorises)
+                code[p] = np.uint8(ts[p] < 0) | (np.uint8(ob[p]) << 1)
+            for col in range(nn):
+                base = col * n
+                m = 0
+                for k in range(n):
+                    m |= np.int64(code[base + k]) << (4 * k)
+                inside_col[col] = m & sample_bits
+                observed_col[col] = (m >> 1) & sample_bits
+            for i in range(n - 1):
+                for j in range(n - 1):
+                    c0 = i * n + j  # columns of the cell corners (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1)
+                    o = observed_col[c0] & observed_col[c0 + n] & observed_col[c0 + 1] & observed_col[c0 + n + 1]
+                    complete_col[c0 + pad] = o & (o >> 4) & cells_in_column
+            # vertices: grid edges (axis, lower sample (i, j, k)) crossed and in a complete cell
+            for i in range(n):
+                for j in range(n):
+                    c0 = i * n + j
+                    q = c0 + pad
+                    m = inside_col[c0]
+                    cxz = complete_col[q] | complete_col[q - 1]  # cells (by k) around the x edges of column (i, j)
+                    cy = complete_col[q] | complete_col[q - n]  # ... around its y edges
+                    cz = cxz | complete_col[q - n] | complete_col[q - n - 1]  # ... around its z edges
+                    ux = (m ^ inside_col[c0 + n]) & (cxz | cxz << 4)  # (inside_col is padded too)
+                    uy = (m ^ inside_col[c0 + 1]) & (cy | cy << 4)
+                    uz = (m ^ (m >> 4)) & cz
+                    used = ux | uy << 1 | uz << 2  # bit 4k + axis
+                    while used != 0:
+                        bit = low_bit[((used & -used) * 0x03F79D71B4CB0A89) >> 58 & 63]
+                        used &= used - 1
+                        axis = bit & 3
+                        k = bit >> 2
+                        lo = c0 * n + k
+                        hi = lo + stride[axis]
+                        v_lo = np.float64(ts[lo])
+                        s = v_lo / (v_lo - np.float64(ts[hi]))  # always from the lower sample
+                        verts[nv, 0] = np.float64(ox + i)
+                        verts[nv, 1] = np.float64(oy + j)
+                        verts[nv, 2] = np.float64(oz + k)
+                        verts[nv, axis] += s
+                        if has_extra:
+                            values[nv] = (1.0 - s) * np.float64(extra[b, lo]) + s * np.float64(extra[b, hi])
+                        edge_vertex[axis * n3 + lo] = nv
+                        nv += 1
+            # triangles
+            for i in range(n - 1):
+                for j in range(n - 1):
+                    c0 = i * n + j
+                    m00 = inside_col[c0]
+                    m10 = inside_col[c0 + n]
+                    m01 = inside_col[c0 + 1]
+                    m11 = inside_col[c0 + n + 1]
+                    cases = m00 | m10 << 1 | m01 << 2 | m11 << 3  # bits 4k..4k+7: the case of cell k
+                    some = m00 | m10 | m01 | m11
+                    every = m00 & m10 & m01 & m11
+                    active = complete_col[c0 + pad] & (some | (some >> 4)) & ~(every & (every >> 4))
+                    while active != 0:
+                        bit = low_bit[((active & -active) * 0x03F79D71B4CB0A89) >> 58 & 63]
+                        active &= active - 1
+                        case = (cases >> bit) & 255  # bit c set: corner c = dx + 2 dy + 4 dz is inside
+                        cell = c0 * n + (bit >> 2)
+                        sub = 0
+                        for a in range(amb_count[case]):
+                            f = amb_face[case, a]
+                            v00 = np.float64(ts[cell + coff[face_corner[f, 0]]])
+                            v10 = np.float64(ts[cell + coff[face_corner[f, 1]]])
+                            v01 = np.float64(ts[cell + coff[face_corner[f, 2]]])
+                            v11 = np.float64(ts[cell + coff[face_corner[f, 3]]])
+                            diag = v00 * v11  # products of float32 values: exact in float64
+                            anti = v10 * v01
+                            if (diag > anti) if v00 < 0 else (anti > diag):
+                                sub |= 1 << a  # the inside corners are connected across face f
+                        entry = case_offset[case] + sub
+                        # the first 4 triangles unconditionally (fewer branches; extra rows are
+                        # overwritten by later cells or lie beyond the returned count)
+                        for t in range(4):
+                            faces[nf + t, 0] = edge_vertex[cell + tri_key[entry, 3 * t]]
+                            faces[nf + t, 1] = edge_vertex[cell + tri_key[entry, 3 * t + 1]]
+                            faces[nf + t, 2] = edge_vertex[cell + tri_key[entry, 3 * t + 2]]
+                        for t in range(4, tri_count[entry]):
+                            faces[nf + t, 0] = edge_vertex[cell + tri_key[entry, 3 * t]]
+                            faces[nf + t, 1] = edge_vertex[cell + tri_key[entry, 3 * t + 1]]
+                            faces[nf + t, 2] = edge_vertex[cell + tri_key[entry, 3 * t + 2]]
+                        nf += tri_count[entry]
+            b += 1
+        counts[0] = b
+        counts[1] = nv
+        counts[2] = nf
+
+    T = _TABLES
+    coff = (T["corner_offset"] @ np.array([nn, n, 1])).astype(np.int64)  # corner c's flat offset in a cell
+    edge_key = T["edge_axis"] * n3 + coff[T["edge_lo"]]  # slot in edge_vertex of each cube edge
+    tri_key = edge_key[T["tri_edge"]].astype(np.int64)  # the triangle table as edge_vertex slots
+    max_block_v = 3 * n3  # at most one vertex per grid edge
+    max_block_f = (n - 1) ** 3 * (tri_key.shape[1] // 3) + 4
+    return fill, coff, tri_key, max_block_v, max_block_f
 
 
 def marching_cubes_blocks(tsdf: np.ndarray, observed: np.ndarray, block_origin_vox: np.ndarray,
                           extra: np.ndarray | None = None) -> BlockTriangles:
-    """Marching cubes at level 0 over B blocks at once.
+    """Marching cubes at level 0 over B blocks at once (see the module docstring for the rules).
 
-    tsdf, observed, extra: B x (s+1)^3 samples: each block's s^3 voxels plus one more layer from
-    its +x, +y, +z neighbours, so every cell a block owns is complete and neighbouring blocks'
-    meshes meet exactly (a vertex on a seam is computed from the same two samples by both).
-    Only cells whose 8 corners are observed produce triangles. block_origin_vox: Bx3 int, the
-    global voxel index of each block's local (0, 0, 0).
+    tsdf, observed, extra: B x n x n x n (or B x n^3) samples, n = s + 1: each block's s^3 voxels
+    plus one more layer from its +x, +y, +z neighbours, so every cell a block owns is complete and
+    neighbouring blocks' meshes meet exactly (a vertex on a seam is computed from the same two
+    samples by both). Only cells whose 8 corners are observed produce triangles.
+    block_origin_vox: B x 3 int, the global voxel index of each block's local (0, 0, 0).
+    extra: a per-sample value interpolated linearly along each vertex's edge (vertex_values).
+    The returned arrays may be views of larger buffers.
     """
-    from skimage.measure import marching_cubes
-
-    n_blocks, n = tsdf.shape[0], tsdf.shape[1]
-    empty = BlockTriangles(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
-                           None if extra is None else np.zeros(0))
-    cells = cell_mask(observed)
-    if n_blocks == 0 or not cells.any():
-        return empty
-    # Blocks are stacked along x; skimage visits a cell when the mask is set at the cell's far
-    # corner (x+1, y+1, z+1), so the mask is the cell mask shifted by one. Cells straddling two
-    # stacked blocks never get a mask bit.
-    mask = np.zeros((n_blocks, n, n, n), dtype=bool)
-    mask[:, 1:, 1:, 1:] = cells
-    volume = np.ascontiguousarray(tsdf, dtype=np.float32).reshape(n_blocks * n, n, n)
-    values = volume[mask.reshape(volume.shape)]
-    if values.size == 0 or values.min() > 0 or values.max() < 0:
-        return empty
-    try:
-        verts, faces, _, _ = marching_cubes(volume, level=0.0, mask=mask.reshape(volume.shape))
-    except RuntimeError:  # skimage requires min < 0 < max strictly (e.g. values touch 0 but never cross)
-        return empty
-    if len(faces) == 0:
-        return empty
-    vertex_block = np.floor(verts[:, 0] / n).astype(np.int64).clip(0, n_blocks - 1)
-    local = verts.astype(np.float64)
-    local[:, 0] -= vertex_block * n
-    local = _exact_edge_positions(np.asarray(tsdf, dtype=np.float32), vertex_block, local)
-    vertex_values = None
-    if extra is not None:
-        vertex_values = _interpolate(extra.astype(np.float32), vertex_block, local)
-    global_vox = local + np.asarray(block_origin_vox, dtype=np.float64)[vertex_block]
-    return BlockTriangles(global_vox, faces.astype(np.int64), vertex_block, vertex_block[faces[:, 0]], vertex_values)
-
-
-def _exact_edge_positions(volumes: np.ndarray, block: np.ndarray, local: np.ndarray) -> np.ndarray:
-    """Recompute each vertex from its grid edge's two samples in float64.
-
-    skimage returns float32 positions in the stacked volume, whose last bits depend on where a
-    block sat in the stack (up to ~1e-3 voxel for large batches): recomputing from the block's own
-    samples makes a vertex independent of batching, so incremental and whole meshes agree exactly.
-    """
-    if len(local) == 0:
-        return local
-    n = volumes.shape[1]
-    off_grid = np.abs(local - np.round(local))
-    axis = np.argmax(off_grid, axis=1)
-    on_edge = off_grid.max(axis=1) >= 1e-4
-    rows = np.nonzero(on_edge)[0]
-    if len(rows) == 0:
-        return local
-    ax = axis[rows]
-    base = np.round(local[rows]).astype(np.int64)
-    base[np.arange(len(rows)), ax] = np.floor(local[rows, ax]).astype(np.int64)
-    base = base.clip(0, n - 1)
-    upper = base.copy()
-    upper[np.arange(len(rows)), ax] += 1
-    inside = upper[np.arange(len(rows)), ax] <= n - 1
-    rows, ax, base, upper = rows[inside], ax[inside], base[inside], upper[inside]
-    b = block[rows]
-    va = volumes[b, base[:, 0], base[:, 1], base[:, 2]].astype(np.float64)
-    vb = volumes[b, upper[:, 0], upper[:, 1], upper[:, 2]].astype(np.float64)
-    denom = va - vb
-    ok = denom != 0
-    t = np.zeros_like(va)
-    t[ok] = np.clip(va[ok] / denom[ok], 0.0, 1.0)
-    out = local.copy()
-    exact = base.astype(np.float64)
-    exact[np.arange(len(rows)), ax] += t
-    out[rows[ok]] = exact[ok]
-    return out
+    tsdf = np.asarray(tsdf)
+    n_blocks = tsdf.shape[0]
+    n = 0
+    if tsdf.ndim == 4 and tsdf.shape[1] == tsdf.shape[2] == tsdf.shape[3]:
+        n = tsdf.shape[1]
+    elif tsdf.ndim == 2:
+        n = round(tsdf.shape[1] ** (1 / 3))
+    if not 2 <= n <= 16 or tsdf.size != n_blocks * n**3:
+        raise InputError(f"marching_cubes_blocks: tsdf must be B x n x n x n with 2 <= n <= 16, got {tsdf.shape}")
+    if n_blocks == 0:
+        z = np.zeros(n_blocks + 1, np.int64)
+        return BlockTriangles(np.zeros((0, 3)), np.zeros((0, 3), np.int64), None if extra is None else np.zeros(0), z,
+                              z.copy())
+    shape = (n_blocks, n**3)
+    values = np.ascontiguousarray(tsdf, dtype=np.float32).reshape(shape)
+    obs = np.ascontiguousarray(observed, dtype=np.bool_).reshape(shape)
+    origin = np.ascontiguousarray(block_origin_vox, dtype=np.int64).reshape(n_blocks, 3)
+    if extra is None:
+        ext = np.zeros((1, 1), np.float32)
+    else:
+        ext = np.ascontiguousarray(extra, dtype=np.float32).reshape(shape)
+    fill, coff, tri_key, max_block_v, max_block_f = _kernel(n)
+    has_extra = extra is not None
+    # first guess of the output size (untouched capacity costs no memory; growing costs a copy):
+    # surface blocks of real scans have ~60-80 vertices and ~90-140 triangles
+    cap_v = 128 * n_blocks + max_block_v
+    cap_f = 2 * cap_v + max_block_f
+    verts = np.empty((cap_v, 3))
+    vals = np.empty(cap_v if has_extra else 1)
+    faces = np.empty((cap_f, 3), np.int64)
+    v_off = np.empty(n_blocks + 1, np.int64)
+    f_off = np.empty(n_blocks + 1, np.int64)
+    counts = np.zeros(3, np.int64)  # next block, vertices, faces
+    T = _TABLES
+    while True:  # fill stops before a block that might not fit; the buffers grow (rarely) in between
+        fill(values, obs, origin, ext, has_extra, T["case_offset"], T["amb_count"], T["amb_face"], T["face_corner"],
+             T["tri_count"], tri_key, coff, _LOW_BIT, verts, vals, faces, v_off, f_off, max_block_v, max_block_f,
+             counts)
+        if counts[0] == n_blocks:
+            break
+        nv, nf = int(counts[1]), int(counts[2])
+        if nv + max_block_v > len(verts):
+            verts = _grown(verts, nv)
+            vals = _grown(vals, nv) if has_extra else vals
+        if nf + max_block_f > len(faces):
+            faces = _grown(faces, nf)
+    nv, nf = int(counts[1]), int(counts[2])
+    v_off[n_blocks] = nv
+    f_off[n_blocks] = nf
+    return BlockTriangles(verts[:nv], faces[:nf], vals[:nv] if has_extra else None, v_off, f_off)
 
 
-def _interpolate(volumes: np.ndarray, block: np.ndarray, local: np.ndarray) -> np.ndarray:
-    """Trilinear interpolation of B x n^3 volumes at per-vertex local coordinates."""
-    n = volumes.shape[1]
-    i0 = np.floor(local).astype(np.int64).clip(0, n - 2)
-    t = local - i0
-    out = np.zeros(len(local))
-    for dx in (0, 1):
-        for dy in (0, 1):
-            for dz in (0, 1):
-                w = (t[:, 0] if dx else 1 - t[:, 0]) * (t[:, 1] if dy else 1 - t[:, 1]) * (t[:, 2] if dz else 1 - t[:, 2])
-                out += w * volumes[block, i0[:, 0] + dx, i0[:, 1] + dy, i0[:, 2] + dz]
+def _grown(a: np.ndarray, used: int) -> np.ndarray:
+    out = np.empty((2 * len(a),) + a.shape[1:], a.dtype)
+    out[:used] = a[:used]
     return out
 
 
@@ -146,8 +477,10 @@ def weld(vertices_vox: np.ndarray, faces: np.ndarray, vertex_values: np.ndarray 
     """Merge the copies of a vertex made by neighbouring blocks and drop triangles that collapse.
 
     Every marching-cubes vertex lies on a grid edge: two of its voxel coordinates are integers.
-    The edge (its lower end and axis) identifies the vertex; positions alone do not, since two
-    blocks may interpolate the same edge from opposite ends and differ in the last bits.
+    The edge (its lower end and axis) identifies the vertex. `marching_cubes_blocks` gives the
+    copies bit-identical positions, but vertices that went through float32 (e.g. per-block meshes
+    in metres) need the edge key; vertices within 1e-4 voxel of a sample merge into one (a sample
+    exactly on the surface), and the triangles this collapses are dropped.
     """
     if len(vertices_vox) == 0:
         return vertices_vox, faces, vertex_values

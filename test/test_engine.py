@@ -258,7 +258,7 @@ def test_fusion_equation_on_c12_c1_c2():
     kept, _ = engine.voxel_values("fused", filtered=True)
     assert len(kept) == int(c12.sum() + c2.sum())
     constant_alpha(engine, 0.7)
-    engine._alpha_pending.append(torch.arange(n))  # the net changed: re-evaluate everywhere
+    engine.invalidate_alpha()  # the net changed: re-evaluate everywhere
     kept, _ = engine.voxel_values("fused", filtered=True)
     assert len(kept) == int(c12.sum() + c1.sum())
 

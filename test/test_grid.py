@@ -1,0 +1,88 @@
+"""The sparse block grid: hash-table lookups, growth, neighbour tables and half-precision kernels."""
+from __future__ import annotations
+
+import numba
+import numpy as np
+import pytest
+import torch
+
+from senfunet_core import grid as G
+from senfunet_core.grid import BlockGrid, block_keys, neighbour_table
+
+
+def _codec(encode, decode):
+    @numba.njit
+    def enc(x, out):
+        for i in range(x.shape[0]):
+            out[i] = encode(x[i])
+
+    @numba.njit
+    def dec(bits, out):
+        for i in range(bits.shape[0]):
+            out[i] = decode(bits[i])
+
+    return enc, dec
+
+
+@pytest.mark.parametrize("which", ["hardware", "software"])
+def test_half_conversions_match_numpy(which):
+    encode, decode = ((G._f32_to_f16_hw, G._f16_to_f32_hw) if which == "hardware"
+                      else (G._f32_to_f16_soft, G._f16_to_f32_soft))
+    if which == "hardware" and not G._hardware_half():
+        pytest.skip("this CPU has no half-precision conversions")
+    enc, dec = _codec(encode, decode)
+    rng = np.random.default_rng(0)
+    x = (rng.standard_normal(200_000) * 10.0 ** rng.uniform(-9, 5, 200_000)).astype(np.float32)
+    edges = np.array([0.0, -0.0, np.inf, -np.inf, 65504, 65519.99, 65520, -65520, 2**-24, 2**-25, 3 * 2**-26,
+                      2**-14, -(2**-14) * (1 - 2**-12), 1 + 2**-11, 1 + 3 * 2**-11], np.float32)
+    x = np.concatenate([x, edges])
+    got = np.empty(len(x), np.int16)
+    enc(x, got)
+    with np.errstate(over="ignore"):
+        want = x.astype(np.float16).view(np.int16)
+    np.testing.assert_array_equal(got, want)
+    nan = np.empty(1, np.int16)
+    enc(np.array([np.nan], np.float32), nan)
+    assert np.isnan(nan.view(np.float16)[0])
+    every = np.arange(-32768, 32768).astype(np.int16)
+    values = np.empty(len(every), np.float32)
+    dec(every, values)
+    np.testing.assert_array_equal(values, every.view(np.float16).astype(np.float32))
+
+
+def test_allocate_lookup_and_growth():
+    grid = BlockGrid({"a": (), "b": (2,)}, initial_capacity=16, fill={"a": 0.5})
+    rng = np.random.default_rng(1)
+    coords = torch.from_numpy(rng.integers(-3000, 3000, (20_000, 3)))
+    keys = torch.unique(block_keys(coords))
+    first = grid.allocate_keys(keys[:100])
+    grid.pools["b"][first] = 7.0  # must survive the growth below
+    slots = grid.allocate_keys(keys)  # grows the pools and rehashes the table several times
+    assert grid.n_blocks == len(keys) and grid.capacity >= len(keys)
+    assert torch.equal(slots[:100], first)
+    assert sorted(slots.tolist()) == list(range(len(keys)))
+    assert torch.equal(grid.lookup_keys(keys), slots)
+    assert torch.equal(block_keys(grid.coords[slots]), keys)
+    assert bool((grid.pools["b"][first] == 7.0).all()) and bool((grid.pools["a"][slots] == 0.5).all())
+    absent = block_keys(torch.tensor([[4000, 0, 0], [-4000, 5, 5]]))
+    assert grid.lookup_keys(absent).tolist() == [-1, -1]
+    assert grid.max_blocks_before_rehash() >= grid.n_blocks
+
+
+def test_neighbour_table_matches_coordinates():
+    grid = BlockGrid({"a": ()}, initial_capacity=8)
+    cube = torch.stack(torch.meshgrid(*[torch.arange(3)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    coords = torch.cat([cube, torch.tensor([[10, 10, 10]])])
+    slots = grid.allocate_keys(block_keys(coords))
+    table = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots.numpy())
+    index = {tuple(c): int(s) for c, s in zip(coords.tolist(), slots)}
+    for row, c in zip(table, coords.tolist()):
+        for code in range(27):
+            offset = (code // 9 - 1, (code // 3) % 3 - 1, code % 3 - 1)
+            assert row[code] == index.get(tuple(a + o for a, o in zip(c, offset)), -1)
+    assert table[-1, 13] == slots[-1] and (np.delete(table[-1], 13) == -1).all()
+
+
+def test_keys_outside_the_range_are_refused():
+    with pytest.raises(ValueError, match="5 km"):
+        block_keys(torch.tensor([[1 << 17, 0, 0]]))

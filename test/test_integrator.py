@@ -1,0 +1,105 @@
+"""The compiled integration (engine path) against the reference tensor functions (training path)."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from senfunet_core.grid import BLOCK, BlockGrid
+from senfunet_core.integrator import (IntegratorConfig, aggregate_pixel_values, frame_samples, integrate_frame,
+                                      valid_depth_mask)
+from senfunet_core.trainer import keys_to_voxels
+
+SIZE = 64
+K = np.array([[40.0, 0, (SIZE - 1) / 2], [0, 40.0, (SIZE - 1) / 2], [0, 0, 1.0]])
+CONFIG = IntegratorConfig(voxel_size_m=0.01, border_px=4)
+RANGE = (0.1, 5.0)
+
+
+def pose(yaw: float, x: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    T[:3, 3] = (x, 0.02, -0.5)
+    return T
+
+
+def frame(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A tilted, bumpy wall ~1 m away with invalid pixels, and 5 feature channels."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:SIZE, 0:SIZE].astype(np.float32)
+    depth = 1.0 + 0.004 * u + 0.05 * np.sin(v / 5.0) + rng.normal(0, 0.005, (SIZE, SIZE))
+    depth = depth.astype(np.float32)
+    depth[rng.random((SIZE, SIZE)) < 0.05] = 0.0
+    depth[3, 7] = np.nan
+    features = rng.standard_normal((5, SIZE, SIZE)).astype(np.float32)
+    return depth, features
+
+
+def reference(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> dict[tuple, tuple]:
+    """Running averages per voxel with the reference functions: voxel -> (tsdf, weight, features)."""
+    state: dict[tuple, list] = {}
+    for depth, features, T in frames:
+        d = torch.nan_to_num(torch.from_numpy(depth))
+        valid = valid_depth_mask(d, CONFIG.border_px, *RANGE)
+        samples = frame_samples(d, valid, torch.from_numpy(K), torch.from_numpy(T), CONFIG)
+        pixel = torch.from_numpy(features).flatten(1)[:, samples.pixel_index].T
+        voxel_features = aggregate_pixel_values(samples, pixel).numpy()
+        for voxel, tsdf, f in zip(map(tuple, keys_to_voxels(samples.keys).tolist()), samples.tsdf_m.numpy(),
+                                  voxel_features):
+            old = state.setdefault(voxel, [0.0, 0.0, np.zeros(5)])
+            w = old[1]
+            old[0] = (w * old[0] + tsdf) / (w + 1)
+            old[2] = (w * old[2] + f) / (w + 1)
+            old[1] = w + 1
+    return state
+
+
+def compiled(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[BlockGrid, dict[tuple, tuple]]:
+    channels = {"tsdf_base": (), "weight_base": (), "drift": (), "tsdf0": (), "weight0": (), "feat0": (5,)}
+    dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight", "drift"))}
+    grid = BlockGrid(channels, initial_capacity=64, dtypes=dtypes)  # small: growth happens mid-frame
+    for depth, features, T in frames:
+        integrate_frame(grid, np.nan_to_num(depth), features, K, T, RANGE, CONFIG, ("tsdf0", "weight0", "feat0"))
+    n = grid.n_blocks
+    r = torch.arange(BLOCK)
+    local = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(1, -1, 3)
+    voxels = (grid.coords[:n].unsqueeze(1) * BLOCK + local).reshape(-1, 3)
+    weight = grid.pools["weight0"][:n].reshape(-1).float()
+    seen = weight > 0
+    values = zip(map(tuple, voxels[seen].tolist()), grid.pools["tsdf0"][:n].reshape(-1)[seen].tolist(),
+                 weight[seen].tolist(), grid.pools["feat0"][:n].reshape(-1, 5)[seen].float().numpy())
+    return grid, {v: (t, w, f) for v, t, w, f in values}
+
+
+def test_compiled_integration_equals_the_reference():
+    frames = [(*frame(i), pose(0.05 * i, 0.03 * i)) for i in range(3)]
+    want = reference(frames)
+    grid, got = compiled(frames)
+    assert len(want) > 20_000
+    common = want.keys() & got.keys()
+    # the same voxels, up to rounding ties at a voxel boundary (float64 in both, summed in another order)
+    assert len(common) >= 0.999 * max(len(want), len(got))
+    tsdf_error = max(abs(got[v][0] - want[v][0]) for v in common)
+    assert tsdf_error < 1e-6
+    assert all(got[v][1] == want[v][1] for v in common)
+    features_error = max(np.abs(got[v][2] - want[v][2]).max() for v in common)
+    assert features_error < 2e-3  # float16 storage, rounded once per frame
+    # the TSDF Fusion baseline saw the same (single-sensor) frames
+    n = grid.n_blocks
+    np.testing.assert_array_equal(grid.pools["weight_base"][:n].numpy(), grid.pools["weight0"][:n].numpy())
+    np.testing.assert_allclose(grid.pools["tsdf_base"][:n].numpy(), grid.pools["tsdf0"][:n].numpy(), atol=1e-6)
+
+
+def test_drift_marks_new_voxels_and_accumulates_change():
+    depth, features = frame(0)
+    T = pose(0.0, 0.0)
+    grid, _ = compiled([(depth, features, T)])
+    drift = grid.pools["drift"][: grid.n_blocks].float()
+    seen = grid.pools["weight0"][: grid.n_blocks] > 0
+    assert bool(torch.isinf(drift[seen]).all()) and bool((drift[~seen] == 0).all())  # first observations
+    grid.pools["drift"][: grid.n_blocks] = 0
+    integrate_frame(grid, depth, features * 0.5, K, T, RANGE, CONFIG, ("tsdf0", "weight0", "feat0"))
+    drift = grid.pools["drift"][: grid.n_blocks].float()
+    finite = torch.isfinite(drift) & seen
+    assert bool((drift[finite] > 0).all())  # the features moved towards half their value
+    assert float(drift[finite].max()) < 2.0
