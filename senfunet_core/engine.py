@@ -13,15 +13,17 @@ and their -x, -y, -z neighbours, since a block's cells reach one voxel into its 
 neighbours).
 
 Threads: `integrate` may run in one thread while `update` (or an extraction) runs in another.
-Integration holds the data lock only while its kernels write the grid (not during the feature
-net); an update holds it only to read input windows and to write alpha, never while the networks
-or marching cubes run. Updates and extractions are serialised among themselves.
+Writers of the grid hold the data lock: integration while its kernels run (its feature net runs
+outside it, in a worker thread), an update while it takes the frames' drift and writes alpha.
+An update reads input windows without it: a block integrated meanwhile is marked again and
+re-read by the next update. Updates and extractions are serialised among themselves.
 """
 from __future__ import annotations
 
 import logging
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
@@ -29,12 +31,12 @@ import numpy as np
 import torch
 
 from . import networks
-from .alpha import MODES, consume_drift, stale_levels, weighting_windows
+from .alpha import MODES, holds_targets, take_drift, weighting_windows
 from .errors import InputError
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BlockGrid, kernel_view, neighbour_table
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
-from .mesher import Mesh, marching_cubes_blocks, to_mesh, weld
+from .mesher import BlockMeshes, Mesh, marching_cubes_blocks, to_mesh, weld
 
 log = logging.getLogger("senfunet.engine")
 
@@ -43,6 +45,9 @@ FUSED = "fused"
 # Neighbour-table codes of the blocks whose marching-cubes cells read a block: itself and its
 # -x, -y, -z neighbours (code 9*(dx+1) + 3*(dy+1) + (dz+1), offsets in {-1, 0}).
 _MESH_READER_CODES = np.array([9 * dx + 3 * dy + dz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+# One thread runs the feature nets (of every engine in the process), so that a frame's feature net
+# overlaps the kernel that locates its samples.
+_FEATURE_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="senfunet-features")
 
 
 @dataclass(frozen=True)
@@ -64,10 +69,13 @@ class EngineConfig:
     mesh_batch_blocks: int = 2048  # blocks per marching-cubes call
     seed: int = 0  # initialisation of untrained networks
     torch_threads: int = 1  # torch intra-op threads the engine sets (0: leave torch's setting); 1 fits 2 shared cores
-    alpha_voxels: str = "all"  # which voxels near a change get alpha re-evaluated: "all" (equals the whole-grid
-    #   evaluation on every voxel); "observed" (observed voxels: all that fusion, filter, meshes and clouds read);
-    #   "surface" (corners of cells whose 8 corners are observed and whose sensor TSDFs straddle 0: all that the
-    #   fused mesh, its filter and its colours read; alpha elsewhere may be stale)
+    alpha_voxels: str = "all"  # which blocks near a change get alpha re-evaluated: "all" (equals the whole-grid
+    #   evaluation on every voxel); "surface" (blocks holding corners of cells whose 8 corners are observed and whose
+    #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be stale)
+    alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (~2.5x faster on CPUs with
+    #                               bfloat16 instructions, alpha within ~0.004; see test_equivalence.py)
+    tsdf_fusion: bool = True  # also integrate every frame into one plain TSDF grid: the "tsdf_fusion" baseline
+    #                           (about 15% of the integration time and 6 bytes per voxel)
     alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
     #                               (max-norm over [F, tanh(W)], summed over frames); 0 = exact
 
@@ -91,8 +99,10 @@ class EngineConfig:
             raise InputError("n_samples_behind must be between 0 and (n_samples - 1) / 2")
         if self.w_max > 2048:
             raise InputError("w_max must be at most 2048 (weight counters are float16, exact up to 2048)")
-        if self.alpha_voxels not in ("all", "observed", "surface"):
-            raise InputError(f"alpha_voxels must be 'all', 'observed' or 'surface', got '{self.alpha_voxels}'")
+        if self.alpha_dtype not in ("float32", "bfloat16"):
+            raise InputError(f"alpha_dtype must be 'float32' or 'bfloat16', got '{self.alpha_dtype}'")
+        if self.alpha_voxels not in ("all", "surface"):
+            raise InputError(f"alpha_voxels must be 'all' or 'surface', got '{self.alpha_voxels}'")
         if not self.alpha_tolerance >= 0 or self.torch_threads < 0:
             raise InputError("alpha_tolerance must be >= 0 and torch_threads >= 0")
 
@@ -101,9 +111,14 @@ class EngineConfig:
 class MeshUpdate:
     """What changed in the fused mesh since the previous update."""
 
-    changed: dict[tuple[int, int, int], Mesh] = field(default_factory=dict)  # block key -> its whole mesh
+    meshes: BlockMeshes = field(default_factory=lambda: BlockMeshes.concatenate([]))  # changed blocks' whole meshes
     removed: list[tuple[int, int, int]] = field(default_factory=list)  # blocks whose mesh vanished
     cleared: bool = False  # the map was reset before this update: drop everything shown so far
+
+    @property
+    def changed(self) -> dict[tuple[int, int, int], Mesh]:
+        """Block key -> its whole mesh, for every changed block."""
+        return self.meshes.as_dict()
 
 
 @dataclass
@@ -111,6 +126,11 @@ class WeightCloud:
     positions_m: np.ndarray  # Nx3 float32 voxel centres
     alpha: np.ndarray  # N float32 sensor weighting (weight of sensor 1)
     weights: np.ndarray  # N x n_sensors float32 weight counters
+
+
+def _compact_offsets(offsets: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Offsets of the kept blocks' ranges when the dropped blocks' ranges are empty."""
+    return np.concatenate([[offsets[0]], offsets[keep + 1]]).astype(np.int64)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -142,14 +162,19 @@ class SenFuNet:
         self.feature_nets.to(self.device).eval()
         self.weighting_net.to(self.device).eval()
         # drift: per voxel, how much its weighting-net inputs changed since alpha around it was evaluated
-        channels: dict[str, tuple[int, ...]] = {"tsdf_base": (), "weight_base": (), "alpha": (), "drift": ()}
+        channels: dict[str, tuple[int, ...]] = {"alpha": (), "drift": ()}
+        if config.tsdf_fusion:
+            channels.update({"tsdf_base": (), "weight_base": ()})
         for i in range(len(config.sensors)):
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
         # features and weight counters in half precision (counters stay exact up to 2048)
         dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight", "drift"))}
-        # alpha 0.5 until evaluated: a plain average, and the outlier filter keeps every voxel
-        self.grid = BlockGrid(channels, dtypes=dtypes, fill={"alpha": 0.5})
-        self._data_lock = threading.Lock()  # the grid: integration vs. readers
+        # alpha NaN until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)
+        self.grid = BlockGrid(channels, dtypes=dtypes, fill={"alpha": float("nan")})
+        # Writers of the grid (integration, alpha) hold the data lock; the update's readers do not:
+        # a block integrated while it is read is marked again and re-read by the next update, and
+        # pools that grow meanwhile stay valid for whoever still holds the old ones.
+        self._data_lock = threading.RLock()
         self._update_lock = threading.RLock()  # one update or extraction at a time
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0}
         self.timings_s: dict[str, float] = {}  # stage -> seconds of its last run
@@ -175,16 +200,16 @@ class SenFuNet:
         if not bool(valid.any()):
             return 0
         check_key_range(depth[valid.numpy()].max(), K, T_world_camera, depth.shape, cfg.band_m)
-        features = self._pixel_features(s, torch.from_numpy(depth).to(self.device), rgb).cpu().numpy()
-        t1 = time.perf_counter()
+        # the feature net runs in the worker thread while this one locates the samples
+        features = _FEATURE_WORKER.submit(self._pixel_features, s, depth, rgb)
         with self._data_lock:
-            update = integrate_frame(self.grid, depth, features, K, T_world_camera,
+            update = integrate_frame(self.grid, depth, features.result, K, T_world_camera,
                                      (cfg.depth_min_m[s], cfg.depth_max_m[s]), cfg.integrator,
                                      (f"tsdf{s}", f"weight{s}", f"feat{s}"))
             self._grow_flags()
             self._alpha_pending[update.touched_slots] = True
             self.frames_integrated[sensor] += 1
-        self._timed(feature_net=t1 - t0, integrate=time.perf_counter() - t1)
+        self._timed(integrate=time.perf_counter() - t0 - update.waited_s)
         return update.voxels_updated
 
     @torch.inference_mode()
@@ -192,8 +217,9 @@ class SenFuNet:
         """Alpha, fusion and meshing over the blocks changed since the last update.
 
         alpha_budget_s: at most about this long re-evaluating alpha (the live node's choice); the
-        blocks left over keep their previous alpha (0.5, a plain average, where never evaluated)
-        until a later update, oldest first. None: all of them (exact, deterministic)."""
+        blocks left over keep their previous alpha until a later update, oldest first (where it was
+        never evaluated, the mesh shows what both sensors saw, averaged: see fusion). None: all of
+        them (exact, deterministic)."""
         with self._update_lock:
             t0 = time.perf_counter()
             self._refresh_alpha(alpha_budget_s)
@@ -205,25 +231,26 @@ class SenFuNet:
             self.counters["mesh_blocks_last"] = len(slots)
             result = MeshUpdate(cleared=self._cleared)
             self._cleared = False
-            for start in range(0, len(slots), self.config.mesh_batch_blocks):
-                batch = slots[start:start + self.config.mesh_batch_blocks]
-                tris = self._mesh_batch(batch, FUSED, filtered=True)
-                v_start, f_start = tris.vertex_offsets, tris.face_offsets
-                # the whole batch at once; each block's Mesh holds views into it
-                whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
-                                self.config.voxel_size_m, tris.vertex_values)
-                for b, key in enumerate(map(tuple, coords[start:start + len(batch)].tolist())):
-                    if f_start[b] == f_start[b + 1]:
-                        if key in self._meshed:
-                            self._meshed.discard(key)
-                            result.removed.append(key)
-                        continue
-                    vertices = slice(v_start[b], v_start[b + 1])
-                    result.changed[key] = Mesh(whole.vertices[vertices], whole.faces[f_start[b]:f_start[b + 1]],
-                                               whole.colors[vertices])
-                    self._meshed.add(key)
+            result.meshes = self._block_meshes(slots, coords)
+            has_faces = {tuple(k) for k in result.meshes.keys.tolist()}
+            for key in map(tuple, coords.tolist()):
+                if key not in has_faces and key in self._meshed:
+                    self._meshed.discard(key)
+                    result.removed.append(key)
+            self._meshed.update(has_faces)
+            self.counters["meshed_blocks"] = len(self._meshed)
             self._timed(alpha=t1 - t0, mesh=time.perf_counter() - t1)
             return result
+
+    @torch.inference_mode()
+    def block_meshes(self) -> BlockMeshes:
+        """The fused (filtered) mesh of every block, as `update` sends it, with alpha as it is now
+        (nothing re-evaluated): a snapshot for a subscriber that joins late."""
+        with self._update_lock:
+            with self._data_lock:
+                slots = np.arange(self.grid.n_blocks)
+                coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
+            return self._block_meshes(slots, coords)
 
     @torch.inference_mode()
     def extract_mesh(self, which: str = FUSED, filtered: bool = True) -> Mesh:
@@ -233,9 +260,11 @@ class SenFuNet:
             if which == FUSED:
                 self._refresh_alpha()
             parts = []
-            slots = np.arange(self.grid.n_blocks)
-            for start in range(0, len(slots), self.config.mesh_batch_blocks):
-                parts.append(self._mesh_batch(slots[start:start + self.config.mesh_batch_blocks], which, filtered))
+            with self._data_lock:  # one consistent state of the whole map
+                slots = np.arange(self.grid.n_blocks)
+                for start in range(0, len(slots), self.config.mesh_batch_blocks):
+                    parts.append(self._mesh_batch(slots[start:start + self.config.mesh_batch_blocks], which,
+                                                  filtered))
         if not parts:
             return Mesh.empty()
         offsets = np.cumsum([0] + [len(p.vertices_vox) for p in parts])
@@ -259,26 +288,43 @@ class SenFuNet:
                 return centres[observed].numpy(), tsdf[observed].numpy()
 
     @torch.inference_mode()
-    def weight_cloud(self, max_abs_tsdf_m: float | None = None) -> WeightCloud:
-        """Voxels observed by any sensor: position, alpha and each sensor's weight counter.
-        With max_abs_tsdf_m, only voxels whose unfiltered fused |TSDF| is at most that."""
+    def weight_cloud(self, max_abs_tsdf_m: float | None = None, refresh_alpha: bool = True) -> WeightCloud:
+        """Voxels observed by any sensor whose alpha is known: position, alpha and each sensor's
+        weight counter. With max_abs_tsdf_m, only voxels whose unfiltered fused |TSDF| is at most
+        that. Without refresh_alpha, alpha is as the last updates left it (voxels the net has not
+        judged yet are left out)."""
         with self._update_lock:
-            self._refresh_alpha()
+            if refresh_alpha:
+                self._refresh_alpha()
             with self._data_lock:
                 slots = torch.arange(self.grid.n_blocks)
                 blocks = self._whole_blocks(slots, self._channels(FUSED))
                 centres = self.grid.voxel_centres(slots, self.config.voxel_size_m)
         n = len(self.config.sensors)
         weights = torch.stack([blocks[f"weight{i}"] for i in range(n)], dim=-1)
-        keep = (weights > 0).any(dim=-1)
+        keep = (weights > 0).any(dim=-1) & torch.isfinite(blocks["alpha"])
         if max_abs_tsdf_m is not None:
             tsdf, _ = self._values(blocks, FUSED, filtered=False)
             keep &= tsdf.abs() <= max_abs_tsdf_m
         return WeightCloud(centres[keep].numpy(), blocks["alpha"][keep].numpy().astype(np.float32),
                            weights[keep].numpy().astype(np.float32))
 
-    def invalidate_alpha(self) -> None:
-        """The weighting net changed (new weights): the next update re-evaluates alpha everywhere."""
+    def warm_up(self) -> None:
+        """Compile (or load from numba's cache) every kernel on a small synthetic frame per sensor,
+        then forget it: the first real frame and update then run at full speed."""
+        size = 4 * self.config.border_px + 32
+        K = np.array([[size / 2, 0, (size - 1) / 2], [0, size / 2, (size - 1) / 2], [0, 0, 1]], np.float64)
+        depth = np.full((size, size), 0.5 * (self.config.depth_min_m[0] + self.config.depth_max_m[0]), np.float32)
+        rgb = np.full((size, size, 3), 128, np.uint8)
+        for sensor in self.config.sensors:
+            self.integrate(sensor, depth, K, np.eye(4), rgb)
+        self.update()
+        self.extract_mesh(self.config.sensors[0])
+        self.reset()
+        self._cleared = False
+
+    def networks_changed(self) -> None:
+        """The networks' weights were changed in place: the next update re-evaluates alpha everywhere."""
         with self._data_lock:
             self._stale[: self.grid.n_blocks] = 2
 
@@ -357,6 +403,8 @@ class SenFuNet:
     def _check_which(self, which: str) -> None:
         if which not in (FUSED, TSDF_FUSION, *self.config.sensors):
             raise InputError(f"unknown mesh '{which}'; choose {FUSED}, {TSDF_FUSION} or one of {list(self.config.sensors)}")
+        if which == TSDF_FUSION and not self.config.tsdf_fusion:
+            raise InputError("this engine keeps no TSDF Fusion baseline; create it with EngineConfig(tsdf_fusion=True)")
 
     def _reset_pending(self) -> None:
         # per block, as long as the grid's capacity (see _grow_flags)
@@ -381,16 +429,21 @@ class SenFuNet:
             self._stale_since = np.concatenate([self._stale_since, np.zeros(grow, np.int64)])
             self._mesh_pending = np.concatenate([self._mesh_pending, np.zeros(grow, bool)])
 
-    def _pixel_features(self, s: int, depth: torch.Tensor, rgb: np.ndarray | None) -> torch.Tensor:
-        """5 x H x W features of one frame."""
+    def _pixel_features(self, s: int, depth_m: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:
+        """5 x H x W features of one frame (in the feature worker thread)."""
+        start = time.perf_counter()
         net = self.feature_nets[s]
+        depth = torch.from_numpy(depth_m).to(self.device)
         rgb01 = None
         if net.uses_rgb:
             if rgb is None:
                 rgb01 = torch.zeros((1, 3, *depth.shape), device=self.device)
             else:
                 rgb01 = torch.from_numpy(rgb).to(self.device).permute(2, 0, 1).unsqueeze(0).float() / 255.0
-        return net(depth.view(1, 1, *depth.shape), rgb01)[0]
+        with torch.inference_mode():
+            features = net(depth.view(1, 1, *depth.shape), rgb01)[0].cpu().numpy()
+        self._timed(feature_net=time.perf_counter() - start)
+        return features
 
     def _timed(self, **stages: float) -> None:
         self.timings_s.update(stages)
@@ -406,8 +459,8 @@ class SenFuNet:
         observed or sign-changed voxels, then drifted ones; oldest first within each level. With a
         budget (seconds), stop after the batch that exhausts it: the rest stays stale for later."""
         cfg = self.config
+        self._schedule_alpha()
         with self._data_lock:
-            self._schedule_alpha()
             stale = np.flatnonzero(self._stale[: self.grid.n_blocks])
             order = stale[np.lexsort((self._stale_since[stale], -self._stale[stale]))]
         start = time.perf_counter()
@@ -416,12 +469,13 @@ class SenFuNet:
             if budget_s is not None and time.perf_counter() - start > budget_s:
                 break
             batch = order[first:first + cfg.alpha_batch_blocks]
-            with self._data_lock:
-                grid = self.grid
-                neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, batch)
-                windows = weighting_windows(neighbours, *self._views("feat0", "weight0", "feat1", "weight1"))
+            grid = self.grid
+            neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, batch)
+            windows = weighting_windows(neighbours, *self._views("feat0", "weight0", "feat1", "weight1"))
             x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x 12 x 12^3, channels last
-            alpha = self.weighting_net(x, pad=False).reshape(len(batch), -1).cpu().numpy()
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.alpha_dtype == "bfloat16"):
+                alpha = self.weighting_net(x, pad=False)
+            alpha = alpha.float().reshape(len(batch), -1).cpu().numpy()
             with self._data_lock:  # every voxel of a block is evaluated: its alpha is up to date
                 self.grid.pools["alpha"].numpy()[batch] = alpha
                 self._stale[batch] = 0
@@ -433,26 +487,47 @@ class SenFuNet:
         self.counters["alpha_backlog_blocks"] = len(order) - done
 
     def _schedule_alpha(self) -> None:
-        """Turn the drift of the blocks integrated since the last call into stale blocks: those
-        with a voxel within 2 of a drifted one (see `alpha.stale_levels`). Data lock held."""
+        """Turn the drift of the blocks integrated since the last call into stale blocks: the
+        blocks it reaches that hold voxels alpha matters for (see `alpha`)."""
         cfg = self.config
-        changed = np.flatnonzero(self._alpha_pending[: self.grid.n_blocks])
-        if len(changed) == 0:
-            return
-        self._alpha_pending[changed] = False
         grid = self.grid
+        with self._data_lock:  # atomic with integration: its drift is either taken now or next time
+            changed = np.flatnonzero(self._alpha_pending[: grid.n_blocks])
+            if len(changed) == 0:
+                return
+            self._alpha_pending[changed] = False
+            self._mesh_pending[changed] = True  # the TSDF changed here, whatever alpha does
+            reach = take_drift(changed, self._views("drift")[0], cfg.alpha_tolerance)  # B x 27
         around = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, changed)
-        candidates = np.unique(around[around >= 0])
+        reached = (around >= 0) & (reach > 0)
+        candidates, first = np.unique(around[reached], return_inverse=True)
+        levels = np.zeros(len(candidates), np.int8)
+        np.maximum.at(levels, first, reach[reached])
         neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, candidates)
-        levels = stale_levels(neighbours, *self._views("drift", "tsdf0", "weight0", "tsdf1", "weight1"),
-                              cfg.alpha_tolerance, MODES[cfg.alpha_voxels])
-        consume_drift(changed, self._views("drift")[0], cfg.alpha_tolerance)
-        self._mesh_pending[changed] = True  # the TSDF changed here, whatever alpha does
-        self._schedules += 1
-        levels[(levels > 0) & ~self._evaluated[candidates]] = 3  # shows the 0.5 placeholder: first
-        newly = candidates[(levels > 0) & (self._stale[candidates] == 0)]
-        self._stale_since[newly] = self._schedules
-        self._stale[candidates] = np.maximum(self._stale[candidates], levels)
+        levels[~holds_targets(neighbours, *self._views("tsdf0", "weight0", "tsdf1", "weight1"),
+                              MODES[cfg.alpha_voxels])] = 0
+        with self._data_lock:
+            self._schedules += 1
+            levels[(levels > 0) & ~self._evaluated[candidates]] = 3  # alpha NaN there: first
+            newly = candidates[(levels > 0) & (self._stale[candidates] == 0)]
+            self._stale_since[newly] = self._schedules
+            self._stale[candidates] = np.maximum(self._stale[candidates], levels)
+
+    def _block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
+        """Fused, filtered meshes of the given blocks (coords: their block keys); blocks without
+        triangles are left out."""
+        parts = []
+        for start in range(0, len(slots), self.config.mesh_batch_blocks):
+            batch = slots[start:start + self.config.mesh_batch_blocks]
+            tris = self._mesh_batch(batch, FUSED, filtered=True)
+            v_start, f_start = tris.vertex_offsets, tris.face_offsets
+            # the whole batch at once; blocks without triangles have empty ranges
+            whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
+                            self.config.voxel_size_m, tris.vertex_values)
+            keep = np.flatnonzero(np.diff(f_start) > 0)
+            parts.append(BlockMeshes(coords[start:start + len(batch)][keep], whole.vertices, whole.colors,
+                                     whole.faces, _compact_offsets(v_start, keep), _compact_offsets(f_start, keep)))
+        return BlockMeshes.concatenate(parts)
 
     def _take_mesh_pending(self) -> np.ndarray:
         """Blocks to re-mesh: those whose cells read a changed block (call with the data lock held)."""
@@ -488,19 +563,18 @@ class SenFuNet:
         return blocks[f"tsdf{s}"], blocks[f"weight{s}"] > 0
 
     def _mesh_batch(self, slots: np.ndarray, which: str, filtered: bool):
-        """Marching cubes over the given blocks of `which` (reads the grid under the data lock)."""
-        with self._data_lock:
-            grid = self.grid
-            neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
-            if which == FUSED:
-                mode, names = WINDOW_FUSED, ("tsdf0", "weight0", "tsdf1", "weight1", "alpha")
-            else:
-                mode = WINDOW_BASE if which == TSDF_FUSION else WINDOW_SENSOR
-                tsdf, weight = self._channels(which)
-                names = (tsdf, weight, tsdf, weight, "alpha")
-            t0 = time.perf_counter()
-            tsdf, observed, alpha = mesh_windows(neighbours, mode, filtered, *self._views(*names))
-            origins = grid.coords[slots].numpy() * 8
+        """Marching cubes over the given blocks of `which` (reads the grid without the data lock)."""
+        grid = self.grid
+        t0 = time.perf_counter()
+        neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
+        if which == FUSED:
+            mode, names = WINDOW_FUSED, ("tsdf0", "weight0", "tsdf1", "weight1", "alpha")
+        else:
+            mode = WINDOW_BASE if which == TSDF_FUSION else WINDOW_SENSOR
+            tsdf, weight = self._channels(which)
+            names = (tsdf, weight, tsdf, weight, "alpha")
+        tsdf, observed, alpha = mesh_windows(neighbours, mode, filtered, *self._views(*names))
+        origins = grid.coords[slots].numpy() * 8
         t1 = time.perf_counter()
         triangles = marching_cubes_blocks(tsdf, observed, origins, alpha if which == FUSED else None)
         self._timed(fusion=t1 - t0, marching_cubes=time.perf_counter() - t1)

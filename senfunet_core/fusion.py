@@ -3,7 +3,9 @@
 Sets: C12 = both sensors observed the voxel (W1 > 0 and W2 > 0), C1 = only sensor 1, C2 = only
 sensor 2. Fused TSDF: alpha*V1 + (1-alpha)*V2 on C12, V1 on C1, V2 on C2. The filter drops a
 C1 voxel when alpha < 0.5 and a C2 voxel when alpha > 0.5 (its weight becomes 0: it leaves the
-mesh and the metrics).
+mesh and the metrics). The live engine leaves alpha NaN where the weighting net has not run yet
+(see engine.update's budget): those voxels count as alpha 0.5 on C12, and the filter holds their
+C1 and C2 voxels back until the net has judged them.
 """
 from __future__ import annotations
 
@@ -32,13 +34,16 @@ def voxel_sets(weight_1: torch.Tensor, weight_2: torch.Tensor) -> tuple[torch.Te
 
 def fuse(tsdf_1: torch.Tensor, weight_1: torch.Tensor, tsdf_2: torch.Tensor, weight_2: torch.Tensor,
          alpha: torch.Tensor, apply_filter: bool = True) -> Fused:
-    """Fuse two sensors' TSDFs with the sensor weighting alpha (all tensors of one shape)."""
+    """Fuse two sensors' TSDFs with the sensor weighting alpha (all tensors of one shape).
+    Alpha NaN means "not evaluated yet": C12 is averaged, and the filter drops C1 and C2."""
     c12, c1, c2 = voxel_sets(weight_1, weight_2)
-    blended = alpha * tsdf_1 + (1 - alpha) * tsdf_2
+    unknown = torch.isnan(alpha)
+    a = torch.where(unknown, torch.full_like(alpha, 0.5), alpha)
+    blended = a * tsdf_1 + (1 - a) * tsdf_2
     tsdf = torch.where(c12, blended, torch.where(c1, tsdf_1, torch.where(c2, tsdf_2, torch.zeros_like(tsdf_1))))
     observed = c12 | c1 | c2
     if apply_filter:
-        observed = observed & ~(c1 & (alpha < 0.5)) & ~(c2 & (alpha > 0.5))
+        observed = observed & ~(c1 & ((a < 0.5) | unknown)) & ~(c2 & ((a > 0.5) | unknown))
     return Fused(tsdf, observed, c12, c1, c2)
 
 
@@ -53,9 +58,9 @@ def mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, tsdf_1:
     """Per block, the 9^3 samples marching cubes reads (its 8^3 voxels and one layer of its +x, +y,
     +z neighbours): TSDF, observed mask and alpha, each B x 9 x 9 x 9.
 
-    which: WINDOW_FUSED (eq. 1, with the outlier filter when apply_filter), WINDOW_SENSOR or
-    WINDOW_BASE (tsdf_1/weight_1 hold that surface's channels; the rest is ignored). Weights are
-    float16 bits (int16)."""
+    which: WINDOW_FUSED (eq. 1, with the outlier filter when apply_filter; alpha NaN as in `fuse`,
+    shown as 0.5), WINDOW_SENSOR or WINDOW_BASE (tsdf_1/weight_1 hold that surface's channels; the
+    rest is ignored). Weights are float16 bits (int16)."""
     n_blocks = neighbours.shape[0]
     tsdf = np.zeros((n_blocks, 9, 9, 9), np.float32)
     observed = np.zeros((n_blocks, 9, 9, 9), np.bool_)
@@ -76,14 +81,17 @@ def mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, tsdf_1:
                         continue
                     seen_2 = f16_to_f32(weight_2[v]) > 0
                     a = alpha[v]
+                    unknown = a != a  # NaN: not evaluated yet
+                    if unknown:
+                        a = np.float32(0.5)
                     alpha_out[b, x, y, z] = a
                     if seen_1 and seen_2:
                         tsdf[b, x, y, z] = a * tsdf_1[v] + (1.0 - a) * tsdf_2[v]
                         observed[b, x, y, z] = True
                     elif seen_1:
                         tsdf[b, x, y, z] = tsdf_1[v]
-                        observed[b, x, y, z] = not (apply_filter and a < 0.5)
+                        observed[b, x, y, z] = not (apply_filter and (a < 0.5 or unknown))
                     elif seen_2:
                         tsdf[b, x, y, z] = tsdf_2[v]
-                        observed[b, x, y, z] = not (apply_filter and a > 0.5)
+                        observed[b, x, y, z] = not (apply_filter and (a > 0.5 or unknown))
     return tsdf, observed, alpha_out

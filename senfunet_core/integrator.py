@@ -9,7 +9,9 @@ metres; `K` is the pinhole matrix of the depth image; depth is z-depth in metres
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
+from typing import Callable
 
 import numba
 import numpy as np
@@ -240,24 +242,14 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
     return n_pixels, n_touched, True
 
 
-_F16_OF_COUNT = np.arange(2049, dtype=np.float16).view(np.int16)  # weight counters 0..2048 as float16 bits
+# weight counters are integers 0..2048 (w_max): their float16 bits and tanh (a weighting-net input) by table
+_F16_OF_COUNT = np.arange(2049, dtype=np.float16).view(np.int16)
+TANH_OF_COUNT = np.tanh(np.arange(2049, dtype=np.float64)).astype(np.float32)
 
 
 @numba.njit(cache=True, nogil=True)
-def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample_touched: np.ndarray,
-                  sample_tsdf_m: np.ndarray, pixel_index: np.ndarray, pixel_features: np.ndarray,
-                  touched_slots: np.ndarray, tsdf: np.ndarray, weight: np.ndarray, features: np.ndarray,
-                  tsdf_base: np.ndarray, weight_base: np.ndarray, drift: np.ndarray, w_max: float) -> int:
-    """Per voxel: the mean of this frame's samples (TSDF value and the pixel's features), then the
-    running averages of the sensor's TSDF, weight and features and of the TSDF Fusion baseline.
-    drift[voxel] accumulates the largest change of a weighting-net input (features, tanh(weight))
-    or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
-    Weights, features and drift are float16 bit patterns (int16); pixel_features: (H*W) x C float32.
-    Returns the number of voxels updated."""
-    n_samples = sample_tsdf_m.shape[0]
-    n_channels = pixel_features.shape[1]
-    total = n_pixels * n_samples
-    # counting sort of the samples by touched block
+def _group_by_block(n_touched: int, sample_touched: np.ndarray, total: int) -> tuple[np.ndarray, np.ndarray]:
+    """Counting sort of the samples by touched block: (start (n_touched + 1), order (total))."""
     start = np.zeros(n_touched + 1, np.int64)
     for n in range(total):
         start[sample_touched[n] + 1] += 1
@@ -269,11 +261,22 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
         b = sample_touched[n]
         order[fill[b]] = n
         fill[b] += 1
-    count = np.zeros(512, np.int64)
-    sum_tsdf = np.zeros(512, np.float32)
-    sum_features = np.zeros((512, n_channels), np.float32)
+    return start, order
+
+
+@numba.njit(cache=True, nogil=True)
+def _update_blocks(start: np.ndarray, order: np.ndarray, sample_flat: np.ndarray, sample_tsdf_m: np.ndarray,
+                   pixel_index: np.ndarray, pixel_features: np.ndarray, touched_slots: np.ndarray, tsdf: np.ndarray,
+                   weight: np.ndarray, features: np.ndarray, tsdf_base: np.ndarray, weight_base: np.ndarray,
+                   drift: np.ndarray, w_max: float) -> int:
+    """update_voxels' per-block work (blocks are independent of each other)."""
+    n_samples = sample_tsdf_m.shape[0]
+    n_channels = pixel_features.shape[1]
     updated = 0
-    for b in range(n_touched):
+    for b in range(start.shape[0] - 1):
+        count = np.zeros(512, np.int64)
+        sum_tsdf = np.empty(512, np.float32)
+        sum_features = np.empty((512, n_channels), np.float32)
         base_index = touched_slots[b] * 512
         for m in range(start[b], start[b + 1]):
             n = order[m]
@@ -290,7 +293,6 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
             cnt = count[local]
             if cnt == 0:
                 continue
-            count[local] = 0
             updated += 1
             voxel = base_index + local
             inv_count = np.float32(1.0) / np.float32(cnt)
@@ -311,17 +313,34 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
             tsdf[voxel] = new_tsdf
             new_weight = min(old_weight + np.float32(1.0), w_max)
             weight[voxel] = _F16_OF_COUNT[int(new_weight)]
-            if old_weight < 10.0:  # beyond, tanh(W) changes by less than 1e-8 per observation
-                change = max(change, abs(np.tanh(new_weight) - np.tanh(old_weight)))
+            change = max(change, TANH_OF_COUNT[int(new_weight)] - TANH_OF_COUNT[int(old_weight)])
             change = max(change, abs(new_tsdf - old_tsdf))
             if old_weight == 0.0 or (new_tsdf < 0.0) != (old_tsdf < 0.0):
                 change = np.inf  # the voxel may join the observed or the surface set: always re-evaluate
             drift[voxel] = f32_to_f16(f16_to_f32(drift[voxel]) + change)
-            base_weight = f16_to_f32(weight_base[voxel])
-            base_add = np.float32(1.0) / (base_weight + np.float32(1.0))
-            tsdf_base[voxel] = (np.float32(1.0) - base_add) * tsdf_base[voxel] + base_add * mean_tsdf
-            weight_base[voxel] = _F16_OF_COUNT[int(min(base_weight + np.float32(1.0), w_max))]
+            if tsdf_base.shape[0]:
+                base_weight = f16_to_f32(weight_base[voxel])
+                base_add = np.float32(1.0) / (base_weight + np.float32(1.0))
+                tsdf_base[voxel] = (np.float32(1.0) - base_add) * tsdf_base[voxel] + base_add * mean_tsdf
+                weight_base[voxel] = _F16_OF_COUNT[int(min(base_weight + np.float32(1.0), w_max))]
     return updated
+
+
+@numba.njit(cache=True, nogil=True)
+def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample_touched: np.ndarray,
+                  sample_tsdf_m: np.ndarray, pixel_index: np.ndarray, pixel_features: np.ndarray,
+                  touched_slots: np.ndarray, tsdf: np.ndarray, weight: np.ndarray, features: np.ndarray,
+                  tsdf_base: np.ndarray, weight_base: np.ndarray, drift: np.ndarray, w_max: float) -> int:
+    """Per voxel: the mean of this frame's samples (TSDF value and the pixel's features), then the
+    running averages of the sensor's TSDF, weight and features and of the TSDF Fusion baseline
+    (skipped when tsdf_base is empty).
+    drift[voxel] accumulates the largest change of a weighting-net input (features, tanh(weight))
+    or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
+    Weights, features and drift are float16 bit patterns (int16); pixel_features: (H*W) x C float32.
+    Returns the number of voxels updated."""
+    start, order = _group_by_block(n_touched, sample_touched, n_pixels * sample_tsdf_m.shape[0])
+    return _update_blocks(start, order, sample_flat, sample_tsdf_m, pixel_index, pixel_features, touched_slots, tsdf,
+                          weight, features, tsdf_base, weight_base, drift, w_max)
 
 
 @dataclass
@@ -330,17 +349,21 @@ class FrameUpdate:
 
     voxels_updated: int
     touched_slots: np.ndarray  # int64 slots of the blocks the frame's samples touched
+    waited_s: float = 0.0  # time spent waiting for pixel_features()
 
 
-def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.ndarray, K: np.ndarray,
-                    T_world_camera: np.ndarray, depth_range_m: tuple[float, float], config: IntegratorConfig,
-                    channels: tuple[str, str, str], drift: str = "drift") -> FrameUpdate:
+def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.ndarray | Callable[[], np.ndarray],
+                    K: np.ndarray, T_world_camera: np.ndarray, depth_range_m: tuple[float, float],
+                    config: IntegratorConfig, channels: tuple[str, str, str], drift: str = "drift") -> FrameUpdate:
     """Integrate one frame into `grid` with the compiled kernels.
 
     depth_m: H x W float32 (invalid pixels anything outside depth_range_m, NaN, inf);
-    pixel_features: C x H x W float32; channels: the sensor's (tsdf, weight, feature) pool names;
-    the TSDF Fusion baseline goes to "tsdf_base"/"weight_base". Raises InputError (grid untouched
-    but for empty blocks that may have been allocated) when samples fall outside the key range.
+    pixel_features: C x H x W float32, or a callable returning them, called once the samples are
+    located (so a feature net running in another thread overlaps that first kernel);
+    channels: the sensor's (tsdf, weight, feature) pool names;
+    the TSDF Fusion baseline goes to "tsdf_base"/"weight_base" when the grid has those channels.
+    Raises InputError (grid untouched but for empty blocks that may have been allocated) when
+    samples fall outside the key range.
     """
     h, w = depth_m.shape
     offsets_m = config.sample_offsets().numpy().astype(np.float64) * config.step_m
@@ -366,10 +389,16 @@ def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.nda
             raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
         grid.reserve(max(int(grid.capacity * grid.growth) + 1, grid.n_blocks + 1024))
     tsdf, weight, feature = (kernel_view(grid.pools[name]) for name in channels)
+    waited_s = time.perf_counter()
+    if callable(pixel_features):
+        pixel_features = pixel_features()
+    waited_s = time.perf_counter() - waited_s
     features = np.ascontiguousarray(pixel_features.reshape(pixel_features.shape[0], -1).T, np.float32)  # HW x C
+    if "tsdf_base" in grid.pools:
+        base = kernel_view(grid.pools["tsdf_base"]).reshape(-1), kernel_view(grid.pools["weight_base"]).reshape(-1)
+    else:
+        base = np.zeros(0, np.float32), np.zeros(0, np.int16)
     updated = update_voxels(n_pixels, n_touched, sample_flat, sample_touched, -offsets_m, pixel_index, features,
-                            touched_slots, tsdf.reshape(-1), weight.reshape(-1), feature.reshape(-1),
-                            kernel_view(grid.pools["tsdf_base"]).reshape(-1),
-                            kernel_view(grid.pools["weight_base"]).reshape(-1),
+                            touched_slots, tsdf.reshape(-1), weight.reshape(-1), feature.reshape(-1), *base,
                             kernel_view(grid.pools[drift]).reshape(-1), config.w_max)
-    return FrameUpdate(int(updated), touched_slots[:n_touched].copy())
+    return FrameUpdate(int(updated), touched_slots[:n_touched].copy(), waited_s)

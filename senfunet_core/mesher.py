@@ -512,3 +512,58 @@ def alpha_colors(alpha: np.ndarray) -> np.ndarray:
 def to_mesh(vertices_vox: np.ndarray, faces: np.ndarray, voxel_size_m: float, vertex_alpha: np.ndarray | None) -> Mesh:
     colors = None if vertex_alpha is None else alpha_colors(vertex_alpha)
     return Mesh((vertices_vox * voxel_size_m).astype(np.float32), faces.astype(np.int32), colors)
+
+
+@dataclass
+class BlockMeshes:
+    """The meshes of many blocks in shared arrays, block after block (one marching-cubes batch,
+    or several concatenated): cheap to hand around and to encode, a `Mesh` per block on demand."""
+
+    keys: np.ndarray  # B x 3 int64 block coordinates
+    vertices: np.ndarray  # V x 3 float32, metres
+    colors: np.ndarray  # V x 3 float32 RGB in 0..1
+    faces: np.ndarray  # F x 3 int32, indices into the block's own vertices
+    vertex_offsets: np.ndarray  # B+1 int64: block b has vertices[vertex_offsets[b]:vertex_offsets[b+1]]
+    face_offsets: np.ndarray  # B+1 int64
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def mesh(self, b: int) -> Mesh:
+        """Block b's mesh (views of the shared arrays)."""
+        v = slice(self.vertex_offsets[b], self.vertex_offsets[b + 1])
+        return Mesh(self.vertices[v], self.faces[self.face_offsets[b]:self.face_offsets[b + 1]], self.colors[v])
+
+    def as_dict(self) -> dict[tuple[int, int, int], Mesh]:
+        return {key: self.mesh(b) for b, key in enumerate(map(tuple, self.keys.tolist()))}
+
+    @staticmethod
+    def concatenate(parts: list["BlockMeshes"]) -> "BlockMeshes":
+        if not parts:
+            z = np.zeros((0, 3), np.float32)
+            return BlockMeshes(np.zeros((0, 3), np.int64), z, z.copy(), np.zeros((0, 3), np.int32),
+                               np.zeros(1, np.int64), np.zeros(1, np.int64))
+        if len(parts) == 1:
+            return parts[0]
+        v_base = np.cumsum([0] + [p.vertex_offsets[-1] for p in parts[:-1]])
+        f_base = np.cumsum([0] + [p.face_offsets[-1] for p in parts[:-1]])
+        return BlockMeshes(
+            np.concatenate([p.keys for p in parts]), np.concatenate([p.vertices for p in parts]),
+            np.concatenate([p.colors for p in parts]), np.concatenate([p.faces for p in parts]),
+            np.concatenate([[0]] + [p.vertex_offsets[1:] + b for p, b in zip(parts, v_base)]).astype(np.int64),
+            np.concatenate([[0]] + [p.face_offsets[1:] + b for p, b in zip(parts, f_base)]).astype(np.int64))
+
+    @staticmethod
+    def from_meshes(meshes: "dict[tuple[int, int, int], Mesh]") -> "BlockMeshes":
+        """Meshes per block key -> one BlockMeshes, in key order (white where a mesh has no colours)."""
+        keys = sorted(meshes)
+        parts = [meshes[k] for k in keys]
+        colors = [p.colors if p.colors is not None and len(p.colors) == len(p.vertices)
+                  else np.ones((len(p.vertices), 3), np.float32) for p in parts]
+        return BlockMeshes(
+            np.array(keys, np.int64).reshape(-1, 3),
+            np.concatenate([np.asarray(p.vertices, np.float32) for p in parts]) if parts else np.zeros((0, 3), np.float32),
+            np.concatenate(colors).astype(np.float32) if parts else np.zeros((0, 3), np.float32),
+            np.concatenate([np.asarray(p.faces) for p in parts]).astype(np.int32) if parts else np.zeros((0, 3), np.int32),
+            np.cumsum([0] + [len(p.vertices) for p in parts], dtype=np.int64),
+            np.cumsum([0] + [len(p.faces) for p in parts], dtype=np.int64))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import struct
 from typing import Any, Iterable, Mapping, Sequence
 
+import numba
 import numpy as np
 
 __all__ = [
@@ -331,69 +332,126 @@ def block_marker_id(key: Sequence[int]) -> tuple[str, int]:
     return ns, marker_id
 
 
-def _marker(
-    w: _CdrWriter,
-    *,
-    stamp_ns: int,
-    frame_id: str,
-    ns: str,
-    marker_id: int,
-    action: int,
-    points: np.ndarray | None = None,
-    colors: np.ndarray | None = None,
-) -> None:
-    """One visualization_msgs/Marker (Jazzy field order)."""
-    w.header(stamp_ns, frame_id)
-    w.string(ns)
-    w.i32(marker_id)
-    w.i32(MARKER_TRIANGLE_LIST)
-    w.i32(action)
-    w.f64s(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)  # pose: identity, vertices are in the fixed frame
-    w.f64s(1.0, 1.0, 1.0)  # scale: 1, or RViz scales the triangles
-    w.f32s(1.0, 1.0, 1.0, 1.0)  # color: used only where no per-vertex colour is given
-    w.i32(0)  # lifetime: forever
-    w.u32(0)
-    w.u8(0)  # frame_locked
-    n = 0 if points is None else int(points.shape[0])
-    w.u32(n)
-    if n:
-        w.raw(np.ascontiguousarray(points, dtype="<f8").tobytes(), 8)  # Nx3 geometry_msgs/Point
-    if colors is None or n == 0:
-        w.u32(0)
-    else:
-        w.u32(n)
-        w.raw(np.ascontiguousarray(colors, dtype="<f4").tobytes(), 4)  # Nx4 std_msgs/ColorRGBA
-    w.string("")  # texture_resource
-    w.header(0, "")  # texture: sensor_msgs/CompressedImage
-    w.string("")
-    w.u32(0)
-    w.u32(0)  # uv_coordinates
-    w.string("")  # text
-    w.string("")  # mesh_resource
-    w.string("")  # mesh_file.filename
-    w.u32(0)  # mesh_file.data
-    w.u8(0)  # mesh_use_embedded_materials
+@numba.njit(inline="always")
+def _put(buf: np.ndarray, offset: int, value: int, size: int, write: bool) -> int:
+    """Little-endian unsigned integer of `size` bytes at `offset`, aligned to `size`."""
+    offset += -offset % size
+    if write:
+        for i in range(size):
+            buf[offset + i] = (value >> (8 * i)) & 0xFF
+    return offset + size
 
 
-def _triangle_soup(mesh: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Indexed mesh -> (3M, 3) float64 triangle corners and (3M, 4) float32 RGBA colours."""
-    vertices = np.asarray(mesh.vertices)
-    faces = np.asarray(mesh.faces)
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"mesh needs Nx3 vertices and Mx3 faces, got {vertices.shape} and {faces.shape}")
-    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
-        raise ValueError("mesh faces index vertices that do not exist; the mesh is corrupt")
-    corners = faces.reshape(-1)
-    points = vertices[corners].astype(np.float64)
-    rgba = np.ones((corners.size, 4), dtype=np.float32)
-    colors = getattr(mesh, "colors", None)
-    if colors is not None and len(colors) == len(vertices):
-        rgba[:, :3] = np.asarray(colors, dtype=np.float32)[corners]
-    return points, rgba
+@numba.njit(inline="always")
+def _put_bytes(buf: np.ndarray, offset: int, data: np.ndarray, start: int, end: int, write: bool) -> int:
+    """A CDR string: length (with the NUL) and the bytes data[start:end], then NUL."""
+    offset = _put(buf, offset, end - start + 1, 4, write)
+    if write:
+        buf[offset:offset + end - start] = data[start:end]
+        buf[offset + end - start] = 0
+    return offset + end - start + 1
+
+
+@numba.njit(inline="always")
+def _put_f64(buf64: np.ndarray, buf: np.ndarray, offset: int, value: float, write: bool) -> int:
+    offset += -offset % 8
+    if write:
+        buf64[0] = value
+        buf[offset:offset + 8] = buf64.view(np.uint8)
+    return offset + 8
+
+
+@numba.njit(inline="always")
+def _put_f32(buf32: np.ndarray, buf: np.ndarray, offset: int, value: float, write: bool) -> int:
+    offset += -offset % 4
+    if write:
+        buf32[0] = value
+        buf[offset:offset + 4] = buf32.view(np.uint8)
+    return offset + 4
+
+
+@numba.njit(cache=True, nogil=True)
+def _encode_markers(buf: np.ndarray, write: bool, sec: int, nanosec: int, frame_id: np.ndarray,
+                    names: np.ndarray, name_start: np.ndarray, ids: np.ndarray, actions: np.ndarray,
+                    vertices: np.ndarray, colors: np.ndarray, faces: np.ndarray, vertex_start: np.ndarray,
+                    face_start: np.ndarray) -> int:
+    """visualization_msgs/MarkerArray (Jazzy field order) into buf (CDR after the 4-byte
+    encapsulation header, so offsets are payload-relative); returns the payload size. With
+    write=False nothing is written: the size only. Marker m has name names[name_start[m]:...],
+    and, if it is an ADD, the triangles faces[face_start[m]:face_start[m+1]] (indices local to
+    its vertices vertices[vertex_start[m]:...], float32 metres, colours RGB float32 0..1)."""
+    b64 = np.zeros(1, np.float64)
+    b32 = np.zeros(1, np.float32)
+    body = buf[4:] if write else buf
+    o = _put(body, 0, ids.shape[0], 4, write)
+    empty = frame_id[:0]
+    for m in range(ids.shape[0]):
+        o = _put(body, o, sec & 0xFFFFFFFF, 4, write)
+        o = _put(body, o, nanosec, 4, write)
+        o = _put_bytes(body, o, frame_id, 0, frame_id.shape[0], write)
+        o = _put_bytes(body, o, names, name_start[m], name_start[m + 1], write)
+        o = _put(body, o, ids[m] & 0xFFFFFFFF, 4, write)
+        o = _put(body, o, 11, 4, write)  # TRIANGLE_LIST
+        o = _put(body, o, actions[m], 4, write)
+        for value in (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0):  # pose (identity), scale 1
+            o = _put_f64(b64, body, o, value, write)
+        for _ in range(4):  # color: used only where no per-vertex colour is given
+            o = _put_f32(b32, body, o, 1.0, write)
+        o = _put(body, o, 0, 4, write)  # lifetime: forever
+        o = _put(body, o, 0, 4, write)
+        o = _put(body, o, 0, 1, write)  # frame_locked
+        n_faces = face_start[m + 1] - face_start[m] if actions[m] == 0 else 0
+        o = _put(body, o, 3 * n_faces, 4, write)  # points: geometry_msgs/Point, float64
+        if n_faces:
+            o += -o % 8
+            if write:
+                points = body[o:o + 72 * n_faces].view(np.float64)
+                for f in range(n_faces):
+                    for corner in range(3):
+                        v = vertex_start[m] + faces[face_start[m] + f, corner]
+                        for axis in range(3):
+                            points[9 * f + 3 * corner + axis] = vertices[v, axis]
+            o += 72 * n_faces
+        o = _put(body, o, 3 * n_faces, 4, write)  # colors: std_msgs/ColorRGBA, float32
+        if n_faces and write:
+            rgba = body[o:o + 48 * n_faces].view(np.float32)
+            for f in range(n_faces):
+                for corner in range(3):
+                    v = vertex_start[m] + faces[face_start[m] + f, corner]
+                    for c in range(3):
+                        rgba[12 * f + 4 * corner + c] = colors[v, c]
+                    rgba[12 * f + 4 * corner + 3] = 1.0
+        o += 48 * n_faces
+        o = _put_bytes(body, o, empty, 0, 0, write)  # texture_resource
+        o = _put(body, o, 0, 4, write)  # texture: sensor_msgs/CompressedImage: stamp
+        o = _put(body, o, 0, 4, write)
+        o = _put_bytes(body, o, empty, 0, 0, write)  # frame_id
+        o = _put_bytes(body, o, empty, 0, 0, write)  # format
+        o = _put(body, o, 0, 4, write)  # data
+        o = _put(body, o, 0, 4, write)  # uv_coordinates
+        o = _put_bytes(body, o, empty, 0, 0, write)  # text
+        o = _put_bytes(body, o, empty, 0, 0, write)  # mesh_resource
+        o = _put_bytes(body, o, empty, 0, 0, write)  # mesh_file.filename
+        o = _put(body, o, 0, 4, write)  # mesh_file.data
+        o = _put(body, o, 0, 1, write)  # mesh_use_embedded_materials
+    return o
+
+
+def _check_meshes(meshes: Any) -> None:
+    """Shapes and face indices of a BlockMeshes-like batch; ValueError saying what is wrong."""
+    if meshes.vertices.ndim != 2 or meshes.vertices.shape[1] != 3 or meshes.faces.ndim != 2 \
+            or meshes.faces.shape[1] != 3 or meshes.colors.shape != meshes.vertices.shape:
+        raise ValueError(f"meshes need Nx3 vertices and colours and Mx3 faces, got {meshes.vertices.shape}, "
+                         f"{meshes.colors.shape} and {meshes.faces.shape}")
+    if len(meshes.faces):
+        block_size = np.diff(meshes.vertex_offsets)
+        per_face = np.repeat(block_size, np.diff(meshes.face_offsets))
+        if meshes.faces.min() < 0 or np.any(meshes.faces.max(axis=1) >= per_face):
+            raise ValueError("mesh faces index vertices that do not exist; the mesh is corrupt")
 
 
 def marker_array_cdr(
-    changed: Mapping[tuple[int, int, int], Any],
+    changed: Mapping[tuple[int, int, int], Any] | Any,
     removed: Iterable[tuple[int, int, int]] = (),
     *,
     stamp_ns: int,
@@ -403,31 +461,42 @@ def marker_array_cdr(
     """visualization_msgs/MarkerArray as CDR bytes: one TRIANGLE_LIST marker per changed block,
     a DELETE marker per removed block, optionally led by a DELETEALL (a full snapshot).
 
-    `changed` maps block keys to meshes with `vertices` (N,3), `faces` (M,3) and optional
-    `colors` (N,3) in 0..1. A block whose mesh has no faces becomes a DELETE.
+    `changed`: block keys -> meshes with `vertices` (N,3), `faces` (M,3) and optional `colors`
+    (N,3) in 0..1 (white without), or a `senfunet_core.mesher.BlockMeshes` batch (the engine's
+    update: encoded without a Python step per block). A block whose mesh has no faces becomes a
+    DELETE. Triangle corners go out as float64 points with RGBA colours, as TRIANGLE_LIST wants.
     """
-    items: list[tuple[tuple[int, int, int], Any]] = []
-    deletes = [tuple(int(v) for v in key) for key in removed]
-    for key, mesh in sorted(changed.items()):  # sorted: the same update gives the same bytes
-        if len(mesh.faces) == 0:
-            deletes.append(key)
-        else:
-            items.append((key, mesh))
-    w = _CdrWriter()
-    w.u32(len(items) + len(deletes) + int(delete_all_first))
-    if delete_all_first:
-        _marker(w, stamp_ns=stamp_ns, frame_id=frame_id, ns="", marker_id=0, action=MARKER_DELETEALL)
-    for key in sorted(set(deletes)):
-        ns, marker_id = block_marker_id(key)
-        _marker(w, stamp_ns=stamp_ns, frame_id=frame_id, ns=ns, marker_id=marker_id, action=MARKER_DELETE)
-    for key, mesh in items:
-        ns, marker_id = block_marker_id(key)
-        points, rgba = _triangle_soup(mesh)
-        _marker(
-            w, stamp_ns=stamp_ns, frame_id=frame_id, ns=ns, marker_id=marker_id,
-            action=MARKER_ADD, points=points, colors=rgba,
-        )
-    return w.getvalue()
+    from senfunet_core.mesher import BlockMeshes
+
+    meshes = changed if isinstance(changed, BlockMeshes) else BlockMeshes.from_meshes(dict(changed))
+    _check_meshes(meshes)
+    has_faces = np.diff(meshes.face_offsets) > 0
+    keys = meshes.keys.tolist()
+    deletes = {tuple(int(v) for v in key) for key in removed}
+    deletes.update(tuple(k) for k, has in zip(keys, has_faces) if not has)
+    markers = [("", 0, MARKER_DELETEALL)] if delete_all_first else []
+    markers += [(*block_marker_id(key), MARKER_DELETE) for key in sorted(deletes)]
+    n_plain = len(markers)
+    markers += [(*block_marker_id(k), MARKER_ADD) for k, has in zip(keys, has_faces) if has]
+    names = [name.encode("utf-8") for name, _, _ in markers]
+    name_start = np.cumsum([0] + [len(n) for n in names], dtype=np.int64)
+    ids = np.array([i for _, i, _ in markers], np.int64)
+    actions = np.array([a for _, _, a in markers], np.int64)
+    # the ADD markers come last and use the kept blocks' ranges; the others get empty ranges
+    keep = np.flatnonzero(has_faces)
+    pad = np.zeros(n_plain, np.int64)
+    vertex_start = np.concatenate([pad, meshes.vertex_offsets[keep], meshes.vertex_offsets[-1:]])
+    face_start = np.concatenate([pad, meshes.face_offsets[keep], meshes.face_offsets[-1:]])
+    sec, nanosec = ns_to_stamp(stamp_ns)
+    args = (sec, nanosec, np.frombuffer(frame_id.encode("utf-8"), np.uint8),
+            np.frombuffer(b"".join(names), np.uint8), name_start, ids, actions,
+            np.ascontiguousarray(meshes.vertices, np.float32), np.ascontiguousarray(meshes.colors, np.float32),
+            np.ascontiguousarray(meshes.faces, np.int64), vertex_start, face_start)
+    size = _encode_markers(np.zeros(0, np.uint8), False, *args)
+    buf = np.zeros(4 + size, np.uint8)
+    buf[1] = 1  # encapsulation: CDR little endian
+    _encode_markers(buf, True, *args)
+    return buf.tobytes()
 
 
 def delete_all_marker_array_cdr(*, stamp_ns: int, frame_id: str) -> bytes:

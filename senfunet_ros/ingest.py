@@ -1,7 +1,8 @@
 """Message handling shared by the live node and bag replay: messages in, ready frames out.
 
-No rclpy Node here (only duck-typed message objects, via `conversions`), and no wall clock:
-every decision depends on message stamps and arrival order alone, so the same message sequence
+No rclpy Node here (only duck-typed message objects, via `conversions`), and no wall clock in any
+decision (frames only carry their arrival time for latency statistics): every decision depends
+on message stamps and arrival order alone, so the same message sequence
 always gives the same frames, live or replayed.
 
 Per sensor:
@@ -33,6 +34,7 @@ from __future__ import annotations
 
 import bisect
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -94,6 +96,7 @@ class Frame:
     rgb: np.ndarray | None  # HxWx3 uint8 or None
     K: np.ndarray  # 3x3 float64 for this depth resolution
     T_world_camera: np.ndarray  # 4x4 float64
+    arrival_s: float = 0.0  # time.monotonic() when its depth image arrived (for latency statistics)
 
 
 @dataclass(frozen=True)
@@ -131,6 +134,9 @@ class _Pending:
     stamp_ns: int
     depth_m: np.ndarray
     K: np.ndarray
+    arrival_s: float  # time.monotonic() when the depth image arrived (statistics only)
+    rgb: np.ndarray | None = None  # set, with T, for a posed frame put back by pop_ready
+    T: np.ndarray | None = None
 
 
 class _SensorState:
@@ -288,7 +294,7 @@ class Ingest:
         if target != (width, height):
             depth_m = conv.resize_depth(depth_m, target)
             K = conv.scale_intrinsics(K, (width, height), target)
-        return None, _Pending(stamp_ns, depth_m, K)
+        return None, _Pending(stamp_ns, depth_m, K, time.monotonic())
 
     def _working_size(self, native: tuple[int, int]) -> tuple[int, int]:
         width, height = self.config.working_size
@@ -339,8 +345,10 @@ class Ingest:
 
     # -- outputs --------------------------------------------------------------------------
 
-    def pop_ready(self) -> list[Frame | TimeJump]:
-        """Time jumps seen since the last call, then every frame that can be posed, in stamp order.
+    def pop_ready(self, max_frames: int | None = None) -> list[Frame | TimeJump]:
+        """Time jumps seen since the last call, then the frames that can be posed, in stamp order:
+        all of them, or the `max_frames` oldest (the rest stay queued, where a full queue drops the
+        oldest: a consumer that falls behind sees bounded latency, not a growing backlog).
 
         Frames still waiting for a pose (or a colour image) stay queued; frames that waited too
         long are dropped and counted.
@@ -350,8 +358,13 @@ class Ingest:
             frames: list[Frame] = []
             for name, state in self._sensors.items():
                 frames.extend(self._pop_sensor(name, state))
-        order = {name: i for i, name in enumerate(self.config.sensors)}
-        frames.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+            order = {name: i for i, name in enumerate(self.config.sensors)}
+            frames.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+            if max_frames is not None and len(frames) > max_frames:
+                frames, back = frames[:max_frames], frames[max_frames:]
+                for frame in reversed(back):  # back to the front of their queues, newest last
+                    self._sensors[frame.sensor].queue.appendleft(
+                        _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb, frame.T_world_camera))
         return [*jumps, *frames]
 
     def _pop_sensor(self, name: str, state: _SensorState) -> list[Frame]:
@@ -364,6 +377,10 @@ class Ingest:
         while state.queue:
             pending = state.queue[0]
             t = pending.stamp_ns
+            if pending.T is not None:  # posed before, put back by pop_ready(max_frames)
+                state.queue.popleft()
+                out.append(Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s))
+                continue
             waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
             stamps = state.pose_stamps
             i = bisect.bisect_left(stamps, t)
@@ -390,7 +407,7 @@ class Ingest:
                     break
             rgb = self._match_color(state, t, color_tolerance_ns, pending.depth_m.shape)
             state.queue.popleft()
-            out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T))
+            out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
         return out
 
     def _match_color(self, state: _SensorState, t: int, tolerance_ns: int, shape: tuple[int, ...]) -> np.ndarray | None:

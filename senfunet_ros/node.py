@@ -2,9 +2,11 @@
 
 Constructed in one order: parameters, engine, subscriptions, timers, publishers, services.
 Callbacks only hand messages to `Ingest` (bounded queues); the integration timer drains them
-into the engine; the slower mesh timer runs `engine.update()` and publishes the changed blocks.
-Each timer has its own callback group under a MultiThreadedExecutor, and one lock guards the
-engine. No callback raises: failures are counted and logged, throttled per cause.
+into the engine, oldest first; the slower mesh timer runs `engine.update()` (with a time budget
+for the weighting net) and publishes the changed blocks. Each timer has its own callback group
+under a MultiThreadedExecutor, and the engine is thread-safe, so integration and mesh updates
+run at the same time on two cores. No callback raises: failures are counted and logged,
+throttled per cause.
 
 Topics (see ../shared/DESIGN.md, the interface contract):
   in:  /<s>/depth, /<s>/color, /<s>/camera_info, /<s>/pose    (names from parameters)
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any, Callable
 
@@ -39,6 +42,7 @@ __all__ = ["FusionNode", "main"]
 
 _POSE_MSGS = {"pose_stamped": PoseStamped, "odometry": Odometry, "transform_stamped": TransformStamped}
 _WARN_PERIOD_S = 5.0  # one warning per cause per this many seconds
+_INTEGRATE_SLICE_S = 0.5  # an integration tick returns after this long, so the executor stays responsive
 
 # Best effort + volatile subscriptions match both reliable and best-effort publishers (and
 # volatile or transient-local ones); keep-last bounds what piles up if a callback lags.
@@ -46,7 +50,8 @@ _WARN_PERIOD_S = 5.0  # one warning per cause per this many seconds
 # the GIL during a mesh update, and a shallow reader queue then silently overwrites frames.
 _SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=30, reliability=ReliabilityPolicy.BEST_EFFORT,
                          durability=DurabilityPolicy.VOLATILE)
-_POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.BEST_EFFORT,
+# Poses come at ~100 Hz: 1000 is 10 s, so a busy executor that takes them late loses none.
+_POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT,
                        durability=DurabilityPolicy.VOLATILE)
 # The map: reliable and kept for late subscribers. Depth > 1 so a burst (delta then snapshot) is
 # not overwritten before a slow reader acknowledged it.
@@ -59,18 +64,56 @@ _STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=
 
 
 class _Timing:
-    """Last and exponentially averaged duration of one stage, milliseconds."""
+    """Last, exponentially averaged (milliseconds) and summed (seconds) duration of one stage."""
 
     def __init__(self) -> None:
         self.last_ms = 0.0
         self.mean_ms = 0.0
         self.count = 0
+        self.total_s = 0.0
 
     def add(self, seconds: float) -> None:
         ms = seconds * 1e3
         self.last_ms = ms
         self.mean_ms = ms if self.count == 0 else 0.9 * self.mean_ms + 0.1 * ms
         self.count += 1
+        self.total_s += seconds
+
+
+class LatencyStats:
+    """Frame-to-mesh latency (arrival of a depth image -> publication of the first mesh update
+    that began after it was integrated) and the interval between mesh updates, in seconds."""
+
+    def __init__(self, history: int = 1000) -> None:
+        self._lock = threading.Lock()
+        self._arrivals: list[float] = []  # frames integrated since the last take()
+        self.updates: deque[tuple[float, float, float, int]] = deque(maxlen=history)  # (time, max, mean, frames)
+
+    def integrated(self, arrival_s: float) -> None:
+        with self._lock:
+            if len(self._arrivals) < 100_000:
+                self._arrivals.append(arrival_s)
+
+    def take(self) -> list[float]:
+        with self._lock:
+            taken, self._arrivals = self._arrivals, []
+        return taken
+
+    def published(self, arrivals: list[float]) -> None:
+        now = time.monotonic()
+        if arrivals:
+            self.updates.append((now, now - min(arrivals), now - sum(arrivals) / len(arrivals), len(arrivals)))
+        else:
+            self.updates.append((now, 0.0, 0.0, 0))
+
+    def summary(self) -> dict[str, float]:
+        """Last and worst latency over the kept history, and the longest interval between updates."""
+        updates = list(self.updates)
+        with_frames = [u for u in updates if u[3]]
+        intervals = [b[0] - a[0] for a, b in zip(updates, updates[1:])]
+        return {"latency_last_s": with_frames[-1][1] if with_frames else 0.0,
+                "latency_max_s": max((u[1] for u in with_frames), default=0.0),
+                "update_interval_max_s": max(intervals, default=0.0)}
 
 
 class FusionNode(Node):
@@ -83,8 +126,7 @@ class FusionNode(Node):
         # 1. parameters
         self.settings = P.declare(self)
         self._log_parameters()
-        # 2. engine and ingest
-        self._engine_lock = threading.Lock()
+        # 2. engine and ingest (the engine is thread-safe: integration and mesh updates overlap)
         self.engine = self._make_engine()
         s = self.settings
         self.ingest = Ingest(P.ingest_config(self.settings))
@@ -93,10 +135,10 @@ class FusionNode(Node):
         self.frames_failed = 0
         self.time_jumps = 0
         self._last_counters = self.ingest.counters()
-        self._blocks: dict[tuple[int, int, int], Any] = {}  # block key -> Mesh: what subscribers hold
         self._mesh_subscribers = 0
-        self._next_mesh_s = 0.0  # monotonic time before which mesh ticks are skipped
+        self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
         self._mesh_lock = threading.Lock()  # one mesh publication at a time (timer vs. reset service)
+        self.latency = LatencyStats()  # frame arrival -> the mesh that contains it
         # 3. subscriptions: they only enqueue
         # Each subscription has its own mutually exclusive group: streams run in parallel, but one
         # stream's messages never overlap, so they reach Ingest in arrival order.
@@ -155,7 +197,12 @@ class FusionNode(Node):
         weights = P.engine_weights(self.settings)
         if weights is None:
             self.get_logger().warning("parameter weights = 'none': the networks are untrained")
-        return SenFuNet(P.engine_config(self.settings), weights=weights)
+        engine = SenFuNet(P.engine_config(self.settings), weights=weights)
+        start = time.monotonic()
+        engine.warm_up()  # compile the kernels now, not in the first frame's integration
+        conv.marker_array_cdr({}, (), stamp_ns=0, frame_id="")
+        self.get_logger().info(f"engine kernels ready in {time.monotonic() - start:.1f} s")
+        return engine
 
     # -- warnings -------------------------------------------------------------------------------
 
@@ -193,12 +240,19 @@ class FusionNode(Node):
     # -- timers ---------------------------------------------------------------------------------
 
     def _integrate_tick(self) -> None:
+        """Integrate ready frames one at a time, oldest first, for at most _INTEGRATE_SLICE_S (then
+        the timer fires again): frames that arrive meanwhile wait in Ingest's bounded queues."""
         try:
-            for item in self.ingest.pop_ready():
-                if isinstance(item, TimeJump):
-                    self._on_time_jump(item)
-                else:
-                    self._integrate(item)
+            deadline = time.monotonic() + _INTEGRATE_SLICE_S
+            while time.monotonic() < deadline:
+                items = self.ingest.pop_ready(max_frames=1)
+                if not items:
+                    break
+                for item in items:
+                    if isinstance(item, TimeJump):
+                        self._on_time_jump(item)
+                    else:
+                        self._integrate(item)
             self._warn_new_drops()
         except Exception as err:  # never let the timer die
             self._warn(("integrate_tick",), f"integration step failed: {err!r}")
@@ -206,8 +260,7 @@ class FusionNode(Node):
     def _integrate(self, frame: Frame) -> None:
         start = time.perf_counter()
         try:
-            with self._engine_lock:
-                self.engine.integrate(frame.sensor, frame.depth_m, frame.K, frame.T_world_camera, frame.rgb)
+            self.engine.integrate(frame.sensor, frame.depth_m, frame.K, frame.T_world_camera, frame.rgb)
         except Exception as err:  # InputError or worse: this frame is lost, the map is not
             self.frames_failed += 1
             self.ingest.mark_dropped(frame.sensor, "engine_error")
@@ -216,6 +269,7 @@ class FusionNode(Node):
             return
         self.timings["integrate"].add(time.perf_counter() - start)
         self.ingest.mark_integrated(frame.sensor)
+        self.latency.integrated(frame.arrival_s)
         self.latest_stamp_ns = max(self.latest_stamp_ns, frame.stamp_ns)
 
     def _on_time_jump(self, jump: TimeJump) -> None:
@@ -226,60 +280,54 @@ class FusionNode(Node):
             f"(a bag restarting?); queued frames flushed, map {'reset' if action == 'reset' else 'kept'} "
             "(parameter on_time_jump)")
         if action == "reset":
-            with self._engine_lock:
-                self.engine.reset()
+            self.engine.reset()
         self.latest_stamp_ns = jump.to_ns
 
     def _mesh_tick(self) -> None:
-        # Integration comes first: when an update took long, skip ticks so that mesh updates hold
-        # the engine for at most about a third of the time and the frame queues do not grow.
-        if time.monotonic() < self._next_mesh_s:
-            return
         try:
-            start = time.monotonic()
             self.publish_mesh()
-            end = time.monotonic()
-            self._next_mesh_s = end + 2.0 * (end - start)
         except Exception as err:
             self._warn(("mesh_tick",), f"mesh update failed: {err!r}")
 
-    def publish_mesh(self) -> None:
-        """engine.update() -> ~/mesh (changed blocks, or a full snapshot for new subscribers) and ~/weights."""
+    def publish_mesh(self, weights: bool | None = None) -> None:
+        """engine.update() -> ~/mesh (changed blocks, or a full snapshot for new subscribers), and
+        ~/weights when it is due (every 1 / weights_rate_hz s; `weights` forces or skips it) and
+        somebody listens."""
+        s = self.settings
         with self._mesh_lock:
             start = time.perf_counter()
-            want_cloud = self.weights_pub.get_subscription_count() > 0
-            with self._engine_lock:
-                update = self.engine.update()
-                t_update = time.perf_counter()
-                cloud = None
-                if want_cloud:
-                    band = self.settings.weights_band_m
-                    cloud = self.engine.weight_cloud(band if band > 0 else None)
-                stamp_ns = self.latest_stamp_ns
-            t_cloud = time.perf_counter()
+            now = time.monotonic()
+            if weights is None:
+                weights = now >= self._next_weights_s
+            weights = weights and self.weights_pub.get_subscription_count() > 0
+            contained = self.latency.take()  # frames integrated before this update began
+            update = self.engine.update(alpha_budget_s=s.alpha_budget_s or None)
+            stamp_ns = self.latest_stamp_ns
+            t_update = time.perf_counter()
             self.timings["update"].add(t_update - start)
-            if cloud is not None:
-                self.timings["weights"].add(t_cloud - t_update)
-            if update.cleared:
-                self._blocks.clear()
-            for key in update.removed:
-                self._blocks.pop(key, None)
-            self._blocks.update(update.changed)
-            frame_id = self.settings.fixed_frame
+            cloud = None
+            if weights:
+                self._next_weights_s = now + 1.0 / s.weights_rate_hz
+                band = s.weights_band_m
+                # alpha as the budgeted updates left it (NaN: not evaluated yet), not a full refresh
+                cloud = self.engine.weight_cloud(band if band > 0 else None, refresh_alpha=False)
+                self.timings["weights"].add(time.perf_counter() - t_update)
+            t_cloud = time.perf_counter()
+            frame_id = s.fixed_frame
             subscribers = self.mesh_pub.get_subscription_count()
             data = None
             if subscribers > self._mesh_subscribers:
                 # Someone new joined: transient local only holds the last few deltas, so send it all.
-                data = conv.marker_array_cdr(self._blocks, (), stamp_ns=stamp_ns, frame_id=frame_id,
+                data = conv.marker_array_cdr(self.engine.block_meshes(), (), stamp_ns=stamp_ns, frame_id=frame_id,
                                              delete_all_first=True)
-            elif update.cleared or update.changed or update.removed:
-                data = conv.marker_array_cdr(update.changed, update.removed, stamp_ns=stamp_ns, frame_id=frame_id,
+            elif update.cleared or len(update.meshes) or update.removed:
+                data = conv.marker_array_cdr(update.meshes, update.removed, stamp_ns=stamp_ns, frame_id=frame_id,
                                              delete_all_first=update.cleared)
             self._mesh_subscribers = subscribers
             cloud_data = None
             if cloud is not None:
                 cloud_data = conv.point_cloud2_cdr(cloud.positions_m, cloud.alpha, cloud.weights,
-                                                   self.settings.sensor_names, stamp_ns=stamp_ns, frame_id=frame_id)
+                                                   s.sensor_names, stamp_ns=stamp_ns, frame_id=frame_id)
             t_encode = time.perf_counter()
             if data is not None or cloud_data is not None:
                 self.timings["encode"].add(t_encode - t_cloud)
@@ -289,6 +337,7 @@ class FusionNode(Node):
                 self.weights_pub.publish(cloud_data)
             if data is not None or cloud_data is not None:
                 self.timings["publish"].add(time.perf_counter() - t_encode)
+            self.latency.published(contained)
 
     def _status_tick(self) -> None:
         try:
@@ -314,13 +363,15 @@ class FusionNode(Node):
                                                hardware_id=hardware_id, values=values))
         values = [KeyValue(key=f"{stage}_ms", value=f"{t.last_ms:.1f} (mean {t.mean_ms:.1f})")
                   for stage, t in self.timings.items()]
-        values += [KeyValue(key="mesh_blocks", value=str(len(self._blocks))),
+        values += [KeyValue(key=k, value=f"{v:.2f}") for k, v in self.latency.summary().items()]
+        values += [KeyValue(key="alpha_backlog_blocks", value=str(self.engine.counters.get("alpha_backlog_blocks", 0))),
+                   KeyValue(key="mesh_blocks", value=str(self.engine.counters.get("meshed_blocks", 0))),
                    KeyValue(key="time_jumps", value=str(self.time_jumps)),
                    KeyValue(key="frames_failed", value=str(self.frames_failed))]
         values += [KeyValue(key=f"engine.{k}_ms", value=f"{v * 1e3:.1f}")
                    for k, v in dict(getattr(self.engine, "timings_s", {})).items()]
         msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name="senfunet: pipeline",
-                                           message=f"{len(self._blocks)} mesh blocks", hardware_id=hardware_id,
+                                           message=f"{self.engine.counters.get('meshed_blocks', 0)} mesh blocks", hardware_id=hardware_id,
                                            values=values))
         return msg
 
@@ -332,9 +383,10 @@ class FusionNode(Node):
 
         out = Path(output_dir or self.settings.output_dir).expanduser()
         out.mkdir(parents=True, exist_ok=True)
-        names = {"fused": "mesh", **{s: s for s in self.settings.sensor_names}, "tsdf_fusion": "tsdf_fusion"}
-        with self._engine_lock:  # extraction only; files are written without holding up integration
-            meshes = {name: self.engine.extract_mesh(which) for which, name in names.items()}
+        names = {"fused": "mesh", **{s: s for s in self.settings.sensor_names}}
+        if self.settings.tsdf_fusion:
+            names["tsdf_fusion"] = "tsdf_fusion"
+        meshes = {name: self.engine.extract_mesh(which) for which, name in names.items()}
         paths = []
         for name, mesh in meshes.items():
             path = out / f"{name}.ply"
@@ -356,8 +408,7 @@ class FusionNode(Node):
 
     def reset_map(self) -> None:
         """Forget the map and queued frames; subscribers get a DELETEALL right away."""
-        with self._engine_lock:
-            self.engine.reset()
+        self.engine.reset()
         self.ingest.clear_frames()
         self.publish_mesh()
 
@@ -384,6 +435,9 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
 
 def main(args: list[str] | None = None) -> int:
     """`ros2 run senfunet_ros fusion_node [--ros-args ...]`."""
+    from senfunet_ros.dds import use_large_shm_profile
+
+    use_large_shm_profile()  # large mesh messages; set before the participant exists
     rclpy.init(args=args)
     node: FusionNode | None = None
     try:

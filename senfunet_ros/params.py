@@ -40,13 +40,20 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("time_jump_s", 1.0, "a stamp this far behind the previous one of its stream means time jumped back (bag restart)"),
     Param("on_time_jump", "reset", "what a backward time jump does to the map: reset | ignore"),
     Param("integrate_rate_hz", 30.0, "rate of the timer that integrates queued frames"),
-    Param("mesh_rate_hz", 1.0, "rate of mesh and weight-cloud updates"),
+    Param("mesh_rate_hz", 1.0, "rate of mesh updates (alpha, fusion, meshing of the changed blocks)"),
+    Param("alpha_budget_s", 0.5, "seconds per mesh update spent re-evaluating the sensor weighting; blocks left over "
+          "wait for the next update (never-evaluated first, then oldest); 0 = no limit"),
+    Param("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
+    Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
+          "instructions, else float32) | float32 | bfloat16"),
     Param("status_rate_hz", 1.0, "rate of ~/status diagnostics"),
     Param("weights_band_m", 0.02, "~/weights holds voxels with |fused TSDF| at most this (near the surface); 0 = all observed"),
     Param("output_dir", "senfunet_output", "directory ~/save_mesh writes PLY files into"),
     Param("weights", "default", "network weights file; 'default' = the shipped weights, 'none' = untrained"),
     Param("device", "cpu", "torch device: cpu | cuda (falls back to cpu with a warning)"),
     Param("save_on_shutdown", False, "write the PLY files into output_dir when the node stops"),
+    Param("tsdf_fusion", False, "also keep the plain TSDF Fusion baseline (save_mesh adds tsdf_fusion.ply; "
+          "about 15% more integration time and memory)"),
 )
 
 SENSOR_PARAMS: tuple[Param, ...] = (
@@ -128,12 +135,16 @@ def check(values: dict[str, Any]) -> None:
         raise ValueError(f"parameter 'sensors' needs two distinct names, got {sensors}")
     if values["pose_type"] not in POSE_TYPES:
         raise ValueError(f"parameter 'pose_type' = {values['pose_type']!r}; use one of {POSE_TYPES}")
+    if values["alpha_precision"] not in ("auto", "float32", "bfloat16"):
+        raise ValueError(f"parameter 'alpha_precision' = {values['alpha_precision']!r}; use auto, float32 or bfloat16")
     if values["on_time_jump"] not in ON_TIME_JUMP:
         raise ValueError(f"parameter 'on_time_jump' = {values['on_time_jump']!r}; use one of {ON_TIME_JUMP}")
-    for name in ("voxel_size_m", "band_m", "integrate_rate_hz", "mesh_rate_hz", "status_rate_hz",
+    for name in ("voxel_size_m", "band_m", "integrate_rate_hz", "mesh_rate_hz", "status_rate_hz", "weights_rate_hz",
                  "pose_tolerance_s", "pose_max_wait_s", "time_jump_s"):
         if not values[name] > 0:
             raise ValueError(f"parameter '{name}' must be > 0, got {values[name]}")
+    if not values["alpha_budget_s"] >= 0:
+        raise ValueError(f"parameter 'alpha_budget_s' must be >= 0 (0 = no limit), got {values['alpha_budget_s']}")
     if values["queue_size"] < 1 or values["working_width"] < 0 or values["working_height"] < 0:
         raise ValueError("queue_size must be >= 1 and working_width/height >= 0")
     for sensor in sensors:
@@ -194,8 +205,11 @@ def ingest_config(settings: Settings) -> Any:  # senfunet_ros.ingest.IngestConfi
     )
 
 
-def engine_config(settings: Settings) -> Any:
-    """EngineConfig as the node builds it (device 'cuda' falls back to 'cpu' when there is none)."""
+def engine_config(settings: Settings, **overrides: Any) -> Any:
+    """EngineConfig as the node builds it (device 'cuda' falls back to 'cpu' when there is none);
+    `overrides` replace fields (replay keeps the TSDF Fusion baseline and float32 alpha)."""
+    import dataclasses
+
     import torch
 
     from senfunet_core.engine import EngineConfig
@@ -204,7 +218,7 @@ def engine_config(settings: Settings) -> Any:
     device = s.device
     if device.startswith("cuda") and not torch.cuda.is_available():
         device = "cpu"
-    return EngineConfig(
+    config = EngineConfig(
         sensors=s.sensor_names,
         sensor_uses_rgb=tuple(name in s.rgb_sensors for name in s.sensor_names),
         depth_min_m=tuple(sensor.depth_min_m for sensor in s.sensors),
@@ -212,7 +226,22 @@ def engine_config(settings: Settings) -> Any:
         voxel_size_m=s.voxel_size_m,
         band_m=s.band_m,
         device=device,
+        alpha_voxels="surface",  # the exact fused mesh for the least weighting-net work
+        alpha_dtype=alpha_dtype(s.alpha_precision, device),
+        tsdf_fusion=s.tsdf_fusion,
     )
+    return dataclasses.replace(config, **overrides)
+
+
+def alpha_dtype(precision: str, device: str) -> str:
+    """The engine's alpha_dtype for parameter alpha_precision: 'auto' picks bfloat16 on CPUs with
+    native bfloat16 (oneDNN's check), float32 elsewhere (and on CUDA, where it is cheap anyway)."""
+    if precision != "auto":
+        return precision
+    import torch
+
+    native = device == "cpu" and torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    return "bfloat16" if native else "float32"
 
 
 def engine_weights(settings: Settings) -> str | None:

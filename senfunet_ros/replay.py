@@ -299,7 +299,9 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
             if reader.note:
                 log(f"note: {reader.note}")
             router = TopicRouter(settings, reader.topics, bag)
-            engine = SenFuNet(engine_config(settings), weights=engine_weights(settings))
+            # offline: the baseline too, and float32 alpha whatever the CPU (results independent of it)
+            engine = SenFuNet(engine_config(settings, tsdf_fusion=True, alpha_dtype="float32"),
+                              weights=engine_weights(settings))
             ingest = Ingest(ingest_config(settings))
             drain = _Drain(engine, ingest, settings.on_time_jump)
             total = sum(reader.topics[t].count for t in router.topics)

@@ -5,6 +5,15 @@ import os
 
 import pytest
 
+# Fast DDS reads this when the first participant of a process is created, so it is set at import
+# time (before any test calls rclpy.init) and inherited by every child process (publishers,
+# `senfunet play`, `senfunet demo` and its node). The profile gives each sender a large
+# shared-memory segment instead of 512 KB: with the default, a receiving process that is not
+# scheduled for ~0.5 s (a loaded 2-core CI machine) loses best-effort images. See the file.
+from senfunet_ros.dds import use_large_shm_profile  # noqa: E402
+
+use_large_shm_profile()
+
 
 @pytest.fixture(scope="session")
 def ros_domain_id() -> int:

@@ -167,6 +167,11 @@ def test_incremental_block_meshes_equal_whole_mesh():
         for key in update.removed:
             shown.pop(key)
         shown.update(update.changed)
+    snapshot = engine.block_meshes().as_dict()  # what a late subscriber gets
+    assert snapshot.keys() == shown.keys()
+    for key, mesh in shown.items():
+        np.testing.assert_array_equal(snapshot[key].vertices, mesh.vertices)
+        np.testing.assert_array_equal(snapshot[key].faces, mesh.faces)
     whole = engine.extract_mesh("fused")
     joined = join_block_meshes(list(shown.values()))
     assert joined.n_faces == whole.n_faces > 1000
@@ -258,7 +263,7 @@ def test_fusion_equation_on_c12_c1_c2():
     kept, _ = engine.voxel_values("fused", filtered=True)
     assert len(kept) == int(c12.sum() + c2.sum())
     constant_alpha(engine, 0.7)
-    engine.invalidate_alpha()  # the net changed: re-evaluate everywhere
+    engine.networks_changed()  # the net changed: re-evaluate everywhere
     kept, _ = engine.voxel_values("fused", filtered=True)
     assert len(kept) == int(c12.sum() + c1.sum())
 
@@ -396,3 +401,27 @@ def test_weighting_net_has_the_paper_parameter_count():
     assert sum(p.numel() for p in net.parameters()) == 24257
     for uses_rgb, expected in ((False, 1668), (True, 1776)):
         assert sum(p.numel() for p in networks.FeatureNet(uses_rgb).parameters()) == expected
+
+
+def test_alpha_budget_defers_work_and_holds_back_single_sensor_voxels():
+    """With no time for the weighting net, alpha stays NaN (not evaluated): the update's mesh
+    shows only what both sensors saw; a later update without a budget catches up exactly."""
+    engine, reference = engine_for_tests(), engine_for_tests()
+    K = SPHERE_K
+    for e in (engine, reference):
+        for i, T in enumerate(SPHERE_VIEWS[:4]):
+            depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+            if i % 2:
+                depth[:, : depth.shape[1] // 2] = 0  # sensor 2 sees half: C1 voxels exist
+            e.integrate("tof" if i % 2 == 0 else "stereo", depth, K, T)
+    held = engine.update(alpha_budget_s=0.0)
+    n = engine.grid.n_blocks
+    assert bool(torch.isnan(engine.grid.pools["alpha"][:n]).all())
+    assert engine.counters["alpha_backlog_blocks"] > 0
+    full = reference.update()
+    assert 0 < len(held.meshes.faces) < len(full.meshes.faces)  # C1 voxels held back
+    assert np.isfinite(held.meshes.colors).all()
+    engine.update()  # no budget: everything evaluated
+    assert engine.counters["alpha_backlog_blocks"] == 0
+    np.testing.assert_allclose(engine.grid.pools["alpha"][:n].numpy(), reference.grid.pools["alpha"][:n].numpy(),
+                               atol=1e-6)

@@ -1,11 +1,10 @@
 """The engine's shortcuts against the straightforward computation.
 
 The straightforward computation is `EngineConfig(alpha_voxels="all", alpha_tolerance=0)`: the
-weighting net re-evaluated on every voxel within 2 voxels of any change (which equals the
+weighting net re-evaluated on every block within 2 voxels of any change (which equals the
 whole-grid evaluation, see test_engine.py). The shortcuts:
-- alpha_voxels="observed": only observed voxels -> identical alpha there, identical fusion and meshes;
-- alpha_voxels="surface": only corners of cells that can hold fused triangles -> identical fused mesh
-  (vertices, faces, colours), stale alpha elsewhere;
+- alpha_voxels="surface": only blocks holding corners of cells that can hold fused triangles ->
+  identical fused mesh (vertices, faces, colours), stale alpha elsewhere;
 - alpha_tolerance > 0: alpha around a voxel is refreshed only once its inputs drifted more than the
   tolerance -> a fused mesh close to the exact one, within the tolerance stated below.
 """
@@ -111,22 +110,6 @@ def sorted_mesh(mesh):
     return mesh.vertices[order], mesh.colors[order], faces
 
 
-def test_observed_mode_equals_exact(exact):
-    engine, _ = run(alpha_voxels="observed", alpha_tolerance=0.0)
-    ref = exact[0]
-    n = ref.grid.n_blocks
-    assert engine.grid.n_blocks == n
-    observed = (ref.grid.pools["weight0"][:n] > 0) | (ref.grid.pools["weight1"][:n] > 0)
-    diff = (engine.grid.pools["alpha"][:n] - ref.grid.pools["alpha"][:n]).abs()[observed]
-    assert float(diff.max()) < 1e-5
-    c_ref, v_ref = ref.voxel_values("fused", filtered=True)
-    c, v = engine.voxel_values("fused", filtered=True)
-    np.testing.assert_array_equal(c, c_ref)
-    np.testing.assert_allclose(v, v_ref, atol=1e-6)
-    # less work than the exact run
-    assert engine.counters["alpha_voxels"] < ref.counters["alpha_voxels"]
-
-
 def test_surface_mode_gives_the_exact_fused_mesh(exact):
     engine, shown = run(alpha_voxels="surface", alpha_tolerance=0.0)
     ref, ref_shown = exact
@@ -149,6 +132,25 @@ def test_tolerance_keeps_the_mesh_close(exact):
     ref = exact[0]
     mesh, ref_mesh = engine.extract_mesh("fused"), ref.extract_mesh("fused")
     assert ref_mesh.n_faces > 2000
+    d1, _ = cKDTree(ref_mesh.vertices).query(mesh.vertices)
+    d2, _ = cKDTree(mesh.vertices).query(ref_mesh.vertices)
+    d = np.concatenate([d1, d2])
+    assert np.mean(d <= 0.001) >= 0.99
+    assert np.mean(d <= VOXEL) >= 0.995
+    assert abs(mesh.n_faces - ref_mesh.n_faces) <= 0.01 * ref_mesh.n_faces
+
+
+def test_bfloat16_alpha_keeps_the_mesh_close(exact):
+    """alpha_dtype="bfloat16" (the node's choice on CPUs with bfloat16 instructions): alpha within
+    0.02 of float32 and the fused mesh as close as the tolerance test demands."""
+    engine, _ = run(alpha_voxels="surface", alpha_dtype="bfloat16")
+    same_schedule, _ = run(alpha_voxels="surface")
+    n = engine.grid.n_blocks
+    evaluated = torch.isfinite(engine.grid.pools["alpha"][:n])  # surface mode: blocks that can hold triangles
+    diff = (engine.grid.pools["alpha"][:n] - same_schedule.grid.pools["alpha"][:n]).abs()[evaluated]
+    assert len(diff) > 10_000 and 0 < float(diff.max()) < 0.02  # not float32 arithmetic, but close to it
+    ref = exact[0]
+    mesh, ref_mesh = engine.extract_mesh("fused"), ref.extract_mesh("fused")
     d1, _ = cKDTree(ref_mesh.vertices).query(mesh.vertices)
     d2, _ = cKDTree(mesh.vertices).query(ref_mesh.vertices)
     d = np.concatenate([d1, d2])

@@ -30,8 +30,9 @@ BASE_S = 1000  # added to simulator stamps (which start below 0 for poses)
 # 128 px simulated images, integrated at 64 px, 4 cm voxels (band = 10 voxels, as 0.1 m at 1 cm).
 # Sensor rates lowered from the contract's 15/20 Hz: fewer frames of the same trajectory.
 SIM = dict(seed=3, duration_s=3.0, width=128, height=128, tof_rate_hz=6.0, stereo_rate_hz=6.0)
+# tsdf_fusion: keep the TSDF Fusion baseline, so ~/save_mesh writes tsdf_fusion.ply too.
 E2E_PARAMS = dict(voxel_size_m=0.04, band_m=0.4, working_width=64, queue_size=500, mesh_rate_hz=1.0,
-                  integrate_rate_hz=50.0, weights_band_m=0.0)
+                  integrate_rate_hz=50.0, weights_band_m=0.0, tsdf_fusion=True)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -156,8 +157,37 @@ def _sim_kwargs() -> dict[str, Any]:
     return {"seed": SIM["seed"], **{k: v for k, v in SIM.items() if k != "seed"}}
 
 
-def stream_scene(prefix: str, speed: float) -> None:
-    """Child process: simulate SIM and publish it on the contract topics with reliable QoS."""
+# Flow control of stream_scene: the node's counters of taken messages, per (sensor, stream), and how
+# far the streamer may run ahead of them. The node's best-effort readers keep the last 200 poses
+# and 30 images (_POSE_QOS, _SENSOR_QOS); when the executor threads cannot take messages for a
+# while (the GIL held by an integration or a mesh update, a loaded machine), 100 Hz poses
+# overflow that in 2 s and are lost (measured: scripts/dds_probe.py --busy, and a full test run
+# that lost a third of the poses while every image arrived). The node works on stamps, never wall
+# time, so pausing the stream changes nothing it computes.
+FLOW = (("tof", "pose_received"), ("stereo", "pose_received"), ("tof", "received"), ("stereo", "received"))
+FLOW_AHEAD = (100, 100, 10, 10)
+
+
+def _flow_counts(node: FusionNode) -> list[int]:
+    counters = node.ingest.counters()
+    return [counters[s][key] for s, key in FLOW]
+
+
+def stream_scene(prefix: str, speed: float, go: Any = None, taken: Any = None) -> None:
+    """Child process: simulate SIM and publish it on the contract topics with reliable QoS.
+
+    With `go` (a multiprocessing.Event) the stream starts only after a handshake: until the test
+    process sets it, each sensor's first camera_info and first pose are republished every 0.1 s
+    (the node keeps the latest camera_info and overwrites a pose with the same stamp, so this
+    changes no frame). `get_subscription_count()` only says that OUR writers matched the node's
+    readers; a best-effort reader drops everything that arrives before IT has matched the writer,
+    which can be a second later under load. The test sets `go` once the node's readers count our
+    writers and the node holds a camera_info and a pose of each sensor (see _node_hears_streamer).
+
+    With `taken` (a shared array the test keeps equal to _flow_counts(node)) the stream pauses
+    while the node has taken FLOW_AHEAD or fewer messages less than were sent of a stream, so
+    its reader queues never overflow; stamps and order stay those of the scene.
+    """
     from senfunet_core.simulator import make_scene, simulate_sequence
 
     seq = simulate_sequence(make_scene(SIM["seed"]), **_sim_kwargs())
@@ -170,10 +200,26 @@ def stream_scene(prefix: str, speed: float) -> None:
     while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for (s, k), p in pubs.items()
                                               if k != "color" or s == "stereo"):
         time.sleep(0.05)
-    events: list[tuple[float, int, Callable[[], None]]] = []
+    if go is not None:
+        warmup = []
+        for s in ("tof", "stereo"):
+            f = next(f for f in seq.frames if f.sensor == s)
+            h, w = f.depth_m.shape
+            info = CameraInfo(width=w, height=h, k=[float(v) for v in f.K.reshape(-1)])
+            _stamp(info, f.stamp_s)
+            pose = _pose_msg(seq.pose_stamps_s[s][0], seq.pose_T_world_camera[s][0])
+            warmup += [(pubs[(s, "camera_info")], info), (pubs[(s, "pose")], pose)]
+        deadline = time.monotonic() + 60
+        while not go.wait(0.1):
+            if time.monotonic() > deadline:
+                raise RuntimeError("handshake: the node never heard the warm-up messages")
+            for publisher, msg in warmup:
+                publisher.publish(msg)
+    events: list[tuple[float, int, int, Callable[[], None]]] = []  # (stamp, order, FLOW index or -1, publish)
     for s in ("tof", "stereo"):
         for t, T in zip(seq.pose_stamps_s[s], seq.pose_T_world_camera[s]):
-            events.append((t, 0, lambda m=_pose_msg(t, T), s=s: pubs[(s, "pose")].publish(m)))
+            events.append((t, 0, FLOW.index((s, "pose_received")),
+                           lambda m=_pose_msg(t, T), s=s: pubs[(s, "pose")].publish(m)))
     for f in seq.frames:
         h, w = f.depth_m.shape
         info = CameraInfo(width=w, height=h, k=[float(v) for v in f.K.reshape(-1)])
@@ -192,14 +238,27 @@ def stream_scene(prefix: str, speed: float) -> None:
             _stamp(color, f.stamp_s)
             msgs.insert(1, ("color", color))
         for key, msg in msgs:
-            events.append((f.stamp_s, 1, lambda m=msg, s=f.sensor, k=key: pubs[(s, k)].publish(m)))
+            flow = FLOW.index((f.sensor, "received")) if key == "depth" else -1
+            events.append((f.stamp_s, 1, flow, lambda m=msg, s=f.sensor, k=key: pubs[(s, k)].publish(m)))
     events.sort(key=lambda e: (e[0], e[1]))
+    base = list(taken) if taken is not None else None  # the node's counts before the stream
+    sent = [0] * len(FLOW)
+    paused_s = 0.0
     start_wall, start_sim = time.monotonic(), events[0][0]
-    for t, _, publish in events:
-        delay = (t - start_sim) / speed - (time.monotonic() - start_wall)
+    for t, _, flow, publish in events:
+        if base is not None and flow >= 0:
+            waited = time.monotonic()
+            while (sent[flow] - (taken[flow] - base[flow]) >= FLOW_AHEAD[flow]
+                   and time.monotonic() - waited < 60.0):  # lost messages must not stall it forever
+                time.sleep(0.005)
+            paused_s += time.monotonic() - waited
+            sent[flow] += 1
+        delay = (t - start_sim) / speed + paused_s - (time.monotonic() - start_wall)
         if delay > 0:
             time.sleep(delay)
         publish()
+    if paused_s > 0.05:
+        print(f"stream_scene: paused {paused_s:.1f} s for the node to take its messages", flush=True)
     time.sleep(1.0)  # let best-effort readers drain before the participant goes
     node.destroy_node()
     rclpy.shutdown()
@@ -264,25 +323,47 @@ def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: P
 
     prefix = "e2e"
     run = Running("e2e", {**E2E_PARAMS, **topic_params(prefix)}, tmp_path)
+    child = None
     try:
         collector = MeshCollector(run.helper, f"{run.prefix}/mesh")
         clouds: list[PointCloud2] = []
         run.helper.create_subscription(PointCloud2, f"{run.prefix}/weights", clouds.append,
                                        QoSProfile(depth=2, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        # Real time, with a queue large enough that nothing is dropped: the test is about what the
-        # node makes of the stream; keeping up is measured by bench/, not on a loaded test machine.
-        child = multiprocessing.get_context("spawn").Process(target=stream_scene, args=(prefix, 1.0))
+        # Real time (paused while the node's executor lags, see FLOW), with a queue large enough
+        # that nothing is dropped: the test is about what the node makes of the stream; keeping
+        # up is measured by bench/, not on a loaded test machine.
+        ctx = multiprocessing.get_context("spawn")
+        go = ctx.Event()
+        taken = ctx.Array("q", len(FLOW), lock=False)  # _flow_counts(run.node), for flow control
+        child = ctx.Process(target=stream_scene, args=(prefix, 1.0, go, taken))
         child.start()
         scene = make_scene(SIM["seed"])  # meanwhile: the same scene and frames, for ground truth
         seq = simulate_sequence(scene, **_sim_kwargs())
         gt = gt_mesh(scene, voxel_size_m=0.02)
-        child.join(timeout=120)
+        # Handshake: stream only once the node's readers have matched every writer (not only the
+        # other way round) and its callbacks got data from the streamer.
+        t0 = time.monotonic()
+        wait_for(lambda: _node_hears_streamer(run.node, prefix) or child.exitcode is not None, 90,
+                 "the node to hear the streamer's warm-up messages")
+        assert child.exitcode is None, "publisher process failed before streaming"
+        taken[:] = _flow_counts(run.node)
+        go.set()
+        print(f"\nhandshake done {time.monotonic() - t0:.1f} s after the ground truth")
+        deadline = time.monotonic() + 300
+        while child.is_alive() and time.monotonic() < deadline:
+            taken[:] = _flow_counts(run.node)
+            child.join(timeout=0.02)
         assert child.exitcode == 0, "publisher process failed"
-        counters = run.node.ingest.counters()
         n_tof = sum(f.sensor == "tof" for f in seq.frames)
         n_stereo = len(seq.frames) - n_tof
+        # The executor may still be taking messages out of the readers: count once it stopped.
+        counters = _settled_counters(run.node)
+        print(f"\nreceived after the stream: { {s: c['received'] for s, c in counters.items()} } "
+              f"of tof {n_tof}, stereo {n_stereo}; poses "
+              f"{ {s: c['pose_received'] for s, c in counters.items()} }")
         # best effort over loopback may lose the odd image; most must arrive
-        assert counters["tof"]["received"] >= 0.8 * n_tof and counters["stereo"]["received"] >= 0.8 * n_stereo
+        assert counters["tof"]["received"] >= 0.8 * n_tof and counters["stereo"]["received"] >= 0.8 * n_stereo, \
+            str(counters)
         assert counters["stereo"]["color_received"] > 0
         def all_accounted() -> bool:  # every received frame integrated or dropped (not just dequeued)
             return all(c["integrated"] + sum(c["dropped"].values()) >= c["received"]
@@ -311,7 +392,9 @@ def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: P
         print(f"\nstreamed mesh vs visible GT (tau 8 cm): {m}; counters: {run.node.ingest.counters()}")
 
         # ~/weights: the contract's fields
-        wait_for(lambda: len(clouds) > 0, 30, "a weights cloud")
+        # Clouds come every 1 / weights_rate_hz s while the mesh timer runs; one sent before the
+        # stream (an empty map) may be the latest for a while, so wait for one with the map in it.
+        wait_for(lambda: len(clouds) > 0 and clouds[-1].width > 0, 30, "a weights cloud of the map")
         cloud = clouds[-1]
         assert [f.name for f in cloud.fields] == ["x", "y", "z", "alpha", "weight_tof", "weight_stereo"]
         assert all(f.datatype == PointField_FLOAT32 for f in cloud.fields)
@@ -340,16 +423,47 @@ def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: P
         run.executor.remove_node(late_node)
         late_node.destroy_node()
     finally:
+        if child is not None and child.is_alive():  # a failed handshake: do not leave it waiting
+            child.terminate()
+            child.join(timeout=10)
         run.close()
 
 
 PointField_FLOAT32 = 7
 
 
+def _node_hears_streamer(node: FusionNode, prefix: str) -> bool:
+    """Every reader of the node on the streamer's topics counts a matched writer, and each sensor's
+    camera_info and a pose reached the node's message handling."""
+    readers = [sub for sub in node.subscriptions if sub.topic_name.startswith(f"/{prefix}/")]
+    if not readers or any(sub.get_publisher_count() == 0 for sub in readers):
+        return False
+    counters = node.ingest.counters()
+    return all(counters[s]["pose_received"] > 0 and node.ingest._sensors[s].camera_info is not None
+               for s in ("tof", "stereo"))
+
+
+def _settled_counters(node: FusionNode, quiet_s: float = 1.0, timeout_s: float = 30.0) -> dict[str, Any]:
+    """The ingest counters once no message has arrived for quiet_s."""
+    def arrivals(c: dict[str, Any]) -> tuple[int, ...]:
+        return tuple(v for s in sorted(c) for v in (c[s]["received"], c[s]["color_received"], c[s]["pose_received"]))
+
+    deadline = time.monotonic() + timeout_s
+    counters = node.ingest.counters()
+    while time.monotonic() < deadline:
+        time.sleep(quiet_s)
+        latest = node.ingest.counters()
+        if arrivals(latest) == arrivals(counters):
+            return latest
+        counters = latest
+    return counters
+
+
 def _marker_keys(node: FusionNode) -> set[tuple[str, int]]:
+    """The markers the node's whole mesh consists of (what a subscriber should hold)."""
     from senfunet_ros.conversions import block_marker_id
 
-    return {block_marker_id(k) for k, mesh in node._blocks.items() if len(mesh.faces)}
+    return {block_marker_id(k) for k in node.engine.block_meshes().keys.tolist()}
 
 
 def _image(t_ns: int, depth: np.ndarray, encoding: str = "32FC1") -> Image:

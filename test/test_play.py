@@ -139,3 +139,23 @@ def test_node_fed_by_play_matches_replay(prefix: Path, tmp_path: Path, ros_domai
     agreement = mesh_metrics(live.vertices, offline.vertices, tau_m=0.02)
     assert agreement["F"] > 95.0, agreement
     assert 0.9 < live.n_vertices / max(offline.n_vertices, 1) < 1.1
+
+
+def test_large_shm_profile_unless_fast_dds_is_configured(tmp_path: Path, monkeypatch):
+    """Play, the node and the tests give their participants the packaged large shared-memory
+    profile, and leave a user's own Fast DDS setup (or another RMW) alone."""
+    import xml.etree.ElementTree as ET
+
+    from senfunet_ros.dds import PROFILE, use_large_shm_profile
+
+    segment = ET.parse(PROFILE).getroot().find(".//{*}segment_size")
+    assert segment is not None and int(segment.text) >= 16 << 20
+    monkeypatch.chdir(tmp_path)
+    env: dict[str, str] = {}
+    assert use_large_shm_profile(env) == PROFILE and env == {"FASTRTPS_DEFAULT_PROFILES_FILE": str(PROFILE)}
+    for preset in ({"FASTRTPS_DEFAULT_PROFILES_FILE": "mine.xml"}, {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"},
+                   {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}):
+        env = dict(preset)
+        assert use_large_shm_profile(env) is None and env == preset
+    (tmp_path / "DEFAULT_FASTRTPS_PROFILES.xml").write_text("<profiles/>")
+    assert use_large_shm_profile({}) is None

@@ -200,7 +200,8 @@ class _Demo:
         node_cmd = [*self.cli, "node", "--use-sim-time"]
         if args.params:
             node_cmd += ["--params", str(args.params)]
-        node_cmd += ["--", "-p", f"output_dir:={self.out}", "-p", f"queue_size:={args.queue_size}"]
+        node_cmd += ["--", "-p", f"output_dir:={self.out}", "-p", f"queue_size:={args.queue_size}",
+                     "-p", "tsdf_fusion:=true"]  # the picture shows TSDF Fusion next to SenFuNet
         self.node_proc = self._spawn(node_cmd, self.node_log)
         rclpy.init(args=None)
         node = rclpy.create_node("senfunet_demo", start_parameter_services=False)

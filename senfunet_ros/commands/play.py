@@ -2,13 +2,19 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
+from pathlib import Path
 
 HELP = "publish a recorded bag on its topics with /clock (for nodes using use_sim_time), at a chosen rate"
 
 _CLOCK_PERIOD_S = 0.01  # /clock keeps ticking at this (wall) period while waiting for the next message
-
+# Our writers matching a subscriber (what --wait-subscribers sees) does not mean that its reader has
+# matched our writers yet, and a best-effort reader drops whatever arrives before it has. On one
+# host the other side follows within ~0.1 s, within ~0.6 s on a loaded 2-core machine (the first
+# 57 poses at 100 Hz lost in the streamed node test); so once every topic has a subscriber, wait this.
+_MATCH_SETTLE_S = 1.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", metavar="BAG", help="rosbag2 folder (mcap or sqlite3) or a .mcap file")
@@ -17,7 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="publish only these topics")
     parser.add_argument("--no-clock", action="store_true", help="do not publish /clock")
     parser.add_argument("--wait-subscribers", type=float, default=0.0, metavar="S",
-                        help="wait up to S seconds until every topic has a subscriber before starting (default 0)")
+                        help="wait up to S seconds until every topic has a subscriber before starting, then "
+                        f"{_MATCH_SETTLE_S:g} s more for their side of discovery (default 0: no wait)")
     parser.add_argument("--delay", type=float, default=0.0, metavar="S", help="sleep S seconds before publishing")
     parser.add_argument("--quiet", action="store_true", help="print only errors")
 
@@ -70,6 +77,9 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
     if unknown:
         say(f"skipping {', '.join(unknown)}: message types not installed here ({types})")
 
+    from senfunet_ros.dds import use_large_shm_profile
+
+    use_large_shm_profile()  # before the participant exists: Fast DDS reads it then
     rclpy.init(args=None)
     node = None
     try:
@@ -99,6 +109,8 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
             lonely = [t for t, p in publishers.items() if p.get_subscription_count() == 0]
             if lonely:
                 say(f"no subscriber yet on {', '.join(lonely)}; playing anyway")
+            else:
+                time.sleep(_MATCH_SETTLE_S)  # the subscribers' side of discovery
         if args.delay > 0:
             time.sleep(args.delay)
 
