@@ -25,6 +25,7 @@ fusion a user would otherwise pick) is timed on the same frames when `open3d` is
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
@@ -33,6 +34,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -63,18 +65,18 @@ def bag_path(args: argparse.Namespace, case: str) -> Path:
     return large_bag(Path(args.cache), args.large_seed, tuple(args.large_room), args.large_seconds)
 
 
-def read_messages(path: Path, max_seconds: float) -> tuple[list, object, float]:
+@contextlib.contextmanager
+def bag_messages(path: Path, max_seconds: float) -> Iterator[tuple[Iterator, object, float]]:
+    """(messages, router, seconds): the bag's routed messages, read as they are needed (a bag held
+    in memory would count in the peak RSS), up to max_seconds after the first (0 = all)."""
     from senfunet_ros.bagio import open_bag
     from senfunet_ros.replay import TopicRouter, load_settings
 
-    settings = load_settings(None)
     with open_bag(path) as bag:
-        router = TopicRouter(settings, bag.topics, path)
-        messages = list(bag.messages(router.topics))
-    if max_seconds > 0:
-        end = messages[0].log_time_ns + int(max_seconds * 1e9)
-        messages = [m for m in messages if m.log_time_ns <= end]
-    return messages, router, (messages[-1].log_time_ns - messages[0].log_time_ns) / 1e9
+        router = TopicRouter(load_settings(None), bag.topics, path)
+        seconds = bag.duration_s if max_seconds <= 0 else min(bag.duration_s, max_seconds)
+        end_ns = bag.start_ns + int(seconds * 1e9)
+        yield (m for m in bag.messages(router.topics) if m.log_time_ns <= end_ns), router, seconds
 
 
 def run_node_case(args: argparse.Namespace) -> dict:
@@ -84,42 +86,39 @@ def run_node_case(args: argparse.Namespace) -> dict:
 
     from senfunet_ros.node import FusionNode, spin
 
-    messages, router, bag_s = read_messages(bag_path(args, args.case), args.max_seconds)
-    if os.environ.get("SWITCH"):
-        sys.setswitchinterval(float(os.environ["SWITCH"]))
     from senfunet_ros.dds import use_large_shm_profile
 
     use_large_shm_profile()  # as the node's main() does
     rclpy.init()
     overrides = {f"{s}.{k}_topic": f"/senfunet_bench_{os.getpid()}/{s}/{k}"  # nothing else talks to it
                  for s in ("tof", "stereo") for k in ("depth", "color", "camera_info", "pose")}
-    if os.environ.get("MESH_RATE"):
-        overrides["mesh_rate_hz"] = float(os.environ["MESH_RATE"])
-    if args.mode == "throughput":  # nothing may expire while the feeder waits on the node
-        overrides.update(pose_max_wait_s=1e6, pose_buffer_size=1_000_000)
+    if args.mode == "throughput":  # nothing may expire or be skipped while the feeder waits on the node
+        overrides.update(pose_max_wait_s=1e6, pose_buffer_size=1_000_000, max_lag_s=0.0)
     node = FusionNode(namespace="bench", parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
     spinner = threading.Thread(target=spin, args=(node,), daemon=True)
     spinner.start()
     ingest, engine = node.ingest, node.engine
     conversion_s, frames_sent, peak_queue = 0.0, 0, 0
-    t0_bag = messages[0].log_time_ns
-    start = time.monotonic()
-    for msg in messages:
-        if args.mode == "realtime":
-            delay = (msg.log_time_ns - t0_bag) / 1e9 - (time.monotonic() - start)
-            if delay > 0:
-                time.sleep(delay)
-        else:  # frames may also wait for a later pose only this feeder delivers: never wait long
-            waited = time.monotonic() + 0.2
-            while sum(ingest.queue_depths().values()) > _BACKLOG_FRAMES and time.monotonic() < waited:
-                time.sleep(0.002)
-        t = time.perf_counter()
-        decoded = router.decode(msg)
-        if decoded is not None:
-            router.dispatch(ingest, *decoded)
-            frames_sent += decoded[0].stream == "depth"
-        conversion_s += time.perf_counter() - t
-        peak_queue = max(peak_queue, sum(ingest.queue_depths().values()))
+    with bag_messages(bag_path(args, args.case), args.max_seconds) as (messages, router, bag_s):
+        t0_bag = None
+        start = time.monotonic()
+        for msg in messages:
+            t0_bag = msg.log_time_ns if t0_bag is None else t0_bag
+            if args.mode == "realtime":
+                delay = (msg.log_time_ns - t0_bag) / 1e9 - (time.monotonic() - start)
+                if delay > 0:
+                    time.sleep(delay)
+            else:  # frames may also wait for a later pose only this feeder delivers: never wait long
+                waited = time.monotonic() + 0.2
+                while sum(ingest.queue_depths().values()) > _BACKLOG_FRAMES and time.monotonic() < waited:
+                    time.sleep(0.002)
+            t = time.perf_counter()
+            decoded = router.decode(msg)
+            if decoded is not None:
+                router.dispatch(ingest, *decoded)
+                frames_sent += decoded[0].stream == "depth"
+            conversion_s += time.perf_counter() - t
+            peak_queue = max(peak_queue, sum(ingest.queue_depths().values()))
 
     def settled() -> bool:
         c = ingest.counters()
@@ -186,15 +185,17 @@ def run_open3d(args: argparse.Namespace) -> dict | str:
     from senfunet_ros.ingest import Frame, Ingest
     from senfunet_ros.replay import engine_config, ingest_config, load_settings
 
-    messages, router, _ = read_messages(bag_path(args, args.case), args.max_seconds)
     settings = load_settings(None)
     ingest = Ingest(ingest_config(settings))
     frames: list[Frame] = []
-    for msg in messages:
-        decoded = router.decode(msg)
-        if decoded is not None:
-            router.dispatch(ingest, *decoded)
-            frames += [f for f in ingest.pop_ready() if isinstance(f, Frame)]
+    with bag_messages(bag_path(args, args.case), args.max_seconds) as (messages, router, _):
+        for msg in messages:
+            decoded = router.decode(msg)
+            if decoded is not None:
+                router.dispatch(ingest, *decoded)
+                frames += [f for f in ingest.pop_ready() if isinstance(f, Frame)]
+            if len(frames) >= args.open3d_frames:
+                break
     frames = frames[: args.open3d_frames]
     device = o3c.Device("CPU:0")
     vbg = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32),
@@ -228,7 +229,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
     cases = list(results)
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
              "The real `FusionNode` with its default parameters (config/default.yaml: mesh update every 1 s, "
-             "weighting-net budget 0.5 s per update, alpha on surface blocks), spun by a MultiThreadedExecutor in "
+             "weighting-net budget 0.3 s per update, alpha on surface blocks, frames more than 0.5 s behind skipped), "
+             "spun by a MultiThreadedExecutor in "
              "the benchmark process; bag messages deserialised with rclpy and handed to its Ingest as its "
              "subscriptions do. `throughput`: as fast as the node takes them; `realtime`: at their recorded "
              "times. Stage times are summed over the run and divided by the frames integrated.", ""]

@@ -34,7 +34,7 @@ from . import networks
 from .alpha import MODES, holds_targets, take_drift, weighting_windows
 from .errors import InputError
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
-from .grid import BlockGrid, kernel_view, neighbour_table
+from .grid import BLOCK, BlockGrid, kernel_view, neighbour_table
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .mesher import BlockMeshes, Mesh, marching_cubes_blocks, to_mesh, weld
 
@@ -45,6 +45,8 @@ FUSED = "fused"
 # Neighbour-table codes of the blocks whose marching-cubes cells read a block: itself and its
 # -x, -y, -z neighbours (code 9*(dx+1) + 3*(dy+1) + (dz+1), offsets in {-1, 0}).
 _MESH_READER_CODES = np.array([9 * dx + 3 * dy + dz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+# integrate() itself drops far blocks once the map exceeds max_blocks by this factor (updates do it first)
+_HARD_BOUND = 1.25
 # One thread runs the feature nets (of every engine in the process), so that a frame's feature net
 # overlaps the kernel that locates its samples.
 _FEATURE_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="senfunet-features")
@@ -74,6 +76,8 @@ class EngineConfig:
     #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be stale)
     alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (~2.5x faster on CPUs with
     #                               bfloat16 instructions, alpha within ~0.004; see test_equivalence.py)
+    max_blocks: int = 0  # memory bound: past this many blocks, each update drops the blocks farthest from the
+    #                      last camera position (down to 90%), and so does integration past 1.25x; 0 = no bound
     tsdf_fusion: bool = True  # also integrate every frame into one plain TSDF grid: the "tsdf_fusion" baseline
     #                           (about 15% of the integration time and 6 bytes per voxel)
     alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
@@ -103,6 +107,8 @@ class EngineConfig:
             raise InputError(f"alpha_dtype must be 'float32' or 'bfloat16', got '{self.alpha_dtype}'")
         if self.alpha_voxels not in ("all", "surface"):
             raise InputError(f"alpha_voxels must be 'all' or 'surface', got '{self.alpha_voxels}'")
+        if self.max_blocks < 0:
+            raise InputError(f"max_blocks must be >= 0 (0 = no bound), got {self.max_blocks}")
         if not self.alpha_tolerance >= 0 or self.torch_threads < 0:
             raise InputError("alpha_tolerance must be >= 0 and torch_threads >= 0")
 
@@ -209,7 +215,12 @@ class SenFuNet:
             self._grow_flags()
             self._alpha_pending[update.touched_slots] = True
             self.frames_integrated[sensor] += 1
+            self._camera_m = np.asarray(T_world_camera, np.float64)[:3, 3].copy()
         self._timed(integrate=time.perf_counter() - t0 - update.waited_s)
+        if self.config.max_blocks and self.grid.n_blocks > _HARD_BOUND * self.config.max_blocks:
+            # updates come too rarely to keep the bound: drop far blocks now (after the current update)
+            with self._update_lock:
+                self._evicted_meshes += self._evict()
         return update.voxels_updated
 
     @torch.inference_mode()
@@ -222,6 +233,7 @@ class SenFuNet:
         them (exact, deterministic)."""
         with self._update_lock:
             t0 = time.perf_counter()
+            evicted, self._evicted_meshes = self._evicted_meshes + self._evict(), []
             self._refresh_alpha(alpha_budget_s)
             t1 = time.perf_counter()
             with self._data_lock:
@@ -229,7 +241,7 @@ class SenFuNet:
                 coords = self.grid.coords[slots].numpy().copy()
             self.counters["mesh_blocks"] += len(slots)
             self.counters["mesh_blocks_last"] = len(slots)
-            result = MeshUpdate(cleared=self._cleared)
+            result = MeshUpdate(cleared=self._cleared, removed=evicted)
             self._cleared = False
             result.meshes = self._block_meshes(slots, coords)
             has_faces = {tuple(k) for k in result.meshes.keys.tolist()}
@@ -415,6 +427,8 @@ class SenFuNet:
         self._stale_since = np.zeros(0, np.int64)  # the schedule that made it stale (oldest first)
         self._mesh_pending = np.zeros(0, bool)  # TSDF or alpha changed since it was meshed
         self._schedules = 0
+        self._camera_m = np.zeros(3)  # the last integrated frame's camera centre (the map bound keeps what is near)
+        self._evicted_meshes: list[tuple[int, int, int]] = []  # dropped by integrate, reported by the next update
         self._meshed: set[tuple[int, int, int]] = set()
         self._cleared = False
         self._grow_flags()
@@ -485,6 +499,39 @@ class SenFuNet:
         self.counters["alpha_blocks"] += done
         self.counters["alpha_voxels"] += done * 512
         self.counters["alpha_backlog_blocks"] = len(order) - done
+
+    def _evict(self) -> list[tuple[int, int, int]]:
+        """With max_blocks, drop the blocks farthest from the last camera position once the map
+        holds more (down to 90%, so that it does not happen every update). Their neighbours are
+        re-evaluated and re-meshed: what they read there is gone. Returns the dropped blocks that
+        had a mesh (subscribers delete them)."""
+        cfg = self.config
+        if not cfg.max_blocks or self.grid.n_blocks <= cfg.max_blocks:
+            return []
+        grid = self.grid
+        with self._data_lock:
+            n = grid.n_blocks
+            centres_m = (grid.coords[:n].numpy() * BLOCK + (BLOCK - 1) / 2) * cfg.voxel_size_m
+            distance = np.linalg.norm(centres_m - self._camera_m, axis=1)
+            victims = np.argpartition(-distance, n - int(0.9 * cfg.max_blocks))[: n - int(0.9 * cfg.max_blocks)]
+            keys = [tuple(k) for k in grid.coords[victims].tolist()]
+            around = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, victims)
+            touched = np.zeros(n, bool)
+            touched[around[around >= 0]] = True
+            moved_from, moved_to = grid.remove_blocks(victims)
+            for flags in (self._alpha_pending, self._stale, self._stale_since, self._evaluated, self._mesh_pending):
+                flags[moved_to] = flags[moved_from]
+                flags[grid.n_blocks:n] = 0
+            touched[moved_to] = touched[moved_from]
+            touched = np.flatnonzero(touched[: grid.n_blocks])
+            self._stale_since[touched[self._stale[touched] == 0]] = self._schedules
+            self._stale[touched] = np.maximum(self._stale[touched], 1)
+            self._mesh_pending[touched] = True
+        self.counters["evicted_blocks"] = self.counters.get("evicted_blocks", 0) + len(keys)
+        removed = [k for k in keys if k in self._meshed]
+        self._meshed.difference_update(removed)
+        log.info("map bound: dropped %d blocks farthest from the camera (max_blocks %d)", len(keys), cfg.max_blocks)
+        return removed
 
     def _schedule_alpha(self) -> None:
         """Turn the drift of the blocks integrated since the last call into stale blocks: the

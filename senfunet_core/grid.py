@@ -238,11 +238,12 @@ def kernel_view(pool: torch.Tensor) -> np.ndarray:
     return pool.numpy()
 
 
-def _zeros(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+def _zeros(shape: tuple[int, ...], dtype: torch.dtype) -> tuple[torch.Tensor, mmap.mmap]:
     """A zero pool whose memory is committed only where it is written: an anonymous mapping (the
     kernel hands out zero pages on first touch), so a generous capacity costs address space, not
     memory, and pools rarely need to grow (a copy of everything). Transparent huge pages are
-    requested for it: 512x fewer page faults and TLB misses when frames touch new blocks."""
+    requested for it: 512x fewer page faults and TLB misses when frames touch new blocks.
+    Returns the pool and its mapping (`_release_rows` gives pages back through it)."""
     numpy_dtype = {torch.float32: np.float32, torch.float16: np.float16, torch.int64: np.int64}[dtype]
     nbytes = max(int(np.prod(shape)) * np.dtype(numpy_dtype).itemsize, 1)
     memory = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
@@ -250,7 +251,18 @@ def _zeros(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
         memory.madvise(mmap.MADV_HUGEPAGE)
     array = np.frombuffer(memory, dtype=numpy_dtype, count=int(np.prod(shape))).reshape(shape)
     with torch.inference_mode(False):  # grid state must stay writable outside inference mode
-        return torch.from_numpy(array)
+        return torch.from_numpy(array), memory
+
+
+def _release_rows(pool: torch.Tensor, memory: mmap.mmap, start: int, stop: int) -> None:
+    """Zero rows start..stop-1 of a pool made by `_zeros` and give their whole pages back to the OS
+    (an anonymous mapping reads zeros again where it was released)."""
+    pool[start:stop] = 0
+    row = pool[0].numel() * pool.element_size()
+    first = -(-start * row // mmap.PAGESIZE) * mmap.PAGESIZE
+    last = stop * row // mmap.PAGESIZE * mmap.PAGESIZE
+    if last > first:
+        memory.madvise(mmap.MADV_DONTNEED, first, last - first)
 
 
 # -- neighbourhoods in local coordinates ------------------------------------------------------------
@@ -301,11 +313,13 @@ class BlockGrid:
         self.capacity = cap
         self.n_blocks = 0
         self.slot_keys = np.full(cap, EMPTY_KEY, np.int64)
-        self.coords = _zeros((cap, 3), torch.int64)
+        self.coords = _zeros((cap, 3), torch.int64)[0]
         self.table_keys = np.full(_INITIAL_TABLE, EMPTY_KEY, np.int64)
         self.table_slots = np.full(_INITIAL_TABLE, -1, np.int64)
-        self.pools = {name: _zeros((cap, BLOCK_VOXELS, *shape), self.channel_dtypes[name])
-                      for name, shape in self.channel_shapes.items()}
+        self.pools: dict[str, torch.Tensor] = {}
+        self._memory: dict[str, mmap.mmap] = {}  # each pool's mapping (to give memory back)
+        for name, shape in self.channel_shapes.items():
+            self.pools[name], self._memory[name] = _zeros((cap, BLOCK_VOXELS, *shape), self.channel_dtypes[name])
 
     # -- lookup and allocation ------------------------------------------------------------
     def lookup_keys(self, keys: torch.Tensor) -> torch.Tensor:
@@ -346,10 +360,10 @@ class BlockGrid:
         if n_blocks > self.capacity:
             cap = max(n_blocks, int(self.growth * self.capacity) + 1)
             for name, pool in self.pools.items():
-                grown = _zeros((cap, *pool.shape[1:]), pool.dtype)
+                grown, self._memory[name] = _zeros((cap, *pool.shape[1:]), pool.dtype)
                 grown[: self.n_blocks] = pool[: self.n_blocks]
                 self.pools[name] = grown
-            coords = _zeros((cap, 3), torch.int64)
+            coords = _zeros((cap, 3), torch.int64)[0]
             coords[: self.n_blocks] = self.coords[: self.n_blocks]
             self.coords = coords
             slot_keys = np.full(cap, EMPTY_KEY, np.int64)
@@ -363,6 +377,29 @@ class BlockGrid:
             self.table_keys = np.full(size, EMPTY_KEY, np.int64)
             self.table_slots = np.full(size, -1, np.int64)
             _rehash(self.slot_keys, self.n_blocks, self.table_keys, self.table_slots)
+
+    def remove_blocks(self, victims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Drop these blocks. Slots stay 0..n_blocks-1: survivors in the last slots move into the
+        freed ones; the memory of the slots given up goes back to the OS. Returns the moves
+        (from_slots, to_slots), for whoever keeps per-slot data of its own."""
+        victims = np.unique(np.asarray(victims, np.int64))
+        n_old = self.n_blocks
+        n_new = n_old - len(victims)
+        holes = victims[victims < n_new]
+        tail = np.arange(n_new, n_old)
+        movers = tail[~np.isin(tail, victims)]  # as many as holes
+        for name, pool in self.pools.items():
+            pool[holes] = pool[movers]
+            _release_rows(pool, self._memory[name], n_new, n_old)
+        self.coords[holes] = self.coords[movers]
+        self.coords[n_new:n_old] = 0
+        self.slot_keys[holes] = self.slot_keys[movers]
+        self.slot_keys[n_new:n_old] = EMPTY_KEY
+        self.n_blocks = n_new
+        self.table_keys.fill(EMPTY_KEY)
+        self.table_slots.fill(-1)
+        _rehash(self.slot_keys, self.n_blocks, self.table_keys, self.table_slots)
+        return movers, holes
 
     # -- neighbourhoods ---------------------------------------------------------------------
     def neighbour_slots(self, slots: torch.Tensor) -> torch.Tensor:

@@ -55,6 +55,7 @@ DROP_REASONS: tuple[str, ...] = (
     "pose_timeout",  # no pose after the frame arrived within pose_max_wait_s of stream time
     "pose_gap",  # the poses around the frame are further than pose_tolerance_s from it
     "queue_full",  # the frame queue overflowed; the oldest frame goes
+    "behind",  # the consumer fell behind: the frame was more than max_lag_s older than its sensor's newest
     "out_of_order",  # depth stamp older than the previous one of the same sensor
     "duplicate",  # depth stamp equal to the previous one of the same sensor
     "time_jump",  # frames flushed because time jumped backwards
@@ -75,13 +76,14 @@ class IngestConfig:
     pose_max_wait_s: float = 1.0  # a frame waits this long (stream time) for a later pose
     color_tolerance_s: float = 0.02  # max stamp distance of a colour image to its depth image
     time_jump_s: float = 1.0  # a stamp this far behind its stream's last one means a restart
+    max_lag_s: float = 0.0  # a ready frame this far behind its sensor's newest depth stamp is skipped; 0 = never
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
 
     def __post_init__(self) -> None:
         if not self.sensors or len(set(self.sensors)) != len(self.sensors):
             raise ValueError(f"sensors must be distinct names, got {self.sensors}")
-        if self.queue_size < 1 or self.pose_buffer_size < 2:
-            raise ValueError("queue_size must be >= 1 and pose_buffer_size >= 2")
+        if self.queue_size < 1 or self.pose_buffer_size < 2 or self.max_lag_s < 0:
+            raise ValueError("queue_size must be >= 1, pose_buffer_size >= 2 and max_lag_s >= 0")
         if min(self.working_size) < 0:
             raise ValueError(f"working_size must be (width, height) >= 0, got {self.working_size}")
 
@@ -374,9 +376,15 @@ class Ingest:
         color_tolerance_ns = int(cfg.color_tolerance_s * 1e9)
         now_ns = state.stream_now_ns()
         out: list[Frame] = []
+        lag_ns = int(cfg.max_lag_s * 1e9)
+        newest_ns = state.last_ns["depth"]
         while state.queue:
             pending = state.queue[0]
             t = pending.stamp_ns
+            if lag_ns and newest_ns is not None and newest_ns - t > lag_ns:  # load shedding: keep latency bounded
+                state.queue.popleft()
+                state.counters.dropped["behind"] += 1
+                continue
             if pending.T is not None:  # posed before, put back by pop_ready(max_frames)
                 state.queue.popleft()
                 out.append(Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s))

@@ -55,7 +55,7 @@ _POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=
                        durability=DurabilityPolicy.VOLATILE)
 # The map: reliable and kept for late subscribers. Depth > 1 so a burst (delta then snapshot) is
 # not overwritten before a slow reader acknowledged it.
-_MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=4, reliability=ReliabilityPolicy.RELIABLE,
+_MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -129,7 +129,7 @@ class FusionNode(Node):
         # 2. engine and ingest (the engine is thread-safe: integration and mesh updates overlap)
         self.engine = self._make_engine()
         s = self.settings
-        self.ingest = Ingest(P.ingest_config(self.settings))
+        self.ingest = Ingest(P.ingest_config(self.settings, max_lag_s=s.max_lag_s))
         self.latest_stamp_ns = 0  # latest integrated sensor time: the stamp of every output
         self.timings = {name: _Timing() for name in ("integrate", "update", "weights", "encode", "publish")}
         self.frames_failed = 0

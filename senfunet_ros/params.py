@@ -33,6 +33,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("working_width", 256, "images are resized to this width (K scaled); 0 = native"),
     Param("working_height", 0, "images are resized to this height; 0 = native, or keep the aspect ratio if the width is set"),
     Param("queue_size", 30, "frames per sensor waiting for their pose; the oldest is dropped beyond this"),
+    Param("max_lag_s", 0.5, "when integration falls behind, frames more than this (sensor time) older than their "
+          "sensor's newest are skipped, which bounds the latency; 0 = never skip"),
     Param("pose_buffer_size", 2000, "poses kept per sensor for interpolation"),
     Param("pose_tolerance_s", 0.1, "max time between a depth stamp and the poses interpolated around it"),
     Param("pose_max_wait_s", 1.0, "a frame waits this long (sensor time) for a pose after its stamp, then is dropped"),
@@ -41,7 +43,7 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("on_time_jump", "reset", "what a backward time jump does to the map: reset | ignore"),
     Param("integrate_rate_hz", 30.0, "rate of the timer that integrates queued frames"),
     Param("mesh_rate_hz", 1.0, "rate of mesh updates (alpha, fusion, meshing of the changed blocks)"),
-    Param("alpha_budget_s", 0.5, "seconds per mesh update spent re-evaluating the sensor weighting; blocks left over "
+    Param("alpha_budget_s", 0.3, "seconds per mesh update spent re-evaluating the sensor weighting; blocks left over "
           "wait for the next update (never-evaluated first, then oldest); 0 = no limit"),
     Param("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
@@ -52,6 +54,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("weights", "default", "network weights file; 'default' = the shipped weights, 'none' = untrained"),
     Param("device", "cpu", "torch device: cpu | cuda (falls back to cpu with a warning)"),
     Param("save_on_shutdown", False, "write the PLY files into output_dir when the node stops"),
+    Param("max_map_blocks", 50000, "memory bound: past this many 8^3-voxel blocks (~20 KB each; the sample room "
+          "needs ~34k at 1 cm) the blocks farthest from the sensor are dropped; 0 = unbounded"),
     Param("tsdf_fusion", False, "also keep the plain TSDF Fusion baseline (save_mesh adds tsdf_fusion.ply; "
           "about 15% more integration time and memory)"),
 )
@@ -62,7 +66,8 @@ SENSOR_PARAMS: tuple[Param, ...] = (
     Param("{sensor}.camera_info_topic", "/{sensor}/camera_info", "camera_info topic of the depth image"),
     Param("{sensor}.pose_topic", "/{sensor}/pose", "pose of the sensor's optical frame in fixed_frame"),
     Param("{sensor}.depth_min_m", 0.1, "depth below this is ignored, metres"),
-    Param("{sensor}.depth_max_m", 5.0, "depth beyond this is ignored, metres"),
+    Param("{sensor}.depth_max_m", 3.0, "depth beyond this is ignored, metres (at 1 cm voxels and 256 px, rays beyond "
+          "~3 m are > 2 voxels apart and noise spreads samples over many sparse blocks: memory and time, little surface)"),
 )
 
 
@@ -143,10 +148,14 @@ def check(values: dict[str, Any]) -> None:
                  "pose_tolerance_s", "pose_max_wait_s", "time_jump_s"):
         if not values[name] > 0:
             raise ValueError(f"parameter '{name}' must be > 0, got {values[name]}")
+    if not values["max_lag_s"] >= 0:
+        raise ValueError(f"parameter 'max_lag_s' must be >= 0 (0 = never skip), got {values['max_lag_s']}")
     if not values["alpha_budget_s"] >= 0:
         raise ValueError(f"parameter 'alpha_budget_s' must be >= 0 (0 = no limit), got {values['alpha_budget_s']}")
     if values["queue_size"] < 1 or values["working_width"] < 0 or values["working_height"] < 0:
         raise ValueError("queue_size must be >= 1 and working_width/height >= 0")
+    if values["max_map_blocks"] < 0:
+        raise ValueError(f"parameter 'max_map_blocks' must be >= 0 (0 = unbounded), got {values['max_map_blocks']}")
     for sensor in sensors:
         lo, hi = values[f"{sensor}.depth_min_m"], values[f"{sensor}.depth_max_m"]
         if not 0 <= lo < hi:
@@ -186,13 +195,17 @@ def declare(node: Any) -> Settings:
     return Settings(values=values, sensors=sensors)
 
 
-def ingest_config(settings: Settings) -> Any:  # senfunet_ros.ingest.IngestConfig
-    """Ingest configured by the node's parameters (the node and replay both use this)."""
+def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.ingest.IngestConfig
+    """Ingest configured by the node's parameters (the node and replay both use this); `overrides`
+    replace fields. Frames are never skipped for lag here (offline readers take them all); the live
+    node passes max_lag_s from its parameter."""
+    import dataclasses
+
     from senfunet_ros import conversions as conv
     from senfunet_ros.ingest import IngestConfig
 
     s = settings
-    return IngestConfig(
+    config = IngestConfig(
         sensors=s.sensor_names,
         working_size=(s.working_width, s.working_height),
         queue_size=s.queue_size,
@@ -203,6 +216,7 @@ def ingest_config(settings: Settings) -> Any:  # senfunet_ros.ingest.IngestConfi
         time_jump_s=s.time_jump_s,
         pose_parser=conv.POSE_PARSERS[s.pose_type],
     )
+    return dataclasses.replace(config, **overrides)
 
 
 def engine_config(settings: Settings, **overrides: Any) -> Any:
@@ -229,6 +243,7 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
         alpha_voxels="surface",  # the exact fused mesh for the least weighting-net work
         alpha_dtype=alpha_dtype(s.alpha_precision, device),
         tsdf_fusion=s.tsdf_fusion,
+        max_blocks=s.max_map_blocks,
     )
     return dataclasses.replace(config, **overrides)
 

@@ -299,8 +299,8 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
             if reader.note:
                 log(f"note: {reader.note}")
             router = TopicRouter(settings, reader.topics, bag)
-            # offline: the baseline too, and float32 alpha whatever the CPU (results independent of it)
-            engine = SenFuNet(engine_config(settings, tsdf_fusion=True, alpha_dtype="float32"),
+            # offline: the whole map, the baseline too, and float32 alpha whatever the CPU
+            engine = SenFuNet(engine_config(settings, tsdf_fusion=True, alpha_dtype="float32", max_blocks=0),
                               weights=engine_weights(settings))
             ingest = Ingest(ingest_config(settings))
             drain = _Drain(engine, ingest, settings.on_time_jump)

@@ -14,7 +14,7 @@ from senfunet_core import networks
 from senfunet_core.engine import EngineConfig, SenFuNet
 from senfunet_core.errors import InputError
 from senfunet_core.fusion import fuse
-from senfunet_core.grid import BLOCK
+from senfunet_core.grid import BLOCK, block_keys
 from senfunet_core.mesher import Mesh, weld
 
 VOXEL = 0.01
@@ -425,3 +425,60 @@ def test_alpha_budget_defers_work_and_holds_back_single_sensor_voxels():
     assert engine.counters["alpha_backlog_blocks"] == 0
     np.testing.assert_allclose(engine.grid.pools["alpha"][:n].numpy(), reference.grid.pools["alpha"][:n].numpy(),
                                atol=1e-6)
+
+
+def test_max_blocks_drops_the_blocks_farthest_from_the_camera():
+    """The memory bound: past max_blocks, an update drops the blocks farthest from the last camera;
+    the blocks kept hold exactly what an unbounded engine holds for them, and are found again."""
+    K = SPHERE_K
+    far = np.array([3.0, 0.0, 0.0])  # a second sphere, 3 m away, seen last
+    views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]]
+    views += [(far, look_at(far + 0.9 * (T[:3, 3] - SPHERE_C), far)) for T in SPHERE_VIEWS[:2]]
+    def integrate(engine: SenFuNet, centre: np.ndarray, T: np.ndarray) -> None:
+        depth = render_sphere(centre, SPHERE_R, K, T)
+        engine.integrate("tof", depth, K, T)
+        engine.integrate("stereo", depth, K, T)
+
+    reference = engine_for_tests()
+    for centre, T in views:
+        integrate(reference, centre, T)
+    reference.update()
+    n_all = reference.grid.n_blocks
+    bounded = engine_for_tests(max_blocks=int(0.7 * n_all))
+    shown: dict = {}
+    for i, (centre, T) in enumerate(views):
+        integrate(bounded, centre, T)
+        if i == 1:  # the first sphere is meshed (and shown) before the far one comes
+            shown.update(bounded.update().changed)
+    update = bounded.update()
+    grid = bounded.grid
+    assert grid.n_blocks <= int(0.9 * bounded.config.max_blocks)
+    kept = grid.coords[: grid.n_blocks]
+    camera = torch.from_numpy(views[-1][1][:3, 3])
+
+    def distance(coords: torch.Tensor) -> torch.Tensor:
+        return ((coords.double() * BLOCK + 3.5) * VOXEL - camera).norm(dim=1)
+
+    everything = reference.grid.coords[:n_all]
+    dropped = everything[reference.grid.lookup(everything).numpy() >= 0][
+        ~np.isin(block_keys(everything).numpy(), block_keys(kept).numpy())]
+    assert len(dropped) == n_all - grid.n_blocks > 0
+    assert float(distance(kept).max()) <= float(distance(dropped).min())  # the nearest blocks are kept
+    assert update.removed and all(key in shown for key in update.removed)  # dropped meshes are deleted
+    slots = reference.grid.lookup(kept)
+    assert bool((slots >= 0).all())
+    assert torch.equal(grid.lookup(kept), torch.arange(grid.n_blocks))  # the hash table knows the moved blocks
+    for name in ("tsdf0", "weight0", "feat0"):
+        assert torch.equal(grid.pools[name][: grid.n_blocks], reference.grid.pools[name][slots]), name
+    assert bounded.extract_mesh("fused").n_faces > 1000
+
+
+def test_integration_keeps_the_map_bound_between_updates():
+    K = SPHERE_K
+    engine = engine_for_tests(max_blocks=60)
+    for T in SPHERE_VIEWS[:6]:  # ~300 blocks' worth, and no update in between
+        engine.integrate("tof", render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
+        assert engine.grid.n_blocks <= 1.25 * 60 or engine.counters.get("evicted_blocks", 0) == 0
+    assert engine.counters["evicted_blocks"] > 0 and engine.grid.n_blocks <= 1.25 * 60
+    update = engine.update()
+    assert engine.grid.n_blocks <= 60 and isinstance(update.removed, list)

@@ -195,3 +195,26 @@ def test_frames_in_stamp_order_and_deterministic() -> None:
 def test_unknown_sensor_is_a_value_error() -> None:
     with pytest.raises(ValueError, match="configured sensors"):
         make().add_depth("lidar", depth_msg(0))
+
+
+def test_consumer_behind_skips_old_frames_and_pop_limit_keeps_the_rest() -> None:
+    """A slow consumer (pop_ready(max_frames=1)) gets the oldest ready frame; with max_lag_s, frames
+    that fell further behind their sensor's newest are skipped and counted as 'behind'."""
+    def feed(ingest: Ingest) -> None:
+        for t in range(0, 1000, 100):  # 10 frames over 0.9 s
+            assert ingest.add_depth("tof", depth_msg(t * MS)) is None
+        for t in range(0, 1050, 50):  # poses every 50 ms, x = t in metres per second
+            ingest.add_pose("tof", pose_msg(t * MS, x=t / 1000))
+
+    ingest = make(max_lag_s=0.25)
+    feed(ingest)
+    (first,) = frames(ingest.pop_ready(max_frames=1))
+    assert first.stamp_ns == 700 * MS  # 0..600 ms were more than 250 ms behind the newest (900 ms)
+    assert ingest.counters()["tof"]["dropped"]["behind"] == 7
+    assert ingest.queue_depths()["tof"] == 2  # 800 and 900 ms wait, posed, for the next pop
+    rest = frames(ingest.pop_ready())
+    assert [f.stamp_ns for f in rest] == [800 * MS, 900 * MS]
+    np.testing.assert_allclose(rest[1].T_world_camera[:3, 3], [0.9, 0, 0])
+    unlimited = make()  # max_lag_s 0: nothing is skipped
+    feed(unlimited)
+    assert len(frames(unlimited.pop_ready())) == 10
