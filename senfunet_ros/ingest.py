@@ -381,13 +381,12 @@ class Ingest:
         while state.queue:
             pending = state.queue[0]
             t = pending.stamp_ns
-            if lag_ns and newest_ns is not None and newest_ns - t > lag_ns:  # load shedding: keep latency bounded
-                state.queue.popleft()
-                state.counters.dropped["behind"] += 1
-                continue
             if pending.T is not None:  # posed before, put back by pop_ready(max_frames)
                 state.queue.popleft()
-                out.append(Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s))
+                if lag_ns and newest_ns - t > lag_ns:  # the consumer fell behind: keep latency bounded
+                    state.counters.dropped["behind"] += 1
+                else:
+                    out.append(Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s))
                 continue
             waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
             stamps = state.pose_stamps

@@ -209,9 +209,11 @@ def test_consumer_behind_skips_old_frames_and_pop_limit_keeps_the_rest() -> None
     ingest = make(max_lag_s=0.25)
     feed(ingest)
     (first,) = frames(ingest.pop_ready(max_frames=1))
-    assert first.stamp_ns == 700 * MS  # 0..600 ms were more than 250 ms behind the newest (900 ms)
-    assert ingest.counters()["tof"]["dropped"]["behind"] == 7
-    assert ingest.queue_depths()["tof"] == 2  # 800 and 900 ms wait, posed, for the next pop
+    assert first.stamp_ns == 0 and ingest.counters()["tof"]["dropped"]["behind"] == 0
+    assert ingest.queue_depths()["tof"] == 9  # posed, waiting for the consumer
+    (second,) = frames(ingest.pop_ready(max_frames=1))  # the consumer is back, and behind
+    assert second.stamp_ns == 700 * MS  # 100..600 ms were more than 250 ms behind the newest (900 ms)
+    assert ingest.counters()["tof"]["dropped"]["behind"] == 6
     rest = frames(ingest.pop_ready())
     assert [f.stamp_ns for f in rest] == [800 * MS, 900 * MS]
     np.testing.assert_allclose(rest[1].T_world_camera[:3, 3], [0.9, 0, 0])

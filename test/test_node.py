@@ -31,7 +31,7 @@ BASE_S = 1000  # added to simulator stamps (which start below 0 for poses)
 # Sensor rates lowered from the contract's 15/20 Hz: fewer frames of the same trajectory.
 SIM = dict(seed=3, duration_s=3.0, width=128, height=128, tof_rate_hz=6.0, stereo_rate_hz=6.0)
 # tsdf_fusion: keep the TSDF Fusion baseline, so ~/save_mesh writes tsdf_fusion.ply too.
-E2E_PARAMS = dict(voxel_size_m=0.04, band_m=0.4, working_width=64, queue_size=500, mesh_rate_hz=1.0,
+E2E_PARAMS = dict(voxel_size_m=0.04, band_m=0.4, working_width=64, queue_size=500, max_lag_s=0.0, mesh_rate_hz=1.0,
                   integrate_rate_hz=50.0, weights_band_m=0.0, tsdf_fusion=True)
 
 

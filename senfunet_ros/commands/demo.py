@@ -200,8 +200,9 @@ class _Demo:
         node_cmd = [*self.cli, "node", "--use-sim-time"]
         if args.params:
             node_cmd += ["--params", str(args.params)]
+        # every frame fused (a slow CPU falls behind instead of skipping), and TSDF Fusion kept for the picture
         node_cmd += ["--", "-p", f"output_dir:={self.out}", "-p", f"queue_size:={args.queue_size}",
-                     "-p", "tsdf_fusion:=true"]  # the picture shows TSDF Fusion next to SenFuNet
+                     "-p", "max_lag_s:=0.0", "-p", "tsdf_fusion:=true"]
         self.node_proc = self._spawn(node_cmd, self.node_log)
         rclpy.init(args=None)
         node = rclpy.create_node("senfunet_demo", start_parameter_services=False)
