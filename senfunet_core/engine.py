@@ -181,6 +181,7 @@ class SenFuNet:
         # a block integrated while it is read is marked again and re-read by the next update, and
         # pools that grow meanwhile stay valid for whoever still holds the old ones.
         self._data_lock = threading.RLock()
+        self._scratch: dict[str, np.ndarray] = {}  # integration's working arrays (used under the data lock)
         self._update_lock = threading.RLock()  # one update or extraction at a time
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0}
         self.timings_s: dict[str, float] = {}  # stage -> seconds of its last run
@@ -211,7 +212,7 @@ class SenFuNet:
         with self._data_lock:
             update = integrate_frame(self.grid, depth, features.result, K, T_world_camera,
                                      (cfg.depth_min_m[s], cfg.depth_max_m[s]), cfg.integrator,
-                                     (f"tsdf{s}", f"weight{s}", f"feat{s}"))
+                                     (f"tsdf{s}", f"weight{s}", f"feat{s}"), scratch=self._scratch)
             self._grow_flags()
             self._alpha_pending[update.touched_slots] = True
             self.frames_integrated[sensor] += 1

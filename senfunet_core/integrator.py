@@ -343,6 +343,16 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
                           weight, features, tsdf_base, weight_base, drift, w_max)
 
 
+def _scratch(store: dict[str, np.ndarray] | None, name: str, size: int, dtype: type) -> np.ndarray:
+    """A working array of at least `size` elements, reused from `store` when it is big enough."""
+    if store is None:
+        return np.empty(size, dtype)
+    array = store.get(name)
+    if array is None or len(array) < size:
+        array = store[name] = np.empty(size, dtype)
+    return array[:size]
+
+
 @dataclass
 class FrameUpdate:
     """What one compiled integration changed."""
@@ -354,7 +364,8 @@ class FrameUpdate:
 
 def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.ndarray | Callable[[], np.ndarray],
                     K: np.ndarray, T_world_camera: np.ndarray, depth_range_m: tuple[float, float],
-                    config: IntegratorConfig, channels: tuple[str, str, str], drift: str = "drift") -> FrameUpdate:
+                    config: IntegratorConfig, channels: tuple[str, str, str], drift: str = "drift",
+                    scratch: dict[str, np.ndarray] | None = None) -> FrameUpdate:
     """Integrate one frame into `grid` with the compiled kernels.
 
     depth_m: H x W float32 (invalid pixels anything outside depth_range_m, NaN, inf);
@@ -363,20 +374,22 @@ def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.nda
     channels: the sensor's (tsdf, weight, feature) pool names;
     the TSDF Fusion baseline goes to "tsdf_base"/"weight_base" when the grid has those channels.
     Raises InputError (grid untouched but for empty blocks that may have been allocated) when
-    samples fall outside the key range.
+    samples fall outside the key range. `scratch`: working arrays kept between calls (a dict the
+    caller owns and never shares between threads), so frames do not pay for fresh allocations.
     """
     h, w = depth_m.shape
     offsets_m = config.sample_offsets().numpy().astype(np.float64) * config.step_m
     n_max = h * w * len(offsets_m)
-    sample_flat = np.empty(n_max, np.int64)
-    sample_touched = np.empty(n_max, np.int32)
-    pixel_index = np.empty(h * w, np.int64)
+    sample_flat = _scratch(scratch, "sample_flat", n_max, np.int64)
+    sample_touched = _scratch(scratch, "sample_touched", n_max, np.int32)
+    pixel_index = _scratch(scratch, "pixel_index", h * w, np.int64)
     depth = np.ascontiguousarray(depth_m, np.float32)
     K64 = np.ascontiguousarray(K, np.float64)
     T64 = np.ascontiguousarray(T_world_camera, np.float64)
     while True:
-        slot_to_touched = np.full(grid.capacity, -1, np.int32)
-        touched_slots = np.empty(grid.capacity, np.int64)
+        slot_to_touched = _scratch(scratch, "slot_to_touched", grid.capacity, np.int32)
+        slot_to_touched.fill(-1)
+        touched_slots = _scratch(scratch, "touched_slots", grid.capacity, np.int64)
         state = np.array([grid.n_blocks, min(grid.max_blocks_before_rehash(), grid.capacity)], np.int64)
         n_pixels, n_touched, ok = locate_samples(
             depth, depth_range_m[0], depth_range_m[1], config.border_px, K64, T64, offsets_m, config.voxel_size_m,
