@@ -81,17 +81,20 @@ def _bucket(key: int, mask: int) -> int:
 
 
 @numba.njit(inline="always")
-def hash_find(table_keys: np.ndarray, table_slots: np.ndarray, key: int) -> int:
-    """Slot of `key`, -1 when absent."""
+def _probe(table_keys: np.ndarray, key: int) -> int:
+    """The entry holding `key`, or the free entry where it would go (linear probing)."""
     mask = table_keys.shape[0] - 1
     i = _bucket(key, mask)
-    while True:
-        k = table_keys[i]
-        if k == key:
-            return table_slots[i]
-        if k == EMPTY_KEY:
-            return -1
+    while table_keys[i] != key and table_keys[i] != EMPTY_KEY:
         i = (i + 1) & mask
+    return i
+
+
+@numba.njit(inline="always")
+def hash_find(table_keys: np.ndarray, table_slots: np.ndarray, key: int) -> int:
+    """Slot of `key`, -1 when absent."""
+    i = _probe(table_keys, key)
+    return table_slots[i] if table_keys[i] == key else -1
 
 
 @numba.njit(inline="always")
@@ -99,15 +102,9 @@ def hash_find_or_add(table_keys: np.ndarray, table_slots: np.ndarray, key: int, 
                      slot_keys: np.ndarray) -> int:
     """Slot of `key`, adding the block with the next free slot when absent. state = [n_blocks,
     n_entries_max]; returns -1 (nothing changed) when the table or the slot arrays are full."""
-    mask = table_keys.shape[0] - 1
-    i = _bucket(key, mask)
-    while True:
-        k = table_keys[i]
-        if k == key:
-            return table_slots[i]
-        if k == EMPTY_KEY:
-            break
-        i = (i + 1) & mask
+    i = _probe(table_keys, key)
+    if table_keys[i] == key:
+        return table_slots[i]
     slot = state[0]
     if slot >= state[1] or slot >= slot_keys.shape[0]:
         return -1
@@ -137,11 +134,8 @@ def _add_many(table_keys: np.ndarray, table_slots: np.ndarray, keys: np.ndarray,
 
 @numba.njit(cache=True, nogil=True)
 def _rehash(slot_keys: np.ndarray, n_blocks: int, table_keys: np.ndarray, table_slots: np.ndarray) -> None:
-    mask = table_keys.shape[0] - 1
     for slot in range(n_blocks):
-        i = _bucket(slot_keys[slot], mask)
-        while table_keys[i] != EMPTY_KEY:
-            i = (i + 1) & mask
+        i = _probe(table_keys, slot_keys[slot])
         table_keys[i] = slot_keys[slot]
         table_slots[i] = slot
 

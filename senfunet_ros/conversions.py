@@ -353,21 +353,14 @@ def _put_bytes(buf: np.ndarray, offset: int, data: np.ndarray, start: int, end: 
 
 
 @numba.njit(inline="always")
-def _put_f64(buf64: np.ndarray, buf: np.ndarray, offset: int, value: float, write: bool) -> int:
-    offset += -offset % 8
+def _put_float(scratch: np.ndarray, buf: np.ndarray, offset: int, value: float, write: bool) -> int:
+    """value as the 1-element scratch array's float type (float32 or float64), aligned to its size."""
+    size = scratch.itemsize
+    offset += -offset % size
     if write:
-        buf64[0] = value
-        buf[offset:offset + 8] = buf64.view(np.uint8)
-    return offset + 8
-
-
-@numba.njit(inline="always")
-def _put_f32(buf32: np.ndarray, buf: np.ndarray, offset: int, value: float, write: bool) -> int:
-    offset += -offset % 4
-    if write:
-        buf32[0] = value
-        buf[offset:offset + 4] = buf32.view(np.uint8)
-    return offset + 4
+        scratch[0] = value
+        buf[offset:offset + size] = scratch.view(np.uint8)
+    return offset + size
 
 
 @numba.njit(cache=True, nogil=True)
@@ -394,9 +387,9 @@ def _encode_markers(buf: np.ndarray, write: bool, sec: int, nanosec: int, frame_
         o = _put(body, o, 11, 4, write)  # TRIANGLE_LIST
         o = _put(body, o, actions[m], 4, write)
         for value in (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0):  # pose (identity), scale 1
-            o = _put_f64(b64, body, o, value, write)
+            o = _put_float(b64, body, o, value, write)
         for _ in range(4):  # color: used only where no per-vertex colour is given
-            o = _put_f32(b32, body, o, 1.0, write)
+            o = _put_float(b32, body, o, 1.0, write)
         o = _put(body, o, 0, 4, write)  # lifetime: forever
         o = _put(body, o, 0, 4, write)
         o = _put(body, o, 0, 1, write)  # frame_locked
