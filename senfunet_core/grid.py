@@ -259,29 +259,6 @@ def _release_rows(pool: torch.Tensor, memory: mmap.mmap, start: int, stop: int) 
         memory.madvise(mmap.MADV_DONTNEED, first, last - first)
 
 
-# -- neighbourhoods in local coordinates ------------------------------------------------------------
-
-
-def local_grid(lo: int, size: int, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
-    """For a cube of local voxel coordinates lo..lo+size-1 per axis around a block: the neighbour
-    block offset code (0..26, for offsets -1..1 per axis) and the local index inside that neighbour."""
-    r = torch.arange(lo, lo + size, device=device)
-    offset = torch.div(r, BLOCK, rounding_mode="floor")  # -1, 0 or 1
-    if int(offset.min()) < -1 or int(offset.max()) > 1:
-        raise ValueError("neighbourhoods may reach at most one block beyond the centre block")
-    local = r - offset * BLOCK
-    ox, oy, oz = torch.meshgrid(offset, offset, offset, indexing="ij")
-    lx, ly, lz = torch.meshgrid(local, local, local, indexing="ij")
-    code = ((ox + 1) * 9 + (oy + 1) * 3 + (oz + 1)).reshape(-1)
-    index = (lx * 64 + ly * 8 + lz).reshape(-1)
-    return code, index
-
-
-NEIGHBOUR_OFFSETS = torch.stack(
-    torch.meshgrid(torch.arange(-1, 2), torch.arange(-1, 2), torch.arange(-1, 2), indexing="ij"), dim=-1
-).reshape(27, 3)
-
-
 class BlockGrid:
     """Blocks and their channels. Slots are never freed except by `clear`.
 
@@ -395,37 +372,7 @@ class BlockGrid:
         _rehash(self.slot_keys, self.n_blocks, self.table_keys, self.table_slots)
         return movers, holes
 
-    # -- neighbourhoods ---------------------------------------------------------------------
-    def neighbour_slots(self, slots: torch.Tensor) -> torch.Tensor:
-        """Bx27 slots of each block's 26 neighbours and itself (-1 where absent)."""
-        s = np.ascontiguousarray(slots.reshape(-1).numpy(), np.int64)
-        return torch.from_numpy(neighbour_table(self.table_keys, self.table_slots, self.slot_keys, s))
-
-    def gather(self, slots: torch.Tensor, names: list[str], lo: int, size: int) -> list[torch.Tensor]:
-        """For each block, the cube of voxels lo..lo+size-1 (local coordinates, may reach into the
-        neighbours) of each named channel: B x size^3 x *channel_shape, zeros where no block exists."""
-        code, index = local_grid(lo, size)
-        neighbours = self.neighbour_slots(slots)  # Bx27
-        voxel_slot = neighbours[:, code]  # B x size^3
-        present = voxel_slot >= 0
-        flat = voxel_slot.clamp(min=0) * BLOCK_VOXELS + index.unsqueeze(0)
-        out = []
-        for name in names:
-            pool = self.pools[name]
-            values = pool.reshape(-1, *pool.shape[2:])[flat.reshape(-1)]
-            values = values.reshape(*flat.shape, *pool.shape[2:])
-            mask = present.reshape(*present.shape, *([1] * (values.dim() - 2)))
-            out.append(torch.where(mask, values, torch.zeros((), dtype=values.dtype)))
-        return out
-
-    def dilate(self, slots: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-        """Existing slots of the blocks at `slots` + each offset (Kx3), unique and sorted."""
-        if slots.numel() == 0:
-            return slots
-        coords = self.coords[slots].unsqueeze(1) + offsets.unsqueeze(0)
-        found = self.lookup(coords.reshape(-1, 3))
-        return torch.unique(found[found >= 0])
-
+    # -- geometry ------------------------------------------------------------------------------
     def voxel_centres(self, slots: torch.Tensor, voxel_size_m: float) -> torch.Tensor:
         """B x 512 x 3 world positions of the voxel centres of the given blocks."""
         r = torch.arange(BLOCK)
