@@ -273,10 +273,10 @@ def _update_blocks(start: np.ndarray, order: np.ndarray, sample_flat: np.ndarray
     n_samples = sample_tsdf_m.shape[0]
     n_channels = pixel_features.shape[1]
     updated = 0
+    count = np.zeros(512, np.int64)  # per block: zero again after use
+    sum_tsdf = np.empty(512, np.float32)
+    sum_features = np.empty((512, n_channels), np.float32)
     for b in range(start.shape[0] - 1):
-        count = np.zeros(512, np.int64)
-        sum_tsdf = np.empty(512, np.float32)
-        sum_features = np.empty((512, n_channels), np.float32)
         base_index = touched_slots[b] * 512
         for m in range(start[b], start[b + 1]):
             n = order[m]
@@ -293,6 +293,7 @@ def _update_blocks(start: np.ndarray, order: np.ndarray, sample_flat: np.ndarray
             cnt = count[local]
             if cnt == 0:
                 continue
+            count[local] = 0
             updated += 1
             voxel = base_index + local
             inv_count = np.float32(1.0) / np.float32(cnt)
