@@ -34,6 +34,7 @@ __all__ = [
     "pose_from_msg",
     "POSE_PARSERS",
     "block_marker_id",
+    "block_marker_ids",
     "marker_array_cdr",
     "delete_all_marker_array_cdr",
     "point_cloud2_cdr",
@@ -325,11 +326,19 @@ def block_marker_id(key: Sequence[int]) -> tuple[str, int]:
     The id alone covers 1024 blocks per axis (82 m at 1 cm voxels); beyond that the namespace
     differs, so ids never collide and a block keeps its marker across updates.
     """
-    a, b, c = (int(v) for v in key)
-    high = (a >> 10, b >> 10, c >> 10)
-    marker_id = ((a & 0x3FF) << 20) | ((b & 0x3FF) << 10) | (c & 0x3FF)
-    ns = "senfunet_mesh" if high == (0, 0, 0) else f"senfunet_mesh_{high[0]}_{high[1]}_{high[2]}"
-    return ns, marker_id
+    names, ids = block_marker_ids(np.asarray([key], np.int64).reshape(1, 3))
+    return names[0], int(ids[0])
+
+
+def block_marker_ids(keys: np.ndarray) -> tuple[list[str], np.ndarray]:
+    """block_marker_id for B x 3 block keys at once: (namespaces, ids)."""
+    keys = np.asarray(keys, np.int64).reshape(-1, 3)
+    low, high = keys & 0x3FF, keys >> 10
+    ids = (low[:, 0] << 20) | (low[:, 1] << 10) | low[:, 2]
+    names = ["senfunet_mesh"] * len(keys)
+    for row in np.flatnonzero(high.any(axis=1)):  # beyond 1024 blocks from the origin: rare
+        names[row] = "senfunet_mesh_{}_{}_{}".format(*high[row].tolist())
+    return names, ids
 
 
 @numba.njit(inline="always")
@@ -450,8 +459,10 @@ def marker_array_cdr(
     stamp_ns: int,
     frame_id: str,
     delete_all_first: bool = False,
-) -> bytes:
-    """visualization_msgs/MarkerArray as CDR bytes: one TRIANGLE_LIST marker per changed block,
+    as_array: bool = False,
+) -> bytes | np.ndarray:
+    """visualization_msgs/MarkerArray as CDR bytes (or, with as_array, the uint8 array they were
+    written into, for `senfunet_ros.dds.publish_serialized`: no copy): one TRIANGLE_LIST marker per changed block,
     a DELETE marker per removed block, optionally led by a DELETEALL (a full snapshot).
 
     `changed`: block keys -> meshes with `vertices` (N,3), `faces` (M,3) and optional `colors`
@@ -464,32 +475,32 @@ def marker_array_cdr(
     meshes = changed if isinstance(changed, BlockMeshes) else BlockMeshes.from_meshes(dict(changed))
     _check_meshes(meshes)
     has_faces = np.diff(meshes.face_offsets) > 0
-    keys = meshes.keys.tolist()
-    deletes = {tuple(int(v) for v in key) for key in removed}
-    deletes.update(tuple(k) for k, has in zip(keys, has_faces) if not has)
-    markers = [("", 0, MARKER_DELETEALL)] if delete_all_first else []
-    markers += [(*block_marker_id(key), MARKER_DELETE) for key in sorted(deletes)]
-    n_plain = len(markers)
-    markers += [(*block_marker_id(k), MARKER_ADD) for k, has in zip(keys, has_faces) if has]
-    names = [name.encode("utf-8") for name, _, _ in markers]
-    name_start = np.cumsum([0] + [len(n) for n in names], dtype=np.int64)
-    ids = np.array([i for _, i, _ in markers], np.int64)
-    actions = np.array([a for _, _, a in markers], np.int64)
-    # the ADD markers come last and use the kept blocks' ranges; the others get empty ranges
     keep = np.flatnonzero(has_faces)
+    deletes = {tuple(int(v) for v in key) for key in removed}
+    deletes.update(map(tuple, meshes.keys[~has_faces].tolist()))
+    delete_keys = np.array(sorted(deletes), np.int64).reshape(-1, 3)
+    # markers: [DELETEALL], DELETEs, then the ADDs, which use the kept blocks' ranges
+    delete_names, delete_ids = block_marker_ids(delete_keys)
+    add_names, add_ids = block_marker_ids(meshes.keys[keep])
+    names = [""] * int(delete_all_first) + delete_names + add_names
+    ids = np.concatenate([np.zeros(int(delete_all_first), np.int64), delete_ids, add_ids])
+    actions = np.concatenate([np.full(int(delete_all_first), MARKER_DELETEALL), np.full(len(delete_ids), MARKER_DELETE),
+                              np.full(len(add_ids), MARKER_ADD)]).astype(np.int64)
+    n_plain = len(ids) - len(add_ids)
+    name_start = np.cumsum([0] + [len(n) for n in names], dtype=np.int64)
     pad = np.zeros(n_plain, np.int64)
     vertex_start = np.concatenate([pad, meshes.vertex_offsets[keep], meshes.vertex_offsets[-1:]])
     face_start = np.concatenate([pad, meshes.face_offsets[keep], meshes.face_offsets[-1:]])
     sec, nanosec = ns_to_stamp(stamp_ns)
     args = (sec, nanosec, np.frombuffer(frame_id.encode("utf-8"), np.uint8),
-            np.frombuffer(b"".join(names), np.uint8), name_start, ids, actions,
+            np.frombuffer("".join(names).encode("ascii"), np.uint8), name_start, ids, actions,
             np.ascontiguousarray(meshes.vertices, np.float32), np.ascontiguousarray(meshes.colors, np.float32),
             np.ascontiguousarray(meshes.faces, np.int64), vertex_start, face_start)
     size = _encode_markers(np.zeros(0, np.uint8), False, *args)
     buf = np.zeros(4 + size, np.uint8)
     buf[1] = 1  # encapsulation: CDR little endian
     _encode_markers(buf, True, *args)
-    return buf.tobytes()
+    return buf if as_array else buf.tobytes()
 
 
 def delete_all_marker_array_cdr(*, stamp_ns: int, frame_id: str) -> bytes:

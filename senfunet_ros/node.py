@@ -21,6 +21,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TransformStamped
@@ -36,6 +37,7 @@ from visualization_msgs.msg import MarkerArray
 
 from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
+from senfunet_ros.dds import publish_serialized
 from senfunet_ros.ingest import DROP_REASONS, Frame, Ingest, TimeJump
 
 __all__ = ["FusionNode", "main"]
@@ -319,10 +321,10 @@ class FusionNode(Node):
             if subscribers > self._mesh_subscribers:
                 # Someone new joined: transient local only holds the last few deltas, so send it all.
                 data = conv.marker_array_cdr(self.engine.block_meshes(), (), stamp_ns=stamp_ns, frame_id=frame_id,
-                                             delete_all_first=True)
+                                             delete_all_first=True, as_array=True)
             elif update.cleared or len(update.meshes) or update.removed:
                 data = conv.marker_array_cdr(update.meshes, update.removed, stamp_ns=stamp_ns, frame_id=frame_id,
-                                             delete_all_first=update.cleared)
+                                             delete_all_first=update.cleared, as_array=True)
             self._mesh_subscribers = subscribers
             cloud_data = None
             if cloud is not None:
@@ -332,9 +334,9 @@ class FusionNode(Node):
             if data is not None or cloud_data is not None:
                 self.timings["encode"].add(t_encode - t_cloud)
             if data is not None:
-                self.mesh_pub.publish(data)
+                publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
             if cloud_data is not None:
-                self.weights_pub.publish(cloud_data)
+                publish_serialized(self.weights_pub, np.frombuffer(cloud_data, np.uint8))
             if data is not None or cloud_data is not None:
                 self.timings["publish"].add(time.perf_counter() - t_encode)
             self.latency.published(contained)
