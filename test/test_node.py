@@ -554,3 +554,32 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
     finally:
         pub_node.destroy_node()
         run.close()
+
+
+def test_publish_serialized_delivers_the_same_message(ros) -> None:
+    """The node publishes its big messages with dds.publish_serialized (no GIL, no copy): a
+    subscriber receives exactly the message the CDR bytes encode."""
+    from rclpy.serialization import deserialize_message
+
+    from senfunet_core.mesher import Mesh
+    from senfunet_ros import conversions as conv
+    from senfunet_ros.dds import publish_serialized
+
+    node = Node("publish_serialized_test")
+    try:
+        qos = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        publisher = node.create_publisher(MarkerArray, "/serialized_test/mesh", qos)
+        received: list[MarkerArray] = []
+        node.create_subscription(MarkerArray, "/serialized_test/mesh", received.append, qos)
+        rng = np.random.default_rng(1)
+        meshes = {(i, -i, 2000 * i): Mesh(rng.random((30, 3), np.float32), rng.integers(0, 30, (40, 3)),
+                                          rng.random((30, 3), np.float32)) for i in range(50)}
+        data = conv.marker_array_cdr(meshes, [(1, 2, 3)], stamp_ns=7, frame_id="map", as_array=True)
+        publish_serialized(publisher, data)
+        deadline = time.monotonic() + 10
+        while not received and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        assert received and received[0] == deserialize_message(data.tobytes(), MarkerArray)
+        assert len(received[0].markers) == 51 and len(received[0].markers[1].points) == 120
+    finally:
+        node.destroy_node()
