@@ -342,9 +342,18 @@ def block_marker_ids(keys: np.ndarray) -> tuple[list[str], np.ndarray]:
 
 
 @numba.njit(inline="always")
+def _align(buf: np.ndarray, offset: int, size: int, write: bool) -> int:
+    """The next offset aligned to `size`; the padding is written as zeros."""
+    aligned = offset + (-offset % size)
+    if write:
+        buf[offset:aligned] = 0
+    return aligned
+
+
+@numba.njit(inline="always")
 def _put(buf: np.ndarray, offset: int, value: int, size: int, write: bool) -> int:
     """Little-endian unsigned integer of `size` bytes at `offset`, aligned to `size`."""
-    offset += -offset % size
+    offset = _align(buf, offset, size, write)
     if write:
         for i in range(size):
             buf[offset + i] = (value >> (8 * i)) & 0xFF
@@ -365,7 +374,7 @@ def _put_bytes(buf: np.ndarray, offset: int, data: np.ndarray, start: int, end: 
 def _put_float(scratch: np.ndarray, buf: np.ndarray, offset: int, value: float, write: bool) -> int:
     """value as the 1-element scratch array's float type (float32 or float64), aligned to its size."""
     size = scratch.itemsize
-    offset += -offset % size
+    offset = _align(buf, offset, size, write)
     if write:
         scratch[0] = value
         buf[offset:offset + size] = scratch.view(np.uint8)
@@ -405,7 +414,7 @@ def _encode_markers(buf: np.ndarray, write: bool, sec: int, nanosec: int, frame_
         n_faces = face_start[m + 1] - face_start[m] if actions[m] == 0 else 0
         o = _put(body, o, 3 * n_faces, 4, write)  # points: geometry_msgs/Point, float64
         if n_faces:
-            o += -o % 8
+            o = _align(body, o, 8, write)
             if write:
                 points = body[o:o + 72 * n_faces].view(np.float64)
                 for f in range(n_faces):
@@ -460,9 +469,11 @@ def marker_array_cdr(
     frame_id: str,
     delete_all_first: bool = False,
     as_array: bool = False,
+    out: np.ndarray | None = None,
 ) -> bytes | np.ndarray:
     """visualization_msgs/MarkerArray as CDR bytes (or, with as_array, the uint8 array they were
-    written into, for `senfunet_ros.dds.publish_serialized`: no copy): one TRIANGLE_LIST marker per changed block,
+    written into, for `senfunet_ros.dds.publish_serialized`: no copy; `out`, a uint8 array big
+    enough, is reused for it, so that a large message does not pay page faults each time): one TRIANGLE_LIST marker per changed block,
     a DELETE marker per removed block, optionally led by a DELETEALL (a full snapshot).
 
     `changed`: block keys -> meshes with `vertices` (N,3), `faces` (M,3) and optional `colors`
@@ -497,9 +508,9 @@ def marker_array_cdr(
             np.ascontiguousarray(meshes.vertices, np.float32), np.ascontiguousarray(meshes.colors, np.float32),
             np.ascontiguousarray(meshes.faces, np.int64), vertex_start, face_start)
     size = _encode_markers(np.zeros(0, np.uint8), False, *args)
-    buf = np.zeros(4 + size, np.uint8)
-    buf[1] = 1  # encapsulation: CDR little endian
-    _encode_markers(buf, True, *args)
+    buf = out[: 4 + size] if out is not None and len(out) >= 4 + size else np.empty(4 + size, np.uint8)
+    buf[:4] = (0, 1, 0, 0)  # encapsulation: CDR little endian
+    _encode_markers(buf, True, *args)  # writes every byte, padding included
     return buf if as_array else buf.tobytes()
 
 

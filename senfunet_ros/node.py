@@ -140,6 +140,7 @@ class FusionNode(Node):
         self._mesh_subscribers = 0
         self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
         self._mesh_lock = threading.Lock()  # one mesh publication at a time (timer vs. reset service)
+        self._mesh_buffer = np.zeros(0, np.uint8)  # reused for the encoded MarkerArrays (under _mesh_lock)
         self.latency = LatencyStats()  # frame arrival -> the mesh that contains it
         # 3. subscriptions: they only enqueue
         # Each subscription has its own mutually exclusive group: streams run in parallel, but one
@@ -321,10 +322,12 @@ class FusionNode(Node):
             if subscribers > self._mesh_subscribers:
                 # Someone new joined: transient local only holds the last few deltas, so send it all.
                 data = conv.marker_array_cdr(self.engine.block_meshes(), (), stamp_ns=stamp_ns, frame_id=frame_id,
-                                             delete_all_first=True, as_array=True)
+                                             delete_all_first=True, as_array=True, out=self._mesh_buffer)
             elif update.cleared or len(update.meshes) or update.removed:
                 data = conv.marker_array_cdr(update.meshes, update.removed, stamp_ns=stamp_ns, frame_id=frame_id,
-                                             delete_all_first=update.cleared, as_array=True)
+                                             delete_all_first=update.cleared, as_array=True, out=self._mesh_buffer)
+            if data is not None and data.base is not self._mesh_buffer:  # it grew: keep the larger one
+                self._mesh_buffer = data
             self._mesh_subscribers = subscribers
             cloud_data = None
             if cloud is not None:

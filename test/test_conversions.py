@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry
-from rclpy.serialization import deserialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -163,6 +163,18 @@ def test_marker_array_round_trip() -> None:
     # ids are a function of the key alone, and distinct
     ids = {conv.block_marker_id(k) for k in [(0, 0, 0), (1, 0, 0), (1024, 0, 0), (-1, 0, 0), (0, -1, 0)]}
     assert len(ids) == 5 and conv.block_marker_id((5, 6, 7)) == conv.block_marker_id((5, 6, 7))
+
+
+def test_marker_array_reused_buffer_is_byte_exact() -> None:
+    """Encoding into a dirty reused buffer writes every byte: the same bytes rclpy serialises."""
+    meshes = {(0, 1, 2): _mesh(0, n_faces=7), (5, -1, 2): _mesh(4, n_faces=3)}
+    fresh = conv.marker_array_cdr(meshes, [(4, 4, 4)], stamp_ns=3, frame_id="odd")  # odd lengths: padding
+    dirty = np.full(len(fresh) + 100, 0xFF, np.uint8)
+    reused = conv.marker_array_cdr(meshes, [(4, 4, 4)], stamp_ns=3, frame_id="odd", as_array=True, out=dirty)
+    assert reused.base is dirty and reused.tobytes() == fresh
+    assert serialize_message(deserialize_message(fresh, MarkerArray)) == fresh
+    small = np.zeros(10, np.uint8)  # too small: a new array, the old one untouched
+    assert conv.marker_array_cdr(meshes, [], stamp_ns=3, frame_id="odd", as_array=True, out=small).base is not small
 
 
 def test_marker_delete_all_and_empty_block() -> None:
