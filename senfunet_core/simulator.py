@@ -13,6 +13,7 @@ tables are built of several boxes. `scene_sdf` is > 0 in free space.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 from dataclasses import asdict, dataclass, field
@@ -67,6 +68,7 @@ class Surface:
     texel_m: float  # size of one texel in metres
     pattern: int  # 0 noise, 1 noise + stripes, 2 planks/tiles
     texture_seed: int
+    ir_reflectivity: float = 0.6  # what the ToF's infrared illumination gets back (0..1; dark materials < 0.15)
 
 
 @dataclass(frozen=True)
@@ -91,6 +93,8 @@ class Scene:
     stereo_image_noise: float  # grey-level noise std added to each stereo image
     stereo_uniqueness: int  # SGBM uniqueness ratio (higher = fewer, safer matches)
     stereo_speckle_window: int
+    tof_multipath_m: float = 0.0  # ToF depth overestimate in concave corners (multipath interference), at the corner
+    tof_min_signal: float = 0.0  # ToF dropout where reflectivity * cos(incidence) / depth^2 [1/m^2] is below this
 
 
 def _room_surface(rng: np.random.Generator, poor: bool, seed: int) -> Surface:
@@ -110,9 +114,10 @@ def _surface(rng: np.random.Generator, color: tuple, poor: bool, seed: int) -> S
 
 
 def _corridor(rng: np.random.Generator, room: np.ndarray) -> np.ndarray:
-    """A closed, smooth loop around the room centre, >= 1 m from the walls (the device walks it)."""
+    """A closed, smooth loop around the room centre, 0.9-1.9 m from the walls where the room allows
+    (the device walks it; the margin sets the viewing distance to the near walls)."""
     lx, ly = room[0], room[1]
-    margin = rng.uniform(1.05, 1.35)
+    margin = rng.uniform(0.9, 1.9)
     a = max(lx / 2 - margin, 0.25)
     b = max(ly / 2 - margin, 0.25)
     phi = np.linspace(0, 2 * np.pi, 256, endpoint=False)
@@ -262,6 +267,23 @@ def make_scene(seed: int, *, room_size_m: tuple[float, float, float] | None = No
 
     n_lights = int(rng.integers(1, 4))
     lights = tuple((float(rng.uniform(0.2, lx - 0.2)), float(rng.uniform(0.2, ly - 0.2)), lz - 0.05) for _ in range(n_lights))
+    # What real sites vary beyond the layout, drawn from their own stream (the layout above keeps its
+    # draws): the amount of texture (contrast of the textured surfaces), and for the ToF the
+    # infrared reflectivity of each material (painted walls and ceiling are bright in the infrared;
+    # some floors and furniture are dark: far noisier ToF depth, dropouts when the return is weak),
+    # multipath in concave corners and the weakest return it still measures.
+    extra = np.random.default_rng([seed, 4])
+    texture_scale = extra.uniform(0.45, 1.25)
+    dark_fraction = extra.uniform(0.0, 0.5)
+    for k, surf in enumerate(surfaces):
+        if 1 <= k < ROOM_SURFACES:  # ceiling and walls
+            ir = extra.uniform(0.45, 0.95)
+        else:
+            ir = extra.uniform(0.03, 0.12) if extra.random() < dark_fraction else extra.uniform(0.3, 0.95)
+        contrast = surf.contrast if surf.texture_poor else min(surf.contrast * texture_scale, 0.5)
+        surfaces[k] = dataclasses.replace(surf, contrast=float(contrast), ir_reflectivity=float(ir))
+    tof_multipath_m = float(extra.uniform(0.0, 0.05))
+    tof_min_signal = float(extra.uniform(0.002, 0.01))
     return Scene(
         seed=int(seed),
         room_size_m=(lx, ly, lz),
@@ -281,6 +303,8 @@ def make_scene(seed: int, *, room_size_m: tuple[float, float, float] | None = No
         stereo_image_noise=float(rng.uniform(0.5, 4.0)),
         stereo_uniqueness=int(rng.integers(3, 15)),
         stereo_speckle_window=int(rng.integers(20, 150)),
+        tof_multipath_m=tof_multipath_m,
+        tof_min_signal=tof_min_signal,
     )
 
 
@@ -350,9 +374,55 @@ def scene_sdf(scene: Scene, points_m: np.ndarray) -> np.ndarray:
     return d.astype(np.float32)
 
 
+def _prim_aabb(prim: Primitive) -> tuple[np.ndarray, np.ndarray]:
+    """World axis-aligned bounding box (lo, hi) of a primitive."""
+    c = np.asarray(prim.center_m, np.float64)
+    r = np.asarray(prim.size_m, np.float64)
+    if prim.kind == "box" and prim.yaw_rad != 0.0:
+        ca, sa = abs(np.cos(prim.yaw_rad)), abs(np.sin(prim.yaw_rad))
+        r = np.array([ca * r[0] + sa * r[1], sa * r[0] + ca * r[1], r[2]])
+    return c - r, c + r
+
+
 def gt_tsdf(scene: Scene, points_m: np.ndarray, band_m: float = 0.1) -> np.ndarray:
-    """Ground-truth TSDF (N,) float32: scene_sdf clipped to +-band_m / 2."""
-    return np.clip(scene_sdf(scene, points_m), -band_m / 2, band_m / 2).astype(np.float32)
+    """Ground-truth TSDF (N,) float32: scene_sdf clipped to +-band_m / 2.
+
+    Equal to np.clip(scene_sdf(...)) but faster: a primitive's SDF is evaluated only at points
+    within band_m / 2 of its bounding box (elsewhere it exceeds the truncation and cannot win)."""
+    p = np.asarray(points_m, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise InputError(f"points_m must be (N, 3), got {p.shape}")
+    half = band_m / 2
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    d = _room_sdf(scene, x, y, z)
+    for prim in scene.primitives:
+        lo, hi = _prim_aabb(prim)
+        near = np.flatnonzero((x >= lo[0] - half) & (x <= hi[0] + half) & (y >= lo[1] - half) & (y <= hi[1] + half)
+                              & (z >= lo[2] - half) & (z <= hi[2] + half))
+        if len(near):
+            d[near] = np.minimum(d[near], _prim_sdf(prim, x[near], y[near], z[near]))
+    return np.clip(d.astype(np.float32), -half, half).astype(np.float32)
+
+
+def gt_tsdf_blocks(scene: Scene, block_coords: np.ndarray, voxel_size_m: float, band_m: float = 0.1,
+                   block: int = 8) -> np.ndarray:
+    """GT TSDF (B, block^3) float32 at the voxel centres of whole blocks (x-major local order, voxel
+    (i, j, k) centred at (i, j, k) * voxel_size_m): gt_tsdf with the primitives culled per block."""
+    bc = np.asarray(block_coords, np.int64).reshape(-1, 3)
+    r = np.arange(block)
+    local = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    vox = bc[:, None, :] * block + local[None]
+    x, y, z = (vox[..., i] * float(voxel_size_m) for i in range(3))
+    half = band_m / 2
+    d = _room_sdf(scene, x, y, z)
+    blo = bc * block * float(voxel_size_m)
+    bhi = (bc * block + block - 1) * float(voxel_size_m)
+    for prim in scene.primitives:
+        lo, hi = _prim_aabb(prim)
+        sel = np.flatnonzero(np.all(bhi >= lo - half, axis=1) & np.all(blo <= hi + half, axis=1))
+        if len(sel):
+            d[sel] = np.minimum(d[sel], _prim_sdf(prim, x[sel], y[sel], z[sel]))
+    return np.clip(d.astype(np.float32), -half, half).astype(np.float32)
 
 
 def gt_mesh(scene: Scene, voxel_size_m: float = 0.01) -> Mesh:
@@ -569,13 +639,15 @@ def _normals_and_uv(prim: Primitive, x: np.ndarray, y: np.ndarray, z: np.ndarray
 
 
 def render_view(scene: Scene, T_world_camera: np.ndarray, K: np.ndarray, width: int, height: int,
-                *, with_rgb: bool = True) -> dict[str, np.ndarray]:
+                *, with_rgb: bool = True, with_other_distance: bool = False) -> dict[str, np.ndarray]:
     """Exact ray casting of one pinhole view (vectorised over rays, looping over primitives).
 
     Returns depth_m (H,W) float32 z-depth, normal_cam (H,W,3) float32 unit normals facing the
     camera, surface_id (H,W) int32, primitive_id (H,W) int32 (-1 = room), cos_incidence (H,W)
     float32 |cos(normal, ray)|, and if with_rgb: rgb (H,W,3) uint8 (albedo x texture x
-    Lambertian point lights + ambient).
+    Lambertian point lights + ambient); if with_other_distance: other_distance_m (H,W) float32, the
+    distance from the hit point to the nearest other surface (another room plane or primitive),
+    capped at OTHER_DISTANCE_CAP_M (ToF multipath is strong in concave corners).
     """
     T = np.asarray(T_world_camera, dtype=np.float64)
     if T.shape != (4, 4):
@@ -651,6 +723,8 @@ def render_view(scene: Scene, T_world_camera: np.ndarray, K: np.ndarray, width: 
         "primitive_id": pid,
         "cos_incidence": np.abs(cosi).astype(np.float32),
     }
+    if with_other_distance:
+        out["other_distance_m"] = _other_surface_distance(scene, px, py, pz, axis, (dx, dy, dz), pid)
     if with_rgb:
         atlas = _textures(scene)
         Tt = np.float32(TEXTURE_TILE)
@@ -673,20 +747,58 @@ def render_view(scene: Scene, T_world_camera: np.ndarray, K: np.ndarray, width: 
     return out
 
 
+OTHER_DISTANCE_CAP_M = 0.5
+MULTIPATH_RANGE_M = 0.08  # the ToF multipath overestimate decays as exp(-distance to the other surface / this)
+
+
+def _other_surface_distance(scene: Scene, px: np.ndarray, py: np.ndarray, pz: np.ndarray, axis: np.ndarray,
+                            d: tuple, pid: np.ndarray) -> np.ndarray:
+    """Per hit point, the distance to the nearest surface other than the hit one (capped)."""
+    lx, ly, lz = scene.room_size_m
+    cap = np.float32(OTHER_DISTANCE_CAP_M)
+    room_hit = pid < 0
+    out = np.full(px.shape, cap, np.float32)
+    for a, (coord, size) in enumerate(((px, lx), (py, ly), (pz, lz))):
+        hit_axis = room_hit & (axis == a)
+        for plane, dist in ((0, coord), (1, size - coord)):  # the plane at 0 and the one at size
+            hit_this = hit_axis & ((d[a] > 0) == bool(plane))
+            out = np.where(hit_this, out, np.minimum(out, dist.astype(np.float32)))
+    flat = (px.ravel(), py.ravel(), pz.ravel())
+    pid_flat = pid.ravel()
+    res = out.ravel()
+    for i, prim in enumerate(scene.primitives):
+        lo, hi = _prim_aabb(prim)
+        near = np.flatnonzero((flat[0] >= lo[0] - cap) & (flat[0] <= hi[0] + cap) & (flat[1] >= lo[1] - cap)
+                              & (flat[1] <= hi[1] + cap) & (flat[2] >= lo[2] - cap) & (flat[2] <= hi[2] + cap)
+                              & (pid_flat != i))
+        if len(near):
+            dist = _prim_sdf(prim, flat[0][near], flat[1][near], flat[2][near]).astype(np.float32)
+            res[near] = np.minimum(res[near], np.maximum(dist, 0))
+    return res.reshape(px.shape)
+
+
 # --------------------------------------------------------------------------------------------
 # Sensors
 # --------------------------------------------------------------------------------------------
 def _tof_depth(view: dict, K: np.ndarray, scene: Scene, rng: np.random.Generator) -> np.ndarray:
-    """Kinect-style noise (Handa et al., scaled) on a true z-depth image; 0 = invalid."""
+    """Kinect-style noise (Handa et al., scaled) on a true z-depth image; 0 = invalid.
+
+    On top of Handa's model: multipath (depth overestimated near concave corners, when the view
+    holds `other_distance_m`), noise growing as 1 / sqrt(infrared reflectivity) (dark materials are
+    several times noisier) and dropouts where the return reflectivity * cos / z^2 is too weak."""
     z = view["depth_m"].astype(np.float32)
     h, w = z.shape
     cosi = view["cos_incidence"]
+    reflectivity = np.array([sf.ir_reflectivity for sf in scene.surfaces], np.float32)[view["surface_id"]]
+    if scene.tof_multipath_m > 0 and "other_distance_m" in view:
+        z = z + np.float32(scene.tof_multipath_m) * np.exp(-view["other_distance_m"] / np.float32(MULTIPATH_RANGE_M))
     # pixel shuffling: each pixel reads the true depth at a Gaussian-shifted location
     u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     su = u + rng.normal(0, scene.tof_shuffle_px, (h, w)).astype(np.float32)
     sv = v + rng.normal(0, scene.tof_shuffle_px, (h, w)).astype(np.float32)
     zs = cv2.remap(z, su, sv, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
     cs = cv2.remap(cosi, su, sv, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    rs = cv2.remap(reflectivity, su, sv, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
     # flying pixels: near depth discontinuities take a value between fore- and background
     kernel = np.ones((3, 3), np.uint8)
     zmax = cv2.dilate(zs, kernel)
@@ -696,14 +808,16 @@ def _tof_depth(view: dict, K: np.ndarray, scene: Scene, rng: np.random.Generator
     zs = np.where(fly, zmin + rng.random((h, w)).astype(np.float32) * (zmax - zmin), zs)
     # disparity noise and 1/8 px quantisation: error grows ~ z^2
     disp = KINECT_BF / (np.maximum(zs, 1e-3) * 1000.0)
-    disp = disp + rng.normal(0, scene.tof_noise_scale / 6.0, (h, w))
+    noise_gain = np.clip(np.sqrt(0.5 / np.maximum(rs, 1e-3)), 0.8, 4.0)  # 1 at reflectivity 0.5
+    disp = disp + rng.normal(0, scene.tof_noise_scale / 6.0, (h, w)) * noise_gain
     disp = np.round(disp * 8.0) / 8.0
     with np.errstate(divide="ignore"):
         zn = np.where(disp > 0, KINECT_BF / np.maximum(disp, 1e-6) / 1000.0, 0.0)
     # dropouts: grazing angles (more likely the flatter), random speckles, out of range
     graze = (cs < scene.tof_grazing_cos) | ((cs < 2 * scene.tof_grazing_cos) & (rng.random((h, w)) < 0.3))
     speckle = rng.random((h, w)) < scene.tof_speckle_fraction
-    bad = graze | speckle | (zn < TOF_RANGE_M[0]) | (zn > TOF_RANGE_M[1]) | (disp <= 0)
+    weak = rs * cs < scene.tof_min_signal * zs * zs
+    bad = graze | speckle | weak | (zn < TOF_RANGE_M[0]) | (zn > TOF_RANGE_M[1]) | (disp <= 0)
     return np.where(bad, 0.0, zn).astype(np.float32)
 
 
@@ -741,7 +855,8 @@ def _stereo_depth(scene: Scene, T_left: np.ndarray, K: np.ndarray, width: int, h
 def simulate_tof_depth(scene: Scene, T_world_camera: np.ndarray, K: np.ndarray, width: int, height: int,
                        rng: np.random.Generator) -> np.ndarray:
     """One ToF depth image (H,W) float32 (0 = invalid) seen from the ToF optical frame pose."""
-    view = render_view(scene, T_world_camera, K, width, height, with_rgb=False)
+    view = render_view(scene, T_world_camera, K, width, height, with_rgb=False,
+                       with_other_distance=scene.tof_multipath_m > 0)
     return _tof_depth(view, K, scene, rng)
 
 
@@ -931,7 +1046,8 @@ def simulate_sequence(scene: Scene, seed: int, *, duration_s: float = 10.0, tof_
         poses = traj(stamps[sensor]) @ _sensor_offset(sensor)
         for st, T in zip(stamps[sensor], poses):
             if sensor == "tof":
-                view = render_view(scene, T, K, width, height, with_rgb=False)
+                view = render_view(scene, T, K, width, height, with_rgb=False,
+                                   with_other_distance=scene.tof_multipath_m > 0)
                 depth, rgb = _tof_depth(view, K, scene, rng), None
             else:
                 depth, rgb = _stereo_depth(scene, T, K, width, height, rng, sgbm)
@@ -976,11 +1092,13 @@ def load_dataset(folder: str | Path) -> Sequence:
     for sensor in SENSORS:
         path = folder / f"{sensor}.npz"
         if path.exists():
-            with np.load(path) as z:
-                rgb = z["rgb"] if "rgb" in z.files else None
-                for i in range(len(z["stamp_s"])):
-                    frames.append(SensorFrame(sensor, float(z["stamp_s"][i]), z["depth_m"][i],
-                                              None if rgb is None else rgb[i], z["K"][i], z["T_world_camera"][i]))
+            with np.load(path) as z:  # each array read once (indexing the NpzFile re-reads it)
+                arrays = {k: z[k] for k in z.files}
+            rgb = arrays.get("rgb")
+            for i in range(len(arrays["stamp_s"])):
+                frames.append(SensorFrame(sensor, float(arrays["stamp_s"][i]), arrays["depth_m"][i],
+                                          None if rgb is None else rgb[i], arrays["K"][i],
+                                          arrays["T_world_camera"][i]))
         ppath = folder / f"poses_{sensor}.npz"
         if ppath.exists():
             with np.load(ppath) as z:

@@ -55,3 +55,23 @@ def test_gt_crop_keeps_only_observed_vertices():
     far = np.array([[3.0, 3.0, 3.0]], np.float32)
     kept = ev.observed_gt_vertices(engine, np.concatenate([on_plane, far]))
     assert len(kept) == 2 and np.allclose(kept, on_plane)
+
+
+def test_grid_truth_lookup_equals_gt_tsdf_at_the_voxel_centres():
+    from senfunet_core import simulator
+    from senfunet_core.engine import EngineConfig, SenFuNet
+    from senfunet_core.metrics import grid_metrics
+
+    scene = simulator.make_scene(1001, room_size_m=(2.5, 2.5, 2.4))
+    seq = simulator.simulate_sequence(scene, 1001, duration_s=0.15, width=128, height=128)
+    engine = SenFuNet(EngineConfig(), weights=None)
+    ev.integrate_frames(engine, seq.frames)
+    truth = ev.GridTruth(engine, scene, 0.1)
+    gt_vertices = ev.observed_gt_vertices(engine, simulator.gt_mesh(scene, 0.02).vertices)
+    rows = ev.method_metrics(engine, scene, gt_vertices, methods=("tof", "senfunet"))
+    for method, which in (("tof", "tof"), ("senfunet", "fused")):
+        centres, tsdf = engine.voxel_values(which)
+        want = simulator.gt_tsdf(scene, centres, 0.1)
+        np.testing.assert_allclose(truth.at(centres), want, atol=1e-6)
+        expected = grid_metrics(tsdf, want)
+        assert rows[method]["MAD"] == pytest.approx(expected["MAD"], rel=1e-5) and rows[method]["n"] == expected["n"]

@@ -227,3 +227,69 @@ def test_dataset_round_trip(tmp_path):
         assert fb.depth_m.dtype == np.float32 and np.array_equal(fa.K, fb.K)
     mesh = np.load(tmp_path / "ds" / "gt_mesh.npz")
     assert mesh["vertices"].shape[1] == 3 and mesh["faces"].dtype == np.int32 and len(mesh["faces"]) > 100
+
+
+def test_gt_tsdf_fast_paths_equal_the_clipped_sdf():
+    scene = sim.make_scene(4)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-0.3, 1.1, (20000, 3)) * np.asarray(scene.room_size_m)
+    np.testing.assert_array_equal(sim.gt_tsdf(scene, pts, 0.1), np.clip(sim.scene_sdf(scene, pts), -0.05, 0.05))
+    blocks = rng.integers(-2, 70, (300, 3))
+    r = np.arange(8)
+    local = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    centres = ((blocks[:, None, :] * 8 + local[None]) * 0.01).reshape(-1, 3)
+    np.testing.assert_allclose(sim.gt_tsdf_blocks(scene, blocks, 0.01, 0.1).reshape(-1),
+                               sim.gt_tsdf(scene, centres, 0.1), atol=1e-6)
+    # the GT TSDF crosses zero on the GT mesh
+    mesh = sim.gt_mesh(scene, 0.02)
+    assert np.abs(sim.gt_tsdf(scene, mesh.vertices, 0.1)).max() < 0.6 * 0.02
+
+
+def _tof_errors(scene, T, rows, cols):
+    K = sim.intrinsics()
+    truth = sim.render_view(scene, T, K, 256, 256, with_rgb=False)["depth_m"][rows, cols]
+    errs = []
+    for seed in range(4):
+        tof = sim.simulate_tof_depth(scene, T, K, 256, 256, np.random.default_rng(seed))[rows, cols]
+        errs.append(np.where(tof > 0, tof - truth, np.nan))
+    return np.concatenate([e.ravel() for e in errs])
+
+
+def test_tof_dark_materials_are_noisier_and_corners_read_too_far():
+    T = _look([2.0, 2.0, 1.3], [-1, 0, 0])  # wall x = 0 at 2 m; the floor corner in the lower image rows
+    base = dataclasses.replace(_wall_scene(False), tof_multipath_m=0.0, tof_min_signal=0.0, tof_speckle_fraction=0.0)
+    surfaces = list(base.surfaces)
+    centre = (slice(100, 156), slice(100, 156))
+    errs = {}
+    for name, reflectivity in (("bright", 0.8), ("dark", 0.05)):
+        surfaces[2] = dataclasses.replace(surfaces[2], ir_reflectivity=reflectivity)
+        errs[name] = _tof_errors(dataclasses.replace(base, surfaces=tuple(surfaces)), T, *centre)
+    assert np.nanstd(errs["dark"]) > 2.5 * np.nanstd(errs["bright"]), {k: np.nanstd(v) for k, v in errs.items()}
+    # multipath: near the wall-floor corner the ToF reads too far, in the middle of the wall it does not
+    surfaces[2] = dataclasses.replace(surfaces[2], ir_reflectivity=0.8)
+    quiet = dataclasses.replace(base, surfaces=tuple(surfaces), tof_noise_scale=0.3, tof_shuffle_px=0.0,
+                                tof_flying_fraction=0.0, tof_multipath_m=0.05)
+    K = sim.intrinsics()
+    view = sim.render_view(quiet, T, K, 256, 256, with_rgb=False, with_other_distance=True)
+    near_corner = (view["surface_id"] == 2) & (view["other_distance_m"] < 0.03)
+    far_from_all = (view["surface_id"] == 2) & (view["other_distance_m"] > 0.45)
+    assert near_corner.sum() > 100 and far_from_all.sum() > 1000
+    tof = sim.simulate_tof_depth(quiet, T, K, 256, 256, np.random.default_rng(0))
+    err = np.where(tof > 0, tof - view["depth_m"], np.nan)
+    assert np.nanmean(err[near_corner]) > 0.03 and abs(np.nanmean(err[far_from_all])) < 0.01
+    # a weak return (dark and far) is dropped
+    weak = dataclasses.replace(quiet, tof_min_signal=0.01)
+    surfaces[2] = dataclasses.replace(surfaces[2], ir_reflectivity=0.03)
+    weak = dataclasses.replace(weak, surfaces=tuple(surfaces))
+    assert np.mean(sim.simulate_tof_depth(weak, T, K, 256, 256, np.random.default_rng(0))[centre] > 0) < 0.05
+
+
+def test_sites_vary_in_texture_infrared_and_multipath():
+    scenes = [sim.make_scene(s) for s in range(12)]
+    dark = [sum(s.ir_reflectivity < 0.15 for s in sc.surfaces) for sc in scenes]
+    assert min(dark) == 0 and max(dark) >= 3
+    assert all(sc.surfaces[k].ir_reflectivity >= 0.45 for sc in scenes for k in range(1, 6))  # walls, ceiling
+    multipath = [sc.tof_multipath_m for sc in scenes]
+    assert min(multipath) < 0.01 and max(multipath) > 0.03
+    contrast = [np.mean([s.contrast for s in sc.surfaces if not s.texture_poor]) for sc in scenes]
+    assert max(contrast) > 1.8 * min(contrast)

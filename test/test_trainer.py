@@ -78,7 +78,8 @@ def test_chunk_rule_gives_up_after_600_tries():
 def test_shipped_config_parses():
     cfg = tr.load_config(REPO / "config" / "train_tof_stereo.yaml")
     assert cfg.min_update_voxels == 2000 and cfg.max_chunk_tries == 600 and cfg.eta_m == 0.04
-    assert min(cfg.train_scenes) >= 0 and max(cfg.train_scenes) < 1000 and cfg.val_scene < 1000
+    assert min(cfg.train_scenes) >= 0 and max(cfg.train_scenes) < 1000 and max(cfg.val_scenes) < 1000
+    assert not set(cfg.val_scenes) & set(cfg.train_scenes)
     assert tr.TrainConfig.from_dict({"lambda1": "1/60"}).lambda1 == pytest.approx(1 / 60)
     with pytest.raises(ValueError):
         tr.TrainConfig.from_dict({"no_such_key": 1})
@@ -115,3 +116,62 @@ def test_few_steps_lower_the_loss(tiny_sequence):
     assert trained[0] == pytest.approx(frozen[0])  # identical start
     k = 2 * len(frames)  # the last two passes over the frames
     assert sum(trained[-k:]) < 0.99 * sum(frozen[-k:])  # a few optimizer steps lowered the loss on the same chunks
+
+
+def test_sparse_weighting_net_equals_dense_with_replicate_padding():
+    from senfunet_core import networks
+
+    _, net = networks.make_networks((False, True), 3)
+    gen = torch.Generator().manual_seed(1)
+    size = (11, 7, 6)  # thin along z: the replicate padding matters at many voxels
+    x = torch.randn(11 * 7 * 6, 12, generator=gen, requires_grad=True)
+    at = torch.randperm(x.shape[0], generator=gen)[:150]
+    dense = net(x.T.reshape(1, 12, *size), pad=True).reshape(-1)[at]
+    sparse = tr.sparse_alpha(net, x, size, at)
+    assert torch.allclose(dense, sparse, atol=1e-6)
+    g_dense = torch.autograd.grad((dense * torch.arange(150)).sum(), [x, net.conv1.weight])
+    g_sparse = torch.autograd.grad((sparse * torch.arange(150)).sum(), [x, net.conv1.weight])
+    for a, b in zip(g_dense, g_sparse):
+        assert torch.allclose(a, b, atol=1e-5 * float(a.abs().max()))
+
+
+def test_gt_cache_equals_gt_tsdf():
+    import numpy as np
+
+    from senfunet_core import simulator
+
+    scene = simulator.make_scene(3)
+    rng = np.random.default_rng(0)
+    voxels = rng.integers(-20, 400, (5000, 3))
+    cache = tr.GTCache(0.01, 0.1)
+    first = cache.values(scene, voxels)
+    again = cache.values(scene, voxels[::-1])  # from the cache
+    want = simulator.gt_tsdf(scene, voxels * 0.01, 0.1)
+    np.testing.assert_allclose(first, want, atol=1e-6)
+    np.testing.assert_array_equal(again, first[::-1])
+    assert len(cache.blocks) > 100
+
+
+def test_feature_gradient_on_the_image_window_equals_the_whole_image(tiny_sequence, monkeypatch):
+    """The feature net runs with gradients only on the window the chunk's pixels need: the same
+    gradients as running it on the whole image."""
+    cfg = tr.TrainConfig(seed=0, chunk_size=16, min_update_voxels=300, accumulate_frames=1000,
+                         reset_probability=0.0, threads=1)
+    frames = [f for f in tiny_sequence.frames][:6]
+
+    def grads(radius):
+        monkeypatch.setattr(tr, "FEATURE_RADIUS_PX", radius)
+        t = tr.Trainer(cfg)
+        losses = [t.train_frame(f, tiny_sequence.scene).loss for f in frames]
+        return losses, [p.grad.clone() for p in t.feature_nets.parameters()]
+
+    def relative_difference(ga, gb):  # the gradients are tiny (loss / accumulate_frames): relative to the largest
+        return max(float((a - b).abs().max() / b.abs().max().clamp(min=1e-30)) for a, b in zip(ga, gb))
+
+    losses_window, g_window = grads(tr.FEATURE_RADIUS_PX)
+    losses_whole, g_whole = grads(10_000)
+    assert sum(l is not None for l in losses_window) >= 3 and losses_window == losses_whole
+    assert all(float(g.abs().max()) > 0 for g in g_window)
+    assert relative_difference(g_window, g_whole) < 1e-4
+    _, g_small = grads(1)  # too small a window: different gradients
+    assert relative_difference(g_small, g_whole) > 1e-2

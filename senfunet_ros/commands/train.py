@@ -47,8 +47,9 @@ def run(args: argparse.Namespace) -> int:
         overrides["cache_dir"] = args.cache_dir
     config = dataclasses.replace(config, **overrides)
     out = Path(args.out) if args.out else networks.DEFAULT_WEIGHTS
-    print(f"senfunet train: {config.steps} frames, scenes {list(config.train_scenes)}, validation scene "
-          f"{config.val_scene}, lr {config.lr:g}, best weights -> {out}", flush=True)
+    budget = f", at most {config.time_budget_s:.0f} s" if config.time_budget_s > 0 else ""
+    print(f"senfunet train: {config.steps} frames{budget}, scenes {list(config.train_scenes)}, validation scenes "
+          f"{list(config.val_scenes)}, lr {config.lr:g}, best weights -> {out}", flush=True)
     t0 = time.perf_counter()
     try:
         summary = train(config, out, progress=not args.no_progress)
@@ -57,12 +58,17 @@ def run(args: argparse.Namespace) -> int:
         return 2
     best = summary["best"]
     print(f"senfunet train: {summary['frames']} frames ({summary['optimizer_steps']} optimizer steps, "
-          f"{summary['skipped_frames']} frames without a chunk, {summary['resets']} random resets) in "
-          f"{time.perf_counter() - t0:.0f} s; best validation F {best.get('F', float('nan')):.2f} at frame "
-          f"{best.get('step')} -> {out}")
+          f"{summary['skipped_frames']} frames without a chunk, {summary['resets']} random resets, "
+          f"{summary['memory_resets']} memory resets) in {time.perf_counter() - t0:.0f} s wall time "
+          f"({summary['paused_s']:.0f} s of it paused by SIGSTOP); best validation: fused F "
+          f"{best.get('F', float('nan')):.2f}, {best.get('margin', float('nan')):+.2f} over the better sensor, at "
+          f"frame {best.get('step')} -> {out}")
+    print("seconds per stage: " + ", ".join(f"{k} {v:.0f}" for k, v in summary["timings_s"].items()))
     history = out.with_suffix(".history.json")
+    record = {k: summary[k] for k in ("history", "best", "frames", "optimizer_steps", "seconds", "paused_s", "wall_s",
+                                      "timings_s", "mean_terms")}
     if args.out:  # keep the repository clean when writing the shipped file
-        history.write_text(json.dumps({k: summary[k] for k in ("history", "best", "frames", "seconds")}, indent=1))
+        history.write_text(json.dumps(record, indent=1))
     else:
-        print(json.dumps(summary["history"], indent=1))
+        print(json.dumps(record, indent=1))
     return 0
