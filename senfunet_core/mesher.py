@@ -537,6 +537,13 @@ class BlockMeshes:
     def as_dict(self) -> dict[tuple[int, int, int], Mesh]:
         return {key: self.mesh(b) for b, key in enumerate(map(tuple, self.keys.tolist()))}
 
+    def blocks(self, start: int, stop: int) -> "BlockMeshes":
+        """Blocks start..stop-1 (views of the shared arrays)."""
+        v0, v1 = self.vertex_offsets[start], self.vertex_offsets[stop]
+        f0, f1 = self.face_offsets[start], self.face_offsets[stop]
+        return BlockMeshes(self.keys[start:stop], self.vertices[v0:v1], self.colors[v0:v1], self.faces[f0:f1],
+                           self.vertex_offsets[start:stop + 1] - v0, self.face_offsets[start:stop + 1] - f0)
+
     @staticmethod
     def concatenate(parts: list["BlockMeshes"]) -> "BlockMeshes":
         if not parts:

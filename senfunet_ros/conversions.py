@@ -14,7 +14,7 @@ to do about it.
 from __future__ import annotations
 
 import struct
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import numba
 import numpy as np
@@ -459,6 +459,45 @@ def _check_meshes(meshes: Any) -> None:
         per_face = np.repeat(block_size, np.diff(meshes.face_offsets))
         if meshes.faces.min() < 0 or np.any(meshes.faces.max(axis=1) >= per_face):
             raise ValueError("mesh faces index vertices that do not exist; the mesh is corrupt")
+
+
+# CDR bytes per triangle of a TRIANGLE_LIST marker: 3 float64 points and 3 float32 RGBA colours
+MARKER_BYTES_PER_FACE = 3 * 24 + 3 * 16
+# ~/mesh messages are cut to about this size: the DDS writer keeps every sample of its history (and
+# a spare) in buffers as large as the largest message, and a whole-room update is hundreds of MB.
+MESH_MESSAGE_MAX_BYTES = 16 << 20
+
+
+def marker_array_messages(
+    changed: Any,
+    removed: Iterable[tuple[int, int, int]] = (),
+    *,
+    stamp_ns: int,
+    frame_id: str,
+    delete_all_first: bool = False,
+    max_bytes: int = MESH_MESSAGE_MAX_BYTES,
+) -> Iterator[np.ndarray]:
+    """One mesh update (see `marker_array_cdr`) as MarkerArray CDR arrays of about max_bytes at
+    most, consecutive runs of whole blocks; the DELETEALL and the DELETEs of removed blocks go in
+    the first. Applied in order they equal the single message. The arrays share one buffer: use
+    (publish) each before taking the next."""
+    from senfunet_core.mesher import BlockMeshes
+
+    meshes = changed if isinstance(changed, BlockMeshes) else BlockMeshes.from_meshes(dict(changed))
+    faces_before = meshes.face_offsets  # B+1: faces of the blocks before each block
+    budget_faces = max(1, max_bytes // MARKER_BYTES_PER_FACE)
+    buffer = np.zeros(0, np.uint8)
+    start, first = 0, True
+    while first or start < len(meshes):
+        stop = int(np.searchsorted(faces_before, faces_before[start] + budget_faces, side="right")) - 1
+        stop = min(max(stop, start + 1), len(meshes))
+        data = marker_array_cdr(meshes.blocks(start, stop), removed if first else (), stamp_ns=stamp_ns,
+                                frame_id=frame_id, delete_all_first=delete_all_first and first, as_array=True,
+                                out=buffer)
+        if data.base is not buffer:
+            buffer = data
+        yield data
+        start, first = stop, False
 
 
 def marker_array_cdr(

@@ -177,6 +177,27 @@ def test_marker_array_reused_buffer_is_byte_exact() -> None:
     assert conv.marker_array_cdr(meshes, [], stamp_ns=3, frame_id="odd", as_array=True, out=small).base is not small
 
 
+def test_marker_array_messages_split_an_update_into_parts() -> None:
+    meshes = {(i, 0, -i): _mesh(i, n_faces=10 + 7 * i) for i in range(12)}
+    meshes[(99, 0, 0)] = Mesh.empty()
+    whole = deserialize_message(conv.marker_array_cdr(meshes, [(5, 5, 5)], stamp_ns=7, frame_id="map",
+                                                      delete_all_first=True), MarkerArray)
+    max_bytes = 60 * conv.MARKER_BYTES_PER_FACE  # about 60 triangles per part
+    parts = [deserialize_message(data.tobytes(), MarkerArray) for data in conv.marker_array_messages(
+        meshes, [(5, 5, 5)], stamp_ns=7, frame_id="map", delete_all_first=True, max_bytes=max_bytes)]
+    assert len(parts) > 3
+    assert parts[0].markers[0].action == Marker.DELETEALL
+    assert all(m.action != Marker.DELETEALL for p in parts[1:] for m in p.markers)
+    for part in parts:  # each part holds at most the budget, unless a single block exceeds it
+        adds = [m for m in part.markers if m.action == Marker.ADD]
+        assert len(adds) == 1 or sum(len(m.points) for m in adds) // 3 <= 60
+    key = lambda m: (m.action, m.ns, m.id, len(m.points), tuple(round(p.x, 6) for p in m.points))
+    assert sorted(map(key, (m for p in parts for m in p.markers))) == sorted(map(key, whole.markers))
+    only_deletes = list(conv.marker_array_messages({}, [(1, 2, 3)], stamp_ns=7, frame_id="map"))
+    assert len(only_deletes) == 1
+    assert [m.action for m in deserialize_message(only_deletes[0].tobytes(), MarkerArray).markers] == [Marker.DELETE]
+
+
 def test_marker_delete_all_and_empty_block() -> None:
     msg = deserialize_message(conv.delete_all_marker_array_cdr(stamp_ns=0, frame_id="map"), MarkerArray)
     assert [m.action for m in msg.markers] == [Marker.DELETEALL]

@@ -583,3 +583,11 @@ def test_publish_serialized_delivers_the_same_message(ros) -> None:
         assert len(received[0].markers) == 51 and len(received[0].markers[1].points) == 120
     finally:
         node.destroy_node()
+
+
+def test_limit_malloc_arenas_applies_on_glibc() -> None:
+    import platform
+
+    from senfunet_ros.node import limit_malloc_arenas
+
+    assert limit_malloc_arenas() == (platform.libc_ver()[0] == "glibc")
