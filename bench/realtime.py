@@ -228,10 +228,14 @@ def run_open3d(args: argparse.Namespace) -> dict | str:
 
 def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str:
     cases = list(results)
+    from senfunet_ros.params import GLOBAL_PARAMS
+
+    default = {p.name: p.default for p in GLOBAL_PARAMS}
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
-             "The real `FusionNode` with its default parameters (config/default.yaml: mesh update every 1 s, "
-             "weighting-net budget 0.3 s per update, alpha on surface blocks, frames more than 0.5 s behind skipped), "
-             "spun by a MultiThreadedExecutor in "
+             "The real `FusionNode` with its default parameters (config/default.yaml: mesh update every "
+             f"{1 / default['mesh_rate_hz']:g} s, weighting-net budget {default['alpha_budget_s']:g} s per update, "
+             f"alpha on surface blocks, frames more than {default['max_lag_s']:g} s behind skipped, map bound "
+             f"{default['max_map_blocks']} blocks, malloc arenas capped at 2), spun by a MultiThreadedExecutor in "
              "the benchmark process; bag messages deserialised with rclpy and handed to its Ingest as its "
              "subscriptions do. `throughput`: as fast as the node takes them; `realtime`: at their recorded "
              "times. Stage times are summed over the run and divided by the frames integrated.", ""]

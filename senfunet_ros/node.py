@@ -291,6 +291,8 @@ class FusionNode(Node):
         try:
             self.publish_mesh()
         except Exception as err:
+            if not self.context.ok():  # shutting down: the publishers went away under this update
+                return
             self._warn(("mesh_tick",), f"mesh update failed: {err!r}")
 
     def publish_mesh(self, weights: bool | None = None) -> None:
