@@ -1,6 +1,7 @@
 """`senfunet play` over real DDS, and play + the live node in separate processes against replay."""
 from __future__ import annotations
 
+import re
 import signal
 import subprocess
 import sys
@@ -137,8 +138,13 @@ def test_node_fed_by_play_matches_replay(prefix: Path, tmp_path: Path, ros_domai
     live = read_ply(out / "mesh.ply")
     offline = replayed.meshes["mesh"]
     agreement = mesh_metrics(live.vertices, offline.vertices, tau_m=0.02)
-    assert agreement["F"] > 95.0, agreement
-    assert 0.9 < live.n_vertices / max(offline.n_vertices, 1) < 1.1
+    # Live, a frame may miss its pose bracket under CPU load and be dropped (counted; replay keeps
+    # it): most frames fused, and the live mesh lies on the replayed one and covers most of it.
+    fused = [tuple(map(int, m)) for m in re.findall(r"^senfunet demo: \w+: (\d+) of (\d+) frames fused$",
+                                                     proc.stdout, re.MULTILINE)]
+    assert len(fused) == 2 and all(n >= 0.8 * total for n, total in fused), proc.stdout
+    assert agreement["P"] > 95.0 and agreement["F"] > 90.0, (agreement, proc.stdout)
+    assert 0.85 < live.n_vertices / max(offline.n_vertices, 1) < 1.1
 
 
 def test_large_shm_profile_unless_fast_dds_is_configured(tmp_path: Path, monkeypatch):
