@@ -140,7 +140,7 @@ def test_node_fed_by_play_matches_replay(prefix: Path, tmp_path: Path, ros_domai
     agreement = mesh_metrics(live.vertices, offline.vertices, tau_m=0.02)
     # Live, a frame may miss its pose bracket under CPU load and be dropped (counted; replay keeps
     # it): most frames fused, and the live mesh lies on the replayed one and covers most of it.
-    fused = [tuple(map(int, m)) for m in re.findall(r"^senfunet demo: \w+: (\d+) of (\d+) frames fused$",
+    fused = [tuple(map(int, m)) for m in re.findall(r"^senfunet demo: \w+: (\d+) of (\d+) frames fused\b",
                                                      proc.stdout, re.MULTILINE)]
     assert len(fused) == 2 and all(n >= 0.8 * total for n, total in fused), proc.stdout
     assert agreement["P"] > 95.0 and agreement["F"] > 90.0, (agreement, proc.stdout)
