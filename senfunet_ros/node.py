@@ -60,7 +60,8 @@ _POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=
 # not overwritten before a slow reader acknowledged it.
 _MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
-_PART_ACK_TIMEOUT = Duration(seconds=1.0)  # a stuck reader delays the next part of an update at most this
+_NO_WAIT = Duration(seconds=0)
+_PART_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the next part of an update at most this
 _CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
@@ -340,13 +341,20 @@ class FusionNode(Node):
             for i, data in enumerate(messages or ()):
                 t_encoded = time.perf_counter()
                 if i:  # the history holds 2: let readers take the previous part before it can be overwritten
-                    self.mesh_pub.wait_for_all_acked(_PART_ACK_TIMEOUT)
+                    self._wait_mesh_acked(_PART_ACK_TIMEOUT_S)
                 publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
                 publish_s += time.perf_counter() - t_encoded
             if messages is not None or cloud is not None:
                 self.timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
                 self.timings["publish"].add(publish_s)
             self.latency.published(contained)
+
+    def _wait_mesh_acked(self, timeout_s: float) -> None:
+        """Until every reader acknowledged ~/mesh's samples, or timeout_s. Polled with short sleeps,
+        so the node's other threads run meanwhile (a blocking wait in the binding could hold the GIL)."""
+        deadline = time.monotonic() + timeout_s
+        while not self.mesh_pub.wait_for_all_acked(_NO_WAIT) and time.monotonic() < deadline:
+            time.sleep(0.002)
 
     def _status_tick(self) -> None:
         try:
