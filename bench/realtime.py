@@ -227,9 +227,9 @@ def run_open3d(args: argparse.Namespace) -> dict | str:
 
 
 def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str:
-    cases = list(results)
     from senfunet_ros.params import GLOBAL_PARAMS
 
+    cases = list(results)
     default = {p.name: p.default for p in GLOBAL_PARAMS}
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
              "The real `FusionNode` with its default parameters (config/default.yaml: mesh update every "

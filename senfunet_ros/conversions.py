@@ -511,9 +511,10 @@ def marker_array_cdr(
     out: np.ndarray | None = None,
 ) -> bytes | np.ndarray:
     """visualization_msgs/MarkerArray as CDR bytes (or, with as_array, the uint8 array they were
-    written into, for `senfunet_ros.dds.publish_serialized`: no copy; `out`, a uint8 array big
-    enough, is reused for it, so that a large message does not pay page faults each time): one TRIANGLE_LIST marker per changed block,
-    a DELETE marker per removed block, optionally led by a DELETEALL (a full snapshot).
+    written into, for `senfunet_ros.dds.publish_serialized`: no copy; written into `out` when that
+    uint8 array is big enough, as `marker_array_messages` does for the parts of one update): one
+    TRIANGLE_LIST marker per changed block, a DELETE marker per removed block, optionally led by a
+    DELETEALL (a full snapshot).
 
     `changed`: block keys -> meshes with `vertices` (N,3), `faces` (M,3) and optional `colors`
     (N,3) in 0..1 (white without), or a `senfunet_core.mesher.BlockMeshes` batch (the engine's

@@ -61,7 +61,7 @@ _POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=
 _MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _NO_WAIT = Duration(seconds=0)
-_PART_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the next part of an update at most this
+_PARTS_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the later parts of one update at most this, in all
 _CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
@@ -338,10 +338,11 @@ class FusionNode(Node):
                 t_encoded = time.perf_counter()
                 publish_serialized(self.weights_pub, np.frombuffer(cloud_data, np.uint8))
                 publish_s += time.perf_counter() - t_encoded
+            ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
             for i, data in enumerate(messages or ()):
                 t_encoded = time.perf_counter()
                 if i:  # the history holds 2: let readers take the previous part before it can be overwritten
-                    self._wait_mesh_acked(_PART_ACK_TIMEOUT_S)
+                    self._wait_mesh_acked(ack_deadline)
                 publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
                 publish_s += time.perf_counter() - t_encoded
             if messages is not None or cloud is not None:
@@ -349,10 +350,10 @@ class FusionNode(Node):
                 self.timings["publish"].add(publish_s)
             self.latency.published(contained)
 
-    def _wait_mesh_acked(self, timeout_s: float) -> None:
-        """Until every reader acknowledged ~/mesh's samples, or timeout_s. Polled with short sleeps,
-        so the node's other threads run meanwhile (a blocking wait in the binding could hold the GIL)."""
-        deadline = time.monotonic() + timeout_s
+    def _wait_mesh_acked(self, deadline: float) -> None:
+        """Until every reader acknowledged ~/mesh's samples, or time.monotonic() reaches deadline.
+        Polled with short sleeps, so the node's other threads run meanwhile (a blocking wait in the
+        binding could hold the GIL)."""
         while not self.mesh_pub.wait_for_all_acked(_NO_WAIT) and time.monotonic() < deadline:
             time.sleep(0.002)
 
