@@ -84,12 +84,12 @@ def run_node_case(args: argparse.Namespace) -> dict:
     import rclpy
     from rclpy.parameter import Parameter
 
-    from senfunet_ros.node import FusionNode, limit_malloc_arenas, spin
+    from senfunet_ros.node import FusionNode, prepare_process, spin
 
     from senfunet_ros.dds import use_large_shm_profile
 
-    use_large_shm_profile()  # as the node's main() does
-    limit_malloc_arenas()
+    use_large_shm_profile()
+    prepare_process()  # as the node's main() does
     rclpy.init()
     overrides = {f"{s}.{k}_topic": f"/senfunet_bench_{os.getpid()}/{s}/{k}"  # nothing else talks to it
                  for s in ("tof", "stereo") for k in ("depth", "color", "camera_info", "pose")}

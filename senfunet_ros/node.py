@@ -15,6 +15,7 @@ Topics (see ../shared/DESIGN.md, the interface contract):
 """
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from collections import deque
@@ -451,6 +452,21 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
         executor.shutdown()
 
 
+# Python hands the GIL to a waiting thread only every switch interval (default 5 ms). Each
+# message needs several hand-overs (the executor's wait returns, a worker takes and converts it),
+# so while integration and a mesh update run Python between their numpy/torch calls, a 5 ms
+# interval capped dispatch far below the ~80 messages/s of the sample bag: `senfunet demo` lost
+# half its frames (pose callbacks lagged 15 s, frames timed out waiting for them). 0.5 ms: none lost.
+GIL_SWITCH_INTERVAL_S = 0.0005
+
+
+def prepare_process() -> None:
+    """Process settings for a node with busy timers: a short GIL switch interval (see above) and at
+    most 2 malloc arenas. Call before the executor's threads exist."""
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+    limit_malloc_arenas()
+
+
 def limit_malloc_arenas(arenas: int = 2) -> bool:
     """Cap glibc's malloc arenas (default: 8 per core) for the threads started from now on: each
     executor, feature-net and kernel thread would otherwise keep its own heap of freed per-frame
@@ -471,7 +487,7 @@ def main(args: list[str] | None = None) -> int:
     from senfunet_ros.dds import use_large_shm_profile
 
     use_large_shm_profile()  # large mesh messages; set before the participant exists
-    limit_malloc_arenas()  # before the executor's threads exist
+    prepare_process()  # before the executor's threads exist
     rclpy.init(args=args)
     node: FusionNode | None = None
     try:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import sys
 
 import pytest
 
@@ -11,8 +12,12 @@ import pytest
 # shared-memory segment instead of 512 KB: with the default, a receiving process that is not
 # scheduled for ~0.5 s (a loaded 2-core CI machine) loses best-effort images. See the file.
 from senfunet_ros.dds import use_large_shm_profile  # noqa: E402
+from senfunet_ros.node import GIL_SWITCH_INTERVAL_S  # noqa: E402
 
 use_large_shm_profile()
+# The in-process node tests run FusionNode with the process settings its main() applies (a short
+# GIL switch interval, without which busy timers starve the subscriptions).
+sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
 
 
 @pytest.fixture(scope="session")

@@ -591,3 +591,17 @@ def test_limit_malloc_arenas_applies_on_glibc() -> None:
     from senfunet_ros.node import limit_malloc_arenas
 
     assert limit_malloc_arenas() == (platform.libc_ver()[0] == "glibc")
+
+
+def test_prepare_process_shortens_the_gil_switch_interval() -> None:
+    import sys
+
+    from senfunet_ros.node import GIL_SWITCH_INTERVAL_S, prepare_process
+
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(0.005)
+    try:
+        prepare_process()
+        assert sys.getswitchinterval() == pytest.approx(GIL_SWITCH_INTERVAL_S)
+    finally:
+        sys.setswitchinterval(before)
