@@ -32,11 +32,11 @@ WINDOW = 8 + 2 * HALO  # input window per block: 12^3
 def _neighbour_index(neighbours: np.ndarray, b: int, x: int, y: int, z: int) -> int:
     """Flat voxel index (slot*512 + local) of local coordinates x, y, z in -8..15 around block b,
     or -1 where that block does not exist."""
-    bx, by, bz = (x + 8) // 8, (y + 8) // 8, (z + 8) // 8
-    slot = neighbours[b, bx * 9 + by * 3 + bz]
+    x, y, z = x + 8, y + 8, z + 8  # >= 0: shifts and masks instead of floor division
+    slot = neighbours[b, (x >> 3) * 9 + (y >> 3) * 3 + (z >> 3)]
     if slot < 0:
         return -1
-    return slot * 512 + (x - (bx - 1) * 8) * 64 + (y - (by - 1) * 8) * 8 + (z - (bz - 1) * 8)
+    return slot * 512 + (x & 7) * 64 + (y & 7) * 8 + (z & 7)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -73,14 +73,15 @@ def holds_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.ndarr
     include values <= 0 and >= 0 ("surface"). Weights: float16 bits (int16)."""
     n_blocks = neighbours.shape[0]
     out = np.zeros(n_blocks, np.bool_)
-    lo = np.zeros((10, 10, 10), np.float32)
-    hi = np.zeros((10, 10, 10), np.float32)
-    seen = np.zeros((10, 10, 10), np.bool_)
+    if mode == 0:
+        out[:] = True
+        return out
+    lo = np.empty((10, 10, 10), np.float32)
+    hi = np.empty((10, 10, 10), np.float32)
+    seen = np.empty((10, 10, 10), np.bool_)
     for b in range(n_blocks):
-        if mode == 0:
-            out[b] = True
-            continue
         # the 10^3 window (local -1..8): observed by any sensor, min and max TSDF
+        window_lo, window_hi = np.float32(np.inf), np.float32(-np.inf)
         for x in range(10):
             for y in range(10):
                 for z in range(10):
@@ -92,17 +93,28 @@ def holds_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.ndarr
                         if f16_to_f32(weight_2[v]) > 0:
                             low, high, observed = min(low, tsdf_2[v]), max(high, tsdf_2[v]), True
                     lo[x, y, z], hi[x, y, z], seen[x, y, z] = low, high, observed
-        # cells with a corner in the block: lower corner at local -1..7
+                    window_lo, window_hi = min(window_lo, low), max(window_hi, high)
+        if not (window_lo <= 0.0 and window_hi >= 0.0):  # no sign change near the block (most blocks)
+            continue
+        # each cell (lower corner at local -1..7, window 0..8) over its 8 corners, one axis at a
+        # time in place: entry i becomes the reduction over i and i + 1 along that axis
+        for x in range(10):
+            for y in range(10):
+                for z in range(9):
+                    lo[x, y, z] = min(lo[x, y, z], lo[x, y, z + 1])
+                    hi[x, y, z] = max(hi[x, y, z], hi[x, y, z + 1])
+                    seen[x, y, z] = seen[x, y, z] and seen[x, y, z + 1]
+        for x in range(10):
+            for y in range(9):
+                for z in range(9):
+                    lo[x, y, z] = min(lo[x, y, z], lo[x, y + 1, z])
+                    hi[x, y, z] = max(hi[x, y, z], hi[x, y + 1, z])
+                    seen[x, y, z] = seen[x, y, z] and seen[x, y + 1, z]
         for x in range(9):
             for y in range(9):
                 for z in range(9):
-                    ok = True
-                    low, high = np.float32(np.inf), np.float32(-np.inf)
-                    for corner in range(8):
-                        cx, cy, cz = x + (corner >> 2), y + ((corner >> 1) & 1), z + (corner & 1)
-                        ok = ok and seen[cx, cy, cz]
-                        low, high = min(low, lo[cx, cy, cz]), max(high, hi[cx, cy, cz])
-                    if ok and low <= 0.0 and high >= 0.0:
+                    if seen[x, y, z] and seen[x + 1, y, z] and min(lo[x, y, z], lo[x + 1, y, z]) <= 0.0 \
+                            and max(hi[x, y, z], hi[x + 1, y, z]) >= 0.0:
                         out[b] = True
                         break
                 if out[b]:

@@ -425,6 +425,7 @@ class SenFuNet:
         # alpha to re-evaluate: 0 no, 1 inputs drifted, 2 new or sign-changed voxels, 3 never evaluated
         self._stale = np.zeros(0, np.int8)
         self._evaluated = np.zeros(0, bool)  # alpha evaluated at least once
+        self._no_targets = np.zeros(0, bool)  # checked when last stale: holds no voxel alpha matters for
         self._stale_since = np.zeros(0, np.int64)  # the schedule that made it stale (oldest first)
         self._mesh_pending = np.zeros(0, bool)  # TSDF or alpha changed since it was meshed
         self._schedules = 0
@@ -441,6 +442,7 @@ class SenFuNet:
             self._alpha_pending = np.concatenate([self._alpha_pending, np.zeros(grow, bool)])
             self._stale = np.concatenate([self._stale, np.zeros(grow, np.int8)])
             self._evaluated = np.concatenate([self._evaluated, np.zeros(grow, bool)])
+            self._no_targets = np.concatenate([self._no_targets, np.zeros(grow, bool)])
             self._stale_since = np.concatenate([self._stale_since, np.zeros(grow, np.int64)])
             self._mesh_pending = np.concatenate([self._mesh_pending, np.zeros(grow, bool)])
 
@@ -471,21 +473,33 @@ class SenFuNet:
 
     def _refresh_alpha(self, budget_s: float | None = None) -> None:
         """Re-evaluate alpha on the stale blocks: never evaluated ones first, then those with newly
-        observed or sign-changed voxels, then drifted ones; oldest first within each level. With a
-        budget (seconds), stop after the batch that exhausts it: the rest stays stale for later."""
+        observed or sign-changed voxels, then drifted ones; oldest first within each level. Each
+        batch first drops the blocks that hold no voxel alpha matters for (`holds_targets`; checked
+        here, not when scheduling, so that a budget also bounds the checking). With a budget
+        (seconds), stop after the batch that exhausts it: the rest stays stale for later."""
         cfg = self.config
         self._schedule_alpha()
         with self._data_lock:
             stale = np.flatnonzero(self._stale[: self.grid.n_blocks])
             order = stale[np.lexsort((self._stale_since[stale], -self._stale[stale]))]
         start = time.perf_counter()
-        done = 0
+        done = reached = 0
+        mode = MODES[cfg.alpha_voxels]
         for first in range(0, len(order), cfg.alpha_batch_blocks):
             if budget_s is not None and time.perf_counter() - start > budget_s:
                 break
             batch = order[first:first + cfg.alpha_batch_blocks]
+            reached += len(batch)
             grid = self.grid
             neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, batch)
+            if mode != MODES["all"]:
+                holds = holds_targets(neighbours, *self._views("tsdf0", "weight0", "tsdf1", "weight1"), mode)
+                with self._data_lock:
+                    self._stale[batch[~holds]] = 0
+                    self._no_targets[batch] = ~holds
+                batch, neighbours = batch[holds], neighbours[holds]
+                if len(batch) == 0:
+                    continue
             windows = weighting_windows(neighbours, *self._views("feat0", "weight0", "feat1", "weight1"))
             x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x 12 x 12^3, channels last
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.alpha_dtype == "bfloat16"):
@@ -499,7 +513,7 @@ class SenFuNet:
             done += len(batch)
         self.counters["alpha_blocks"] += done
         self.counters["alpha_voxels"] += done * 512
-        self.counters["alpha_backlog_blocks"] = len(order) - done
+        self.counters["alpha_backlog_blocks"] = len(order) - reached
 
     def _evict(self) -> list[tuple[int, int, int]]:
         """With max_blocks, drop the blocks farthest from the last camera position once the map
@@ -520,7 +534,8 @@ class SenFuNet:
             touched = np.zeros(n, bool)
             touched[around[around >= 0]] = True
             moved_from, moved_to = grid.remove_blocks(victims)
-            for flags in (self._alpha_pending, self._stale, self._stale_since, self._evaluated, self._mesh_pending):
+            for flags in (self._alpha_pending, self._stale, self._stale_since, self._evaluated, self._no_targets,
+                          self._mesh_pending):
                 flags[moved_to] = flags[moved_from]
                 flags[grid.n_blocks:n] = 0
             touched[moved_to] = touched[moved_from]
@@ -536,7 +551,8 @@ class SenFuNet:
 
     def _schedule_alpha(self) -> None:
         """Turn the drift of the blocks integrated since the last call into stale blocks: the
-        blocks it reaches that hold voxels alpha matters for (see `alpha`)."""
+        blocks it reaches (whether they hold voxels alpha matters for is checked when their turn
+        comes, see `_refresh_alpha`)."""
         cfg = self.config
         grid = self.grid
         with self._data_lock:  # atomic with integration: its drift is either taken now or next time
@@ -551,12 +567,10 @@ class SenFuNet:
         candidates, first = np.unique(around[reached], return_inverse=True)
         levels = np.zeros(len(candidates), np.int8)
         np.maximum.at(levels, first, reach[reached])
-        neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, candidates)
-        levels[~holds_targets(neighbours, *self._views("tsdf0", "weight0", "tsdf1", "weight1"),
-                              MODES[cfg.alpha_voxels])] = 0
         with self._data_lock:
             self._schedules += 1
-            levels[(levels > 0) & ~self._evaluated[candidates]] = 3  # alpha NaN there: first
+            # alpha NaN there: first, unless the block held nothing to evaluate when last checked
+            levels[(levels > 0) & ~self._evaluated[candidates] & ~self._no_targets[candidates]] = 3
             newly = candidates[(levels > 0) & (self._stale[candidates] == 0)]
             self._stale_since[newly] = self._schedules
             self._stale[candidates] = np.maximum(self._stale[candidates], levels)

@@ -248,29 +248,42 @@ TANH_OF_COUNT = np.tanh(np.arange(2049, dtype=np.float64)).astype(np.float32)
 
 
 @numba.njit(cache=True, nogil=True)
-def _group_by_block(n_touched: int, sample_touched: np.ndarray, total: int) -> tuple[np.ndarray, np.ndarray]:
-    """Counting sort of the samples by touched block: (start (n_touched + 1), order (total))."""
+def _group_by_block(n_pixels: int, n_samples: int, n_touched: int, sample_flat: np.ndarray,
+                    sample_touched: np.ndarray, pixel_index: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Counting sort of the samples by touched block: start (n_touched + 1) and, in block order,
+    each sample's voxel in its block, image pixel and step along the ray. Walking pixels and steps
+    in two loops spares the per-sample division the accumulation would otherwise need."""
+    total = n_pixels * n_samples
     start = np.zeros(n_touched + 1, np.int64)
     for n in range(total):
         start[sample_touched[n] + 1] += 1
     for b in range(n_touched):
         start[b + 1] += start[b]
     fill = start[:-1].copy()
-    order = np.empty(total, np.int64)
-    for n in range(total):
-        b = sample_touched[n]
-        order[fill[b]] = n
-        fill[b] += 1
-    return start, order
+    local = np.empty(total, np.int16)
+    pixel = np.empty(total, np.int32)
+    step = np.empty(total, np.int8)
+    n = 0
+    for p in range(n_pixels):
+        image_pixel = pixel_index[p]
+        for k in range(n_samples):
+            b = sample_touched[n]
+            m = fill[b]
+            fill[b] = m + 1
+            local[m] = sample_flat[n] & 511  # slot * 512 + local
+            pixel[m] = image_pixel
+            step[m] = k
+            n += 1
+    return start, local, pixel, step
 
 
 @numba.njit(cache=True, nogil=True)
-def _update_blocks(start: np.ndarray, order: np.ndarray, sample_flat: np.ndarray, sample_tsdf_m: np.ndarray,
-                   pixel_index: np.ndarray, pixel_features: np.ndarray, touched_slots: np.ndarray, tsdf: np.ndarray,
+def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np.ndarray, sample_step: np.ndarray,
+                   sample_tsdf_m: np.ndarray, pixel_features: np.ndarray, touched_slots: np.ndarray, tsdf: np.ndarray,
                    weight: np.ndarray, features: np.ndarray, tsdf_base: np.ndarray, weight_base: np.ndarray,
                    drift: np.ndarray, w_max: float) -> int:
     """update_voxels' per-block work (blocks are independent of each other)."""
-    n_samples = sample_tsdf_m.shape[0]
     n_channels = pixel_features.shape[1]
     updated = 0
     count = np.zeros(512, np.int64)  # per block: zero again after use
@@ -279,14 +292,13 @@ def _update_blocks(start: np.ndarray, order: np.ndarray, sample_flat: np.ndarray
     for b in range(start.shape[0] - 1):
         base_index = touched_slots[b] * 512
         for m in range(start[b], start[b + 1]):
-            n = order[m]
-            local = sample_flat[n] - base_index
+            local = sample_local[m]
             if count[local] == 0:
                 sum_tsdf[local] = 0.0
                 sum_features[local, :] = 0.0
             count[local] += 1
-            sum_tsdf[local] += sample_tsdf_m[n % n_samples]
-            p = pixel_index[n // n_samples]
+            sum_tsdf[local] += sample_tsdf_m[sample_step[m]]
+            p = sample_pixel[m]
             for c in range(n_channels):
                 sum_features[local, c] += pixel_features[p, c]
         for local in range(512):
@@ -339,9 +351,10 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
     Weights, features and drift are float16 bit patterns (int16); pixel_features: (H*W) x C float32.
     Returns the number of voxels updated."""
-    start, order = _group_by_block(n_touched, sample_touched, n_pixels * sample_tsdf_m.shape[0])
-    return _update_blocks(start, order, sample_flat, sample_tsdf_m, pixel_index, pixel_features, touched_slots, tsdf,
-                          weight, features, tsdf_base, weight_base, drift, w_max)
+    start, local, pixel, step = _group_by_block(n_pixels, sample_tsdf_m.shape[0], n_touched, sample_flat,
+                                                sample_touched, pixel_index)
+    return _update_blocks(start, local, pixel, step, sample_tsdf_m, pixel_features, touched_slots, tsdf, weight,
+                          features, tsdf_base, weight_base, drift, w_max)
 
 
 def _scratch(store: dict[str, np.ndarray] | None, name: str, size: int, dtype: type) -> np.ndarray:

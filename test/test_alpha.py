@@ -1,0 +1,60 @@
+"""The scheduling kernels of senfunet_core.alpha against plain numpy on random neighbourhoods."""
+from __future__ import annotations
+
+import numpy as np
+
+from senfunet_core.alpha import MODES, holds_targets
+
+
+def _random_neighbourhood(rng: np.random.Generator) -> tuple[np.ndarray, list[np.ndarray]]:
+    """A block (neighbour code 13) with a random subset of its 26 neighbours, random TSDFs near 0
+    and sparse weights; returns the 1 x 27 neighbour table and the flat pools."""
+    exists = rng.random(27) < 0.7
+    exists[13] = True
+    neighbours = np.full((1, 27), -1, np.int64)
+    neighbours[0, exists] = rng.permutation(int(exists.sum()))
+    n_voxels = int(exists.sum()) * 512
+    sign = rng.choice([-1.0, 1.0])
+    flipped = rng.choice([0.0, 0.0002, 0.01])  # share of voxels on the other side of the surface
+    pools = []
+    for _ in range(2):
+        tsdf = (sign * rng.uniform(0.001, 0.05, n_voxels)).astype(np.float32)
+        tsdf[rng.random(n_voxels) < flipped] *= -1.0
+        seen = rng.random(n_voxels) < rng.uniform(0.3, 1.0)
+        pools += [tsdf, np.where(seen, 3.0, 0.0).astype(np.float16).view(np.int16)]
+    return neighbours, pools
+
+
+def _holds_surface_reference(neighbours: np.ndarray, pools: list[np.ndarray]) -> bool:
+    """Dense 24^3 neighbourhood, then every cell with a corner in the centre block."""
+    lo = np.full((24, 24, 24), np.inf, np.float32)
+    hi = np.full((24, 24, 24), -np.inf, np.float32)
+    for tsdf, weight in zip(pools[0::2], pools[1::2]):
+        for code in range(27):
+            slot = neighbours[0, code]
+            if slot < 0:
+                continue
+            dx, dy, dz = code // 9, (code // 3) % 3, code % 3
+            values = tsdf[slot * 512:(slot + 1) * 512].reshape(8, 8, 8)
+            observed = weight[slot * 512:(slot + 1) * 512].view(np.float16).reshape(8, 8, 8) > 0
+            box = np.s_[8 * dx:8 * dx + 8, 8 * dy:8 * dy + 8, 8 * dz:8 * dz + 8]
+            lo[box] = np.where(observed, np.minimum(lo[box], values), lo[box])
+            hi[box] = np.where(observed, np.maximum(hi[box], values), hi[box])
+    window_lo, window_hi = lo[7:17, 7:17, 7:17], hi[7:17, 7:17, 7:17]
+    corners = [np.s_[a:a + 9, b:b + 9, c:c + 9] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+    seen = np.all([np.isfinite(window_lo[s]) for s in corners], axis=0)
+    cell_lo = np.min([window_lo[s] for s in corners], axis=0)
+    cell_hi = np.max([window_hi[s] for s in corners], axis=0)
+    return bool((seen & (cell_lo <= 0) & (cell_hi >= 0)).any())
+
+
+def test_holds_targets_matches_a_dense_reference() -> None:
+    rng = np.random.default_rng(7)
+    outcomes = []
+    for _ in range(200):
+        neighbours, pools = _random_neighbourhood(rng)
+        expected = _holds_surface_reference(neighbours, pools)
+        assert holds_targets(neighbours, *pools, MODES["surface"])[0] == expected
+        assert holds_targets(neighbours, *pools, MODES["all"])[0]
+        outcomes.append(expected)
+    assert 20 < sum(outcomes) < 180  # both answers were exercised
