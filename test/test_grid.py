@@ -69,6 +69,24 @@ def test_allocate_lookup_and_growth():
     assert grid.max_blocks_before_rehash() >= grid.n_blocks
 
 
+def test_remove_blocks_keeps_the_survivors_and_zeroes_freed_slots():
+    grid = BlockGrid({"a": ()}, initial_capacity=64)
+    keys = torch.unique(block_keys(torch.from_numpy(np.random.default_rng(2).integers(-50, 50, (300, 3)))))
+    slots = grid.allocate_keys(keys)
+    grid.pools["a"][slots] = (slots.to(torch.float32) + 1.0).view(-1, 1)  # each block remembers its slot
+    value_of = {int(k): float(slots[i]) + 1.0 for i, k in enumerate(keys)}
+    victims = np.arange(0, len(keys), 3)
+    n_before = grid.n_blocks
+    grid.remove_blocks(victims)
+    assert grid.n_blocks == n_before - len(victims)
+    survivors = torch.from_numpy(np.setdiff1d(np.arange(len(keys)), victims))
+    new_slots = grid.lookup_keys(keys[survivors])
+    assert sorted(new_slots.tolist()) == list(range(grid.n_blocks))
+    assert grid.pools["a"][new_slots, 0].tolist() == [value_of[int(k)] for k in keys[survivors]]
+    assert grid.lookup_keys(keys[torch.from_numpy(victims)]).tolist() == [-1] * len(victims)
+    assert bool((grid.pools["a"][grid.n_blocks:n_before] == 0).all())
+
+
 def test_neighbour_table_matches_coordinates():
     grid = BlockGrid({"a": ()}, initial_capacity=8)
     cube = torch.stack(torch.meshgrid(*[torch.arange(3)] * 3, indexing="ij"), -1).reshape(-1, 3)

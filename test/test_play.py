@@ -118,6 +118,8 @@ def test_play_loop_restarts_the_clock(prefix: Path, ros_domain_id: int):
 
 def test_node_fed_by_play_matches_replay(prefix: Path, tmp_path: Path, ros_domain_id: int):
     """`senfunet demo` runs the node and play as two processes over DDS; its mesh ~ replay's."""
+    from collections import Counter
+
     from senfunet_core.metrics import mesh_metrics
     from senfunet_core.ply import read_ply
     from senfunet_ros.replay import replay_bag
@@ -138,13 +140,33 @@ def test_node_fed_by_play_matches_replay(prefix: Path, tmp_path: Path, ros_domai
     live = read_ply(out / "mesh.ply")
     offline = replayed.meshes["mesh"]
     agreement = mesh_metrics(live.vertices, offline.vertices, tau_m=0.02)
-    # Live, a frame may miss its pose bracket under CPU load and be dropped (counted; replay keeps
-    # it): most frames fused, and the live mesh lies on the replayed one and covers most of it.
-    fused = [tuple(map(int, m)) for m in re.findall(r"^senfunet demo: \w+: (\d+) of (\d+) frames fused\b",
-                                                     proc.stdout, re.MULTILINE)]
-    assert len(fused) == 2 and all(n >= 0.8 * total for n, total in fused), proc.stdout
+    # Nearly every depth image the bag holds reaches the node and is fused (an executor starved by
+    # the GIL once lost half of them between play and the node), and the live mesh lies on the
+    # replayed one and covers most of it.
+    fused = dict(re.findall(r"^senfunet demo: (\w+): (\d+) of \d+ frames fused\b", proc.stdout, re.MULTILINE))
+    with open_bag(prefix) as bag:
+        in_bag = Counter(m.topic.split("/")[1] for m in bag.messages([t for t in bag.topics if t.endswith("/depth")]))
+    assert set(fused) == set(in_bag) == {"tof", "stereo"}, proc.stdout
+    assert all(int(fused[s]) >= 0.9 * in_bag[s] for s in in_bag), (in_bag, proc.stdout)
     assert agreement["P"] > 95.0 and agreement["F"] > 90.0, (agreement, proc.stdout)
     assert 0.85 < live.n_vertices / max(offline.n_vertices, 1) < 1.1
+
+
+def test_demo_fuses_every_frame_of_the_sample_bag(tmp_path: Path, ros_domain_id: int):
+    """The README's command, `senfunet demo`, with the node's default parameters: every depth image
+    of the sample bag crosses DDS and is fused. (With Python's default 5 ms GIL switch interval the
+    busy node took its messages so late that 20-40 % of the frames were lost.)"""
+    from collections import Counter
+
+    out = tmp_path / "demo"
+    proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "demo", "--out", str(out), "--no-render",
+                           "--domain-id", str(ros_domain_id), "--timeout", "400"],
+                          capture_output=True, text=True, timeout=500)
+    assert proc.returncode == 0, proc.stdout + proc.stderr + (out / "node.log").read_text(errors="replace")
+    fused = dict(re.findall(r"^senfunet demo: (\w+): (\d+) of \d+ frames fused\b", proc.stdout, re.MULTILINE))
+    with open_bag(SAMPLE) as bag:
+        in_bag = Counter(m.topic.split("/")[1] for m in bag.messages([t for t in bag.topics if t.endswith("/depth")]))
+    assert {s: int(n) for s, n in fused.items()} == dict(in_bag), proc.stdout
 
 
 def test_large_shm_profile_unless_fast_dds_is_configured(tmp_path: Path, monkeypatch):
