@@ -455,8 +455,9 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
 # Python hands the GIL to a waiting thread only every switch interval (default 5 ms). Each
 # message needs several hand-overs (the executor's wait returns, a worker takes and converts it),
 # so while integration and a mesh update run Python between their numpy/torch calls, a 5 ms
-# interval capped dispatch far below the ~80 messages/s of the sample bag: `senfunet demo` lost
-# half its frames (pose callbacks lagged 15 s, frames timed out waiting for them). 0.5 ms: none lost.
+# interval held dispatch below the ~70 messages/s of the sample bag at the demo's rate 0.25:
+# `senfunet demo` lost a third to a half of its frames (pose callbacks lagged up to 15 s, frames
+# timed out waiting for them). At 0.5 ms it fuses all of them (test/test_play.py).
 GIL_SWITCH_INTERVAL_S = 0.0005
 
 
