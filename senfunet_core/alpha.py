@@ -146,3 +146,21 @@ def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: 
                     out[b, x, y, z, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
                     out[b, x, y, z, n_channels - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def tsdf_windows(neighbours: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray, scale: float) -> np.ndarray:
+    """B x 12^3 x 2 sensor TSDFs times `scale` ([V_1, V_2], the extra weighting-net inputs of
+    WeightingNet.tsdf_input) on each block with its 2-voxel halo, zero where no block exists."""
+    n_blocks = neighbours.shape[0]
+    out = np.zeros((n_blocks, WINDOW, WINDOW, WINDOW, 2), np.float32)
+    for b in range(n_blocks):
+        for x in range(WINDOW):
+            for y in range(WINDOW):
+                for z in range(WINDOW):
+                    v = _neighbour_index(neighbours, b, x - HALO, y - HALO, z - HALO)
+                    if v < 0:
+                        continue
+                    out[b, x, y, z, 0] = tsdf_1[v] * scale
+                    out[b, x, y, z, 1] = tsdf_2[v] * scale
+    return out

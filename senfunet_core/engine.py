@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from . import networks
-from .alpha import MODES, holds_targets, take_drift, weighting_windows
+from .alpha import MODES, holds_targets, take_drift, tsdf_windows, weighting_windows
 from .errors import InputError
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BLOCK, BlockGrid, kernel_view, neighbour_table
@@ -82,6 +82,8 @@ class EngineConfig:
     #                           (about 15% of the integration time and 6 bytes per voxel)
     alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
     #                               (max-norm over [F, tanh(W)], summed over frames); 0 = exact
+    weighting_tsdf_input: bool = False  # the weighting net also reads the sensors' TSDFs (a departure from the
+    #   paper, networks.WeightingNet); set from the weights file when it records it
 
     @property
     def integrator(self) -> IntegratorConfig:
@@ -154,7 +156,6 @@ class SenFuNet:
         self.device = resolve_device(config.device)
         if config.torch_threads > 0 and torch.get_num_threads() != config.torch_threads:
             torch.set_num_threads(config.torch_threads)
-        self.feature_nets, self.weighting_net = networks.make_networks(config.sensor_uses_rgb, config.seed)
         self.weights_source = "random initialisation (untrained)"
         if weights == "default":
             if networks.DEFAULT_WEIGHTS.is_file():
@@ -162,6 +163,11 @@ class SenFuNet:
             else:
                 log.warning("no shipped weights at %s: using untrained networks", networks.DEFAULT_WEIGHTS)
                 weights = None
+        if weights is not None and networks.weights_tsdf_input(weights) != config.weighting_tsdf_input:
+            config = replace(config, weighting_tsdf_input=networks.weights_tsdf_input(weights))
+            self.config = config
+        self.feature_nets, self.weighting_net = networks.make_networks(config.sensor_uses_rgb, config.seed,
+                                                                       config.weighting_tsdf_input)
         if weights is not None:
             networks.load_weights(weights, self.feature_nets, self.weighting_net)
             self.weights_source = str(weights)
@@ -501,6 +507,9 @@ class SenFuNet:
                 if len(batch) == 0:
                     continue
             windows = weighting_windows(neighbours, *self._views("feat0", "weight0", "feat1", "weight1"))
+            if cfg.weighting_tsdf_input:
+                windows = np.concatenate([windows, tsdf_windows(neighbours, *self._views("tsdf0", "tsdf1"),
+                                                                2.0 / cfg.band_m)], axis=-1)
             x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x 12 x 12^3, channels last
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.alpha_dtype == "bfloat16"):
                 alpha = self.weighting_net(x, pad=False)

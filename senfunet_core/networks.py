@@ -58,11 +58,15 @@ class FeatureNet(nn.Module):
 
 
 class WeightingNet(nn.Module):
-    """G: per-voxel [F_1, tanh(W_1), F_2, tanh(W_2)] (12 channels) -> sensor weighting alpha."""
+    """G: per-voxel [F_1, tanh(W_1), F_2, tanh(W_2)] (12 channels) -> sensor weighting alpha.
 
-    def __init__(self, n_sensors: int = 2) -> None:
+    tsdf_input (a departure from the paper, off by default): the sensors' TSDF values, scaled by
+    2 / band to -1..1, are appended as n_sensors more channels ([..., V_1, V_2]: 14 channels)."""
+
+    def __init__(self, n_sensors: int = 2, tsdf_input: bool = False) -> None:
         super().__init__()
-        in_channels = n_sensors * (N_FEATURES + 1)
+        self.tsdf_input = bool(tsdf_input)
+        in_channels = n_sensors * (N_FEATURES + 1) + (n_sensors if tsdf_input else 0)
         self.conv1 = nn.Conv3d(in_channels, 32, 3)
         self.conv2 = nn.Conv3d(32, 16, 3)
         self.conv3 = nn.Conv3d(16, 1, 1)
@@ -77,21 +81,26 @@ class WeightingNet(nn.Module):
         return torch.sigmoid(self.conv3(x))
 
 
-def weighting_input(features: list[torch.Tensor], weights: list[torch.Tensor]) -> torch.Tensor:
-    """Concatenate [F_i, tanh(W_i)] over sensors along the last axis: (..., 5) + (...) -> (..., 12)."""
+def weighting_input(features: list[torch.Tensor], weights: list[torch.Tensor],
+                    tsdfs: list[torch.Tensor] | None = None, band_m: float = 0.1) -> torch.Tensor:
+    """Concatenate [F_i, tanh(W_i)] over sensors along the last axis: (..., 5) + (...) -> (..., 12);
+    with tsdfs (WeightingNet.tsdf_input), then [V_i * 2 / band_m] over sensors: (..., 14)."""
     parts = []
     for feature, weight in zip(features, weights):
         parts += [feature, torch.tanh(weight).unsqueeze(-1)]
+    if tsdfs is not None:
+        parts += [(tsdf * (2.0 / band_m)).unsqueeze(-1) for tsdf in tsdfs]
     return torch.cat(parts, dim=-1)
 
 
-def make_networks(sensor_uses_rgb: tuple[bool, ...], seed: int = 0) -> tuple[nn.ModuleList, WeightingNet]:
+def make_networks(sensor_uses_rgb: tuple[bool, ...], seed: int = 0,
+                  tsdf_input: bool = False) -> tuple[nn.ModuleList, WeightingNet]:
     """Freshly initialised (untrained) networks, reproducible from `seed`."""
     generator_state = torch.random.get_rng_state()
     torch.manual_seed(seed)
     try:
         feature_nets = nn.ModuleList(FeatureNet(uses_rgb) for uses_rgb in sensor_uses_rgb)
-        weighting_net = WeightingNet(len(sensor_uses_rgb))
+        weighting_net = WeightingNet(len(sensor_uses_rgb), tsdf_input)
     finally:
         torch.random.set_rng_state(generator_state)
     return feature_nets, weighting_net
@@ -104,10 +113,20 @@ def save_weights(path: str | Path, sensors: tuple[str, ...], feature_nets: nn.Mo
         "sensor_uses_rgb": [net.uses_rgb for net in feature_nets],
         "feature_nets": [net.state_dict() for net in feature_nets],
         "weighting_net": weighting_net.state_dict(),
+        "weighting_tsdf_input": bool(getattr(weighting_net, "tsdf_input", False)),
         "meta": meta or {},
     }
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     torch.save(state, path)
+
+
+def weights_tsdf_input(path: str | Path) -> bool:
+    """Whether a weights file's weighting net takes the sensors' TSDFs as inputs (False when unknown)."""
+    try:
+        state = torch.load(Path(path), map_location="cpu", weights_only=True)
+        return bool(state.get("weighting_tsdf_input", False))
+    except Exception:
+        return False
 
 
 def load_weights(path: str | Path, feature_nets: nn.ModuleList, weighting_net: WeightingNet) -> dict:

@@ -77,6 +77,15 @@ class TrainConfig:
     min_update_voxels: int = 2000
     max_chunk_tries: int = 600
     lr: float = 1e-4
+    weighting_tsdf_input: bool = False  # G also reads the sensors' TSDFs (not the paper; networks.WeightingNet)
+    # G on whole blocks of integrated grids before the online frames (not the paper's training): the training
+    # scenes are integrated with the validation protocol (every val_frame_stride-th frame, feature nets as they
+    # are), block_scene_blocks blocks with single-sensor voxels are kept per scene, and G alone takes
+    # block_steps Adam steps on block_batch of them (their 12^3 windows, all 512 voxels) with the paper's loss
+    block_steps: int = 0
+    block_batch: int = 16
+    block_scene_blocks: int = 1200
+    feature_lr_factor: float = 1.0  # the feature nets' learning rate is lr * this (1 = the paper's single rate)
     lr_final_fraction: float = 1.0  # cosine decay of the learning rate to lr * this over the run (1 = constant)
     accumulate_frames: int = 20
     clip_grad_norm: float = 1.0
@@ -416,11 +425,15 @@ class Trainer:
         torch.manual_seed(config.seed)
         self.rng = random.Random(config.seed)
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.feature_nets, self.weighting_net = networks.make_networks(config.sensor_uses_rgb, config.init_seed)
+        self.feature_nets, self.weighting_net = networks.make_networks(config.sensor_uses_rgb, config.init_seed,
+                                                                       config.weighting_tsdf_input)
         self.feature_nets.train()
         self.weighting_net.train()
-        params = list(self.feature_nets.parameters()) + list(self.weighting_net.parameters())
-        self.optimizer = torch.optim.Adam(params, lr=config.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=0)
+        groups = [{"params": list(self.feature_nets.parameters()), "lr_factor": config.feature_lr_factor},
+                  {"params": list(self.weighting_net.parameters()), "lr_factor": 1.0}]
+        for group in groups:
+            group["lr"] = config.lr * group["lr_factor"]
+        self.optimizer = torch.optim.Adam(groups, lr=config.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=0)
         # the engine's grid layout: features, weight counters (and the unused drift) in half precision
         channels: dict[str, tuple[int, ...]] = {"tsdf_base": (), "weight_base": (), "drift": ()}
         for i in range(len(SENSORS)):
@@ -449,7 +462,7 @@ class Trainer:
 
     def set_lr(self, lr: float) -> None:
         for group in self.optimizer.param_groups:
-            group["lr"] = lr
+            group["lr"] = lr * group.get("lr_factor", 1.0)
 
     def _timed(self, name: str, t0: float) -> float:
         t1 = time.perf_counter()
@@ -594,7 +607,8 @@ class Trainer:
         f[at_upd] = f[at_upd] + (mean - mean.detach()) / weights[s][at_upd].clamp(min=1.0).unsqueeze(1)
         features[s] = f
         t0 = self._timed("feature_grad", t0)
-        x = networks.weighting_input(features, weights)  # K x 12 (G's inputs)
+        x = networks.weighting_input(features, weights, tsdfs if cfg.weighting_tsdf_input else None,
+                                     cfg.band_m)  # K x 12 (G's inputs; 14 with the TSDFs)
         alpha = sparse_alpha_planned(self.weighting_net, x, plan)  # at the updated voxels
         t0 = self._timed("weighting_net", t0)
         voxels = corner + np.stack(np.unravel_index(updated, box), axis=1)
@@ -602,6 +616,60 @@ class Trainer:
         t0 = self._timed("gt", t0)
         return senfunet_loss(tsdfs[0][at_upd], weights[0][at_upd], tsdfs[1][at_upd], weights[1][at_upd], alpha, gt,
                              torch.ones_like(gt, dtype=torch.bool), cfg.lambda1, cfg.lambda2, cfg.eta_m)
+
+    def train_weighting_net_on_blocks(self, sequences, engine_config, log=print) -> dict[str, float]:
+        """G alone on whole blocks of the integrated training scenes (see TrainConfig.block_steps)."""
+        from .alpha import tsdf_windows, weighting_windows
+        from .engine import SenFuNet
+        from .evaluation import integrate_frames
+        from .grid import neighbour_table
+        from .simulator import gt_tsdf_blocks
+
+        cfg = self.config
+        rng = np.random.default_rng(cfg.seed)
+        data = []
+        for seq in sequences:
+            engine = SenFuNet(engine_config, weights=None)
+            engine.feature_nets.load_state_dict(copy.deepcopy(self.feature_nets.state_dict()))
+            integrate_frames(engine, seq.frames, {name: cfg.val_frame_stride for name in SENSORS})
+            g = engine.grid
+            n = g.n_blocks
+            w0, w1 = g.pools["weight0"][:n].float(), g.pools["weight1"][:n].float()
+            candidates = np.flatnonzero((((w0 > 0) ^ (w1 > 0)).sum(1) > 10).numpy())
+            if len(candidates) == 0:
+                continue
+            keep = np.sort(rng.choice(candidates, size=min(len(candidates), cfg.block_scene_blocks), replace=False))
+            neighbours = neighbour_table(g.table_keys, g.table_slots, g.slot_keys, keep)
+            x = weighting_windows(neighbours, *engine._views("feat0", "weight0", "feat1", "weight1"))
+            if cfg.weighting_tsdf_input:
+                x = np.concatenate([x, tsdf_windows(neighbours, *engine._views("tsdf0", "tsdf1"), 2.0 / cfg.band_m)], -1)
+            data.append({"x": torch.from_numpy(x).permute(0, 4, 1, 2, 3).contiguous(),
+                         "gt": torch.from_numpy(gt_tsdf_blocks(seq.scene, g.coords[keep].numpy(), cfg.voxel_size_m,
+                                                               cfg.band_m)),
+                         **{f"{c}{i}": g.pools[f"{c}{i}"][keep].float().clone() for c in ("tsdf", "weight") for i in (0, 1)}})
+            del engine
+        terms_sum: dict[str, float] = {}
+        params = list(self.weighting_net.parameters())
+        for step in range(cfg.block_steps):
+            d = data[int(rng.integers(len(data)))]
+            idx = torch.from_numpy(rng.choice(len(d["x"]), size=min(cfg.block_batch, len(d["x"])), replace=False))
+            alpha = self.weighting_net(d["x"][idx], pad=False).reshape(len(idx), -1)
+            flat = {k: d[k][idx].reshape(len(idx), -1) for k in ("tsdf0", "weight0", "tsdf1", "weight1")}
+            loss, terms = senfunet_loss(flat["tsdf0"], flat["weight0"], flat["tsdf1"], flat["weight1"], alpha,
+                                        d["gt"][idx], torch.ones_like(alpha, dtype=torch.bool), cfg.lambda1,
+                                        cfg.lambda2, cfg.eta_m)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, cfg.clip_grad_norm)
+            self.optimizer.step()
+            self.optimizer_steps += 1
+            for k, v in terms.items():
+                terms_sum[k] = terms_sum.get(k, 0.0) + v
+            if (step + 1) % 250 == 0:
+                log(f"block step {step + 1}: " + ", ".join(f"{k} {v / 250:.3f}" for k, v in terms_sum.items()))
+                terms_sum = {}
+        self.optimizer.zero_grad(set_to_none=True)
+        return {"scenes": len(data), "blocks": sum(len(d["x"]) for d in data)}
 
     def _optimizer_step(self) -> None:
         params = list(self.feature_nets.parameters()) + list(self.weighting_net.parameters())
@@ -668,7 +736,8 @@ class Validator:
         return EngineConfig(sensors=SENSORS, sensor_uses_rgb=cfg.sensor_uses_rgb, depth_min_m=cfg.depth_min_m,
                             depth_max_m=cfg.depth_max_m, voxel_size_m=cfg.voxel_size_m, band_m=cfg.band_m,
                             n_samples=cfg.n_samples, n_samples_behind=cfg.n_samples_behind, w_max=cfg.w_max,
-                            border_px=cfg.border_px, torch_threads=0)
+                            border_px=cfg.border_px, torch_threads=0,
+                            weighting_tsdf_input=cfg.weighting_tsdf_input)
 
     def run(self, feature_nets: torch.nn.ModuleList, weighting_net: torch.nn.Module) -> dict:
         """Per scene the rows {method: metrics} and the summary: mean fused F, MAD, and the mean
@@ -861,6 +930,15 @@ def train(config: TrainConfig, out_path: str | Path, log=print, progress: bool =
         progress_frac = min(progress_frac, 1.0)
         low = config.lr * config.lr_final_fraction
         return low + 0.5 * (config.lr - low) * (1 + math.cos(math.pi * progress_frac))
+
+    if config.block_steps > 0:
+        t0 = time.perf_counter()
+        got = trainer.train_weighting_net_on_blocks(
+            (cached_sequence(seed, config.duration_s, config.tof_rate_hz, config.stereo_rate_hz, config.cache_dir, log)
+             for seed in config.train_scenes), validator.engine_config(), log)
+        log(f"G on {got['blocks']} blocks of {got['scenes']} integrated scenes: {config.block_steps} steps "
+            f"({time.perf_counter() - t0:.0f} s)")
+        run_validation(0)
 
     stream = frame_stream()
     bar = tqdm(total=config.steps, disable=not progress, dynamic_ncols=True, desc="train")

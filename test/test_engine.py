@@ -198,20 +198,25 @@ def dense_alpha(engine: SenFuNet) -> dict[tuple, float]:
     for i in range(2):
         feat = torch.zeros((*dims, networks.N_FEATURES))
         weight = torch.zeros(dims)
+        tsdf = torch.zeros(dims)
         for slot in range(grid.n_blocks):
             o = (coords[slot] * BLOCK - lo).tolist()
             sl = (slice(o[0], o[0] + BLOCK), slice(o[1], o[1] + BLOCK), slice(o[2], o[2] + BLOCK))
             feat[sl] = grid.pools[f"feat{i}"][slot].view(BLOCK, BLOCK, BLOCK, -1)
             weight[sl] = grid.pools[f"weight{i}"][slot].view(BLOCK, BLOCK, BLOCK)
-        channels.append((feat, weight))
-    x = networks.weighting_input([c[0] for c in channels], [c[1] for c in channels])
+            tsdf[sl] = grid.pools[f"tsdf{i}"][slot].view(BLOCK, BLOCK, BLOCK)
+        channels.append((feat, weight, tsdf))
+    tsdfs = [c[2] for c in channels] if engine.config.weighting_tsdf_input else None
+    x = networks.weighting_input([c[0] for c in channels], [c[1] for c in channels], tsdfs, engine.config.band_m)
     with torch.no_grad():
         alpha = engine.weighting_net(x.permute(3, 0, 1, 2).unsqueeze(0), pad=True)[0, 0]
     return alpha, lo
 
 
-def test_incremental_alpha_equals_whole_grid_alpha():
-    engine = engine_for_tests()
+@pytest.mark.parametrize("tsdf_input", [False, True])
+def test_incremental_alpha_equals_whole_grid_alpha(tsdf_input):
+    engine = engine_for_tests(weighting_tsdf_input=tsdf_input)
+    assert engine.weighting_net.conv1.in_channels == (14 if tsdf_input else 12)
     with torch.no_grad():  # larger random weights than the default init, so alpha varies a lot
         for p in engine.weighting_net.parameters():
             p.mul_(3.0)

@@ -175,3 +175,34 @@ def test_feature_gradient_on_the_image_window_equals_the_whole_image(tiny_sequen
     assert relative_difference(g_window, g_whole) < 1e-4
     _, g_small = grads(1)  # too small a window: different gradients
     assert relative_difference(g_small, g_whole) > 1e-2
+
+
+def test_block_phase_lowers_the_loss_on_its_blocks(tiny_sequence, monkeypatch):
+    """The shipped recipe's phase (TrainConfig.block_steps): G alone, on whole blocks of the
+    integrated scene, with the TSDF inputs; the paper's loss on those blocks goes down against
+    the same batches with learning rate 0."""
+    torch.set_num_threads(1)
+    losses: list[float] = []
+    original_loss = tr.senfunet_loss
+
+    def recording_loss(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        total, terms = original_loss(*args, **kwargs)
+        losses.append(float(total.detach()))
+        return total, terms
+
+    monkeypatch.setattr(tr, "senfunet_loss", recording_loss)
+
+    def run(lr: float) -> list[float]:
+        cfg = tr.TrainConfig(seed=0, lr=lr, lambda1=0.1, lambda2=0.08, weighting_tsdf_input=True, block_steps=60,
+                             block_batch=8, block_scene_blocks=64, val_frame_stride=1, threads=1)
+        trainer = tr.Trainer(cfg)
+        assert trainer.weighting_net.conv1.in_channels == 14
+        losses.clear()
+        got = trainer.train_weighting_net_on_blocks([tiny_sequence], tr.Validator(cfg, log=print).engine_config(),
+                                                    log=lambda *_: None)
+        assert got["scenes"] == 1 and 0 < got["blocks"] <= 64 and len(losses) == 60
+        return list(losses)
+
+    trained, frozen = run(1e-2), run(0.0)
+    assert trained[0] == pytest.approx(frozen[0])  # same blocks, same first batch
+    assert sum(trained[-10:]) < 0.8 * sum(frozen[-10:])
