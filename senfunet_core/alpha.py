@@ -125,14 +125,17 @@ def holds_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.ndarr
 
 
 @numba.njit(cache=True, nogil=True)
-def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray,
-                      features_2: np.ndarray, weight_2: np.ndarray) -> np.ndarray:
-    """B x 12^3 x 12 weighting-net inputs [F_1 (5), tanh(W_1), F_2 (5), tanh(W_2)] of each block
-    with its 2-voxel halo (channels last), zero where no block exists. features_i: flat int16 bits."""
+def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray, features_2: np.ndarray,
+                      weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray, tsdf_scale: float) -> np.ndarray:
+    """B x 12^3 x C weighting-net inputs of each block with its 2-voxel halo (channels last), zero
+    where no block exists: [F_1 (5), tanh(W_1), F_2 (5), tanh(W_2)] (C = 12) and, unless tsdf_1 and
+    tsdf_2 are empty, [V_1, V_2] * tsdf_scale (C = 14, the inputs of WeightingNet.tsdf_input).
+    features_i: flat int16 bits."""
     n_blocks = neighbours.shape[0]
     n_features = features_1.shape[0] // weight_1.shape[0]
-    n_channels = 2 * (n_features + 1)
-    out = np.zeros((n_blocks, WINDOW, WINDOW, WINDOW, n_channels), np.float32)
+    with_tsdf = tsdf_1.shape[0] > 0
+    first_tsdf = 2 * (n_features + 1)
+    out = np.zeros((n_blocks, WINDOW, WINDOW, WINDOW, first_tsdf + 2 * with_tsdf), np.float32)
     for b in range(n_blocks):
         for x in range(WINDOW):
             for y in range(WINDOW):
@@ -144,23 +147,8 @@ def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: 
                         out[b, x, y, z, c] = f16_to_f32(features_1[v * n_features + c])
                         out[b, x, y, z, n_features + 1 + c] = f16_to_f32(features_2[v * n_features + c])
                     out[b, x, y, z, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
-                    out[b, x, y, z, n_channels - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def tsdf_windows(neighbours: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray, scale: float) -> np.ndarray:
-    """B x 12^3 x 2 sensor TSDFs times `scale` ([V_1, V_2], the extra weighting-net inputs of
-    WeightingNet.tsdf_input) on each block with its 2-voxel halo, zero where no block exists."""
-    n_blocks = neighbours.shape[0]
-    out = np.zeros((n_blocks, WINDOW, WINDOW, WINDOW, 2), np.float32)
-    for b in range(n_blocks):
-        for x in range(WINDOW):
-            for y in range(WINDOW):
-                for z in range(WINDOW):
-                    v = _neighbour_index(neighbours, b, x - HALO, y - HALO, z - HALO)
-                    if v < 0:
-                        continue
-                    out[b, x, y, z, 0] = tsdf_1[v] * scale
-                    out[b, x, y, z, 1] = tsdf_2[v] * scale
+                    out[b, x, y, z, first_tsdf - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
+                    if with_tsdf:
+                        out[b, x, y, z, first_tsdf] = tsdf_1[v] * tsdf_scale
+                        out[b, x, y, z, first_tsdf + 1] = tsdf_2[v] * tsdf_scale
     return out

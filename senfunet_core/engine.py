@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from . import networks
-from .alpha import MODES, holds_targets, take_drift, tsdf_windows, weighting_windows
+from .alpha import MODES, holds_targets, take_drift, weighting_windows
 from .errors import InputError
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BLOCK, BlockGrid, kernel_view, neighbour_table
@@ -506,11 +506,8 @@ class SenFuNet:
                 batch, neighbours = batch[holds], neighbours[holds]
                 if len(batch) == 0:
                     continue
-            windows = weighting_windows(neighbours, *self._views("feat0", "weight0", "feat1", "weight1"))
-            if cfg.weighting_tsdf_input:
-                windows = np.concatenate([windows, tsdf_windows(neighbours, *self._views("tsdf0", "tsdf1"),
-                                                                2.0 / cfg.band_m)], axis=-1)
-            x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x 12 x 12^3, channels last
+            windows = self._weighting_windows(neighbours)
+            x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.alpha_dtype == "bfloat16"):
                 alpha = self.weighting_net(x, pad=False)
             alpha = alpha.float().reshape(len(batch), -1).cpu().numpy()
@@ -523,6 +520,16 @@ class SenFuNet:
         self.counters["alpha_blocks"] += done
         self.counters["alpha_voxels"] += done * 512
         self.counters["alpha_backlog_blocks"] = len(order) - reached
+
+    def _weighting_windows(self, neighbours: np.ndarray) -> np.ndarray:
+        """The weighting net's input windows of these blocks (alpha.weighting_windows), with the
+        sensors' TSDFs when the net reads them."""
+        if self.config.weighting_tsdf_input:
+            tsdf = self._views("tsdf0", "tsdf1")
+        else:
+            tsdf = (np.zeros(0, np.float32), np.zeros(0, np.float32))
+        return weighting_windows(neighbours, *self._views("feat0", "weight0", "feat1", "weight1"), *tsdf,
+                                 2.0 / self.config.band_m)
 
     def _evict(self) -> list[tuple[int, int, int]]:
         """With max_blocks, drop the blocks farthest from the last camera position once the map

@@ -619,7 +619,6 @@ class Trainer:
 
     def train_weighting_net_on_blocks(self, sequences, engine_config, log=print) -> dict[str, float]:
         """G alone on whole blocks of the integrated training scenes (see TrainConfig.block_steps)."""
-        from .alpha import tsdf_windows, weighting_windows
         from .engine import SenFuNet
         from .evaluation import integrate_frames
         from .grid import neighbour_table
@@ -640,9 +639,7 @@ class Trainer:
                 continue
             keep = np.sort(rng.choice(candidates, size=min(len(candidates), cfg.block_scene_blocks), replace=False))
             neighbours = neighbour_table(g.table_keys, g.table_slots, g.slot_keys, keep)
-            x = weighting_windows(neighbours, *engine._views("feat0", "weight0", "feat1", "weight1"))
-            if cfg.weighting_tsdf_input:
-                x = np.concatenate([x, tsdf_windows(neighbours, *engine._views("tsdf0", "tsdf1"), 2.0 / cfg.band_m)], -1)
+            x = engine._weighting_windows(neighbours)
             data.append({"x": torch.from_numpy(x).permute(0, 4, 1, 2, 3).contiguous(),
                          "gt": torch.from_numpy(gt_tsdf_blocks(seq.scene, g.coords[keep].numpy(), cfg.voxel_size_m,
                                                                cfg.band_m)),
