@@ -235,7 +235,7 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
              "The real `FusionNode` with its default parameters (config/default.yaml: mesh update every "
              f"{1 / default['mesh_rate_hz']:g} s, weighting-net budget {default['alpha_budget_s']:g} s per update, "
              f"alpha on surface blocks, frames more than {default['max_lag_s']:g} s behind skipped, map bound "
-             f"{default['max_map_blocks']} blocks, malloc arenas capped at 2), spun by a MultiThreadedExecutor in "
+             f"{default['max_map_blocks']} blocks, malloc arenas capped at 2, allocations from 4 MB mapped), spun by a MultiThreadedExecutor in "
              "the benchmark process; bag messages deserialised with rclpy and handed to its Ingest as its "
              "subscriptions do. `throughput`: as fast as the node takes them; `realtime`: at their recorded "
              "times. Stage times are summed over the run and divided by the frames integrated.", ""]

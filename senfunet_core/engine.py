@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
@@ -48,7 +48,7 @@ _MESH_READER_CODES = np.array([9 * dx + 3 * dy + dz for dx in (0, 1) for dy in (
 # integrate() itself drops far blocks once the map exceeds max_blocks by this factor (updates do it first)
 _HARD_BOUND = 1.25
 # One thread runs the feature nets (of every engine in the process), so that a frame's feature net
-# overlaps the kernel that locates its samples.
+# overlaps the kernels of the frame before it (see `prepare`) and the kernel that locates its samples.
 _FEATURE_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="senfunet-features")
 
 
@@ -130,6 +130,18 @@ class MeshUpdate:
 
 
 @dataclass
+class PreparedFrame:
+    """A checked frame whose feature net is running (`SenFuNet.prepare`)."""
+
+    sensor_index: int
+    depth_m: np.ndarray  # float32, NaN and inf set to 0
+    K: np.ndarray
+    T_world_camera: np.ndarray
+    features: Future | None  # of the 5 x H x W pixel features; None when no pixel is valid
+    checks_s: float  # time `prepare` took (counted as integration)
+
+
+@dataclass
 class WeightCloud:
     positions_m: np.ndarray  # Nx3 float32 voxel centres
     alpha: np.ndarray  # N float32 sensor weighting (weight of sensor 1)
@@ -204,26 +216,41 @@ class SenFuNet:
         Invalid pixels (0, NaN, inf, negative, out of range, image border) are skipped. Raises
         InputError (grids untouched) for wrong shapes, dtypes, intrinsics or poses.
         """
+        return self.integrate_prepared(self.prepare(sensor, depth_m, K, T_world_camera, rgb))
+
+    def prepare(self, sensor: str, depth_m: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray,
+                rgb: np.ndarray | None = None) -> PreparedFrame:
+        """First half of `integrate`: check the frame (InputError as there) and start its feature
+        net in the worker thread. A caller holding the next frame prepares it before integrating
+        the current one, so that the feature net runs while the current frame's kernels do."""
+        t0 = time.perf_counter()
         s = self._sensor_index(sensor)
         check_frame(depth_m, K, T_world_camera, rgb)
         cfg = self.config
-        t0 = time.perf_counter()
         depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
         valid = valid_depth_mask(torch.from_numpy(depth), cfg.border_px, cfg.depth_min_m[s], cfg.depth_max_m[s])
         if not bool(valid.any()):
-            return 0
+            return PreparedFrame(s, depth, K, T_world_camera, None, time.perf_counter() - t0)
         check_key_range(depth[valid.numpy()].max(), K, T_world_camera, depth.shape, cfg.band_m)
-        # the feature net runs in the worker thread while this one locates the samples
         features = _FEATURE_WORKER.submit(self._pixel_features, s, depth, rgb)
+        return PreparedFrame(s, depth, K, T_world_camera, features, time.perf_counter() - t0)
+
+    @torch.inference_mode()
+    def integrate_prepared(self, frame: PreparedFrame) -> int:
+        """Second half of `integrate`: the frame's kernels, under the data lock."""
+        if frame.features is None:  # no valid pixel
+            return 0
+        s, cfg = frame.sensor_index, self.config
+        t0 = time.perf_counter()
         with self._data_lock:
-            update = integrate_frame(self.grid, depth, features.result, K, T_world_camera,
+            update = integrate_frame(self.grid, frame.depth_m, frame.features.result, frame.K, frame.T_world_camera,
                                      (cfg.depth_min_m[s], cfg.depth_max_m[s]), cfg.integrator,
                                      (f"tsdf{s}", f"weight{s}", f"feat{s}"), scratch=self._scratch)
             self._grow_flags()
             self._alpha_pending[update.touched_slots] = True
-            self.frames_integrated[sensor] += 1
-            self._camera_m = np.asarray(T_world_camera, np.float64)[:3, 3].copy()
-        self._timed(integrate=time.perf_counter() - t0 - update.waited_s)
+            self.frames_integrated[cfg.sensors[s]] += 1
+            self._camera_m = np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy()
+        self._timed(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
         if self.config.max_blocks and self.grid.n_blocks > _HARD_BOUND * self.config.max_blocks:
             # updates come too rarely to keep the bound: drop far blocks now (after the current update)
             with self._update_lock:

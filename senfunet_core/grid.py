@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from llvmlite import binding as llvm
 from llvmlite import ir
-from numba.core import types
+from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 from .errors import InputError
@@ -173,6 +173,27 @@ def _f16_to_f32_hw(typingctx, bits):  # noqa: ANN001
     def codegen(context, builder, signature, args):  # noqa: ANN001
         return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
     return types.float32(types.int16), codegen
+
+
+@intrinsic
+def prefetch(typingctx, array, index):  # noqa: ANN001 (numba intrinsic)
+    """Start loading the cache line of array[index] (a 1-D array) without waiting for it: kernels
+    that update scattered voxels issue these early, so that the memory accesses overlap instead of
+    stalling one after another. A hint only; a no-op where the CPU has no prefetch."""
+    if not (isinstance(array, types.Array) and array.ndim == 1 and isinstance(index, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):  # noqa: ANN001
+        array_type = signature.args[0]
+        view = context.make_array(array_type)(context, builder, args[0])
+        pointer = cgutils.get_item_pointer(context, builder, array_type, view, [args[1]], wraparound=False)
+        byte_pointer = builder.bitcast(pointer, ir.IntType(8).as_pointer())
+        i32 = ir.IntType(32)
+        function = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.VoidType(), [byte_pointer.type, i32, i32, i32]), "llvm.prefetch.p0")
+        builder.call(function, [byte_pointer, i32(0), i32(3), i32(1)])  # read, keep in all caches, data
+        return context.get_dummy_value()
+    return types.none(array, index), codegen
 
 
 _F16_TABLE = np.arange(1 << 16, dtype=np.uint16).view(np.float16).astype(np.float32)

@@ -10,6 +10,7 @@ metres; `K` is the pinhole matrix of the depth image; depth is z-depth in metres
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -19,7 +20,7 @@ import torch
 
 from .errors import InputError
 from .grid import (BLOCK_VOXELS, BlockGrid, coords_key, f16_to_f32, f32_to_f16, hash_find_or_add, kernel_view,
-                   voxel_keys)
+                   prefetch, voxel_keys)
 
 
 @dataclass(frozen=True)
@@ -296,6 +297,12 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             if count[local] == 0:
                 sum_tsdf[local] = 0.0
                 sum_features[local, :] = 0.0
+                # the voxel's scattered pool entries, needed below: fetched meanwhile (halves the time)
+                voxel = base_index + local
+                prefetch(features, voxel * n_channels)
+                prefetch(tsdf, voxel)
+                prefetch(weight, voxel)
+                prefetch(drift, voxel)
             count[local] += 1
             sum_tsdf[local] += sample_tsdf_m[sample_step[m]]
             p = sample_pixel[m]
@@ -339,7 +346,11 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
     return updated
 
 
-@numba.njit(cache=True, nogil=True)
+# update_voxels hands the second half of a frame's blocks to this worker from this many samples on
+SPLIT_MIN_SAMPLES = 50_000
+_UPDATE_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="senfunet-update")
+
+
 def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample_touched: np.ndarray,
                   sample_tsdf_m: np.ndarray, pixel_index: np.ndarray, pixel_features: np.ndarray,
                   touched_slots: np.ndarray, tsdf: np.ndarray, weight: np.ndarray, features: np.ndarray,
@@ -350,11 +361,21 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     drift[voxel] accumulates the largest change of a weighting-net input (features, tanh(weight))
     or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
     Weights, features and drift are float16 bit patterns (int16); pixel_features: (H*W) x C float32.
-    Returns the number of voxels updated."""
+    Returns the number of voxels updated.
+
+    Blocks are independent: a frame of at least SPLIT_MIN_SAMPLES samples has the second half of
+    its blocks updated by a worker thread meanwhile (bit-identical to one pass; below that, handing
+    over costs more than it saves). This is the integration thread's longest step, and it waits on
+    memory more than it computes."""
     start, local, pixel, step = _group_by_block(n_pixels, sample_tsdf_m.shape[0], n_touched, sample_flat,
                                                 sample_touched, pixel_index)
-    return _update_blocks(start, local, pixel, step, sample_tsdf_m, pixel_features, touched_slots, tsdf, weight,
-                          features, tsdf_base, weight_base, drift, w_max)
+    arrays = (local, pixel, step, sample_tsdf_m, pixel_features)
+    pools = (tsdf, weight, features, tsdf_base, weight_base, drift, w_max)
+    if start[-1] < max(SPLIT_MIN_SAMPLES, 1):
+        return _update_blocks(start, *arrays, touched_slots, *pools)
+    middle = int(np.searchsorted(start, start[-1] // 2))
+    second = _UPDATE_WORKER.submit(_update_blocks, start[middle:], *arrays, touched_slots[middle:], *pools)
+    return _update_blocks(start[:middle + 1], *arrays, touched_slots, *pools) + second.result()
 
 
 def _scratch(store: dict[str, np.ndarray] | None, name: str, size: int, dtype: type) -> np.ndarray:

@@ -29,6 +29,9 @@ Typical use::
     for item in ingest.pop_ready():
         if isinstance(item, TimeJump): ...          # reset or ignore
         else: engine.integrate(item.sensor, item.depth_m, item.K, item.T_world_camera, item.rgb)
+
+or, with each next frame's feature net overlapping the current frame's integration,
+`integrate_ready(engine, ingest.pop_ready(), on_time_jump, on_frame)`.
 """
 from __future__ import annotations
 
@@ -37,13 +40,13 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
 from senfunet_ros import conversions as conv
 
-__all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest"]
+__all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "integrate_ready"]
 
 DROP_REASONS: tuple[str, ...] = (
     "no_camera_info",  # depth arrived before any camera_info of its sensor
@@ -463,3 +466,44 @@ class Ingest:
             for state in self._sensors.values():
                 state.queue.clear()
                 state.colors.clear()
+
+
+def integrate_ready(engine: Any, items: Iterable[Frame | TimeJump], on_time_jump: Callable[[TimeJump], None],
+                    on_frame: Callable[[Frame, Exception | None, float], None]) -> None:
+    """Hand ready items to the engine in order, one frame ahead: each frame is prepared (checked, its
+    feature net started) before the frame before it is integrated, so that the feature net runs while
+    the integration kernels do. A time jump is handled once every frame before it is integrated.
+
+    on_frame(frame, error, seconds) follows each frame: error is None once it is integrated, or what
+    the engine raised (the frame is lost, the map is not); seconds is the engine time it took."""
+    ahead: tuple[Frame, Any, float] | None = None
+
+    def finish() -> None:
+        nonlocal ahead
+        if ahead is None:
+            return
+        (frame, prepared, seconds), ahead = ahead, None
+        error = prepared if isinstance(prepared, Exception) else None
+        if error is None:
+            start = time.perf_counter()
+            try:
+                engine.integrate_prepared(prepared)
+            except Exception as err:  # noqa: BLE001 (the caller decides what is fatal)
+                error = err
+            seconds += time.perf_counter() - start
+        on_frame(frame, error, seconds)
+
+    for item in items:
+        if isinstance(item, TimeJump):
+            finish()
+            on_time_jump(item)
+            continue
+        start = time.perf_counter()
+        try:
+            prepared = engine.prepare(item.sensor, item.depth_m, item.K, item.T_world_camera, item.rgb)
+        except Exception as err:  # noqa: BLE001
+            prepared = err
+        seconds = time.perf_counter() - start
+        finish()
+        ahead = (item, prepared, seconds)
+    finish()

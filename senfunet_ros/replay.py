@@ -25,7 +25,7 @@ import numpy as np
 from senfunet_ros import params as P
 from senfunet_ros.params import engine_config, engine_weights, ingest_config
 from senfunet_ros.bagio import BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype, open_bag
-from senfunet_ros.ingest import Frame, Ingest, TimeJump
+from senfunet_ros.ingest import Frame, Ingest, TimeJump, integrate_ready
 
 __all__ = [
     "load_settings",
@@ -231,33 +231,33 @@ class _Drain:
     def __init__(self, engine: Any, ingest: Ingest, on_time_jump: str) -> None:
         self.engine, self.ingest, self.on_time_jump = engine, ingest, on_time_jump
         self.integrate_s = 0.0
+        self.frames_integrated = 0
         self.time_jumps = 0
         self.engine_errors: list[str] = []
 
     def __call__(self) -> int:
+        integrated = self.frames_integrated
+        integrate_ready(self.engine, self.ingest.pop_ready(), self._time_jump, self._integrated)
+        return self.frames_integrated - integrated
+
+    def _time_jump(self, jump: TimeJump) -> None:
+        self.time_jumps += 1
+        if self.on_time_jump == "reset":
+            self.engine.reset()
+
+    def _integrated(self, frame: Frame, error: Exception | None, seconds: float) -> None:
         from senfunet_core.errors import SenFuNetError
 
-        n = 0
-        for item in self.ingest.pop_ready():
-            if isinstance(item, TimeJump):
-                self.time_jumps += 1
-                if self.on_time_jump == "reset":
-                    self.engine.reset()
-                continue
-            frame: Frame = item
-            start = time.perf_counter()
-            try:
-                self.engine.integrate(frame.sensor, frame.depth_m, frame.K, frame.T_world_camera, frame.rgb)
-            except (SenFuNetError, ValueError) as err:
-                self.ingest.mark_dropped(frame.sensor, "engine_error")
-                if len(self.engine_errors) < 10:
-                    self.engine_errors.append(f"{frame.sensor} at {frame.stamp_ns * 1e-9:.3f} s: {err}")
-                continue
-            finally:
-                self.integrate_s += time.perf_counter() - start
+        self.integrate_s += seconds
+        if error is None:
             self.ingest.mark_integrated(frame.sensor)
-            n += 1
-        return n
+            self.frames_integrated += 1
+        elif isinstance(error, (SenFuNetError, ValueError)):
+            self.ingest.mark_dropped(frame.sensor, "engine_error")
+            if len(self.engine_errors) < 10:
+                self.engine_errors.append(f"{frame.sensor} at {frame.stamp_ns * 1e-9:.3f} s: {error}")
+        else:
+            raise error
 
 
 def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | None = None,

@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 import pytest
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
@@ -220,3 +221,45 @@ def test_consumer_behind_skips_old_frames_and_pop_limit_keeps_the_rest() -> None
     unlimited = make()  # max_lag_s 0: nothing is skipped
     feed(unlimited)
     assert len(frames(unlimited.pop_ready())) == 10
+
+
+def test_integrate_ready_keeps_order_isolates_errors_and_flushes_before_a_time_jump() -> None:
+    from senfunet_core.engine import EngineConfig, SenFuNet
+    from senfunet_core.errors import InputError
+    from senfunet_ros.ingest import integrate_ready
+
+    K = np.array([[40.0, 0, 31.5], [0, 40.0, 23.5], [0, 0, 1]])
+    v, u = np.mgrid[0:48, 0:64].astype(np.float32)
+
+    def frame(sensor: str, i: int, depth: np.ndarray | None = None) -> Frame:
+        T = np.eye(4)
+        T[0, 3] = 0.02 * i
+        if depth is None:
+            depth = (1.0 + 0.003 * u + 0.02 * np.sin(v / 4.0 + i)).astype(np.float32)
+        rgb = np.full((48, 64, 3), 90, np.uint8) if sensor == "stereo" else None
+        return Frame(sensor, i * 10**8, depth, rgb, K, T, 0.0)
+
+    good = [frame("tof", 0), frame("stereo", 1), frame("tof", 2), frame("stereo", 3)]
+    bad = frame("tof", 9, depth=np.ones((48, 64), np.int32))  # rejected by the engine's checks
+    jump = TimeJump("tof", "depth", 5 * 10**8, 0)
+    engine = SenFuNet(EngineConfig(), weights=None)
+    events: list[tuple] = []
+
+    def on_frame(f: Frame, error: Exception | None, seconds: float) -> None:
+        assert seconds >= 0
+        events.append(("frame", f.stamp_ns, type(error).__name__ if error else None))
+
+    def on_time_jump(j: TimeJump) -> None:  # every frame before the jump is in the map by now
+        events.append(("jump", sum(engine.frames_integrated.values())))
+
+    integrate_ready(engine, [good[0], good[1], bad, jump, good[2], good[3]], on_time_jump, on_frame)
+    assert events == [("frame", 0, None), ("frame", 10**8, None), ("frame", 9 * 10**8, InputError.__name__),
+                      ("jump", 2), ("frame", 2 * 10**8, None), ("frame", 3 * 10**8, None)]
+    # the same map as integrating the good frames one by one
+    reference = SenFuNet(EngineConfig(), weights=None)
+    for f in good:
+        reference.integrate(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb)
+    n = engine.grid.n_blocks
+    assert n == reference.grid.n_blocks > 0
+    for name in ("tsdf0", "weight0", "feat0", "tsdf1", "weight1", "feat1", "drift"):
+        assert torch.equal(engine.grid.pools[name][:n], reference.grid.pools[name][:n]), name

@@ -103,3 +103,17 @@ def test_drift_marks_new_voxels_and_accumulates_change():
     finite = torch.isfinite(drift) & seen
     assert bool((drift[finite] > 0).all())  # the features moved towards half their value
     assert float(drift[finite].max()) < 2.0
+
+
+def test_splitting_a_frame_between_two_threads_changes_no_bit(monkeypatch):
+    import senfunet_core.integrator as integrator
+
+    frames = [(*frame(i), pose(0.05 * i, 0.03 * i)) for i in range(3)]
+    monkeypatch.setattr(integrator, "SPLIT_MIN_SAMPLES", 10 ** 9)
+    whole, _ = compiled(frames)
+    monkeypatch.setattr(integrator, "SPLIT_MIN_SAMPLES", 0)
+    split, _ = compiled(frames)
+    n = whole.n_blocks
+    assert n == split.n_blocks and n > 50
+    for name, pool in whole.pools.items():  # no NaN in these pools: equal values are equal bits
+        assert torch.equal(pool[:n], split.pools[name][:n]), name

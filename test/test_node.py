@@ -585,12 +585,12 @@ def test_publish_serialized_delivers_the_same_message(ros) -> None:
         node.destroy_node()
 
 
-def test_limit_malloc_arenas_applies_on_glibc() -> None:
+def test_limit_malloc_applies_on_glibc() -> None:
     import platform
 
-    from senfunet_ros.node import limit_malloc_arenas
+    from senfunet_ros.node import limit_malloc
 
-    assert limit_malloc_arenas() == (platform.libc_ver()[0] == "glibc")
+    assert limit_malloc() == (platform.libc_ver()[0] == "glibc")
 
 
 def test_prepare_process_shortens_the_gil_switch_interval() -> None:
