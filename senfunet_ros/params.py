@@ -33,7 +33,7 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("working_width", 256, "images are resized to this width (K scaled); 0 = native"),
     Param("working_height", 0, "images are resized to this height; 0 = native, or keep the aspect ratio if the width is set"),
     Param("queue_size", 30, "frames per sensor waiting for their pose; the oldest is dropped beyond this"),
-    Param("max_lag_s", 0.5, "when integration falls behind, frames more than this (sensor time) older than their "
+    Param("max_lag_s", 0.25, "when integration falls behind, frames more than this (sensor time) older than their "
           "sensor's newest are skipped, which bounds the latency; 0 = never skip"),
     Param("pose_buffer_size", 2000, "poses kept per sensor for interpolation"),
     Param("pose_tolerance_s", 0.1, "max time between a depth stamp and the poses interpolated around it"),
