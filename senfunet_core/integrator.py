@@ -297,7 +297,7 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             if count[local] == 0:
                 sum_tsdf[local] = 0.0
                 sum_features[local, :] = 0.0
-                # the voxel's scattered pool entries, needed below: fetched meanwhile (halves the time)
+                # the voxel's scattered pool entries, needed below: fetched meanwhile (~30% less time)
                 voxel = base_index + local
                 prefetch(features, voxel * n_channels)
                 prefetch(tsdf, voxel)

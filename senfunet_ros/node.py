@@ -472,8 +472,9 @@ def limit_malloc(arenas: int = 2, mmap_threshold_bytes: int = 4 << 20) -> bool:
     executor, feature-net and kernel thread would otherwise keep its own heap of freed per-frame
     arrays (arenas), and glibc raises the threshold up to 32 MB after the first such array is freed,
     after which the per-update arrays of 4-32 MB stay in the heaps. Peak RSS on the large benchmark
-    room: ~2.5 GB -> ~2.1 GB (arenas), -> ~1.85 GB (threshold; 1 MB costs a fifth of the frame rate
-    in page faults, 4 MB nothing measurable). False where there is no glibc (nothing changes)."""
+    room: ~2.5 GB -> ~2.1 GB (arenas), -> ~1.85 GB (threshold 4 MB; at 1 MB the page faults of
+    re-mapping cost a fifth of the frame rate, at 8 MB it saved less: 1.91 GB). False where there
+    is no glibc (nothing changes)."""
     import ctypes
     import ctypes.util
 
