@@ -85,6 +85,8 @@ class TrainConfig:
     block_steps: int = 0
     block_batch: int = 16
     block_scene_blocks: int = 1200
+    block_mixed: bool = False  # a batch draws its blocks from all scenes (False: all from one random scene)
+    block_lr_final_fraction: float = 1.0  # cosine decay of the block phase's learning rate to lr * this
     feature_lr_factor: float = 1.0  # the feature nets' learning rate is lr * this (1 = the paper's single rate)
     lr_final_fraction: float = 1.0  # cosine decay of the learning rate to lr * this over the run (1 = constant)
     accumulate_frames: int = 20
@@ -155,6 +157,31 @@ def senfunet_loss(tsdf_1: torch.Tensor, weight_1: torch.Tensor, tsdf_2: torch.Te
         terms[f"L_in{i}"], terms[f"L_out{i}"] = l_in, l_out
         total = total + lambda1 * l_in + lambda2 * l_out
     return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+def cosine_lr(lr: float, final_fraction: float, progress: float) -> float:
+    """Cosine decay from lr (progress 0) to lr * final_fraction (progress >= 1); constant when the fraction is 1."""
+    if final_fraction == 1.0:
+        return lr
+    low = lr * final_fraction
+    return low + 0.5 * (lr - low) * (1 + math.cos(math.pi * min(max(progress, 0.0), 1.0)))
+
+
+def block_batch(data: list[dict[str, torch.Tensor]], size: int, mixed: bool,
+                rng: np.random.Generator) -> dict[str, torch.Tensor]:
+    """A batch of blocks for the block phase, drawn without replacement: from one random scene
+    (mixed False), or uniformly from all scenes' blocks (mixed True; in scene order). data: per scene,
+    tensors with the blocks along the first axis."""
+    if not mixed:
+        d = data[int(rng.integers(len(data)))]
+        idx = torch.from_numpy(rng.choice(len(d["x"]), size=min(size, len(d["x"])), replace=False))
+        return {k: v[idx] for k, v in d.items()}
+    counts = np.array([len(d["x"]) for d in data])
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    picks = np.sort(rng.choice(starts[-1], size=min(size, int(starts[-1])), replace=False))
+    scene = np.searchsorted(starts, picks, side="right") - 1
+    parts = [(d, torch.from_numpy(picks[scene == i] - starts[i])) for i, d in enumerate(data) if (scene == i).any()]
+    return {k: torch.cat([d[k][idx] for d, idx in parts]) for k in data[0]}
 
 
 def update_box(voxels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -648,12 +675,13 @@ class Trainer:
         terms_sum: dict[str, float] = {}
         params = list(self.weighting_net.parameters())
         for step in range(cfg.block_steps):
-            d = data[int(rng.integers(len(data)))]
-            idx = torch.from_numpy(rng.choice(len(d["x"]), size=min(cfg.block_batch, len(d["x"])), replace=False))
-            alpha = self.weighting_net(d["x"][idx], pad=False).reshape(len(idx), -1)
-            flat = {k: d[k][idx].reshape(len(idx), -1) for k in ("tsdf0", "weight0", "tsdf1", "weight1")}
+            self.set_lr(cosine_lr(cfg.lr, cfg.block_lr_final_fraction, step / cfg.block_steps))
+            d = block_batch(data, cfg.block_batch, cfg.block_mixed, rng)
+            n = len(d["x"])
+            alpha = self.weighting_net(d["x"], pad=False).reshape(n, -1)
+            flat = {k: d[k].reshape(n, -1) for k in ("tsdf0", "weight0", "tsdf1", "weight1")}
             loss, terms = senfunet_loss(flat["tsdf0"], flat["weight0"], flat["tsdf1"], flat["weight1"], alpha,
-                                        d["gt"][idx], torch.ones_like(alpha, dtype=torch.bool), cfg.lambda1,
+                                        d["gt"], torch.ones_like(alpha, dtype=torch.bool), cfg.lambda1,
                                         cfg.lambda2, cfg.eta_m)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -666,6 +694,7 @@ class Trainer:
                 log(f"block step {step + 1}: " + ", ".join(f"{k} {v / 250:.3f}" for k, v in terms_sum.items()))
                 terms_sum = {}
         self.optimizer.zero_grad(set_to_none=True)
+        self.set_lr(cfg.lr)
         return {"scenes": len(data), "blocks": sum(len(d["x"]) for d in data)}
 
     def _optimizer_step(self) -> None:
@@ -919,14 +948,10 @@ def train(config: TrainConfig, out_path: str | Path, log=print, progress: bool =
         (tqdm.write if progress else log)(msg)
 
     def lr_at(step: int) -> float:
-        if config.lr_final_fraction == 1.0:
-            return config.lr
         progress_frac = step / max(config.steps, 1)
         if config.time_budget_s > 0:
             progress_frac = max(progress_frac, clock.active() / config.time_budget_s)
-        progress_frac = min(progress_frac, 1.0)
-        low = config.lr * config.lr_final_fraction
-        return low + 0.5 * (config.lr - low) * (1 + math.cos(math.pi * progress_frac))
+        return cosine_lr(config.lr, config.lr_final_fraction, progress_frac)
 
     if config.block_steps > 0:
         t0 = time.perf_counter()

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -206,3 +207,33 @@ def test_block_phase_lowers_the_loss_on_its_blocks(tiny_sequence, monkeypatch):
     trained, frozen = run(1e-2), run(0.0)
     assert trained[0] == pytest.approx(frozen[0])  # same blocks, same first batch
     assert sum(trained[-10:]) < 0.8 * sum(frozen[-10:])
+
+
+def test_block_batch_one_scene_or_mixed():
+    """block_batch: without mixing, all blocks of a batch come from one scene; mixed, they are drawn
+    without replacement from every scene's blocks; the fields of a block stay together."""
+    data = [{"x": torch.arange(n, dtype=torch.float32).reshape(n, 1) + 100 * s,
+             "gt": torch.arange(n, dtype=torch.float32) + 100 * s} for s, n in enumerate((5, 30, 12))]
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        one = tr.block_batch(data, 8, False, rng)
+        scenes = set((one["gt"] // 100).int().tolist())
+        assert len(scenes) == 1 and len(one["gt"]) == min(8, len(data[scenes.pop()]["gt"]))
+        assert torch.equal(one["x"][:, 0], one["gt"])
+    seen = set()
+    for _ in range(20):
+        mixed = tr.block_batch(data, 16, True, rng)
+        assert len(mixed["gt"]) == 16 and len(set(mixed["gt"].tolist())) == 16  # no block twice
+        assert torch.equal(mixed["x"][:, 0], mixed["gt"])
+        seen |= set((mixed["gt"] // 100).int().tolist())
+    assert seen == {0, 1, 2}
+    everything = tr.block_batch(data, 100, True, rng)  # more than there are: each block once
+    assert sorted(everything["gt"].tolist()) == sorted(torch.cat([d["gt"] for d in data]).tolist())
+
+
+def test_cosine_lr():
+    assert tr.cosine_lr(1e-3, 1.0, 0.7) == 1e-3
+    assert tr.cosine_lr(1e-3, 0.1, 0.0) == pytest.approx(1e-3)
+    assert tr.cosine_lr(1e-3, 0.1, 0.5) == pytest.approx(0.55e-3)
+    assert tr.cosine_lr(1e-3, 0.1, 1.0) == pytest.approx(1e-4)
+    assert tr.cosine_lr(1e-3, 0.1, 3.0) == pytest.approx(1e-4)
