@@ -7,6 +7,8 @@ always gives the same frames, live or replayed.
 
 Per sensor:
 - `camera_info` is cached (the latest one wins);
+- depth images that arrive before their sensor's first camera_info wait for it (drivers publish the
+  two on separate topics, so either may arrive first), at most `pose_max_wait_s` of stream time;
 - depth images are decoded on arrival, checked, resized to the working resolution and put in a
   bounded queue (the oldest frame is dropped when it is full);
 - colour images wait in a short buffer and are matched to depth by the nearest stamp;
@@ -49,7 +51,7 @@ from senfunet_ros import conversions as conv
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "integrate_ready"]
 
 DROP_REASONS: tuple[str, ...] = (
-    "no_camera_info",  # depth arrived before any camera_info of its sensor
+    "no_camera_info",  # no camera_info of its sensor arrived within pose_max_wait_s of the depth image
     "bad_camera_info",  # camera_info without a usable K or size
     "bad_encoding",  # depth or colour encoding unsupported, or the image is malformed
     "size_mismatch",  # depth size differs from its camera_info size
@@ -76,7 +78,7 @@ class IngestConfig:
     queue_size: int = 30  # frames waiting for a pose, per sensor
     pose_buffer_size: int = 2000  # poses kept per sensor (20 s at 100 Hz)
     pose_tolerance_s: float = 0.1  # max distance from a frame to the poses it is interpolated from
-    pose_max_wait_s: float = 1.0  # a frame waits this long (stream time) for a later pose
+    pose_max_wait_s: float = 1.0  # a frame waits this long (stream time) for a later pose, or a first camera_info
     color_tolerance_s: float = 0.02  # max stamp distance of a colour image to its depth image
     time_jump_s: float = 1.0  # a stamp this far behind its stream's last one means a restart
     max_lag_s: float = 0.0  # a ready frame this far behind its sensor's newest depth stamp is skipped; 0 = never
@@ -149,6 +151,7 @@ class _SensorState:
         self.counters = SensorCounters()
         self.camera_info: tuple[np.ndarray, tuple[int, int]] | None = None
         self.queue: deque[_Pending] = deque()
+        self.awaiting_info: deque[tuple[Any, int, float]] = deque()  # (depth msg, stamp_ns, arrival_s)
         self.colors: deque[tuple[int, np.ndarray]] = deque(maxlen=max(4, config.queue_size))
         self.pose_stamps: list[int] = []  # sorted
         self.poses: list[np.ndarray] = []  # 4x4, parallel to pose_stamps
@@ -160,9 +163,13 @@ class _SensorState:
         stamps = [s for s in self.last_ns.values() if s is not None]
         return max(stamps) if stamps else None
 
+    def waiting(self) -> int:
+        return len(self.queue) + len(self.awaiting_info)
+
     def flush(self) -> int:
-        n = len(self.queue)
+        n = self.waiting()
         self.queue.clear()
+        self.awaiting_info.clear()
         self.colors.clear()
         self.pose_stamps.clear()
         self.poses.clear()
@@ -254,7 +261,8 @@ class Ingest:
         return None
 
     def add_camera_info(self, sensor: str, msg: Any) -> str | None:
-        """Cache K and the image size. Returns the drop reason, or None when it was cached."""
+        """Cache K and the image size, and queue the depth images that waited for it. Returns the
+        drop reason, or None when it was cached."""
         with self._lock:
             state = self._state(sensor)
             try:
@@ -262,29 +270,42 @@ class Ingest:
             except (ValueError, AttributeError):
                 state.counters.dropped["bad_camera_info"] += 1
                 return "bad_camera_info"
+            while state.awaiting_info:
+                self._enqueue(state, *state.awaiting_info.popleft())
             return None
 
     def add_depth(self, sensor: str, msg: Any) -> str | None:
-        """Queue one depth image. Returns the drop reason, or None when it was queued."""
+        """Queue one depth image. Returns the drop reason, or None when it was queued (or, before the
+        sensor's first camera_info, put aside to wait for it)."""
         stamp_ns = conv.stamp_to_ns(msg.header.stamp)
         with self._lock:
             state = self._state(sensor)
             state.counters.received += 1
             reason = self._check_time(state, sensor, "depth", stamp_ns)
-            if reason is None:
-                reason, pending = self._decode_depth(state, msg, stamp_ns)
             if reason is not None:
                 state.counters.dropped[reason] += 1
                 return reason
-            if len(state.queue) >= self.config.queue_size:
-                state.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
-                state.counters.dropped["queue_full"] += 1
-            state.queue.append(pending)
-            return None
+            if state.camera_info is None:
+                if len(state.awaiting_info) >= self.config.queue_size:
+                    state.awaiting_info.popleft()
+                    state.counters.dropped["no_camera_info"] += 1
+                state.awaiting_info.append((msg, stamp_ns, time.monotonic()))
+                return None
+            return self._enqueue(state, msg, stamp_ns, time.monotonic())
 
-    def _decode_depth(self, state: _SensorState, msg: Any, stamp_ns: int) -> tuple[str | None, Any]:
-        if state.camera_info is None:
-            return "no_camera_info", None
+    def _enqueue(self, state: _SensorState, msg: Any, stamp_ns: int, arrival_s: float) -> str | None:
+        """Decode and check a depth image and queue it. Returns the drop reason or None. Lock held."""
+        reason, pending = self._decode_depth(state, msg, stamp_ns, arrival_s)
+        if reason is not None:
+            state.counters.dropped[reason] += 1
+            return reason
+        if len(state.queue) >= self.config.queue_size:
+            state.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
+            state.counters.dropped["queue_full"] += 1
+        state.queue.append(pending)
+        return None
+
+    def _decode_depth(self, state: _SensorState, msg: Any, stamp_ns: int, arrival_s: float) -> tuple[str | None, Any]:
         K, info_size = state.camera_info
         try:
             depth_m = conv.depth_from_image(msg)
@@ -299,7 +320,7 @@ class Ingest:
         if target != (width, height):
             depth_m = conv.resize_depth(depth_m, target)
             K = conv.scale_intrinsics(K, (width, height), target)
-        return None, _Pending(stamp_ns, depth_m, K, time.monotonic())
+        return None, _Pending(stamp_ns, depth_m, K, arrival_s)
 
     def _working_size(self, native: tuple[int, int]) -> tuple[int, int]:
         width, height = self.config.working_size
@@ -355,8 +376,8 @@ class Ingest:
         all of them, or the `max_frames` oldest (the rest stay queued, where a full queue drops the
         oldest: a consumer that falls behind sees bounded latency, not a growing backlog).
 
-        Frames still waiting for a pose (or a colour image) stay queued; frames that waited too
-        long are dropped and counted.
+        Frames still waiting for a pose, a colour image or a camera_info stay queued; frames that
+        waited too long are dropped and counted.
         """
         with self._lock:
             jumps, self._jumps = self._jumps, []
@@ -381,6 +402,9 @@ class Ingest:
         out: list[Frame] = []
         lag_ns = int(cfg.max_lag_s * 1e9)
         newest_ns = state.last_ns["depth"]
+        while state.awaiting_info and now_ns is not None and now_ns - state.awaiting_info[0][1] > max_wait_ns:
+            state.awaiting_info.popleft()
+            state.counters.dropped["no_camera_info"] += 1
         while state.queue:
             pending = state.queue[0]
             t = pending.stamp_ns
@@ -452,19 +476,21 @@ class Ingest:
         """A snapshot: sensor -> SensorCounters.as_dict() plus `queue_depth`."""
         with self._lock:
             return {
-                name: {**state.counters.as_dict(), "queue_depth": len(state.queue)}
+                name: {**state.counters.as_dict(), "queue_depth": state.waiting()}
                 for name, state in self._sensors.items()
             }
 
     def queue_depths(self) -> dict[str, int]:
+        """Frames waiting per sensor: for a pose, a colour image, the consumer or a camera_info."""
         with self._lock:
-            return {name: len(state.queue) for name, state in self._sensors.items()}
+            return {name: state.waiting() for name, state in self._sensors.items()}
 
     def clear_frames(self) -> None:
         """Forget queued frames and colour images (a map reset); poses and camera_info stay."""
         with self._lock:
             for state in self._sensors.values():
                 state.queue.clear()
+                state.awaiting_info.clear()
                 state.colors.clear()
 
 

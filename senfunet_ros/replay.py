@@ -392,7 +392,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
             "received": c["received"], "integrated": c["integrated"],
             "dropped": {reason: n for reason, n in c["dropped"].items()},
             "dropped_total": sum(c["dropped"].values()),
-            "pending_at_end": c["queue_depth"],  # frames still waiting for a pose when the bag ended
+            "pending_at_end": c["queue_depth"],  # frames still waiting (for a pose or camera_info) when the bag ended
             "color_received": c["color_received"], "pose_received": c["pose_received"],
             "time_jumps": c["time_jumps"],
         }

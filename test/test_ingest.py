@@ -9,6 +9,7 @@ import pytest
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
+from senfunet_ros import conversions as conv
 from senfunet_ros.ingest import Frame, Ingest, IngestConfig, TimeJump, interpolate_pose
 
 MS = 1_000_000  # nanoseconds
@@ -98,12 +99,10 @@ def test_pose_timeout_and_gap() -> None:
     assert ingest.queue_depths()["tof"] == 0
 
 
-@pytest.mark.parametrize("case", ["no_camera_info", "bad_encoding", "size_mismatch", "all_invalid",
-                                  "bad_pose", "bad_camera_info"])
+@pytest.mark.parametrize("case", ["bad_encoding", "size_mismatch", "all_invalid", "bad_pose", "bad_camera_info"])
 def test_bad_inputs_are_counted(case: str) -> None:
     ingest = Ingest(IngestConfig(sensors=("tof", "stereo")))
-    if case != "no_camera_info":
-        ingest.add_camera_info("tof", info_msg())
+    ingest.add_camera_info("tof", info_msg())
     if case == "bad_pose":
         msg = pose_msg(0)
         msg.pose.orientation.w = float("nan")
@@ -112,7 +111,6 @@ def test_bad_inputs_are_counted(case: str) -> None:
         assert ingest.add_camera_info("tof", CameraInfo(width=10, height=8)) == "bad_camera_info"
     else:
         msg = {
-            "no_camera_info": depth_msg(0),
             "bad_encoding": depth_msg(0, encoding="rgb8"),
             "size_mismatch": depth_msg(0, shape=(4, 4)),
             "all_invalid": depth_msg(0, value=float("nan")),
@@ -121,6 +119,32 @@ def test_bad_inputs_are_counted(case: str) -> None:
     counters = ingest.counters()["tof"]
     assert counters["dropped"][case] == 1
     assert sum(counters["dropped"].values()) == 1 and counters["queue_depth"] == 0
+
+
+def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
+    """Drivers publish camera_info and depth on separate topics, so the first depth image may come
+    first: it waits for the camera_info, within the queue size and pose_max_wait_s of stream time."""
+    ingest = Ingest(IngestConfig(sensors=("tof", "stereo"), queue_size=2, pose_max_wait_s=0.5))
+    ingest.add_pose("tof", pose_msg(0))
+    assert ingest.add_depth("tof", depth_msg(25 * MS, value=2.0)) is None
+    assert ingest.pop_ready() == [] and ingest.queue_depths()["tof"] == 1
+    assert ingest.add_camera_info("tof", info_msg()) is None
+    ingest.add_pose("tof", pose_msg(100 * MS))
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.stamp_ns == 25 * MS and np.all(frame.depth_m == 2.0)
+    np.testing.assert_array_equal(frame.K, conv.intrinsics_from_camera_info(info_msg())[0])
+
+    for t in (0, 100, 200):  # stereo's camera_info never comes; the third image overflows the wait
+        assert ingest.add_depth("stereo", depth_msg(t * MS)) is None
+    assert ingest.counters()["stereo"]["dropped"]["no_camera_info"] == 1
+    ingest.add_pose("stereo", pose_msg(650 * MS))  # 550 ms past 100 ms: beyond pose_max_wait_s
+    assert ingest.pop_ready() == []
+    assert ingest.counters()["stereo"]["dropped"]["no_camera_info"] == 2 and ingest.queue_depths()["stereo"] == 1
+    ingest.add_pose("stereo", pose_msg(750 * MS))
+    ingest.pop_ready()
+    counters = ingest.counters()["stereo"]
+    assert counters["dropped"]["no_camera_info"] == 3 and counters["queue_depth"] == 0
+    assert counters["received"] == 3 and counters["integrated"] == 0
 
 
 def test_out_of_order_duplicate_and_queue_full() -> None:

@@ -505,8 +505,9 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
         good = np.full((32, 32), 1.5, np.float32)
         info = CameraInfo(width=32, height=32, k=[30.0, 0, 15.5, 0, 30.0, 15.5, 0, 0, 1])
 
-        # missing camera_info (stereo has none yet)
+        # missing camera_info: stereo has none, and its stream time moves on past pose_max_wait_s
         send("stereo", "depth", _image(1 * S, good))
+        send("stereo", "pose", _pose(2 * S))
         wait_for(lambda: dropped("stereo", "no_camera_info") >= 1, 10, "no_camera_info")
 
         send("tof", "camera_info", info)

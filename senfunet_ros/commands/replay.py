@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         if reasons:
             line += f"; dropped: {reasons}"
         if c["pending_at_end"]:
-            line += f"; {c['pending_at_end']} still waiting for a pose at the end"
+            line += f"; {c['pending_at_end']} still waiting for a pose or camera_info at the end"
         print(line)
     for stem, path in result.files.items():
         print(f"wrote {path}")
