@@ -34,7 +34,7 @@ from . import networks
 from .alpha import MODES, holds_targets, take_drift, weighting_windows
 from .errors import InputError
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
-from .grid import BLOCK, BlockGrid, kernel_view, neighbour_table
+from .grid import BLOCK, BlockGrid, block_keys, kernel_view, neighbour_table
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .mesher import BlockMeshes, Mesh, marching_cubes_blocks, to_mesh, weld
 
@@ -139,6 +139,14 @@ class PreparedFrame:
     T_world_camera: np.ndarray
     features: Future | None  # of the 5 x H x W pixel features; None when no pixel is valid
     checks_s: float  # time `prepare` took (counted as integration)
+
+
+@dataclass
+class _Eviction:
+    """Blocks an eviction dropped, and where the others went (slots stay 0..n_blocks-1)."""
+
+    dropped_keys: np.ndarray  # N int64 keys (grid.block_keys) of the dropped blocks
+    new_slot: np.ndarray  # old slot -> new slot, -1 for a dropped block
 
 
 @dataclass
@@ -248,36 +256,38 @@ class SenFuNet:
                                      (f"tsdf{s}", f"weight{s}", f"feat{s}"), scratch=self._scratch)
             self._grow_flags()
             self._alpha_pending[update.touched_slots] = True
+            self._mesh_pending[update.touched_slots] = True  # the TSDF changed here, whatever alpha does
             self.frames_integrated[cfg.sensors[s]] += 1
             self._camera_m = np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy()
         self._timed(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
         if self.config.max_blocks and self.grid.n_blocks > _HARD_BOUND * self.config.max_blocks:
-            # updates come too rarely to keep the bound: drop far blocks now (after the current update)
-            with self._update_lock:
-                self._evicted_meshes += self._evict()
+            self._wait_for_eviction()
         return update.voxels_updated
 
     @torch.inference_mode()
     def update(self, alpha_budget_s: float | None = None) -> MeshUpdate:
         """Alpha, fusion and meshing over the blocks changed since the last update.
 
-        alpha_budget_s: at most about this long re-evaluating alpha (the live node's choice); the
-        blocks left over keep their previous alpha until a later update, oldest first (where it was
-        never evaluated, the mesh shows what both sensors saw, averaged: see fusion). None: all of
-        them (exact, deterministic)."""
+        alpha_budget_s: at most about this long re-evaluating alpha; the blocks left over keep their
+        previous alpha until a later update, oldest first (where it was never evaluated, the mesh
+        shows what both sensors saw, averaged: see fusion). None: all of them (exact,
+        deterministic). The live node passes 0 and calls `refresh_alpha` after publishing: new
+        geometry is shown sooner, and its alpha comes with the next update."""
         with self._update_lock:
             t0 = time.perf_counter()
-            evicted, self._evicted_meshes = self._evicted_meshes + self._evict(), []
-            self._refresh_alpha(alpha_budget_s)
+            self._evict()
+            if alpha_budget_s != 0:
+                self._refresh_alpha(alpha_budget_s)
             t1 = time.perf_counter()
             with self._data_lock:
                 slots = self._take_mesh_pending()
                 coords = self.grid.coords[slots].numpy().copy()
             self.counters["mesh_blocks"] += len(slots)
             self.counters["mesh_blocks_last"] = len(slots)
-            result = MeshUpdate(cleared=self._cleared, removed=evicted)
+            result = MeshUpdate(cleared=self._cleared)
             self._cleared = False
             result.meshes = self._block_meshes(slots, coords)
+            result.removed, self._evicted_meshes = self._evicted_meshes, []
             has_faces = {tuple(k) for k in result.meshes.keys.tolist()}
             for key in map(tuple, coords.tolist()):
                 if key not in has_faces and key in self._meshed:
@@ -287,6 +297,15 @@ class SenFuNet:
             self.counters["meshed_blocks"] = len(self._meshed)
             self._timed(alpha=t1 - t0, mesh=time.perf_counter() - t1)
             return result
+
+    @torch.inference_mode()
+    def refresh_alpha(self, budget_s: float | None = None) -> None:
+        """Re-evaluate alpha where the inputs drifted, at most about budget_s seconds (None: all of
+        it); the next update re-meshes the blocks whose alpha changed."""
+        with self._update_lock:
+            start = time.perf_counter()
+            self._refresh_alpha(budget_s)
+            self._timed(alpha=time.perf_counter() - start)
 
     @torch.inference_mode()
     def block_meshes(self) -> BlockMeshes:
@@ -463,7 +482,7 @@ class SenFuNet:
         self._mesh_pending = np.zeros(0, bool)  # TSDF or alpha changed since it was meshed
         self._schedules = 0
         self._camera_m = np.zeros(3)  # the last integrated frame's camera centre (the map bound keeps what is near)
-        self._evicted_meshes: list[tuple[int, int, int]] = []  # dropped by integrate, reported by the next update
+        self._evicted_meshes: list[tuple[int, int, int]] = []  # meshed blocks evicted, reported by the next update
         self._meshed: set[tuple[int, int, int]] = set()
         self._cleared = False
         self._grow_flags()
@@ -516,13 +535,16 @@ class SenFuNet:
             stale = np.flatnonzero(self._stale[: self.grid.n_blocks])
             order = stale[np.lexsort((self._stale_since[stale], -self._stale[stale]))]
         start = time.perf_counter()
-        done = reached = 0
+        done = 0
         mode = MODES[cfg.alpha_voxels]
-        for first in range(0, len(order), cfg.alpha_batch_blocks):
+        while len(order):
             if budget_s is not None and time.perf_counter() - start > budget_s:
                 break
-            batch = order[first:first + cfg.alpha_batch_blocks]
-            reached += len(batch)
+            eviction = self._evict_at_safe_point()
+            if eviction is not None:
+                order = eviction.new_slot[order]
+                order = order[order >= 0]
+            batch, order = order[:cfg.alpha_batch_blocks], order[cfg.alpha_batch_blocks:]
             grid = self.grid
             neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, batch)
             if mode != MODES["all"]:
@@ -546,7 +568,7 @@ class SenFuNet:
             done += len(batch)
         self.counters["alpha_blocks"] += done
         self.counters["alpha_voxels"] += done * 512
-        self.counters["alpha_backlog_blocks"] = len(order) - reached
+        self.counters["alpha_backlog_blocks"] = len(order)
 
     def _weighting_windows(self, neighbours: np.ndarray) -> np.ndarray:
         """The weighting net's input windows of these blocks (alpha.weighting_windows), with the
@@ -558,25 +580,47 @@ class SenFuNet:
         return weighting_windows(neighbours, *self._views("feat0", "weight0", "feat1", "weight1"), *tsdf,
                                  2.0 / self.config.band_m)
 
-    def _evict(self) -> list[tuple[int, int, int]]:
+    def _wait_for_eviction(self) -> None:
+        """Integration outgrew the hard bound (updates come too rarely to keep the bound): drop far
+        blocks now or, while an update runs, wait for it to do so at its next safe point, between
+        two batches (not for the whole update, which can take a second)."""
+        while self.grid.n_blocks > _HARD_BOUND * self.config.max_blocks:
+            if self._update_lock.acquire(timeout=0.002):
+                try:
+                    self._evict()
+                finally:
+                    self._update_lock.release()
+
+    def _evict_at_safe_point(self) -> _Eviction | None:
+        """Between two batches of an update (no slot held): evict if integration is waiting for it."""
+        if self.config.max_blocks and self.grid.n_blocks > _HARD_BOUND * self.config.max_blocks:
+            return self._evict()
+        return None
+
+    def _evict(self) -> _Eviction | None:
         """With max_blocks, drop the blocks farthest from the last camera position once the map
         holds more (down to 90%, so that it does not happen every update). Their neighbours are
-        re-evaluated and re-meshed: what they read there is gone. Returns the dropped blocks that
-        had a mesh (subscribers delete them)."""
+        re-evaluated and re-meshed: what they read there is gone. The dropped blocks that had a
+        mesh go to `_evicted_meshes` (the next update tells subscribers to delete them). Call with
+        the update lock held."""
         cfg = self.config
         if not cfg.max_blocks or self.grid.n_blocks <= cfg.max_blocks:
-            return []
+            return None
         grid = self.grid
         with self._data_lock:
             n = grid.n_blocks
             centres_m = (grid.coords[:n].numpy() * BLOCK + (BLOCK - 1) / 2) * cfg.voxel_size_m
             distance = np.linalg.norm(centres_m - self._camera_m, axis=1)
             victims = np.argpartition(-distance, n - int(0.9 * cfg.max_blocks))[: n - int(0.9 * cfg.max_blocks)]
-            keys = [tuple(k) for k in grid.coords[victims].tolist()]
+            victim_coords = grid.coords[victims].numpy()  # copies (fancy index), for after the lock
+            victim_keys = grid.slot_keys[victims]
             around = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, victims)
             touched = np.zeros(n, bool)
             touched[around[around >= 0]] = True
             moved_from, moved_to = grid.remove_blocks(victims)
+            new_slot = np.arange(n)
+            new_slot[victims] = -1
+            new_slot[moved_from] = moved_to
             for flags in (self._alpha_pending, self._stale, self._stale_since, self._evaluated, self._no_targets,
                           self._mesh_pending):
                 flags[moved_to] = flags[moved_from]
@@ -586,11 +630,13 @@ class SenFuNet:
             self._stale_since[touched[self._stale[touched] == 0]] = self._schedules
             self._stale[touched] = np.maximum(self._stale[touched], 1)
             self._mesh_pending[touched] = True
-        self.counters["evicted_blocks"] = self.counters.get("evicted_blocks", 0) + len(keys)
-        removed = [k for k in keys if k in self._meshed]
+        self.counters["evicted_blocks"] = self.counters.get("evicted_blocks", 0) + len(victim_coords)
+        removed = [k for k in map(tuple, victim_coords.tolist()) if k in self._meshed]
         self._meshed.difference_update(removed)
-        log.info("map bound: dropped %d blocks farthest from the camera (max_blocks %d)", len(keys), cfg.max_blocks)
-        return removed
+        self._evicted_meshes += removed
+        log.info("map bound: dropped %d blocks farthest from the camera (max_blocks %d)", len(victim_coords),
+                 cfg.max_blocks)
+        return _Eviction(victim_keys, new_slot)
 
     def _schedule_alpha(self) -> None:
         """Turn the drift of the blocks integrated since the last call into stale blocks: the
@@ -603,7 +649,6 @@ class SenFuNet:
             if len(changed) == 0:
                 return
             self._alpha_pending[changed] = False
-            self._mesh_pending[changed] = True  # the TSDF changed here, whatever alpha does
             reach = take_drift(changed, self._views("drift")[0], cfg.alpha_tolerance)  # B x 27
         around = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, changed)
         reached = (around >= 0) & (reach > 0)
@@ -620,19 +665,29 @@ class SenFuNet:
 
     def _block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
         """Fused, filtered meshes of the given blocks (coords: their block keys); blocks without
-        triangles are left out."""
-        parts = []
-        for start in range(0, len(slots), self.config.mesh_batch_blocks):
-            batch = slots[start:start + self.config.mesh_batch_blocks]
+        triangles, or evicted meanwhile, are left out."""
+        parts, evicted = [], []
+        size = self.config.mesh_batch_blocks
+        while len(slots):
+            eviction = self._evict_at_safe_point()
+            if eviction is not None:
+                kept = eviction.new_slot[slots] >= 0
+                slots, coords = eviction.new_slot[slots][kept], coords[kept]
+                evicted.append(eviction.dropped_keys)
+            (batch, slots), (batch_coords, coords) = (slots[:size], slots[size:]), (coords[:size], coords[size:])
             tris = self._mesh_batch(batch, FUSED, filtered=True)
             v_start, f_start = tris.vertex_offsets, tris.face_offsets
             # the whole batch at once; blocks without triangles have empty ranges
             whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
                             self.config.voxel_size_m, tris.vertex_values)
             keep = np.flatnonzero(np.diff(f_start) > 0)
-            parts.append(BlockMeshes(coords[start:start + len(batch)][keep], whole.vertices, whole.colors,
+            parts.append(BlockMeshes(batch_coords[keep], whole.vertices, whole.colors,
                                      whole.faces, _compact_offsets(v_start, keep), _compact_offsets(f_start, keep)))
-        return BlockMeshes.concatenate(parts)
+        meshes = BlockMeshes.concatenate(parts)
+        if evicted:  # blocks meshed in an earlier batch may be gone: they must not be shown
+            gone = np.isin(block_keys(torch.from_numpy(meshes.keys)).numpy(), np.concatenate(evicted))
+            meshes = meshes.select(np.flatnonzero(~gone))
+        return meshes
 
     def _take_mesh_pending(self) -> np.ndarray:
         """Blocks to re-mesh: those whose cells read a changed block (call with the data lock held)."""

@@ -514,6 +514,12 @@ def to_mesh(vertices_vox: np.ndarray, faces: np.ndarray, voxel_size_m: float, ve
     return Mesh((vertices_vox * voxel_size_m).astype(np.float32), faces.astype(np.int32), colors)
 
 
+def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The indices starts[i] .. starts[i] + counts[i] - 1, range after range."""
+    ends = np.cumsum(counts)
+    return np.arange(ends[-1] if len(ends) else 0) + np.repeat(starts - (ends - counts), counts)
+
+
 @dataclass
 class BlockMeshes:
     """The meshes of many blocks in shared arrays, block after block (one marching-cubes batch,
@@ -543,6 +549,16 @@ class BlockMeshes:
         f0, f1 = self.face_offsets[start], self.face_offsets[stop]
         return BlockMeshes(self.keys[start:stop], self.vertices[v0:v1], self.colors[v0:v1], self.faces[f0:f1],
                            self.vertex_offsets[start:stop + 1] - v0, self.face_offsets[start:stop + 1] - f0)
+
+    def select(self, index: np.ndarray) -> "BlockMeshes":
+        """The blocks at these indices, in this order (copies)."""
+        index = np.asarray(index, np.int64)
+        v_counts, f_counts = np.diff(self.vertex_offsets)[index], np.diff(self.face_offsets)[index]
+        return BlockMeshes(self.keys[index], self.vertices[_ranges(self.vertex_offsets[index], v_counts)],
+                           self.colors[_ranges(self.vertex_offsets[index], v_counts)],
+                           self.faces[_ranges(self.face_offsets[index], f_counts)],
+                           np.concatenate([[0], np.cumsum(v_counts)]).astype(np.int64),
+                           np.concatenate([[0], np.cumsum(f_counts)]).astype(np.int64))
 
     @staticmethod
     def concatenate(parts: list["BlockMeshes"]) -> "BlockMeshes":

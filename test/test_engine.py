@@ -410,7 +410,8 @@ def test_weighting_net_has_the_paper_parameter_count():
 
 def test_alpha_budget_defers_work_and_holds_back_single_sensor_voxels():
     """With no time for the weighting net, alpha stays NaN (not evaluated): the update's mesh
-    shows only what both sensors saw; a later update without a budget catches up exactly."""
+    shows only what both sensors saw; a refresh without a budget catches up exactly, and the next
+    update shows it (the live node's order: update, publish, refresh_alpha)."""
     engine, reference = engine_for_tests(), engine_for_tests()
     K = SPHERE_K
     for e in (engine, reference):
@@ -420,16 +421,21 @@ def test_alpha_budget_defers_work_and_holds_back_single_sensor_voxels():
                 depth[:, : depth.shape[1] // 2] = 0  # sensor 2 sees half: C1 voxels exist
             e.integrate("tof" if i % 2 == 0 else "stereo", depth, K, T)
     held = engine.update(alpha_budget_s=0.0)
+    engine.refresh_alpha(0.0)
     n = engine.grid.n_blocks
     assert bool(torch.isnan(engine.grid.pools["alpha"][:n]).all())
     assert engine.counters["alpha_backlog_blocks"] > 0
     full = reference.update()
     assert 0 < len(held.meshes.faces) < len(full.meshes.faces)  # C1 voxels held back
     assert np.isfinite(held.meshes.colors).all()
-    engine.update()  # no budget: everything evaluated
+    engine.refresh_alpha()  # no budget: everything evaluated
     assert engine.counters["alpha_backlog_blocks"] == 0
     np.testing.assert_allclose(engine.grid.pools["alpha"][:n].numpy(), reference.grid.pools["alpha"][:n].numpy(),
                                atol=1e-6)
+    caught_up = engine.update(alpha_budget_s=0.0)
+    assert len(caught_up.meshes) == len(full.meshes)
+    np.testing.assert_array_equal(caught_up.meshes.faces, full.meshes.faces)
+    np.testing.assert_allclose(caught_up.meshes.vertices, full.meshes.vertices, atol=1e-6)
 
 
 def test_max_blocks_drops_the_blocks_farthest_from_the_camera():
@@ -487,3 +493,68 @@ def test_integration_keeps_the_map_bound_between_updates():
     assert engine.counters["evicted_blocks"] > 0 and engine.grid.n_blocks <= 1.25 * 60
     update = engine.update()
     assert engine.grid.n_blocks <= 60 and isinstance(update.removed, list)
+
+
+def test_integration_past_the_hard_bound_during_an_update_is_served_between_batches():
+    """Integration that outgrows the hard bound while an update runs waits only for the update's
+    next batch boundary, where the update evicts and carries on with the blocks that moved. What a
+    subscriber builds from the updates is the map's mesh: no evicted block is shown, none is missing."""
+    import threading
+    import time
+
+    K = SPHERE_K
+    # A sphere seen first (low slots; the victims), a second one 3 m from it (its last blocks move
+    # into the freed slots while the update has them pending), a third one seen during the update.
+    far = SPHERE_C + [3.0, 0.0, 0.0]
+    engine = engine_for_tests(max_blocks=320, mesh_batch_blocks=8, alpha_batch_blocks=8)
+
+    def integrate(centre: np.ndarray, views: list[np.ndarray]) -> None:
+        for T in views:
+            depth = render_sphere(centre, SPHERE_R, K, T)
+            engine.integrate("tof", depth, K, T)
+            engine.integrate("stereo", depth, K, T)
+
+    integrate(far, [look_at(far + 0.9 * (T[:3, 3] - SPHERE_C), far) for T in SPHERE_VIEWS[:3]])
+    integrate(SPHERE_C, SPHERE_VIEWS[:1])
+    hard_bound = 1.25 * engine.config.max_blocks
+    assert engine.grid.n_blocks <= engine.config.max_blocks  # no eviction when the update starts
+    mesh_batch, evict_at_safe_point = engine._mesh_batch, engine._evict_at_safe_point
+    beside = SPHERE_C + [0.0, 1.0, 0.0]  # the blocks of the second sphere are not touched again
+    worker = threading.Thread(target=integrate, args=(beside, [look_at(beside + [0.0, 0.0, 0.9], beside)]))
+    dropped_mid_update: list[np.ndarray] = []
+
+    def first_batch_starts_integration(slots, which, filtered):
+        if worker.ident is None:
+            worker.start()
+            deadline = time.monotonic() + 60
+            while engine.grid.n_blocks <= hard_bound and time.monotonic() < deadline:
+                time.sleep(0.01)  # until the worker outgrew the bound (it now waits for a safe point)
+        return mesh_batch(slots, which, filtered)
+
+    def recorded_eviction():
+        eviction = evict_at_safe_point()
+        if eviction is not None:
+            dropped_mid_update.append(eviction.dropped_keys)
+        return eviction
+
+    engine._mesh_batch, engine._evict_at_safe_point = first_batch_starts_integration, recorded_eviction
+    first = engine.update()
+    worker.join(timeout=120)
+    assert not worker.is_alive()
+    engine._mesh_batch, engine._evict_at_safe_point = mesh_batch, evict_at_safe_point
+    assert len(dropped_mid_update) == 1, "no eviction at a safe point"
+    assert not np.isin(block_keys(torch.from_numpy(first.meshes.keys)).numpy(), dropped_mid_update[0]).any()
+    for key, mesh in first.changed.items():  # each mesh lies in its block: the moved blocks were followed
+        corner = np.array(key) * BLOCK * VOXEL
+        assert ((mesh.vertices >= corner - 1e-6) & (mesh.vertices <= corner + (BLOCK + 1) * VOXEL + 1e-6)).all()
+
+    shown = dict(first.changed)
+    second = engine.update()
+    for key in second.removed:
+        shown.pop(key, None)
+    shown.update(second.changed)
+    expected = engine.block_meshes().as_dict()
+    assert set(shown) == set(expected) and len(expected) > 50
+    for key, mesh in expected.items():
+        np.testing.assert_array_equal(shown[key].faces, mesh.faces)
+        np.testing.assert_allclose(shown[key].vertices, mesh.vertices)

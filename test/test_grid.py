@@ -70,10 +70,13 @@ def test_allocate_lookup_and_growth():
 
 
 def test_remove_blocks_keeps_the_survivors_and_zeroes_freed_slots():
-    grid = BlockGrid({"a": ()}, initial_capacity=64)
-    keys = torch.unique(block_keys(torch.from_numpy(np.random.default_rng(2).integers(-50, 50, (300, 3)))))
+    grid = BlockGrid({"a": (), "f": (5,)}, initial_capacity=64, dtypes={"f": torch.float16})
+    rng = np.random.default_rng(2)
+    keys = torch.unique(block_keys(torch.from_numpy(rng.integers(-50, 50, (300, 3)))))
     slots = grid.allocate_keys(keys)
     grid.pools["a"][slots] = (slots.to(torch.float32) + 1.0).view(-1, 1)  # each block remembers its slot
+    features = torch.from_numpy(rng.uniform(-1, 1, (len(keys), 512, 5))).to(torch.float16)
+    grid.pools["f"][slots] = features  # and has its own voxels
     value_of = {int(k): float(slots[i]) + 1.0 for i, k in enumerate(keys)}
     victims = np.arange(0, len(keys), 3)
     n_before = grid.n_blocks
@@ -83,8 +86,10 @@ def test_remove_blocks_keeps_the_survivors_and_zeroes_freed_slots():
     new_slots = grid.lookup_keys(keys[survivors])
     assert sorted(new_slots.tolist()) == list(range(grid.n_blocks))
     assert grid.pools["a"][new_slots, 0].tolist() == [value_of[int(k)] for k in keys[survivors]]
+    assert torch.equal(grid.pools["f"][new_slots], features[survivors])
     assert grid.lookup_keys(keys[torch.from_numpy(victims)]).tolist() == [-1] * len(victims)
     assert bool((grid.pools["a"][grid.n_blocks:n_before] == 0).all())
+    assert bool((grid.pools["f"][grid.n_blocks:n_before] == 0).all())
 
 
 @pytest.mark.parametrize("shape, dtype", [((), torch.float32), ((3,), torch.float16), ((5,), torch.float16)])
