@@ -165,6 +165,8 @@ def run_node_case(args: argparse.Namespace) -> dict:
                       "max": float(np.max(latencies)) if latencies else float("nan")},
         "alpha_blocks": engine.counters["alpha_blocks"],
         "alpha_backlog_blocks": engine.counters.get("alpha_backlog_blocks", 0),
+        "meshed_blocks": stats["meshed_blocks"], "meshed_alpha_evaluated": stats["meshed_blocks_alpha_evaluated"],
+        "meshed_alpha_current": stats["meshed_blocks_alpha_current"],
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
         "blocks": stats["blocks"], "observed_voxels": stats["observed_voxels"],
         "bytes_per_observed_voxel": stats["bytes_per_observed_voxel"],
@@ -260,6 +262,9 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
         lambda r: f"{r['latency_s']['median']:.2f} / {r['latency_s']['max']:.2f}")
     row("peak frames queued", lambda r: str(r["peak_queue_frames"]))
     row("alpha: blocks evaluated / left for later", lambda r: f"{r['alpha_blocks']} / {r['alpha_backlog_blocks']}")
+    row("meshed blocks at the end: alpha evaluated / up to date", lambda r: f"{r['meshed_blocks']}: "
+        f"{100 * r['meshed_alpha_evaluated'] / max(r['meshed_blocks'], 1):.0f}% / "
+        f"{100 * r['meshed_alpha_current'] / max(r['meshed_blocks'], 1):.0f}%")
     row("peak RSS (GB)", lambda r: f"{r['peak_rss_bytes'] / 1e9:.2f}")
     row("blocks / observed voxels", lambda r: f"{r['blocks']} / {r['observed_voxels']}")
     row("bytes per observed voxel", lambda r: f"{r['bytes_per_observed_voxel']:.0f}")

@@ -260,7 +260,7 @@ class SenFuNet:
             self.frames_integrated[cfg.sensors[s]] += 1
             self._camera_m = np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy()
         self._timed(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
-        if self.config.max_blocks and self.grid.n_blocks > _HARD_BOUND * self.config.max_blocks:
+        if self._eviction_due():
             self._wait_for_eviction()
         return update.voxels_updated
 
@@ -269,9 +269,9 @@ class SenFuNet:
         """Alpha, fusion and meshing over the blocks changed since the last update.
 
         alpha_budget_s: at most about this long re-evaluating alpha; the blocks left over keep their
-        previous alpha until a later update, oldest first (where it was never evaluated, the mesh
-        shows what both sensors saw, averaged: see fusion). None: all of them (exact,
-        deterministic). The live node passes 0 and calls `refresh_alpha` after publishing: new
+        previous alpha until a later update, most recently reached first (where it was never
+        evaluated, the mesh shows what both sensors saw, averaged: see fusion). None: all of them
+        (exact, deterministic). The live node passes 0 and calls `refresh_alpha` after publishing: new
         geometry is shown sooner, and its alpha comes with the next update."""
         with self._update_lock:
             t0 = time.perf_counter()
@@ -450,13 +450,21 @@ class SenFuNet:
         return engine
 
     def stats(self) -> dict:
+        """Map size and memory, and how much of the meshed surface has its alpha: evaluated at least
+        once (else its mesh averages the sensors, see fusion), and up to date (not stale)."""
         n = len(self.config.sensors)
-        with self._data_lock:
+        with self._update_lock, self._data_lock:
             weights = torch.stack([self.grid.pools[f"weight{i}"][: self.grid.n_blocks] for i in range(n)])
             observed = int((weights > 0).any(dim=0).sum())
             nbytes = self.grid.nbytes()
+            meshed = self.grid.lookup(torch.tensor(sorted(self._meshed), dtype=torch.int64).reshape(-1, 3)).numpy()
+            meshed = meshed[meshed >= 0]
+            evaluated = self._evaluated[meshed]
         return {"blocks": self.grid.n_blocks, "observed_voxels": observed, "grid_bytes": nbytes,
-                "bytes_per_observed_voxel": nbytes / max(observed, 1), "frames_integrated": dict(self.frames_integrated)}
+                "bytes_per_observed_voxel": nbytes / max(observed, 1),
+                "frames_integrated": dict(self.frames_integrated),
+                "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
+                "meshed_blocks_alpha_current": int((evaluated & (self._stale[meshed] == 0)).sum())}
 
     # -- internals -------------------------------------------------------------------------------
     def _sensor_index(self, sensor: str) -> int:
@@ -478,7 +486,7 @@ class SenFuNet:
         self._stale = np.zeros(0, np.int8)
         self._evaluated = np.zeros(0, bool)  # alpha evaluated at least once
         self._no_targets = np.zeros(0, bool)  # checked when last stale: holds no voxel alpha matters for
-        self._stale_since = np.zeros(0, np.int64)  # the schedule that made it stale (oldest first)
+        self._last_reached = np.zeros(0, np.int64)  # the last schedule that made it stale (newest first)
         self._mesh_pending = np.zeros(0, bool)  # TSDF or alpha changed since it was meshed
         self._schedules = 0
         self._camera_m = np.zeros(3)  # the last integrated frame's camera centre (the map bound keeps what is near)
@@ -495,7 +503,7 @@ class SenFuNet:
             self._stale = np.concatenate([self._stale, np.zeros(grow, np.int8)])
             self._evaluated = np.concatenate([self._evaluated, np.zeros(grow, bool)])
             self._no_targets = np.concatenate([self._no_targets, np.zeros(grow, bool)])
-            self._stale_since = np.concatenate([self._stale_since, np.zeros(grow, np.int64)])
+            self._last_reached = np.concatenate([self._last_reached, np.zeros(grow, np.int64)])
             self._mesh_pending = np.concatenate([self._mesh_pending, np.zeros(grow, bool)])
 
     def _pixel_features(self, s: int, depth_m: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:
@@ -524,8 +532,10 @@ class SenFuNet:
         return [kernel_view(self.grid.pools[name]).reshape(-1) for name in names]
 
     def _refresh_alpha(self, budget_s: float | None = None) -> None:
-        """Re-evaluate alpha on the stale blocks: never evaluated ones first, then those with newly
-        observed or sign-changed voxels, then drifted ones; oldest first within each level. Each
+        """Re-evaluate alpha on the stale blocks: those the latest frames reached first (a budget that
+        cannot keep up, as on a large room, goes to the part of the map being scanned; served first
+        come first, it seldom reached the blocks on screen); among them, never evaluated ones first,
+        then those with newly observed or sign-changed voxels, then drifted ones. Each
         batch first drops the blocks that hold no voxel alpha matters for (`holds_targets`; checked
         here, not when scheduling, so that a budget also bounds the checking). With a budget
         (seconds), stop after the batch that exhausts it: the rest stays stale for later."""
@@ -533,42 +543,58 @@ class SenFuNet:
         self._schedule_alpha()
         with self._data_lock:
             stale = np.flatnonzero(self._stale[: self.grid.n_blocks])
-            order = stale[np.lexsort((self._stale_since[stale], -self._stale[stale]))]
+            order = stale[np.lexsort((-self._stale[stale], -self._last_reached[stale]))]
         start = time.perf_counter()
         done = 0
         mode = MODES[cfg.alpha_voxels]
+        # Results are written whenever the data lock is free, not waited for batch by batch: waiting
+        # for integration's kernels took a third of the budget on the large benchmark room.
+        results: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (checked, holds, alpha of the holding)
         while len(order):
             if budget_s is not None and time.perf_counter() - start > budget_s:
                 break
-            eviction = self._evict_at_safe_point()
-            if eviction is not None:
+            if self._eviction_due():
+                self._write_alpha(results, wait=True)  # before slots move
+                eviction = self._evict()
                 order = eviction.new_slot[order]
                 order = order[order >= 0]
             batch, order = order[:cfg.alpha_batch_blocks], order[cfg.alpha_batch_blocks:]
             grid = self.grid
             neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, batch)
+            holds = np.ones(len(batch), bool)
             if mode != MODES["all"]:
                 holds = holds_targets(neighbours, *self._views("tsdf0", "weight0", "tsdf1", "weight1"), mode)
-                with self._data_lock:
-                    self._stale[batch[~holds]] = 0
-                    self._no_targets[batch] = ~holds
-                batch, neighbours = batch[holds], neighbours[holds]
-                if len(batch) == 0:
-                    continue
-            windows = self._weighting_windows(neighbours)
-            x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
-            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.alpha_dtype == "bfloat16"):
-                alpha = self.weighting_net(x, pad=False)
-            alpha = alpha.float().reshape(len(batch), -1).cpu().numpy()
-            with self._data_lock:  # every voxel of a block is evaluated: its alpha is up to date
-                self.grid.pools["alpha"].numpy()[batch] = alpha
-                self._stale[batch] = 0
-                self._evaluated[batch] = True
-                self._mesh_pending[batch] = True
-            done += len(batch)
+            alpha = np.zeros((0, BLOCK**3), np.float32)
+            if holds.any():
+                windows = self._weighting_windows(neighbours[holds])
+                x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
+                with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.alpha_dtype == "bfloat16"):
+                    alpha = self.weighting_net(x, pad=False).float().reshape(int(holds.sum()), -1).cpu().numpy()
+            results.append((batch, holds, alpha))
+            done += len(alpha)
+            self._write_alpha(results, wait=False)
+        self._write_alpha(results, wait=True)
         self.counters["alpha_blocks"] += done
         self.counters["alpha_voxels"] += done * 512
         self.counters["alpha_backlog_blocks"] = len(order)
+
+    def _write_alpha(self, results: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wait: bool) -> None:
+        """Write evaluated batches (and empty `results`), if the data lock is free or `wait`. Every
+        voxel of an evaluated block is evaluated: its alpha is up to date; a block without voxels
+        alpha matters for is not stale either, and remembers it."""
+        if not results or not self._data_lock.acquire(blocking=wait):
+            return
+        try:
+            checked, holds, alpha = (np.concatenate(parts) for parts in zip(*results))
+            evaluated = checked[holds]
+            self.grid.pools["alpha"].numpy()[evaluated] = alpha
+            self._stale[checked] = 0
+            self._no_targets[checked] = ~holds
+            self._evaluated[evaluated] = True
+            self._mesh_pending[evaluated] = True
+        finally:
+            self._data_lock.release()
+        results.clear()
 
     def _weighting_windows(self, neighbours: np.ndarray) -> np.ndarray:
         """The weighting net's input windows of these blocks (alpha.weighting_windows), with the
@@ -584,18 +610,17 @@ class SenFuNet:
         """Integration outgrew the hard bound (updates come too rarely to keep the bound): drop far
         blocks now or, while an update runs, wait for it to do so at its next safe point, between
         two batches (not for the whole update, which can take a second)."""
-        while self.grid.n_blocks > _HARD_BOUND * self.config.max_blocks:
+        while self._eviction_due():
             if self._update_lock.acquire(timeout=0.002):
                 try:
                     self._evict()
                 finally:
                     self._update_lock.release()
 
-    def _evict_at_safe_point(self) -> _Eviction | None:
-        """Between two batches of an update (no slot held): evict if integration is waiting for it."""
-        if self.config.max_blocks and self.grid.n_blocks > _HARD_BOUND * self.config.max_blocks:
-            return self._evict()
-        return None
+    def _eviction_due(self) -> bool:
+        """Integration outgrew the hard bound and waits: an update evicts at its next safe point
+        (between two batches, where it holds no slot)."""
+        return bool(self.config.max_blocks) and self.grid.n_blocks > _HARD_BOUND * self.config.max_blocks
 
     def _evict(self) -> _Eviction | None:
         """With max_blocks, drop the blocks farthest from the last camera position once the map
@@ -621,13 +646,13 @@ class SenFuNet:
             new_slot = np.arange(n)
             new_slot[victims] = -1
             new_slot[moved_from] = moved_to
-            for flags in (self._alpha_pending, self._stale, self._stale_since, self._evaluated, self._no_targets,
+            for flags in (self._alpha_pending, self._stale, self._last_reached, self._evaluated, self._no_targets,
                           self._mesh_pending):
                 flags[moved_to] = flags[moved_from]
                 flags[grid.n_blocks:n] = 0
             touched[moved_to] = touched[moved_from]
             touched = np.flatnonzero(touched[: grid.n_blocks])
-            self._stale_since[touched[self._stale[touched] == 0]] = self._schedules
+            self._last_reached[touched] = self._schedules
             self._stale[touched] = np.maximum(self._stale[touched], 1)
             self._mesh_pending[touched] = True
         self.counters["evicted_blocks"] = self.counters.get("evicted_blocks", 0) + len(victim_coords)
@@ -652,15 +677,17 @@ class SenFuNet:
             reach = take_drift(changed, self._views("drift")[0], cfg.alpha_tolerance)  # B x 27
         around = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, changed)
         reached = (around >= 0) & (reach > 0)
-        candidates, first = np.unique(around[reached], return_inverse=True)
-        levels = np.zeros(len(candidates), np.int8)
-        np.maximum.at(levels, first, reach[reached])
+        targets, target_levels = around[reached], reach[reached]
+        level_of = np.zeros(int(targets.max(initial=-1)) + 1, np.int8)
+        for level in range(1, int(target_levels.max(initial=0)) + 1):  # ascending: a block's highest level wins
+            level_of[targets[target_levels == level]] = level
+        candidates = np.flatnonzero(level_of)
+        levels = level_of[candidates]
         with self._data_lock:
             self._schedules += 1
             # alpha NaN there: first, unless the block held nothing to evaluate when last checked
-            levels[(levels > 0) & ~self._evaluated[candidates] & ~self._no_targets[candidates]] = 3
-            newly = candidates[(levels > 0) & (self._stale[candidates] == 0)]
-            self._stale_since[newly] = self._schedules
+            levels[~self._evaluated[candidates] & ~self._no_targets[candidates]] = 3
+            self._last_reached[candidates] = self._schedules
             self._stale[candidates] = np.maximum(self._stale[candidates], levels)
 
     def _block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
@@ -669,8 +696,8 @@ class SenFuNet:
         parts, evicted = [], []
         size = self.config.mesh_batch_blocks
         while len(slots):
-            eviction = self._evict_at_safe_point()
-            if eviction is not None:
+            if self._eviction_due():
+                eviction = self._evict()
                 kept = eviction.new_slot[slots] >= 0
                 slots, coords = eviction.new_slot[slots][kept], coords[kept]
                 evicted.append(eviction.dropped_keys)

@@ -45,8 +45,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("integrate_rate_hz", 30.0, "rate of the timer that integrates queued frames"),
     Param("mesh_rate_hz", 1.0, "rate of mesh updates (alpha, fusion, meshing of the changed blocks)"),
     Param("alpha_budget_s", 0.2, "seconds per mesh update spent re-evaluating the sensor weighting (after the update "
-          "is published; the next one shows it); blocks left over wait for the next turn (never-evaluated first, then "
-          "oldest); 0 = no limit"),
+          "is published; the next one shows it); blocks left over wait for the next turn (those the latest frames "
+          "reached first); 0 = no limit"),
     Param("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
           "instructions, else float32) | float32 | bfloat16"),

@@ -518,7 +518,7 @@ def test_integration_past_the_hard_bound_during_an_update_is_served_between_batc
     integrate(SPHERE_C, SPHERE_VIEWS[:1])
     hard_bound = 1.25 * engine.config.max_blocks
     assert engine.grid.n_blocks <= engine.config.max_blocks  # no eviction when the update starts
-    mesh_batch, evict_at_safe_point = engine._mesh_batch, engine._evict_at_safe_point
+    mesh_batch, evict = engine._mesh_batch, engine._evict
     beside = SPHERE_C + [0.0, 1.0, 0.0]  # the blocks of the second sphere are not touched again
     worker = threading.Thread(target=integrate, args=(beside, [look_at(beside + [0.0, 0.0, 0.9], beside)]))
     dropped_mid_update: list[np.ndarray] = []
@@ -532,16 +532,16 @@ def test_integration_past_the_hard_bound_during_an_update_is_served_between_batc
         return mesh_batch(slots, which, filtered)
 
     def recorded_eviction():
-        eviction = evict_at_safe_point()
+        eviction = evict()
         if eviction is not None:
             dropped_mid_update.append(eviction.dropped_keys)
         return eviction
 
-    engine._mesh_batch, engine._evict_at_safe_point = first_batch_starts_integration, recorded_eviction
+    engine._mesh_batch, engine._evict = first_batch_starts_integration, recorded_eviction
     first = engine.update()
     worker.join(timeout=120)
     assert not worker.is_alive()
-    engine._mesh_batch, engine._evict_at_safe_point = mesh_batch, evict_at_safe_point
+    engine._mesh_batch, engine._evict = mesh_batch, evict
     assert len(dropped_mid_update) == 1, "no eviction at a safe point"
     assert not np.isin(block_keys(torch.from_numpy(first.meshes.keys)).numpy(), dropped_mid_update[0]).any()
     for key, mesh in first.changed.items():  # each mesh lies in its block: the moved blocks were followed
@@ -558,3 +558,74 @@ def test_integration_past_the_hard_bound_during_an_update_is_served_between_batc
     for key, mesh in expected.items():
         np.testing.assert_array_equal(shown[key].faces, mesh.faces)
         np.testing.assert_allclose(shown[key].vertices, mesh.vertices)
+
+
+def _two_spheres_one_scheduled_before(engine: SenFuNet) -> int:
+    """A far sphere integrated and scheduled (refresh_alpha(0): nothing evaluated), then a near one
+    integrated: returns the slot count after the far sphere (the near sphere's blocks come after)."""
+    K = SPHERE_K
+    far = SPHERE_C + [3.0, 0.0, 0.0]
+    far_view = look_at(far + 0.9 * (SPHERE_VIEWS[0][:3, 3] - SPHERE_C), far)
+    for centre, T in ((far, far_view), (SPHERE_C, SPHERE_VIEWS[0])):
+        depth = render_sphere(centre, SPHERE_R, K, T)
+        engine.integrate("tof", depth, K, T)
+        engine.integrate("stereo", depth, K, T)
+        if centre is far:
+            engine.refresh_alpha(0.0)
+            n_far = engine.grid.n_blocks
+    return n_far
+
+
+def test_a_budget_serves_the_blocks_the_latest_frames_reached_first():
+    import time
+
+    engine = engine_for_tests(alpha_batch_blocks=16)
+    n_far = _two_spheres_one_scheduled_before(engine)
+    assert engine.grid.n_blocks - n_far > 32
+    forward = engine.weighting_net.forward
+
+    def slow_forward(*args, **kwargs):
+        time.sleep(0.2)  # each batch takes a little over 0.2 s: a budget of 0.3 s runs exactly two
+        return forward(*args, **kwargs)
+
+    engine.weighting_net.forward = slow_forward
+    engine.refresh_alpha(0.3)
+    evaluated = np.flatnonzero(engine._evaluated[: engine.grid.n_blocks])
+    assert len(evaluated) == 32 and evaluated.min() >= n_far  # the near sphere's, reached last
+
+
+def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch():
+    """Integration holding the data lock does not stall the weighting net: the batches evaluated
+    meanwhile are written once the lock is free."""
+    import threading
+
+    engine = engine_for_tests(alpha_batch_blocks=8)
+    _two_spheres_one_scheduled_before(engine)
+    engine.refresh_alpha(0.0)  # the near sphere scheduled too
+    take, taken, release = threading.Event(), threading.Event(), threading.Event()
+
+    def hold_the_lock() -> None:
+        take.wait(timeout=30)
+        with engine._data_lock:
+            taken.set()
+            release.wait(timeout=30)
+
+    forward = engine.weighting_net.forward
+
+    def first_batch_starts_the_holder(*args, **kwargs):
+        if not take.is_set():
+            take.set()
+            taken.wait(timeout=30)  # from here on, the lock is held for 0.5 s: all of the budget
+            threading.Timer(0.5, release.set).start()
+        return forward(*args, **kwargs)
+
+    holder = threading.Thread(target=hold_the_lock)
+    holder.start()
+    engine.weighting_net.forward = first_batch_starts_the_holder
+    engine.refresh_alpha(0.3)
+    holder.join(timeout=30)
+    n = engine.grid.n_blocks
+    evaluated = engine._evaluated[:n]
+    assert evaluated.sum() >= 16  # more than one batch within the budget
+    alpha = engine.grid.pools["alpha"][:n].numpy()
+    assert np.isfinite(alpha[evaluated]).all() and bool((engine._stale[:n][evaluated] == 0).all())
