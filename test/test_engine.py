@@ -585,11 +585,11 @@ def test_a_budget_serves_the_blocks_the_latest_frames_reached_first():
     forward = engine.weighting_net.forward
 
     def slow_forward(*args, **kwargs):
-        time.sleep(0.2)  # each batch takes a little over 0.2 s: a budget of 0.3 s runs exactly two
+        time.sleep(0.3)  # each batch takes a little over 0.3 s: a budget of 0.45 s runs exactly two
         return forward(*args, **kwargs)
 
     engine.weighting_net.forward = slow_forward
-    engine.refresh_alpha(0.3)
+    engine.refresh_alpha(0.45)
     evaluated = np.flatnonzero(engine._evaluated[: engine.grid.n_blocks])
     assert len(evaluated) == 32 and evaluated.min() >= n_far  # the near sphere's, reached last
 
