@@ -124,6 +124,7 @@ class SensorCounters:
     pose_received: int = 0
     time_jumps: int = 0  # time jumps first seen on this sensor's streams
     dropped: dict[str, int] = field(default_factory=lambda: {reason: 0 for reason in DROP_REASONS})
+    errors: dict[str, str] = field(default_factory=dict)  # drop reason -> what the last such message had wrong
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -133,6 +134,7 @@ class SensorCounters:
             "pose_received": self.pose_received,
             "time_jumps": self.time_jumps,
             "dropped": dict(self.dropped),
+            "errors": dict(self.errors),
         }
 
 
@@ -267,8 +269,9 @@ class Ingest:
             state = self._state(sensor)
             try:
                 state.camera_info = conv.intrinsics_from_camera_info(msg)
-            except (ValueError, AttributeError):
+            except (ValueError, AttributeError) as err:
                 state.counters.dropped["bad_camera_info"] += 1
+                state.counters.errors["bad_camera_info"] = str(err)
                 return "bad_camera_info"
             while state.awaiting_info:
                 self._enqueue(state, *state.awaiting_info.popleft())
@@ -309,10 +312,13 @@ class Ingest:
         K, info_size = state.camera_info
         try:
             depth_m = conv.depth_from_image(msg)
-        except ValueError:
+        except ValueError as err:
+            state.counters.errors["bad_encoding"] = f"depth: {err}"
             return "bad_encoding", None
         height, width = depth_m.shape
         if (width, height) != info_size:
+            state.counters.errors["size_mismatch"] = (f"depth image {width}x{height}, camera_info {info_size[0]}x"
+                                                      f"{info_size[1]}; publish the camera_info of this image")
             return "size_mismatch", None
         if not np.any(depth_m > 0.0):
             return "all_invalid", None
@@ -339,8 +345,9 @@ class Ingest:
             self._check_time(state, sensor, "color", stamp_ns)
             try:
                 rgb = conv.rgb_from_image(msg)
-            except ValueError:
+            except ValueError as err:
                 state.counters.dropped["bad_encoding"] += 1
+                state.counters.errors["bad_encoding"] = f"colour: {err}"
                 return "bad_encoding"
             state.color_seen = True
             state.colors.append((stamp_ns, rgb))
@@ -353,8 +360,9 @@ class Ingest:
             state.counters.pose_received += 1
             try:
                 stamp_ns, T = self.config.pose_parser(msg)
-            except (ValueError, AttributeError):
+            except (ValueError, AttributeError) as err:
                 state.counters.dropped["bad_pose"] += 1
+                state.counters.errors["bad_pose"] = str(err)
                 return "bad_pose"
             self._check_time(state, sensor, "pose", stamp_ns)
             i = bisect.bisect_left(state.pose_stamps, stamp_ns)

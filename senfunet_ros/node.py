@@ -62,6 +62,28 @@ _POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=
 _MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _NO_WAIT = Duration(seconds=0)
+# What a drop usually means and what to check, for the reasons whose message gives no detail of
+# its own ({s}: the sensor's SensorSettings).
+DROP_HINTS: dict[str, str] = {
+    "no_camera_info": "no CameraInfo arrived on {s.camera_info_topic} within pose_max_wait_s of the image; check "
+                      "the topic (parameter {s.name}.camera_info_topic) and that its publisher sends more than once",
+    "bad_camera_info": "the CameraInfo on {s.camera_info_topic} has no usable K, width or height",
+    "bad_encoding": "publish depth on {s.depth_topic} as 32FC1 (metres) or 16UC1 (millimetres)",
+    "size_mismatch": "the depth images on {s.depth_topic} differ in size from the CameraInfo on {s.camera_info_topic}",
+    "all_invalid": "every pixel of the depth image was 0, NaN or inf",
+    "bad_pose": "a pose on {s.pose_topic} had NaN/inf or a quaternion of length other than 1",
+    "pose_timeout": "no pose on {s.pose_topic} at or after the image's stamp within pose_max_wait_s; check that "
+                    "poses arrive and are stamped on the depth images' clock",
+    "pose_gap": "the poses around the image's stamp are more than pose_tolerance_s from it; publish poses more "
+                "often or raise pose_tolerance_s",
+    "queue_full": "more than queue_size images waited for their poses; the oldest went",
+    "behind": "integration cannot keep up with the sensors; images more than max_lag_s behind the newest are "
+              "skipped (a smaller working_width or a lower sensor rate helps)",
+    "out_of_order": "a depth stamp on {s.depth_topic} went back in time",
+    "duplicate": "a depth stamp on {s.depth_topic} came twice",
+    "time_jump": "time jumped back (a bag restarting?); the queued images were flushed",
+    "engine_error": "the engine rejected the frame (the warning before says why)",
+}
 _PARTS_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the later parts of one update at most this, in all
 _CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -234,12 +256,14 @@ class FusionNode(Node):
 
     def _warn_new_drops(self) -> None:
         counters = self.ingest.counters()
+        topics = {sensor.name: sensor for sensor in self.settings.sensors}
         for sensor, now in counters.items():
             before = self._last_counters.get(sensor, {}).get("dropped", {})
             for reason, count in now["dropped"].items():
                 new = count - before.get(reason, 0)
                 if new > 0:
-                    self._warn((sensor, reason), f"{sensor}: dropped {new} message(s): {reason} "
+                    why = now["errors"].get(reason) or DROP_HINTS[reason].format(s=topics[sensor])
+                    self._warn((sensor, reason), f"{sensor}: dropped {new} message(s): {reason}: {why} "
                                f"({count} so far; see ~/status)")
         self._last_counters = counters
 
@@ -382,6 +406,7 @@ class FusionNode(Node):
             values = [KeyValue(key=k, value=str(c[k])) for k in
                       ("received", "integrated", "queue_depth", "color_received", "pose_received", "time_jumps")]
             values += [KeyValue(key=f"dropped.{reason}", value=str(c["dropped"][reason])) for reason in DROP_REASONS]
+            values += [KeyValue(key=f"error.{reason}", value=why) for reason, why in c["errors"].items()]
             msg.status.append(DiagnosticStatus(level=level, name=f"senfunet: {sensor}", message=summary,
                                                hardware_id=hardware_id, values=values))
         values = [KeyValue(key=f"{stage}_ms", value=f"{t.last_ms:.1f} (mean {t.mean_ms:.1f})")

@@ -119,6 +119,8 @@ def test_bad_inputs_are_counted(case: str) -> None:
     counters = ingest.counters()["tof"]
     assert counters["dropped"][case] == 1
     assert sum(counters["dropped"].values()) == 1 and counters["queue_depth"] == 0
+    if case != "all_invalid":  # the others say what was wrong with the message
+        assert len(counters["errors"][case]) > 20
 
 
 def test_depth_before_camera_info_waits_for_it_within_limits() -> None:

@@ -552,6 +552,7 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
         assert "senfunet: tof" in names and "senfunet: pipeline" in names
         tof = {kv.key: kv.value for kv in status.status[names.index("senfunet: tof")].values}
         assert int(tof["dropped.bad_encoding"]) >= 1 and int(tof["integrated"]) >= 1
+        assert "32FC1" in tof["error.bad_encoding"] and "16x16" in tof["error.size_mismatch"]  # what to fix
     finally:
         pub_node.destroy_node()
         run.close()
@@ -606,3 +607,15 @@ def test_prepare_process_shortens_the_gil_switch_interval() -> None:
         assert sys.getswitchinterval() == pytest.approx(GIL_SWITCH_INTERVAL_S)
     finally:
         sys.setswitchinterval(before)
+
+
+def test_every_drop_reason_has_a_hint_naming_what_to_check() -> None:
+    from senfunet_ros.ingest import DROP_REASONS
+    from senfunet_ros.node import DROP_HINTS
+    from senfunet_ros.params import SensorSettings
+
+    sensor = SensorSettings("tof", "/robot/tof/depth", "", "/robot/tof/info", "/robot/tof/pose", 0.1, 3.0)
+    assert set(DROP_HINTS) == set(DROP_REASONS)
+    hints = {reason: hint.format(s=sensor) for reason, hint in DROP_HINTS.items()}
+    assert "/robot/tof/info" in hints["no_camera_info"] and "tof.camera_info_topic" in hints["no_camera_info"]
+    assert "/robot/tof/pose" in hints["pose_timeout"] and "/robot/tof/depth" in hints["out_of_order"]
