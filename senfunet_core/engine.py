@@ -148,6 +148,12 @@ class _Eviction:
     dropped_keys: np.ndarray  # N int64 keys (grid.block_keys) of the dropped blocks
     new_slot: np.ndarray  # old slot -> new slot, -1 for a dropped block
 
+    def follow(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The new slots of these blocks, without the dropped ones, and which of them were kept."""
+        moved = self.new_slot[slots]
+        kept = moved >= 0
+        return moved[kept], kept
+
 
 @dataclass
 class WeightCloud:
@@ -555,9 +561,7 @@ class SenFuNet:
                 break
             if self._eviction_due():
                 self._write_alpha(results, wait=True)  # before slots move
-                eviction = self._evict()
-                order = eviction.new_slot[order]
-                order = order[order >= 0]
+                order, _ = self._evict().follow(order)
             batch, order = order[:cfg.alpha_batch_blocks], order[cfg.alpha_batch_blocks:]
             grid = self.grid
             neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, batch)
@@ -698,8 +702,8 @@ class SenFuNet:
         while len(slots):
             if self._eviction_due():
                 eviction = self._evict()
-                kept = eviction.new_slot[slots] >= 0
-                slots, coords = eviction.new_slot[slots][kept], coords[kept]
+                slots, kept = eviction.follow(slots)
+                coords = coords[kept]
                 evicted.append(eviction.dropped_keys)
             (batch, slots), (batch_coords, coords) = (slots[:size], slots[size:]), (coords[:size], coords[size:])
             tris = self._mesh_batch(batch, FUSED, filtered=True)

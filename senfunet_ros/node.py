@@ -5,8 +5,8 @@ Callbacks only hand messages to `Ingest` (bounded queues); the integration timer
 into the engine, oldest first; the slower mesh timer runs `engine.update()`, publishes the
 changed blocks, then gives the weighting net its time budget (`engine.refresh_alpha`). Each
 timer has its own callback group under a MultiThreadedExecutor, and the engine is thread-safe,
-so integration and mesh updates run at the same time on two cores. No callback raises: failures are counted and logged,
-throttled per cause.
+so integration and mesh updates run at the same time on two cores. No callback raises: failures
+are counted and logged, throttled per cause.
 
 Topics (see ../shared/DESIGN.md, the interface contract):
   in:  /<s>/depth, /<s>/color, /<s>/camera_info, /<s>/pose    (names from parameters)
@@ -62,6 +62,12 @@ _POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=
 _MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _NO_WAIT = Duration(seconds=0)
+_PARTS_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the later parts of one update at most this, in all
+_CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+_STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+
 # What a drop usually means and what to check, for the reasons whose message gives no detail of
 # its own ({s}: the sensor's SensorSettings).
 DROP_HINTS: dict[str, str] = {
@@ -70,7 +76,7 @@ DROP_HINTS: dict[str, str] = {
     "bad_camera_info": "the CameraInfo on {s.camera_info_topic} has no usable K, width or height",
     "bad_encoding": "publish depth on {s.depth_topic} as 32FC1 (metres) or 16UC1 (millimetres)",
     "size_mismatch": "the depth images on {s.depth_topic} differ in size from the CameraInfo on {s.camera_info_topic}",
-    "all_invalid": "every pixel of the depth image was 0, NaN or inf",
+    "all_invalid": "every pixel of the depth image was 0, negative, NaN or inf",
     "bad_pose": "a pose on {s.pose_topic} had NaN/inf or a quaternion of length other than 1",
     "pose_timeout": "no pose on {s.pose_topic} at or after the image's stamp within pose_max_wait_s; check that "
                     "poses arrive and are stamped on the depth images' clock",
@@ -84,11 +90,6 @@ DROP_HINTS: dict[str, str] = {
     "time_jump": "time jumped back (a bag restarting?); the queued images were flushed",
     "engine_error": "the engine rejected the frame (the warning before says why)",
 }
-_PARTS_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the later parts of one update at most this, in all
-_CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
-_STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
 
 
 class _Timing:
