@@ -20,7 +20,7 @@ shared machine they are noisy (see the load average recorded with them).
 def machine() -> str:
     import torch
 
-    from senfunet_core.evaluation import cpu_model
+    from senfunet_core.learning.evaluation import cpu_model
 
     cpu = cpu_model()
     load = "n/a"

@@ -5,9 +5,9 @@ throughput, meshing time per block, bytes per observed voxel.
     .venv/bin/python bench/engine.py --frames 40 --no-write
 
 Frames come from the sample bag through the node's Ingest (as `senfunet replay` reads them) or,
-without a bag, from `senfunet_core.simulator`. The alpha figures are given for the exact
+without a bag, from `senfunet_core.learning.simulator`. The alpha figures are given for the exact
 configuration (alpha_voxels="all", alpha_tolerance=0: every voxel within 2 voxels of a change) and
-for the fast one the node uses (see docs/performance.md and test/test_equivalence.py).
+for the fast one the node uses (see docs/performance.md and test/core/test_equivalence.py).
 """
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def load_frames(bag: Path, n: int, seed: int):
                 if len(frames) >= n:
                     break
         return frames[:n], f"`{bag.relative_to(ROOT) if bag.is_relative_to(ROOT) else bag}`"
-    from senfunet_core import simulator as sim
+    from senfunet_core.learning import simulator as sim
 
     seq = sim.simulate_sequence(sim.make_scene(seed), seed, duration_s=n / 35 + 0.1)
     return [(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb) for f in seq.frames[:n]], f"simulated room (seed {seed})"

@@ -46,7 +46,7 @@ _BACKLOG_FRAMES = 4  # throughput mode: the feeder waits while this many frames 
 
 
 def large_bag(cache: Path, seed: int, room: tuple[float, float, float], seconds: float) -> Path:
-    from senfunet_core import simulator as sim
+    from senfunet_core.learning import simulator as sim
     from senfunet_ros.bagio import write_sequence_bag
 
     path = cache / f"large_seed{seed}_{'x'.join(f'{v:g}' for v in room)}_{seconds:g}s"

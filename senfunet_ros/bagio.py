@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any, Callable, Collection, Iterator, NamedTupl
 import numpy as np
 
 if TYPE_CHECKING:
-    from senfunet_core.simulator import Sequence
+    from senfunet_core.learning.simulator import Sequence
 
 __all__ = [
     "BagError",

@@ -487,7 +487,7 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
 # so while integration and a mesh update run Python between their numpy/torch calls, a 5 ms
 # interval held dispatch below the ~70 messages/s of the sample bag at the demo's rate 0.25:
 # `senfunet demo` lost a third to a half of its frames (pose callbacks lagged up to 15 s, frames
-# timed out waiting for them). At 0.5 ms it fuses all of them (test/test_play.py).
+# timed out waiting for them). At 0.5 ms it fuses all of them (test/ros/test_play.py).
 GIL_SWITCH_INTERVAL_S = 0.0005
 
 

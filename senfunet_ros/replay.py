@@ -371,7 +371,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
 
     metrics, gt_info = None, None
     if gt_mesh is not None and result.meshes:
-        from senfunet_core.evaluation import observed_gt_vertices
+        from senfunet_core.learning.evaluation import observed_gt_vertices
         from senfunet_core.metrics import mesh_metrics
 
         t0 = time.perf_counter()

@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from senfunet_core.errors import InputError
-    from senfunet_core.evaluation import (COLUMNS, HELD_OUT_SEEDS, EvaluationConfig, bar_check, evaluate, labelled,
+    from senfunet_core.learning.evaluation import (COLUMNS, HELD_OUT_SEEDS, EvaluationConfig, bar_check, evaluate, labelled,
                                           results_markdown, training_notes)
     from senfunet_core.metrics import format_table
 

@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
 
     from senfunet_core import networks
     from senfunet_core.errors import InputError
-    from senfunet_core.trainer import load_config, train
+    from senfunet_core.learning.training import load_config, train
 
     path = Path(args.config)
     if not path.is_file():

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from senfunet_core import evaluation as ev
+from senfunet_core.learning import evaluation as ev
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,7 @@ def test_gt_crop_keeps_only_observed_vertices():
 
 
 def test_grid_truth_lookup_equals_gt_tsdf_at_the_voxel_centres():
-    from senfunet_core import simulator
+    from senfunet_core.learning import simulator
     from senfunet_core.engine import EngineConfig, SenFuNet
     from senfunet_core.metrics import grid_metrics
 

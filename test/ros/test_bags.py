@@ -12,7 +12,7 @@ import pytest
 
 from senfunet_ros.bagio import BagBrokenError, BagError, copy_bag, open_bag, write_sequence_bag
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / "bags" / "sim_room"
 SAMPLE_GT = REPO / "bags" / "sim_room_gt.ply"
 CONTRACT_TOPICS = {
@@ -134,7 +134,7 @@ def test_folder_without_metadata_reads_its_file(prefix: Path, tmp_path: Path):
 
 
 def test_write_sequence_bag_round_trip(tmp_path: Path):
-    from senfunet_core import simulator as sim
+    from senfunet_core.learning import simulator as sim
     from senfunet_ros.replay import TopicRouter, ingest_config, load_settings
     from senfunet_ros.ingest import Frame, Ingest
 

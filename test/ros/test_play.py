@@ -12,7 +12,7 @@ import pytest
 
 from senfunet_ros.bagio import copy_bag, open_bag
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / "bags" / "sim_room"
 # Small enough that the live node keeps up on a shared 2-core machine at rate 0.5.
 LIVE_PARAMS = "senfunet:\n  ros__parameters:\n    working_width: 96\n    voxel_size_m: 0.02\n"

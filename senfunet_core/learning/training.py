@@ -38,11 +38,11 @@ import numba
 import numpy as np
 import torch
 
-from . import networks
-from .errors import InputError
-from .fusion import fuse
-from .grid import BLOCK, BLOCK_VOXELS, BlockGrid, coords_key, hash_find, kernel_view, keys_to_coords
-from .integrator import IntegratorConfig, locate_samples, update_voxels, valid_depth_mask
+from .. import networks
+from ..errors import InputError
+from ..fusion import fuse
+from ..grid import BLOCK, BLOCK_VOXELS, BlockGrid, coords_key, hash_find, kernel_view, keys_to_coords
+from ..integrator import IntegratorConfig, locate_samples, update_voxels, valid_depth_mask
 
 SENSORS = ("tof", "stereo")
 # a pixel's features depend on the pixels within this radius (6 residual blocks of two 3x3 convolutions)
@@ -646,9 +646,9 @@ class Trainer:
 
     def train_weighting_net_on_blocks(self, sequences, engine_config, log=print) -> dict[str, float]:
         """G alone on whole blocks of the integrated training scenes (see TrainConfig.block_steps)."""
-        from .engine import SenFuNet
+        from ..engine import SenFuNet
         from .evaluation import integrate_frames
-        from .grid import neighbour_table
+        from ..grid import neighbour_table
         from .simulator import gt_tsdf_blocks
 
         cfg = self.config
@@ -756,7 +756,7 @@ class Validator:
         self.crops: dict[int, np.ndarray] = {}
 
     def engine_config(self):
-        from .engine import EngineConfig
+        from ..engine import EngineConfig
 
         cfg = self.config
         return EngineConfig(sensors=SENSORS, sensor_uses_rgb=cfg.sensor_uses_rgb, depth_min_m=cfg.depth_min_m,
@@ -768,7 +768,7 @@ class Validator:
     def run(self, feature_nets: torch.nn.ModuleList, weighting_net: torch.nn.Module) -> dict:
         """Per scene the rows {method: metrics} and the summary: mean fused F, MAD, and the mean
         margin of the fused F over the better single sensor (the checkpoint score)."""
-        from .engine import SenFuNet
+        from ..engine import SenFuNet
         from .evaluation import integrate_frames, method_metrics, observed_gt_vertices
 
         stride = {name: self.config.val_frame_stride for name in SENSORS}

@@ -24,7 +24,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from senfunet_ros import params as P
 from senfunet_ros.node import FusionNode
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BASE_S = 1000  # added to simulator stamps (which start below 0 for poses)
 # Kept small so the whole file runs in a few minutes on 2 cores with the CPU engine:
 # 128 px simulated images, integrated at 64 px, 4 cm voxels (band = 10 voxels, as 0.1 m at 1 cm).
@@ -188,7 +188,7 @@ def stream_scene(prefix: str, speed: float, go: Any = None, taken: Any = None) -
     while the node has taken FLOW_AHEAD or fewer messages less than were sent of a stream, so
     its reader queues never overflow; stamps and order stay those of the scene.
     """
-    from senfunet_core.simulator import make_scene, simulate_sequence
+    from senfunet_core.learning.simulator import make_scene, simulate_sequence
 
     seq = simulate_sequence(make_scene(SIM["seed"]), **_sim_kwargs())
     rclpy.init()
@@ -319,7 +319,7 @@ def _visible_gt(gt_vertices: np.ndarray, seq: Any, border_px: int = 10, tol_m: f
 def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: Path) -> None:
     from senfunet_core.metrics import mesh_metrics
     from senfunet_core.ply import read_ply
-    from senfunet_core.simulator import gt_mesh, make_scene, simulate_sequence
+    from senfunet_core.learning.simulator import gt_mesh, make_scene, simulate_sequence
 
     prefix = "e2e"
     run = Running("e2e", {**E2E_PARAMS, **topic_params(prefix)}, tmp_path)

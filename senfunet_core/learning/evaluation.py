@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .grid import BLOCK, BLOCK_VOXELS
-from .metrics import format_table, grid_metrics, mesh_metrics
+from ..grid import BLOCK, BLOCK_VOXELS
+from ..metrics import format_table, grid_metrics, mesh_metrics
 
 METHODS = ("tof", "stereo", "tsdf_fusion", "senfunet_nofilter", "senfunet")
 METHOD_LABELS = {
@@ -228,7 +228,7 @@ class EvaluationResult:
 
 
 def _engine(weights):
-    from .engine import EngineConfig, SenFuNet
+    from ..engine import EngineConfig, SenFuNet
 
     return SenFuNet(EngineConfig(), weights=weights)
 
@@ -275,7 +275,7 @@ def evaluate(weights="default", config: EvaluationConfig = EvaluationConfig(), f
 
 def _display_crop(mesh, lo: np.ndarray, hi: np.ndarray, keep_colors: bool):
     """Faces whose vertices all lie inside [lo, hi] (for the figure), unused vertices dropped."""
-    from .mesher import Mesh
+    from ..mesher import Mesh
 
     v = np.asarray(mesh.vertices)
     inside = np.all((v >= lo) & (v <= hi), axis=1)
@@ -293,7 +293,7 @@ def write_figure(engine, path: str | Path, scene=None) -> None:
     For display only, the meshes are cropped to the room (0.5 m margin around the walls) with the
     ceiling removed, so the camera looks into the room; the same crop for every panel.
     """
-    from .render import render_mesh_png
+    from ..render import render_mesh_png
 
     meshes = [engine.extract_mesh("tof"), engine.extract_mesh("stereo"), engine.extract_mesh("tsdf_fusion"),
               engine.extract_mesh("fused"), engine.extract_mesh("fused")]

@@ -12,7 +12,7 @@ import pytest
 from senfunet_ros.bagio import copy_bag, open_bag
 from senfunet_ros.ingest import Frame, Ingest, TimeJump
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / "bags" / "sim_room"
 SAMPLE_GT = REPO / "bags" / "sim_room_gt.ply"
 WEIGHTS = REPO / "senfunet_core" / "weights" / "tof_stereo.pt"

@@ -7,7 +7,7 @@ import torch
 from senfunet_core.grid import BLOCK, BlockGrid
 from senfunet_core.integrator import (IntegratorConfig, aggregate_pixel_values, frame_samples, integrate_frame,
                                       valid_depth_mask)
-from senfunet_core.trainer import keys_to_voxels
+from senfunet_core.learning.training import keys_to_voxels
 
 SIZE = 64
 K = np.array([[40.0, 0, (SIZE - 1) / 2], [0, 40.0, (SIZE - 1) / 2], [0, 0, 1.0]])

@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from senfunet_core import simulator as sim
+from senfunet_core.learning import simulator as sim
 
 
 def _empty_room(seed: int = 0, size=(4.0, 3.0, 2.6)) -> sim.Scene:

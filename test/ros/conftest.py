@@ -27,3 +27,11 @@ def ros_domain_id() -> int:
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # keep test traffic off the network
     return domain
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every test under test/ros needs rclpy (or rosbags): `-m "not ros"` runs the core alone."""
+    here = os.path.dirname(__file__)
+    for item in items:
+        if str(item.path).startswith(here):
+            item.add_marker(pytest.mark.ros)

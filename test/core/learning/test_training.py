@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from senfunet_core import trainer as tr
+from senfunet_core.learning import training as tr
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def test_loss_terms_by_hand():
@@ -88,7 +88,7 @@ def test_shipped_config_parses():
 
 @pytest.fixture(scope="module")
 def tiny_sequence():
-    from senfunet_core import simulator
+    from senfunet_core.learning import simulator
 
     scene = simulator.make_scene(7, room_size_m=(2.5, 2.5, 2.4))
     return simulator.simulate_sequence(scene, 7, duration_s=0.25, width=128, height=128)
@@ -139,7 +139,7 @@ def test_sparse_weighting_net_equals_dense_with_replicate_padding():
 def test_gt_cache_equals_gt_tsdf():
     import numpy as np
 
-    from senfunet_core import simulator
+    from senfunet_core.learning import simulator
 
     scene = simulator.make_scene(3)
     rng = np.random.default_rng(0)
