@@ -1,14 +1,16 @@
-"""Which blocks need the sensor weighting alpha re-evaluated, and the weighting net's input windows.
+"""Where the sensor weighting alpha must be re-evaluated, and the weighting net's inputs there.
 
 Alpha at a voxel depends on the weighting-net inputs [F_1, tanh(W_1), F_2, tanh(W_2)] within
 2 voxels (receptive field 5^3). Integration accumulates, per voxel, how much those inputs drifted
 since alpha around the voxel was last evaluated (`drift`, see integrator.update_voxels). A block
-is re-evaluated (whole, all 512 voxels) when a voxel within 2 of it drifted more than the
-tolerance (`take_drift`) and it holds a voxel of the evaluated set (`holds_targets`):
-- "all": every voxel (the exact, whole-grid result on every voxel);
-- "surface": corners of cells whose 8 corners are observed and whose sensor TSDFs (any sensor,
-  where observed) include values <= 0 and >= 0: only these cells can hold fused triangles, since
-  the fused value lies between V_1 and V_2 (alpha elsewhere may be stale).
+is stale when a voxel within 2 of it drifted more than the tolerance (`take_drift`); when its
+turn comes, the net is evaluated on the voxels of the evaluated set (EngineConfig.alpha_voxels):
+- "all": every voxel of the block, as blocks with a 2-voxel halo (`weighting_windows`): the exact,
+  whole-grid result on every voxel;
+- "surface": the corners of cells whose 8 corners are observed and whose sensor TSDFs (any
+  sensor, where observed) include values <= 0 and >= 0 (`surface_targets`): only these cells can
+  hold fused triangles, since the fused value lies between V_1 and V_2. Evaluated voxel by voxel
+  (`target_columns`, `evaluate_columns`); alpha elsewhere may be stale.
 Evaluating more than needed is always allowed: the result then still equals the whole-grid
 evaluation on the evaluated set.
 
@@ -19,11 +21,11 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+import torch
 
 from .grid import f16_to_f32
 from .integrator import TANH_OF_COUNT
 
-MODES = {"all": 0, "surface": 2}
 HALO = 2  # alpha depends on inputs within 2 voxels
 WINDOW = 8 + 2 * HALO  # input window per block: 12^3
 
@@ -71,65 +73,6 @@ def take_drift(slots: np.ndarray, drift: np.ndarray, tolerance: float) -> np.nda
 
 
 @numba.njit(cache=True, nogil=True)
-def holds_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.ndarray, tsdf_2: np.ndarray,
-                  weight_2: np.ndarray, mode: int) -> np.ndarray:
-    """Per block (neighbours[b, 13]): does it hold a voxel of the evaluated set (see MODES): any
-    voxel ("all"), or a corner of a cell whose 8 corners are observed and whose sensor TSDFs
-    include values <= 0 and >= 0 ("surface"). Weights: float16 bits (int16)."""
-    n_blocks = neighbours.shape[0]
-    out = np.zeros(n_blocks, np.bool_)
-    if mode == 0:
-        out[:] = True
-        return out
-    lo = np.empty((10, 10, 10), np.float32)
-    hi = np.empty((10, 10, 10), np.float32)
-    seen = np.empty((10, 10, 10), np.bool_)
-    for b in range(n_blocks):
-        # the 10^3 window (local -1..8): observed by any sensor, min and max TSDF
-        window_lo, window_hi = np.float32(np.inf), np.float32(-np.inf)
-        for x in range(10):
-            for y in range(10):
-                for z in range(10):
-                    v = _neighbour_index(neighbours, b, x - 1, y - 1, z - 1)
-                    low, high, observed = np.float32(np.inf), np.float32(-np.inf), False
-                    if v >= 0:
-                        if f16_to_f32(weight_1[v]) > 0:
-                            low, high, observed = min(low, tsdf_1[v]), max(high, tsdf_1[v]), True
-                        if f16_to_f32(weight_2[v]) > 0:
-                            low, high, observed = min(low, tsdf_2[v]), max(high, tsdf_2[v]), True
-                    lo[x, y, z], hi[x, y, z], seen[x, y, z] = low, high, observed
-                    window_lo, window_hi = min(window_lo, low), max(window_hi, high)
-        if not (window_lo <= 0.0 and window_hi >= 0.0):  # no sign change near the block (most blocks)
-            continue
-        # each cell (lower corner at local -1..7, window 0..8) over its 8 corners, one axis at a
-        # time in place: entry i becomes the reduction over i and i + 1 along that axis
-        for x in range(10):
-            for y in range(10):
-                for z in range(9):
-                    lo[x, y, z] = min(lo[x, y, z], lo[x, y, z + 1])
-                    hi[x, y, z] = max(hi[x, y, z], hi[x, y, z + 1])
-                    seen[x, y, z] = seen[x, y, z] and seen[x, y, z + 1]
-        for x in range(10):
-            for y in range(9):
-                for z in range(9):
-                    lo[x, y, z] = min(lo[x, y, z], lo[x, y + 1, z])
-                    hi[x, y, z] = max(hi[x, y, z], hi[x, y + 1, z])
-                    seen[x, y, z] = seen[x, y, z] and seen[x, y + 1, z]
-        for x in range(9):
-            for y in range(9):
-                for z in range(9):
-                    if seen[x, y, z] and seen[x + 1, y, z] and min(lo[x, y, z], lo[x + 1, y, z]) <= 0.0 \
-                            and max(hi[x, y, z], hi[x + 1, y, z]) >= 0.0:
-                        out[b] = True
-                        break
-                if out[b]:
-                    break
-            if out[b]:
-                break
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
 def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray, features_2: np.ndarray,
                       weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray, tsdf_scale: float) -> np.ndarray:
     """B x 12^3 x C weighting-net inputs of each block with its 2-voxel halo (channels last), zero
@@ -157,3 +100,151 @@ def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: 
                         out[b, x, y, z, first_tsdf] = tsdf_1[v] * tsdf_scale
                         out[b, x, y, z, first_tsdf + 1] = tsdf_2[v] * tsdf_scale
     return out
+
+
+# -- voxel-granular evaluation ("surface" mode) -------------------------------------------------------
+# G is three convolutions (3^3, 3^3, 1^3): alpha at a voxel reads layer-1 outputs at its 27
+# neighbours, which read the inputs within 2 voxels. Instead of whole blocks with a 2-voxel halo,
+# only the target voxels are evaluated: layer 1 at the union of their 3^3 neighbourhoods (as rows
+# of an im2col matrix), layer 2 gathers those rows per target. Both layers are then matrix products.
+
+
+@numba.njit(cache=True, nogil=True)
+def surface_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.ndarray, tsdf_2: np.ndarray,
+                    weight_2: np.ndarray) -> np.ndarray:
+    """B x 512: the voxels of each block (neighbours[b, 13]) that are corners of a cell whose 8
+    corners are observed (by any sensor) and whose sensor TSDFs include values <= 0 and >= 0: the
+    only cells that can hold fused triangles, so the only voxels whose alpha the fused mesh, its
+    filter and its colours read. Weights: float16 bits (int16)."""
+    n_blocks = neighbours.shape[0]
+    out = np.zeros((n_blocks, 512), np.bool_)
+    lo = np.empty((10, 10, 10), np.float32)
+    hi = np.empty((10, 10, 10), np.float32)
+    seen = np.empty((10, 10, 10), np.bool_)
+    for b in range(n_blocks):
+        any_low, any_high = False, False
+        for x in range(10):  # the 10^3 window (local -1..8): observed by any sensor, min and max TSDF
+            for y in range(10):
+                for z in range(10):
+                    v = _neighbour_index(neighbours, b, x - 1, y - 1, z - 1)
+                    low, high, observed = np.float32(np.inf), np.float32(-np.inf), False
+                    if v >= 0:
+                        if f16_to_f32(weight_1[v]) > 0:
+                            low, high, observed = min(low, tsdf_1[v]), max(high, tsdf_1[v]), True
+                        if f16_to_f32(weight_2[v]) > 0:
+                            low, high, observed = min(low, tsdf_2[v]), max(high, tsdf_2[v]), True
+                    lo[x, y, z], hi[x, y, z], seen[x, y, z] = low, high, observed
+                    any_low |= low <= 0.0
+                    any_high |= high >= 0.0
+        if not (any_low and any_high):  # no sign change near the block (most blocks)
+            continue
+        for x in range(9):  # cells with lower corner at window x, y, z (local x - 1 ...)
+            for y in range(9):
+                for z in range(9):
+                    cell_lo, cell_hi, cell_seen = np.float32(np.inf), np.float32(-np.inf), True
+                    for corner in range(8):
+                        cx, cy, cz = x + (corner >> 2), y + ((corner >> 1) & 1), z + (corner & 1)
+                        cell_seen &= seen[cx, cy, cz]
+                        cell_lo = min(cell_lo, lo[cx, cy, cz])
+                        cell_hi = max(cell_hi, hi[cx, cy, cz])
+                    if not (cell_seen and cell_lo <= 0.0 and cell_hi >= 0.0):
+                        continue
+                    for corner in range(8):
+                        lx, ly, lz = x - 1 + (corner >> 2), y - 1 + ((corner >> 1) & 1), z - 1 + (corner & 1)
+                        if 0 <= lx < 8 and 0 <= ly < 8 and 0 <= lz < 8:
+                            out[b, lx * 64 + ly * 8 + lz] = True
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def target_columns(neighbours: np.ndarray, targets: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray,
+                   features_2: np.ndarray, weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray,
+                   tsdf_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The weighting net's inputs for the target voxels (targets: B x 512) of these blocks:
+    - columns: M x 27*C, one row per layer-1 position (the union of the targets' 3^3
+      neighbourhoods, per block), its 3^3 input neighbourhood, offsets x-major then channels (the
+      layout of conv1's weight permuted to out x kx x ky x kz x in); inputs as in `weighting_windows`;
+    - gather: N x 27, per target, the rows of its 27 layer-1 neighbours (the same order);
+    - voxels: N flat voxel indices (slot * 512 + local) of the targets."""
+    n_blocks = neighbours.shape[0]
+    n_features = features_1.shape[0] // weight_1.shape[0]
+    with_tsdf = tsdf_1.shape[0] > 0
+    first_tsdf = 2 * (n_features + 1)
+    n_channels = first_tsdf + 2 * with_tsdf
+    row_of = np.full((n_blocks, 10, 10, 10), -1, np.int64)  # layer-1 position (window local -1..8) -> row
+    n_rows, n_targets = 0, 0
+    for b in range(n_blocks):
+        for local in range(512):
+            if not targets[b, local]:
+                continue
+            n_targets += 1
+            x, y, z = local >> 6, (local >> 3) & 7, local & 7
+            for dx in range(3):
+                for dy in range(3):
+                    for dz in range(3):
+                        if row_of[b, x + dx, y + dy, z + dz] < 0:
+                            row_of[b, x + dx, y + dy, z + dz] = n_rows
+                            n_rows += 1
+    columns = np.zeros((n_rows, 27 * n_channels), np.float32)
+    gather = np.empty((n_targets, 27), np.int64)
+    voxels = np.empty(n_targets, np.int64)
+    window = np.zeros((WINDOW, WINDOW, WINDOW, n_channels), np.float32)
+    t = 0
+    for b in range(n_blocks):
+        window[:] = 0.0
+        for x in range(WINDOW):  # this block's inputs with their 2-voxel halo
+            for y in range(WINDOW):
+                for z in range(WINDOW):
+                    v = _neighbour_index(neighbours, b, x - HALO, y - HALO, z - HALO)
+                    if v < 0:
+                        continue
+                    for c in range(n_features):
+                        window[x, y, z, c] = f16_to_f32(features_1[v * n_features + c])
+                        window[x, y, z, n_features + 1 + c] = f16_to_f32(features_2[v * n_features + c])
+                    window[x, y, z, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
+                    window[x, y, z, first_tsdf - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
+                    if with_tsdf:
+                        window[x, y, z, first_tsdf] = tsdf_1[v] * tsdf_scale
+                        window[x, y, z, first_tsdf + 1] = tsdf_2[v] * tsdf_scale
+        for x in range(10):  # layer-1 positions at window x + 1 (local x - 1); inputs at window x .. x + 2
+            for y in range(10):
+                for z in range(10):
+                    row = row_of[b, x, y, z]
+                    if row < 0:
+                        continue
+                    col = 0
+                    for dx in range(3):
+                        for dy in range(3):
+                            for dz in range(3):
+                                for c in range(n_channels):
+                                    columns[row, col] = window[x + dx, y + dy, z + dz, c]
+                                    col += 1
+        for local in range(512):
+            if not targets[b, local]:
+                continue
+            x, y, z = local >> 6, (local >> 3) & 7, local & 7
+            k = 0
+            for dx in range(3):
+                for dy in range(3):
+                    for dz in range(3):
+                        gather[t, k] = row_of[b, x + dx, y + dy, z + dz]
+                        k += 1
+            voxels[t] = neighbours[b, 13] * 512 + local
+            t += 1
+    return columns, gather, voxels
+
+
+def evaluate_columns(net: torch.nn.Module, columns: np.ndarray, gather: np.ndarray, *,
+                     dtype: torch.dtype = torch.float32) -> np.ndarray:
+    """Alpha of the targets of `target_columns` with the weighting net's weights (networks.WeightingNet:
+    conv1 3^3, ReLU, conv2 3^3, ReLU, conv3 1^3, sigmoid) as two matrix products and a gather: the
+    same values as the net on the whole grid, up to float rounding."""
+    w1 = net.conv1.weight.permute(0, 2, 3, 4, 1).reshape(net.conv1.out_channels, -1)
+    w2 = net.conv2.weight.permute(0, 2, 3, 4, 1).reshape(net.conv2.out_channels, -1)
+    w3 = net.conv3.weight.reshape(1, -1)
+    x = torch.from_numpy(columns).to(dtype)
+    hidden_1 = torch.relu(torch.addmm(net.conv1.bias.to(dtype), x, w1.t().to(dtype)))  # M x 32
+    x2 = hidden_1[torch.from_numpy(gather)].reshape(len(gather), -1)  # N x 27*32
+    hidden_2 = torch.relu(torch.addmm(net.conv2.bias.to(dtype), x2, w2.t().to(dtype)))  # N x 16
+    logits = torch.addmm(net.conv3.bias.to(dtype), hidden_2, w3.t().to(dtype))
+    return torch.sigmoid(logits.float()).reshape(-1).numpy()

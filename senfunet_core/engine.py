@@ -20,23 +20,27 @@ re-read by the next update. Updates and extractions are serialised among themsel
 """
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import torch
 
 from . import networks
-from .alpha import MODES, holds_targets, take_drift, weighting_windows
+from .alpha import evaluate_columns, surface_targets, take_drift, target_columns, weighting_windows
 from .errors import InputError
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BLOCK, BlockGrid, block_keys, kernel_view, neighbour_table
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
-from .mesher import BlockMeshes, Mesh, marching_cubes_blocks, to_mesh, weld
+from .mesh_archive import MeshArchive
+from .mesher import BlockMeshes, BlockTriangles, Mesh, alpha_colors, marching_cubes_blocks, to_mesh, weld
 
 log = logging.getLogger("senfunet.engine")
 
@@ -76,8 +80,9 @@ class EngineConfig:
     #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be stale)
     alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (~2.5x faster on CPUs with
     #                               bfloat16 instructions, alpha within ~0.004; see test_equivalence.py)
-    max_blocks: int = 0  # memory bound: past this many blocks, each update drops the blocks farthest from the
-    #                      last camera position (down to 90%), and so does integration past 1.25x; 0 = no bound
+    max_blocks: int = 0  # memory bound: past this many blocks, each update evicts the blocks farthest from the
+    #   last camera position (down to 90%), and so does integration past 1.25x, keeping their final fused meshes
+    #   (mesh_archive); 0 = no bound; -1 = from the machine's memory (`memory_bound_blocks`)
     tsdf_fusion: bool = True  # also integrate every frame into one plain TSDF grid: the "tsdf_fusion" baseline
     #                           (about 15% of the integration time and 6 bytes per voxel)
     alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
@@ -109,8 +114,9 @@ class EngineConfig:
             raise InputError(f"alpha_dtype must be 'float32' or 'bfloat16', got '{self.alpha_dtype}'")
         if self.alpha_voxels not in ("all", "surface"):
             raise InputError(f"alpha_voxels must be 'all' or 'surface', got '{self.alpha_voxels}'")
-        if self.max_blocks < 0:
-            raise InputError(f"max_blocks must be >= 0 (0 = no bound), got {self.max_blocks}")
+        if self.max_blocks < -1:
+            raise InputError(f"max_blocks must be >= 0 (0 = no bound) or -1 (from the machine's memory), "
+                             f"got {self.max_blocks}")
         if not self.alpha_tolerance >= 0 or self.torch_threads < 0:
             raise InputError("alpha_tolerance must be >= 0 and torch_threads >= 0")
 
@@ -156,6 +162,16 @@ class _Eviction:
 
 
 @dataclass
+class _AlphaBatch:
+    """The weighting net's output for a batch of blocks."""
+
+    slots: np.ndarray  # B blocks checked
+    holds: np.ndarray  # B bool: holds voxels alpha matters for (see EngineConfig.alpha_voxels)
+    voxels: np.ndarray  # N flat voxel indices evaluated (slot * 512 + local)
+    alpha: np.ndarray  # N float32
+
+
+@dataclass
 class WeightCloud:
     positions_m: np.ndarray  # Nx3 float32 voxel centres
     alpha: np.ndarray  # N float32 sensor weighting (weight of sensor 1)
@@ -165,6 +181,22 @@ class WeightCloud:
 def _compact_offsets(offsets: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """Offsets of the kept blocks' ranges when the dropped blocks' ranges are empty."""
     return np.concatenate([[offsets[0]], offsets[keep + 1]]).astype(np.int64)
+
+
+def memory_bound_blocks(bytes_per_block: int, *, memory_fraction: float = 0.5) -> int:
+    """How many blocks fit in `memory_fraction` of this machine's memory (at most 80% of what is
+    available now): the default map bound follows the machine, not a fixed count."""
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    available = total
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    available = int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    budget = min(memory_fraction * total, 0.8 * available)
+    return max(1024, int(budget // bytes_per_block))
 
 
 def resolve_device(name: str) -> torch.device:
@@ -209,12 +241,20 @@ class SenFuNet:
         dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight", "drift"))}
         # alpha NaN until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)
         self.grid = BlockGrid(channels, dtypes=dtypes, fill={"alpha": float("nan")})
+        self.max_blocks = config.max_blocks  # the map bound in force (resolved from memory for -1)
+        if config.max_blocks == -1:
+            self.max_blocks = memory_bound_blocks(self.grid.bytes_per_block())
+            log.info("map bound: %d blocks (half of this machine's memory at %d bytes a block)", self.max_blocks,
+                     self.grid.bytes_per_block())
+        self.archive = MeshArchive()  # final meshes of evicted blocks (owned by the update lock)
         # Writers of the grid (integration, alpha) hold the data lock; the update's readers do not:
         # a block integrated while it is read is marked again and re-read by the next update, and
         # pools that grow meanwhile stay valid for whoever still holds the old ones.
         self._data_lock = threading.RLock()
         self._scratch: dict[str, np.ndarray] = {}  # integration's working arrays (used under the data lock)
         self._update_lock = threading.RLock()  # one update or extraction at a time
+        # integration past the hard bound waits on this until an eviction (or the running update) ends
+        self._eviction_done = threading.Condition()  # reentrant: an evicting waiter notifies
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0}
         self.timings_s: dict[str, float] = {}  # stage -> seconds of its last run
         self.total_s: dict[str, float] = {}  # stage -> seconds summed over all runs
@@ -279,7 +319,7 @@ class SenFuNet:
         evaluated, the mesh shows what both sensors saw, averaged: see fusion). None: all of them
         (exact, deterministic). The live node passes 0 and calls `refresh_alpha` after publishing: new
         geometry is shown sooner, and its alpha comes with the next update."""
-        with self._update_lock:
+        with self._updating():
             t0 = time.perf_counter()
             self._evict()
             if alpha_budget_s != 0:
@@ -292,13 +332,17 @@ class SenFuNet:
             self.counters["mesh_blocks_last"] = len(slots)
             result = MeshUpdate(cleared=self._cleared)
             self._cleared = False
-            result.meshes = self._block_meshes(slots, coords)
-            result.removed, self._evicted_meshes = self._evicted_meshes, []
-            has_faces = {tuple(k) for k in result.meshes.keys.tolist()}
+            live = self._block_meshes(slots, coords)
+            has_faces = {tuple(k) for k in live.keys.tolist()}
+            self.archive.replace(has_faces)
+            # the evicted blocks' final meshes: subscribers keep showing them
+            archived, self._newly_archived = self._newly_archived, []
+            result.meshes = BlockMeshes.concatenate([live, *archived])
             for key in map(tuple, coords.tolist()):
                 if key not in has_faces and key in self._meshed:
                     self._meshed.discard(key)
-                    result.removed.append(key)
+                    if key not in self.archive:
+                        result.removed.append(key)
             self._meshed.update(has_faces)
             self.counters["meshed_blocks"] = len(self._meshed)
             self._timed(alpha=t1 - t0, mesh=time.perf_counter() - t1)
@@ -308,7 +352,7 @@ class SenFuNet:
     def refresh_alpha(self, budget_s: float | None = None) -> None:
         """Re-evaluate alpha where the inputs drifted, at most about budget_s seconds (None: all of
         it); the next update re-meshes the blocks whose alpha changed."""
-        with self._update_lock:
+        with self._updating():
             start = time.perf_counter()
             self._refresh_alpha(budget_s)
             self._timed(alpha=time.perf_counter() - start)
@@ -316,40 +360,57 @@ class SenFuNet:
     @torch.inference_mode()
     def block_meshes(self) -> BlockMeshes:
         """The fused (filtered) mesh of every block, as `update` sends it, with alpha as it is now
-        (nothing re-evaluated): a snapshot for a subscriber that joins late."""
-        with self._update_lock:
+        (nothing re-evaluated), and the archived meshes of evicted blocks: a snapshot for a
+        subscriber that joins late."""
+        with self._updating():
             with self._data_lock:
                 slots = np.arange(self.grid.n_blocks)
                 coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
-            return self._block_meshes(slots, coords)
+            live = self._block_meshes(slots, coords)
+            archived = self.archive.meshes(exclude={tuple(k) for k in live.keys.tolist()})
+        return BlockMeshes.concatenate([live, archived])
 
     @torch.inference_mode()
     def extract_mesh(self, which: str = FUSED, filtered: bool = True) -> Mesh:
-        """The whole mesh of `which`: "fused", a sensor name, or "tsdf_fusion" (the baseline)."""
+        """The whole mesh of `which`: "fused", a sensor name, or "tsdf_fusion" (the baseline). The
+        fused mesh includes the archived meshes of blocks the map bound evicted (`archive`); the
+        others cover the blocks in memory."""
         self._check_which(which)
-        with self._update_lock:
+        with self._updating():
             if which == FUSED:
                 self._refresh_alpha()
             parts = []
             with self._data_lock:  # one consistent state of the whole map
                 slots = np.arange(self.grid.n_blocks)
+                coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
                 for start in range(0, len(slots), self.config.mesh_batch_blocks):
                     parts.append(self._mesh_batch(slots[start:start + self.config.mesh_batch_blocks], which,
                                                   filtered))
-        if not parts:
+            archived = Mesh.empty()
+            if which == FUSED and filtered and len(self.archive):
+                live_with_faces = np.concatenate([np.diff(p.face_offsets) > 0 for p in parts] or [np.zeros(0, bool)])
+                archived = self.archive.mesh(exclude={tuple(k) for k in coords[live_with_faces].tolist()})
+        if not parts and archived.n_faces == 0:
             return Mesh.empty()
         offsets = np.cumsum([0] + [len(p.vertices_vox) for p in parts])
         vertices = np.concatenate([p.vertices_vox for p in parts])
         faces = np.concatenate([p.faces + o for p, o in zip(parts, offsets)])
         values = np.concatenate([p.vertex_values for p in parts]) if which == FUSED else None
-        vertices, faces, values = weld(vertices, faces, values)
-        return to_mesh(vertices, faces, self.config.voxel_size_m, values)
+        if archived.n_faces == 0:
+            vertices, faces, values = weld(vertices, faces, values)
+            return to_mesh(vertices, faces, self.config.voxel_size_m, values)
+        # welded with the archive: colours instead of alpha, the archive's vertices back in voxels
+        faces = np.concatenate([faces, archived.faces + len(vertices)])
+        vertices = np.concatenate([vertices, archived.vertices / self.config.voxel_size_m])
+        colors = np.concatenate([alpha_colors(values), archived.colors])
+        vertices, faces, colors = weld(vertices, faces, colors)
+        return Mesh((vertices * self.config.voxel_size_m).astype(np.float32), faces.astype(np.int32), colors)
 
     @torch.inference_mode()
     def voxel_values(self, which: str = FUSED, filtered: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Centres (N x 3, metres) and TSDF values (N) of the observed voxels of `which`."""
         self._check_which(which)
-        with self._update_lock:
+        with self._updating():
             if which == FUSED:
                 self._refresh_alpha()
             with self._data_lock:
@@ -364,7 +425,7 @@ class SenFuNet:
         weight counter. With max_abs_tsdf_m, only voxels whose unfiltered fused |TSDF| is at most
         that. Without refresh_alpha, alpha is as the last updates left it (voxels the net has not
         judged yet are left out)."""
-        with self._update_lock:
+        with self._updating():
             if refresh_alpha:
                 self._refresh_alpha()
             with self._data_lock:
@@ -401,15 +462,16 @@ class SenFuNet:
 
     def reset(self) -> None:
         """Forget everything fused; the next update reports `cleared`."""
-        with self._update_lock, self._data_lock:
+        with self._updating(), self._data_lock:
             self.grid.clear()
+            self.archive.clear()
             self.frames_integrated = {name: 0 for name in self.config.sensors}
             self._reset_pending()
             self._cleared = True
 
     def save(self, path: str | Path) -> None:
         """The whole engine state (config, grids, networks) in one file, written atomically."""
-        with self._update_lock:
+        with self._updating():
             self._refresh_alpha()
             with self._data_lock:
                 state = {
@@ -419,6 +481,8 @@ class SenFuNet:
                     "feature_nets": [net.state_dict() for net in self.feature_nets],
                     "weighting_net": self.weighting_net.state_dict(),
                     "frames_integrated": dict(self.frames_integrated),
+                    "archive": {k: torch.from_numpy(np.ascontiguousarray(v))
+                                for k, v in self.archive.state_dict().items()},
                 }
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -450,6 +514,9 @@ class SenFuNet:
         engine.weights_source = f"{path} (saved state)"
         engine.grid.load_state_dict(state["grid"])
         engine.frames_integrated.update(state["frames_integrated"])
+        if "archive" in state:
+            engine.archive.load_state_dict({k: v.numpy() for k, v in state["archive"].items()})
+            engine._newly_archived = [engine.archive.meshes()]  # re-sent with the whole mesh
         engine._grow_flags()
         engine._evaluated[: engine.grid.n_blocks] = True  # alpha is part of the saved state
         engine._mesh_pending[: engine.grid.n_blocks] = True
@@ -459,7 +526,7 @@ class SenFuNet:
         """Map size and memory, and how much of the meshed surface has its alpha: evaluated at least
         once (else its mesh averages the sensors, see fusion), and up to date (not stale)."""
         n = len(self.config.sensors)
-        with self._update_lock, self._data_lock:
+        with self._updating(), self._data_lock:
             weights = torch.stack([self.grid.pools[f"weight{i}"][: self.grid.n_blocks] for i in range(n)])
             observed = int((weights > 0).any(dim=0).sum())
             nbytes = self.grid.nbytes()
@@ -469,6 +536,8 @@ class SenFuNet:
         return {"blocks": self.grid.n_blocks, "observed_voxels": observed, "grid_bytes": nbytes,
                 "bytes_per_observed_voxel": nbytes / max(observed, 1),
                 "frames_integrated": dict(self.frames_integrated),
+                "max_blocks": self.max_blocks, "evicted_blocks": self.counters.get("evicted_blocks", 0),
+                "archived_blocks": len(self.archive), "archived_faces": self.archive.n_faces,
                 "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
                 "meshed_blocks_alpha_current": int((evaluated & (self._stale[meshed] == 0)).sum())}
 
@@ -496,7 +565,7 @@ class SenFuNet:
         self._mesh_pending = np.zeros(0, bool)  # TSDF or alpha changed since it was meshed
         self._schedules = 0
         self._camera_m = np.zeros(3)  # the last integrated frame's camera centre (the map bound keeps what is near)
-        self._evicted_meshes: list[tuple[int, int, int]] = []  # meshed blocks evicted, reported by the next update
+        self._newly_archived: list[BlockMeshes] = []  # evicted blocks' final meshes, sent by the next update
         self._meshed: set[tuple[int, int, int]] = set()
         self._cleared = False
         self._grow_flags()
@@ -542,7 +611,7 @@ class SenFuNet:
         cannot keep up, as on a large room, goes to the part of the map being scanned; served first
         come first, it seldom reached the blocks on screen); among them, never evaluated ones first,
         then those with newly observed or sign-changed voxels, then drifted ones. Each
-        batch first drops the blocks that hold no voxel alpha matters for (`holds_targets`; checked
+        batch first drops the blocks that hold no voxel alpha matters for (`_evaluate_alpha`; checked
         here, not when scheduling, so that a budget also bounds the checking). With a budget
         (seconds), stop after the batch that exhausts it: the rest stays stale for later."""
         cfg = self.config
@@ -551,11 +620,10 @@ class SenFuNet:
             stale = np.flatnonzero(self._stale[: self.grid.n_blocks])
             order = stale[np.lexsort((-self._stale[stale], -self._last_reached[stale]))]
         start = time.perf_counter()
-        done = 0
-        mode = MODES[cfg.alpha_voxels]
+        done = voxels = 0
         # Results are written whenever the data lock is free, not waited for batch by batch: waiting
         # for integration's kernels took a third of the budget on the large benchmark room.
-        results: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (checked, holds, alpha of the holding)
+        results: list[_AlphaBatch] = []
         while len(order):
             if budget_s is not None and time.perf_counter() - start > budget_s:
                 break
@@ -563,109 +631,155 @@ class SenFuNet:
                 self._write_alpha(results, wait=True)  # before slots move
                 order, _ = self._evict().follow(order)
             batch, order = order[:cfg.alpha_batch_blocks], order[cfg.alpha_batch_blocks:]
-            grid = self.grid
-            neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, batch)
-            holds = np.ones(len(batch), bool)
-            if mode != MODES["all"]:
-                holds = holds_targets(neighbours, *self._views("tsdf0", "weight0", "tsdf1", "weight1"), mode)
-            alpha = np.zeros((0, BLOCK**3), np.float32)
-            if holds.any():
-                windows = self._weighting_windows(neighbours[holds])
-                x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
-                with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.alpha_dtype == "bfloat16"):
-                    alpha = self.weighting_net(x, pad=False).float().reshape(int(holds.sum()), -1).cpu().numpy()
-            results.append((batch, holds, alpha))
-            done += len(alpha)
+            results.append(self._evaluate_alpha(batch))
+            done += int(results[-1].holds.sum())
+            voxels += len(results[-1].voxels)
             self._write_alpha(results, wait=False)
         self._write_alpha(results, wait=True)
         self.counters["alpha_blocks"] += done
-        self.counters["alpha_voxels"] += done * 512
+        self.counters["alpha_voxels"] += voxels
         self.counters["alpha_backlog_blocks"] = len(order)
 
-    def _write_alpha(self, results: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wait: bool) -> None:
-        """Write evaluated batches (and empty `results`), if the data lock is free or `wait`. Every
-        voxel of an evaluated block is evaluated: its alpha is up to date; a block without voxels
-        alpha matters for is not stale either, and remembers it."""
+    def _evaluate_alpha(self, slots: np.ndarray) -> _AlphaBatch:
+        """The weighting net on these blocks, where alpha matters (`alpha_voxels`): "all", every voxel
+        of every block (blocks with a 2-voxel halo); "surface", the voxels `alpha.surface_targets`
+        finds (layer by layer, as matrix products). Reads the grid without the data lock (see the
+        module docstring)."""
+        cfg = self.config
+        grid = self.grid
+        neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
+        dtype = torch.bfloat16 if cfg.alpha_dtype == "bfloat16" else torch.float32
+        if cfg.alpha_voxels == "surface":
+            targets = surface_targets(neighbours, *self._views("tsdf0", "weight0", "tsdf1", "weight1"))
+            holds = targets.any(axis=1)
+            if not holds.any():
+                return _AlphaBatch(slots, holds, np.zeros(0, np.int64), np.zeros(0, np.float32))
+            columns, gather, voxels = target_columns(neighbours[holds], targets[holds], *self._weighting_inputs())
+            return _AlphaBatch(slots, holds, voxels, evaluate_columns(self.weighting_net, columns, gather,
+                                                                      dtype=dtype))
+        holds = np.ones(len(slots), bool)
+        windows = weighting_windows(neighbours, *self._weighting_inputs())
+        x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
+            alpha = self.weighting_net(x, pad=False).float().reshape(-1).cpu().numpy()
+        voxels = (slots[:, None] * BLOCK**3 + np.arange(BLOCK**3)).reshape(-1)
+        return _AlphaBatch(slots, holds, voxels, alpha)
+
+    def _write_alpha(self, results: list[_AlphaBatch], wait: bool) -> None:
+        """Write evaluated batches (and empty `results`), if the data lock is free or `wait`. Where
+        alpha matters in an evaluated block, it is up to date; a block without voxels alpha matters
+        for is not stale either, and remembers it."""
         if not results or not self._data_lock.acquire(blocking=wait):
             return
         try:
-            checked, holds, alpha = (np.concatenate(parts) for parts in zip(*results))
-            evaluated = checked[holds]
-            self.grid.pools["alpha"].numpy()[evaluated] = alpha
-            self._stale[checked] = 0
-            self._no_targets[checked] = ~holds
-            self._evaluated[evaluated] = True
-            self._mesh_pending[evaluated] = True
+            for batch in results:
+                self.grid.pools["alpha"].numpy().reshape(-1)[batch.voxels] = batch.alpha
+                evaluated = batch.slots[batch.holds]
+                self._stale[batch.slots] = 0
+                self._no_targets[batch.slots] = ~batch.holds
+                self._evaluated[evaluated] = True
+                self._mesh_pending[evaluated] = True
         finally:
             self._data_lock.release()
         results.clear()
 
-    def _weighting_windows(self, neighbours: np.ndarray) -> np.ndarray:
-        """The weighting net's input windows of these blocks (alpha.weighting_windows), with the
+    def _weighting_inputs(self) -> tuple:
+        """The pools the weighting net reads (alpha.weighting_windows, alpha.target_columns), with the
         sensors' TSDFs when the net reads them."""
         if self.config.weighting_tsdf_input:
             tsdf = self._views("tsdf0", "tsdf1")
         else:
             tsdf = (np.zeros(0, np.float32), np.zeros(0, np.float32))
-        return weighting_windows(neighbours, *self._views("feat0", "weight0", "feat1", "weight1"), *tsdf,
-                                 2.0 / self.config.band_m)
+        return (*self._views("feat0", "weight0", "feat1", "weight1"), *tsdf, 2.0 / self.config.band_m)
 
     def _wait_for_eviction(self) -> None:
-        """Integration outgrew the hard bound (updates come too rarely to keep the bound): drop far
-        blocks now or, while an update runs, wait for it to do so at its next safe point, between
-        two batches (not for the whole update, which can take a second)."""
-        while self._eviction_due():
-            if self._update_lock.acquire(timeout=0.002):
-                try:
-                    self._evict()
-                finally:
-                    self._update_lock.release()
+        """Integration outgrew the hard bound (updates come too rarely to keep the bound): evict now
+        or, while an update runs, wait until it has evicted at its next safe point, between two
+        batches (not for the whole update, which can take a second). Whoever ends an eviction or an
+        update notifies `_eviction_done`; the waiter holds its lock from the failed try to the wait,
+        so no notification falls in between."""
+        with self._eviction_done:
+            while self._eviction_due():
+                if self._update_lock.acquire(blocking=False):
+                    try:
+                        self._evict()
+                    finally:
+                        self._update_lock.release()
+                else:
+                    self._eviction_done.wait()
+
+    def _notify_eviction_waiters(self) -> None:
+        with self._eviction_done:
+            self._eviction_done.notify_all()
+
+    @contextlib.contextmanager
+    def _updating(self) -> Iterator[None]:
+        """Hold the update lock (one update, extraction or save at a time); on leaving, wake an
+        integration waiting for an eviction (it may now evict itself)."""
+        with self._update_lock:
+            yield
+        self._notify_eviction_waiters()
 
     def _eviction_due(self) -> bool:
         """Integration outgrew the hard bound and waits: an update evicts at its next safe point
         (between two batches, where it holds no slot)."""
-        return bool(self.config.max_blocks) and self.grid.n_blocks > _HARD_BOUND * self.config.max_blocks
+        return self.max_blocks > 0 and self.grid.n_blocks > _HARD_BOUND * self.max_blocks
 
     def _evict(self) -> _Eviction | None:
-        """With max_blocks, drop the blocks farthest from the last camera position once the map
-        holds more (down to 90%, so that it does not happen every update). Their neighbours are
-        re-evaluated and re-meshed: what they read there is gone. The dropped blocks that had a
-        mesh go to `_evicted_meshes` (the next update tells subscribers to delete them). Call with
-        the update lock held."""
-        cfg = self.config
-        if not cfg.max_blocks or self.grid.n_blocks <= cfg.max_blocks:
+        """With a map bound, evict the blocks farthest from the last camera position once the map
+        holds more (down to 90%, so that it does not happen every update). The evicted blocks'
+        final fused meshes, with alpha evaluated where it was stale, go to the archive (the next
+        update sends them; they stay in snapshots and saved meshes). Their neighbours' marching-cubes
+        cells that reached into the evicted blocks are re-meshed without them (so a snapshot equals what
+        the updates sent), which leaves a seam one cell wide along the eviction front. Call with the
+        update lock held."""
+        if self.max_blocks <= 0 or self.grid.n_blocks <= self.max_blocks:
             return None
         grid = self.grid
+        t0 = time.perf_counter()
         with self._data_lock:
             n = grid.n_blocks
-            centres_m = (grid.coords[:n].numpy() * BLOCK + (BLOCK - 1) / 2) * cfg.voxel_size_m
+            keep = int(0.9 * self.max_blocks)
+            centres_m = (grid.coords[:n].numpy() * BLOCK + (BLOCK - 1) / 2) * self.config.voxel_size_m
             distance = np.linalg.norm(centres_m - self._camera_m, axis=1)
-            victims = np.argpartition(-distance, n - int(0.9 * cfg.max_blocks))[: n - int(0.9 * cfg.max_blocks)]
-            victim_coords = grid.coords[victims].numpy()  # copies (fancy index), for after the lock
+            victims = np.sort(np.argpartition(-distance, n - keep)[: n - keep])
+            victim_coords = grid.coords[victims].numpy()  # copies (fancy index)
+            self._archive_blocks(victims, victim_coords)
             victim_keys = grid.slot_keys[victims]
             around = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, victims)
-            touched = np.zeros(n, bool)
-            touched[around[around >= 0]] = True
+            remesh = np.zeros(n, bool)
+            remesh[around[around >= 0]] = True
             moved_from, moved_to = grid.remove_blocks(victims)
             new_slot = np.arange(n)
             new_slot[victims] = -1
             new_slot[moved_from] = moved_to
             for flags in (self._alpha_pending, self._stale, self._last_reached, self._evaluated, self._no_targets,
-                          self._mesh_pending):
+                          self._mesh_pending, remesh):
                 flags[moved_to] = flags[moved_from]
                 flags[grid.n_blocks:n] = 0
-            touched[moved_to] = touched[moved_from]
-            touched = np.flatnonzero(touched[: grid.n_blocks])
-            self._last_reached[touched] = self._schedules
-            self._stale[touched] = np.maximum(self._stale[touched], 1)
-            self._mesh_pending[touched] = True
+            self._mesh_pending[: grid.n_blocks] |= remesh[: grid.n_blocks]
         self.counters["evicted_blocks"] = self.counters.get("evicted_blocks", 0) + len(victim_coords)
-        removed = [k for k in map(tuple, victim_coords.tolist()) if k in self._meshed]
-        self._meshed.difference_update(removed)
-        self._evicted_meshes += removed
-        log.info("map bound: dropped %d blocks farthest from the camera (max_blocks %d)", len(victim_coords),
-                 cfg.max_blocks)
+        self.counters["evictions"] = self.counters.get("evictions", 0) + 1
+        self._meshed.difference_update(map(tuple, victim_coords.tolist()))
+        log.info("map bound: evicted %d blocks farthest from the camera (max_blocks %d; %d evicted so far, their "
+                 "final meshes kept: %d archived blocks) in %.2f s", len(victim_coords), self.max_blocks,
+                 self.counters["evicted_blocks"], len(self.archive), time.perf_counter() - t0)
+        self._notify_eviction_waiters()
         return _Eviction(victim_keys, new_slot)
+
+    def _archive_blocks(self, slots: np.ndarray, coords: np.ndarray) -> None:
+        """Judge and mesh blocks about to be evicted, and archive their meshes (data lock held)."""
+        cfg = self.config
+        unjudged = slots[(self._stale[slots] > 0) | self._alpha_pending[slots] | ~self._evaluated[slots]]
+        batches = [self._evaluate_alpha(unjudged[start:start + cfg.alpha_batch_blocks])
+                   for start in range(0, len(unjudged), cfg.alpha_batch_blocks)]
+        self._write_alpha(batches, wait=True)
+        meshes = [self._to_block_meshes(self._mesh_batch(slots[i:i + cfg.mesh_batch_blocks], FUSED, filtered=True),
+                                        coords[i:i + cfg.mesh_batch_blocks])
+                  for i in range(0, len(slots), cfg.mesh_batch_blocks)]
+        archived = BlockMeshes.concatenate(meshes)
+        self.archive.add(archived)
+        self._newly_archived.append(archived)
 
     def _schedule_alpha(self) -> None:
         """Turn the drift of the blocks integrated since the last call into stale blocks: the
@@ -706,19 +820,22 @@ class SenFuNet:
                 coords = coords[kept]
                 evicted.append(eviction.dropped_keys)
             (batch, slots), (batch_coords, coords) = (slots[:size], slots[size:]), (coords[:size], coords[size:])
-            tris = self._mesh_batch(batch, FUSED, filtered=True)
-            v_start, f_start = tris.vertex_offsets, tris.face_offsets
-            # the whole batch at once; blocks without triangles have empty ranges
-            whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
-                            self.config.voxel_size_m, tris.vertex_values)
-            keep = np.flatnonzero(np.diff(f_start) > 0)
-            parts.append(BlockMeshes(batch_coords[keep], whole.vertices, whole.colors,
-                                     whole.faces, _compact_offsets(v_start, keep), _compact_offsets(f_start, keep)))
+            parts.append(self._to_block_meshes(self._mesh_batch(batch, FUSED, filtered=True), batch_coords))
         meshes = BlockMeshes.concatenate(parts)
         if evicted:  # blocks meshed in an earlier batch may be gone: they must not be shown
             gone = np.isin(block_keys(torch.from_numpy(meshes.keys)).numpy(), np.concatenate(evicted))
             meshes = meshes.select(np.flatnonzero(~gone))
         return meshes
+
+    def _to_block_meshes(self, tris: BlockTriangles, coords: np.ndarray) -> BlockMeshes:
+        """One marching-cubes batch as per-block meshes in metres (blocks without triangles left out)."""
+        v_start, f_start = tris.vertex_offsets, tris.face_offsets
+        # the whole batch at once; blocks without triangles have empty ranges
+        whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
+                        self.config.voxel_size_m, tris.vertex_values)
+        keep = np.flatnonzero(np.diff(f_start) > 0)
+        return BlockMeshes(coords[keep], whole.vertices, whole.colors, whole.faces,
+                           _compact_offsets(v_start, keep), _compact_offsets(f_start, keep))
 
     def _take_mesh_pending(self) -> np.ndarray:
         """Blocks to re-mesh: those whose cells read a changed block (call with the data lock held)."""
@@ -753,7 +870,7 @@ class SenFuNet:
         s = self._sensor_index(which)
         return blocks[f"tsdf{s}"], blocks[f"weight{s}"] > 0
 
-    def _mesh_batch(self, slots: np.ndarray, which: str, filtered: bool):
+    def _mesh_batch(self, slots: np.ndarray, which: str, filtered: bool) -> BlockTriangles:
         """Marching cubes over the given blocks of `which` (reads the grid without the data lock)."""
         grid = self.grid
         t0 = time.perf_counter()

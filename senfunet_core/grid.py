@@ -427,5 +427,13 @@ class BlockGrid:
 
     def nbytes(self) -> int:
         """Bytes of the blocks in use and the index (pool pages beyond them are never committed)."""
-        per_block = sum(p[0].numel() * p.element_size() for p in self.pools.values()) + 3 * 8 + 8
-        return self.n_blocks * per_block + self.table_keys.nbytes + self.table_slots.nbytes
+        return self.n_blocks * self._row_bytes() + self.table_keys.nbytes + self.table_slots.nbytes
+
+    def bytes_per_block(self) -> int:
+        """Memory one more block costs at most: its pool rows, coordinates and key, and its share of
+        the hash table (which doubles at load factor 0.5, so up to 4 entries a block)."""
+        entry = self.table_keys.itemsize + self.table_slots.itemsize
+        return self._row_bytes() + int(4 * entry)
+
+    def _row_bytes(self) -> int:
+        return sum(p[0].numel() * p.element_size() for p in self.pools.values()) + 3 * 8 + 8

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from senfunet_core.alpha import MODES, holds_targets
+from senfunet_core.alpha import surface_targets
 
 
 def _random_neighbourhood(rng: np.random.Generator) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -25,8 +25,9 @@ def _random_neighbourhood(rng: np.random.Generator) -> tuple[np.ndarray, list[np
     return neighbours, pools
 
 
-def _holds_surface_reference(neighbours: np.ndarray, pools: list[np.ndarray]) -> bool:
-    """Dense 24^3 neighbourhood, then every cell with a corner in the centre block."""
+def _surface_reference(neighbours: np.ndarray, pools: list[np.ndarray]) -> np.ndarray:
+    """Dense 24^3 neighbourhood, then every cell with a corner in the centre block: 8^3 mask of the
+    centre block's voxels that are corners of a cell with 8 observed corners and a sign change."""
     lo = np.full((24, 24, 24), np.inf, np.float32)
     hi = np.full((24, 24, 24), -np.inf, np.float32)
     for tsdf, weight in zip(pools[0::2], pools[1::2]):
@@ -45,16 +46,21 @@ def _holds_surface_reference(neighbours: np.ndarray, pools: list[np.ndarray]) ->
     seen = np.all([np.isfinite(window_lo[s]) for s in corners], axis=0)
     cell_lo = np.min([window_lo[s] for s in corners], axis=0)
     cell_hi = np.max([window_hi[s] for s in corners], axis=0)
-    return bool((seen & (cell_lo <= 0) & (cell_hi >= 0)).any())
+    cells = seen & (cell_lo <= 0) & (cell_hi >= 0)  # 9^3, lower corner at local -1..7
+    corner_of = np.zeros((10, 10, 10), bool)  # local -1..8
+    for a in (0, 1):
+        for b in (0, 1):
+            for c in (0, 1):
+                corner_of[a:a + 9, b:b + 9, c:c + 9] |= cells
+    return corner_of[1:9, 1:9, 1:9]
 
 
-def test_holds_targets_matches_a_dense_reference() -> None:
+def test_surface_targets_match_a_dense_reference() -> None:
     rng = np.random.default_rng(7)
     outcomes = []
     for _ in range(200):
         neighbours, pools = _random_neighbourhood(rng)
-        expected = _holds_surface_reference(neighbours, pools)
-        assert holds_targets(neighbours, *pools, MODES["surface"])[0] == expected
-        assert holds_targets(neighbours, *pools, MODES["all"])[0]
-        outcomes.append(expected)
-    assert 20 < sum(outcomes) < 180  # both answers were exercised
+        expected = _surface_reference(neighbours, pools)
+        np.testing.assert_array_equal(surface_targets(neighbours, *pools)[0].reshape(8, 8, 8), expected)
+        outcomes.append(expected.any())
+    assert 20 < sum(outcomes) < 180  # blocks with and without targets were exercised

@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from senfunet_core import networks
 from senfunet_core.engine import EngineConfig, SenFuNet
@@ -438,9 +439,10 @@ def test_alpha_budget_defers_work_and_holds_back_single_sensor_voxels():
     np.testing.assert_allclose(caught_up.meshes.vertices, full.meshes.vertices, atol=1e-6)
 
 
-def test_max_blocks_drops_the_blocks_farthest_from_the_camera():
-    """The memory bound: past max_blocks, an update drops the blocks farthest from the last camera;
-    the blocks kept hold exactly what an unbounded engine holds for them, and are found again."""
+def test_max_blocks_evicts_the_blocks_farthest_from_the_camera_and_keeps_their_mesh(tmp_path):
+    """The memory bound: past max_blocks, the blocks farthest from the last camera are evicted; the
+    blocks kept hold exactly what an unbounded engine holds for them, and are found again; the
+    evicted blocks' final meshes stay shown and saved: the fused mesh equals the unbounded one."""
     K = SPHERE_K
     far = np.array([3.0, 0.0, 0.0])  # a second sphere, 3 m away, seen last
     views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]]
@@ -475,13 +477,31 @@ def test_max_blocks_drops_the_blocks_farthest_from_the_camera():
         ~np.isin(block_keys(everything).numpy(), block_keys(kept).numpy())]
     assert len(dropped) == n_all - grid.n_blocks > 0
     assert float(distance(kept).max()) <= float(distance(dropped).min())  # the nearest blocks are kept
-    assert update.removed and all(key in shown for key in update.removed)  # dropped meshes are deleted
+    dropped_keys = set(map(tuple, dropped.tolist()))
+    assert not dropped_keys & set(update.removed)  # subscribers keep showing the evicted blocks
+    archived = bounded.archive.meshes().as_dict()
+    assert set(archived) <= dropped_keys and len(archived) > 0.5 * len(dropped_keys & set(shown))
+    for key, mesh in archived.items():  # the final mesh reached subscribers (sent again, or unchanged)
+        assert key in update.changed or key in shown
     slots = reference.grid.lookup(kept)
     assert bool((slots >= 0).all())
     assert torch.equal(grid.lookup(kept), torch.arange(grid.n_blocks))  # the hash table knows the moved blocks
     for name in ("tsdf0", "weight0", "feat0"):
         assert torch.equal(grid.pools[name][: grid.n_blocks], reference.grid.pools[name][slots]), name
-    assert bounded.extract_mesh("fused").n_faces > 1000
+    # the whole fused mesh, archive included, is the unbounded engine's (the archive is not welded)
+    full, kept_mesh = reference.extract_mesh("fused"), bounded.extract_mesh("fused")
+    assert full.n_faces > 1000 and abs(kept_mesh.n_faces - full.n_faces) <= 0.002 * full.n_faces
+
+    def centroids(mesh):
+        return mesh.vertices[mesh.faces].mean(axis=1)
+
+    gap, _ = cKDTree(centroids(full)).query(centroids(kept_mesh))
+    assert float(gap.max()) < 1e-5
+    assert bounded.stats()["archived_blocks"] == len(archived)
+    bounded.save(tmp_path / "map.pt")  # a saved map keeps the archive
+    loaded = SenFuNet.load(tmp_path / "map.pt")
+    assert loaded.extract_mesh("fused").n_faces == kept_mesh.n_faces
+    assert set(loaded.block_meshes().as_dict()) == set(bounded.block_meshes().as_dict())
 
 
 def test_integration_keeps_the_map_bound_between_updates():
@@ -543,7 +563,9 @@ def test_integration_past_the_hard_bound_during_an_update_is_served_between_batc
     assert not worker.is_alive()
     engine._mesh_batch, engine._evict = mesh_batch, evict
     assert len(dropped_mid_update) == 1, "no eviction at a safe point"
-    assert not np.isin(block_keys(torch.from_numpy(first.meshes.keys)).numpy(), dropped_mid_update[0]).any()
+    # the evicted blocks' final meshes are sent (from the archive), not lost
+    sent_evicted = np.isin(block_keys(torch.from_numpy(first.meshes.keys)).numpy(), dropped_mid_update[0])
+    assert sent_evicted.sum() == len(engine.archive) > 0
     for key, mesh in first.changed.items():  # each mesh lies in its block: the moved blocks were followed
         corner = np.array(key) * BLOCK * VOXEL
         assert ((mesh.vertices >= corner - 1e-6) & (mesh.vertices <= corner + (BLOCK + 1) * VOXEL + 1e-6)).all()
