@@ -57,7 +57,7 @@ def measure(frames, config, weights, update_every: int) -> dict:
     per_sensor: dict[str, list[float]] = {}
     feature: dict[str, list[float]] = {}
     alpha_s = mesh_s = 0.0
-    alpha_voxels = mesh_blocks = 0
+    alpha_voxels = mesh_blocks = alpha_flops = 0
     for i, (sensor, depth, K, T, rgb) in enumerate(frames):
         t0 = time.perf_counter()
         engine.integrate(sensor, depth, K, T, rgb)
@@ -69,16 +69,34 @@ def measure(frames, config, weights, update_every: int) -> dict:
             alpha_s += engine.timings_s["alpha"]
             mesh_s += engine.timings_s["mesh"]
             alpha_voxels += engine.counters["alpha_voxels"] - before
+            alpha_flops = engine.counters.get("alpha_flops", 0)
             mesh_blocks += engine.counters.get("mesh_blocks_last", len(update.changed) + len(update.removed))
     stats = engine.stats()
     return {
         "integrate_ms": {s: 1e3 * float(np.median(v[1:] if len(v) > 1 else v)) for s, v in per_sensor.items()},
         "feature_ms": {s: 1e3 * float(np.median(v[1:] if len(v) > 1 else v)) for s, v in feature.items()},
         "alpha_s": alpha_s, "alpha_voxels": alpha_voxels, "alpha_vox_per_s": alpha_voxels / max(alpha_s, 1e-9),
+        "alpha_flop_per_s": alpha_flops / max(alpha_s, 1e-9), "alpha_flops_per_voxel": alpha_flops / max(alpha_voxels, 1),
         "mesh_s": mesh_s, "mesh_blocks": mesh_blocks, "mesh_ms_per_block": 1e3 * mesh_s / max(mesh_blocks, 1),
         "observed": stats["observed_voxels"], "blocks": stats["blocks"],
         "bytes_per_observed_voxel": stats["bytes_per_observed_voxel"],
     }
+
+
+def peak_flop_per_s(dtype_name: str, threads: int) -> float:
+    """The CPU's practical peak in this process: a large square matrix product (the best case for
+    the hardware's multiply-add units), best of several, on `threads` threads."""
+    import torch
+
+    torch.set_num_threads(threads)
+    dtype = getattr(torch, dtype_name)
+    a, b = torch.randn(1024, 1024).to(dtype), torch.randn(1024, 1024).to(dtype)
+    best = float("inf")
+    for _ in range(8):
+        t0 = time.perf_counter()
+        torch.mm(a, b)
+        best = min(best, time.perf_counter() - t0)
+    return 2 * 1024**3 / best
 
 
 def main() -> None:
@@ -104,10 +122,15 @@ def main() -> None:
     configs = {
         "exact (alpha_voxels=all, tolerance 0)": replace(base, alpha_voxels="all", alpha_tolerance=0.0,
                                                          torch_threads=args.threads),
+        f"node (alpha_voxels=surface, tolerance 0, {base.alpha_dtype})":
+            replace(base, alpha_voxels="surface", alpha_tolerance=0.0, torch_threads=args.threads),
+        f"voxels (alpha_voxels=surface_voxels, tolerance 0, {base.alpha_dtype})":
+            replace(base, alpha_voxels="surface_voxels", alpha_tolerance=0.0, torch_threads=args.threads),
         f"fast (alpha_voxels=surface, tolerance {args.fast_tolerance:g})":
             replace(base, alpha_voxels="surface", alpha_tolerance=args.fast_tolerance, torch_threads=args.threads),
     }
     results = {name: measure(frames, cfg, weights, args.update_every) for name, cfg in configs.items()}
+    peaks = {dtype: peak_flop_per_s(dtype, args.threads) for dtype in ("float32", "bfloat16")}
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
              f"Frames: the first {len(frames)} depth frames (256x256, both sensors, arrival order) of {source}; "
              f"update() every {args.update_every} frames; torch threads {args.threads}; medians over frames "
@@ -122,6 +145,11 @@ def main() -> None:
     row("alpha: voxels evaluated / time", lambda r: f"{r['alpha_voxels']} in {r['alpha_s']:.2f} s")
     row("alpha throughput (voxels/s)", lambda r: f"{r['alpha_vox_per_s']:.3g}")
     row("alpha time per frame (ms)", lambda r: f"{1e3 * r['alpha_s'] / len(frames):.1f}")
+    row("G FLOPs per evaluated voxel", lambda r: f"{r['alpha_flops_per_voxel']:.3g}")
+    row("G FLOP/s (incl. gathering the inputs)", lambda r: f"{r['alpha_flop_per_s']:.3g}")
+    for dtype, peak in peaks.items():
+        row(f"- fraction of the {dtype} peak ({peak:.3g} FLOP/s, 1024^2 matrix product)",
+            lambda r, peak=peak: f"{r['alpha_flop_per_s'] / peak:.2f}")
     row("meshing per block (ms)", lambda r: f"{r['mesh_ms_per_block']:.3f} ({r['mesh_blocks']} blocks)")
     row("blocks / observed voxels", lambda r: f"{r['blocks']} / {r['observed']}")
     row("bytes per observed voxel", lambda r: f"{r['bytes_per_observed_voxel']:.0f}")

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from . import networks
-from .alpha import evaluate_columns, surface_targets, take_drift, target_columns, weighting_windows
+from .alpha import WINDOW, evaluate_columns, surface_targets, take_drift, target_columns, weighting_windows
 from .errors import InputError
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BLOCK, BlockGrid, block_keys, kernel_view, neighbour_table
@@ -75,9 +75,10 @@ class EngineConfig:
     mesh_batch_blocks: int = 2048  # blocks per marching-cubes call
     seed: int = 0  # initialisation of untrained networks
     torch_threads: int = 1  # torch intra-op threads the engine sets (0: leave torch's setting); 1 fits 2 shared cores
-    alpha_voxels: str = "all"  # which blocks near a change get alpha re-evaluated: "all" (equals the whole-grid
+    alpha_voxels: str = "all"  # where alpha near a change is re-evaluated: "all" (equals the whole-grid
     #   evaluation on every voxel); "surface" (blocks holding corners of cells whose 8 corners are observed and whose
-    #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be stale)
+    #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be stale);
+    #   "surface_voxels" (those corners alone, voxel by voxel: less arithmetic, more gathering; see bench/engine.py)
     alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (~2.5x faster on CPUs with
     #                               bfloat16 instructions, alpha within ~0.004; see test_equivalence.py)
     max_blocks: int = 0  # memory bound: past this many blocks, each update evicts the blocks farthest from the
@@ -112,8 +113,8 @@ class EngineConfig:
             raise InputError("w_max must be at most 2048 (weight counters are float16, exact up to 2048)")
         if self.alpha_dtype not in ("float32", "bfloat16"):
             raise InputError(f"alpha_dtype must be 'float32' or 'bfloat16', got '{self.alpha_dtype}'")
-        if self.alpha_voxels not in ("all", "surface"):
-            raise InputError(f"alpha_voxels must be 'all' or 'surface', got '{self.alpha_voxels}'")
+        if self.alpha_voxels not in ("all", "surface", "surface_voxels"):
+            raise InputError(f"alpha_voxels must be 'all', 'surface' or 'surface_voxels', got '{self.alpha_voxels}'")
         if self.max_blocks < -1:
             raise InputError(f"max_blocks must be >= 0 (0 = no bound) or -1 (from the machine's memory), "
                              f"got {self.max_blocks}")
@@ -642,28 +643,40 @@ class SenFuNet:
 
     def _evaluate_alpha(self, slots: np.ndarray) -> _AlphaBatch:
         """The weighting net on these blocks, where alpha matters (`alpha_voxels`): "all", every voxel
-        of every block (blocks with a 2-voxel halo); "surface", the voxels `alpha.surface_targets`
-        finds (layer by layer, as matrix products). Reads the grid without the data lock (see the
-        module docstring)."""
+        of every block; "surface", every voxel of the blocks that hold `alpha.surface_targets` (as
+        blocks with a 2-voxel halo: convolutions); "surface_voxels", those targets alone (layer by
+        layer, as matrix products). Reads the grid without the data lock (see the module docstring)."""
         cfg = self.config
         grid = self.grid
         neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
         dtype = torch.bfloat16 if cfg.alpha_dtype == "bfloat16" else torch.float32
-        if cfg.alpha_voxels == "surface":
+        holds = np.ones(len(slots), bool)
+        if cfg.alpha_voxels != "all":
             targets = surface_targets(neighbours, *self._views("tsdf0", "weight0", "tsdf1", "weight1"))
             holds = targets.any(axis=1)
             if not holds.any():
                 return _AlphaBatch(slots, holds, np.zeros(0, np.int64), np.zeros(0, np.float32))
+        if cfg.alpha_voxels == "surface_voxels":
             columns, gather, voxels = target_columns(neighbours[holds], targets[holds], *self._weighting_inputs())
+            self._count_alpha_flops(layer_1_positions=len(columns), voxels=len(voxels), inputs=columns.shape[1])
             return _AlphaBatch(slots, holds, voxels, evaluate_columns(self.weighting_net, columns, gather,
                                                                       dtype=dtype))
-        holds = np.ones(len(slots), bool)
-        windows = weighting_windows(neighbours, *self._weighting_inputs())
+        slots_holding = slots[holds]
+        windows = weighting_windows(neighbours[holds], *self._weighting_inputs())
         x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
             alpha = self.weighting_net(x, pad=False).float().reshape(-1).cpu().numpy()
-        voxels = (slots[:, None] * BLOCK**3 + np.arange(BLOCK**3)).reshape(-1)
+        voxels = (slots_holding[:, None] * BLOCK**3 + np.arange(BLOCK**3)).reshape(-1)
+        self._count_alpha_flops(layer_1_positions=len(slots_holding) * (WINDOW - 2) ** 3, voxels=len(voxels),
+                                inputs=27 * windows.shape[-1])
         return _AlphaBatch(slots, holds, voxels, alpha)
+
+    def _count_alpha_flops(self, *, layer_1_positions: int, voxels: int, inputs: int) -> None:
+        """Multiply-adds of the weighting net (x2 = FLOPs), for the benchmark's fraction of peak."""
+        net = self.weighting_net
+        hidden_1, hidden_2 = net.conv1.out_channels, net.conv2.out_channels
+        macs = layer_1_positions * inputs * hidden_1 + voxels * (27 * hidden_1 * hidden_2 + hidden_2)
+        self.counters["alpha_flops"] = self.counters.get("alpha_flops", 0) + 2 * macs
 
     def _write_alpha(self, results: list[_AlphaBatch], wait: bool) -> None:
         """Write evaluated batches (and empty `results`), if the data lock is free or `wait`. Where

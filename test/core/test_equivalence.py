@@ -110,8 +110,9 @@ def sorted_mesh(mesh):
     return mesh.vertices[order], mesh.colors[order], faces
 
 
-def test_surface_mode_gives_the_exact_fused_mesh(exact):
-    engine, shown = run(alpha_voxels="surface", alpha_tolerance=0.0)
+@pytest.mark.parametrize("mode", ["surface", "surface_voxels"])
+def test_surface_mode_gives_the_exact_fused_mesh(exact, mode):
+    engine, shown = run(alpha_voxels=mode, alpha_tolerance=0.0)
     ref, ref_shown = exact
     a, b = sorted_mesh(engine.extract_mesh("fused")), sorted_mesh(ref.extract_mesh("fused"))
     assert len(b[2]) > 2000
