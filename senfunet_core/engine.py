@@ -12,11 +12,20 @@ grid); then it re-meshes every block whose cells read a changed alpha or TSDF (t
 and their -x, -y, -z neighbours, since a block's cells reach one voxel into its +x, +y, +z
 neighbours).
 
-Threads: `integrate` may run in one thread while `update` (or an extraction) runs in another.
-Writers of the grid hold the data lock: integration while its kernels run (its feature net runs
-outside it, in a worker thread), an update while it takes the frames' drift and writes alpha.
-An update reads input windows without it: a block integrated meanwhile is marked again and
-re-read by the next update. Updates and extractions are serialised among themselves.
+Threading model (the one place it is described):
+- Threads: an integrating thread calls `prepare`/`integrate`; an updating thread calls `update`,
+  `refresh_alpha`, the extractions, `save`, `reset`; one feature-net worker thread (module-wide)
+  runs the 2D nets. Several threads may integrate, and several may update: the locks serialise them.
+- The update lock (`_updating`) serialises updates, extractions, saves and evictions, and owns the
+  per-block scheduling flags' readers, the mesh archive and the set of meshed blocks.
+- The data lock guards the grid's contents and the per-block flags: integration holds it while its
+  kernels run, an update while it takes the frames' drift, writes alpha or evicts. An update reads
+  input windows without it: a block integrated meanwhile is marked again and re-read by the next
+  update, and pools that grow meanwhile stay valid for whoever still holds the old ones.
+- Lock order: update lock, then data lock, then the eviction condition. Integration never takes the
+  update lock while holding the data lock; past the map's hard bound it releases the data lock and
+  either evicts itself (the update lock free) or waits on the eviction condition, which every
+  eviction and every release of the update lock notifies. No thread polls.
 """
 from __future__ import annotations
 
