@@ -671,7 +671,7 @@ class SenFuNet:
             return _AlphaBatch(slots, holds, voxels, evaluate_columns(self.weighting_net, columns, gather,
                                                                       dtype=dtype))
         slots_holding = slots[holds]
-        windows = weighting_windows(neighbours[holds], *self._weighting_inputs())
+        windows = self._weighting_windows(neighbours[holds])
         x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
             alpha = self.weighting_net(x, pad=False).float().reshape(-1).cpu().numpy()
@@ -704,6 +704,10 @@ class SenFuNet:
         finally:
             self._data_lock.release()
         results.clear()
+
+    def _weighting_windows(self, neighbours: np.ndarray) -> np.ndarray:
+        """The weighting net's B x 12^3 x C input windows of these blocks (used by training)."""
+        return weighting_windows(neighbours, *self._weighting_inputs())
 
     def _weighting_inputs(self) -> tuple:
         """The pools the weighting net reads (alpha.weighting_windows, alpha.target_columns), with the
