@@ -1,7 +1,8 @@
 """Engine micro-benchmark (issue 2 item 5): integration time per 256x256 frame per sensor, alpha
 throughput, meshing time per block, bytes per observed voxel.
 
-    .venv/bin/python bench/engine.py                  # sample bag frames (or a simulated room), writes docs/performance.md
+    .venv/bin/python bench/engine.py                  # sample bag frames (or a simulated room);
+                                                      # writes docs/performance.md
     .venv/bin/python bench/engine.py --frames 40 --no-write
 
 Frames come from the sample bag through the node's Ingest (as `senfunet replay` reads them) or,
@@ -47,7 +48,8 @@ def load_frames(bag: Path, n: int, seed: int):
     from senfunet_core.learning import simulator as sim
 
     seq = sim.simulate_sequence(sim.make_scene(seed), seed, duration_s=n / 35 + 0.1)
-    return [(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb) for f in seq.frames[:n]], f"simulated room (seed {seed})"
+    frames = [(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb) for f in seq.frames[:n]]
+    return frames, f"simulated room (seed {seed})"
 
 
 def measure(frames, config, weights, update_every: int) -> dict:

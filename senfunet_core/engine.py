@@ -427,7 +427,7 @@ class SenFuNet:
         tmp.replace(path)
 
     @classmethod
-    def load(cls, path: str | Path, device: str | None = None) -> "SenFuNet":
+    def load(cls, path: str | Path, device: str | None = None) -> SenFuNet:
         """An engine with the state `save` wrote; the next update re-sends the whole mesh."""
         path = Path(path)
         try:
@@ -481,7 +481,8 @@ class SenFuNet:
 
     def _check_which(self, which: str) -> None:
         if which not in (FUSED, TSDF_FUSION, *self.config.sensors):
-            raise InputError(f"unknown mesh '{which}'; choose {FUSED}, {TSDF_FUSION} or one of {list(self.config.sensors)}")
+            raise InputError(f"unknown mesh '{which}'; choose {FUSED}, {TSDF_FUSION} "
+                             f"or one of {list(self.config.sensors)}")
         if which == TSDF_FUSION and not self.config.tsdf_fusion:
             raise InputError("this engine keeps no TSDF Fusion baseline; create it with EngineConfig(tsdf_fusion=True)")
 

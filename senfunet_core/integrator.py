@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import numba
 import numpy as np
@@ -219,8 +219,8 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
                 o = offsets_m[k]
                 i = np.int64(np.rint((px + o * dx) * inv_voxel))
                 j = np.int64(np.rint((py + o * dy) * inv_voxel))
-                l = np.int64(np.rint((pz + o * dz) * inv_voxel))
-                key = coords_key(i >> 3, j >> 3, l >> 3)
+                k_ = np.int64(np.rint((pz + o * dz) * inv_voxel))
+                key = coords_key(i >> 3, j >> 3, k_ >> 3)
                 if key == last_key:
                     slot = last_slot
                 else:
@@ -236,7 +236,7 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
                     slot_to_touched[slot] = touched
                     touched_slots[touched] = slot
                     n_touched += 1
-                sample_flat[base + k] = slot * 512 + ((i & 7) << 6) + ((j & 7) << 3) + (l & 7)
+                sample_flat[base + k] = slot * 512 + ((i & 7) << 6) + ((j & 7) << 3) + (k_ & 7)
                 sample_touched[base + k] = touched
             pixel_index[n_pixels] = v * w + u
             n_pixels += 1

@@ -41,7 +41,7 @@ class Mesh:
     colors: np.ndarray | None = None  # Nx3 float32 RGB in 0..1
 
     @staticmethod
-    def empty() -> "Mesh":
+    def empty() -> Mesh:
         return Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32))
 
     @property
@@ -257,7 +257,7 @@ for _i in range(64):
 del _i
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _kernel(n: int):
     """The marching-cubes kernel for blocks of n^3 samples (2 <= n <= 16) and its n-dependent
     tables: (fill, coff, tri_key, max_block_v, max_block_f). n is a constant of the compiled code
@@ -543,14 +543,14 @@ class BlockMeshes:
     def as_dict(self) -> dict[tuple[int, int, int], Mesh]:
         return {key: self.mesh(b) for b, key in enumerate(map(tuple, self.keys.tolist()))}
 
-    def blocks(self, start: int, stop: int) -> "BlockMeshes":
+    def blocks(self, start: int, stop: int) -> BlockMeshes:
         """Blocks start..stop-1 (views of the shared arrays)."""
         v0, v1 = self.vertex_offsets[start], self.vertex_offsets[stop]
         f0, f1 = self.face_offsets[start], self.face_offsets[stop]
         return BlockMeshes(self.keys[start:stop], self.vertices[v0:v1], self.colors[v0:v1], self.faces[f0:f1],
                            self.vertex_offsets[start:stop + 1] - v0, self.face_offsets[start:stop + 1] - f0)
 
-    def select(self, index: np.ndarray) -> "BlockMeshes":
+    def select(self, index: np.ndarray) -> BlockMeshes:
         """The blocks at these indices, in this order (copies)."""
         index = np.asarray(index, np.int64)
         v_counts, f_counts = np.diff(self.vertex_offsets)[index], np.diff(self.face_offsets)[index]
@@ -561,7 +561,7 @@ class BlockMeshes:
                            np.concatenate([[0], np.cumsum(f_counts)]).astype(np.int64))
 
     @staticmethod
-    def concatenate(parts: list["BlockMeshes"]) -> "BlockMeshes":
+    def concatenate(parts: list[BlockMeshes]) -> BlockMeshes:
         if not parts:
             z = np.zeros((0, 3), np.float32)
             return BlockMeshes(np.zeros((0, 3), np.int64), z, z.copy(), np.zeros((0, 3), np.int32),
@@ -577,7 +577,7 @@ class BlockMeshes:
             np.concatenate([[0]] + [p.face_offsets[1:] + b for p, b in zip(parts, f_base)]).astype(np.int64))
 
     @staticmethod
-    def from_meshes(meshes: "dict[tuple[int, int, int], Mesh]") -> "BlockMeshes":
+    def from_meshes(meshes: dict[tuple[int, int, int], Mesh]) -> BlockMeshes:
         """Meshes per block key -> one BlockMeshes, in key order (white where a mesh has no colours)."""
         keys = sorted(meshes)
         parts = [meshes[k] for k in keys]
@@ -585,8 +585,10 @@ class BlockMeshes:
                   else np.ones((len(p.vertices), 3), np.float32) for p in parts]
         return BlockMeshes(
             np.array(keys, np.int64).reshape(-1, 3),
-            np.concatenate([np.asarray(p.vertices, np.float32) for p in parts]) if parts else np.zeros((0, 3), np.float32),
+            np.concatenate([np.asarray(p.vertices, np.float32) for p in parts]) if parts
+            else np.zeros((0, 3), np.float32),
             np.concatenate(colors).astype(np.float32) if parts else np.zeros((0, 3), np.float32),
-            np.concatenate([np.asarray(p.faces) for p in parts]).astype(np.int32) if parts else np.zeros((0, 3), np.int32),
+            np.concatenate([np.asarray(p.faces) for p in parts]).astype(np.int32) if parts
+            else np.zeros((0, 3), np.int32),
             np.cumsum([0] + [len(p.vertices) for p in parts], dtype=np.int64),
             np.cumsum([0] + [len(p.faces) for p in parts], dtype=np.int64))

@@ -139,7 +139,8 @@ def load_weights(path: str | Path, feature_nets: nn.ModuleList, weighting_net: W
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
         if len(state["feature_nets"]) != len(feature_nets):
-            raise InputError(f"{path} holds {len(state['feature_nets'])} feature nets, the engine has {len(feature_nets)} sensors")
+            raise InputError(f"{path} holds {len(state['feature_nets'])} feature nets, "
+                             f"the engine has {len(feature_nets)} sensors")
         for net, net_state in zip(feature_nets, state["feature_nets"]):
             net.load_state_dict(net_state)
         weighting_net.load_state_dict(state["weighting_net"])

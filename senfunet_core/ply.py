@@ -191,7 +191,8 @@ def _binary_element(path: Path, el: _Element, buf: memoryview, off: int, bo: str
                 # the same size), so its count is real.
                 i = int(bad[0])
                 if el.name == "face" and p.name in _FACE_LIST_NAMES:
-                    raise InputError(f"{path}: face {i} has {int(counts[i])} vertices; only triangle meshes are supported")
+                    raise InputError(f"{path}: face {i} has {int(counts[i])} vertices; "
+                                     "only triangle meshes are supported")
                 raise InputError(f"{path}: element '{el.name}' list '{p.name}' has varying lengths; not supported")
     return arr, off + dt.itemsize * el.count
 

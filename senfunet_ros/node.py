@@ -20,7 +20,8 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import rclpy
@@ -305,7 +306,8 @@ class FusionNode(Node):
         self.time_jumps += 1
         action = self.settings.on_time_jump
         self.get_logger().warning(
-            f"time jumped back on {jump.sensor} {jump.stream}: {jump.from_ns * 1e-9:.3f} s -> {jump.to_ns * 1e-9:.3f} s "
+            f"time jumped back on {jump.sensor} {jump.stream}: "
+            f"{jump.from_ns * 1e-9:.3f} s -> {jump.to_ns * 1e-9:.3f} s "
             f"(a bag restarting?); queued frames flushed, map {'reset' if action == 'reset' else 'kept'} "
             "(parameter on_time_jump)")
         if action == "reset":
@@ -420,7 +422,8 @@ class FusionNode(Node):
         values += [KeyValue(key=f"engine.{k}_ms", value=f"{v * 1e3:.1f}")
                    for k, v in dict(getattr(self.engine, "timings_s", {})).items()]
         msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name="senfunet: pipeline",
-                                           message=f"{self.engine.counters.get('meshed_blocks', 0)} mesh blocks", hardware_id=hardware_id,
+                                           message=f"{self.engine.counters.get('meshed_blocks', 0)} mesh blocks",
+                                           hardware_id=hardware_id,
                                            values=values))
         return msg
 

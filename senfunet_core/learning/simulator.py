@@ -28,7 +28,8 @@ from senfunet_core.mesher import Mesh
 __all__ = [
     "Primitive", "Surface", "Scene", "make_scene", "scene_sdf", "gt_tsdf", "gt_mesh",
     "SensorFrame", "Sequence", "simulate_sequence", "render_view", "intrinsics",
-    "write_dataset", "load_dataset", "simulate_tof_depth", "simulate_stereo_depth", "SENSORS", "STEREO_BASELINE_M", "TOF_OFFSET_X_M",
+    "write_dataset", "load_dataset", "simulate_tof_depth", "simulate_stereo_depth", "SENSORS", "STEREO_BASELINE_M",
+    "TOF_OFFSET_X_M",
 ]
 
 SENSORS = ("tof", "stereo")
@@ -198,7 +199,8 @@ def make_scene(seed: int, *, room_size_m: tuple[float, float, float] | None = No
             w, d, h = 2 * r, 2 * r, 2 * r
         if against_wall:
             wall = int(rng.integers(0, 4))
-            along = rng.uniform(0.1 + w / 2, (lx if wall < 2 else ly) - 0.1 - w / 2) if (lx if wall < 2 else ly) > w + 0.2 else None
+            wall_m = lx if wall < 2 else ly
+            along = rng.uniform(0.1 + w / 2, wall_m - 0.1 - w / 2) if wall_m > w + 0.2 else None
             if along is None:
                 continue
             gap = 0.01 + d / 2
@@ -216,7 +218,8 @@ def make_scene(seed: int, *, room_size_m: tuple[float, float, float] | None = No
             yaw = rng.uniform(-np.pi, np.pi)
         radius = 0.5 * np.hypot(w, d)
         # the item's footprint (bounding circle) must fit in the room and stay off the loop
-        if not against_wall and (x - radius < 0.02 or y - radius < 0.02 or x + radius > lx - 0.02 or y + radius > ly - 0.02):
+        if not against_wall and (x - radius < 0.02 or y - radius < 0.02
+                                 or x + radius > lx - 0.02 or y + radius > ly - 0.02):
             continue
         if _seg_dist(np.array([[x, y]]), corridor)[0] < corridor_radius + radius:
             continue
@@ -257,16 +260,19 @@ def make_scene(seed: int, *, room_size_m: tuple[float, float, float] | None = No
                     box(sx * (w / 2 - 2 * leg), sy * (d / 2 - 2 * leg), (h - t) / 2, leg, leg, (h - t) / 2, legs_surf)
             if rng.random() < 0.5:  # something on the table
                 r = rng.uniform(0.06, 0.15)
-                prims.append(Primitive("sphere", (float(x), float(y), float(h + r)), (r, r, r), 0.0, new_surface(), item))
+                prims.append(Primitive("sphere", (float(x), float(y), float(h + r)), (r, r, r), 0.0, new_surface(),
+                                       item))
         elif kind == "cylinder":
-            prims.append(Primitive("cylinder", (float(x), float(y), float(h / 2)), (w / 2, w / 2, h / 2), 0.0, sid, item))
+            prims.append(Primitive("cylinder", (float(x), float(y), float(h / 2)), (w / 2, w / 2, h / 2), 0.0, sid,
+                                   item))
         else:
             prims.append(Primitive("sphere", (float(x), float(y), float(h / 2)), (w / 2, w / 2, w / 2), 0.0, sid, item))
         kinds.append(kind)
         footprints.append((x, y, radius))
 
     n_lights = int(rng.integers(1, 4))
-    lights = tuple((float(rng.uniform(0.2, lx - 0.2)), float(rng.uniform(0.2, ly - 0.2)), lz - 0.05) for _ in range(n_lights))
+    lights = tuple((float(rng.uniform(0.2, lx - 0.2)), float(rng.uniform(0.2, ly - 0.2)), lz - 0.05)
+                   for _ in range(n_lights))
     # What real sites vary beyond the layout, drawn from their own stream (the layout above keeps its
     # draws): the amount of texture (contrast of the textured surfaces), and for the ToF the
     # infrared reflectivity of each material (painted walls and ceiling are bright in the infrared;
@@ -570,15 +576,16 @@ def _intersect(prim: Primitive, o: np.ndarray, dx: np.ndarray, dy: np.ndarray, d
         dx, dy = c * dx + s * dy, -s * dx + c * dy
     q = q.astype(np.float32)
     if prim.kind == "box":
-        tn = None
+        tn = tf = None
         for qa, da, ha in ((q[0], dx, prim.size_m[0]), (q[1], dy, prim.size_m[1]), (q[2], dz, prim.size_m[2])):
             # a ray parallel to a slab gets +-huge parameters with the right signs
             inv = np.float32(1.0) / np.where(da == 0, np.float32(1e-20), da)
             t1 = (np.float32(-ha) - qa) * inv
             t2 = (np.float32(ha) - qa) * inv
             near, far = np.minimum(t1, t2), np.maximum(t1, t2)
-            tn = near if tn is None else np.maximum(tn, near)
-            tf = far if tn is near else np.minimum(tf, far)
+            first = tn is None
+            tn = near if first else np.maximum(tn, near)
+            tf = far if first else np.minimum(tf, far)
         return np.where((tn <= tf) & (tn > 1e-6), tn, np.float32(np.inf))
     r = np.float32(prim.size_m[0])
     if prim.kind == "sphere":
@@ -1017,7 +1024,8 @@ def simulate_sequence(scene: Scene, seed: int, *, duration_s: float = 10.0, tof_
         raise InputError("duration_s and the rates must be > 0")
     if width < SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE or height < 16:
         # SGBM needs the image wider than its disparity range plus half a block
-        raise InputError(f"images must be at least {SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE} x 16, got {width} x {height}")
+        raise InputError(f"images must be at least {SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE} x 16, "
+                         f"got {width} x {height}")
     rng = np.random.default_rng([seed, 3])
     pose_margin = 2.0 / pose_rate_hz + 0.02
     traj = _Trajectory(scene, seed, -pose_margin - 0.01, duration_s + pose_margin + 0.01)

@@ -110,7 +110,7 @@ class TrainConfig:
                                 self.border_px)
 
     @classmethod
-    def from_dict(cls, values: dict) -> "TrainConfig":
+    def from_dict(cls, values: dict) -> TrainConfig:
         known = {f.name: f for f in fields(cls)}
         unknown = sorted(set(values) - set(known))
         if unknown:
@@ -670,7 +670,8 @@ class Trainer:
             data.append({"x": torch.from_numpy(x).permute(0, 4, 1, 2, 3).contiguous(),
                          "gt": torch.from_numpy(gt_tsdf_blocks(seq.scene, g.coords[keep].numpy(), cfg.voxel_size_m,
                                                                cfg.band_m)),
-                         **{f"{c}{i}": g.pools[f"{c}{i}"][keep].float().clone() for c in ("tsdf", "weight") for i in (0, 1)}})
+                         **{f"{c}{i}": g.pools[f"{c}{i}"][keep].float().clone()
+                            for c in ("tsdf", "weight") for i in (0, 1)}})
             del engine
         terms_sum: dict[str, float] = {}
         params = list(self.weighting_net.parameters())

@@ -2,10 +2,8 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
-from pathlib import Path
 
 HELP = "publish a recorded bag on its topics with /clock (for nodes using use_sim_time), at a chosen rate"
 
@@ -92,7 +90,8 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         if not args.no_clock:
             from rosgraph_msgs.msg import Clock
 
-            clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+            clock_pub = node.create_publisher(Clock, "/clock",
+                                              QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
             clock_msg = Clock()
 
         def publish_clock(stamp_ns: int) -> None:

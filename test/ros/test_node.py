@@ -6,7 +6,8 @@ import multiprocessing
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -219,7 +220,7 @@ def stream_scene(prefix: str, speed: float, go: Any = None, taken: Any = None) -
     for s in ("tof", "stereo"):
         for t, T in zip(seq.pose_stamps_s[s], seq.pose_T_world_camera[s]):
             events.append((t, 0, FLOW.index((s, "pose_received")),
-                           lambda m=_pose_msg(t, T), s=s: pubs[(s, "pose")].publish(m)))
+                           lambda m=_pose_msg(t, T), s=s: pubs[(s, "pose")].publish(m)))  # noqa: B008 (bound now)
     for f in seq.frames:
         h, w = f.depth_m.shape
         info = CameraInfo(width=w, height=h, k=[float(v) for v in f.K.reshape(-1)])
@@ -272,7 +273,7 @@ def test_parameter_table_declared_and_default_yaml_matches(ros, tmp_path: Path) 
     expected = P.expanded_defaults()
     run = Running("params", {}, tmp_path)
     try:
-        for name, (default, help_text) in expected.items():
+        for name, (_default, help_text) in expected.items():
             assert run.node.has_parameter(name), name
             descriptor = run.node.describe_parameter(name)
             assert descriptor.description == help_text

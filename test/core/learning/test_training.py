@@ -171,7 +171,7 @@ def test_feature_gradient_on_the_image_window_equals_the_whole_image(tiny_sequen
 
     losses_window, g_window = grads(tr.FEATURE_RADIUS_PX)
     losses_whole, g_whole = grads(10_000)
-    assert sum(l is not None for l in losses_window) >= 3 and losses_window == losses_whole
+    assert sum(loss is not None for loss in losses_window) >= 3 and losses_window == losses_whole
     assert all(float(g.abs().max()) > 0 for g in g_window)
     assert relative_difference(g_window, g_whole) < 1e-4
     _, g_small = grads(1)  # too small a window: different gradients
