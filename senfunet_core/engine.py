@@ -167,19 +167,13 @@ def _compact_offsets(offsets: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return np.concatenate([[offsets[0]], offsets[keep + 1]]).astype(np.int64)
 
 
-def resolve_device(name: str) -> torch.device:
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise InputError(f"device '{name}' requested but CUDA is not available; use device 'cpu'")
-    return torch.device(name)
-
-
 class SenFuNet:
     """Learned two-sensor TSDF fusion on sparse voxel blocks, plus the plain TSDF Fusion baseline."""
 
     def __init__(self, config: EngineConfig = EngineConfig(), weights: str | Path | None = "default") -> None:
         config.validate()
         self.config = config
-        self.device = resolve_device(config.device)
+        self.device = networks.choose_device(config.device, cpu_fallback=False).device
         if config.torch_threads > 0 and torch.get_num_threads() != config.torch_threads:
             torch.set_num_threads(config.torch_threads)
         self.weights_source = "random initialisation (untrained)"

@@ -126,6 +126,20 @@ def test_settings_from_file_match_the_node_defaults(tmp_path: Path):
         load_settings(typo)
 
 
+def test_node_engine_config_runs_on_the_cpu_when_cuda_is_asked_for_and_absent(tmp_path: Path, monkeypatch):
+    import torch
+
+    from senfunet_ros import params as P
+    from senfunet_ros.replay import load_settings
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    file = tmp_path / "cuda.yaml"
+    file.write_text("/**:\n  ros__parameters:\n    device: cuda\n")
+    settings = load_settings(file)
+    assert settings.device == "cuda"
+    assert P.engine_config(settings).device == "cpu"
+
+
 # -- BagFeeder ----------------------------------------------------------------------------------
 
 
