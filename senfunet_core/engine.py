@@ -26,6 +26,7 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -169,6 +170,9 @@ def _compact_offsets(offsets: np.ndarray, keep: np.ndarray) -> np.ndarray:
 
 class SenFuNet:
     """Learned two-sensor TSDF fusion on sparse voxel blocks, plus the plain TSDF Fusion baseline."""
+
+    _cleared: bool  # reset since the last mesh update (set by _reset_state, which __init__ calls)
+    _evicted_meshes: list[tuple[int, int, int]]
 
     def __init__(self, config: EngineConfig = EngineConfig(), weights: str | Path | None = "default") -> None:
         config.validate()
@@ -433,7 +437,8 @@ class SenFuNet:
         except Exception as err:
             raise InputError(f"cannot read engine state {path}: {err}") from err
         known = {f.name for f in fields(EngineConfig)}
-        config_values = {k: tuple(v) if isinstance(v, list) else v for k, v in state["config"].items() if k in known}
+        config_values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
+                                         for k, v in state["config"].items() if k in known}
         config = EngineConfig(**config_values)
         if device is not None:
             config = replace(config, device=device)
@@ -491,7 +496,7 @@ class SenFuNet:
         self._mesh_pending = np.zeros(0, bool)  # TSDF or alpha changed since it was meshed
         self._schedules = 0
         self._camera_m = np.zeros(3)  # the last integrated frame's camera centre (the map bound keeps what is near)
-        self._evicted_meshes: list[tuple[int, int, int]] = []  # meshed blocks evicted, reported by the next update
+        self._evicted_meshes = []  # meshed blocks evicted, reported by the next update
         self._meshed: set[tuple[int, int, int]] = set()
         self._cleared = False
         self._grow_flags()
@@ -556,7 +561,7 @@ class SenFuNet:
                 break
             if self._eviction_due():
                 self._write_alpha(results, wait=True)  # before slots move
-                order, _ = self._evict().follow(order)
+                order, _ = self._evict().follow(order)  # type: ignore[union-attr]  # due: not None
             batch, order = order[:cfg.alpha_batch_blocks], order[cfg.alpha_batch_blocks:]
             grid = self.grid
             neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, batch)
@@ -601,7 +606,7 @@ class SenFuNet:
         if self.config.weighting_tsdf_input:
             tsdf = self._views("tsdf0", "tsdf1")
         else:
-            tsdf = (np.zeros(0, np.float32), np.zeros(0, np.float32))
+            tsdf = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
         return weighting_windows(neighbours, *self._views("feat0", "weight0", "feat1", "weight1"), *tsdf,
                                  2.0 / self.config.band_m)
 
@@ -697,6 +702,7 @@ class SenFuNet:
         while len(slots):
             if self._eviction_due():
                 eviction = self._evict()
+                assert eviction is not None  # _eviction_due()
                 slots, kept = eviction.follow(slots)
                 coords = coords[kept]
                 evicted.append(eviction.dropped_keys)
@@ -707,6 +713,7 @@ class SenFuNet:
             whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
                             self.config.voxel_size_m, tris.vertex_values)
             keep = np.flatnonzero(np.diff(f_start) > 0)
+            assert whole.colors is not None  # alpha colours: the fused mesh interpolates alpha
             parts.append(BlockMeshes(batch_coords[keep], whole.vertices, whole.colors,
                                      whole.faces, _compact_offsets(v_start, keep), _compact_offsets(f_start, keep)))
         meshes = BlockMeshes.concatenate(parts)

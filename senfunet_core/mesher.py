@@ -199,7 +199,7 @@ def _triangulate(poly: list[int], chord_ok) -> list[tuple[int, int, int]] | None
     works, else any valid triangulation."""
     m = len(poly)
     if m == 3:
-        return [tuple(poly)]
+        return [(poly[0], poly[1], poly[2])]
     for s in range(m):
         apex = poly[s]
         ring = poly[s:] + poly[:s]
@@ -308,7 +308,7 @@ def _kernel(n: int):
                 code[p] = np.uint8(ts[p] < 0) | (np.uint8(ob[p]) << 1)
             for col in range(nn):
                 base = col * n
-                m = 0
+                m: int | np.int64 = 0
                 for k in range(n):
                     m |= np.int64(code[base + k]) << (4 * k)
                 inside_col[col] = m & sample_bits
