@@ -220,16 +220,16 @@ class _McapStreamSource(_Source):
                                            self._schema_text.get(cid, ""))
 
     def _records(self) -> Iterator[Any]:
+        from mcap.records import Channel, Schema
         from mcap.stream_reader import StreamReader
 
         schemas: dict[int, tuple[str, str]] = {}
         self._schema_text: dict[int, str] = {}
         with self.path.open("rb") as stream:
             for record in StreamReader(stream, record_size_limit=2**31).records:
-                name = type(record).__name__
-                if name == "Schema":
+                if isinstance(record, Schema):
                     schemas[record.id] = (record.name, record.data.decode("utf-8", "replace"))
-                elif name == "Channel":
+                elif isinstance(record, Channel):
                     msgtype, text = schemas.get(record.schema_id, ("", ""))
                     self._channels[record.id] = (record.topic, normalize_msgtype(msgtype))
                     self._schema_text[record.id] = text

@@ -57,9 +57,9 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         say(f"note: {reader.note}")
     topics = reader.topics
     if args.topics:
-        unknown = [t for t in args.topics if t not in topics]
-        if unknown:
-            return _error(f"{reader.path}: no topic {', '.join(unknown)}; the bag has {', '.join(sorted(topics))}")
+        missing = [t for t in args.topics if t not in topics]
+        if missing:
+            return _error(f"{reader.path}: no topic {', '.join(missing)}; the bag has {', '.join(sorted(topics))}")
         topics = {t: topics[t] for t in args.topics}
     classes: dict[str, type] = {}
     unknown: dict[str, str] = {}
