@@ -75,12 +75,12 @@ class EngineConfig:
     alpha_voxels: str = "all"  # which blocks near a change get alpha re-evaluated: "all" (equals the whole-grid
     #   evaluation on every voxel); "surface" (blocks holding corners of cells whose 8 corners are observed and whose
     #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be stale)
-    alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (~2.5x faster on CPUs with
-    #                               bfloat16 instructions, alpha within ~0.004; see test_equivalence.py)
+    alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (faster on CPUs with
+    #                               bfloat16 instructions, alpha close to float32's; see test_equivalence.py)
     max_blocks: int = 0  # memory bound: past this many blocks, each update drops the blocks farthest from the
     #                      last camera position (down to 90%), and so does integration past 1.25x; 0 = no bound
     tsdf_fusion: bool = True  # also integrate every frame into one plain TSDF grid: the "tsdf_fusion" baseline
-    #                           (about 15% of the integration time and 6 bytes per voxel)
+    #                           (one more running average per sample and 6 bytes per voxel)
     alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
     #                               (max-norm over [F, tanh(W)], summed over frames); 0 = exact
     weighting_tsdf_input: bool = False  # the weighting net also reads the sensors' TSDFs (a departure from the

@@ -2,8 +2,7 @@
 
 Marching cubes here is our own: the triangulation table is generated at import time from the
 rules below (`_build_tables`), and a numba kernel (`_kernel`) meshes a whole batch of blocks in
-one call (about 2 us per 8^3 block crossed by a surface on the development machine, over 20x
-faster than the scikit-image path it replaced: see bench/mesher.py).
+one call, without a Python step per block (bench/mesher.py measures it against scikit-image).
 
 Conventions of the extracted surface (TSDF level 0):
 - A corner is *inside* when its value is < 0; a value of exactly 0 counts as outside (free). The
@@ -262,7 +261,7 @@ def _kernel(n: int):
     """The marching-cubes kernel for blocks of n^3 samples (2 <= n <= 16) and its n-dependent
     tables: (fill, coff, tri_key, max_block_v, max_block_f). n is a constant of the compiled code
     (numba caches one version per n): with n = 9 known, index arithmetic folds and the per-column
-    loops unroll, which makes the kernel about 1.3x faster than with n a variable."""
+    loops unroll, which a variable n would prevent."""
     nn = n * n
     n3 = nn * n
     sample_bits = sum(1 << (4 * k) for k in range(n))  # bit 4k: sample k of a column
@@ -438,7 +437,7 @@ def marching_cubes_blocks(tsdf: np.ndarray, observed: np.ndarray, block_origin_v
     fill, coff, tri_key, max_block_v, max_block_f = _kernel(n)
     has_extra = extra is not None
     # first guess of the output size (untouched capacity costs no memory; growing costs a copy):
-    # surface blocks of real scans have ~60-80 vertices and ~90-140 triangles
+    # a surface crossing a block makes far fewer vertices than the bound of one per grid edge
     cap_v = 128 * n_blocks + max_block_v
     cap_f = 2 * cap_v + max_block_f
     verts = np.empty((cap_v, 3))

@@ -101,10 +101,6 @@ class _Element:
     count: int
     props: list[_Property] = field(default_factory=list)
 
-    @property
-    def has_list(self) -> bool:
-        return any(p.count_dtype is not None for p in self.props)
-
 
 def _parse_header(path: Path, data: bytes) -> tuple[str, list[_Element], int]:
     """Return (format, elements, offset of the body)."""
