@@ -265,7 +265,7 @@ class _Kernel(NamedTuple):
     fill: Callable[..., None]  # fill(tsdf, observed, origin, extra, has_extra, tables, out, counts)
     tables: tuple[np.ndarray, ...]  # the kernel's lookup tables, in the order `fill` unpacks them
     max_block_v: int  # at most this many vertices per block
-    max_block_f: int  # and this many faces (plus the unconditional rows, see _block_triangles)
+    max_block_f: int  # and this many faces (plus the unconditional rows, see block_triangles)
 
 
 @functools.cache
