@@ -553,8 +553,8 @@ class SenFuNet:
         start = time.perf_counter()
         done = 0
         mode = MODES[cfg.alpha_voxels]
-        # Results are written whenever the data lock is free, not waited for batch by batch: waiting
-        # for integration's kernels took a third of the budget on the large benchmark room.
+        # Results are written whenever the data lock is free, not waited for batch by batch: time
+        # spent waiting for integration's kernels would come out of the net's budget.
         results: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (checked, holds, alpha of the holding)
         while len(order):
             if budget_s is not None and time.perf_counter() - start > budget_s:

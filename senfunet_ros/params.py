@@ -66,7 +66,7 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("max_map_blocks", 40000, "memory bound: past this many 8^3-voxel blocks (~20 KB each; the sample room "
           "needs ~34k at 1 cm) the blocks farthest from the sensor are dropped; 0 = unbounded"),
     Param("tsdf_fusion", False, "also keep the plain TSDF Fusion baseline (save_mesh adds tsdf_fusion.ply; "
-          "about 15% more integration time and memory)"),
+          "costs integration time and memory)"),
 )
 
 SENSOR_PARAMS: tuple[Param, ...] = (

@@ -386,8 +386,8 @@ def sparse_alpha(net: networks.WeightingNet, x: torch.Tensor, size: tuple[int, i
     x: (N, C) inputs of the box's voxels in box-local order ((x * size_y + y) * size_z + z).
     Equals `net(x as 1 x C x box, pad=True)` at those voxels: every 3^3 convolution reads its
     input at box-clamped neighbours (what replicate padding does), conv1 runs only where conv2
-    reads it, and only the inputs conv1 reads are touched. A frame updates ~5% of a 64^3 chunk, so
-    this is several times cheaper than the dense pass, and gradients flow the same way."""
+    reads it, and only the inputs conv1 reads are touched. A frame updates a small part of a 64^3
+    chunk, so this costs far less than the dense pass, and gradients flow the same way."""
     size = (int(size[0]), int(size[1]), int(size[2]))
     plan = sparse_plan(out_index, size)
     return sparse_alpha_planned(net, x.index_select(0, plan.inputs), plan)

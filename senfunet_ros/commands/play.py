@@ -9,9 +9,9 @@ HELP = "publish a recorded bag on its topics with /clock (for nodes using use_si
 
 _CLOCK_PERIOD_S = 0.01  # /clock keeps ticking at this (wall) period while waiting for the next message
 # Our writers matching a subscriber (what --wait-subscribers sees) does not mean that its reader has
-# matched our writers yet, and a best-effort reader drops whatever arrives before it has. On one
-# host the other side follows within ~0.1 s, within ~0.6 s on a loaded 2-core machine (the first
-# 57 poses at 100 Hz lost in the streamed node test); so once every topic has a subscriber, wait this.
+# matched our writers yet, and a best-effort reader drops whatever arrives before it has. The other
+# side follows soon, later on a loaded machine (the streamed node test lost its first poses without
+# a wait); so once every topic has a subscriber, wait this, with a margin for a loaded machine.
 _MATCH_SETTLE_S = 1.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
