@@ -1,7 +1,8 @@
 """Engine micro-benchmark (issue 2 item 5): integration time per 256x256 frame per sensor, alpha
 throughput, meshing time per block, bytes per observed voxel.
 
-    .venv/bin/python bench/engine.py                  # sample bag frames (or a simulated room), writes docs/performance.md
+    .venv/bin/python bench/engine.py                  # sample bag frames (or a simulated room);
+                                                      # writes docs/performance.md
     .venv/bin/python bench/engine.py --frames 40 --no-write
 
 Frames come from the sample bag through the node's Ingest (as `senfunet replay` reads them) or,
@@ -47,7 +48,8 @@ def load_frames(bag: Path, n: int, seed: int):
     from senfunet_core.learning import simulator as sim
 
     seq = sim.simulate_sequence(sim.make_scene(seed), seed, duration_s=n / 35 + 0.1)
-    return [(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb) for f in seq.frames[:n]], f"simulated room (seed {seed})"
+    frames = [(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb) for f in seq.frames[:n]]
+    return frames, f"simulated room (seed {seed})"
 
 
 def measure(frames, config, weights, update_every: int) -> dict:
@@ -76,7 +78,8 @@ def measure(frames, config, weights, update_every: int) -> dict:
         "integrate_ms": {s: 1e3 * float(np.median(v[1:] if len(v) > 1 else v)) for s, v in per_sensor.items()},
         "feature_ms": {s: 1e3 * float(np.median(v[1:] if len(v) > 1 else v)) for s, v in feature.items()},
         "alpha_s": alpha_s, "alpha_voxels": alpha_voxels, "alpha_vox_per_s": alpha_voxels / max(alpha_s, 1e-9),
-        "alpha_flop_per_s": alpha_flops / max(alpha_s, 1e-9), "alpha_flops_per_voxel": alpha_flops / max(alpha_voxels, 1),
+        "alpha_flop_per_s": alpha_flops / max(alpha_s, 1e-9),
+        "alpha_flops_per_voxel": alpha_flops / max(alpha_voxels, 1),
         "mesh_s": mesh_s, "mesh_blocks": mesh_blocks, "mesh_ms_per_block": 1e3 * mesh_s / max(mesh_blocks, 1),
         "observed": stats["observed_voxels"], "blocks": stats["blocks"],
         "bytes_per_observed_voxel": stats["bytes_per_observed_voxel"],

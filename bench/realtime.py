@@ -34,7 +34,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -237,7 +237,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
              "The real `FusionNode` with its default parameters (config/default.yaml: mesh update every "
              f"{1 / default['mesh_rate_hz']:g} s, weighting-net budget {default['alpha_budget_s']:g} s per update, "
              f"alpha on surface blocks, frames more than {default['max_lag_s']:g} s behind skipped, map bound "
-             f"{default['max_map_blocks']} blocks, malloc arenas capped at 2, allocations from 4 MB mapped), spun by a MultiThreadedExecutor in "
+             f"{default['max_map_blocks']} blocks, malloc arenas capped at 2, allocations from 4 MB mapped), "
+             "spun by a MultiThreadedExecutor in "
              "the benchmark process; bag messages deserialised with rclpy and handed to its Ingest as its "
              "subscriptions do. `throughput`: as fast as the node takes them; `realtime`: at their recorded "
              "times. Stage times are summed over the run and divided by the frames integrated.", ""]
@@ -246,7 +247,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
     runs = [results[c][m] for c in cases for m in results[c]]
 
     def row(name, fn):
-        lines.append(f"| {name} | " + " | ".join(fn(r) if isinstance(r, dict) and "case" in r else "-" for r in runs) + " |")
+        cells = (fn(r) if isinstance(r, dict) and "case" in r else "-" for r in runs)
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
 
     row("bag", lambda r: f"{r['bag_seconds']:.1f} s, {r['frames_sent']} depth frames")
     row("frames integrated / dropped", lambda r: f"{r['frames_integrated']} / "
@@ -287,8 +289,9 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
             goal_lines.append(f"- {case}: mesh updated at least every 2 s: "
                               f"{'met' if r['update_interval_s']['max'] <= 2 else 'NOT met'} "
                               f"(max {r['update_interval_s']['max']:.2f} s); frame-to-mesh latency under 3 s: "
-                              f"{'met' if r['latency_s']['max'] < 3 else 'NOT met'} (max {r['latency_s']['max']:.2f} s)")
-    if "sample" in results and "large" in results and "throughput" in results["sample"] and "throughput" in results["large"]:
+                              f"{'met' if r['latency_s']['max'] < 3 else 'NOT met'} "
+                              f"(max {r['latency_s']['max']:.2f} s)")
+    if all(case in results and "throughput" in results[case] for case in ("sample", "large")):
         def per_frame(r):
             return sum(r["stage_s"].values()) / max(r["frames_integrated"], 1)
         ratio = per_frame(results["large"]["throughput"]) / per_frame(results["sample"]["throughput"])

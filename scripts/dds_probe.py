@@ -211,7 +211,7 @@ def run_subscriber(args: argparse.Namespace) -> None:
                            "sub_matched_at": matched_at.get(i)}
                   for i, g in got.items()}
     print("RESULT " + json.dumps(result), flush=True)
-    del subs
+    subs.clear()  # the subscriptions go before the node (and watch_matches stops)
     executor.shutdown(timeout_sec=2)
     node.destroy_node()
     rclpy.try_shutdown()

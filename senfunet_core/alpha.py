@@ -19,6 +19,8 @@ Numba kernels over blocks; each block's neighbourhood comes from a B x 27 neighb
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 import torch
@@ -134,8 +136,8 @@ def surface_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.nda
                         if f16_to_f32(weight_2[v]) > 0:
                             low, high, observed = min(low, tsdf_2[v]), max(high, tsdf_2[v]), True
                     lo[x, y, z], hi[x, y, z], seen[x, y, z] = low, high, observed
-                    any_low |= low <= 0.0
-                    any_high |= high >= 0.0
+                    any_low = any_low or bool(low <= 0.0)
+                    any_high = any_high or bool(high >= 0.0)
         if not (any_low and any_high):  # no sign change near the block (most blocks)
             continue
         for x in range(9):  # cells with lower corner at window x, y, z (local x - 1 ...)
@@ -234,7 +236,7 @@ def target_columns(neighbours: np.ndarray, targets: np.ndarray, features_1: np.n
     return columns, gather, voxels
 
 
-def evaluate_columns(net: torch.nn.Module, columns: np.ndarray, gather: np.ndarray, *,
+def evaluate_columns(net: Any, columns: np.ndarray, gather: np.ndarray, *,
                      dtype: torch.dtype = torch.float32) -> np.ndarray:
     """Alpha of the targets of `target_columns` with the weighting net's weights (networks.WeightingNet:
     conv1 3^3, ReLU, conv2 3^3, ReLU, conv3 1^3, sigmoid) as two matrix products and a gather: the

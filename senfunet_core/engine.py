@@ -37,7 +37,8 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
-from typing import Iterator
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -86,15 +87,15 @@ class EngineConfig:
     torch_threads: int = 1  # torch intra-op threads the engine sets (0: leave torch's setting); 1 fits 2 shared cores
     alpha_voxels: str = "all"  # where alpha near a change is re-evaluated: "all" (equals the whole-grid
     #   evaluation on every voxel); "surface" (blocks holding corners of cells whose 8 corners are observed and whose
-    #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be stale);
-    #   "surface_voxels" (those corners alone, voxel by voxel: less arithmetic, more gathering; see bench/engine.py)
-    alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (~2.5x faster on CPUs with
-    #                               bfloat16 instructions, alpha within ~0.004; see test_equivalence.py)
+    #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be
+    #   stale); "surface_voxels" (those corners alone, voxel by voxel: less arithmetic, more gathering)
+    alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (faster on CPUs with
+    #                               bfloat16 instructions, alpha close to float32's; see test_equivalence.py)
     max_blocks: int = 0  # memory bound: past this many blocks, each update evicts the blocks farthest from the
     #   last camera position (down to 90%), and so does integration past 1.25x, keeping their final fused meshes
     #   (mesh_archive); 0 = no bound; -1 = from the machine's memory (`memory_bound_blocks`)
     tsdf_fusion: bool = True  # also integrate every frame into one plain TSDF grid: the "tsdf_fusion" baseline
-    #                           (about 15% of the integration time and 6 bytes per voxel)
+    #                           (one more running average per sample and 6 bytes per voxel)
     alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
     #                               (max-norm over [F, tanh(W)], summed over frames); 0 = exact
     weighting_tsdf_input: bool = False  # the weighting net also reads the sensors' TSDFs (a departure from the
@@ -209,19 +210,16 @@ def memory_bound_blocks(bytes_per_block: int, *, memory_fraction: float = 0.5) -
     return max(1024, int(budget // bytes_per_block))
 
 
-def resolve_device(name: str) -> torch.device:
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise InputError(f"device '{name}' requested but CUDA is not available; use device 'cpu'")
-    return torch.device(name)
-
-
 class SenFuNet:
     """Learned two-sensor TSDF fusion on sparse voxel blocks, plus the plain TSDF Fusion baseline."""
+
+    _cleared: bool  # reset since the last mesh update (set by _reset_state, which __init__ calls)
+    _newly_archived: list[BlockMeshes]  # evicted blocks' final meshes, sent by the next update
 
     def __init__(self, config: EngineConfig = EngineConfig(), weights: str | Path | None = "default") -> None:
         config.validate()
         self.config = config
-        self.device = resolve_device(config.device)
+        self.device = networks.choose_device(config.device, cpu_fallback=False).device
         if config.torch_threads > 0 and torch.get_num_threads() != config.torch_threads:
             torch.set_num_threads(config.torch_threads)
         self.weights_source = "random initialisation (untrained)"
@@ -412,9 +410,9 @@ class SenFuNet:
         # welded with the archive: colours instead of alpha, the archive's vertices back in voxels
         faces = np.concatenate([faces, archived.faces + len(vertices)])
         vertices = np.concatenate([vertices, archived.vertices / self.config.voxel_size_m])
-        colors = np.concatenate([alpha_colors(values), archived.colors])
-        vertices, faces, colors = weld(vertices, faces, colors)
-        return Mesh((vertices * self.config.voxel_size_m).astype(np.float32), faces.astype(np.int32), colors)
+        assert values is not None and archived.colors is not None  # fused: alpha per vertex; archive: colours
+        welded, faces, colors = weld(vertices, faces, np.concatenate([alpha_colors(values), archived.colors]))
+        return Mesh((welded * self.config.voxel_size_m).astype(np.float32), faces.astype(np.int32), colors)
 
     @torch.inference_mode()
     def voxel_values(self, which: str = FUSED, filtered: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -501,7 +499,7 @@ class SenFuNet:
         tmp.replace(path)
 
     @classmethod
-    def load(cls, path: str | Path, device: str | None = None) -> "SenFuNet":
+    def load(cls, path: str | Path, device: str | None = None) -> SenFuNet:
         """An engine with the state `save` wrote; the next update re-sends the whole mesh."""
         path = Path(path)
         try:
@@ -513,7 +511,8 @@ class SenFuNet:
         except Exception as err:
             raise InputError(f"cannot read engine state {path}: {err}") from err
         known = {f.name for f in fields(EngineConfig)}
-        config_values = {k: tuple(v) if isinstance(v, list) else v for k, v in state["config"].items() if k in known}
+        config_values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
+                                         for k, v in state["config"].items() if k in known}
         config = EngineConfig(**config_values)
         if device is not None:
             config = replace(config, device=device)
@@ -560,7 +559,8 @@ class SenFuNet:
 
     def _check_which(self, which: str) -> None:
         if which not in (FUSED, TSDF_FUSION, *self.config.sensors):
-            raise InputError(f"unknown mesh '{which}'; choose {FUSED}, {TSDF_FUSION} or one of {list(self.config.sensors)}")
+            raise InputError(f"unknown mesh '{which}'; choose {FUSED}, {TSDF_FUSION} "
+                             f"or one of {list(self.config.sensors)}")
         if which == TSDF_FUSION and not self.config.tsdf_fusion:
             raise InputError("this engine keeps no TSDF Fusion baseline; create it with EngineConfig(tsdf_fusion=True)")
 
@@ -575,7 +575,7 @@ class SenFuNet:
         self._mesh_pending = np.zeros(0, bool)  # TSDF or alpha changed since it was meshed
         self._schedules = 0
         self._camera_m = np.zeros(3)  # the last integrated frame's camera centre (the map bound keeps what is near)
-        self._newly_archived: list[BlockMeshes] = []  # evicted blocks' final meshes, sent by the next update
+        self._newly_archived = []
         self._meshed: set[tuple[int, int, int]] = set()
         self._cleared = False
         self._grow_flags()
@@ -631,15 +631,15 @@ class SenFuNet:
             order = stale[np.lexsort((-self._stale[stale], -self._last_reached[stale]))]
         start = time.perf_counter()
         done = voxels = 0
-        # Results are written whenever the data lock is free, not waited for batch by batch: waiting
-        # for integration's kernels took a third of the budget on the large benchmark room.
+        # Results are written whenever the data lock is free, not waited for batch by batch: time
+        # spent waiting for integration's kernels would come out of the net's budget.
         results: list[_AlphaBatch] = []
         while len(order):
             if budget_s is not None and time.perf_counter() - start > budget_s:
                 break
             if self._eviction_due():
                 self._write_alpha(results, wait=True)  # before slots move
-                order, _ = self._evict().follow(order)
+                order, _ = self._evict().follow(order)  # type: ignore[union-attr]  # due: not None
             batch, order = order[:cfg.alpha_batch_blocks], order[cfg.alpha_batch_blocks:]
             results.append(self._evaluate_alpha(batch))
             done += int(results[-1].holds.sum())
@@ -715,7 +715,7 @@ class SenFuNet:
         if self.config.weighting_tsdf_input:
             tsdf = self._views("tsdf0", "tsdf1")
         else:
-            tsdf = (np.zeros(0, np.float32), np.zeros(0, np.float32))
+            tsdf = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
         return (*self._views("feat0", "weight0", "feat1", "weight1"), *tsdf, 2.0 / self.config.band_m)
 
     def _wait_for_eviction(self) -> None:
@@ -842,6 +842,7 @@ class SenFuNet:
         while len(slots):
             if self._eviction_due():
                 eviction = self._evict()
+                assert eviction is not None  # _eviction_due()
                 slots, kept = eviction.follow(slots)
                 coords = coords[kept]
                 evicted.append(eviction.dropped_keys)
@@ -860,6 +861,7 @@ class SenFuNet:
         whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
                         self.config.voxel_size_m, tris.vertex_values)
         keep = np.flatnonzero(np.diff(f_start) > 0)
+        assert whole.colors is not None  # alpha colours: the fused mesh interpolates alpha
         return BlockMeshes(coords[keep], whole.vertices, whole.colors, whole.faces,
                            _compact_offsets(v_start, keep), _compact_offsets(f_start, keep))
 

@@ -213,21 +213,21 @@ def _f16_to_f32_soft(bits: int) -> float:
 
 
 @numba.njit(inline="always")
-def _f32_to_f16_soft(x: float) -> int:
+def _f32_to_f16_soft(x: float) -> int | np.int64:
     """Rounds to nearest even like numpy's astype (x is exact in float64, so no double rounding)."""
     if x != x:
         return 0x7E00
     negative = x < 0.0 or (x == 0.0 and math.copysign(1.0, x) < 0.0)
     a = abs(np.float64(x))
     if a == np.inf:
-        h = 0x7C00
+        h: int | np.int64 = 0x7C00
     elif a == 0.0:
         h = 0
     else:
         m, e = math.frexp(a)  # a = m * 2^e, m in [0.5, 1)
         exponent = e + 14
         if exponent >= 1:
-            mantissa = np.int64(np.rint((2.0 * m - 1.0) * 1024.0))
+            mantissa: int | np.int64 = np.int64(np.rint((2.0 * m - 1.0) * 1024.0))
             if mantissa == 1024:
                 exponent, mantissa = exponent + 1, 0
             h = 0x7C00 if exponent >= 31 else (exponent << 10) | mantissa

@@ -1,8 +1,10 @@
 """Shape and feature integration of one depth frame (paper section 3 a, b and supplementary B).
 
-Pure tensor functions: validity mask, unprojection, ray samples, aggregation of one frame's
-samples per voxel, and the running-average update. `integrate_samples` applies them to a
-`BlockGrid`.
+Two paths compute the same update. The reference path is pure tensor functions (validity mask,
+unprojection, ray samples, aggregation of one frame's samples per voxel); the tests hold the
+compiled path to it. The compiled path is the engine's: `integrate_frame` runs two numba kernels
+through typed wrappers, `locate_frame_samples` (snap every ray sample to its voxel, allocating
+blocks) and `update_frame_voxels` (average each voxel's samples, apply the running averages).
 
 Convention: `T_world_camera` maps camera (optical frame: z forward, x right, y down) to world,
 metres; `K` is the pinhole matrix of the depth image; depth is z-depth in metres.
@@ -12,15 +14,14 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import numba
 import numpy as np
 import torch
 
 from .errors import InputError
-from .grid import (BLOCK_VOXELS, BlockGrid, coords_key, f16_to_f32, f32_to_f16, hash_find_or_add, kernel_view,
-                   prefetch, voxel_keys)
+from .grid import BlockGrid, coords_key, f16_to_f32, f32_to_f16, hash_find_or_add, kernel_view, prefetch, voxel_keys
 
 
 @dataclass(frozen=True)
@@ -147,38 +148,13 @@ def aggregate_pixel_values(samples: FrameSamples, pixel_values: torch.Tensor) ->
     return sums / samples.counts.unsqueeze(1).to(pixel_values.dtype)
 
 
-def running_average(old: torch.Tensor, old_weight: torch.Tensor, update: torch.Tensor) -> torch.Tensor:
-    """(W * old + update) / (W + 1), broadcasting W over trailing channels."""
-    w = old_weight.reshape(*old_weight.shape, *([1] * (old.dim() - old_weight.dim())))
-    return (w * old + update) / (w + 1)
-
-
-def voxel_slots(grid: BlockGrid, keys: torch.Tensor) -> torch.Tensor:
-    """Flat pool indices (slot*512 + local) of sorted voxel keys, allocating missing blocks."""
-    block = keys // BLOCK_VOXELS
-    unique_blocks, block_inverse = torch.unique_consecutive(block, return_inverse=True)
-    slots = grid.allocate_keys(unique_blocks)
-    return slots[block_inverse] * BLOCK_VOXELS + (keys % BLOCK_VOXELS)
-
-
-def integrate_into(grid: BlockGrid, flat: torch.Tensor, tsdf_name: str, weight_name: str, tsdf_update: torch.Tensor,
-                   w_max: float, feature_name: str | None = None, feature_update: torch.Tensor | None = None) -> None:
-    """Running-average update of one TSDF (and optional feature) channel at flat voxel indices."""
-    tsdf = grid.pools[tsdf_name].view(-1)
-    weight = grid.pools[weight_name].view(-1)
-    old_weight = weight[flat]
-    if feature_name is not None:
-        feature = grid.pools[feature_name].view(-1, grid.pools[feature_name].shape[-1])
-        feature[flat] = running_average(feature[flat], old_weight, feature_update)
-    tsdf[flat] = running_average(tsdf[flat], old_weight, tsdf_update)
-    weight[flat] = torch.clamp(old_weight + 1, max=w_max)
-
-
 # ------------------------------------------------------------------------------------------------
 # Compiled integration (the engine's path): the same computation as the functions above, as two
 # numba kernels over one frame, without sorting. `locate_samples` snaps every ray sample to its
 # voxel (allocating blocks in the hash table) and groups the samples by block; `update_voxels`
 # averages each voxel's samples of this frame and applies the running averages block by block.
+# Both keep the flat signatures numba compiles; callers use the typed wrappers
+# `locate_frame_samples` and `update_frame_voxels` below them.
 # ------------------------------------------------------------------------------------------------
 
 
@@ -191,7 +167,7 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
     """Voxel of every sample of every valid pixel (P pixels x S samples, flat pool index
     slot*512 + local) and the frame's touched blocks. Returns (P, number of touched blocks, ok);
     ok is False when the hash table or the slot arrays ran full (grow them and call again: the
-    blocks added so far stay valid)."""
+    blocks added so far stay valid). The kernel: call it through `locate_frame_samples`."""
     h, w = depth_m.shape
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     R = T_world_camera[:3, :3]
@@ -219,8 +195,8 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
                 o = offsets_m[k]
                 i = np.int64(np.rint((px + o * dx) * inv_voxel))
                 j = np.int64(np.rint((py + o * dy) * inv_voxel))
-                l = np.int64(np.rint((pz + o * dz) * inv_voxel))
-                key = coords_key(i >> 3, j >> 3, l >> 3)
+                k_ = np.int64(np.rint((pz + o * dz) * inv_voxel))
+                key = coords_key(i >> 3, j >> 3, k_ >> 3)
                 if key == last_key:
                     slot = last_slot
                 else:
@@ -236,7 +212,7 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
                     slot_to_touched[slot] = touched
                     touched_slots[touched] = slot
                     n_touched += 1
-                sample_flat[base + k] = slot * 512 + ((i & 7) << 6) + ((j & 7) << 3) + (l & 7)
+                sample_flat[base + k] = slot * 512 + ((i & 7) << 6) + ((j & 7) << 3) + (k_ & 7)
                 sample_touched[base + k] = touched
             pixel_index[n_pixels] = v * w + u
             n_pixels += 1
@@ -297,7 +273,7 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             if count[local] == 0:
                 sum_tsdf[local] = 0.0
                 sum_features[local, :] = 0.0
-                # the voxel's scattered pool entries, needed below: fetched meanwhile (~30% less time)
+                # the voxel's scattered pool entries, needed below: fetched while the samples are summed
                 voxel = base_index + local
                 prefetch(features, voxel * n_channels)
                 prefetch(tsdf, voxel)
@@ -319,7 +295,7 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             old_weight = f16_to_f32(weight[voxel])
             keep = old_weight / (old_weight + np.float32(1.0))  # running average: keep*old + add*update
             add = np.float32(1.0) / (old_weight + np.float32(1.0))
-            change = np.float32(0.0)
+            change: float | np.float32 = np.float32(0.0)
             for c in range(n_channels):
                 index = voxel * n_channels + c
                 old = f16_to_f32(features[index])
@@ -366,16 +342,19 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     Blocks are independent: a frame of at least SPLIT_MIN_SAMPLES samples has the second half of
     its blocks updated by a worker thread meanwhile (bit-identical to one pass; below that, handing
     over costs more than it saves). This is the integration thread's longest step, and it waits on
-    memory more than it computes."""
+    memory more than it computes. The flat form: call it through `update_frame_voxels`."""
     start, local, pixel, step = _group_by_block(n_pixels, sample_tsdf_m.shape[0], n_touched, sample_flat,
                                                 sample_touched, pixel_index)
-    arrays = (local, pixel, step, sample_tsdf_m, pixel_features)
-    pools = (tsdf, weight, features, tsdf_base, weight_base, drift, w_max)
+
+    def blocks(block_start: np.ndarray, block_slots: np.ndarray) -> int:
+        return _update_blocks(block_start, local, pixel, step, sample_tsdf_m, pixel_features, block_slots, tsdf,
+                              weight, features, tsdf_base, weight_base, drift, w_max)
+
     if start[-1] < max(SPLIT_MIN_SAMPLES, 1):
-        return _update_blocks(start, *arrays, touched_slots, *pools)
+        return blocks(start, touched_slots)
     middle = int(np.searchsorted(start, start[-1] // 2))
-    second = _UPDATE_WORKER.submit(_update_blocks, start[middle:], *arrays, touched_slots[middle:], *pools)
-    return _update_blocks(start[:middle + 1], *arrays, touched_slots, *pools) + second.result()
+    second = _UPDATE_WORKER.submit(blocks, start[middle:], touched_slots[middle:])
+    return blocks(start[:middle + 1], touched_slots) + second.result()
 
 
 def _scratch(store: dict[str, np.ndarray] | None, name: str, size: int, dtype: type) -> np.ndarray:
@@ -386,6 +365,75 @@ def _scratch(store: dict[str, np.ndarray] | None, name: str, size: int, dtype: t
     if array is None or len(array) < size:
         array = store[name] = np.empty(size, dtype)
     return array[:size]
+
+
+@dataclass
+class LocatedSamples:
+    """Where one frame's ray samples fell (`locate_frame_samples`): P valid pixels x S samples.
+
+    The arrays may be longer than used (scratch buffers): the first P * S samples, P pixels and
+    n_touched slots are this frame's.
+    """
+
+    n_pixels: int  # P
+    n_touched: int  # blocks touched by the samples
+    sample_flat: np.ndarray  # int64 pool index (slot * 512 + local voxel) of each sample, pixel-major
+    sample_touched: np.ndarray  # int32 index into touched_slots of each sample's block
+    pixel_index: np.ndarray  # int64 flat image index (v * W + u) of each valid pixel
+    touched_slots: np.ndarray  # int64 slots of the touched blocks, in the order first touched
+
+
+def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray, *,
+                         depth_range_m: tuple[float, float], border_px: int, offsets_m: np.ndarray,
+                         voxel_size_m: float, scratch: dict[str, np.ndarray] | None = None) -> LocatedSamples:
+    """Snap every sample of every valid pixel to its voxel, allocating the blocks it needs in `grid`
+    (grown as needed). depth_m: H x W metres (invalid pixels outside depth_range_m, NaN or inf);
+    offsets_m: S float64 signed offsets along each ray (negative: towards the camera).
+    Raises InputError (grid untouched but for empty blocks already allocated) when samples fall
+    outside the key range. `scratch` as in `integrate_frame`."""
+    h, w = depth_m.shape
+    n_max = h * w * len(offsets_m)
+    sample_flat = _scratch(scratch, "sample_flat", n_max, np.int64)
+    sample_touched = _scratch(scratch, "sample_touched", n_max, np.int32)
+    pixel_index = _scratch(scratch, "pixel_index", h * w, np.int64)
+    depth = np.ascontiguousarray(depth_m, np.float32)
+    K64 = np.ascontiguousarray(K, np.float64)
+    T64 = np.ascontiguousarray(T_world_camera, np.float64)
+    offsets = np.ascontiguousarray(offsets_m, np.float64)
+    while True:
+        slot_to_touched = _scratch(scratch, "slot_to_touched", grid.capacity, np.int32)
+        slot_to_touched.fill(-1)
+        touched_slots = _scratch(scratch, "touched_slots", grid.capacity, np.int64)
+        state = np.array([grid.n_blocks, min(grid.max_blocks_before_rehash(), grid.capacity)], np.int64)
+        n_pixels, n_touched, ok = locate_samples(
+            depth, depth_range_m[0], depth_range_m[1], border_px, K64, T64, offsets, voxel_size_m,
+            grid.table_keys, grid.table_slots, state, grid.slot_keys, slot_to_touched, touched_slots, sample_flat,
+            sample_touched, pixel_index)
+        grid.commit_new_blocks(int(state[0]))
+        if ok:
+            return LocatedSamples(int(n_pixels), int(n_touched), sample_flat, sample_touched, pixel_index,
+                                  touched_slots)
+        if state[0] < state[1]:  # not full: a sample left the key range
+            raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
+        grid.reserve(max(int(grid.capacity * grid.growth) + 1, grid.n_blocks + 1024))
+
+
+def update_frame_voxels(grid: BlockGrid, located: LocatedSamples, pixel_features: np.ndarray, *,
+                        sample_tsdf_m: np.ndarray, channels: tuple[str, str, str], drift: str = "drift",
+                        w_max: float) -> int:
+    """Running averages of one sensor's TSDF, weight and features (and of the TSDF Fusion baseline
+    "tsdf_base"/"weight_base" when the grid has those channels) from the located samples; drift
+    as in `update_voxels`. pixel_features: (H*W) x C float32; sample_tsdf_m: S TSDF value of each
+    sample step (metres); channels: the sensor's (tsdf, weight, feature) pool names.
+    Returns the number of voxels updated."""
+    tsdf, weight, feature = (kernel_view(grid.pools[name]).reshape(-1) for name in channels)
+    if "tsdf_base" in grid.pools:
+        tsdf_base, weight_base = (kernel_view(grid.pools[name]).reshape(-1) for name in ("tsdf_base", "weight_base"))
+    else:
+        tsdf_base, weight_base = np.zeros(0, np.float32), np.zeros(0, np.int16)
+    return update_voxels(located.n_pixels, located.n_touched, located.sample_flat, located.sample_touched,
+                         sample_tsdf_m, located.pixel_index, pixel_features, located.touched_slots, tsdf, weight,
+                         feature, tsdf_base, weight_base, kernel_view(grid.pools[drift]).reshape(-1), w_max)
 
 
 @dataclass
@@ -412,41 +460,15 @@ def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.nda
     samples fall outside the key range. `scratch`: working arrays kept between calls (a dict the
     caller owns and never shares between threads), so frames do not pay for fresh allocations.
     """
-    h, w = depth_m.shape
     offsets_m = config.sample_offsets().numpy().astype(np.float64) * config.step_m
-    n_max = h * w * len(offsets_m)
-    sample_flat = _scratch(scratch, "sample_flat", n_max, np.int64)
-    sample_touched = _scratch(scratch, "sample_touched", n_max, np.int32)
-    pixel_index = _scratch(scratch, "pixel_index", h * w, np.int64)
-    depth = np.ascontiguousarray(depth_m, np.float32)
-    K64 = np.ascontiguousarray(K, np.float64)
-    T64 = np.ascontiguousarray(T_world_camera, np.float64)
-    while True:
-        slot_to_touched = _scratch(scratch, "slot_to_touched", grid.capacity, np.int32)
-        slot_to_touched.fill(-1)
-        touched_slots = _scratch(scratch, "touched_slots", grid.capacity, np.int64)
-        state = np.array([grid.n_blocks, min(grid.max_blocks_before_rehash(), grid.capacity)], np.int64)
-        n_pixels, n_touched, ok = locate_samples(
-            depth, depth_range_m[0], depth_range_m[1], config.border_px, K64, T64, offsets_m, config.voxel_size_m,
-            grid.table_keys, grid.table_slots, state, grid.slot_keys, slot_to_touched, touched_slots, sample_flat,
-            sample_touched, pixel_index)
-        grid.commit_new_blocks(int(state[0]))
-        if ok:
-            break
-        if state[0] < state[1]:  # not full: a sample left the key range
-            raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
-        grid.reserve(max(int(grid.capacity * grid.growth) + 1, grid.n_blocks + 1024))
-    tsdf, weight, feature = (kernel_view(grid.pools[name]) for name in channels)
+    located = locate_frame_samples(grid, depth_m, K, T_world_camera, depth_range_m=depth_range_m,
+                                   border_px=config.border_px, offsets_m=offsets_m,
+                                   voxel_size_m=config.voxel_size_m, scratch=scratch)
     waited_s = time.perf_counter()
     if callable(pixel_features):
         pixel_features = pixel_features()
     waited_s = time.perf_counter() - waited_s
     features = np.ascontiguousarray(pixel_features.reshape(pixel_features.shape[0], -1).T, np.float32)  # HW x C
-    if "tsdf_base" in grid.pools:
-        base = kernel_view(grid.pools["tsdf_base"]).reshape(-1), kernel_view(grid.pools["weight_base"]).reshape(-1)
-    else:
-        base = np.zeros(0, np.float32), np.zeros(0, np.int16)
-    updated = update_voxels(n_pixels, n_touched, sample_flat, sample_touched, -offsets_m, pixel_index, features,
-                            touched_slots, tsdf.reshape(-1), weight.reshape(-1), feature.reshape(-1), *base,
-                            kernel_view(grid.pools[drift]).reshape(-1), config.w_max)
-    return FrameUpdate(int(updated), touched_slots[:n_touched].copy(), waited_s)
+    updated = update_frame_voxels(grid, located, features, sample_tsdf_m=-offsets_m, channels=channels, drift=drift,
+                                  w_max=config.w_max)
+    return FrameUpdate(int(updated), located.touched_slots[:located.n_touched].copy(), waited_s)

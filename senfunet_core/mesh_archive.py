@@ -70,7 +70,8 @@ class MeshArchive:
         return Mesh(meshes.vertices, faces.astype(np.int32), meshes.colors)
 
     def clear(self) -> None:
-        self.__init__()
+        self._meshes = BlockMeshes.concatenate([])
+        self._row = {}
 
     def state_dict(self) -> dict[str, np.ndarray]:
         m = self._meshes

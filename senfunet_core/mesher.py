@@ -2,8 +2,7 @@
 
 Marching cubes here is our own: the triangulation table is generated at import time from the
 rules below (`_build_tables`), and a numba kernel (`_kernel`) meshes a whole batch of blocks in
-one call (about 2 us per 8^3 block crossed by a surface on the development machine, over 20x
-faster than the scikit-image path it replaced: see bench/mesher.py).
+one call, without a Python step per block (bench/mesher.py measures it against scikit-image).
 
 Conventions of the extracted surface (TSDF level 0):
 - A corner is *inside* when its value is < 0; a value of exactly 0 counts as outside (free). The
@@ -24,10 +23,13 @@ Conventions of the extracted surface (TSDF level 0):
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
+from numba.extending import register_jitable
 
 from .errors import InputError
 
@@ -41,7 +43,7 @@ class Mesh:
     colors: np.ndarray | None = None  # Nx3 float32 RGB in 0..1
 
     @staticmethod
-    def empty() -> "Mesh":
+    def empty() -> Mesh:
         return Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32))
 
     @property
@@ -199,7 +201,7 @@ def _triangulate(poly: list[int], chord_ok) -> list[tuple[int, int, int]] | None
     works, else any valid triangulation."""
     m = len(poly)
     if m == 3:
-        return [tuple(poly)]
+        return [(poly[0], poly[1], poly[2])]
     for s in range(m):
         apex = poly[s]
         ring = poly[s:] + poly[:s]
@@ -257,39 +259,159 @@ for _i in range(64):
 del _i
 
 
-@functools.lru_cache(maxsize=None)
-def _kernel(n: int):
-    """The marching-cubes kernel for blocks of n^3 samples (2 <= n <= 16) and its n-dependent
-    tables: (fill, coff, tri_key, max_block_v, max_block_f). n is a constant of the compiled code
-    (numba caches one version per n): with n = 9 known, index arithmetic folds and the per-column
-    loops unroll, which makes the kernel about 1.3x faster than with n a variable."""
+class _Kernel(NamedTuple):
+    """The compiled marching cubes for blocks of n^3 samples, with what its callers need."""
+
+    fill: Callable[..., None]  # fill(tsdf, observed, origin, extra, has_extra, tables, out, counts)
+    tables: tuple[np.ndarray, ...]  # the kernel's lookup tables, in the order `fill` unpacks them
+    max_block_v: int  # at most this many vertices per block
+    max_block_f: int  # and this many faces (plus the unconditional rows, see block_triangles)
+
+
+@functools.cache
+def _kernel(n: int) -> _Kernel:
+    """The marching-cubes kernel for blocks of n^3 samples (2 <= n <= 16). n is a constant of the
+    compiled code (numba caches one version per n): with n = 9 known, index arithmetic folds and
+    the per-column loops unroll, which a variable n would prevent.
+
+    Per block, each column (i, j) of n samples along z becomes two bit masks (inside, observed)
+    with sample k at bit 4k; bit operations on them give the complete cells of each column of
+    cells (`column_masks`), then the grid edges that need a vertex (crossed, in a complete cell:
+    `block_vertices`), then the cells to triangulate (complete, with inside and outside corners:
+    `block_triangles`), whose case (8 corner bits) is one byte of the four neighbouring columns'
+    masks interleaved: corner dx + 2 dy + 4 dz of cell k is bit 4 (k + dz) + dx + 2 dy.
+    """
     nn = n * n
     n3 = nn * n
     sample_bits = sum(1 << (4 * k) for k in range(n))  # bit 4k: sample k of a column
     cells_in_column = sum(1 << (4 * k) for k in range(n - 1))  # bit 4k: cell k of a column
     pad = n + 1
+    T = _TABLES
+    coff = (T["corner_offset"] @ np.array([nn, n, 1])).astype(np.int64)  # corner c's flat offset in a cell
+    edge_key = T["edge_axis"] * n3 + coff[T["edge_lo"]]  # slot in edge_vertex of each cube edge
+    tri_key = edge_key[T["tri_edge"]].astype(np.int64)  # the triangle table as edge_vertex slots
+    max_block_v = 3 * n3  # at most one vertex per grid edge
+    max_block_f = (n - 1) ** 3 * (tri_key.shape[1] // 3) + 4
+
+    @register_jitable
+    def column_masks(ts, ob, code, inside_col, observed_col, complete_col):
+        """One block's column masks: inside_col, observed_col and complete_col (at pad + i n + j:
+        bit 4k when cell (i, j, k) is complete; zero for i or j = n - 1 and in the padding, so
+        neighbours need no bounds tests)."""
+        for p in range(n3):  # (vectorises)
+            code[p] = np.uint8(ts[p] < 0) | (np.uint8(ob[p]) << 1)
+        for col in range(nn):
+            base = col * n
+            m: int | np.int64 = 0
+            for k in range(n):
+                m |= np.int64(code[base + k]) << (4 * k)
+            inside_col[col] = m & sample_bits
+            observed_col[col] = (m >> 1) & sample_bits
+        for i in range(n - 1):
+            for j in range(n - 1):
+                c0 = i * n + j  # columns of the cell corners (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1)
+                o = observed_col[c0] & observed_col[c0 + n] & observed_col[c0 + 1] & observed_col[c0 + n + 1]
+                complete_col[c0 + pad] = o & (o >> 4) & cells_in_column
+
+    @register_jitable
+    def block_vertices(b, ts, origin, extra, has_extra, masks, edge_vertex, low_bit, out, nv):
+        """Block b's vertices: grid edges (axis, lower sample (i, j, k)) crossed and in a complete
+        cell, appended to out = (verts, values) from row nv, values interpolated from extra when
+        has_extra; edge_vertex maps each edge to its row. Returns the new vertex count."""
+        inside_col, complete_col = masks
+        verts, values = out
+        ox = origin[b, 0]
+        oy = origin[b, 1]
+        oz = origin[b, 2]
+        for i in range(n):
+            for j in range(n):
+                c0 = i * n + j
+                q = c0 + pad
+                m = inside_col[c0]
+                cxz = complete_col[q] | complete_col[q - 1]  # cells (by k) around the x edges of column (i, j)
+                cy = complete_col[q] | complete_col[q - n]  # ... around its y edges
+                cz = cxz | complete_col[q - n] | complete_col[q - n - 1]  # ... around its z edges
+                ux = (m ^ inside_col[c0 + n]) & (cxz | cxz << 4)  # (inside_col is padded too)
+                uy = (m ^ inside_col[c0 + 1]) & (cy | cy << 4)
+                uz = (m ^ (m >> 4)) & cz
+                used = ux | uy << 1 | uz << 2  # bit 4k + axis
+                while used != 0:
+                    bit = low_bit[((used & -used) * _DE_BRUIJN) >> 58 & 63]
+                    used &= used - 1
+                    axis = bit & 3
+                    k = bit >> 2
+                    lo = c0 * n + k
+                    hi = lo + (nn if axis == 0 else n if axis == 1 else 1)
+                    v_lo = np.float64(ts[lo])
+                    s = v_lo / (v_lo - np.float64(ts[hi]))  # always from the lower sample
+                    verts[nv, 0] = np.float64(ox + i)
+                    verts[nv, 1] = np.float64(oy + j)
+                    verts[nv, 2] = np.float64(oz + k)
+                    verts[nv, axis] += s
+                    if has_extra:
+                        values[nv] = (1.0 - s) * np.float64(extra[b, lo]) + s * np.float64(extra[b, hi])
+                    edge_vertex[axis * n3 + lo] = nv
+                    nv += 1
+        return nv
+
+    @register_jitable
+    def block_triangles(ts, inside_col, complete_col, edge_vertex, tables, faces, nf):
+        """The block's triangles, appended to faces from row nf (each cell's case, its ambiguous
+        faces decided by the asymptotic decider, then the table's triangles). Returns the new
+        face count."""
+        case_offset, amb_count, amb_face, face_corner, tri_count, tri_key, coff, low_bit = tables
+        for i in range(n - 1):
+            for j in range(n - 1):
+                c0 = i * n + j
+                m00 = inside_col[c0]
+                m10 = inside_col[c0 + n]
+                m01 = inside_col[c0 + 1]
+                m11 = inside_col[c0 + n + 1]
+                cases = m00 | m10 << 1 | m01 << 2 | m11 << 3  # bits 4k..4k+7: the case of cell k
+                some = m00 | m10 | m01 | m11
+                every = m00 & m10 & m01 & m11
+                active = complete_col[c0 + pad] & (some | (some >> 4)) & ~(every & (every >> 4))
+                while active != 0:
+                    bit = low_bit[((active & -active) * _DE_BRUIJN) >> 58 & 63]
+                    active &= active - 1
+                    case = (cases >> bit) & 255  # bit c set: corner c = dx + 2 dy + 4 dz is inside
+                    cell = c0 * n + (bit >> 2)
+                    sub = 0
+                    for a in range(amb_count[case]):
+                        f = amb_face[case, a]
+                        v00 = np.float64(ts[cell + coff[face_corner[f, 0]]])
+                        v10 = np.float64(ts[cell + coff[face_corner[f, 1]]])
+                        v01 = np.float64(ts[cell + coff[face_corner[f, 2]]])
+                        v11 = np.float64(ts[cell + coff[face_corner[f, 3]]])
+                        diag = v00 * v11  # products of float32 values: exact in float64
+                        anti = v10 * v01
+                        if (diag > anti) if v00 < 0 else (anti > diag):
+                            sub |= 1 << a  # the inside corners are connected across face f
+                    entry = case_offset[case] + sub
+                    # the first 4 triangles unconditionally (fewer branches; extra rows are
+                    # overwritten by later cells or lie beyond the returned count)
+                    for t in range(4):
+                        faces[nf + t, 0] = edge_vertex[cell + tri_key[entry, 3 * t]]
+                        faces[nf + t, 1] = edge_vertex[cell + tri_key[entry, 3 * t + 1]]
+                        faces[nf + t, 2] = edge_vertex[cell + tri_key[entry, 3 * t + 2]]
+                    for t in range(4, tri_count[entry]):
+                        faces[nf + t, 0] = edge_vertex[cell + tri_key[entry, 3 * t]]
+                        faces[nf + t, 1] = edge_vertex[cell + tri_key[entry, 3 * t + 1]]
+                        faces[nf + t, 2] = edge_vertex[cell + tri_key[entry, 3 * t + 2]]
+                    nf += tri_count[entry]
+        return nf
 
     @numba.njit(cache=True, nogil=True)
-    def fill(tsdf, observed, origin, extra, has_extra, case_offset, amb_count, amb_face, face_corner, tri_count,
-             tri_key, coff, low_bit, verts, values, faces, vertex_offsets, face_offsets, max_block_v, max_block_f,
-             counts):
-        """Mesh blocks counts[0].. into the buffers until one might not fit; counts: (next block,
-        vertices, faces).
-
-        Per block, each column (i, j) of n samples along z becomes two bit masks (inside,
-        observed) with sample k at bit 4k; bit operations on them give the complete cells of each
-        column of cells, then the grid edges that need a vertex (crossed, in a complete cell),
-        then the cells to triangulate (complete, with inside and outside corners), whose case (8
-        corner bits) is one byte of the four neighbouring columns' masks interleaved: corner
-        dx + 2 dy + 4 dz of cell k is bit 4 (k + dz) + dx + 2 dy.
-        """
+    def fill(tsdf, observed, origin, extra, has_extra, tables, out, counts):
+        """Mesh blocks counts[0].. into the buffers out = (verts, values, faces, vertex_offsets,
+        face_offsets) until one might not fit; counts: (next block, vertices, faces)."""
+        verts, values, faces, vertex_offsets, face_offsets = out
+        low_bit = tables[7]
         n_blocks = tsdf.shape[0]
         inside_col = np.zeros(nn + pad, np.int64)  # column (i, j): bit 4k when sample (i, j, k) is inside
         observed_col = np.empty(nn, np.int64)
-        complete_col = np.zeros(nn + pad, np.int64)  # at pad + i n + j: bit 4k when cell (i, j, k) is
-        # complete; zero for i or j = n - 1 and in the padding, so neighbours need no bounds tests
+        complete_col = np.zeros(nn + pad, np.int64)  # see column_masks
         edge_vertex = np.empty(3 * n3, np.int64)  # vertex of grid edge (axis, lower sample), this block
-        stride = np.array([nn, n, 1], np.int64)
         code = np.empty(n3, np.uint8)  # per sample: bit 0 inside, bit 1 observed
         nv = counts[1]
         nf = counts[2]
@@ -300,106 +422,18 @@ def _kernel(n: int):
             vertex_offsets[b] = nv
             face_offsets[b] = nf
             ts = tsdf[b]
-            ob = observed[b]
-            ox = origin[b, 0]
-            oy = origin[b, 1]
-            oz = origin[b, 2]
-            for p in range(n3):  # (vectorises)
-                code[p] = np.uint8(ts[p] < 0) | (np.uint8(ob[p]) << 1)
-            for col in range(nn):
-                base = col * n
-                m = 0
-                for k in range(n):
-                    m |= np.int64(code[base + k]) << (4 * k)
-                inside_col[col] = m & sample_bits
-                observed_col[col] = (m >> 1) & sample_bits
-            for i in range(n - 1):
-                for j in range(n - 1):
-                    c0 = i * n + j  # columns of the cell corners (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1)
-                    o = observed_col[c0] & observed_col[c0 + n] & observed_col[c0 + 1] & observed_col[c0 + n + 1]
-                    complete_col[c0 + pad] = o & (o >> 4) & cells_in_column
-            # vertices: grid edges (axis, lower sample (i, j, k)) crossed and in a complete cell
-            for i in range(n):
-                for j in range(n):
-                    c0 = i * n + j
-                    q = c0 + pad
-                    m = inside_col[c0]
-                    cxz = complete_col[q] | complete_col[q - 1]  # cells (by k) around the x edges of column (i, j)
-                    cy = complete_col[q] | complete_col[q - n]  # ... around its y edges
-                    cz = cxz | complete_col[q - n] | complete_col[q - n - 1]  # ... around its z edges
-                    ux = (m ^ inside_col[c0 + n]) & (cxz | cxz << 4)  # (inside_col is padded too)
-                    uy = (m ^ inside_col[c0 + 1]) & (cy | cy << 4)
-                    uz = (m ^ (m >> 4)) & cz
-                    used = ux | uy << 1 | uz << 2  # bit 4k + axis
-                    while used != 0:
-                        bit = low_bit[((used & -used) * 0x03F79D71B4CB0A89) >> 58 & 63]
-                        used &= used - 1
-                        axis = bit & 3
-                        k = bit >> 2
-                        lo = c0 * n + k
-                        hi = lo + stride[axis]
-                        v_lo = np.float64(ts[lo])
-                        s = v_lo / (v_lo - np.float64(ts[hi]))  # always from the lower sample
-                        verts[nv, 0] = np.float64(ox + i)
-                        verts[nv, 1] = np.float64(oy + j)
-                        verts[nv, 2] = np.float64(oz + k)
-                        verts[nv, axis] += s
-                        if has_extra:
-                            values[nv] = (1.0 - s) * np.float64(extra[b, lo]) + s * np.float64(extra[b, hi])
-                        edge_vertex[axis * n3 + lo] = nv
-                        nv += 1
-            # triangles
-            for i in range(n - 1):
-                for j in range(n - 1):
-                    c0 = i * n + j
-                    m00 = inside_col[c0]
-                    m10 = inside_col[c0 + n]
-                    m01 = inside_col[c0 + 1]
-                    m11 = inside_col[c0 + n + 1]
-                    cases = m00 | m10 << 1 | m01 << 2 | m11 << 3  # bits 4k..4k+7: the case of cell k
-                    some = m00 | m10 | m01 | m11
-                    every = m00 & m10 & m01 & m11
-                    active = complete_col[c0 + pad] & (some | (some >> 4)) & ~(every & (every >> 4))
-                    while active != 0:
-                        bit = low_bit[((active & -active) * 0x03F79D71B4CB0A89) >> 58 & 63]
-                        active &= active - 1
-                        case = (cases >> bit) & 255  # bit c set: corner c = dx + 2 dy + 4 dz is inside
-                        cell = c0 * n + (bit >> 2)
-                        sub = 0
-                        for a in range(amb_count[case]):
-                            f = amb_face[case, a]
-                            v00 = np.float64(ts[cell + coff[face_corner[f, 0]]])
-                            v10 = np.float64(ts[cell + coff[face_corner[f, 1]]])
-                            v01 = np.float64(ts[cell + coff[face_corner[f, 2]]])
-                            v11 = np.float64(ts[cell + coff[face_corner[f, 3]]])
-                            diag = v00 * v11  # products of float32 values: exact in float64
-                            anti = v10 * v01
-                            if (diag > anti) if v00 < 0 else (anti > diag):
-                                sub |= 1 << a  # the inside corners are connected across face f
-                        entry = case_offset[case] + sub
-                        # the first 4 triangles unconditionally (fewer branches; extra rows are
-                        # overwritten by later cells or lie beyond the returned count)
-                        for t in range(4):
-                            faces[nf + t, 0] = edge_vertex[cell + tri_key[entry, 3 * t]]
-                            faces[nf + t, 1] = edge_vertex[cell + tri_key[entry, 3 * t + 1]]
-                            faces[nf + t, 2] = edge_vertex[cell + tri_key[entry, 3 * t + 2]]
-                        for t in range(4, tri_count[entry]):
-                            faces[nf + t, 0] = edge_vertex[cell + tri_key[entry, 3 * t]]
-                            faces[nf + t, 1] = edge_vertex[cell + tri_key[entry, 3 * t + 1]]
-                            faces[nf + t, 2] = edge_vertex[cell + tri_key[entry, 3 * t + 2]]
-                        nf += tri_count[entry]
+            column_masks(ts, observed[b], code, inside_col, observed_col, complete_col)
+            nv = block_vertices(b, ts, origin, extra, has_extra, (inside_col, complete_col), edge_vertex, low_bit,
+                                (verts, values), nv)
+            nf = block_triangles(ts, inside_col, complete_col, edge_vertex, tables, faces, nf)
             b += 1
         counts[0] = b
         counts[1] = nv
         counts[2] = nf
 
-    T = _TABLES
-    coff = (T["corner_offset"] @ np.array([nn, n, 1])).astype(np.int64)  # corner c's flat offset in a cell
-    edge_key = T["edge_axis"] * n3 + coff[T["edge_lo"]]  # slot in edge_vertex of each cube edge
-    tri_key = edge_key[T["tri_edge"]].astype(np.int64)  # the triangle table as edge_vertex slots
-    max_block_v = 3 * n3  # at most one vertex per grid edge
-    max_block_f = (n - 1) ** 3 * (tri_key.shape[1] // 3) + 4
-    return fill, coff, tri_key, max_block_v, max_block_f
+    tables = (T["case_offset"], T["amb_count"], T["amb_face"], T["face_corner"], T["tri_count"], tri_key, coff,
+              _LOW_BIT)
+    return _Kernel(fill, tables, max_block_v, max_block_f)
 
 
 def marching_cubes_blocks(tsdf: np.ndarray, observed: np.ndarray, block_origin_vox: np.ndarray,
@@ -435,10 +469,11 @@ def marching_cubes_blocks(tsdf: np.ndarray, observed: np.ndarray, block_origin_v
         ext = np.zeros((1, 1), np.float32)
     else:
         ext = np.ascontiguousarray(extra, dtype=np.float32).reshape(shape)
-    fill, coff, tri_key, max_block_v, max_block_f = _kernel(n)
+    kernel = _kernel(n)
+    max_block_v, max_block_f = kernel.max_block_v, kernel.max_block_f
     has_extra = extra is not None
     # first guess of the output size (untouched capacity costs no memory; growing costs a copy):
-    # surface blocks of real scans have ~60-80 vertices and ~90-140 triangles
+    # a surface crossing a block makes far fewer vertices than the bound of one per grid edge
     cap_v = 128 * n_blocks + max_block_v
     cap_f = 2 * cap_v + max_block_f
     verts = np.empty((cap_v, 3))
@@ -447,11 +482,8 @@ def marching_cubes_blocks(tsdf: np.ndarray, observed: np.ndarray, block_origin_v
     v_off = np.empty(n_blocks + 1, np.int64)
     f_off = np.empty(n_blocks + 1, np.int64)
     counts = np.zeros(3, np.int64)  # next block, vertices, faces
-    T = _TABLES
     while True:  # fill stops before a block that might not fit; the buffers grow (rarely) in between
-        fill(values, obs, origin, ext, has_extra, T["case_offset"], T["amb_count"], T["amb_face"], T["face_corner"],
-             T["tri_count"], tri_key, coff, _LOW_BIT, verts, vals, faces, v_off, f_off, max_block_v, max_block_f,
-             counts)
+        kernel.fill(values, obs, origin, ext, has_extra, kernel.tables, (verts, vals, faces, v_off, f_off), counts)
         if counts[0] == n_blocks:
             break
         nv, nf = int(counts[1]), int(counts[2])
@@ -543,14 +575,14 @@ class BlockMeshes:
     def as_dict(self) -> dict[tuple[int, int, int], Mesh]:
         return {key: self.mesh(b) for b, key in enumerate(map(tuple, self.keys.tolist()))}
 
-    def blocks(self, start: int, stop: int) -> "BlockMeshes":
+    def blocks(self, start: int, stop: int) -> BlockMeshes:
         """Blocks start..stop-1 (views of the shared arrays)."""
         v0, v1 = self.vertex_offsets[start], self.vertex_offsets[stop]
         f0, f1 = self.face_offsets[start], self.face_offsets[stop]
         return BlockMeshes(self.keys[start:stop], self.vertices[v0:v1], self.colors[v0:v1], self.faces[f0:f1],
                            self.vertex_offsets[start:stop + 1] - v0, self.face_offsets[start:stop + 1] - f0)
 
-    def select(self, index: np.ndarray) -> "BlockMeshes":
+    def select(self, index: np.ndarray) -> BlockMeshes:
         """The blocks at these indices, in this order (copies)."""
         index = np.asarray(index, np.int64)
         v_counts, f_counts = np.diff(self.vertex_offsets)[index], np.diff(self.face_offsets)[index]
@@ -561,7 +593,7 @@ class BlockMeshes:
                            np.concatenate([[0], np.cumsum(f_counts)]).astype(np.int64))
 
     @staticmethod
-    def concatenate(parts: list["BlockMeshes"]) -> "BlockMeshes":
+    def concatenate(parts: list[BlockMeshes]) -> BlockMeshes:
         if not parts:
             z = np.zeros((0, 3), np.float32)
             return BlockMeshes(np.zeros((0, 3), np.int64), z, z.copy(), np.zeros((0, 3), np.int32),
@@ -577,7 +609,7 @@ class BlockMeshes:
             np.concatenate([[0]] + [p.face_offsets[1:] + b for p, b in zip(parts, f_base)]).astype(np.int64))
 
     @staticmethod
-    def from_meshes(meshes: "dict[tuple[int, int, int], Mesh]") -> "BlockMeshes":
+    def from_meshes(meshes: dict[tuple[int, int, int], Mesh]) -> BlockMeshes:
         """Meshes per block key -> one BlockMeshes, in key order (white where a mesh has no colours)."""
         keys = sorted(meshes)
         parts = [meshes[k] for k in keys]
@@ -585,8 +617,10 @@ class BlockMeshes:
                   else np.ones((len(p.vertices), 3), np.float32) for p in parts]
         return BlockMeshes(
             np.array(keys, np.int64).reshape(-1, 3),
-            np.concatenate([np.asarray(p.vertices, np.float32) for p in parts]) if parts else np.zeros((0, 3), np.float32),
+            np.concatenate([np.asarray(p.vertices, np.float32) for p in parts]) if parts
+            else np.zeros((0, 3), np.float32),
             np.concatenate(colors).astype(np.float32) if parts else np.zeros((0, 3), np.float32),
-            np.concatenate([np.asarray(p.faces) for p in parts]).astype(np.int32) if parts else np.zeros((0, 3), np.int32),
+            np.concatenate([np.asarray(p.faces) for p in parts]).astype(np.int32) if parts
+            else np.zeros((0, 3), np.int32),
             np.cumsum([0] + [len(p.vertices) for p in parts], dtype=np.int64),
             np.cumsum([0] + [len(p.faces) for p in parts], dtype=np.int64))

@@ -11,17 +11,45 @@ Architectures follow the paper (section 3 b, c) and the released checkpoints:
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from .errors import InputError
 
 N_FEATURE_CHANNELS = 4  # learned channels; the depth is appended to make n = 5
 N_FEATURES = N_FEATURE_CHANNELS + 1
 N_RESIDUAL_BLOCKS = 6
 WEIGHTING_HALO = 2  # receptive field 5^3: alpha depends on inputs within 2 voxels
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "tof_stereo.pt"
+
+
+@dataclass(frozen=True)
+class DeviceChoice:
+    device: torch.device  # where the networks run
+    fallback_reason: str | None = None  # set when this is not the device asked for: say it to the user
+
+
+def choose_device(requested: str, *, cpu_fallback: bool) -> DeviceChoice:
+    """The one decision of the torch device the networks run on (the grids stay in CPU memory).
+
+    requested: a torch device name, "cpu", "cuda" or "cuda:N". When CUDA is asked for and there is
+    none: the CPU with a fallback_reason when cpu_fallback (the node, whose parameter promises a
+    fallback), else InputError (the library: a caller that names a device gets it or an error).
+    """
+    try:
+        device = torch.device(requested)
+    except (RuntimeError, TypeError) as err:
+        raise InputError(f"device '{requested}' is not a torch device name; use 'cpu' or 'cuda'") from err
+    if device.type != "cuda" or torch.cuda.is_available():
+        return DeviceChoice(device)
+    if not cpu_fallback:
+        raise InputError(f"device '{requested}' requested but CUDA is not available; use device 'cpu'")
+    return DeviceChoice(torch.device("cpu"), f"device '{requested}' requested but CUDA is not available: using cpu")
 
 
 class FeatureNet(nn.Module):
@@ -39,20 +67,26 @@ class FeatureNet(nn.Module):
 
     def forward(self, depth_m: torch.Tensor, rgb01: torch.Tensor | None = None) -> torch.Tensor:
         """depth_m: Bx1xHxW (invalid pixels 0); rgb01: Bx3xHxW in 0..1 -> Bx5xHxW."""
-        x = torch.cat([depth_m, rgb01], dim=1) if self.uses_rgb else depth_m
-        # channels last: oneDNN's 4-channel convolutions run ~1.3x faster on the CPU. A 1-channel
-        # input is laid out the same either way, so the first output is converted too (else the
-        # depth-only net stays in the slower layout throughout).
+        if not self.uses_rgb:
+            x = depth_m
+        elif rgb01 is None:
+            raise InputError("this feature net takes depth and colour: pass rgb01 (Bx3xHxW in 0..1)")
+        else:
+            x = torch.cat([depth_m, rgb01], dim=1)
+        # channels last: oneDNN's 4-channel convolutions are faster in that layout on the CPU. A
+        # 1-channel input is laid out the same either way, so the first output is converted too
+        # (else the depth-only net stays in the slower layout throughout).
         x = x.contiguous(memory_format=torch.channels_last)
         previous = None
-        for conv_a, conv_b in self.blocks:
+        for block in self.blocks:
+            conv_a, conv_b = cast(nn.ModuleList, block)
             x = torch.tanh(conv_a(x)).contiguous(memory_format=torch.channels_last)
             x = torch.tanh(conv_b(x))
             if previous is not None:  # each block's output is added to the next block's output
                 x = x + previous
             previous = x
         x = x.contiguous()
-        # per-pixel L2 normalisation (F.normalize's strided norm over dim 1 is ~5x slower here)
+        # per-pixel L2 normalisation, written out: F.normalize's strided norm over dim 1 is slower here
         x = x / torch.sqrt((x * x).sum(dim=1, keepdim=True)).clamp(min=1e-8)
         return torch.cat([x, depth_m], dim=1)
 
@@ -131,15 +165,14 @@ def weights_tsdf_input(path: str | Path) -> bool:
 
 def load_weights(path: str | Path, feature_nets: nn.ModuleList, weighting_net: WeightingNet) -> dict:
     """Load a weights file into existing networks; returns its metadata. Raises ValueError on mismatch."""
-    from .errors import InputError
-
     path = Path(path)
     if not path.is_file():
         raise InputError(f"weights file {path} does not exist; pass a trained .pt file or weights=None for random init")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
         if len(state["feature_nets"]) != len(feature_nets):
-            raise InputError(f"{path} holds {len(state['feature_nets'])} feature nets, the engine has {len(feature_nets)} sensors")
+            raise InputError(f"{path} holds {len(state['feature_nets'])} feature nets, "
+                             f"the engine has {len(feature_nets)} sensors")
         for net, net_state in zip(feature_nets, state["feature_nets"]):
             net.load_state_dict(net_state)
         weighting_net.load_state_dict(state["weighting_net"])

@@ -101,10 +101,6 @@ class _Element:
     count: int
     props: list[_Property] = field(default_factory=list)
 
-    @property
-    def has_list(self) -> bool:
-        return any(p.count_dtype is not None for p in self.props)
-
 
 def _parse_header(path: Path, data: bytes) -> tuple[str, list[_Element], int]:
     """Return (format, elements, offset of the body)."""
@@ -191,7 +187,8 @@ def _binary_element(path: Path, el: _Element, buf: memoryview, off: int, bo: str
                 # the same size), so its count is real.
                 i = int(bad[0])
                 if el.name == "face" and p.name in _FACE_LIST_NAMES:
-                    raise InputError(f"{path}: face {i} has {int(counts[i])} vertices; only triangle meshes are supported")
+                    raise InputError(f"{path}: face {i} has {int(counts[i])} vertices; "
+                                     "only triangle meshes are supported")
                 raise InputError(f"{path}: element '{el.name}' list '{p.name}' has varying lengths; not supported")
     return arr, off + dt.itemsize * el.count
 

@@ -8,7 +8,7 @@ surface in a few seconds without any per-triangle Python loop.
 from __future__ import annotations
 
 import os
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

@@ -25,7 +25,8 @@ import importlib
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Callable, Collection, Iterator, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
+from collections.abc import Callable, Collection, Iterator
 
 import numpy as np
 
@@ -219,16 +220,16 @@ class _McapStreamSource(_Source):
                                            self._schema_text.get(cid, ""))
 
     def _records(self) -> Iterator[Any]:
+        from mcap.records import Channel, Schema
         from mcap.stream_reader import StreamReader
 
         schemas: dict[int, tuple[str, str]] = {}
         self._schema_text: dict[int, str] = {}
         with self.path.open("rb") as stream:
             for record in StreamReader(stream, record_size_limit=2**31).records:
-                name = type(record).__name__
-                if name == "Schema":
+                if isinstance(record, Schema):
                     schemas[record.id] = (record.name, record.data.decode("utf-8", "replace"))
-                elif name == "Channel":
+                elif isinstance(record, Channel):
                     msgtype, text = schemas.get(record.schema_id, ("", ""))
                     self._channels[record.id] = (record.topic, normalize_msgtype(msgtype))
                     self._schema_text[record.id] = text
@@ -289,7 +290,7 @@ class BagReader:
 
     # -- lifecycle ------------------------------------------------------------------------------
 
-    def open(self) -> "BagReader":
+    def open(self) -> BagReader:
         path = self.path
         if not path.exists():
             raise BagError(f"{path}: no such bag; pass a rosbag2 folder (with metadata.yaml) or a .mcap file")
@@ -330,7 +331,8 @@ class BagReader:
             raise BagError(f"{path}: {_describe(err)}") from None
         except (ReaderError, sqlite3.Error, OSError, KeyError, ValueError, TypeError) as err:
             what = "an sqlite3 database" if path.suffix == ".db3" else "a readable bag"
-            raise BagError(f"{path}: not {what}: {_describe(err)}; the file is damaged or not a rosbag2 recording") from None
+            raise BagError(f"{path}: not {what}: {_describe(err)}; "
+                           "the file is damaged or not a rosbag2 recording") from None
         except Exception as err:  # anything else the storage libraries raise on garbage
             raise BagError(f"{path}: cannot read the bag: {_describe(err)}") from None
 
@@ -339,7 +341,7 @@ class BagReader:
             self._source.close()
             self._source = None
 
-    def __enter__(self) -> "BagReader":
+    def __enter__(self) -> BagReader:
         return self.open()
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
@@ -425,7 +427,7 @@ def _typestore() -> Any:
     return get_typestore(Stores.ROS2_JAZZY)
 
 
-def write_sequence_bag(seq: "Sequence", path: str | Path, *, storage: str = "mcap", compress: bool = True,
+def write_sequence_bag(seq: Sequence, path: str | Path, *, storage: str = "mcap", compress: bool = True,
                        start_time_ns: int = DEFAULT_START_NS, fixed_frame: str = "map",
                        progress: Callable[[int, int], None] | None = None) -> Path:
     """Write a simulated sequence as a rosbag2 folder in the contract's topic layout; returns `path`.

@@ -14,7 +14,8 @@ to do about it.
 from __future__ import annotations
 
 import struct
-from typing import Any, Iterable, Iterator, Mapping, Sequence
+from typing import Any
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 
 import numba
 import numpy as np
@@ -96,7 +97,10 @@ def _image_rows(msg: Any, bytes_per_pixel: int) -> np.ndarray:
             f"image step {step} B is shorter than width {width} x {bytes_per_pixel} B per pixel; "
             "fix the driver's step field"
         )
-    data = np.frombuffer(msg.data, dtype=np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8).ravel()
+    if isinstance(msg.data, np.ndarray):
+        data = msg.data.view(np.uint8).ravel()
+    else:
+        data = np.frombuffer(msg.data, dtype=np.uint8)
     if data.size < step * height:
         raise ValueError(
             f"image data has {data.size} B but step x height = {step * height} B; "
@@ -150,7 +154,8 @@ def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
     if width <= 0 or height <= 0:
         raise ValueError(f"camera_info size {width}x{height} is empty; set width and height in the driver")
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
-        raise ValueError(f"camera_info K has no positive finite focal lengths (fx={K[0, 0]}, fy={K[1, 1]}); calibrate the camera")
+        raise ValueError(f"camera_info K has no positive finite focal lengths (fx={K[0, 0]}, fy={K[1, 1]}); "
+                         "calibrate the camera")
     return K, (width, height)
 
 
@@ -494,6 +499,7 @@ def marker_array_messages(
         data = marker_array_cdr(meshes.blocks(start, stop), removed if first else (), stamp_ns=stamp_ns,
                                 frame_id=frame_id, delete_all_first=delete_all_first and first, as_array=True,
                                 out=buffer)
+        assert isinstance(data, np.ndarray)  # as_array
         if data.base is not buffer:
             buffer = data
         yield data
@@ -556,7 +562,9 @@ def marker_array_cdr(
 
 def delete_all_marker_array_cdr(*, stamp_ns: int, frame_id: str) -> bytes:
     """A MarkerArray holding one DELETEALL marker: clears every block in the subscriber."""
-    return marker_array_cdr({}, (), stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
+    cdr = marker_array_cdr({}, (), stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
+    assert isinstance(cdr, bytes)  # not as_array
+    return cdr
 
 
 def point_cloud2_cdr(

@@ -42,7 +42,8 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable
+from typing import Any
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
@@ -195,8 +196,8 @@ def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     else:
         s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
         q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.asarray(q, dtype=np.float64)
-    return q / np.linalg.norm(q)
+    quat = np.asarray(q, dtype=np.float64)
+    return quat / np.linalg.norm(quat)
 
 
 def _matrix_from_quat(q: np.ndarray) -> np.ndarray:
@@ -309,6 +310,7 @@ class Ingest:
         return None
 
     def _decode_depth(self, state: _SensorState, msg: Any, stamp_ns: int, arrival_s: float) -> tuple[str | None, Any]:
+        assert state.camera_info is not None  # frames wait in awaiting_info until it came
         K, info_size = state.camera_info
         try:
             depth_m = conv.depth_from_image(msg)
@@ -398,7 +400,8 @@ class Ingest:
                 frames, back = frames[:max_frames], frames[max_frames:]
                 for frame in reversed(back):  # back to the front of their queues, newest last
                     self._sensors[frame.sensor].queue.appendleft(
-                        _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb, frame.T_world_camera))
+                        _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb,
+                                 frame.T_world_camera))
         return [*jumps, *frames]
 
     def _pop_sensor(self, name: str, state: _SensorState) -> list[Frame]:
@@ -418,7 +421,8 @@ class Ingest:
             t = pending.stamp_ns
             if pending.T is not None:  # posed before, put back by pop_ready(max_frames)
                 state.queue.popleft()
-                if lag_ns and newest_ns - t > lag_ns:  # the consumer fell behind: keep latency bounded
+                # the consumer fell behind: keep latency bounded
+                if lag_ns and newest_ns is not None and newest_ns - t > lag_ns:
                     state.counters.dropped["behind"] += 1
                 else:
                     out.append(Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s))

@@ -7,7 +7,8 @@ Names containing `{sensor}` exist once per entry of `sensors`, e.g. `tof.depth_t
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 __all__ = ["Param", "GLOBAL_PARAMS", "SENSOR_PARAMS", "NODE_NAME", "expanded_defaults", "Settings", "declare"]
 
@@ -25,22 +26,27 @@ class Param:
 
 GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("sensors", ["tof", "stereo"], "sensor names, sensor 1 first (alpha is the weight of sensor 1)"),
-    Param("rgb_sensors", ["stereo"], "sensors whose feature net also takes the colour image (as the weights were trained)"),
-    Param("pose_type", "pose_stamped", "pose message type on every pose topic: pose_stamped | odometry | transform_stamped"),
+    Param("rgb_sensors", ["stereo"],
+          "sensors whose feature net also takes the colour image (as the weights were trained)"),
+    Param("pose_type", "pose_stamped",
+          "pose message type on every pose topic: pose_stamped | odometry | transform_stamped"),
     Param("fixed_frame", "map", "frame the poses are given in; frame_id of every output"),
     Param("voxel_size_m", 0.01, "voxel side length in metres"),
     Param("band_m", 0.1, "length of the ray segment integrated around each depth measurement, metres"),
     Param("working_width", 256, "images are resized to this width (K scaled); 0 = native"),
-    Param("working_height", 0, "images are resized to this height; 0 = native, or keep the aspect ratio if the width is set"),
+    Param("working_height", 0,
+          "images are resized to this height; 0 = native, or keep the aspect ratio if the width is set"),
     Param("queue_size", 30, "frames per sensor waiting for their pose; the oldest is dropped beyond this"),
     Param("max_lag_s", 0.25, "when integration falls behind, frames more than this (sensor time) older than their "
           "sensor's newest are skipped, which bounds the latency; 0 = never skip"),
     Param("pose_buffer_size", 2000, "poses kept per sensor for interpolation"),
     Param("pose_tolerance_s", 0.1, "max time between a depth stamp and the poses interpolated around it"),
     Param("pose_max_wait_s", 1.0,
-          "a frame waits this long (sensor time) for a pose after its stamp, or for its first camera_info, then is dropped"),
+          "a frame waits this long (sensor time) for a pose after its stamp, or for its first camera_info, "
+          "then is dropped"),
     Param("color_tolerance_s", 0.02, "max stamp difference between a depth image and the colour image matched to it"),
-    Param("time_jump_s", 1.0, "a stamp this far behind the previous one of its stream means time jumped back (bag restart)"),
+    Param("time_jump_s", 1.0,
+          "a stamp this far behind the previous one of its stream means time jumped back (bag restart)"),
     Param("on_time_jump", "reset", "what a backward time jump does to the map: reset | ignore"),
     Param("integrate_rate_hz", 30.0, "rate of the timer that integrates queued frames"),
     Param("mesh_rate_hz", 1.0, "rate of mesh updates (alpha, fusion, meshing of the changed blocks)"),
@@ -51,7 +57,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
           "instructions, else float32) | float32 | bfloat16"),
     Param("status_rate_hz", 1.0, "rate of ~/status diagnostics"),
-    Param("weights_band_m", 0.02, "~/weights holds voxels with |fused TSDF| at most this (near the surface); 0 = all observed"),
+    Param("weights_band_m", 0.02,
+          "~/weights holds voxels with |fused TSDF| at most this (near the surface); 0 = all observed"),
     Param("output_dir", "senfunet_output", "directory ~/save_mesh writes PLY files into"),
     Param("weights", "default", "network weights file; 'default' = the shipped weights, 'none' = untrained"),
     Param("device", "cpu", "torch device: cpu | cuda (falls back to cpu with a warning)"),
@@ -59,7 +66,7 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("max_map_blocks", 40000, "memory bound: past this many 8^3-voxel blocks (~20 KB each; the sample room "
           "needs ~34k at 1 cm) the blocks farthest from the sensor are dropped; 0 = unbounded"),
     Param("tsdf_fusion", False, "also keep the plain TSDF Fusion baseline (save_mesh adds tsdf_fusion.ply; "
-          "about 15% more integration time and memory)"),
+          "costs integration time and memory)"),
 )
 
 SENSOR_PARAMS: tuple[Param, ...] = (
@@ -69,7 +76,8 @@ SENSOR_PARAMS: tuple[Param, ...] = (
     Param("{sensor}.pose_topic", "/{sensor}/pose", "pose of the sensor's optical frame in fixed_frame"),
     Param("{sensor}.depth_min_m", 0.1, "depth below this is ignored, metres"),
     Param("{sensor}.depth_max_m", 3.0, "depth beyond this is ignored, metres (at 1 cm voxels and 256 px, rays beyond "
-          "~3 m are > 2 voxels apart and noise spreads samples over many sparse blocks: memory and time, little surface)"),
+          "~3 m are > 2 voxels apart and noise spreads samples over many sparse blocks: memory and time, "
+          "little surface)"),
 )
 
 
@@ -226,14 +234,11 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
     `overrides` replace fields (replay keeps the TSDF Fusion baseline and float32 alpha)."""
     import dataclasses
 
-    import torch
-
     from senfunet_core.engine import EngineConfig
+    from senfunet_core.networks import choose_device
 
     s = settings
-    device = s.device
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        device = "cpu"
+    device = str(choose_device(s.device, cpu_fallback=True).device)
     config = EngineConfig(
         sensors=s.sensor_names,
         sensor_uses_rgb=tuple(name in s.rgb_sensors for name in s.sensor_names),

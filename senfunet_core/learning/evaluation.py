@@ -233,9 +233,10 @@ def _engine(weights):
     return SenFuNet(EngineConfig(), weights=weights)
 
 
-def evaluate(weights="default", config: EvaluationConfig = EvaluationConfig(), figure_path: str | Path | None = None,
+def evaluate(weights="default", config: EvaluationConfig | None = None, figure_path: str | Path | None = None,
              log=print) -> EvaluationResult:
     """Run the table, the asynchronous test and (optionally) the figure."""
+    config = EvaluationConfig() if config is None else config
     t0 = time.perf_counter()
     per_scene, frames_used = [], []
     async_scenes: dict[str, list] = {f"1/{d}": [] for d in config.async_tof_divisors}
@@ -252,7 +253,8 @@ def evaluate(weights="default", config: EvaluationConfig = EvaluationConfig(), f
         per_scene.append(method_metrics(engine, seq.scene, gt_crop))
         if log:
             r = per_scene[-1]
-            log(f"scene {seed}: F tof {r['tof']['F']:.1f} stereo {r['stereo']['F']:.1f} tsdf {r['tsdf_fusion']['F']:.1f} "
+            log(f"scene {seed}: F tof {r['tof']['F']:.1f} stereo {r['stereo']['F']:.1f} "
+                f"tsdf {r['tsdf_fusion']['F']:.1f} "
                 f"senfunet {r['senfunet']['F']:.1f} (no filter {r['senfunet_nofilter']['F']:.1f}); MAD cm "
                 f"tsdf {100 * r['tsdf_fusion']['MAD']:.2f} senfunet {100 * r['senfunet']['MAD']:.2f}")
         if figure_path is not None and index == config.figure_scene:
@@ -344,7 +346,8 @@ def results_markdown(result: EvaluationResult, config: EvaluationConfig, command
         lines += [f"Scene {seed}:", "", format_table(labelled(rows), COLUMNS)]
     if result.async_rows:
         lines += ["## Asynchronous sensors", "",
-                  f"Stereo at {config.stereo_rate_hz / config.frame_stride:.3g} Hz effective; ToF at a half and a third of it "
+                  f"Stereo at {config.stereo_rate_hz / config.frame_stride:.3g} Hz effective; "
+                  "ToF at a half and a third of it "
                   "(frames dropped from the same sequences), mean over the same scenes.", ""]
         for name, rows in result.async_rows.items():
             rows = dict(rows)
@@ -361,7 +364,8 @@ def results_markdown(result: EvaluationResult, config: EvaluationConfig, command
               "by at least one sensor. The same crop is used for every method.",
               "- Figure: `docs/figures/evaluation.png` (scene "
               f"{config.seeds[config.figure_scene]}): ToF, stereo, TSDF Fusion, SenFuNet, and SenFuNet coloured "
-              "by the sensor weighting alpha (amber: alpha = 1, ToF trusted; blue: alpha = 0, stereo trusted). For display only the meshes are cropped to the room (0.5 m margin) with the ceiling removed.", ""]
+              "by the sensor weighting alpha (amber: alpha = 1, ToF trusted; blue: alpha = 0, stereo trusted). "
+              "For display only the meshes are cropped to the room (0.5 m margin) with the ceiling removed.", ""]
     if notes:
         lines += [notes.rstrip(), ""]
     return "\n".join(lines)
@@ -394,7 +398,8 @@ def training_notes(weights_source: str) -> str:
              f"{float(cfg.get('stereo_rate_hz', float('nan'))):.3g} Hz. The checkpoint is the one with the best "
              f"mean fused F-score margin over the better single sensor on validation scenes {val} (never trained on, "
              f"not among the held-out scenes): fused F {meta.get('val_F', float('nan')):.2f}, margin "
-             f"{meta.get('val_margin', float('nan')):+.2f}, TSDF Fusion {meta.get('val_tsdf_F', float('nan')):.2f}.", "",
+             f"{meta.get('val_margin', float('nan')):+.2f}, "
+             f"TSDF Fusion {meta.get('val_tsdf_F', float('nan')):.2f}.", "",
              "All three loss terms are the paper's (L1 to the GT TSDF on C12, L_in and L_out on C1 and C2 with eta, "
              "each normalised by its own voxel count), as are the chunk rule (>= 2000 updated voxels, <= 600 tries), "
              "the accumulation, the gradient clipping and the random resets. Deviations from the paper's training, "

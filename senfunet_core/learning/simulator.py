@@ -18,6 +18,7 @@ import functools
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -28,7 +29,8 @@ from senfunet_core.mesher import Mesh
 __all__ = [
     "Primitive", "Surface", "Scene", "make_scene", "scene_sdf", "gt_tsdf", "gt_mesh",
     "SensorFrame", "Sequence", "simulate_sequence", "render_view", "intrinsics",
-    "write_dataset", "load_dataset", "simulate_tof_depth", "simulate_stereo_depth", "SENSORS", "STEREO_BASELINE_M", "TOF_OFFSET_X_M",
+    "write_dataset", "load_dataset", "simulate_tof_depth", "simulate_stereo_depth", "SENSORS", "STEREO_BASELINE_M",
+    "TOF_OFFSET_X_M",
 ]
 
 SENSORS = ("tof", "stereo")
@@ -104,7 +106,7 @@ def _room_surface(rng: np.random.Generator, poor: bool, seed: int) -> Surface:
 
 def _surface(rng: np.random.Generator, color: tuple, poor: bool, seed: int) -> Surface:
     return Surface(
-        color_rgb=tuple(float(c) for c in color),
+        color_rgb=(float(color[0]), float(color[1]), float(color[2])),
         texture_poor=bool(poor),
         contrast=float(rng.uniform(0.0, 0.006) if poor else rng.uniform(0.18, 0.4)),
         texel_m=float(rng.uniform(0.006, 0.014)),
@@ -164,7 +166,7 @@ def make_scene(seed: int, *, room_size_m: tuple[float, float, float] | None = No
     def new_surface(color: tuple | None = None, poor: bool | None = None) -> int:
         poor = bool(rng.random() < poor_frac) if poor is None else poor
         if color is None:
-            color = np.clip(rng.uniform(0.15, 0.9, 3), 0, 1)
+            color = tuple(np.clip(rng.uniform(0.15, 0.9, 3), 0, 1))
         surfaces.append(_surface(rng, tuple(color), poor, seed_base + len(surfaces)))
         return len(surfaces) - 1
 
@@ -198,7 +200,8 @@ def make_scene(seed: int, *, room_size_m: tuple[float, float, float] | None = No
             w, d, h = 2 * r, 2 * r, 2 * r
         if against_wall:
             wall = int(rng.integers(0, 4))
-            along = rng.uniform(0.1 + w / 2, (lx if wall < 2 else ly) - 0.1 - w / 2) if (lx if wall < 2 else ly) > w + 0.2 else None
+            wall_m = lx if wall < 2 else ly
+            along = rng.uniform(0.1 + w / 2, wall_m - 0.1 - w / 2) if wall_m > w + 0.2 else None
             if along is None:
                 continue
             gap = 0.01 + d / 2
@@ -216,7 +219,8 @@ def make_scene(seed: int, *, room_size_m: tuple[float, float, float] | None = No
             yaw = rng.uniform(-np.pi, np.pi)
         radius = 0.5 * np.hypot(w, d)
         # the item's footprint (bounding circle) must fit in the room and stay off the loop
-        if not against_wall and (x - radius < 0.02 or y - radius < 0.02 or x + radius > lx - 0.02 or y + radius > ly - 0.02):
+        if not against_wall and (x - radius < 0.02 or y - radius < 0.02
+                                 or x + radius > lx - 0.02 or y + radius > ly - 0.02):
             continue
         if _seg_dist(np.array([[x, y]]), corridor)[0] < corridor_radius + radius:
             continue
@@ -257,16 +261,19 @@ def make_scene(seed: int, *, room_size_m: tuple[float, float, float] | None = No
                     box(sx * (w / 2 - 2 * leg), sy * (d / 2 - 2 * leg), (h - t) / 2, leg, leg, (h - t) / 2, legs_surf)
             if rng.random() < 0.5:  # something on the table
                 r = rng.uniform(0.06, 0.15)
-                prims.append(Primitive("sphere", (float(x), float(y), float(h + r)), (r, r, r), 0.0, new_surface(), item))
+                prims.append(Primitive("sphere", (float(x), float(y), float(h + r)), (r, r, r), 0.0, new_surface(),
+                                       item))
         elif kind == "cylinder":
-            prims.append(Primitive("cylinder", (float(x), float(y), float(h / 2)), (w / 2, w / 2, h / 2), 0.0, sid, item))
+            prims.append(Primitive("cylinder", (float(x), float(y), float(h / 2)), (w / 2, w / 2, h / 2), 0.0, sid,
+                                   item))
         else:
             prims.append(Primitive("sphere", (float(x), float(y), float(h / 2)), (w / 2, w / 2, w / 2), 0.0, sid, item))
         kinds.append(kind)
         footprints.append((x, y, radius))
 
     n_lights = int(rng.integers(1, 4))
-    lights = tuple((float(rng.uniform(0.2, lx - 0.2)), float(rng.uniform(0.2, ly - 0.2)), lz - 0.05) for _ in range(n_lights))
+    lights = tuple((float(rng.uniform(0.2, lx - 0.2)), float(rng.uniform(0.2, ly - 0.2)), lz - 0.05)
+                   for _ in range(n_lights))
     # What real sites vary beyond the layout, drawn from their own stream (the layout above keeps its
     # draws): the amount of texture (contrast of the textured surfaces), and for the ToF the
     # infrared reflectivity of each material (painted walls and ceiling are bright in the infrared;
@@ -462,7 +469,7 @@ def gt_mesh(scene: Scene, voxel_size_m: float = 0.01) -> Mesh:
     gz = (cf[:, 2, None, None, None] + offs[None, None, :]) * vf
     shape = (n_act, bs + 1, bs + 1, bs + 1)
     gx, gy, gz = (np.broadcast_to(g, shape) for g in (gx, gy, gz))
-    vol = np.full(shape, np.inf, np.float32)
+    vol: np.ndarray = np.full(shape, np.inf, np.float32)
     for k in range(per.shape[0]):
         blocks_k = np.nonzero(relevant[k])[0]
         if len(blocks_k) == 0:
@@ -570,15 +577,16 @@ def _intersect(prim: Primitive, o: np.ndarray, dx: np.ndarray, dy: np.ndarray, d
         dx, dy = c * dx + s * dy, -s * dx + c * dy
     q = q.astype(np.float32)
     if prim.kind == "box":
-        tn = None
+        nears, fars = [], []
         for qa, da, ha in ((q[0], dx, prim.size_m[0]), (q[1], dy, prim.size_m[1]), (q[2], dz, prim.size_m[2])):
             # a ray parallel to a slab gets +-huge parameters with the right signs
             inv = np.float32(1.0) / np.where(da == 0, np.float32(1e-20), da)
             t1 = (np.float32(-ha) - qa) * inv
             t2 = (np.float32(ha) - qa) * inv
-            near, far = np.minimum(t1, t2), np.maximum(t1, t2)
-            tn = near if tn is None else np.maximum(tn, near)
-            tf = far if tn is near else np.minimum(tf, far)
+            nears.append(np.minimum(t1, t2))
+            fars.append(np.maximum(t1, t2))
+        tn = np.maximum(np.maximum(nears[0], nears[1]), nears[2])
+        tf = np.minimum(np.minimum(fars[0], fars[1]), fars[2])
         return np.where((tn <= tf) & (tn > 1e-6), tn, np.float32(np.inf))
     r = np.float32(prim.size_m[0])
     if prim.kind == "sphere":
@@ -676,6 +684,7 @@ def render_view(scene: Scene, T_world_camera: np.ndarray, K: np.ndarray, width: 
             closer = ta < depth
             depth = np.where(closer, ta, depth)
             axis = np.where(closer, np.int8(a), axis)
+    assert depth is not None  # set by the first of the 3 axes
     pid = np.full(dx.shape, -1, np.int32)  # -1 = room
     R_cw, t_cw = T[:3, :3].T, -T[:3, :3].T @ o
     won: list[tuple[int, tuple]] = []
@@ -831,7 +840,7 @@ def _stereo_grey(view: dict, scene: Scene, rng: np.random.Generator, width: int,
 
 def _sgbm(scene: Scene) -> cv2.StereoSGBM:
     bs = SGBM_BLOCK_SIZE
-    return cv2.StereoSGBM_create(minDisparity=0, numDisparities=SGBM_NUM_DISPARITIES, blockSize=bs,
+    return cv2.StereoSGBM.create(minDisparity=0, numDisparities=SGBM_NUM_DISPARITIES, blockSize=bs,
                                  P1=8 * bs * bs, P2=32 * bs * bs, disp12MaxDiff=1, preFilterCap=31,
                                  uniquenessRatio=scene.stereo_uniqueness,
                                  speckleWindowSize=scene.stereo_speckle_window, speckleRange=2,
@@ -1017,7 +1026,8 @@ def simulate_sequence(scene: Scene, seed: int, *, duration_s: float = 10.0, tof_
         raise InputError("duration_s and the rates must be > 0")
     if width < SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE or height < 16:
         # SGBM needs the image wider than its disparity range plus half a block
-        raise InputError(f"images must be at least {SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE} x 16, got {width} x {height}")
+        raise InputError(f"images must be at least {SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE} x 16, "
+                         f"got {width} x {height}")
     rng = np.random.default_rng([seed, 3])
     pose_margin = 2.0 / pose_rate_hz + 0.02
     traj = _Trajectory(scene, seed, -pose_margin - 0.01, duration_s + pose_margin + 0.01)
@@ -1067,14 +1077,15 @@ def write_dataset(seq: Sequence, folder: str | Path, *, gt_voxel_size_m: float =
     (folder / "scene.json").write_text(_scene_to_json(seq.scene))
     for sensor in SENSORS:
         fr = [f for f in seq.frames if f.sensor == sensor]
-        arrays = {
+        arrays: dict[str, Any] = {  # Any: numpy's stub of savez_compressed types **kwds as its own options
             "stamp_s": np.array([f.stamp_s for f in fr], np.float64),
             "depth_m": np.stack([f.depth_m for f in fr]).astype(np.float32) if fr else np.zeros((0, 0, 0), np.float32),
             "K": np.stack([f.K for f in fr]) if fr else np.zeros((0, 3, 3)),
             "T_world_camera": np.stack([f.T_world_camera for f in fr]) if fr else np.zeros((0, 4, 4)),
         }
-        if fr and fr[0].rgb is not None:
-            arrays["rgb"] = np.stack([f.rgb for f in fr]).astype(np.uint8)
+        rgbs = [f.rgb for f in fr if f.rgb is not None]
+        if fr and len(rgbs) == len(fr):
+            arrays["rgb"] = np.stack(rgbs).astype(np.uint8)
         np.savez_compressed(folder / f"{sensor}.npz", **arrays)
         if sensor in seq.pose_stamps_s:
             np.savez_compressed(folder / f"poses_{sensor}.npz", stamp_s=seq.pose_stamps_s[sensor],

@@ -33,6 +33,7 @@ import time
 from dataclasses import asdict, dataclass, field, fields
 from fractions import Fraction
 from pathlib import Path
+from typing import Any, cast
 
 import numba
 import numpy as np
@@ -110,7 +111,7 @@ class TrainConfig:
                                 self.border_px)
 
     @classmethod
-    def from_dict(cls, values: dict) -> "TrainConfig":
+    def from_dict(cls, values: dict) -> TrainConfig:
         known = {f.name: f for f in fields(cls)}
         unknown = sorted(set(values) - set(known))
         if unknown:
@@ -368,6 +369,7 @@ def sparse_plan(out_index: torch.Tensor, size: tuple[int, int, int]) -> SparsePl
 def sparse_alpha_planned(net: networks.WeightingNet, x_inputs: torch.Tensor, plan: SparsePlan) -> torch.Tensor:
     """G at the plan's output voxels from its inputs x_inputs (K, C) (the box voxels plan.inputs)."""
     conv1, conv2, conv3 = net.conv1, net.conv2, net.conv3
+    assert conv1.bias is not None and conv2.bias is not None and conv3.bias is not None
     w1 = conv1.weight.permute(2, 3, 4, 1, 0).reshape(-1, conv1.out_channels)  # (27 * C, 32), tap-major
     h1 = torch.relu(x_inputs.index_select(0, plan.conv1_taps.reshape(-1)).reshape(len(plan.conv1_taps), -1) @ w1
                     + conv1.bias)
@@ -384,9 +386,9 @@ def sparse_alpha(net: networks.WeightingNet, x: torch.Tensor, size: tuple[int, i
     x: (N, C) inputs of the box's voxels in box-local order ((x * size_y + y) * size_z + z).
     Equals `net(x as 1 x C x box, pad=True)` at those voxels: every 3^3 convolution reads its
     input at box-clamped neighbours (what replicate padding does), conv1 runs only where conv2
-    reads it, and only the inputs conv1 reads are touched. A frame updates ~5% of a 64^3 chunk, so
-    this is several times cheaper than the dense pass, and gradients flow the same way."""
-    size = tuple(int(v) for v in size)
+    reads it, and only the inputs conv1 reads are touched. A frame updates a small part of a 64^3
+    chunk, so this costs far less than the dense pass, and gradients flow the same way."""
+    size = (int(size[0]), int(size[1]), int(size[2]))
     plan = sparse_plan(out_index, size)
     return sparse_alpha_planned(net, x.index_select(0, plan.inputs), plan)
 
@@ -456,8 +458,9 @@ class Trainer:
                                                                        config.weighting_tsdf_input)
         self.feature_nets.train()
         self.weighting_net.train()
-        groups = [{"params": list(self.feature_nets.parameters()), "lr_factor": config.feature_lr_factor},
-                  {"params": list(self.weighting_net.parameters()), "lr_factor": 1.0}]
+        groups: list[dict[str, Any]] = [
+            {"params": list(self.feature_nets.parameters()), "lr_factor": config.feature_lr_factor},
+            {"params": list(self.weighting_net.parameters()), "lr_factor": 1.0}]
         for group in groups:
             group["lr"] = config.lr * group["lr_factor"]
         self.optimizer = torch.optim.Adam(groups, lr=config.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=0)
@@ -554,7 +557,7 @@ class Trainer:
         valid = valid_depth_mask(depth_t, cfg.border_px, cfg.depth_min_m[s], cfg.depth_max_m[s])
         result = StepResult(None)
         if bool(valid.any()):
-            net = self.feature_nets[s]
+            net = cast(networks.FeatureNet, self.feature_nets[s])
             rgb01 = self._rgb01(net.uses_rgb, frame.rgb, depth.shape)
             with torch.no_grad():
                 pixel = net(depth_t.view(1, 1, *depth.shape), rgb01)[0]
@@ -598,7 +601,7 @@ class Trainer:
         updated = np.flatnonzero(counts)  # chunk voxels this frame updated (box-local indices)
         if len(updated) == 0:
             return None, {}
-        box = tuple(int(v) for v in size)
+        box = (int(size[0]), int(size[1]), int(size[2]))
         upd = torch.from_numpy(updated)
         plan = sparse_plan(upd, box)  # G's inputs: the voxels within 2 of an updated one (box-clamped)
         chunk_flat = torch.from_numpy(_box_flat(corner, size, plan.inputs.numpy(), grid.table_keys, grid.table_slots))
@@ -670,7 +673,8 @@ class Trainer:
             data.append({"x": torch.from_numpy(x).permute(0, 4, 1, 2, 3).contiguous(),
                          "gt": torch.from_numpy(gt_tsdf_blocks(seq.scene, g.coords[keep].numpy(), cfg.voxel_size_m,
                                                                cfg.band_m)),
-                         **{f"{c}{i}": g.pools[f"{c}{i}"][keep].float().clone() for c in ("tsdf", "weight") for i in (0, 1)}})
+                         **{f"{c}{i}": g.pools[f"{c}{i}"][keep].float().clone()
+                            for c in ("tsdf", "weight") for i in (0, 1)}})
             del engine
         terms_sum: dict[str, float] = {}
         params = list(self.weighting_net.parameters())
@@ -840,7 +844,7 @@ class ActiveClock:
         from multiprocessing import shared_memory
 
         self.start = time.monotonic()
-        self._memory = shared_memory.SharedMemory(create=True, size=8)
+        self._memory: Any = cast(Any, shared_memory.SharedMemory(create=True, size=8))  # None once stopped
         self._memory.buf[:8] = bytes(8)
         self._watcher = subprocess.Popen([sys.executable, "-c", _PAUSE_WATCHER, str(os.getpid()), self._memory.name,
                                           str(tick_s), str(gap_s)])

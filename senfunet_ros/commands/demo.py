@@ -35,8 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--queue-size", type=int, default=400, metavar="N",
                         help="the node's queue_size parameter (default 400: a slow CPU falls behind instead of "
                         "dropping frames, and the demo waits until every frame is fused)")
-    parser.add_argument("--domain-id", type=int, metavar="N", help="ROS_DOMAIN_ID to use (default: a random private one)")
-    parser.add_argument("--timeout", type=float, default=900.0, metavar="S", help="give up after S seconds (default 900)")
+    parser.add_argument("--domain-id", type=int, metavar="N",
+                        help="ROS_DOMAIN_ID to use (default: a random private one)")
+    parser.add_argument("--timeout", type=float, default=900.0, metavar="S",
+                        help="give up after S seconds (default 900)")
     parser.add_argument("--no-render", action="store_true", help="skip the PNG")
 
 

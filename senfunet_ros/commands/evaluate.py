@@ -8,7 +8,8 @@ HELP = "evaluate on held-out simulated scenes: table (MSE, MAD, IoU, Acc, F, P, 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", default="default", metavar="PATH",
-                        help="weights file (default: the shipped senfunet_core/weights/tof_stereo.pt; 'none' = untrained)")
+                        help="weights file (default: the shipped senfunet_core/weights/tof_stereo.pt; "
+                             "'none' = untrained)")
     parser.add_argument("--scenes", type=int, default=3, metavar="N", help="held-out scenes (default 3, at most 6)")
     parser.add_argument("--out", default="docs", metavar="DIR",
                         help="writes DIR/results.md and DIR/figures/evaluation.png (default: docs)")
@@ -27,8 +28,8 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from senfunet_core.errors import InputError
-    from senfunet_core.learning.evaluation import (COLUMNS, HELD_OUT_SEEDS, EvaluationConfig, bar_check, evaluate, labelled,
-                                          results_markdown, training_notes)
+    from senfunet_core.learning.evaluation import (COLUMNS, HELD_OUT_SEEDS, EvaluationConfig, bar_check, evaluate,
+                                                   labelled, results_markdown, training_notes)
     from senfunet_core.metrics import format_table
 
     if not 1 <= args.scenes <= len(HELD_OUT_SEEDS):

@@ -2,18 +2,16 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
-from pathlib import Path
 
 HELP = "publish a recorded bag on its topics with /clock (for nodes using use_sim_time), at a chosen rate"
 
 _CLOCK_PERIOD_S = 0.01  # /clock keeps ticking at this (wall) period while waiting for the next message
 # Our writers matching a subscriber (what --wait-subscribers sees) does not mean that its reader has
-# matched our writers yet, and a best-effort reader drops whatever arrives before it has. On one
-# host the other side follows within ~0.1 s, within ~0.6 s on a loaded 2-core machine (the first
-# 57 poses at 100 Hz lost in the streamed node test); so once every topic has a subscriber, wait this.
+# matched our writers yet, and a best-effort reader drops whatever arrives before it has. The other
+# side follows soon, later on a loaded machine (the streamed node test lost its first poses without
+# a wait); so once every topic has a subscriber, wait this, with a margin for a loaded machine.
 _MATCH_SETTLE_S = 1.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,9 +57,9 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         say(f"note: {reader.note}")
     topics = reader.topics
     if args.topics:
-        unknown = [t for t in args.topics if t not in topics]
-        if unknown:
-            return _error(f"{reader.path}: no topic {', '.join(unknown)}; the bag has {', '.join(sorted(topics))}")
+        missing = [t for t in args.topics if t not in topics]
+        if missing:
+            return _error(f"{reader.path}: no topic {', '.join(missing)}; the bag has {', '.join(sorted(topics))}")
         topics = {t: topics[t] for t in args.topics}
     classes: dict[str, type] = {}
     unknown: dict[str, str] = {}
@@ -92,7 +90,8 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         if not args.no_clock:
             from rosgraph_msgs.msg import Clock
 
-            clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+            clock_pub = node.create_publisher(Clock, "/clock",
+                                              QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
             clock_msg = Clock()
 
         def publish_clock(stamp_ns: int) -> None:

@@ -11,7 +11,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", metavar="BAG", help="rosbag2 folder (mcap or sqlite3) or a .mcap file")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder for the PLY files and stats.json")
     parser.add_argument("--params", metavar="FILE", help="node parameter file (default: the built-in defaults)")
-    parser.add_argument("--gt", metavar="MESH", help="ground-truth mesh (PLY): print F-score, precision, recall of each mesh")
+    parser.add_argument("--gt", metavar="MESH",
+                        help="ground-truth mesh (PLY): print F-score, precision, recall of each mesh")
     parser.add_argument("--weights", metavar="PATH",
                         help="network weights ('default' = shipped, 'none' = untrained); overrides --params")
     parser.add_argument("--threads", type=int, default=1, metavar="N",
@@ -46,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         if c["pending_at_end"]:
             line += f"; {c['pending_at_end']} still waiting for a pose or camera_info at the end"
         print(line)
-    for stem, path in result.files.items():
+    for path in result.files.values():
         print(f"wrote {path}")
     t = stats["timings"]
     print(f"time: {t['total_s']:.1f} s (integration {t['integrate_s']:.1f} s, "

@@ -12,7 +12,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="scene and sensor-noise seed (default 0)")
     parser.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds of recording (default 10)")
     parser.add_argument("--out", required=True, metavar="DIR", help="dataset folder to write (frames, poses, GT mesh)")
-    parser.add_argument("--bag", metavar="PATH", help="also write the stream as a rosbag2 folder in the ROS topic layout")
+    parser.add_argument("--bag", metavar="PATH",
+                        help="also write the stream as a rosbag2 folder in the ROS topic layout")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="bag storage (default mcap)")
     parser.add_argument("--no-compress", action="store_true", help="mcap: do not zstd-compress the chunks")
     parser.add_argument("--gt", metavar="PLY", help="also write the ground-truth mesh as a PLY file here")

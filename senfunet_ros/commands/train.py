@@ -10,7 +10,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default="config/train_tof_stereo.yaml", metavar="YAML",
                         help="training config (default: config/train_tof_stereo.yaml)")
     parser.add_argument("--out", default=None, metavar="PATH",
-                        help="where the best weights go (default: senfunet_core/weights/tof_stereo.pt, the shipped file)")
+                        help="where the best weights go "
+                             "(default: senfunet_core/weights/tof_stereo.pt, the shipped file)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="training frames (overrides the config)")
     parser.add_argument("--time-budget", type=float, default=None, metavar="S",
                         help="stop after S seconds of wall time (overrides the config; 0 = no limit)")

@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -19,6 +20,23 @@ from senfunet_core.grid import BLOCK, block_keys
 from senfunet_core.mesher import Mesh, weld
 
 VOXEL = 0.01
+
+
+class VirtualClock:
+    """Stands in for the engine's `time` module: perf_counter and monotonic move only when a test
+    advances them, so a time budget counts fake seconds whatever the machine's load."""
+
+    def __init__(self) -> None:
+        self.now_s = 0.0
+
+    def perf_counter(self) -> float:
+        return self.now_s
+
+    def monotonic(self) -> float:
+        return self.now_s
+
+    def __getattr__(self, name: str):
+        return getattr(time, name)
 
 
 def pinhole(f_px: float, size: int = 128) -> np.ndarray:
@@ -370,14 +388,29 @@ def test_invalid_depth_pixels_are_skipped():
     assert len(reference.voxel_values("tof")[1]) == len(tsdf)
 
 
-def test_weight_cloud_fields(sphere_engine):
-    cloud = sphere_engine.weight_cloud()
+def test_weight_cloud_reports_each_voxel_where_it_is_with_its_own_alpha_and_weights():
+    """The net says alpha = 0.8 everywhere; stereo sees the left half of what ToF sees, from the same
+    poses: every stereo voxel is a ToF voxel, some ToF voxels are not stereo ones, and the voxels
+    near the surface lie on the sphere."""
+    engine = engine_for_tests()
+    constant_alpha(engine, 0.8)
+    K = SPHERE_K
+    for T in SPHERE_VIEWS[:6]:
+        depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+        engine.integrate("tof", depth, K, T)
+        half = depth.copy()
+        half[:, depth.shape[1] // 2:] = 0
+        engine.integrate("stereo", half, K, T)
+    cloud = engine.weight_cloud()
     n = len(cloud.positions_m)
-    assert n > 0 and cloud.alpha.shape == (n,) and cloud.weights.shape == (n, 2)
-    assert np.all((cloud.weights > 0).any(axis=1))
-    assert np.all((cloud.alpha >= 0) & (cloud.alpha <= 1))
-    near = sphere_engine.weight_cloud(max_abs_tsdf_m=VOXEL)
+    assert n > 1000 and cloud.alpha.shape == (n,) and cloud.weights.shape == (n, 2)
+    np.testing.assert_allclose(cloud.alpha, 0.8, atol=1e-5)  # the net's output, not another channel
+    tof, stereo = cloud.weights[:, 0], cloud.weights[:, 1]
+    assert np.all(tof >= stereo) and np.any((tof > 0) & (stereo == 0)) and np.any(stereo > 0)
+    near = engine.weight_cloud(max_abs_tsdf_m=VOXEL)
     assert 0 < len(near.positions_m) < n
+    radius_m = np.linalg.norm(near.positions_m - SPHERE_C, axis=1)
+    assert np.abs(radius_m - SPHERE_R).max() < 1.5 * VOXEL  # voxel centres in metres, in the world frame
 
 
 def test_reset_empties_the_map(tmp_path):
@@ -481,7 +514,7 @@ def test_max_blocks_evicts_the_blocks_farthest_from_the_camera_and_keeps_their_m
     assert not dropped_keys & set(update.removed)  # subscribers keep showing the evicted blocks
     archived = bounded.archive.meshes().as_dict()
     assert set(archived) <= dropped_keys and len(archived) > 0.5 * len(dropped_keys & set(shown))
-    for key, mesh in archived.items():  # the final mesh reached subscribers (sent again, or unchanged)
+    for key in archived:  # the final mesh reached subscribers (sent again, or unchanged)
         assert key in update.changed or key in shown
     slots = reference.grid.lookup(kept)
     assert bool((slots >= 0).all())
@@ -598,16 +631,18 @@ def _two_spheres_one_scheduled_before(engine: SenFuNet) -> int:
     return n_far
 
 
-def test_a_budget_serves_the_blocks_the_latest_frames_reached_first():
-    import time
+def test_a_budget_serves_the_blocks_the_latest_frames_reached_first(monkeypatch):
+    import senfunet_core.engine as engine_module
 
     engine = engine_for_tests(alpha_batch_blocks=16)
     n_far = _two_spheres_one_scheduled_before(engine)
     assert engine.grid.n_blocks - n_far > 32
+    clock = VirtualClock()
+    monkeypatch.setattr(engine_module, "time", clock)
     forward = engine.weighting_net.forward
 
     def slow_forward(*args, **kwargs):
-        time.sleep(0.3)  # each batch takes a little over 0.3 s: a budget of 0.45 s runs exactly two
+        clock.now_s += 0.3  # each batch takes 0.3 fake seconds: a budget of 0.45 s runs exactly two
         return forward(*args, **kwargs)
 
     engine.weighting_net.forward = slow_forward
@@ -616,38 +651,54 @@ def test_a_budget_serves_the_blocks_the_latest_frames_reached_first():
     assert len(evaluated) == 32 and evaluated.min() >= n_far  # the near sphere's, reached last
 
 
-def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch():
+def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(monkeypatch):
     """Integration holding the data lock does not stall the weighting net: the batches evaluated
-    meanwhile are written once the lock is free."""
+    meanwhile are written once the lock is free. The budget runs on a fake clock (each batch takes
+    0.125 s of it: a budget of 0.3 s runs exactly three); the lock is held from the first batch
+    until the third has run, so an engine that waited for the lock per batch would reach the
+    second batch only after the holder gave up (and fail the checks below)."""
     import threading
+
+    import senfunet_core.engine as engine_module
 
     engine = engine_for_tests(alpha_batch_blocks=8)
     _two_spheres_one_scheduled_before(engine)
     engine.refresh_alpha(0.0)  # the near sphere scheduled too
-    take, taken, release = threading.Event(), threading.Event(), threading.Event()
+    n = engine.grid.n_blocks
+    clock = VirtualClock()
+    monkeypatch.setattr(engine_module, "time", clock)
+    take, holding, release = threading.Event(), threading.Event(), threading.Event()
 
     def hold_the_lock() -> None:
         take.wait(timeout=30)
         with engine._data_lock:
-            taken.set()
-            release.wait(timeout=30)
+            holding.set()
+            release.wait(timeout=10)  # only a failing engine lets this time out
+            holding.clear()
 
     forward = engine.weighting_net.forward
+    batches: list[tuple[bool, int]] = []  # per batch: the lock held by the holder? blocks written so far
 
-    def first_batch_starts_the_holder(*args, **kwargs):
+    def batch_while_the_lock_is_held(*args, **kwargs):
         if not take.is_set():
             take.set()
-            taken.wait(timeout=30)  # from here on, the lock is held for 0.5 s: all of the budget
-            threading.Timer(0.5, release.set).start()
-        return forward(*args, **kwargs)
+            assert holding.wait(timeout=30)
+        batches.append((holding.is_set(), int(engine._evaluated[:n].sum())))
+        clock.now_s += 0.125
+        out = forward(*args, **kwargs)
+        if len(batches) == 3:
+            release.set()
+        return out
 
     holder = threading.Thread(target=hold_the_lock)
     holder.start()
-    engine.weighting_net.forward = first_batch_starts_the_holder
+    engine.weighting_net.forward = batch_while_the_lock_is_held
     engine.refresh_alpha(0.3)
     holder.join(timeout=30)
-    n = engine.grid.n_blocks
+    assert len(batches) == 3
+    assert all(held for held, _ in batches)  # the net went on while integration held the lock
+    assert all(written == 0 for _, written in batches)  # and wrote nothing under it
     evaluated = engine._evaluated[:n]
-    assert evaluated.sum() >= 16  # more than one batch within the budget
+    assert evaluated.sum() > 8  # more than one batch, all written once the lock was free
     alpha = engine.grid.pools["alpha"][:n].numpy()
     assert np.isfinite(alpha[evaluated]).all() and bool((engine._stale[:n][evaluated] == 0).all())

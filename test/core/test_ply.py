@@ -81,7 +81,8 @@ def test_binary_big_endian_foreign_variant(tmp_path):
     # count, and an element after the faces that must be skipped.
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
     header = (b"ply\nformat binary_big_endian 1.0\nelement vertex 3\nproperty double x\nproperty double y\n"
-              b"property double z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nproperty uchar alpha\n"
+              b"property double z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n"
+              b"property uchar alpha\n"
               b"element face 1\nproperty int valence_unused\nproperty list int int vertex_indices\n"
               b"element edge 1\nproperty int vertex1\nproperty int vertex2\nend_header\n")
     vrec = np.zeros(3, dtype=[("x", ">f8"), ("y", ">f8"), ("z", ">f8"), ("rgba", "u1", (4,))])

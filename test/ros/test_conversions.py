@@ -196,7 +196,9 @@ def test_marker_array_messages_split_an_update_into_parts() -> None:
     for part in parts:  # each part holds at most the budget, unless a single block exceeds it
         adds = [m for m in part.markers if m.action == Marker.ADD]
         assert len(adds) == 1 or sum(len(m.points) for m in adds) // 3 <= 60
-    key = lambda m: (m.action, m.ns, m.id, len(m.points), tuple(round(p.x, 6) for p in m.points))
+    def key(m: Marker) -> tuple:
+        return m.action, m.ns, m.id, len(m.points), tuple(round(p.x, 6) for p in m.points)
+
     assert sorted(map(key, (m for p in parts for m in p.markers))) == sorted(map(key, whole.markers))
     only_deletes = list(conv.marker_array_messages({}, [(1, 2, 3)], stamp_ns=7, frame_id="map"))
     assert len(only_deletes) == 1

@@ -6,7 +6,8 @@ import multiprocessing
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -219,7 +220,7 @@ def stream_scene(prefix: str, speed: float, go: Any = None, taken: Any = None) -
     for s in ("tof", "stereo"):
         for t, T in zip(seq.pose_stamps_s[s], seq.pose_T_world_camera[s]):
             events.append((t, 0, FLOW.index((s, "pose_received")),
-                           lambda m=_pose_msg(t, T), s=s: pubs[(s, "pose")].publish(m)))
+                           lambda m=_pose_msg(t, T), s=s: pubs[(s, "pose")].publish(m)))  # noqa: B008 (bound now)
     for f in seq.frames:
         h, w = f.depth_m.shape
         info = CameraInfo(width=w, height=h, k=[float(v) for v in f.K.reshape(-1)])
@@ -272,7 +273,7 @@ def test_parameter_table_declared_and_default_yaml_matches(ros, tmp_path: Path) 
     expected = P.expanded_defaults()
     run = Running("params", {}, tmp_path)
     try:
-        for name, (default, help_text) in expected.items():
+        for name, (_default, help_text) in expected.items():
             assert run.node.has_parameter(name), name
             descriptor = run.node.describe_parameter(name)
             assert descriptor.description == help_text
@@ -391,16 +392,30 @@ def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: P
         assert m["F"] > 40.0, m
         print(f"\nstreamed mesh vs visible GT (tau 8 cm): {m}; counters: {run.node.ingest.counters()}")
 
-        # ~/weights: the contract's fields
-        # Clouds come every 1 / weights_rate_hz s while the mesh timer runs; one sent before the
-        # stream (an empty map) may be the latest for a while, so wait for one with the map in it.
-        wait_for(lambda: len(clouds) > 0 and clouds[-1].width > 0, 30, "a weights cloud of the map")
+        # ~/weights: the contract's fields, and each voxel's own values. The stream is over, so the
+        # map stands still: a cloud published now holds, point for point, what the engine's own
+        # weight cloud holds (which only gains voxels as budgeted refreshes judge more of them).
+        sent = len(clouds)
+        run.node.publish_mesh(weights=True)
+        wait_for(lambda: len(clouds) > sent and clouds[-1].width > 0, 30, "a weights cloud of the map")
         cloud = clouds[-1]
         assert [f.name for f in cloud.fields] == ["x", "y", "z", "alpha", "weight_tof", "weight_stereo"]
         assert all(f.datatype == PointField_FLOAT32 for f in cloud.fields)
         assert cloud.header.frame_id == "map" and cloud.width > 0
         table = np.frombuffer(bytes(cloud.data), "<f4").reshape(cloud.width, 6)
-        assert np.all((table[:, 3] >= 0) & (table[:, 3] <= 1)) and np.all(table[:, 4:] >= 0)
+        voxel_m = E2E_PARAMS["voxel_size_m"]
+        voxels = np.round(table[:, :3] / voxel_m).astype(np.int64)
+        np.testing.assert_allclose(table[:, :3], voxels * voxel_m, atol=1e-4)  # voxel centres, metres
+        engine_cloud = run.node.engine.weight_cloud(refresh_alpha=False)
+        expected = {tuple(v): (a, *w) for v, a, w in zip(
+            np.round(engine_cloud.positions_m / voxel_m).astype(np.int64).tolist(), engine_cloud.alpha.tolist(),
+            engine_cloud.weights.tolist())}
+        rows = [expected.get(tuple(v)) for v in voxels.tolist()]
+        assert all(row is not None for row in rows), "cloud points the engine does not hold"
+        rows_array = np.array(rows, np.float32)
+        np.testing.assert_allclose(table[:, 3], rows_array[:, 0], atol=1e-3)  # alpha
+        np.testing.assert_array_equal(table[:, 4:], rows_array[:, 1:])  # weight_tof, weight_stereo
+        assert np.any(table[:, 4] != table[:, 5])  # the two sensors' columns differ somewhere
 
         # a late subscriber gets the whole mesh
         late_node = Node("late_subscriber", namespace="e2e")

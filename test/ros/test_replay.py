@@ -69,7 +69,9 @@ def test_replay_outputs_stats_and_metrics(cli_replay: tuple[subprocess.Completed
         assert set(c["dropped"]) >= {"pose_timeout", "queue_full", "no_camera_info"}
     assert stats["topics"]["/stereo/color"]["stream"] == "color"
     assert set(stats["metrics"]) == set(MESHES)
-    assert all(0 < stats["metrics"][m]["F"] <= 100 for m in MESHES)
+    for m in MESHES:  # F is the harmonic mean of the P and R beside it (all rounded to 4 places)
+        p, r = stats["metrics"][m]["P"], stats["metrics"][m]["R"]
+        assert stats["metrics"][m]["F"] == pytest.approx(2 * p * r / (p + r), abs=2e-3)
     for key in ("integrate_s", "integrate_per_frame_ms", "extract_s", "write_s", "metrics_s", "total_s"):
         assert key in stats["timings"]
     assert re.search(r"^tof: (\d+) of \1 frames fused$", proc.stdout, re.M), proc.stdout
@@ -90,6 +92,42 @@ def test_mcap_sqlite3_and_bare_mcap_give_the_same_mesh_bytes(
         for mesh in MESHES:  # a different process and storage, the same bytes: deterministic
             assert (work / f"out_{name}" / f"{mesh}.ply").read_bytes() == (out_mcap / f"{mesh}.ply").read_bytes(), \
                 f"{name}: {mesh}.ply differs from the mcap replay"
+
+
+def test_metrics_are_those_of_the_written_meshes_against_the_observed_ground_truth(
+        cli_replay: tuple[subprocess.CompletedProcess, Path], prefix: Path, small_params: Path, work: Path,
+        monkeypatch: pytest.MonkeyPatch):
+    """Each mesh's F, P, R are mesh_metrics of the PLY file written for it against the GT cropped to
+    the observed surface (the crop captured as replay computes it), in-process and from the CLI."""
+    import numpy as np
+
+    from senfunet_core.learning import evaluation
+    from senfunet_core.metrics import mesh_metrics
+    from senfunet_core.ply import read_ply
+    from senfunet_ros.replay import replay_bag
+
+    crops: list[np.ndarray] = []
+    crop = evaluation.observed_gt_vertices
+
+    def capture(*args, **kwargs):
+        crops.append(crop(*args, **kwargs))
+        return crops[-1]
+
+    monkeypatch.setattr(evaluation, "observed_gt_vertices", capture)
+    out = work / "out_metrics"
+    result = replay_bag(prefix, out, params=small_params, gt=SAMPLE_GT, progress=False)
+    assert result.ok, result.error
+    assert len(crops) == 1
+    n_gt = read_ply(SAMPLE_GT).n_vertices
+    assert 0 < len(crops[0]) < n_gt  # cropped, not empty
+    assert result.stats["gt"]["vertices_observed"] == len(crops[0]) and result.stats["gt"]["vertices"] == n_gt
+    metrics = result.stats["metrics"]
+    for name in MESHES:
+        expected = mesh_metrics(read_ply(out / f"{name}.ply").vertices, crops[0])
+        assert metrics[name] == {k: round(float(v), 4) for k, v in expected.items()}, name
+    assert metrics["mesh"]["F"] > 10 * mesh_metrics(read_ply(out / "mesh.ply").vertices + 0.1, crops[0])["F"]
+    cli_stats = json.loads((cli_replay[1] / "stats.json").read_text())
+    assert cli_stats["metrics"] == metrics  # the CLI reports the same numbers for the same bag
 
 
 @pytest.mark.skipif(not WEIGHTS.is_file(), reason=f"no trained weights at {WEIGHTS} yet")
@@ -124,6 +162,20 @@ def test_settings_from_file_match_the_node_defaults(tmp_path: Path):
     typo.write_text("senfunet:\n  ros__parameters:\n    voxel_sise_m: 0.02\n")
     with pytest.raises(ValueError, match="unknown parameter.*voxel_sise_m"):
         load_settings(typo)
+
+
+def test_node_engine_config_runs_on_the_cpu_when_cuda_is_asked_for_and_absent(tmp_path: Path, monkeypatch):
+    import torch
+
+    from senfunet_ros import params as P
+    from senfunet_ros.replay import load_settings
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    file = tmp_path / "cuda.yaml"
+    file.write_text("/**:\n  ros__parameters:\n    device: cuda\n")
+    settings = load_settings(file)
+    assert settings.device == "cuda"
+    assert P.engine_config(settings).device == "cpu"
 
 
 # -- BagFeeder ----------------------------------------------------------------------------------

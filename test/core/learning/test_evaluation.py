@@ -41,7 +41,8 @@ def test_markdown_report(tiny_result):
     for header in ("MSE", "MAD", "IoU", "Acc", "F (%)", "P (%)", "R (%)"):
         assert header in text
     assert "senfunet evaluate --scenes 1" in text and "Asynchronous" in text
-    assert set(ev.bar_check(result.rows)) == {"F >= TSDF Fusion + 10", "F >= best single sensor + 3", "MAD < TSDF Fusion"}
+    assert set(ev.bar_check(result.rows)) == {"F >= TSDF Fusion + 10", "F >= best single sensor + 3",
+                                              "MAD < TSDF Fusion"}
 
 
 def test_gt_crop_keeps_only_observed_vertices():

@@ -201,7 +201,9 @@ def test_trajectory_is_walkable(seed):
     cos = np.clip((np.einsum("nij,nij->n", T[1:, :3, :3], T[:-1, :3, :3]) - 1) / 2, -1, 1)
     assert np.degrees(np.arccos(cos)).max() < 6.0
     assert np.all(np.abs(pos[:, 2] - 1.5) < 0.25)
-    np.testing.assert_allclose(np.einsum("nij,nkj->nik", T[:, :3, :3], T[:, :3, :3]), np.tile(np.eye(3), (len(T), 1, 1)), atol=1e-9)
+    np.testing.assert_allclose(np.einsum("nij,nkj->nik", T[:, :3, :3], T[:, :3, :3]),
+                               np.tile(np.eye(3), (len(T), 1, 1)),
+                               atol=1e-9)
     assert np.all(T[:, 2, 2] < 0)  # looking slightly down
 
 

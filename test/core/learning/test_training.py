@@ -40,13 +40,29 @@ def test_loss_terms_by_hand():
     assert alpha.grad[6] == 0 and alpha.grad[3] > 0 and alpha.grad[5] < 0
 
 
-def test_loss_mask_and_empty_sets():
-    z = torch.zeros(4)
-    alpha = torch.full((4,), 0.5, requires_grad=True)
-    w = torch.tensor([1.0, 1.0, 1.0, 1.0])
-    mask = torch.tensor([False, False, False, False])
-    total, terms = tr.senfunet_loss(z, w, z, w, alpha, z, mask, 1.0, 1.0, 0.04)
-    assert float(total.detach()) == 0.0 and all(v == 0 for v in terms.values())
+def test_loss_counts_only_the_masked_voxels_and_an_empty_set_adds_nothing():
+    # voxels 0-2 in the mask: C12, a C1 inlier, a C1 outlier; voxels 3-5 outside it, with large
+    # errors in every set (C12, C1, C2): they must change neither the loss nor get a gradient
+    tsdf_1 = torch.tensor([0.02, 0.01, 0.09, 0.3, 0.3, 0.0])
+    weight_1 = torch.tensor([1.0, 1.0, 1.0, 1.0, 2.0, 0.0])
+    tsdf_2 = torch.tensor([0.04, 0.0, 0.0, -0.3, 0.0, 0.3])
+    weight_2 = torch.tensor([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])
+    gt = torch.tensor([0.0, 0.0, 0.0, 0.05, -0.2, -0.2])
+    mask = torch.tensor([True, True, True, False, False, False])
+    alpha = torch.tensor([0.5, 0.9, 0.7, 0.3, 0.6, 0.2], requires_grad=True)
+    total, terms = tr.senfunet_loss(tsdf_1, weight_1, tsdf_2, weight_2, alpha, gt, mask, 0.5, 0.25, 0.04)
+    # by hand on the masked voxels: L_f = |0.03|, L_in1 = |0.9 - 1|, L_out1 = 0.7; C2 is empty there
+    assert terms["L_f"] == pytest.approx(0.03, abs=1e-6)
+    assert terms["L_in1"] == pytest.approx(0.1, abs=1e-6) and terms["L_out1"] == pytest.approx(0.7, abs=1e-6)
+    assert terms["L_in2"] == 0.0 and terms["L_out2"] == 0.0  # empty sets: 0, not NaN
+    assert float(total.detach()) == pytest.approx(0.03 + 0.5 * 0.1 + 0.25 * 0.7, abs=1e-6)
+    total.backward()
+    assert alpha.grad is not None
+    assert torch.all(alpha.grad[3:] == 0) and torch.all(alpha.grad[:3] != 0)
+    # the same voxels alone give the same loss: the masked-out ones only add zeros
+    subset, _ = tr.senfunet_loss(tsdf_1[:3], weight_1[:3], tsdf_2[:3], weight_2[:3], alpha.detach()[:3], gt[:3],
+                                 torch.ones(3, dtype=torch.bool), 0.5, 0.25, 0.04)
+    assert float(subset) == pytest.approx(float(total.detach()), abs=1e-7)
 
 
 def _slab(nx, ny, nz, offset=(0, 0, 0)):
@@ -171,7 +187,7 @@ def test_feature_gradient_on_the_image_window_equals_the_whole_image(tiny_sequen
 
     losses_window, g_window = grads(tr.FEATURE_RADIUS_PX)
     losses_whole, g_whole = grads(10_000)
-    assert sum(l is not None for l in losses_window) >= 3 and losses_window == losses_whole
+    assert sum(loss is not None for loss in losses_window) >= 3 and losses_window == losses_whole
     assert all(float(g.abs().max()) > 0 for g in g_window)
     assert relative_difference(g_window, g_whole) < 1e-4
     _, g_small = grads(1)  # too small a window: different gradients

@@ -1,0 +1,37 @@
+"""The networks' device decision and input checks."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from senfunet_core.engine import EngineConfig, SenFuNet
+from senfunet_core.errors import InputError
+from senfunet_core.networks import FeatureNet, choose_device
+
+
+def test_cpu_is_chosen_as_asked_without_a_reason():
+    choice = choose_device("cpu", cpu_fallback=True)
+    assert choice.device == torch.device("cpu") and choice.fallback_reason is None
+
+
+def test_missing_cuda_falls_back_only_where_a_fallback_is_promised(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    choice = choose_device("cuda:0", cpu_fallback=True)
+    assert choice.device == torch.device("cpu")
+    assert "cuda:0" in choice.fallback_reason and "using cpu" in choice.fallback_reason
+    with pytest.raises(InputError, match="CUDA is not available"):
+        choose_device("cuda", cpu_fallback=False)
+    with pytest.raises(InputError, match="CUDA is not available"):  # the engine never falls back silently
+        SenFuNet(EngineConfig(device="cuda"), weights=None)
+
+
+def test_a_device_name_torch_does_not_know_is_an_input_error():
+    with pytest.raises(InputError, match="not a torch device name"):
+        choose_device("gpu0", cpu_fallback=True)
+
+
+def test_colour_feature_net_without_colour_says_so():
+    net = FeatureNet(uses_rgb=True)
+    with pytest.raises(InputError, match="rgb01"):
+        net(torch.zeros(1, 1, 8, 8))
+    assert net(torch.zeros(1, 1, 8, 8), torch.zeros(1, 3, 8, 8)).shape == (1, 5, 8, 8)
