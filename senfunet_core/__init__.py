@@ -9,9 +9,10 @@ The public surface, importable from this package:
 - `SenFuNetError`, `InputError`: what the engine raises on purpose (`errors`).
 
 Modules by concern: `engine` schedules (integration, weighting, meshing, eviction) over the map
-`grid` (sparse blocks, hash table, pools) and keeps the final meshes of evicted blocks in `mesh_archive`; `integrator`, `alpha`, `fusion` and `mesher` hold the
-kernels of each step; `networks` the learned parts. `learning/` is offline tooling (simulator,
-training, evaluation) that nothing at run time imports.
+`grid` (sparse blocks, hash table, pools) and keeps the final meshes of evicted blocks in
+`mesh_archive`; `integrator`, `alpha`, `fusion` and `mesher` hold the kernels of each step;
+`networks` the learned parts. `learning/` is offline tooling (simulator, training, evaluation)
+that nothing at run time imports.
 
 Names are imported on first use, so `import senfunet_core.errors` does not load torch or numba.
 """
