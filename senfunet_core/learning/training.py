@@ -86,7 +86,9 @@ class TrainConfig:
     block_batch: int = 16
     block_scene_blocks: int = 1200
     block_mixed: bool = False  # a batch draws its blocks from all scenes (False: all from one random scene)
-    block_lr_final_fraction: float = 1.0  # cosine decay of the block phase's learning rate to lr * this
+    block_lr: float = 0.0  # the block phase's learning rate (0: lr)
+    block_lr_final_fraction: float = 1.0  # cosine decay of the block phase's learning rate to block_lr * this
+    init_weights: str = ""  # start from this weights file's networks (e.g. after a block phase), not init_seed
     feature_lr_factor: float = 1.0  # the feature nets' learning rate is lr * this (1 = the paper's single rate)
     lr_final_fraction: float = 1.0  # cosine decay of the learning rate to lr * this over the run (1 = constant)
     accumulate_frames: int = 20
@@ -454,6 +456,12 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(config.seed)
         self.feature_nets, self.weighting_net = networks.make_networks(config.sensor_uses_rgb, config.init_seed,
                                                                        config.weighting_tsdf_input)
+        if config.init_weights:
+            path = Path(config.init_weights)
+            if networks.weights_tsdf_input(path) != config.weighting_tsdf_input:
+                raise InputError(f"init_weights {path}: its weighting net's TSDF input differs from "
+                                 f"weighting_tsdf_input = {config.weighting_tsdf_input}; match them in the config")
+            networks.load_weights(path, self.feature_nets, self.weighting_net)
         self.feature_nets.train()
         self.weighting_net.train()
         groups = [{"params": list(self.feature_nets.parameters()), "lr_factor": config.feature_lr_factor},
@@ -675,7 +683,7 @@ class Trainer:
         terms_sum: dict[str, float] = {}
         params = list(self.weighting_net.parameters())
         for step in range(cfg.block_steps):
-            self.set_lr(cosine_lr(cfg.lr, cfg.block_lr_final_fraction, step / cfg.block_steps))
+            self.set_lr(cosine_lr(cfg.block_lr or cfg.lr, cfg.block_lr_final_fraction, step / cfg.block_steps))
             d = block_batch(data, cfg.block_batch, cfg.block_mixed, rng)
             n = len(d["x"])
             alpha = self.weighting_net(d["x"], pad=False).reshape(n, -1)
@@ -921,6 +929,7 @@ def train(config: TrainConfig, out_path: str | Path, log=print, progress: bool =
                 trainer.reset_grids(slot)
 
     best = {"margin": -math.inf}
+    counts = {"chunk": 0}  # online frames whose loss reached the networks (for the checkpoint's record)
     history = []
     out_path = Path(out_path)
 
@@ -939,6 +948,14 @@ def train(config: TrainConfig, out_path: str | Path, log=print, progress: bool =
         if v["margin"] > best["margin"]:
             best.update(margin=v["margin"], F=v["F"], step=step, MAD=v["MAD"])
             trainer.save(out_path, meta={"trained_steps": step, "optimizer_steps": trainer.optimizer_steps,
+                                         "ran": {"block_steps": config.block_steps if config.block_steps > 0 else 0,
+                                                 "online_frames": step,
+                                                 "online_optimizer_steps": trainer.optimizer_steps
+                                                 - max(config.block_steps, 0),
+                                                 "online_frames_with_chunk": counts["chunk"],
+                                                 "random_resets": trainer.resets,
+                                                 "memory_resets": trainer.memory_resets,
+                                                 "init_weights": config.init_weights},
                                          "val_scenes": list(config.val_scenes), "val_F": v["F"],
                                          "val_margin": v["margin"], "val_MAD_m": v["MAD"],
                                          "val_tsdf_F": v["tsdf_F"], "val_best_single_F": v["best_single_F"],
@@ -979,6 +996,7 @@ def train(config: TrainConfig, out_path: str | Path, log=print, progress: bool =
             skipped += 1
         else:
             recent.append(res.loss)
+            counts["chunk"] += 1
             losses.append(res.loss)
             recent = recent[-50:]
             for k, val in res.terms.items():
