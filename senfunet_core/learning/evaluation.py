@@ -163,10 +163,11 @@ def simulator_version() -> str:
     import hashlib
 
     from . import simulator
+    from .scenes import _scene_to_json
 
     digest = hashlib.sha1()
     scene = simulator.make_scene(7)
-    digest.update(simulator._scene_to_json(scene).encode())
+    digest.update(_scene_to_json(scene).encode())
     seq = simulator.simulate_sequence(scene, 7, duration_s=0.15, tof_rate_hz=20.0, stereo_rate_hz=20.0,
                                       pose_rate_hz=50.0, width=96, height=48)
     for frame in seq.frames:

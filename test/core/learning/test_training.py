@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from senfunet_core.learning import trainer as trainer_module
 from senfunet_core.learning import training as tr
 
 REPO = Path(__file__).resolve().parents[3]
@@ -161,7 +162,7 @@ def test_feature_gradient_on_the_image_window_equals_the_whole_image(tiny_sequen
     frames = [f for f in tiny_sequence.frames][:6]
 
     def grads(radius):
-        monkeypatch.setattr(tr, "FEATURE_RADIUS_PX", radius)
+        monkeypatch.setattr(trainer_module, "FEATURE_RADIUS_PX", radius)
         t = tr.Trainer(cfg)
         losses = [t.train_frame(f, tiny_sequence.scene).loss for f in frames]
         return losses, [p.grad.clone() for p in t.feature_nets.parameters()]
@@ -191,7 +192,7 @@ def test_block_phase_lowers_the_loss_on_its_blocks(tiny_sequence, monkeypatch):
         losses.append(float(total.detach()))
         return total, terms
 
-    monkeypatch.setattr(tr, "senfunet_loss", recording_loss)
+    monkeypatch.setattr(trainer_module, "senfunet_loss", recording_loss)
 
     def run(lr: float) -> list[float]:
         cfg = tr.TrainConfig(seed=0, lr=lr, lambda1=0.1, lambda2=0.08, weighting_tsdf_input=True, block_steps=60,
