@@ -31,7 +31,7 @@ def _first_box_holding(voxels: np.ndarray, corners: np.ndarray, size: np.ndarray
     return -1
 
 
-def sample_chunk(voxels: torch.Tensor, chunk_size: int, min_voxels: int, max_tries: int,
+def sample_chunk(voxels: torch.Tensor, *, chunk_size: int, min_voxels: int, max_tries: int,
                  generator: torch.Generator, batch: int = 32) -> tuple[torch.Tensor | None, torch.Tensor, int]:
     """A chunk inside the update box of `voxels` (U x 3 int64) holding >= min_voxels of them.
 

@@ -182,7 +182,7 @@ def simulator_version() -> str:
     return digest.hexdigest()[:10]
 
 
-def cached_sequence(seed: int, duration_s: float, tof_rate_hz: float, stereo_rate_hz: float,
+def cached_sequence(seed: int, *, duration_s: float, tof_rate_hz: float, stereo_rate_hz: float,
                     cache_dir: str | Path | None, log=print, room_size_m: tuple | None = None,
                     image_size: tuple[int, int] = (256, 256)):
     """simulate_sequence(make_scene(seed), seed, ...), stored under cache_dir and reloaded from there."""
@@ -262,8 +262,9 @@ def evaluate(weights="default", config: EvaluationConfig = EvaluationConfig(), f
     async_scenes: dict[str, list] = {f"1/{d}": [] for d in config.async_tof_divisors}
     weights_source = ""
     for index, seed in enumerate(config.seeds):
-        seq = cached_sequence(seed, config.duration_s, config.tof_rate_hz, config.stereo_rate_hz, config.cache_dir, log,
-                              config.room_size_m, config.image_size)
+        seq = cached_sequence(seed, duration_s=config.duration_s, tof_rate_hz=config.tof_rate_hz,
+                              stereo_rate_hz=config.stereo_rate_hz, cache_dir=config.cache_dir, log=log,
+                              room_size_m=config.room_size_m, image_size=config.image_size)
         gt_vertices = cached_gt_mesh_vertices(seq.scene, 0.01, config.cache_dir)
         stride = {"tof": config.frame_stride, "stereo": config.frame_stride}
         engine = _engine(weights)

@@ -107,17 +107,9 @@ def gt_tsdf_blocks(scene: Scene, block_coords: np.ndarray, voxel_size_m: float, 
     return np.clip(d.astype(np.float32), -half, half).astype(np.float32)
 
 
-def gt_mesh(scene: Scene, voxel_size_m: float = 0.01) -> Mesh:
-    """Marching cubes of the SDF at level 0 (faces counter-clockwise seen from free space).
-
-    Coarse pass on 8^3-voxel blocks (SDF is 1-Lipschitz: a block whose centre is farther from
-    every surface than its half diagonal holds no surface), fine pass only in the other blocks and
-    only with the primitives that can be the nearest there.
-    """
-    v = float(voxel_size_m)
-    if not v > 0:
-        raise InputError(f"voxel_size_m must be > 0, got {voxel_size_m}")
-    bs = 8
+def _surface_blocks(scene: Scene, v: float, bs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Blocks of bs^3 voxels that may hold surface: all block keys (N, 3), the active ones' indices
+    (A,) and which of the room and the primitives can be the nearest surface in each ((1 + P), A)."""
     room = np.asarray(scene.room_size_m)
     lo = -np.ones(3, int)  # one block below 0 so the floor and walls are inside the grid
     hi = np.ceil((room + 2 * v) / (bs * v)).astype(int)
@@ -130,6 +122,21 @@ def gt_mesh(scene: Scene, voxel_size_m: float = 0.01) -> Mesh:
     act = np.nonzero(np.abs(dmin) < radius + v)[0]
     # primitive k can be the nearest somewhere in block b only if sdf_k(c) - r <= min(c) + r
     relevant = per[:, act] <= (dmin[act] + 2 * radius + 1e-9)[None]
+    return bkeys, act, relevant
+
+
+def gt_mesh(scene: Scene, voxel_size_m: float = 0.01) -> Mesh:
+    """Marching cubes of the SDF at level 0 (faces counter-clockwise seen from free space).
+
+    Coarse pass on 8^3-voxel blocks (SDF is 1-Lipschitz: a block whose centre is farther from
+    every surface than its half diagonal holds no surface), fine pass only in the other blocks and
+    only with the primitives that can be the nearest there.
+    """
+    v = float(voxel_size_m)
+    if not v > 0:
+        raise InputError(f"voxel_size_m must be > 0, got {voxel_size_m}")
+    bs = 8
+    bkeys, act, relevant = _surface_blocks(scene, v, bs)
     n_act = len(act)
     if n_act == 0:
         return Mesh.empty()
@@ -145,7 +152,7 @@ def gt_mesh(scene: Scene, voxel_size_m: float = 0.01) -> Mesh:
     shape = (n_act, bs + 1, bs + 1, bs + 1)
     gx, gy, gz = (np.broadcast_to(g, shape) for g in (gx, gy, gz))
     vol = np.full(shape, np.inf, np.float32)
-    for k in range(per.shape[0]):
+    for k in range(relevant.shape[0]):
         blocks_k = np.nonzero(relevant[k])[0]
         if len(blocks_k) == 0:
             continue

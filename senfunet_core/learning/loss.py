@@ -10,7 +10,7 @@ from ..fusion import fuse
 
 
 def senfunet_loss(tsdf_1: torch.Tensor, weight_1: torch.Tensor, tsdf_2: torch.Tensor, weight_2: torch.Tensor,
-                  alpha: torch.Tensor, gt_tsdf: torch.Tensor, mask: torch.Tensor, lambda1: float, lambda2: float,
+                  alpha: torch.Tensor, gt_tsdf: torch.Tensor, mask: torch.Tensor, *, lambda1: float, lambda2: float,
                   eta_m: float) -> tuple[torch.Tensor, dict[str, float]]:
     """The paper's loss on the voxels in `mask` (all tensors of one shape).
 

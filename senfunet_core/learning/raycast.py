@@ -177,6 +177,85 @@ def _normals_and_uv(prim: Primitive, x: np.ndarray, y: np.ndarray, z: np.ndarray
     return (nx, ny, nz), (u, v)
 
 
+def _room_exit(scene: Scene, o: np.ndarray, d: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Ray parameter where each ray leaves the room (the nearest of the 6 planes: the camera is
+    inside) and the axis of that plane."""
+    L = scene.room_size_m
+    depth = axis = None
+    for a in range(3):
+        da = np.where(d[a] == 0, np.float32(1e-20), d[a])
+        ta = np.where(da > 0, np.float32(L[a] - o[a]), np.float32(-o[a])) / da
+        if depth is None:
+            depth, axis = ta, np.zeros(ta.shape, np.int8)
+        else:
+            closer = ta < depth
+            depth = np.where(closer, ta, depth)
+            axis = np.where(closer, np.int8(a), axis)
+    return depth, axis
+
+
+def _nearest_primitives(scene: Scene, T: np.ndarray, K: np.ndarray, width: int, height: int, d: tuple,
+                        depth: np.ndarray) -> tuple[np.ndarray, list[tuple[int, tuple]]]:
+    """Lowers `depth` where a primitive is hit first; the primitive id per pixel (-1 = room) and
+    the (primitive, screen rectangle) pairs that won pixels."""
+    dx, dy, dz = d
+    o = T[:3, 3].copy()
+    pid = np.full(dx.shape, -1, np.int32)
+    R_cw, t_cw = T[:3, :3].T, -T[:3, :3].T @ o
+    won: list[tuple[int, tuple]] = []
+    for i, prim in enumerate(scene.primitives):
+        rect = _proj_rect(prim, R_cw, t_cw, K, width, height)
+        if rect is None:
+            continue
+        v0, v1, u0, u1 = rect
+        sl = (slice(v0, v1), slice(u0, u1))
+        t = _intersect(prim, o, dx[sl], dy[sl], dz[sl])
+        closer = t < depth[sl]
+        if np.any(closer):
+            depth[sl] = np.where(closer, t, depth[sl])
+            pid[sl] = np.where(closer, i, pid[sl])
+            won.append((i, sl))
+    return pid, won
+
+
+def _shade(scene: Scene, p: tuple, n: tuple, uv: tuple, surf: np.ndarray) -> np.ndarray:
+    """Colour image (H, W, 3) uint8: albedo x periodic texture x (ambient + Lambertian point lights)."""
+    (px, py, pz), (nx, ny, nz), (u, v) = p, n, uv
+    atlas = _textures(scene)
+    Tt = np.float32(TEXTURE_TILE)
+    inv_texel = np.take(np.array([1.0 / s_.texel_m for s_ in scene.surfaces], np.float32), surf)
+    tu = u * inv_texel
+    tu -= np.floor(tu / Tt) * Tt  # periodic tile (cheaper than np.mod)
+    tv = v * inv_texel
+    tv -= np.floor(tv / Tt) * Tt
+    tv += (surf * (TEXTURE_TILE + 2)).astype(np.float32)
+    mod = cv2.remap(atlas, tu + 1, tv + 1, cv2.INTER_LINEAR)
+    shade = np.full(px.shape, scene.ambient, np.float32)
+    for lx, ly, lz in scene.lights_m:
+        vx, vy, vz = lx - px, ly - py, lz - pz
+        dist2 = vx * vx + vy * vy + vz * vz
+        lam = np.maximum(nx * vx + ny * vy + nz * vz, 0) / np.sqrt(dist2)
+        shade += scene.light_level * lam / (1.0 + dist2 / 6.25)
+    intensity = mod * shade * 255.0
+    albedo = np.array([s_.color_rgb for s_ in scene.surfaces], np.float32)
+    return cv2.convertScaleAbs(cv2.merge([np.take(albedo[:, c], surf) * intensity for c in range(3)]))
+
+
+def _room_surface_frame(axis: np.ndarray, d: tuple, p: tuple) -> tuple[np.ndarray, ...]:
+    """Where the room is hit: the normal along the exit axis against the ray (3 arrays), texture
+    coordinates in the wall plane (u, v) and the surface (floor, ceiling, x0, x1, y0, y1: 0-5)."""
+    (dx, dy, dz), (px, py, pz) = d, p
+    one = np.float32(1)
+    nx = np.where(axis == 0, np.where(dx > 0, -one, one), 0).astype(np.float32)
+    ny = np.where(axis == 1, np.where(dy > 0, -one, one), 0).astype(np.float32)
+    nz = np.where(axis == 2, np.where(dz > 0, -one, one), 0).astype(np.float32)
+    u = np.where(axis == 0, py, px)
+    v = np.where(axis == 2, py, pz)
+    surf = np.where(axis == 2, np.where(dz < 0, 0, 1),
+                    np.where(axis == 0, np.where(dx < 0, 2, 3), np.where(dy < 0, 4, 5))).astype(np.int32)
+    return nx, ny, nz, u, v, surf
+
+
 def render_view(scene: Scene, T_world_camera: np.ndarray, K: np.ndarray, width: int, height: int,
                 *, with_rgb: bool = True, with_other_distance: bool = False) -> dict[str, np.ndarray]:
     """Exact ray casting of one pinhole view (vectorised over rays, looping over primitives).
@@ -203,52 +282,19 @@ def render_view(scene: Scene, T_world_camera: np.ndarray, K: np.ndarray, width: 
     dz = R[2, 0] * xc + R[2, 1] * yc + R[2, 2]
     d = (dx, dy, dz)
 
-    # the room: the ray leaves through the nearest of the 6 planes (the camera is inside)
-    L = scene.room_size_m
-    depth = None
-    for a in range(3):
-        da = np.where(d[a] == 0, np.float32(1e-20), d[a])
-        ta = np.where(da > 0, np.float32(L[a] - o[a]), np.float32(-o[a])) / da
-        if depth is None:
-            depth, axis = ta, np.zeros(ta.shape, np.int8)
-        else:
-            closer = ta < depth
-            depth = np.where(closer, ta, depth)
-            axis = np.where(closer, np.int8(a), axis)
-    pid = np.full(dx.shape, -1, np.int32)  # -1 = room
-    R_cw, t_cw = T[:3, :3].T, -T[:3, :3].T @ o
-    won: list[tuple[int, tuple]] = []
-    for i, prim in enumerate(scene.primitives):
-        rect = _proj_rect(prim, R_cw, t_cw, K, width, height)
-        if rect is None:
-            continue
-        v0, v1, u0, u1 = rect
-        sl = (slice(v0, v1), slice(u0, u1))
-        t = _intersect(prim, o, dx[sl], dy[sl], dz[sl])
-        closer = t < depth[sl]
-        if np.any(closer):
-            depth[sl] = np.where(closer, t, depth[sl])
-            pid[sl] = np.where(closer, i, pid[sl])
-            won.append((i, sl))
+    depth, axis = _room_exit(scene, o, d)
+    pid, won = _nearest_primitives(scene, T, K, width, height, d, depth)
 
-    # room: normal along the exit axis against the ray, texture coordinates in the wall plane;
-    # surfaces floor, ceiling, x0, x1, y0, y1
     px, py, pz = ox + dx * depth, oy + dy * depth, oz + dz * depth
-    one = np.float32(1)
-    nx = np.where(axis == 0, np.where(dx > 0, -one, one), 0).astype(np.float32)
-    ny = np.where(axis == 1, np.where(dy > 0, -one, one), 0).astype(np.float32)
-    nz = np.where(axis == 2, np.where(dz > 0, -one, one), 0).astype(np.float32)
-    u = np.where(axis == 0, py, px)
-    v = np.where(axis == 2, py, pz)
-    surf = np.where(axis == 2, np.where(dz < 0, 0, 1),
-                    np.where(axis == 0, np.where(dx < 0, 2, 3), np.where(dy < 0, 4, 5))).astype(np.int32)
+    nx, ny, nz, u, v, surf = _room_surface_frame(axis, d, (px, py, pz))
     # primitives overwrite the pixels they won (only inside their screen rectangles)
     for i, sl in won:
         m = pid[sl] == i
         if not np.any(m):
             continue
         prim = scene.primitives[i]
-        (nx[sl][m], ny[sl][m], nz[sl][m]), (u[sl][m], v[sl][m]) = _normals_and_uv(prim, px[sl][m], py[sl][m], pz[sl][m])
+        (nx[sl][m], ny[sl][m], nz[sl][m]), (u[sl][m], v[sl][m]) = _normals_and_uv(prim, px[sl][m], py[sl][m],
+                                                                                  pz[sl][m])
         surf[sl][m] = prim.surface
     rn = np.sqrt(dx * dx + dy * dy + dz * dz)
     cosi = (nx * dx + ny * dy + nz * dz) / rn
@@ -265,24 +311,7 @@ def render_view(scene: Scene, T_world_camera: np.ndarray, K: np.ndarray, width: 
     if with_other_distance:
         out["other_distance_m"] = _other_surface_distance(scene, px, py, pz, axis, (dx, dy, dz), pid)
     if with_rgb:
-        atlas = _textures(scene)
-        Tt = np.float32(TEXTURE_TILE)
-        inv_texel = np.take(np.array([1.0 / s_.texel_m for s_ in scene.surfaces], np.float32), surf)
-        tu = u * inv_texel
-        tu -= np.floor(tu / Tt) * Tt  # periodic tile (cheaper than np.mod)
-        tv = v * inv_texel
-        tv -= np.floor(tv / Tt) * Tt
-        tv += (surf * (TEXTURE_TILE + 2)).astype(np.float32)
-        mod = cv2.remap(atlas, tu + 1, tv + 1, cv2.INTER_LINEAR)
-        shade = np.full(px.shape, scene.ambient, np.float32)
-        for lx, ly, lz in scene.lights_m:
-            vx, vy, vz = lx - px, ly - py, lz - pz
-            dist2 = vx * vx + vy * vy + vz * vz
-            lam = np.maximum(nx * vx + ny * vy + nz * vz, 0) / np.sqrt(dist2)
-            shade += scene.light_level * lam / (1.0 + dist2 / 6.25)
-        intensity = mod * shade * 255.0
-        albedo = np.array([s_.color_rgb for s_ in scene.surfaces], np.float32)
-        out["rgb"] = cv2.convertScaleAbs(cv2.merge([np.take(albedo[:, c], surf) * intensity for c in range(3)]))
+        out["rgb"] = _shade(scene, (px, py, pz), (nx, ny, nz), (u, v), surf)
     return out
 
 

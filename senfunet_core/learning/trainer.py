@@ -3,7 +3,6 @@ G on the chunk's updated voxels, the paper's loss with gradients into G and the 
 net, accumulated over frames."""
 from __future__ import annotations
 
-import copy
 import random
 import time
 from dataclasses import dataclass, field
@@ -16,12 +15,11 @@ from .. import networks
 from ..errors import InputError
 from ..grid import BlockGrid, kernel_view
 from ..integrator import locate_samples, update_voxels, valid_depth_mask
-from .block_phase import block_batch
 from .chunks import sample_chunk
 from .config import SENSORS, TrainConfig
 from .frame_samples import FrameSamples, _box_flat, _frame_voxels, _samples_in_box
 from .gt_cache import GTCache
-from .loss import cosine_lr, senfunet_loss
+from .loss import senfunet_loss
 from .sparse_conv import sparse_alpha_planned, sparse_plan
 
 # a pixel's features depend on the pixels within this radius (6 residual blocks of two 3x3 convolutions)
@@ -159,8 +157,9 @@ class Trainer:
             result.updated = len(samples.updated_flat)
             t0 = self._timed("integrate", t0)
             if result.updated:
-                corner, size, result.tries = sample_chunk(torch.from_numpy(samples.updated_voxels), cfg.chunk_size,
-                                                          cfg.min_update_voxels, cfg.max_chunk_tries, self.generator)
+                corner, size, result.tries = sample_chunk(
+                    torch.from_numpy(samples.updated_voxels), chunk_size=cfg.chunk_size,
+                    min_voxels=cfg.min_update_voxels, max_tries=cfg.max_chunk_tries, generator=self.generator)
                 t0 = self._timed("chunk", t0)
                 if corner is not None:
                     loss, terms = self._chunk_loss(s, corner.numpy(), size.numpy(), samples, depth_t, rgb01, scene)
@@ -238,60 +237,14 @@ class Trainer:
         gt = torch.from_numpy(self.gts[self.slot].values(scene, voxels))
         t0 = self._timed("gt", t0)
         return senfunet_loss(tsdfs[0][at_upd], weights[0][at_upd], tsdfs[1][at_upd], weights[1][at_upd], alpha, gt,
-                             torch.ones_like(gt, dtype=torch.bool), cfg.lambda1, cfg.lambda2, cfg.eta_m)
+                             torch.ones_like(gt, dtype=torch.bool), lambda1=cfg.lambda1, lambda2=cfg.lambda2,
+                             eta_m=cfg.eta_m)
 
     def train_weighting_net_on_blocks(self, sequences, engine_config, log=print) -> dict[str, float]:
         """G alone on whole blocks of the integrated training scenes (see TrainConfig.block_steps)."""
-        from ..engine import SenFuNet
-        from ..grid import neighbour_table
-        from .evaluation import integrate_frames
-        from .geometry import gt_tsdf_blocks
+        from .block_phase import train_on_blocks
 
-        cfg = self.config
-        rng = np.random.default_rng(cfg.seed)
-        data = []
-        for seq in sequences:
-            engine = SenFuNet(engine_config, weights=None)
-            engine.feature_nets.load_state_dict(copy.deepcopy(self.feature_nets.state_dict()))
-            integrate_frames(engine, seq.frames, {name: cfg.val_frame_stride for name in SENSORS})
-            g = engine.grid
-            n = g.n_blocks
-            w0, w1 = g.pools["weight0"][:n].float(), g.pools["weight1"][:n].float()
-            candidates = np.flatnonzero((((w0 > 0) ^ (w1 > 0)).sum(1) > 10).numpy())
-            if len(candidates) == 0:
-                continue
-            keep = np.sort(rng.choice(candidates, size=min(len(candidates), cfg.block_scene_blocks), replace=False))
-            neighbours = neighbour_table(g.table_keys, g.table_slots, g.slot_keys, keep)
-            x = engine._weighting_windows(neighbours)
-            data.append({"x": torch.from_numpy(x).permute(0, 4, 1, 2, 3).contiguous(),
-                         "gt": torch.from_numpy(gt_tsdf_blocks(seq.scene, g.coords[keep].numpy(), cfg.voxel_size_m,
-                                                               cfg.band_m)),
-                         **{f"{c}{i}": g.pools[f"{c}{i}"][keep].float().clone() for c in ("tsdf", "weight") for i in (0, 1)}})
-            del engine
-        terms_sum: dict[str, float] = {}
-        params = list(self.weighting_net.parameters())
-        for step in range(cfg.block_steps):
-            self.set_lr(cosine_lr(cfg.block_lr or cfg.lr, cfg.block_lr_final_fraction, step / cfg.block_steps))
-            d = block_batch(data, cfg.block_batch, cfg.block_mixed, rng)
-            n = len(d["x"])
-            alpha = self.weighting_net(d["x"], pad=False).reshape(n, -1)
-            flat = {k: d[k].reshape(n, -1) for k in ("tsdf0", "weight0", "tsdf1", "weight1")}
-            loss, terms = senfunet_loss(flat["tsdf0"], flat["weight0"], flat["tsdf1"], flat["weight1"], alpha,
-                                        d["gt"], torch.ones_like(alpha, dtype=torch.bool), cfg.lambda1,
-                                        cfg.lambda2, cfg.eta_m)
-            self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(params, cfg.clip_grad_norm)
-            self.optimizer.step()
-            self.optimizer_steps += 1
-            for k, v in terms.items():
-                terms_sum[k] = terms_sum.get(k, 0.0) + v
-            if (step + 1) % 250 == 0:
-                log(f"block step {step + 1}: " + ", ".join(f"{k} {v / 250:.3f}" for k, v in terms_sum.items()))
-                terms_sum = {}
-        self.optimizer.zero_grad(set_to_none=True)
-        self.set_lr(cfg.lr)
-        return {"scenes": len(data), "blocks": sum(len(d["x"]) for d in data)}
+        return train_on_blocks(self, sequences, engine_config, log=log)
 
     def _optimizer_step(self) -> None:
         params = list(self.feature_nets.parameters()) + list(self.weighting_net.parameters())

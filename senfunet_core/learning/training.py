@@ -70,150 +70,172 @@ __all__ = [
 ]
 
 
-def train(config: TrainConfig, out_path: str | Path, log=print, progress: bool = True) -> dict:
-    """The whole training run; writes the best checkpoint to out_path and returns a summary."""
-    from tqdm import tqdm
+class _Run:
+    """One training run: the scenes' frame stream, the optional block phase, the online frames, the
+    periodic validation and the best checkpoint."""
 
-    from .evaluation import cached_sequence
+    def __init__(self, config: TrainConfig, out_path: Path, log, progress: bool) -> None:
+        self.config, self.out_path, self.log, self.progress = config, out_path, log, progress
+        self.clock = ActiveClock()
+        torch.set_num_threads(max(1, config.threads))
+        self.trainer = Trainer(config)
+        self.validator = Validator(config, log)
+        self.loaded: dict[int, object] = {}  # the few recordings in use (read back from the cache: ~1 s each)
+        self.best: dict = {"margin": -math.inf}
+        self.history: list[dict] = []
+        self.chunk_frames = 0  # online frames whose loss reached the networks
+        self.block_phase: dict = {}
 
-    clock = ActiveClock()
-    torch.set_num_threads(max(1, config.threads))
-    trainer = Trainer(config)
+    def sequence(self, seed: int):
+        from .evaluation import cached_sequence
 
-    loaded: dict[int, object] = {}  # the few recordings in use (read back from the cache: ~1 s each)
+        cfg = self.config
+        if seed not in self.loaded:
+            while len(self.loaded) >= cfg.scene_slots + 2:
+                self.loaded.pop(next(iter(self.loaded)))
+            self.loaded[seed] = cached_sequence(seed, duration_s=cfg.duration_s, tof_rate_hz=cfg.tof_rate_hz,
+                                                stereo_rate_hz=cfg.stereo_rate_hz, cache_dir=cfg.cache_dir,
+                                                log=self.log)
+        return self.loaded[seed]
 
-    def sequence(seed: int):
-        if seed not in loaded:
-            while len(loaded) >= trainer.config.scene_slots + 2:
-                loaded.pop(next(iter(loaded)))
-            loaded[seed] = cached_sequence(seed, config.duration_s, config.tof_rate_hz, config.stereo_rate_hz,
-                                           config.cache_dir, log)
-        return loaded[seed]
-
-    validator = Validator(config, log)
-
-    def segments():
+    def segments(self):
         """(scene, its frames of one segment, shuffled) for ever: epochs over all segments in random order."""
-        parts = max(1, config.segments_per_scene)
+        parts = max(1, self.config.segments_per_scene)
+        rng = self.trainer.rng
         while True:
-            order = [(seed, k) for seed in config.train_scenes for k in range(parts)]
-            trainer.rng.shuffle(order)
+            order = [(seed, k) for seed in self.config.train_scenes for k in range(parts)]
+            rng.shuffle(order)
             for seed, k in order:
-                seq = sequence(seed)
+                seq = self.sequence(seed)
                 frames = list(seq.frames)  # in stamp order: part k is a stretch of the walk
                 frames = frames[k * len(frames) // parts:(k + 1) * len(frames) // parts]
-                trainer.rng.shuffle(frames)
+                rng.shuffle(frames)
                 yield seq.scene, frames
 
-    def frame_stream():
+    def frame_stream(self):
         """(slot, frame, scene): each slot trains on one segment in its own fresh grids; frames of the
         slots interleave at random so that an accumulated gradient spans several scenes."""
-        source = segments()
+        source = self.segments()
         queues = []
-        for slot in range(len(trainer.grids)):
+        for slot in range(len(self.trainer.grids)):
             queues.append(next(source))
-            trainer.reset_grids(slot)
+            self.trainer.reset_grids(slot)
         while True:
-            slot = trainer.rng.randrange(len(queues))
+            slot = self.trainer.rng.randrange(len(queues))
             scene, frames = queues[slot]
             yield slot, frames.pop(), scene
             if not frames:
                 queues[slot] = next(source)
-                trainer.reset_grids(slot)
+                self.trainer.reset_grids(slot)
 
-    best = {"margin": -math.inf}
-    counts = {"chunk": 0}  # online frames whose loss reached the networks (for the checkpoint's record)
-    history = []
-    out_path = Path(out_path)
+    def ran(self, step: int) -> dict:
+        """What actually ran up to online frame `step` (the checkpoint's record; docs/results.md reads it)."""
+        trainer, cfg = self.trainer, self.config
+        return {"block_steps": max(0, cfg.block_steps), **self.block_phase, "online_frames": step,
+                "online_optimizer_steps": trainer.optimizer_steps - max(0, cfg.block_steps),
+                "online_frames_with_chunk": self.chunk_frames, "random_resets": trainer.resets,
+                "memory_resets": trainer.memory_resets, "init_weights": cfg.init_weights,
+                "active_seconds": round(self.clock.active())}
 
-    def run_validation(step: int) -> None:
+    def validate(self, step: int) -> None:
+        from tqdm import tqdm
+
         t0 = time.perf_counter()
-        v = validator.run(trainer.feature_nets, trainer.weighting_net)
-        entry = {"step": step, "optimizer_steps": trainer.optimizer_steps, "seconds": clock.active(),
+        v = self.validator.run(self.trainer.feature_nets, self.trainer.weighting_net)
+        entry = {"step": step, "optimizer_steps": self.trainer.optimizer_steps, "seconds": self.clock.active(),
                  **{k: v[k] for k in ("F", "margin", "MAD", "tsdf_F", "tsdf_MAD", "best_single_F")}, **v["alpha"],
                  "per_scene_F": {seed: r["senfunet"]["F"] for seed, r in v["per_scene"].items()}}
-        history.append(entry)
+        self.history.append(entry)
+        a = v["alpha"]
         msg = (f"[val frame {step}] fused F {v['F']:.2f} (margin over the better sensor {v['margin']:+.2f}, "
                f"TSDF Fusion {v['tsdf_F']:.2f}) | MAD cm {100 * v['MAD']:.3f} (TSDF Fusion {100 * v['tsdf_MAD']:.3f}) "
-               f"| alpha: C12 mean {v['alpha']['c12_alpha_mean']:.2f}, ToF-weighted {v['alpha']['c12_tof_share']:.2f}, "
-               f"kept ToF-only {v['alpha']['c1_kept']:.2f}, stereo-only {v['alpha']['c2_kept']:.2f} "
+               f"| alpha: C12 mean {a['c12_alpha_mean']:.2f}, ToF-weighted {a['c12_tof_share']:.2f}, "
+               f"kept ToF-only {a['c1_kept']:.2f}, stereo-only {a['c2_kept']:.2f} "
                f"({time.perf_counter() - t0:.0f} s)")
-        if v["margin"] > best["margin"]:
-            best.update(margin=v["margin"], F=v["F"], step=step, MAD=v["MAD"])
-            trainer.save(out_path, meta={"trained_steps": step, "optimizer_steps": trainer.optimizer_steps,
-                                         "ran": {"block_steps": max(0, config.block_steps),
-                                                 "online_frames": step,
-                                                 "online_optimizer_steps": trainer.optimizer_steps
-                                                 - max(config.block_steps, 0),
-                                                 "online_frames_with_chunk": counts["chunk"],
-                                                 "random_resets": trainer.resets,
-                                                 "memory_resets": trainer.memory_resets,
-                                                 "init_weights": config.init_weights},
-                                         "val_scenes": list(config.val_scenes), "val_F": v["F"],
-                                         "val_margin": v["margin"], "val_MAD_m": v["MAD"],
-                                         "val_tsdf_F": v["tsdf_F"], "val_best_single_F": v["best_single_F"],
-                                         "config": {k: (list(x) if isinstance(x, tuple) else x)
-                                                    for k, x in asdict(config).items()}})
+        if v["margin"] > self.best["margin"]:
+            self.best.update(margin=v["margin"], F=v["F"], step=step, MAD=v["MAD"])
+            cfg = self.config
+            self.trainer.save(self.out_path, meta={
+                "trained_steps": step, "optimizer_steps": self.trainer.optimizer_steps, "ran": self.ran(step),
+                "val_scenes": list(cfg.val_scenes), "val_F": v["F"], "val_margin": v["margin"], "val_MAD_m": v["MAD"],
+                "val_tsdf_F": v["tsdf_F"], "val_best_single_F": v["best_single_F"],
+                "val_per_scene": {str(seed): {m: r[m] for m in ("tof", "stereo", "tsdf_fusion", "senfunet")}
+                                  for seed, r in v["per_scene"].items()},
+                "config": {k: (list(x) if isinstance(x, tuple) else x) for k, x in asdict(cfg).items()}})
             msg += " -> saved best"
-        (tqdm.write if progress else log)(msg)
+        (tqdm.write if self.progress else self.log)(msg)
 
-    def lr_at(step: int) -> float:
-        progress_frac = step / max(config.steps, 1)
-        if config.time_budget_s > 0:
-            progress_frac = max(progress_frac, clock.active() / config.time_budget_s)
-        return cosine_lr(config.lr, config.lr_final_fraction, progress_frac)
+    def lr_at(self, step: int) -> float:
+        cfg = self.config
+        progress_frac = step / max(cfg.steps, 1)
+        if cfg.time_budget_s > 0:
+            progress_frac = max(progress_frac, self.clock.active() / cfg.time_budget_s)
+        return cosine_lr(cfg.lr, cfg.lr_final_fraction, progress_frac)
 
-    if config.block_steps > 0:
+    def run_block_phase(self) -> None:
+        cfg = self.config
         t0 = time.perf_counter()
-        got = trainer.train_weighting_net_on_blocks(
-            (cached_sequence(seed, config.duration_s, config.tof_rate_hz, config.stereo_rate_hz, config.cache_dir, log)
-             for seed in config.train_scenes), validator.engine_config(), log)
-        log(f"G on {got['blocks']} blocks of {got['scenes']} integrated scenes: {config.block_steps} steps "
-            f"({time.perf_counter() - t0:.0f} s)")
-        run_validation(0)
+        got = self.trainer.train_weighting_net_on_blocks((self.sequence(seed) for seed in cfg.train_scenes),
+                                                         self.validator.engine_config(), self.log)
+        self.block_phase = {"block_scenes": got["scenes"], "blocks": got["blocks"]}
+        self.log(f"G on {got['blocks']} blocks of {got['scenes']} integrated scenes: {cfg.block_steps} steps "
+                 f"({time.perf_counter() - t0:.0f} s)")
+        self.validate(0)
 
-    stream = frame_stream()
-    bar = tqdm(total=config.steps, disable=not progress, dynamic_ncols=True, desc="train")
-    recent: list[float] = []
-    losses: list[float] = []
-    terms_sum: dict[str, float] = {}
-    skipped = 0
-    step = 0
-    while step < config.steps:
-        slot, frame, scene = next(stream)
-        if trainer.frames_since_step == 0:
-            trainer.set_lr(lr_at(step))
-        res = trainer.train_frame(frame, scene, slot)
-        step += 1
-        if res.loss is None:
-            skipped += 1
-        else:
-            recent.append(res.loss)
-            counts["chunk"] += 1
-            losses.append(res.loss)
-            recent = recent[-50:]
-            for k, val in res.terms.items():
-                terms_sum[k] = terms_sum.get(k, 0.0) + val
-        bar.update(1)
-        bar.set_postfix(loss=f"{np.mean(recent):.4f}" if recent else "-", L_f=f"{res.terms.get('L_f', 0):.4f}",
-                        skipped=skipped, steps=trainer.optimizer_steps)
-        if not progress and step % 200 == 0:
-            log(f"frame {step}: loss {np.mean(recent) if recent else float('nan'):.4f} (last 50), "
-                f"{trainer.optimizer_steps} optimizer steps, {skipped} frames without a chunk, "
-                f"{clock.active():.0f} s active ({clock.paused_s:.0f} s paused)")
-        out_of_time = config.time_budget_s > 0 and clock.active() > config.time_budget_s
-        if (config.val_every and step % config.val_every == 0) or out_of_time:
-            run_validation(step)
-        if out_of_time:
-            log(f"time budget of {config.time_budget_s:.0f} s (active; {clock.paused_s:.0f} s paused besides) "
-                f"reached after {step} frames")
-            break
-    bar.close()
-    if not history or history[-1]["step"] != step:
-        run_validation(step)
-    clock.stop()
-    return {"frames": step, "optimizer_steps": trainer.optimizer_steps, "skipped_frames": skipped,
-            "resets": trainer.resets, "memory_resets": trainer.memory_resets, "best": best, "history": history,
-            "losses": losses, "mean_terms": {k: v / max(len(losses), 1) for k, v in terms_sum.items()},
-            "timings_s": dict(trainer.timings_s), "seconds": clock.active(), "paused_s": clock.paused_s,
-            "wall_s": clock.wall()}
+    def online(self) -> dict:
+        """The paper's online training until `steps` frames or the time budget; returns counts."""
+        from tqdm import tqdm
+
+        cfg, trainer = self.config, self.trainer
+        stream = self.frame_stream()
+        bar = tqdm(total=cfg.steps, disable=not self.progress, dynamic_ncols=True, desc="train")
+        recent: list[float] = []
+        losses: list[float] = []
+        terms_sum: dict[str, float] = {}
+        step = 0
+        while step < cfg.steps:
+            slot, frame, scene = next(stream)
+            if trainer.frames_since_step == 0:
+                trainer.set_lr(self.lr_at(step))
+            res = trainer.train_frame(frame, scene, slot)
+            step += 1
+            if res.loss is not None:
+                self.chunk_frames += 1
+                recent = [*recent[-49:], res.loss]
+                losses.append(res.loss)
+                for k, val in res.terms.items():
+                    terms_sum[k] = terms_sum.get(k, 0.0) + val
+            bar.update(1)
+            bar.set_postfix(loss=f"{np.mean(recent):.4f}" if recent else "-", L_f=f"{res.terms.get('L_f', 0):.4f}",
+                            skipped=step - self.chunk_frames, steps=trainer.optimizer_steps)
+            if not self.progress and step % 200 == 0:
+                self.log(f"frame {step}: loss {np.mean(recent) if recent else float('nan'):.4f} (last 50), "
+                         f"{trainer.optimizer_steps} optimizer steps, {step - self.chunk_frames} frames without a "
+                         f"chunk, {self.clock.active():.0f} s active ({self.clock.paused_s:.0f} s paused)")
+            out_of_time = cfg.time_budget_s > 0 and self.clock.active() > cfg.time_budget_s
+            if (cfg.val_every and step % cfg.val_every == 0) or out_of_time:
+                self.validate(step)
+            if out_of_time:
+                self.log(f"time budget of {cfg.time_budget_s:.0f} s (active; {self.clock.paused_s:.0f} s paused "
+                         f"besides) reached after {step} frames")
+                break
+        bar.close()
+        if not self.history or self.history[-1]["step"] != step:
+            self.validate(step)
+        return {"frames": step, "losses": losses,
+                "mean_terms": {k: v / max(len(losses), 1) for k, v in terms_sum.items()}}
+
+
+def train(config: TrainConfig, out_path: str | Path, *, log=print, progress: bool = True) -> dict:
+    """The whole training run; writes the best checkpoint to out_path and returns a summary."""
+    run = _Run(config, Path(out_path), log, progress)
+    if config.block_steps > 0:
+        run.run_block_phase()
+    online = run.online()
+    run.clock.stop()
+    trainer = run.trainer
+    return {"frames": online["frames"], "optimizer_steps": trainer.optimizer_steps,
+            "skipped_frames": online["frames"] - run.chunk_frames, "resets": trainer.resets,
+            "memory_resets": trainer.memory_resets, "best": run.best, "history": run.history,
+            "losses": online["losses"], "mean_terms": online["mean_terms"], "timings_s": dict(trainer.timings_s),
+            "seconds": run.clock.active(), "paused_s": run.clock.paused_s, "wall_s": run.clock.wall()}

@@ -46,8 +46,8 @@ class Validator:
         self.config = config
         self.scenes = []
         for seed in config.val_scenes:
-            seq = cached_sequence(seed, config.val_duration_s, config.val_tof_rate_hz, config.val_stereo_rate_hz,
-                                  config.cache_dir, log)
+            seq = cached_sequence(seed, duration_s=config.val_duration_s, tof_rate_hz=config.val_tof_rate_hz,
+                                  stereo_rate_hz=config.val_stereo_rate_hz, cache_dir=config.cache_dir, log=log)
             self.scenes.append((seed, seq, cached_gt_mesh_vertices(seq.scene, config.voxel_size_m, config.cache_dir)))
         self.baselines: dict[int, dict] = {}
         self.crops: dict[int, np.ndarray] = {}

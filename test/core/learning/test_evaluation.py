@@ -58,8 +58,8 @@ def test_gt_crop_keeps_only_observed_vertices():
 
 
 def test_grid_truth_lookup_equals_gt_tsdf_at_the_voxel_centres():
-    from senfunet_core.learning import simulator
     from senfunet_core.engine import EngineConfig, SenFuNet
+    from senfunet_core.learning import simulator
     from senfunet_core.metrics import grid_metrics
 
     scene = simulator.make_scene(1001, room_size_m=(2.5, 2.5, 2.4))

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from senfunet_core.learning import block_phase
 from senfunet_core.learning import trainer as trainer_module
 from senfunet_core.learning import training as tr
 
@@ -23,7 +24,8 @@ def test_loss_terms_by_hand():
     gt = torch.tensor([0.0, 0.0, 0.0, -0.05, 0.0, -0.05, 0.0])
     mask = torch.ones(7, dtype=torch.bool)
     lam1, lam2, eta = 1 / 60, 1 / 600, 0.04
-    total, terms = tr.senfunet_loss(tsdf_1, weight_1, tsdf_2, weight_2, alpha, gt, mask, lam1, lam2, eta)
+    total, terms = tr.senfunet_loss(tsdf_1, weight_1, tsdf_2, weight_2, alpha, gt, mask, lambda1=lam1, lambda2=lam2,
+                                    eta_m=eta)
     # C12: fused 0.5*0.02+0.5*0.04 = 0.03 -> |0.03|; 0.25*-0.01+0.75*0.01 = 0.005 -> 0.005
     l_f = (0.03 + 0.005) / 2
     # C1: voxel 2 error 0.01 < eta (inlier, alpha_1 = 0.9 -> 0.1); voxel 3 error 0.10 > eta (outlier -> 0.7)
@@ -46,7 +48,7 @@ def test_loss_mask_and_empty_sets():
     alpha = torch.full((4,), 0.5, requires_grad=True)
     w = torch.tensor([1.0, 1.0, 1.0, 1.0])
     mask = torch.tensor([False, False, False, False])
-    total, terms = tr.senfunet_loss(z, w, z, w, alpha, z, mask, 1.0, 1.0, 0.04)
+    total, terms = tr.senfunet_loss(z, w, z, w, alpha, z, mask, lambda1=1.0, lambda2=1.0, eta_m=0.04)
     assert float(total.detach()) == 0.0 and all(v == 0 for v in terms.values())
 
 
@@ -58,7 +60,7 @@ def _slab(nx, ny, nz, offset=(0, 0, 0)):
 def test_chunk_rule_found_and_shrunk():
     voxels = _slab(100, 100, 3, (5, -7, 11))  # 30,000 voxels, box 100 x 100 x 3
     gen = torch.Generator().manual_seed(0)
-    corner, size, tries = tr.sample_chunk(voxels, 64, 2000, 600, gen)
+    corner, size, tries = tr.sample_chunk(voxels, chunk_size=64, min_voxels=2000, max_tries=600, generator=gen)
     assert corner is not None and 1 <= tries <= 600
     assert size.tolist() == [64, 64, 3]  # shrinks along the thin axis
     inside = ((voxels >= corner) & (voxels < corner + size)).all(1).sum()
@@ -71,9 +73,9 @@ def test_chunk_rule_gives_up_after_600_tries():
     # two clusters of 1500 voxels 70 voxels apart: no 64^3 chunk holds 2000 of them
     voxels = torch.cat([_slab(15, 10, 10), _slab(15, 10, 10, (70, 0, 0))])
     gen = torch.Generator().manual_seed(0)
-    corner, _, tries = tr.sample_chunk(voxels, 64, 2000, 600, gen)
+    corner, _, tries = tr.sample_chunk(voxels, chunk_size=64, min_voxels=2000, max_tries=600, generator=gen)
     assert corner is None and tries == 600
-    corner, _, tries = tr.sample_chunk(voxels, 64, 1000, 600, gen)
+    corner, _, tries = tr.sample_chunk(voxels, chunk_size=64, min_voxels=1000, max_tries=600, generator=gen)
     assert corner is not None
 
 
@@ -187,12 +189,12 @@ def test_block_phase_lowers_the_loss_on_its_blocks(tiny_sequence, monkeypatch):
     losses: list[float] = []
     original_loss = tr.senfunet_loss
 
-    def recording_loss(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def recording_loss(*args, **kwargs):
         total, terms = original_loss(*args, **kwargs)
         losses.append(float(total.detach()))
         return total, terms
 
-    monkeypatch.setattr(trainer_module, "senfunet_loss", recording_loss)
+    monkeypatch.setattr(block_phase, "senfunet_loss", recording_loss)
 
     def run(lr: float) -> list[float]:
         cfg = tr.TrainConfig(seed=0, lr=lr, lambda1=0.1, lambda2=0.08, weighting_tsdf_input=True, block_steps=60,
@@ -217,18 +219,18 @@ def test_block_batch_one_scene_or_mixed():
              "gt": torch.arange(n, dtype=torch.float32) + 100 * s} for s, n in enumerate((5, 30, 12))]
     rng = np.random.default_rng(0)
     for _ in range(20):
-        one = tr.block_batch(data, 8, False, rng)
+        one = tr.block_batch(data, 8, mixed=False, rng=rng)
         scenes = set((one["gt"] // 100).int().tolist())
         assert len(scenes) == 1 and len(one["gt"]) == min(8, len(data[scenes.pop()]["gt"]))
         assert torch.equal(one["x"][:, 0], one["gt"])
     seen = set()
     for _ in range(20):
-        mixed = tr.block_batch(data, 16, True, rng)
+        mixed = tr.block_batch(data, 16, mixed=True, rng=rng)
         assert len(mixed["gt"]) == 16 and len(set(mixed["gt"].tolist())) == 16  # no block twice
         assert torch.equal(mixed["x"][:, 0], mixed["gt"])
         seen |= set((mixed["gt"] // 100).int().tolist())
     assert seen == {0, 1, 2}
-    everything = tr.block_batch(data, 100, True, rng)  # more than there are: each block once
+    everything = tr.block_batch(data, 100, mixed=True, rng=rng)  # more than there are: each block once
     assert sorted(everything["gt"].tolist()) == sorted(torch.cat([d["gt"] for d in data]).tolist())
 
 
