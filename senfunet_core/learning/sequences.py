@@ -57,13 +57,19 @@ def _avoid(stamps: np.ndarray, others: np.ndarray, min_gap_s: float = 2e-4) -> n
 
 def simulate_sequence(scene: Scene, seed: int, *, duration_s: float = 10.0, tof_rate_hz: float = 15.0,
                       stereo_rate_hz: float = 20.0, pose_rate_hz: float = 100.0, width: int = 256,
-                      height: int = 256) -> Sequence:
-    """Simulate both sensors over duration_s seconds (stamps in [0, duration_s))."""
+                      height: int = 256, tof_prefix_frames: int | None = None) -> Sequence:
+    """Simulate both sensors over duration_s seconds (stamps in [0, duration_s)).
+
+    tof_prefix_frames = n: render only the first n ToF frames and no stereo frame; stamps and pose
+    streams are the full recording's. The sensors' noise comes from one stream, ToF frames first,
+    so these frames equal the full recording's first n ToF frames (a cheap check that a stored
+    recording is what the simulator makes)."""
     if duration_s <= 0 or min(tof_rate_hz, stereo_rate_hz, pose_rate_hz) <= 0:
         raise InputError("duration_s and the rates must be > 0")
     if width < SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE or height < 16:
         # SGBM needs the image wider than its disparity range plus half a block
-        raise InputError(f"images must be at least {SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE} x 16, got {width} x {height}")
+        raise InputError(f"images must be at least {SGBM_NUM_DISPARITIES + SGBM_BLOCK_SIZE} x 16, "
+                         f"got {width} x {height}")
     rng = np.random.default_rng([seed, 3])
     pose_margin = 2.0 / pose_rate_hz + 0.02
     traj = Trajectory(scene, seed, -pose_margin - 0.01, duration_s + pose_margin + 0.01)
@@ -88,9 +94,11 @@ def simulate_sequence(scene: Scene, seed: int, *, duration_s: float = 10.0, tof_
 
     sgbm = _sgbm(scene)
     frames = []
+    limit = {} if tof_prefix_frames is None else {"tof": int(tof_prefix_frames), "stereo": 0}
     for sensor in SENSORS:
-        poses = traj(stamps[sensor]) @ _sensor_offset(sensor)
-        for st, T in zip(stamps[sensor], poses):
+        n_frames = min(len(stamps[sensor]), limit.get(sensor, len(stamps[sensor])))
+        poses = traj(stamps[sensor][:n_frames]) @ _sensor_offset(sensor)
+        for st, T in zip(stamps[sensor][:n_frames], poses):
             if sensor == "tof":
                 view = render_view(scene, T, K, width, height, with_rgb=False,
                                    with_other_distance=scene.tof_multipath_m > 0)
