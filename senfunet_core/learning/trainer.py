@@ -42,12 +42,16 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(config.seed)
         self.feature_nets, self.weighting_net = networks.make_networks(config.sensor_uses_rgb, config.init_seed,
                                                                        config.weighting_tsdf_input)
+        self.init_meta: dict | None = None
         if config.init_weights:
             path = Path(config.init_weights)
             if networks.weights_tsdf_input(path) != config.weighting_tsdf_input:
                 raise InputError(f"init_weights {path}: its weighting net's TSDF input differs from "
                                  f"weighting_tsdf_input = {config.weighting_tsdf_input}; match them in the config")
-            networks.load_weights(path, self.feature_nets, self.weighting_net)
+            meta = networks.load_weights(path, self.feature_nets, self.weighting_net)
+            # what produced the starting point (docs/results.md describes the whole chain)
+            self.init_meta = {k: meta[k] for k in ("trained_steps", "optimizer_steps", "ran", "config", "init",
+                                                   "val_F", "val_margin") if k in meta}
         self.feature_nets.train()
         self.weighting_net.train()
         groups = [{"params": list(self.feature_nets.parameters()), "lr_factor": config.feature_lr_factor},

@@ -157,6 +157,9 @@ class _Run:
             cfg = self.config
             self.trainer.save(self.out_path, meta={
                 "trained_steps": step, "optimizer_steps": self.trainer.optimizer_steps, "ran": self.ran(step),
+                "init": {"path": cfg.init_weights, "meta": self.trainer.init_meta} if cfg.init_weights else None,
+                "validation_history": [{k: e[k] for k in ("step", "F", "margin", "MAD", "tsdf_F", "best_single_F")}
+                                       for e in self.history],
                 "val_scenes": list(cfg.val_scenes), "val_F": v["F"], "val_margin": v["margin"], "val_MAD_m": v["MAD"],
                 "val_tsdf_F": v["tsdf_F"], "val_best_single_F": v["best_single_F"],
                 "val_per_scene": {str(seed): {m: r[m] for m in ("tof", "stereo", "tsdf_fusion", "senfunet")}
