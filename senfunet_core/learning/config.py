@@ -93,3 +93,11 @@ def load_config(path: str | Path) -> TrainConfig:
 
     values = yaml.safe_load(Path(path).read_text()) or {}
     return TrainConfig.from_dict(values)
+
+
+# The paper's training settings (section 4 and supplementary C) as TrainConfig fields: a config whose
+# value differs must say why in its `deviations` (docs/results.md lists any that does not).
+PAPER_TRAINING = {"chunk_size": 64, "min_update_voxels": 2000, "max_chunk_tries": 600, "lr": 1e-4,
+                  "accumulate_frames": 20, "clip_grad_norm": 1.0, "reset_probability": 0.01,
+                  "lambda1": 1 / 60, "lambda2": 1 / 600, "eta_m": 0.04, "weighting_tsdf_input": False,
+                  "block_steps": 0, "feature_lr_factor": 1.0, "lr_final_fraction": 1.0, "time_budget_s": 0.0}

@@ -240,3 +240,50 @@ def test_cosine_lr():
     assert tr.cosine_lr(1e-3, 0.1, 0.5) == pytest.approx(0.55e-3)
     assert tr.cosine_lr(1e-3, 0.1, 1.0) == pytest.approx(1e-4)
     assert tr.cosine_lr(1e-3, 0.1, 3.0) == pytest.approx(1e-4)
+
+
+@pytest.mark.parametrize("name", ["train_tof_stereo.yaml", "train_tof_stereo_paper.yaml"])
+def test_every_departure_from_the_paper_is_listed(name):
+    from senfunet_core.learning.config import PAPER_TRAINING
+    from senfunet_core.learning.report import _differs
+
+    cfg = tr.load_config(REPO / "config" / name)
+    differing = {k for k, paper in PAPER_TRAINING.items() if _differs(getattr(cfg, k), paper)}
+    assert differing, "every recipe here departs somewhere (at least the block phase)"
+    assert differing <= set(cfg.deviations), f"{name}: not in deviations: {sorted(differing - set(cfg.deviations))}"
+    assert {"data", "checkpoint"} <= set(cfg.deviations)
+
+
+def test_paper_config_is_the_paper_model():
+    cfg = tr.load_config(REPO / "config" / "train_tof_stereo_paper.yaml")
+    assert not cfg.weighting_tsdf_input and cfg.lambda1 == pytest.approx(1 / 60) and cfg.lambda2 == pytest.approx(1 / 600)
+    assert (cfg.lr, cfg.accumulate_frames, cfg.chunk_size, cfg.feature_lr_factor) == (1e-4, 20, 64, 1.0)
+    assert cfg.steps > 0  # the paper's online training runs after the block phase
+    from senfunet_core import networks
+
+    _, g = networks.make_networks((False, True), 0, tsdf_input=cfg.weighting_tsdf_input)
+    assert sum(p.numel() for p in g.parameters()) == 24257
+
+
+def test_training_notes_say_what_ran(tmp_path):
+    """The generated Training section reads the checkpoint's record: no online frame -> says so;
+    feature nets compared with their initialisation; a departure missing from `deviations` is named."""
+    from senfunet_core import networks
+    from senfunet_core.learning.report import training_notes
+
+    feature_nets, g = networks.make_networks((False, True), 0, tsdf_input=True)
+    cfg = {"train_scenes": [0, 1], "duration_s": 4.0, "block_steps": 10, "block_batch": 4, "lambda1": 0.1,
+           "lambda2": 1 / 600, "init_seed": 0, "deviations": {"block_steps": "G first on blocks"}}
+    meta = {"trained_steps": 0, "config": cfg, "ran": {"block_steps": 10, "online_frames": 0}, "val_scenes": [900]}
+    networks.save_weights(tmp_path / "a.pt", ("tof", "stereo"), feature_nets, g, meta)
+    text = training_notes(str(tmp_path / "a.pt"))
+    assert "14 inputs, 25985 parameters" in text and "no frame ran" in text
+    assert "not trained" in text and "`block_steps`: G first on blocks" in text
+    assert "`lambda1` = 0.1 (paper 0.016" in text and "not listed" in text and "lambda2" not in text
+    with torch.no_grad():
+        feature_nets[0].blocks[0][0].weight.add_(0.01)
+    meta["ran"] = {"online_frames": 50, "online_frames_with_chunk": 40, "online_optimizer_steps": 10}
+    cfg.update(min_update_voxels=2000, chunk_size=64, accumulate_frames=4, clip_grad_norm=1.0, lr=1e-4)
+    networks.save_weights(tmp_path / "b.pt", ("tof", "stereo"), feature_nets, g, meta)
+    text = training_notes(str(tmp_path / "b.pt"))
+    assert "50 frames, 40 of them with a chunk" in text and "trained: they differ" in text
