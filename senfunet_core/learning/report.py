@@ -69,9 +69,9 @@ def results_markdown(result: EvaluationResult, config: EvaluationConfig, command
              f"Weights: `{result.weights_source}`."
              + (f" Other shipped model (ablation row): `{result.other_weights_source}`."
                 if result.other_weights_source else ""), "",
-             f"{_seed_text(config)}. {config.duration_s:g} s each, ToF {config.tof_rate_hz:g} Hz, stereo "
+             (f"{_seed_text(config)}. {config.duration_s:g} s each, ToF {config.tof_rate_hz:g} Hz, stereo "
              f"{config.stereo_rate_hz:g} Hz, every {config.frame_stride}. frame of each sensor integrated (ToF+stereo "
-             f"frames per room: {frames}).", "",
+             f"frames per room: {frames})."), "",
              "## Table (mean over the rooms)", "", _table(result.rows, COLUMNS, labels)]
     lines += ["Goals of issue 15: " + "; ".join(f"{k}: {'met' if v else 'NOT met'}"
                                                for k, v in goal_check(result.per_scene).items()) + ".",
@@ -82,16 +82,16 @@ def results_markdown(result: EvaluationResult, config: EvaluationConfig, command
         order = ["senfunet", *[k for k in result.rows if k.startswith("abl_")], "senfunet_nofilter", "tsdf_fusion",
                  "tof", "stereo"]
         lines += ["## Ablations (mean over the rooms)", "",
-                  "Each row changes one thing against the SenFuNet row: the feature nets (seeded initialisation, "
+                  ("Each row changes one thing against the SenFuNet row: the feature nets (seeded initialisation, "
                   "or their four learned channels zeroed so G sees only the depth channel and the weights), the "
                   "weighting net's TSDF input (the other shipped model, trained by its own config), the outlier "
-                  "filter (off), the fusion (TSDF Fusion: one grid for both sensors) and the sensors (each alone).",
+                  "filter (off), the fusion (TSDF Fusion: one grid for both sensors) and the sensors (each alone)."),
                   "", _table({k: result.rows[k] for k in order if k in result.rows}, COLUMNS, labels)]
     lines += ["## Grid metrics on a common voxel set (mean over the rooms)", "",
-              "The voxels TSDF Fusion observed, the same set for every method; a voxel a method did not observe "
+              ("The voxels TSDF Fusion observed, the same set for every method; a voxel a method did not observe "
               "or filtered out counts as an error (error = the band, 10 cm, in MSE and MAD; wrong in Acc; a miss in "
               "IoU). `kept`: share of the set the method has a value for. The main table uses each method's own "
-              "observed voxels, as the paper does.", "",
+              "observed voxels, as the paper does."), "",
               _table(result.rows, GRID_COLUMNS, labels, suffix="_common")]
     lines += ["## Per room", ""]
     for seed, rows in zip(config.seeds, result.per_scene):
@@ -106,29 +106,29 @@ def results_markdown(result: EvaluationResult, config: EvaluationConfig, command
 
 def _async_lines(result: EvaluationResult, config: EvaluationConfig, labels: dict[str, str]) -> list[str]:
     lines = ["## Asynchronous sensors", "",
-             f"Stereo at {config.stereo_rate_hz / config.frame_stride:.3g} Hz effective; ToF at a half and a third "
-             "of it (frames dropped from the same sequences), mean over the same rooms.", ""]
+             (f"Stereo at {config.stereo_rate_hz / config.frame_stride:.3g} Hz effective; ToF at a half and a third "
+             "of it (frames dropped from the same sequences), mean over the same rooms."), ""]
     for name, rows in result.async_rows.items():
         rows = dict(rows)
         frames = rows.pop("frames", {})
-        lines += [f"ToF at {name} of the stereo rate (mean frames integrated per room: ToF "
-                  f"{frames.get('tof', float('nan')):.0f}, stereo {frames.get('stereo', float('nan')):.0f}):", "",
+        lines += [(f"ToF at {name} of the stereo rate (mean frames integrated per room: ToF "
+                  f"{frames.get('tof', float('nan')):.0f}, stereo {frames.get('stereo', float('nan')):.0f}):"), "",
                   _table(rows, COLUMNS, labels)]
     return lines
 
 
 def _protocol_lines(config: EvaluationConfig) -> list[str]:
     return ["## Protocol", "",
-            "- Grid metrics on each method's observed voxels (after the outlier filter for SenFuNet) against "
-            "the GT TSDF truncated at +-5 cm; MSE in 1e-4 m^2, MAD in cm.",
-            "- Mesh metrics: vertices of the marching-cubes mesh (cells with all 8 corners observed) against the "
+            ("- Grid metrics on each method's observed voxels (after the outlier filter for SenFuNet) against "
+            "the GT TSDF truncated at +-5 cm; MSE in 1e-4 m^2, MAD in cm."),
+            ("- Mesh metrics: vertices of the marching-cubes mesh (cells with all 8 corners observed) against the "
             "vertices of the GT mesh (marching cubes of the exact SDF at 1 cm), tau = 2 cm. The GT mesh is "
             "cropped to the observed part of the room: a GT vertex is kept when its nearest voxel was observed "
-            "by at least one sensor. The same crop is used for every method.",
-            f"- Figure: `docs/figures/evaluation.png` (room {config.seeds[config.figure_scene]}): ToF, stereo, "
+            "by at least one sensor. The same crop is used for every method."),
+            (f"- Figure: `docs/figures/evaluation.png` (room {config.seeds[config.figure_scene]}): ToF, stereo, "
             "TSDF Fusion, SenFuNet, and SenFuNet coloured by the sensor weighting alpha (amber: alpha = 1, ToF "
             "trusted; blue: alpha = 0, stereo trusted). For display only the meshes are cropped to the room "
-            "(0.5 m margin) with the ceiling removed.", ""]
+            "(0.5 m margin) with the ceiling removed."), ""]
 
 
 def _features_state(path: Path, state: dict, init_seed: int) -> str:
@@ -200,8 +200,8 @@ def training_notes(weights_source: str, title: str = "Training") -> str:
     n_in = state["weighting_net"]["conv1.weight"].shape[1]
     n_params = sum(int(np.prod(t.shape)) for t in state["weighting_net"].values())
     lines = [f"## {title}: `{path.name}`", "",
-             f"G: {n_in} inputs, {n_params} parameters. Training data: {len(scenes)} simulated rooms (seeds "
-             f"{min(scenes)}-{max(scenes)}), {cfg.get('duration_s')} s each. What ran:", ""]
+             (f"G: {n_in} inputs, {n_params} parameters. Training data: {len(scenes)} simulated rooms (seeds "
+             f"{min(scenes)}-{max(scenes)}), {cfg.get('duration_s')} s each. What ran:"), ""]
     lines += _ran_lines(meta)
     history = meta.get("validation_history") or []
     val = ", ".join(str(s) for s in meta.get("val_scenes", []))
