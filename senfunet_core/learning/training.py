@@ -153,20 +153,50 @@ class _Run:
                f"kept ToF-only {a['c1_kept']:.2f}, stereo-only {a['c2_kept']:.2f} "
                f"({time.perf_counter() - t0:.0f} s)")
         if v["margin"] > self.best["margin"]:
-            self.best.update(margin=v["margin"], F=v["F"], step=step, MAD=v["MAD"])
-            cfg = self.config
-            self.trainer.save(self.out_path, meta={
-                "trained_steps": step, "optimizer_steps": self.trainer.optimizer_steps, "ran": self.ran(step),
-                "init": {"path": cfg.init_weights, "meta": self.trainer.init_meta} if cfg.init_weights else None,
-                "validation_history": [{k: e[k] for k in ("step", "F", "margin", "MAD", "tsdf_F", "best_single_F")}
-                                       for e in self.history],
-                "val_scenes": list(cfg.val_scenes), "val_F": v["F"], "val_margin": v["margin"], "val_MAD_m": v["MAD"],
-                "val_tsdf_F": v["tsdf_F"], "val_best_single_F": v["best_single_F"],
-                "val_per_scene": {str(seed): {m: r[m] for m in ("tof", "stereo", "tsdf_fusion", "senfunet")}
-                                  for seed, r in v["per_scene"].items()},
-                "config": {k: (list(x) if isinstance(x, tuple) else x) for k, x in asdict(cfg).items()}})
+            self.save_best(step, v)
             msg += " -> saved best"
         (tqdm.write if self.progress else self.log)(msg)
+
+    def save_best(self, step: int, v: dict) -> None:
+        """The networks as they are become the checkpoint (v: the validation summary that chose them)."""
+        cfg = self.config
+        self.best.update(margin=v["margin"], F=v["F"], step=step, MAD=v["MAD"])
+        per_scene = {str(seed): {m: r[m] for m in ("tof", "stereo", "tsdf_fusion", "senfunet")}
+                     for seed, r in v.get("per_scene", {}).items()}
+        self.trainer.save(self.out_path, meta={
+            "trained_steps": step, "optimizer_steps": self.trainer.optimizer_steps, "ran": self.ran(step),
+            "init": {"path": cfg.init_weights, "meta": self.trainer.init_meta} if cfg.init_weights else None,
+            "validation_history": self.history_record(),
+            "val_scenes": list(cfg.val_scenes), "val_F": v["F"], "val_margin": v["margin"], "val_MAD_m": v["MAD"],
+            "val_tsdf_F": v["tsdf_F"], "val_best_single_F": v["best_single_F"], "val_per_scene": per_scene,
+            "config": {k: (list(x) if isinstance(x, tuple) else x) for k, x in asdict(cfg).items()}})
+
+    def history_record(self) -> list[dict]:
+        keys = ("step", "F", "margin", "MAD", "tsdf_F", "best_single_F", "source")
+        return [{k: e[k] for k in keys if k in e} for e in self.history]
+
+    def adopt_init_validation(self) -> None:
+        """Frame 0 of a run started from a checkpoint: that checkpoint's own validation (the same rooms
+        and protocol), so the online frames are kept only if they beat it."""
+        m = self.trainer.init_meta or {}
+        if "val_margin" not in m or list(m.get("config", {}).get("val_scenes", [])) != list(self.config.val_scenes):
+            self.validate(0)
+            return
+        v = {"F": m["val_F"], "margin": m["val_margin"], "MAD": m.get("val_MAD_m", math.nan),
+             "tsdf_F": m.get("val_tsdf_F", math.nan), "best_single_F": m.get("val_best_single_F", math.nan)}
+        self.history.append({"step": 0, **v, "source": "the starting checkpoint's record"})
+        self.save_best(0, v)
+        self.log(f"[val frame 0] from the starting checkpoint's record: fused F {v['F']:.2f}, margin "
+                 f"{v['margin']:+.2f}")
+
+    def finalize(self) -> None:
+        """The kept checkpoint records every validation, including those after it, and what ran in total."""
+        if not self.out_path.is_file():
+            return
+        state = torch.load(self.out_path, map_location="cpu", weights_only=True)
+        state["meta"]["validation_history"] = self.history_record()
+        state["meta"]["ran_in_total"] = self.ran(self.history[-1]["step"] if self.history else 0)
+        torch.save(state, self.out_path)
 
     def lr_at(self, step: int) -> float:
         cfg = self.config
@@ -234,7 +264,10 @@ def train(config: TrainConfig, out_path: str | Path, *, log=print, progress: boo
     run = _Run(config, Path(out_path), log, progress)
     if config.block_steps > 0:
         run.run_block_phase()
+    elif config.init_weights:
+        run.adopt_init_validation()
     online = run.online()
+    run.finalize()
     run.clock.stop()
     trainer = run.trainer
     return {"frames": online["frames"], "optimizer_steps": trainer.optimizer_steps,

@@ -18,6 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulated datasets cache (overrides the config; default ~/.cache/senfunet)")
     parser.add_argument("--init-weights", default=None, metavar="PATH",
                         help="start from this weights file (e.g. this recipe's block phase) and skip the block phase")
+    parser.add_argument("--val-every", type=int, default=None, metavar="N",
+                        help="validate every N online frames (overrides the config; 0 = at the end only)")
     parser.add_argument("--seed", type=int, default=None, metavar="N",
                         help="training seed and network initialisation seed (overrides the config)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
@@ -54,6 +56,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"senfunet train: --init-weights {args.init_weights} not found; pass a weights file (.pt)")
             return 2
         overrides.update(init_weights=args.init_weights, block_steps=0)
+    if args.val_every is not None:
+        overrides["val_every"] = args.val_every
     if args.seed is not None:
         overrides.update(seed=args.seed, init_seed=args.seed)
     config = dataclasses.replace(config, **overrides)

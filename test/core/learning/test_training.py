@@ -287,3 +287,27 @@ def test_training_notes_say_what_ran(tmp_path):
     networks.save_weights(tmp_path / "b.pt", ("tof", "stereo"), feature_nets, g, meta)
     text = training_notes(str(tmp_path / "b.pt"))
     assert "50 frames, 40 of them with a chunk" in text and "trained: they differ" in text
+
+
+def test_run_from_a_checkpoint_keeps_it_unless_the_online_frames_beat_its_validation(tmp_path):
+    """--init-weights: frame 0 is the starting checkpoint's own validation record; online frames that
+    do not beat it leave its networks in the output, and the output records every validation."""
+    from senfunet_core import networks
+
+    feature_nets, g = networks.make_networks((False, True), 3, tsdf_input=False)
+    start = tmp_path / "start.pt"
+    networks.save_weights(start, ("tof", "stereo"), feature_nets, g,
+                          {"val_F": 99.0, "val_margin": 50.0, "config": {"val_scenes": [7]}})
+    cfg = tr.TrainConfig(seed=0, train_scenes=(5,), val_scenes=(7,), duration_s=0.3, val_duration_s=0.3,
+                         val_frame_stride=2, chunk_size=16, min_update_voxels=200, steps=4, val_every=0,
+                         accumulate_frames=2, init_weights=str(start), threads=1, cache_dir=str(tmp_path / "cache"),
+                         feature_lr_factor=1000.0)
+    out = tmp_path / "out.pt"
+    summary = tr.train(cfg, out, log=lambda *_: None, progress=False)
+    assert summary["optimizer_steps"] >= 1 and [h["step"] for h in summary["history"]] == [0, 4]
+    state = torch.load(out, map_location="cpu", weights_only=True)
+    assert state["meta"]["trained_steps"] == 0 and state["meta"]["init"]["meta"]["val_margin"] == 50.0
+    assert [h["step"] for h in state["meta"]["validation_history"]] == [0, 4]
+    assert state["meta"]["ran_in_total"]["online_frames"] == 4
+    for net, saved in zip(feature_nets, state["feature_nets"]):
+        assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), saved.values()))
