@@ -1,16 +1,21 @@
 #!/usr/bin/env bash
 # Regenerates the sample recording bags/sim_room (rosbag2, mcap with zstd chunks) and its
-# ground-truth mesh bags/sim_room_gt.ply from the simulator. Deterministic: same files each run.
+# ground-truth mesh bags/sim_room_gt.ply from the simulator. Deterministic: the same bytes each run
+# (test/ros/test_sample_bag.py checks the bag against a regenerated prefix, and, marked slow, the
+# whole regeneration byte for byte).
 #   seed 2024: a 3.4 x 3.3 m room with shelves, boxes and a cylinder, some texture-poor surfaces;
 #   the device turns through ~160 degrees, so most of the room is seen
 #   4 s: ToF 15 Hz (16UC1 mm), stereo 20 Hz (32FC1 m + rgb8), poses 100 Hz per sensor
+# OUT=DIR writes DIR/sim_room and DIR/sim_room_gt.ply instead of bags/ (to compare without touching bags/).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SEED=${SEED:-2024}
 DURATION=${DURATION:-4}
+OUT=${OUT:-bags}
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
-rm -rf bags/sim_room bags/sim_room_gt.ply
+mkdir -p "$OUT"
+rm -rf "$OUT/sim_room" "$OUT/sim_room_gt.ply"
 .venv/bin/senfunet simulate --seed "$SEED" --duration "$DURATION" --tof-rate 15 --stereo-rate 20 \
-  --out "$tmp/dataset" --bag bags/sim_room --storage mcap --gt bags/sim_room_gt.ply --no-progress
-du -sh bags/sim_room bags/sim_room_gt.ply
+  --out "$tmp/dataset" --bag "$OUT/sim_room" --storage mcap --gt "$OUT/sim_room_gt.ply" --no-progress
+du -sh "$OUT/sim_room" "$OUT/sim_room_gt.ply"

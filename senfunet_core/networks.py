@@ -26,6 +26,8 @@ N_FEATURES = N_FEATURE_CHANNELS + 1
 N_RESIDUAL_BLOCKS = 6
 WEIGHTING_HALO = 2  # receptive field 5^3: alpha depends on inputs within 2 voxels
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "tof_stereo.pt"
+# shipped weights files by name (the `weights` parameter and `--weights` accept these names or a path)
+NAMED_WEIGHTS = {"default": DEFAULT_WEIGHTS, "paper": DEFAULT_WEIGHTS.with_name("tof_stereo_paper.pt")}
 
 
 @dataclass(frozen=True)
@@ -181,3 +183,18 @@ def load_weights(path: str | Path, feature_nets: nn.ModuleList, weighting_net: W
     except Exception as err:  # corrupt file, wrong architecture
         raise InputError(f"cannot load weights from {path}: {err}") from err
     return {"sensors": state.get("sensors"), "sensor_uses_rgb": state.get("sensor_uses_rgb"), **state.get("meta", {})}
+
+
+def resolve_weights(name_or_path: str | Path | None) -> Path | None:
+    """A shipped weights name ("default": 14-input G; "paper": the paper-exact 12-input G) or a
+    path -> the file's path; None or "none" -> None (untrained networks). InputError when the file
+    does not exist."""
+    from .errors import InputError
+
+    if name_or_path is None or str(name_or_path).lower() == "none":
+        return None
+    path = NAMED_WEIGHTS.get(str(name_or_path), Path(name_or_path))
+    if not Path(path).is_file():
+        names = ", ".join(f"{k} ({v.name})" for k, v in NAMED_WEIGHTS.items())
+        raise InputError(f"weights {name_or_path!r}: no such file; pass a .pt path or one of: {names}, none")
+    return Path(path)

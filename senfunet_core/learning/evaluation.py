@@ -14,6 +14,7 @@ crop is the same for every method, so a method that drops true surface still los
 """
 from __future__ import annotations
 
+import functools
 import math
 import platform
 import time
@@ -24,7 +25,8 @@ import numpy as np
 import torch
 
 from ..grid import BLOCK, BLOCK_VOXELS
-from ..metrics import format_table, grid_metrics, mesh_metrics
+from ..metrics import grid_metrics, mesh_metrics
+from ..networks import N_FEATURE_CHANNELS
 
 METHODS = ("tof", "stereo", "tsdf_fusion", "senfunet_nofilter", "senfunet")
 METHOD_LABELS = {
@@ -36,8 +38,21 @@ METHOD_LABELS = {
 }
 ASYNC_METHODS = ("tof", "stereo", "tsdf_fusion", "senfunet")
 COLUMNS = ["MSE", "MAD", "IoU", "Acc", "F", "P", "R"]
+GRID_COLUMNS = ("MSE", "MAD", "IoU", "Acc")
 TAU_M = 0.02
-HELD_OUT_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)  # never used for training (training uses < 1000)
+# Validation rooms: every choice (training recipes, checkpoints, which weights ship) is made on these
+# (the training configs' val_scenes). Held-out rooms: never trained or validated on, scored once at the
+# end. Seeds 1001-1006, the earlier held-out set, steered earlier work and are retired.
+VALIDATION_SEEDS = (900, 901, 902, 903, 904, 905)
+HELD_OUT_SEEDS = (4001, 4002, 4003, 4004, 4005, 4006, 4007, 4008)
+SEED_SETS = {"validation": VALIDATION_SEEDS, "held-out": HELD_OUT_SEEDS}
+# ablation rows (the networks changed, everything else as the main SenFuNet row)
+ABLATION_LABELS = {
+    "abl_features_seeded": "SenFuNet, feature nets at their seeded initialisation",
+    "abl_features_zeroed": "SenFuNet, learned feature channels zeroed",
+    "abl_other_paper": "SenFuNet paper-exact model (G without TSDF input, 12 inputs)",
+    "abl_other_default": "SenFuNet default model (G with TSDF input, 14 inputs)",
+}
 
 
 def observed_gt_vertices(engine, gt_vertices: np.ndarray) -> np.ndarray:
@@ -90,16 +105,61 @@ class GridTruth:
         return self.values[flat.numpy()]
 
 
+def _voxel_keys(centres_m: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """One int64 per voxel centre (21 bits per axis)."""
+    v = np.round(np.asarray(centres_m, np.float64) / voxel_size_m).astype(np.int64) + (1 << 20)
+    return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
+
+
+def common_grid_metrics(pred_tsdf_m: np.ndarray, gt_tsdf_m: np.ndarray, band_m: float) -> dict[str, float]:
+    """Grid metrics on a common voxel set where a method may have no value (NaN: not observed or
+    removed by the outlier filter): such a voxel counts as an error, with the largest error the
+    truncation allows (band_m) in MSE and MAD, as wrong in Acc and as a miss of the GT occupancy in
+    IoU. `kept` is the share of the set the method has values for."""
+    pred = np.asarray(pred_tsdf_m, np.float64).ravel()
+    gt = np.asarray(gt_tsdf_m, np.float64).ravel()
+    n = pred.size
+    if n == 0:
+        return {"MSE": math.nan, "MAD": math.nan, "IoU": math.nan, "Acc": math.nan, "kept": math.nan, "n": 0}
+    kept = np.isfinite(pred)
+    err = np.where(kept, pred - np.where(kept, gt, 0.0), band_m)
+    pred_in, gt_in = kept & (pred < 0), gt < 0
+    correct = kept & (pred_in == gt_in)
+    tn = int(np.count_nonzero(pred_in & gt_in))
+    fp = int(np.count_nonzero(~pred_in & gt_in))
+    fn = int(np.count_nonzero(~gt_in & (pred_in | ~kept)))
+    denom = tn + fp + fn
+    return {"MSE": float(np.mean(err * err)), "MAD": float(np.mean(np.abs(err))),
+            "IoU": tn / denom if denom else math.nan, "Acc": float(np.mean(correct)),
+            "kept": float(np.mean(kept)), "n": n}
+
+
 def method_metrics(engine, scene, gt_vertices_cropped: np.ndarray, methods=METHODS, band_m: float | None = None,
-                   tau_m: float = TAU_M) -> dict[str, dict[str, float]]:
-    """The paper's seven metrics for each method read from an engine that integrated a scene."""
+                   tau_m: float = TAU_M, *, common: bool = False) -> dict[str, dict[str, float]]:
+    """The paper's seven metrics for each method read from an engine that integrated a scene.
+
+    Grid metrics on each method's own observed voxels (the paper's protocol); with common, also
+    on the voxels TSDF Fusion observed (`common_grid_metrics`), as "<metric>_common"."""
     band = engine.config.band_m if band_m is None else band_m
     truth = GridTruth(engine, scene, band)
+    vs = engine.config.voxel_size_m
+    if common:
+        ref_centres, _ = engine.voxel_values("tsdf_fusion", filtered=True)
+        ref_keys = _voxel_keys(ref_centres, vs)
+        order = np.argsort(ref_keys)
+        ref_keys, ref_gt = ref_keys[order], truth.at(ref_centres)[order]
     out: dict[str, dict[str, float]] = {}
     for method in methods:
         which, filtered = _which(method)
         centres, tsdf = engine.voxel_values(which, filtered=filtered)
         row = grid_metrics(tsdf, truth.at(centres))
+        if common:
+            pred = np.full(len(ref_keys), np.nan)
+            keys = _voxel_keys(centres, vs)
+            at = np.clip(np.searchsorted(ref_keys, keys), 0, max(len(ref_keys) - 1, 0))
+            hit = (ref_keys[at] == keys) if len(ref_keys) else np.zeros(len(keys), bool)
+            pred[at[hit]] = tsdf[hit]
+            row.update({f"{k}_common": v for k, v in common_grid_metrics(pred, ref_gt, band).items()})
         mesh = engine.extract_mesh(which, filtered=filtered)
         row.update(mesh_metrics(mesh.vertices, gt_vertices_cropped, tau_m))
         out[method] = row
@@ -135,7 +195,7 @@ def mean_rows(per_scene: list[dict[str, dict[str, float]]]) -> dict[str, dict[st
 
 
 def labelled(rows: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
-    return {METHOD_LABELS.get(k, k): v for k, v in rows.items()}
+    return {METHOD_LABELS.get(k, ABLATION_LABELS.get(k, k)): v for k, v in rows.items()}
 
 
 def bar_check(rows: dict[str, dict[str, float]]) -> dict[str, bool]:
@@ -152,16 +212,36 @@ def bar_check(rows: dict[str, dict[str, float]]) -> dict[str, bool]:
 # --------------------------------------------------------------------------------------------
 # Cached simulation
 # --------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=1)
 def simulator_version() -> str:
-    """Short hash of the simulator source: cached datasets are keyed by it."""
+    """Short hash of what the simulator produces on a small probe: cached datasets are keyed by it.
+
+    The probe (a scene description, one short two-sensor recording at a small resolution, GT TSDF
+    and GT mesh samples) changes whenever the simulator's output does, and only then: moving or
+    refactoring its code keeps the cache valid."""
     import hashlib
 
     from . import simulator
+    from .scenes import _scene_to_json
 
-    return hashlib.sha1(Path(simulator.__file__).read_bytes()).hexdigest()[:10]
+    digest = hashlib.sha1()
+    scene = simulator.make_scene(7)
+    digest.update(_scene_to_json(scene).encode())
+    seq = simulator.simulate_sequence(scene, 7, duration_s=0.15, tof_rate_hz=20.0, stereo_rate_hz=20.0,
+                                      pose_rate_hz=50.0, width=96, height=48)
+    for frame in seq.frames:
+        digest.update(np.ascontiguousarray(frame.depth_m).tobytes())
+        digest.update(np.ascontiguousarray(frame.T_world_camera).tobytes())
+        if frame.rgb is not None:
+            digest.update(np.ascontiguousarray(frame.rgb).tobytes())
+    for sensor in simulator.SENSORS:
+        digest.update(np.ascontiguousarray(seq.pose_T_world_camera[sensor]).tobytes())
+    digest.update(simulator.gt_tsdf_blocks(scene, np.array([[0, 0, 0], [10, 12, 5]]), 0.01, 0.1).tobytes())
+    digest.update(np.ascontiguousarray(simulator.gt_mesh(scene, 0.1).vertices).tobytes())
+    return digest.hexdigest()[:10]
 
 
-def cached_sequence(seed: int, duration_s: float, tof_rate_hz: float, stereo_rate_hz: float,
+def cached_sequence(seed: int, *, duration_s: float, tof_rate_hz: float, stereo_rate_hz: float,
                     cache_dir: str | Path | None, log=print, room_size_m: tuple | None = None,
                     image_size: tuple[int, int] = (256, 256)):
     """simulate_sequence(make_scene(seed), seed, ...), stored under cache_dir and reloaded from there."""
@@ -205,7 +285,7 @@ def cached_gt_mesh_vertices(scene, voxel_size_m: float, cache_dir: str | Path | 
 # --------------------------------------------------------------------------------------------
 @dataclass
 class EvaluationConfig:
-    seeds: tuple[int, ...] = HELD_OUT_SEEDS[:3]
+    seeds: tuple[int, ...] = VALIDATION_SEEDS
     duration_s: float = 3.0
     tof_rate_hz: float = 15.0
     stereo_rate_hz: float = 20.0
@@ -215,6 +295,8 @@ class EvaluationConfig:
     figure_scene: int = 0  # index into seeds
     room_size_m: tuple[float, float, float] | None = None  # None: each seed's random room (tests: a small one)
     image_size: tuple[int, int] = (256, 256)
+    ablations: bool = False  # also the networks' ablation rows (ABLATION_LABELS)
+    seed_set: str = "validation"  # what the seeds are, for the report: "validation", "held-out" or "custom"
 
 
 @dataclass
@@ -225,6 +307,7 @@ class EvaluationResult:
     frames_used: list[dict[str, int]] = field(default_factory=list)
     seconds: float = 0.0
     weights_source: str = ""
+    other_weights_source: str = ""  # the other shipped model in the ablation rows ("" when none ran)
 
 
 def _engine(weights):
@@ -233,46 +316,132 @@ def _engine(weights):
     return SenFuNet(EngineConfig(), weights=weights)
 
 
-def evaluate(weights="default", config: EvaluationConfig | None = None, figure_path: str | Path | None = None,
+class ZeroFeatureNet(torch.nn.Module):
+    """A feature net whose learned channels are all 0 (the raw depth is still appended)."""
+
+    def __init__(self, uses_rgb: bool) -> None:
+        super().__init__()
+        self.uses_rgb = uses_rgb
+
+    def forward(self, depth_m: torch.Tensor, rgb01: torch.Tensor | None = None) -> torch.Tensor:
+        zeros = torch.zeros_like(depth_m).expand(-1, N_FEATURE_CHANNELS, -1, -1)
+        return torch.cat([zeros, depth_m], dim=1)
+
+
+def _ablation_engines(weights) -> dict[str, object]:
+    """Ablation name -> a function making its engine: the same weights with the feature nets at
+    their seeded initialisation or with zeroed learned channels, and the other shipped model."""
+    from .. import networks
+
+    path = networks.resolve_weights(weights)
+    if path is None:
+        return {}
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    init_seed = int(state.get("meta", {}).get("config", {}).get("init_seed", 0))
+
+    def seeded():
+        engine = _engine(path)
+        seeded_nets, _ = networks.make_networks(engine.config.sensor_uses_rgb, init_seed)
+        engine.feature_nets.load_state_dict(seeded_nets.state_dict())
+        return engine
+
+    def zeroed():
+        engine = _engine(path)
+        engine.feature_nets = torch.nn.ModuleList(ZeroFeatureNet(net.uses_rgb) for net in engine.feature_nets)
+        return engine
+
+    makers = {"abl_features_seeded": seeded, "abl_features_zeroed": zeroed}
+    other = "paper" if networks.weights_tsdf_input(path) else "default"
+    other_path = networks.NAMED_WEIGHTS[other]
+    if other_path.is_file() and other_path.resolve() != path.resolve():
+        makers[f"abl_other_{other}"] = lambda: _engine(other_path)
+    return makers
+
+
+def _scene_rows(weights, seq, gt_vertices: np.ndarray, config: EvaluationConfig, figure_path, log) -> tuple:
+    """One scene: the methods' rows (and ablation rows), frames used, the engine's weights source."""
+    stride = {"tof": config.frame_stride, "stereo": config.frame_stride}
+    engine = _engine(weights)
+    used = integrate_frames(engine, seq.frames, stride)
+    gt_crop = observed_gt_vertices(engine, gt_vertices)
+    rows = method_metrics(engine, seq.scene, gt_crop, common=True)
+    if figure_path is not None:
+        write_figure(engine, figure_path, seq.scene)
+    source = engine.weights_source
+    del engine
+    for name, make in (_ablation_engines(weights).items() if config.ablations else ()):
+        engine = make()
+        integrate_frames(engine, seq.frames, stride)
+        rows[name] = method_metrics(engine, seq.scene, gt_crop, methods=("senfunet",), common=True)["senfunet"]
+        if name.startswith("abl_other"):
+            rows[name]["source"] = engine.weights_source
+        del engine
+    if log:
+        r = rows
+        log(f"scene {seq.scene.seed}: F tof {r['tof']['F']:.1f} stereo {r['stereo']['F']:.1f} "
+            f"tsdf {r['tsdf_fusion']['F']:.1f} senfunet {r['senfunet']['F']:.1f} "
+            f"(no filter {r['senfunet_nofilter']['F']:.1f})"
+            + "".join(f"; {k[4:]} {v['F']:.1f}" for k, v in r.items() if k.startswith("abl_")))
+    return rows, used, source
+
+
+def _async_rows(weights, seq, gt_vertices: np.ndarray, config: EvaluationConfig, divisor: int) -> dict:
+    """ToF at 1/divisor of the stereo rate: every (stride * rate_ratio)-th ToF frame."""
+    tof_stride = max(1, round(config.frame_stride * divisor * config.tof_rate_hz / config.stereo_rate_hz))
+    engine = _engine(weights)
+    used = integrate_frames(engine, seq.frames, {"tof": tof_stride, "stereo": config.frame_stride})
+    rows = method_metrics(engine, seq.scene, observed_gt_vertices(engine, gt_vertices), methods=ASYNC_METHODS)
+    rows["frames"] = {"tof": used.get("tof", 0), "stereo": used.get("stereo", 0)}
+    return rows
+
+
+def evaluate(weights="default", config: EvaluationConfig | None = None, *, figure_path: str | Path | None = None,
              log=print) -> EvaluationResult:
-    """Run the table, the asynchronous test and (optionally) the figure."""
-    config = EvaluationConfig() if config is None else config
+    """Run the table (and ablation rows), the asynchronous test and (optionally) the figure."""
+    config = config or EvaluationConfig()
     t0 = time.perf_counter()
     per_scene, frames_used = [], []
     async_scenes: dict[str, list] = {f"1/{d}": [] for d in config.async_tof_divisors}
     weights_source = ""
     for index, seed in enumerate(config.seeds):
-        seq = cached_sequence(seed, config.duration_s, config.tof_rate_hz, config.stereo_rate_hz, config.cache_dir, log,
-                              config.room_size_m, config.image_size)
+        seq = cached_sequence(seed, duration_s=config.duration_s, tof_rate_hz=config.tof_rate_hz,
+                              stereo_rate_hz=config.stereo_rate_hz, cache_dir=config.cache_dir, log=log,
+                              room_size_m=config.room_size_m, image_size=config.image_size)
         gt_vertices = cached_gt_mesh_vertices(seq.scene, 0.01, config.cache_dir)
-        stride = {"tof": config.frame_stride, "stereo": config.frame_stride}
-        engine = _engine(weights)
-        weights_source = engine.weights_source
-        frames_used.append(integrate_frames(engine, seq.frames, stride))
-        gt_crop = observed_gt_vertices(engine, gt_vertices)
-        per_scene.append(method_metrics(engine, seq.scene, gt_crop))
-        if log:
-            r = per_scene[-1]
-            log(f"scene {seed}: F tof {r['tof']['F']:.1f} stereo {r['stereo']['F']:.1f} "
-                f"tsdf {r['tsdf_fusion']['F']:.1f} "
-                f"senfunet {r['senfunet']['F']:.1f} (no filter {r['senfunet_nofilter']['F']:.1f}); MAD cm "
-                f"tsdf {100 * r['tsdf_fusion']['MAD']:.2f} senfunet {100 * r['senfunet']['MAD']:.2f}")
-        if figure_path is not None and index == config.figure_scene:
-            write_figure(engine, figure_path, seq.scene)
-        del engine
+        figure = figure_path if index == config.figure_scene else None
+        rows, used, weights_source = _scene_rows(weights, seq, gt_vertices, config, figure, log)
+        per_scene.append(rows)
+        frames_used.append(used)
         for d in config.async_tof_divisors:
-            # ToF at 1/d of the stereo rate: keep every (stride * rate_ratio)-th ToF frame
-            tof_stride = max(1, round(config.frame_stride * d * config.tof_rate_hz / config.stereo_rate_hz))
-            engine = _engine(weights)
-            used = integrate_frames(engine, seq.frames, {"tof": tof_stride, "stereo": config.frame_stride})
-            rows = method_metrics(engine, seq.scene, observed_gt_vertices(engine, gt_vertices), methods=ASYNC_METHODS)
-            rows["frames"] = {"tof": used.get("tof", 0), "stereo": used.get("stereo", 0)}
-            async_scenes[f"1/{d}"].append(rows)
-            del engine
-    result = EvaluationResult(mean_rows(per_scene), per_scene,
-                              {k: mean_rows(v) for k, v in async_scenes.items() if v}, frames_used,
-                              time.perf_counter() - t0, weights_source)
-    return result
+            async_scenes[f"1/{d}"].append(_async_rows(weights, seq, gt_vertices, config, d))
+    other = next((r[k].get("source", "") for r in per_scene for k in r if k.startswith("abl_other")), "")
+    for rows in per_scene:
+        for k in rows:
+            rows[k].pop("source", None)
+    return EvaluationResult(mean_rows(per_scene), per_scene, {k: mean_rows(v) for k, v in async_scenes.items() if v},
+                            frames_used, time.perf_counter() - t0, weights_source, other)
+
+
+def spread(per_scene: list[dict[str, dict[str, float]]], column: str = "F") -> dict[str, dict[str, float]]:
+    """Per method: mean, standard deviation (over rooms), min and max of a metric."""
+    out = {}
+    for method in per_scene[0]:
+        if method == "frames":
+            continue
+        values = np.array([s[method][column] for s in per_scene if method in s], np.float64)
+        out[method] = {"mean": float(np.mean(values)), "std": float(np.std(values)), "min": float(np.min(values)),
+                       "max": float(np.max(values))}
+    return out
+
+
+def goal_check(per_scene: list[dict[str, dict[str, float]]]) -> dict[str, bool]:
+    """Issue 15's goals: in every room the fused F above the better single sensor; the mean F at
+    least 15 points above TSDF Fusion."""
+    margins = [s["senfunet"]["F"] - max(s["tof"]["F"], s["stereo"]["F"]) for s in per_scene]
+    gain = float(np.mean([s["senfunet"]["F"] - s["tsdf_fusion"]["F"] for s in per_scene]))
+    return {f"F > better single sensor in every room ({sum(m > 0 for m in margins)} of {len(margins)})":
+            all(m > 0 for m in margins),
+            f"mean F >= TSDF Fusion + 15 (+{gain:.2f})": gain >= 15}
 
 
 def _display_crop(mesh, lo: np.ndarray, hi: np.ndarray, keep_colors: bool):
@@ -328,92 +497,3 @@ def machine_description() -> str:
     cpu = cpu_model()
     return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__} "
             f"(CPU, {torch.get_num_threads()} threads)")
-
-
-def results_markdown(result: EvaluationResult, config: EvaluationConfig, command: str, notes: str = "") -> str:
-    lines = ["# Results", "",
-             f"Generated by `{command}` in {result.seconds:.0f} s on {machine_description()}.", "",
-             f"Weights: `{result.weights_source}`. Held-out scenes (seeds never used in training): "
-             f"{', '.join(str(s) for s in config.seeds)}; {config.duration_s:g} s each, ToF {config.tof_rate_hz:g} Hz, "
-             f"stereo {config.stereo_rate_hz:g} Hz, every {config.frame_stride}. frame of each sensor integrated "
-             f"(frames per scene: {', '.join(str(f) for f in result.frames_used)}).", "",
-             "## Table (mean over the held-out scenes)", "",
-             format_table(labelled(result.rows), COLUMNS)]
-    checks = bar_check(result.rows)
-    lines += ["Issue 3's bar: " + "; ".join(f"{k}: {'met' if v else 'NOT met'}" for k, v in checks.items()) + ".", ""]
-    lines += ["## Per scene", ""]
-    for seed, rows in zip(config.seeds, result.per_scene):
-        lines += [f"Scene {seed}:", "", format_table(labelled(rows), COLUMNS)]
-    if result.async_rows:
-        lines += ["## Asynchronous sensors", "",
-                  f"Stereo at {config.stereo_rate_hz / config.frame_stride:.3g} Hz effective; "
-                  "ToF at a half and a third of it "
-                  "(frames dropped from the same sequences), mean over the same scenes.", ""]
-        for name, rows in result.async_rows.items():
-            rows = dict(rows)
-            frames = rows.pop("frames", {})
-            lines += [f"ToF at {name} of the stereo rate (mean frames integrated per scene: ToF "
-                      f"{frames.get('tof', float('nan')):.0f}, stereo {frames.get('stereo', float('nan')):.0f}):", "",
-                      format_table(labelled(rows), COLUMNS)]
-    lines += ["## Protocol", "",
-              "- Grid metrics on each method's observed voxels (after the outlier filter for SenFuNet) against "
-              "the GT TSDF truncated at +-5 cm; MSE in 1e-4 m^2, MAD in cm.",
-              "- Mesh metrics: vertices of the marching-cubes mesh (cells with all 8 corners observed) against the "
-              "vertices of the GT mesh (marching cubes of the exact SDF at 1 cm), tau = 2 cm. The GT mesh is "
-              "cropped to the observed part of the scene: a GT vertex is kept when its nearest voxel was observed "
-              "by at least one sensor. The same crop is used for every method.",
-              "- Figure: `docs/figures/evaluation.png` (scene "
-              f"{config.seeds[config.figure_scene]}): ToF, stereo, TSDF Fusion, SenFuNet, and SenFuNet coloured "
-              "by the sensor weighting alpha (amber: alpha = 1, ToF trusted; blue: alpha = 0, stereo trusted). "
-              "For display only the meshes are cropped to the room (0.5 m margin) with the ceiling removed.", ""]
-    if notes:
-        lines += [notes.rstrip(), ""]
-    return "\n".join(lines)
-
-
-# Paper values of the training settings (section 4 and supplementary C), to report deviations.
-PAPER_TRAINING = {"chunk_size": 64, "min_update_voxels": 2000, "max_chunk_tries": 600, "lr": 1e-4,
-                  "accumulate_frames": 20, "clip_grad_norm": 1.0, "reset_probability": 0.01,
-                  "lambda1": 1 / 60, "lambda2": 1 / 600, "eta_m": 0.04}
-
-
-def training_notes(weights_source: str) -> str:
-    """Training provenance and deviations from the paper, read from the weights file's metadata (the
-    training config, with its `deviations`: setting or topic -> reason)."""
-    path = Path(weights_source)
-    if not path.is_file():
-        return "## Training\n\nUntrained (randomly initialised) networks.\n"
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    meta = state.get("meta", {})
-    cfg = meta.get("config", {})
-    reasons = dict(cfg.get("deviations") or {})
-    scenes = list(cfg.get("train_scenes", []))
-    scene_text = (f"{len(scenes)} scenes (seeds {min(scenes)}-{max(scenes)})" if scenes else "?")
-    val = meta.get("val_scenes", meta.get("val_scene", "?"))
-    lines = ["## Training", "",
-             f"Weights trained by `senfunet train --config config/train_tof_stereo.yaml` (wall time and command in the "
-             f"config header): {meta.get('trained_steps', '?')} training frames, {meta.get('optimizer_steps', '?')} "
-             f"optimizer steps. Training data: {scene_text}, {cfg.get('duration_s', '?')} s each, ToF "
-             f"{float(cfg.get('tof_rate_hz', float('nan'))):.3g} Hz and stereo "
-             f"{float(cfg.get('stereo_rate_hz', float('nan'))):.3g} Hz. The checkpoint is the one with the best "
-             f"mean fused F-score margin over the better single sensor on validation scenes {val} (never trained on, "
-             f"not among the held-out scenes): fused F {meta.get('val_F', float('nan')):.2f}, margin "
-             f"{meta.get('val_margin', float('nan')):+.2f}, "
-             f"TSDF Fusion {meta.get('val_tsdf_F', float('nan')):.2f}.", "",
-             "All three loss terms are the paper's (L1 to the GT TSDF on C12, L_in and L_out on C1 and C2 with eta, "
-             "each normalised by its own voxel count), as are the chunk rule (>= 2000 updated voxels, <= 600 tries), "
-             "the accumulation, the gradient clipping and the random resets. Deviations from the paper's training, "
-             "with their reasons:", ""]
-    listed = set()
-    for key, paper in PAPER_TRAINING.items():
-        if key in cfg and not math.isclose(float(cfg[key]), float(paper), rel_tol=1e-6):
-            listed.add(key)
-            lines.append(f"- `{key}` = {cfg[key]:g} (paper {paper:g}): {reasons.get(key, 'see the config header')}.")
-    for key, reason in reasons.items():
-        if key not in listed and key not in PAPER_TRAINING:
-            value = f" = {cfg[key]}" if key in cfg else ""
-            lines.append(f"- `{key}`{value}: {reason}.")
-            listed.add(key)
-    if not listed:
-        lines.append("- none.")
-    return "\n".join(lines) + "\n"

@@ -1,19 +1,25 @@
-"""`senfunet evaluate`: the paper's tables on held-out simulated scenes, plus the figure."""
+"""`senfunet evaluate`: the paper's tables on simulated rooms, ablations, plus the figure."""
 from __future__ import annotations
 
 import argparse
 
-HELP = "evaluate on held-out simulated scenes: table (MSE, MAD, IoU, Acc, F, P, R), asynchronous test, figure"
+HELP = ("evaluate on simulated rooms: table (MSE, MAD, IoU, Acc, F, P, R), ablations, spread over rooms, "
+        "asynchronous test, figure")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--weights", default="default", metavar="PATH",
-                        help="weights file (default: the shipped senfunet_core/weights/tof_stereo.pt; "
-                             "'none' = untrained)")
-    parser.add_argument("--scenes", type=int, default=3, metavar="N", help="held-out scenes (default 3, at most 6)")
+    parser.add_argument("--weights", default="default", metavar="NAME|PATH",
+                        help="weights: 'default' (senfunet_core/weights/tof_stereo.pt), 'paper' (the paper-exact "
+                             "12-input model, tof_stereo_paper.pt), a .pt path, or 'none' (untrained)")
+    parser.add_argument("--set", dest="seed_set", choices=("validation", "held-out"), default="validation",
+                        help="rooms: 'validation' (900-905, where choices are made; default) or 'held-out' "
+                             "(4001-4008, to be scored once at the end)")
+    parser.add_argument("--scenes", type=int, default=None, metavar="N", help="only the first N rooms of the set")
+    parser.add_argument("--ablations", action="store_true",
+                        help="also: feature nets seeded / zeroed, the other shipped model (TSDF input on/off)")
     parser.add_argument("--out", default="docs", metavar="DIR",
                         help="writes DIR/results.md and DIR/figures/evaluation.png (default: docs)")
-    parser.add_argument("--duration", type=float, default=None, metavar="S", help="simulated seconds per scene")
+    parser.add_argument("--duration", type=float, default=None, metavar="S", help="simulated seconds per room")
     parser.add_argument("--frame-stride", type=int, default=None, metavar="K",
                         help="integrate every K-th frame of each sensor")
     parser.add_argument("--no-async", action="store_true", help="skip the asynchronous test")
@@ -27,16 +33,24 @@ def run(args: argparse.Namespace) -> int:
     import sys
     from pathlib import Path
 
+    from senfunet_core import networks
     from senfunet_core.errors import InputError
-    from senfunet_core.learning.evaluation import (COLUMNS, HELD_OUT_SEEDS, EvaluationConfig, bar_check, evaluate,
-                                                   labelled, results_markdown, training_notes)
+    from senfunet_core.learning.evaluation import (COLUMNS, SEED_SETS, EvaluationConfig, bar_check, evaluate,
+                                                   goal_check, labelled)
+    from senfunet_core.learning.report import results_markdown, training_notes
     from senfunet_core.metrics import format_table
 
-    if not 1 <= args.scenes <= len(HELD_OUT_SEEDS):
-        print(f"senfunet evaluate: --scenes must be 1..{len(HELD_OUT_SEEDS)}, got {args.scenes}")
+    seeds = SEED_SETS[args.seed_set]
+    if args.scenes is not None and not 1 <= args.scenes <= len(seeds):
+        print(f"senfunet evaluate: --scenes must be 1..{len(seeds)} for --set {args.seed_set}, got {args.scenes}")
         return 2
-    weights = None if str(args.weights).lower() == "none" else args.weights
-    config = EvaluationConfig(seeds=HELD_OUT_SEEDS[:args.scenes],
+    try:
+        weights = networks.resolve_weights(args.weights)
+    except InputError as err:
+        print(f"senfunet evaluate: {err}")
+        return 2
+    config = EvaluationConfig(seeds=seeds[:args.scenes] if args.scenes else seeds, seed_set=args.seed_set,
+                              ablations=args.ablations,
                               cache_dir=None if str(args.cache_dir).lower() == "none" else args.cache_dir)
     changes = {}
     if args.duration is not None:
@@ -54,11 +68,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"senfunet evaluate: {err}")
         return 2
     print(format_table(labelled(result.rows), COLUMNS))
-    for name, ok in bar_check(result.rows).items():
+    for name, ok in {**goal_check(result.per_scene), **bar_check(result.rows)}.items():
         print(f"{name}: {'met' if ok else 'NOT met'}")
     command = "senfunet evaluate " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 1 and \
         sys.argv[1] == "evaluate" else "senfunet evaluate"
-    notes = training_notes(result.weights_source)
+    notes = training_notes(result.weights_source, "Training of the evaluated weights")
+    if result.other_weights_source:
+        notes += "\n" + training_notes(result.other_weights_source, "Training of the other shipped model")
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.md").write_text(results_markdown(result, config, command.strip(), notes))
     print(f"wrote {out / 'results.md'} and {figure} in {result.seconds:.0f} s")

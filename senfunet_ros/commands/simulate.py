@@ -28,8 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from senfunet_core.learning import simulator as sim
     from senfunet_core.errors import InputError
+    from senfunet_core.learning import simulator as sim
     from senfunet_core.ply import write_ply
     from senfunet_ros.bagio import BagError, write_sequence_bag
 

@@ -17,6 +17,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after S seconds of wall time (overrides the config; 0 = no limit)")
     parser.add_argument("--cache-dir", default=None, metavar="DIR",
                         help="simulated datasets cache (overrides the config; default ~/.cache/senfunet)")
+    parser.add_argument("--init-weights", default=None, metavar="PATH",
+                        help="start from this weights file (e.g. this recipe's block phase) and skip the block phase")
+    parser.add_argument("--val-every", type=int, default=None, metavar="N",
+                        help="validate every N online frames (overrides the config; 0 = at the end only)")
+    parser.add_argument("--seed", type=int, default=None, metavar="N",
+                        help="training seed and network initialisation seed (overrides the config)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
 
 
@@ -46,6 +52,15 @@ def run(args: argparse.Namespace) -> int:
         overrides["time_budget_s"] = args.time_budget
     if args.cache_dir is not None:
         overrides["cache_dir"] = args.cache_dir
+    if args.init_weights is not None:
+        if not Path(args.init_weights).is_file():
+            print(f"senfunet train: --init-weights {args.init_weights} not found; pass a weights file (.pt)")
+            return 2
+        overrides.update(init_weights=args.init_weights, block_steps=0)
+    if args.val_every is not None:
+        overrides["val_every"] = args.val_every
+    if args.seed is not None:
+        overrides.update(seed=args.seed, init_seed=args.seed)
     config = dataclasses.replace(config, **overrides)
     out = Path(args.out) if args.out else networks.DEFAULT_WEIGHTS
     budget = f", at most {config.time_budget_s:.0f} s" if config.time_budget_s > 0 else ""

@@ -7,20 +7,21 @@ import numpy as np
 import pytest
 
 from senfunet_core.learning import evaluation as ev
+from senfunet_core.learning import report
 
 
 @pytest.fixture(scope="module")
 def tiny_result(tmp_path_factory):
-    cfg = ev.EvaluationConfig(seeds=(1001,), duration_s=0.25, frame_stride=1, async_tof_divisors=(2,), cache_dir=None,
-                              room_size_m=(2.5, 2.5, 2.4), image_size=(128, 128))
+    cfg = ev.EvaluationConfig(seeds=(7,), duration_s=0.25, frame_stride=1, async_tof_divisors=(2,), cache_dir=None,
+                              room_size_m=(2.5, 2.5, 2.4), image_size=(128, 128), ablations=True, seed_set="custom")
     fig = tmp_path_factory.mktemp("fig") / "evaluation.png"
-    result = ev.evaluate(None, cfg, figure_path=fig, log=None)
+    result = ev.evaluate("default", cfg, figure_path=fig, log=None)
     return cfg, result, fig
 
 
 def test_table_has_all_rows_and_columns(tiny_result):
     cfg, result, fig = tiny_result
-    assert list(result.rows) == list(ev.METHODS)
+    assert list(result.rows)[:len(ev.METHODS)] == list(ev.METHODS)
     for method, row in result.rows.items():
         for col in ev.COLUMNS:
             assert col in row and not math.isnan(row[col]), (method, col)
@@ -35,12 +36,14 @@ def test_table_has_all_rows_and_columns(tiny_result):
 
 def test_markdown_report(tiny_result):
     cfg, result, _ = tiny_result
-    text = ev.results_markdown(result, cfg, "senfunet evaluate --scenes 1")
+    text = report.results_markdown(result, cfg, "senfunet evaluate --scenes 1")
     for label in ev.METHOD_LABELS.values():
         assert f"| {label} |" in text
     for header in ("MSE", "MAD", "IoU", "Acc", "F (%)", "P (%)", "R (%)"):
         assert header in text
     assert "senfunet evaluate --scenes 1" in text and "Asynchronous" in text
+    for section in ("## Ablations", "## F-score spread over the rooms", "## Grid metrics on a common voxel set"):
+        assert section in text
     assert set(ev.bar_check(result.rows)) == {"F >= TSDF Fusion + 10", "F >= best single sensor + 3",
                                               "MAD < TSDF Fusion"}
 
@@ -59,8 +62,8 @@ def test_gt_crop_keeps_only_observed_vertices():
 
 
 def test_grid_truth_lookup_equals_gt_tsdf_at_the_voxel_centres():
-    from senfunet_core.learning import simulator
     from senfunet_core.engine import EngineConfig, SenFuNet
+    from senfunet_core.learning import simulator
     from senfunet_core.metrics import grid_metrics
 
     scene = simulator.make_scene(1001, room_size_m=(2.5, 2.5, 2.4))
@@ -76,3 +79,59 @@ def test_grid_truth_lookup_equals_gt_tsdf_at_the_voxel_centres():
         np.testing.assert_allclose(truth.at(centres), want, atol=1e-6)
         expected = grid_metrics(tsdf, want)
         assert rows[method]["MAD"] == pytest.approx(expected["MAD"], rel=1e-5) and rows[method]["n"] == expected["n"]
+
+
+def test_ablation_rows_change_the_networks_only(tiny_result):
+    """Seeded feature nets equal the shipped ones when those were never trained; zeroed channels
+    change the result; every ablation row has the grid, mesh and common-set metrics."""
+    from senfunet_core import networks
+
+    _, result, _ = tiny_result
+    rows = result.per_scene[0]
+    assert {"abl_features_seeded", "abl_features_zeroed"} <= set(rows)
+    state = __import__("torch").load(networks.DEFAULT_WEIGHTS, map_location="cpu", weights_only=True)
+    seeded, _ = networks.make_networks((False, True), int(state["meta"]["config"].get("init_seed", 0)))
+    untrained = all(bool((a == b).all()) for net, saved in zip(seeded, state["feature_nets"])
+                    for a, b in zip(net.state_dict().values(), saved.values()))
+    if untrained:
+        assert rows["abl_features_seeded"]["F"] == rows["senfunet"]["F"]
+    assert rows["abl_features_zeroed"]["n"] != rows["senfunet"]["n"]
+    for row in (rows["abl_features_seeded"], rows["abl_features_zeroed"]):
+        assert {"F", "MAD", "MAD_common", "kept_common"} <= set(row)
+
+
+def test_common_grid_metrics_count_missing_voxels_as_errors():
+    gt = np.array([0.02, -0.03, 0.01, -0.01])
+    pred = np.array([0.02, -0.01, np.nan, np.nan])  # two kept (exact, and 2 cm off), two missing
+    m = ev.common_grid_metrics(pred, gt, band_m=0.1)
+    assert m["kept"] == 0.5 and m["n"] == 4
+    assert m["MAD"] == pytest.approx((0 + 0.02 + 0.1 + 0.1) / 4)
+    assert m["MSE"] == pytest.approx((0 + 0.02 ** 2 + 0.01 + 0.01) / 4)
+    assert m["Acc"] == pytest.approx(0.5)  # the kept two have the right sign; the missing two are wrong
+    # inside: voxel 1 found (tn); voxel 3 missing with GT inside (fp); voxel 2 missing with GT outside (fn)
+    assert m["IoU"] == pytest.approx(1 / 3)
+    full = ev.common_grid_metrics(gt, gt, band_m=0.1)
+    assert full["MAD"] == 0 and full["Acc"] == 1 and full["kept"] == 1
+
+
+def test_goal_check_and_spread():
+    def scene(tof, stereo, tsdf, senfunet):
+        return {"tof": {"F": tof}, "stereo": {"F": stereo}, "tsdf_fusion": {"F": tsdf}, "senfunet": {"F": senfunet}}
+
+    rooms = [scene(60, 40, 50, 70), scene(50, 55, 45, 62)]
+    goals = list(ev.goal_check(rooms).values())
+    assert goals == [True, True]  # +10 and +7 over the better sensor; +18.5 over TSDF Fusion on average
+    goals = list(ev.goal_check([*rooms, scene(70, 30, 68, 69)]).values())  # -1 in room 3; +12.67 on average
+    assert goals == [False, False]
+    st = ev.spread(rooms)["senfunet"]
+    assert st["mean"] == 66 and st["min"] == 62 and st["max"] == 70 and st["std"] == pytest.approx(4)
+
+
+def test_named_weights_resolve():
+    from senfunet_core import networks
+    from senfunet_core.errors import InputError
+
+    assert networks.resolve_weights("default") == networks.DEFAULT_WEIGHTS
+    assert networks.resolve_weights("none") is None and networks.resolve_weights(None) is None
+    with pytest.raises(InputError, match="paper"):
+        networks.resolve_weights("no_such_model")

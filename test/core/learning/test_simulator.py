@@ -6,6 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from senfunet_core.learning import geometry, raycast
 from senfunet_core.learning import simulator as sim
 
 
@@ -55,7 +56,7 @@ def test_gt_mesh_agrees_with_sdf():
     # every furniture part appears in the mesh: some vertex on each primitive's surface
     for prim in scene.primitives[:5]:
         x, y, z = (mesh.vertices[:, i].astype(np.float64) for i in range(3))
-        assert np.abs(sim._prim_sdf(prim, x, y, z)).min() < 0.6 * voxel
+        assert np.abs(geometry._prim_sdf(prim, x, y, z)).min() < 0.6 * voxel
 
 
 def test_sdf_analytic_distances():
@@ -80,7 +81,7 @@ def test_sdf_analytic_distances():
 @pytest.mark.parametrize("seed", [0, 4])
 def test_render_depth_lies_on_surfaces(seed):
     scene = sim.make_scene(seed)
-    traj = sim._Trajectory(scene, seed, 0.0, 3.0)
+    traj = sim.Trajectory(scene, seed, 0.0, 3.0)
     K = sim.intrinsics(128, 96, 80.0)
     for T in traj(np.array([0.5, 2.5])):
         out = sim.render_view(scene, T, K, 128, 96)
@@ -144,7 +145,7 @@ def test_stereo_fails_on_texture_poor_wall_tof_does_not():
         assert rgb.shape == (256, 256, 3) and rgb.dtype == np.uint8
         roi = depth[40:216, 80:216]  # away from the left border SGBM cannot match
         bad[poor] = np.mean((roi <= 0) | (np.abs(roi - 1.5) > 0.1))
-        tof = sim.simulate_tof_depth(scene, T @ sim._translation(sim.TOF_OFFSET_X_M, 0, 0), K, 256, 256,
+        tof = sim.simulate_tof_depth(scene, T @ raycast._translation(sim.TOF_OFFSET_X_M, 0, 0), K, 256, 256,
                                      np.random.default_rng(0))
         assert np.mean(tof[40:216, 40:216] > 0) > 0.9  # ToF does not care about texture
     assert bad[False] < 0.2, bad
@@ -182,7 +183,7 @@ def test_stamps_and_pose_streams():
         assert seq.pose_T_world_camera[sensor].shape == (len(ps), 4, 4)
     # the ToF sits 5 cm to the left (-x) of the stereo left camera on the same rigid device
     f_tof = next(f for f in seq.frames if f.sensor == "tof")
-    T_st = sim._Trajectory(seq.scene, 1, -0.1, 1.1)(np.array([f_tof.stamp_s]))[0]
+    T_st = sim.Trajectory(seq.scene, 1, -0.1, 1.1)(np.array([f_tof.stamp_s]))[0]
     rel = np.linalg.inv(T_st) @ f_tof.T_world_camera
     np.testing.assert_allclose(rel[:3, 3], [sim.TOF_OFFSET_X_M, 0, 0], atol=1e-9)
     for f in seq.frames:
@@ -193,7 +194,7 @@ def test_stamps_and_pose_streams():
 @pytest.mark.parametrize("seed", range(6))
 def test_trajectory_is_walkable(seed):
     scene = sim.make_scene(seed)
-    T = sim._Trajectory(scene, seed, 0.0, 10.0)(np.arange(0, 10, 1 / 15))
+    T = sim.Trajectory(scene, seed, 0.0, 10.0)(np.arange(0, 10, 1 / 15))
     pos = T[:, :3, 3]
     assert sim.scene_sdf(scene, pos).min() > 0.4
     step = np.linalg.norm(np.diff(pos, axis=0), axis=1)

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 import torch
 
+from senfunet_core.learning import block_phase
+from senfunet_core.learning import trainer as trainer_module
 from senfunet_core.learning import training as tr
 
 REPO = Path(__file__).resolve().parents[3]
@@ -22,7 +24,8 @@ def test_loss_terms_by_hand():
     gt = torch.tensor([0.0, 0.0, 0.0, -0.05, 0.0, -0.05, 0.0])
     mask = torch.ones(7, dtype=torch.bool)
     lam1, lam2, eta = 1 / 60, 1 / 600, 0.04
-    total, terms = tr.senfunet_loss(tsdf_1, weight_1, tsdf_2, weight_2, alpha, gt, mask, lam1, lam2, eta)
+    total, terms = tr.senfunet_loss(tsdf_1, weight_1, tsdf_2, weight_2, alpha, gt, mask, lambda1=lam1, lambda2=lam2,
+                                    eta_m=eta)
     # C12: fused 0.5*0.02+0.5*0.04 = 0.03 -> |0.03|; 0.25*-0.01+0.75*0.01 = 0.005 -> 0.005
     l_f = (0.03 + 0.005) / 2
     # C1: voxel 2 error 0.01 < eta (inlier, alpha_1 = 0.9 -> 0.1); voxel 3 error 0.10 > eta (outlier -> 0.7)
@@ -50,7 +53,8 @@ def test_loss_counts_only_the_masked_voxels_and_an_empty_set_adds_nothing():
     gt = torch.tensor([0.0, 0.0, 0.0, 0.05, -0.2, -0.2])
     mask = torch.tensor([True, True, True, False, False, False])
     alpha = torch.tensor([0.5, 0.9, 0.7, 0.3, 0.6, 0.2], requires_grad=True)
-    total, terms = tr.senfunet_loss(tsdf_1, weight_1, tsdf_2, weight_2, alpha, gt, mask, 0.5, 0.25, 0.04)
+    total, terms = tr.senfunet_loss(tsdf_1, weight_1, tsdf_2, weight_2, alpha, gt, mask, lambda1=0.5, lambda2=0.25,
+                                     eta_m=0.04)
     # by hand on the masked voxels: L_f = |0.03|, L_in1 = |0.9 - 1|, L_out1 = 0.7; C2 is empty there
     assert terms["L_f"] == pytest.approx(0.03, abs=1e-6)
     assert terms["L_in1"] == pytest.approx(0.1, abs=1e-6) and terms["L_out1"] == pytest.approx(0.7, abs=1e-6)
@@ -61,7 +65,7 @@ def test_loss_counts_only_the_masked_voxels_and_an_empty_set_adds_nothing():
     assert torch.all(alpha.grad[3:] == 0) and torch.all(alpha.grad[:3] != 0)
     # the same voxels alone give the same loss: the masked-out ones only add zeros
     subset, _ = tr.senfunet_loss(tsdf_1[:3], weight_1[:3], tsdf_2[:3], weight_2[:3], alpha.detach()[:3], gt[:3],
-                                 torch.ones(3, dtype=torch.bool), 0.5, 0.25, 0.04)
+                                 torch.ones(3, dtype=torch.bool), lambda1=0.5, lambda2=0.25, eta_m=0.04)
     assert float(subset) == pytest.approx(float(total.detach()), abs=1e-7)
 
 
@@ -73,7 +77,7 @@ def _slab(nx, ny, nz, offset=(0, 0, 0)):
 def test_chunk_rule_found_and_shrunk():
     voxels = _slab(100, 100, 3, (5, -7, 11))  # 30,000 voxels, box 100 x 100 x 3
     gen = torch.Generator().manual_seed(0)
-    corner, size, tries = tr.sample_chunk(voxels, 64, 2000, 600, gen)
+    corner, size, tries = tr.sample_chunk(voxels, chunk_size=64, min_voxels=2000, max_tries=600, generator=gen)
     assert corner is not None and 1 <= tries <= 600
     assert size.tolist() == [64, 64, 3]  # shrinks along the thin axis
     inside = ((voxels >= corner) & (voxels < corner + size)).all(1).sum()
@@ -86,9 +90,9 @@ def test_chunk_rule_gives_up_after_600_tries():
     # two clusters of 1500 voxels 70 voxels apart: no 64^3 chunk holds 2000 of them
     voxels = torch.cat([_slab(15, 10, 10), _slab(15, 10, 10, (70, 0, 0))])
     gen = torch.Generator().manual_seed(0)
-    corner, _, tries = tr.sample_chunk(voxels, 64, 2000, 600, gen)
+    corner, _, tries = tr.sample_chunk(voxels, chunk_size=64, min_voxels=2000, max_tries=600, generator=gen)
     assert corner is None and tries == 600
-    corner, _, tries = tr.sample_chunk(voxels, 64, 1000, 600, gen)
+    corner, _, tries = tr.sample_chunk(voxels, chunk_size=64, min_voxels=1000, max_tries=600, generator=gen)
     assert corner is not None
 
 
@@ -177,7 +181,7 @@ def test_feature_gradient_on_the_image_window_equals_the_whole_image(tiny_sequen
     frames = [f for f in tiny_sequence.frames][:6]
 
     def grads(radius):
-        monkeypatch.setattr(tr, "FEATURE_RADIUS_PX", radius)
+        monkeypatch.setattr(trainer_module, "FEATURE_RADIUS_PX", radius)
         t = tr.Trainer(cfg)
         losses = [t.train_frame(f, tiny_sequence.scene).loss for f in frames]
         return losses, [p.grad.clone() for p in t.feature_nets.parameters()]
@@ -202,12 +206,12 @@ def test_block_phase_lowers_the_loss_on_its_blocks(tiny_sequence, monkeypatch):
     losses: list[float] = []
     original_loss = tr.senfunet_loss
 
-    def recording_loss(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def recording_loss(*args, **kwargs):
         total, terms = original_loss(*args, **kwargs)
         losses.append(float(total.detach()))
         return total, terms
 
-    monkeypatch.setattr(tr, "senfunet_loss", recording_loss)
+    monkeypatch.setattr(block_phase, "senfunet_loss", recording_loss)
 
     def run(lr: float) -> list[float]:
         cfg = tr.TrainConfig(seed=0, lr=lr, lambda1=0.1, lambda2=0.08, weighting_tsdf_input=True, block_steps=60,
@@ -232,18 +236,18 @@ def test_block_batch_one_scene_or_mixed():
              "gt": torch.arange(n, dtype=torch.float32) + 100 * s} for s, n in enumerate((5, 30, 12))]
     rng = np.random.default_rng(0)
     for _ in range(20):
-        one = tr.block_batch(data, 8, False, rng)
+        one = tr.block_batch(data, 8, mixed=False, rng=rng)
         scenes = set((one["gt"] // 100).int().tolist())
         assert len(scenes) == 1 and len(one["gt"]) == min(8, len(data[scenes.pop()]["gt"]))
         assert torch.equal(one["x"][:, 0], one["gt"])
     seen = set()
     for _ in range(20):
-        mixed = tr.block_batch(data, 16, True, rng)
+        mixed = tr.block_batch(data, 16, mixed=True, rng=rng)
         assert len(mixed["gt"]) == 16 and len(set(mixed["gt"].tolist())) == 16  # no block twice
         assert torch.equal(mixed["x"][:, 0], mixed["gt"])
         seen |= set((mixed["gt"] // 100).int().tolist())
     assert seen == {0, 1, 2}
-    everything = tr.block_batch(data, 100, True, rng)  # more than there are: each block once
+    everything = tr.block_batch(data, 100, mixed=True, rng=rng)  # more than there are: each block once
     assert sorted(everything["gt"].tolist()) == sorted(torch.cat([d["gt"] for d in data]).tolist())
 
 
@@ -253,3 +257,75 @@ def test_cosine_lr():
     assert tr.cosine_lr(1e-3, 0.1, 0.5) == pytest.approx(0.55e-3)
     assert tr.cosine_lr(1e-3, 0.1, 1.0) == pytest.approx(1e-4)
     assert tr.cosine_lr(1e-3, 0.1, 3.0) == pytest.approx(1e-4)
+
+
+@pytest.mark.parametrize("name", ["train_tof_stereo.yaml", "train_tof_stereo_paper.yaml"])
+def test_every_departure_from_the_paper_is_listed(name):
+    from senfunet_core.learning.config import PAPER_TRAINING
+    from senfunet_core.learning.report import _differs
+
+    cfg = tr.load_config(REPO / "config" / name)
+    differing = {k for k, paper in PAPER_TRAINING.items() if _differs(getattr(cfg, k), paper)}
+    assert differing, "every recipe here departs somewhere (at least the block phase)"
+    assert differing <= set(cfg.deviations), f"{name}: not in deviations: {sorted(differing - set(cfg.deviations))}"
+    assert {"data", "checkpoint"} <= set(cfg.deviations)
+
+
+def test_paper_config_is_the_paper_model():
+    cfg = tr.load_config(REPO / "config" / "train_tof_stereo_paper.yaml")
+    assert not cfg.weighting_tsdf_input
+    assert cfg.lambda1 == pytest.approx(1 / 60) and cfg.lambda2 == pytest.approx(1 / 600)
+    assert (cfg.lr, cfg.accumulate_frames, cfg.chunk_size, cfg.feature_lr_factor) == (1e-4, 20, 64, 1.0)
+    assert cfg.steps > 0  # the paper's online training runs after the block phase
+    from senfunet_core import networks
+
+    _, g = networks.make_networks((False, True), 0, tsdf_input=cfg.weighting_tsdf_input)
+    assert sum(p.numel() for p in g.parameters()) == 24257
+
+
+def test_training_notes_say_what_ran(tmp_path):
+    """The generated Training section reads the checkpoint's record: no online frame -> says so;
+    feature nets compared with their initialisation; a departure missing from `deviations` is named."""
+    from senfunet_core import networks
+    from senfunet_core.learning.report import training_notes
+
+    feature_nets, g = networks.make_networks((False, True), 0, tsdf_input=True)
+    cfg = {"train_scenes": [0, 1], "duration_s": 4.0, "block_steps": 10, "block_batch": 4, "lambda1": 0.1,
+           "lambda2": 1 / 600, "init_seed": 0, "deviations": {"block_steps": "G first on blocks"}}
+    meta = {"trained_steps": 0, "config": cfg, "ran": {"block_steps": 10, "online_frames": 0}, "val_scenes": [900]}
+    networks.save_weights(tmp_path / "a.pt", ("tof", "stereo"), feature_nets, g, meta)
+    text = training_notes(str(tmp_path / "a.pt"))
+    assert "14 inputs, 25985 parameters" in text and "no frame ran" in text
+    assert "not trained" in text and "`block_steps`: G first on blocks" in text
+    assert "`lambda1` = 0.1 (paper 0.016" in text and "not listed" in text and "lambda2" not in text
+    with torch.no_grad():
+        feature_nets[0].blocks[0][0].weight.add_(0.01)
+    meta["ran"] = {"online_frames": 50, "online_frames_with_chunk": 40, "online_optimizer_steps": 10}
+    cfg.update(min_update_voxels=2000, chunk_size=64, accumulate_frames=4, clip_grad_norm=1.0, lr=1e-4)
+    networks.save_weights(tmp_path / "b.pt", ("tof", "stereo"), feature_nets, g, meta)
+    text = training_notes(str(tmp_path / "b.pt"))
+    assert "50 frames, 40 of them with a chunk" in text and "trained: they differ" in text
+
+
+def test_run_from_a_checkpoint_keeps_it_unless_the_online_frames_beat_its_validation(tmp_path):
+    """--init-weights: frame 0 is the starting checkpoint's own validation record; online frames that
+    do not beat it leave its networks in the output, and the output records every validation."""
+    from senfunet_core import networks
+
+    feature_nets, g = networks.make_networks((False, True), 3, tsdf_input=False)
+    start = tmp_path / "start.pt"
+    networks.save_weights(start, ("tof", "stereo"), feature_nets, g,
+                          {"val_F": 99.0, "val_margin": 50.0, "config": {"val_scenes": [7]}})
+    cfg = tr.TrainConfig(seed=0, train_scenes=(5,), val_scenes=(7,), duration_s=0.3, val_duration_s=0.3,
+                         val_frame_stride=2, chunk_size=16, min_update_voxels=200, steps=4, val_every=0,
+                         accumulate_frames=2, init_weights=str(start), threads=1, cache_dir=str(tmp_path / "cache"),
+                         feature_lr_factor=1000.0)
+    out = tmp_path / "out.pt"
+    summary = tr.train(cfg, out, log=lambda *_: None, progress=False)
+    assert summary["optimizer_steps"] >= 1 and [h["step"] for h in summary["history"]] == [0, 4]
+    state = torch.load(out, map_location="cpu", weights_only=True)
+    assert state["meta"]["trained_steps"] == 0 and state["meta"]["init"]["meta"]["val_margin"] == 50.0
+    assert [h["step"] for h in state["meta"]["validation_history"]] == [0, 4]
+    assert state["meta"]["ran_in_total"]["online_frames"] == 4
+    for net, saved in zip(feature_nets, state["feature_nets"]):
+        assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), saved.values()))
