@@ -47,6 +47,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from senfunet_ros import conversions as conv
+from senfunet_ros.geometry import interpolate_pose
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "integrate_ready"]
 
@@ -177,53 +178,6 @@ class _SensorState:
         self.poses.clear()
         self.last_ns = {"depth": None, "color": None, "pose": None}
         return n
-
-
-def quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> unit quaternion (x, y, z, w), numerically stable for any angle."""
-    m = R
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.asarray(q, dtype=np.float64)
-    return q / np.linalg.norm(q)
-
-
-def _matrix_from_quat(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
-    """Pose at fraction s in [0, 1] from T0 to T1: lerp of translation, slerp of rotation."""
-    q0 = quat_from_matrix(T0[:3, :3])
-    q1 = quat_from_matrix(T1[:3, :3])
-    dot = float(np.dot(q0, q1))
-    if dot < 0.0:  # take the short way round
-        q1, dot = -q1, -dot
-    if dot > 0.9995:  # nearly equal: lerp is exact enough and avoids dividing by sin(~0)
-        q = q0 + s * (q1 - q0)
-    else:
-        theta = np.arccos(dot)
-        q = (np.sin((1 - s) * theta) * q0 + np.sin(s * theta) * q1) / np.sin(theta)
-    T = np.eye(4)
-    T[:3, :3] = _matrix_from_quat(q / np.linalg.norm(q))
-    T[:3, 3] = (1 - s) * T0[:3, 3] + s * T1[:3, 3]
-    return T
 
 
 class Ingest:

@@ -25,8 +25,6 @@ from typing import Any, Callable, Iterator
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped, TransformStamped
-from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -39,12 +37,13 @@ from visualization_msgs.msg import MarkerArray
 
 from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
+from senfunet_ros.bagio import message_class
+from senfunet_ros.conversions import PoseType
 from senfunet_ros.dds import publish_serialized
 from senfunet_ros.ingest import DROP_REASONS, Frame, Ingest, TimeJump, integrate_ready
 
 __all__ = ["FusionNode", "main"]
 
-_POSE_MSGS = {"pose_stamped": PoseStamped, "odometry": Odometry, "transform_stamped": TransformStamped}
 _WARN_PERIOD_S = 5.0  # one warning per cause per this many seconds
 _INTEGRATE_SLICE_S = 0.5  # an integration tick returns after this long, so the executor stays responsive
 
@@ -172,7 +171,7 @@ class FusionNode(Node):
         # Each subscription has its own mutually exclusive group: streams run in parallel, but one
         # stream's messages never overlap, so they reach Ingest in arrival order.
         self._subscriptions_keep = []
-        pose_msg = _POSE_MSGS[s.pose_type]
+        pose_msg = message_class(PoseType(s.pose_type).msgtype)
         for sensor in s.sensors:
             name = sensor.name
             self._subscriptions_keep += [

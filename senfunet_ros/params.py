@@ -9,10 +9,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Sequence
 
+from senfunet_ros.conversions.poses import PoseType
+
 __all__ = ["Param", "GLOBAL_PARAMS", "SENSOR_PARAMS", "NODE_NAME", "expanded_defaults", "Settings", "declare"]
 
 NODE_NAME = "senfunet"
-POSE_TYPES = ("pose_stamped", "odometry", "transform_stamped")
 ON_TIME_JUMP = ("reset", "ignore")
 
 
@@ -140,8 +141,9 @@ def check(values: dict[str, Any]) -> None:
     sensors = values["sensors"]
     if len(sensors) != 2 or len(set(sensors)) != 2:
         raise ValueError(f"parameter 'sensors' needs two distinct names, got {sensors}")
-    if values["pose_type"] not in POSE_TYPES:
-        raise ValueError(f"parameter 'pose_type' = {values['pose_type']!r}; use one of {POSE_TYPES}")
+    pose_types = [p.value for p in PoseType]
+    if values["pose_type"] not in pose_types:
+        raise ValueError(f"parameter 'pose_type' = {values['pose_type']!r}; use one of {pose_types}")
     if values["alpha_precision"] not in ("auto", "float32", "bfloat16"):
         raise ValueError(f"parameter 'alpha_precision' = {values['alpha_precision']!r}; use auto, float32 or bfloat16")
     if values["on_time_jump"] not in ON_TIME_JUMP:
@@ -203,7 +205,6 @@ def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.
     node passes max_lag_s from its parameter."""
     import dataclasses
 
-    from senfunet_ros import conversions as conv
     from senfunet_ros.ingest import IngestConfig
 
     s = settings
@@ -216,7 +217,7 @@ def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.
         pose_max_wait_s=s.pose_max_wait_s,
         color_tolerance_s=s.color_tolerance_s,
         time_jump_s=s.time_jump_s,
-        pose_parser=conv.POSE_PARSERS[s.pose_type],
+        pose_parser=PoseType(s.pose_type).parse,
     )
     return dataclasses.replace(config, **overrides)
 

@@ -8,9 +8,6 @@ with torch pinned to a fixed thread count, the same mesh bytes.
 
     result = replay_bag("bags/sim_room", "out/replay", gt="bags/sim_room_gt.ply")
     result.stats["sensors"]["tof"]["integrated"]
-
-`BagFeeder` is the same routing for the live node's `bag` parameter: it releases the bag's
-messages at the recorded pace (times a rate) from a timer and pushes them into the node's Ingest.
 """
 from __future__ import annotations
 
@@ -25,6 +22,7 @@ import numpy as np
 from senfunet_ros import params as P
 from senfunet_ros.params import engine_config, engine_weights, ingest_config
 from senfunet_ros.bagio import BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype, open_bag
+from senfunet_ros.conversions import PoseType
 from senfunet_ros.ingest import Frame, Ingest, TimeJump, integrate_ready
 
 __all__ = [
@@ -35,15 +33,9 @@ __all__ = [
     "TopicRouter",
     "ReplayResult",
     "replay_bag",
-    "BagFeeder",
     "MESH_FILES",
 ]
 
-_POSE_TYPES = {
-    "pose_stamped": "geometry_msgs/msg/PoseStamped",
-    "odometry": "nav_msgs/msg/Odometry",
-    "transform_stamped": "geometry_msgs/msg/TransformStamped",
-}
 _IMAGE = "sensor_msgs/msg/Image"
 _CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 
@@ -135,7 +127,7 @@ class TopicRouter:
         self.bag_path = Path(bag_path)
         self.routes: dict[str, Route] = {}
         self.undecodable: dict[str, int] = {}
-        pose_type = _POSE_TYPES[settings.pose_type]
+        pose_type = PoseType(settings.pose_type).msgtype
         missing: list[str] = []
         for sensor in settings.sensors:
             wanted = [("camera_info", sensor.camera_info_topic, _CAMERA_INFO, True),
@@ -164,10 +156,10 @@ class TopicRouter:
 
     def _type_error(self, topic: str, msgtype: str, expected: str, stream: str, settings: P.Settings) -> str:
         if stream == "pose":
-            alt = next((name for name, t in _POSE_TYPES.items() if t == msgtype), None)
+            alt = PoseType.from_msgtype(msgtype)
             if alt is not None:
                 return (f"{self.bag_path}: topic {topic} is {msgtype} but parameter pose_type is "
-                        f"'{settings.pose_type}'; set pose_type: {alt} with --params")
+                        f"'{settings.pose_type}'; set pose_type: {alt.value} with --params")
         try:
             message_class(msgtype)
             known = True
@@ -431,119 +423,3 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, tuple):
         return list(value)
     return str(value)
-
-
-# --------------------------------------------------------------------------------------------
-# Feeding the live node from a bag
-
-
-class BagFeeder:
-    """Releases a bag's messages into a node's Ingest at the recorded pace, from a timer.
-
-        feeder = BagFeeder(path, node.settings, rate=1.0, loop=False)    # BagError if unusable
-        # in a timer callback (e.g. every 10 ms):
-        feeder.feed(node.ingest, time.monotonic())
-        if feeder.done: ...                   # bag finished (never with loop), or broke: feeder.error
-
-    The first call anchors the bag's first message to `now_s`; after that a message is due when
-    (its log time - the bag's start) / rate has passed. `rate <= 0` means as fast as the node
-    keeps up: `feed` releases messages up to the next depth image, and only while every
-    sensor's queue holds fewer than `backlog` frames. With `loop`, the bag starts over when it
-    ends (its stamps jump back, which Ingest reports as a TimeJump: the node resets or not per
-    its on_time_jump parameter).
-    """
-
-    def __init__(self, bag: str | Path, settings: P.Settings, *, rate: float = 1.0, loop: bool = False,
-                 max_batch: int = 500, backlog: int = 2) -> None:
-        self.path = Path(bag)
-        self.rate = float(rate)
-        self.loop = bool(loop)
-        self.max_batch = int(max_batch)
-        self.backlog = int(backlog)
-        self._reader = open_bag(bag)
-        try:
-            self.router = TopicRouter(settings, self._reader.topics, bag)
-        except BagError:
-            self._reader.close()
-            raise
-        self._start_ns = self._reader.start_ns
-        self._span_ns = max(1, self._reader.end_ns - self._reader.start_ns)
-        self._iter = self._reader.messages(self.router.topics)
-        self._pending: BagMessage | None = None
-        self._anchor_s: float | None = None
-        self._offset_ns = 0  # bag time added per completed loop
-        self.loops = 0
-        self.fed = 0
-        self.done = False
-        self.error: str | None = None
-        self.last_log_time_ns: int | None = None  # recorded time of the last released message
-
-    def _peek(self) -> BagMessage | None:
-        if self._pending is None and not self.done:
-            try:
-                self._pending = next(self._iter)
-            except StopIteration:
-                if self.loop and self.fed:
-                    self.loops += 1
-                    self._offset_ns += self._span_ns
-                    self._iter = self._reader.messages(self.router.topics)
-                    return self._peek()
-                self._finish()
-            except BagBrokenError as err:
-                self.error = str(err)
-                self._finish()
-        return self._pending
-
-    def _finish(self) -> None:
-        self.done = True
-        self._reader.close()
-
-    def due_messages(self, now_s: float, *, ingest: Ingest | None = None) -> list[tuple[Route, Any]]:
-        """Messages whose time has come, deserialised (route, rclpy message), in recorded order."""
-        if self._anchor_s is None:
-            self._anchor_s = now_s
-        out: list[tuple[Route, Any]] = []
-        if self.rate <= 0 and ingest is not None:
-            if max(ingest.queue_depths().values(), default=0) >= self.backlog:
-                return out
-        elapsed_ns = (now_s - self._anchor_s) * 1e9 * self.rate if self.rate > 0 else float("inf")
-        while len(out) < self.max_batch:
-            msg = self._peek()
-            if msg is None:
-                break
-            if msg.log_time_ns - self._start_ns + self._offset_ns > elapsed_ns:
-                break
-            self._pending = None
-            self.last_log_time_ns = msg.log_time_ns
-            self.fed += 1
-            decoded = self.router.decode(msg)
-            if decoded is not None:
-                out.append(decoded)
-                if self.rate <= 0 and decoded[0].stream == "depth":
-                    break  # one frame per call when going as fast as the node keeps up
-        return out
-
-    def feed(self, ingest: Ingest, now_s: float) -> int:
-        """Push the due messages into `ingest`; returns how many were pushed."""
-        n = 0
-        for route, message in self.due_messages(now_s, ingest=ingest):
-            try:
-                TopicRouter.dispatch(ingest, route, message)
-            except ValueError:
-                self.router.undecodable[route.topic] = self.router.undecodable.get(route.topic, 0) + 1
-                continue
-            n += 1
-        return n
-
-    @property
-    def progress(self) -> float:
-        """Fraction of the current pass through the bag, 0..1."""
-        if self.done:
-            return 1.0
-        if self.last_log_time_ns is None:
-            return 0.0
-        return min(1.0, (self.last_log_time_ns - self._start_ns) / self._span_ns)
-
-    def close(self) -> None:
-        if not self.done:
-            self._finish()

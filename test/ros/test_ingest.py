@@ -10,7 +10,8 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
 from senfunet_ros import conversions as conv
-from senfunet_ros.ingest import Frame, Ingest, IngestConfig, TimeJump, interpolate_pose
+from senfunet_ros.geometry import interpolate_pose
+from senfunet_ros.ingest import Frame, Ingest, IngestConfig, TimeJump
 
 MS = 1_000_000  # nanoseconds
 

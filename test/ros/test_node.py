@@ -141,7 +141,7 @@ def _stamp(msg: Any, t_s: float) -> None:
 
 
 def _pose_msg(t_s: float, T: np.ndarray) -> PoseStamped:
-    from senfunet_ros.ingest import quat_from_matrix
+    from senfunet_ros.geometry import quat_from_matrix
 
     msg = PoseStamped()
     _stamp(msg, t_s)
