@@ -21,6 +21,8 @@ from senfunet_ros.conversions.images import (
                                              resize_rgb,
                                              rgb_from_image,
                                              scale_intrinsics,
+                                             depth_from_compressed,
+                                             rgb_from_compressed,
 )
 from senfunet_ros.conversions.poses import (
                                              PoseType,
@@ -48,6 +50,8 @@ from senfunet_ros.conversions.wire import (
 from senfunet_ros.geometry import QUATERNION_NORM_TOLERANCE
 
 __all__ = [
+    "depth_from_compressed",
+    "rgb_from_compressed",
                                              "MARKER_ADD",
                                              "MARKER_BYTES_PER_FACE",
                                              "MARKER_DELETE",

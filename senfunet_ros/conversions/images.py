@@ -48,11 +48,76 @@ def _image_rows(msg: Any, bytes_per_pixel: int) -> np.ndarray:
     return data[: step * height].reshape(height, step)[:, :row_bytes]
 
 
+def _is_compressed(msg: Any) -> bool:
+    return hasattr(msg, "format") and not hasattr(msg, "encoding")
+
+
+# image_transport's compressed_depth_image_transport: a 12-byte ConfigHeader (int32 format, float32
+# depthParam[2]) before the PNG; 16UC1 depth is stored as it is, 32FC1 as quantised inverse depth.
+_COMPRESSED_DEPTH_HEADER = np.dtype([("format", "<i4"), ("depth_a", "<f4"), ("depth_b", "<f4")])
+
+
+def _decode(data: np.ndarray, flags: int, what: str) -> np.ndarray:
+    import cv2
+
+    try:
+        image = cv2.imdecode(data, flags) if data.size else None
+    except cv2.error as err:
+        raise ValueError(f"{what} cannot be decoded ({str(err).strip().splitlines()[-1]})") from None
+    if image is None:
+        raise ValueError(f"{what} is not a readable png/jpeg image; check the publisher's image_transport")
+    return image
+
+
+def depth_from_compressed(msg: Any) -> np.ndarray:
+    """sensor_msgs/CompressedImage as image_transport's compressedDepth writes it -> depth_m float32
+    (H, W): format '16UC1; compressedDepth png' (millimetres) or '32FC1; compressedDepth png'
+    (inverse depth quantised with the header's parameters)."""
+    import cv2
+
+    fmt = str(msg.format)
+    data = np.frombuffer(bytes(msg.data), np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8)
+    if "compressedDepth" not in fmt:
+        raise ValueError(f"compressed depth format '{fmt}' is not compressedDepth; publish depth through "
+                         "image_transport's compressedDepth (png)")
+    encoding = fmt.split(";")[0].strip()
+    if data.size < _COMPRESSED_DEPTH_HEADER.itemsize:
+        raise ValueError(f"compressedDepth message has {data.size} B, less than its 12-byte header")
+    header = data[:_COMPRESSED_DEPTH_HEADER.itemsize].view(_COMPRESSED_DEPTH_HEADER)[0]
+    raw = _decode(data[_COMPRESSED_DEPTH_HEADER.itemsize:], cv2.IMREAD_UNCHANGED, "compressedDepth payload")
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise ValueError(f"compressedDepth payload is {raw.dtype} with {raw.ndim} dims; "
+                         "expected a 16-bit single-channel png")
+    if encoding in ("16UC1", "mono16"):
+        depth_m = raw.astype(np.float32) * np.float32(1e-3)
+    elif encoding == "32FC1":
+        a, b = float(header["depth_a"]), float(header["depth_b"])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth_m = (a / (raw.astype(np.float32) - b)).astype(np.float32)
+        depth_m[raw == 0] = 0.0
+    else:
+        raise ValueError(f"compressedDepth encoding '{encoding}' is not supported; publish 16UC1 or 32FC1")
+    depth_m[~np.isfinite(depth_m) | (depth_m <= 0.0)] = 0.0
+    return depth_m
+
+
+def rgb_from_compressed(msg: Any) -> np.ndarray:
+    """sensor_msgs/CompressedImage (jpeg or png, image_transport's 'compressed') -> rgb uint8 (H, W, 3)."""
+    import cv2
+
+    data = np.frombuffer(bytes(msg.data), np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8)
+    image = _decode(data, cv2.IMREAD_COLOR, f"compressed colour image (format '{msg.format}')")  # BGR
+    return np.ascontiguousarray(image[:, :, ::-1])
+
+
 def depth_from_image(msg: Any) -> np.ndarray:
-    """sensor_msgs/Image (32FC1 metres or 16UC1 millimetres) -> depth_m float32 (H, W).
+    """sensor_msgs/Image (32FC1 metres or 16UC1 millimetres), or a compressedDepth CompressedImage,
+    -> depth_m float32 (H, W).
 
     0, NaN, inf and negative values are invalid and come out as 0.
     """
+    if _is_compressed(msg):
+        return depth_from_compressed(msg)
     encoding = str(msg.encoding)
     if encoding not in _DEPTH_ENCODINGS:
         raise ValueError(
@@ -69,7 +134,9 @@ def depth_from_image(msg: Any) -> np.ndarray:
 
 
 def rgb_from_image(msg: Any) -> np.ndarray:
-    """sensor_msgs/Image rgb8/bgr8/mono8 (also rgba8/bgra8) -> rgb uint8 (H, W, 3)."""
+    """sensor_msgs/Image rgb8/bgr8/mono8 (also rgba8/bgra8), or a jpeg/png CompressedImage, -> rgb uint8 (H, W, 3)."""
+    if _is_compressed(msg):
+        return rgb_from_compressed(msg)
     encoding = str(msg.encoding)
     if encoding not in _COLOR_ENCODINGS:
         raise ValueError(f"colour encoding '{encoding}' is not supported; publish rgb8, bgr8 or mono8")
