@@ -26,15 +26,15 @@ from typing import Any, Callable, Iterator
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rcl_interfaces.msg import SetParametersResult
-from rosgraph_msgs.msg import Clock as RosClock
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as RosClock
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -44,8 +44,8 @@ from senfunet_ros import params as P
 from senfunet_ros.bagio import message_class
 from senfunet_ros.conversions import PoseType
 from senfunet_ros.dds import publish_serialized
-from senfunet_ros.ingest import DROP_REASONS, Frame, Ingest, TimeJump
 from senfunet_ros.health import HealthMonitor
+from senfunet_ros.ingest import DROP_REASONS, Frame, Ingest, TimeJump
 from senfunet_ros.pipeline import Pipeline, Stream, TimeJumpAction
 
 __all__ = ["FusionNode", "main"]
@@ -73,6 +73,12 @@ _CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=Re
 _CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
 _ENGINE_STATS_PERIOD_S = 5.0
+# /tf as tf2_ros's listener subscribes to it; /tf_static latched (transient local) so mounts published
+# before the node started still arrive.
+_TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.VOLATILE)
+_TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
 
@@ -159,6 +165,32 @@ class LatencyStats:
                 "update_interval_max_s": max(intervals, default=0.0)}
 
 
+class _Tf2Lookup:
+    """tf2_ros.Buffer behind the lookup(target, source, stamp_ns) that Ingest calls (see senfunet_ros.tf)."""
+
+    def __init__(self, buffer: Any, tf2_ros: Any) -> None:
+        self._buffer, self._tf2 = buffer, tf2_ros
+
+    def lookup(self, target: str, source: str, stamp_ns: int) -> np.ndarray:
+        from rclpy.time import Time
+
+        from senfunet_ros.tf import TfError, TfWait
+
+        try:
+            tf = self._buffer.lookup_transform(target, source, Time(nanoseconds=stamp_ns))
+        except self._tf2.ExtrapolationException as err:
+            if "future" in str(err):  # the transform at the stamp has not arrived yet
+                raise TfWait(str(err)) from None
+            raise TfError(str(err)) from None
+        except (self._tf2.LookupException, self._tf2.ConnectivityException) as err:
+            raise TfWait(str(err)) from None
+        return conv.transform_from_msg(tf.transform.translation, tf.transform.rotation,
+                                       f"transform {target} -> {source}")
+
+    def clear(self) -> None:
+        self._buffer.clear()
+
+
 class FusionNode(Node):
     """SenFuNet as a ROS 2 node. See the module docstring for its interface."""
 
@@ -173,8 +205,11 @@ class FusionNode(Node):
         s = self.settings
         self.timings = {name: _Timing() for name in ("integrate", "update", "alpha", "weights", "encode", "publish")}
         self.latency = LatencyStats()  # frame arrival -> the mesh that contains it
-        self.pipeline = Pipeline(self._make_engine(), Ingest(P.ingest_config(self.settings, max_lag_s=s.max_lag_s)),
-                                 on_time_jump=s.on_time_jump, log=self._log, on_integrated=self._integrated)
+        self._tf_subscriptions: list[Any] = []
+        tf = self._make_tf() if PoseType(s.pose_type) is PoseType.TF else None  # before the heavy engine
+        ingest = Ingest(P.ingest_config(self.settings, max_lag_s=s.max_lag_s, tf=tf))
+        self.pipeline = Pipeline(self._make_engine(), ingest, on_time_jump=s.on_time_jump, log=self._log,
+                                 on_integrated=self._integrated)
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.counters()
         self._mesh_subscribers = 0
@@ -244,6 +279,34 @@ class FusionNode(Node):
         if pose_type is not PoseType.TF:
             out.append((Stream.POSE, message_class(pose_type.msgtype), sensor.pose_topic, _POSE_QOS))
         return out
+
+    def _make_tf(self) -> Any:
+        """Poses from TF: tf2_ros's buffer and listener when a sourced ROS 2 install provides them, else
+        our own buffer fed by /tf and /tf_static when tf2_msgs can be imported; else a clear refusal."""
+        try:
+            import tf2_ros
+        except ImportError:
+            tf2_ros = None
+        if tf2_ros is not None:
+            buffer = tf2_ros.Buffer()
+            self._tf_listener = tf2_ros.TransformListener(buffer, self)
+            self.get_logger().info("pose_type tf: poses from tf2_ros")
+            return _Tf2Lookup(buffer, tf2_ros)
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:
+            raise ValueError("pose_type tf needs tf2_ros, which cannot be imported here: source a ROS 2 install "
+                             "(e.g. . /opt/ros/jazzy/setup.bash) before starting the node, or give poses on pose "
+                             "topics (pose_type pose_stamped | odometry | transform_stamped)") from None
+        from senfunet_ros.tf import TfBuffer
+
+        buffer = TfBuffer(max_gap_s=self.settings.pose_tolerance_s)
+        for topic, stream, qos in (("/tf", Stream.TF, _TF_QOS), ("/tf_static", Stream.TF_STATIC, _TF_STATIC_QOS)):
+            self._tf_subscriptions.append(self.create_subscription(
+                TFMessage, topic, self._guard("", stream), qos, callback_group=MutuallyExclusiveCallbackGroup()))
+        self.get_logger().warning("pose_type tf: tf2_ros cannot be imported; reading /tf and /tf_static with the "
+                                  "node's own buffer (source a ROS 2 install to use tf2_ros)")
+        return buffer
 
     def _make_engine(self) -> Any:
         import torch  # heavy: imported when a node is made, not when this module is
@@ -322,7 +385,7 @@ class FusionNode(Node):
                             ("status_rate_hz", self._status_timer)):
             if getattr(new, name) != getattr(old, name):
                 timer.timer_period_ns = int(1e9 / getattr(new, name))
-        self.ingest.config = P.ingest_config(new, max_lag_s=new.max_lag_s)
+        self.ingest.config = P.ingest_config(new, max_lag_s=new.max_lag_s, tf=self.ingest.config.tf)
         self.pipeline.on_time_jump = TimeJumpAction.parse(new.on_time_jump)
         self.health.window_s, self.health.stale_after_s = new.diagnostics_window_s, new.stale_after_s
         self._apply_engine_settings(new)
