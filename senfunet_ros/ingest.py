@@ -592,6 +592,19 @@ class Ingest:
         with self._lock:
             return {name: state.waiting() for name, state in self._sensors.items()}
 
+    def discard_waiting(self, reason: str) -> int:
+        """Drop every frame still waiting (queued or before its camera_info), counted as `reason`;
+        returns how many."""
+        with self._lock:
+            n = 0
+            for state in self._sensors.values():
+                waiting = state.waiting()
+                state.counters.dropped[reason] += waiting
+                state.queue.clear()
+                state.awaiting_info.clear()
+                n += waiting
+            return n
+
     def clear_frames(self) -> None:
         """Forget queued frames and colour images (a map reset); poses and camera_info stay."""
         with self._lock:

@@ -257,10 +257,24 @@ class FusionNode(Node):
         self._validated: dict[str, Any] | None = None
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
+        # Ctrl-C / SIGTERM shut the context down while timers may be mid-frame: say so to the pipeline,
+        # so what the stop interrupts is counted as such, not as an engine error
+        self.context.on_shutdown(self._stopping)
         self.get_logger().info(
             f"fusing {list(s.sensor_names)} into '{s.fixed_frame}' with weights: {self.engine.weights_source}")
 
-    # -- set-up ---------------------------------------------------------------------------------
+    # -- set-up and stop -------------------------------------------------------------------------
+
+    def _stopping(self) -> None:
+        self.pipeline.stopping = True
+
+    def finish(self) -> dict[str, int]:
+        """After the executor stopped: integrate the frames that are ready, count the ones still
+        waiting (for a pose, a colour image, a camera_info) as dropped at shutdown. Returns the counts."""
+        self.pipeline.stopping = True
+        integrated = self.pipeline.drain(self.ingest.pop_ready())
+        waiting = self.ingest.discard_waiting("shutdown")
+        return {"integrated": integrated, "discarded": waiting, "interrupted": self.pipeline.frames_unfinished}
 
     def _log_parameters(self) -> None:
         lines = [f"  {name}: {value!r}" for name, value in self.settings.values.items()]
@@ -737,6 +751,13 @@ def main(args: list[str] | None = None) -> int:
         return 2
     finally:
         if node is not None:
+            try:
+                done = node.finish()
+                print(f"senfunet: stopped; at the stop {done['integrated']} ready frame(s) integrated, "
+                      f"{done['discarded']} still waiting and {done['interrupted']} being integrated were dropped "
+                      "(counted as shutdown)", flush=True)
+            except Exception as err:
+                print(f"senfunet: finishing the queued frames failed: {err}", flush=True)
             if node.settings.save_on_shutdown:
                 try:
                     paths = node.save_meshes()
