@@ -507,10 +507,10 @@ class FusionNode(Node):
             messages = None
             if subscribers > self._mesh_subscribers:
                 # Someone new joined: transient local only holds the last few messages, so send it all.
-                messages = conv.marker_array_messages(self.engine.block_meshes(), (), stamp_ns=stamp_ns,
-                                                      frame_id=frame_id, delete_all_first=True)
+                messages = conv.marker_array_messages(self._display(self.engine.block_meshes()), (),
+                                                      stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
             elif update.cleared or len(update.meshes) or update.removed:
-                messages = conv.marker_array_messages(update.meshes, update.removed, stamp_ns=stamp_ns,
+                messages = conv.marker_array_messages(self._display(update.meshes), update.removed, stamp_ns=stamp_ns,
                                                       frame_id=frame_id, delete_all_first=update.cleared)
             self._mesh_subscribers = subscribers
             publish_s = 0.0  # the rest, from t_cloud on, is encoding (the parts are encoded as they are taken)
@@ -534,6 +534,16 @@ class FusionNode(Node):
             t_alpha = time.perf_counter()
             self.engine.refresh_alpha(s.alpha_budget_s or None)
             self.timings["alpha"].add(time.perf_counter() - t_alpha)
+
+    def _display(self, meshes: Any) -> Any:
+        """The display mesh of a batch of block meshes (parameter mesh_display_cell_m)."""
+        from senfunet_core.decimate import decimate_block_meshes
+        from senfunet_core.mesher import BlockMeshes
+
+        if not isinstance(meshes, BlockMeshes):
+            meshes = BlockMeshes.from_meshes(dict(meshes))
+        cell_m = self.settings.mesh_display_cell_m
+        return decimate_block_meshes(meshes, cell_m) if cell_m > self.settings.voxel_size_m else meshes
 
     def _wait_mesh_acked(self, deadline: float) -> None:
         """Until every reader acknowledged ~/mesh's samples, or time.monotonic() reaches deadline.

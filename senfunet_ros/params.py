@@ -89,6 +89,9 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("alpha_budget_s", 0.2, "seconds per mesh update spent re-evaluating the sensor weighting (after the update "
           "is published; the next one shows it); blocks left over wait for the next turn (those the latest frames "
           "reached first); 0 = no limit", lo=0.0, hi=600.0, runtime=True),
+    Param("mesh_display_cell_m", 0.03, "~/mesh shows a display mesh whose vertices are merged on a grid of this "
+          "size (per block; the map and ~/save_mesh keep full resolution): a snapshot of a room stays a few tens of "
+          "MB for subscribers over Wi-Fi; 0 (or not above voxel_size_m) = full resolution", lo=0.0, hi=1.0, runtime=True),
     _rate("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
           "instructions, else float32) | float32 | bfloat16", choices=("auto", "float32", "bfloat16")),
