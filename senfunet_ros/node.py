@@ -8,10 +8,16 @@ timer has its own callback group under a MultiThreadedExecutor, and the engine i
 so integration and mesh updates run at the same time on two cores. No callback raises: failures
 are counted and logged, throttled per cause.
 
+What happens to messages, frames, time jumps, failures and files is decided by
+`senfunet_ros.pipeline.Pipeline`, shared with offline replay; this module adds the clock (timers,
+/clock), the transport (subscriptions, publishers, services) and run-time parameters.
+
 Topics (see ../shared/DESIGN.md, the interface contract):
-  in:  /<s>/depth, /<s>/color, /<s>/camera_info, /<s>/pose    (names from parameters)
-  out: ~/mesh (MarkerArray, transient local), ~/weights (PointCloud2), ~/status (DiagnosticArray)
-  srv: ~/save_mesh, ~/reset (std_srvs/Trigger)
+  in:  /<s>/depth, /<s>/color (raw, or CompressedImage on .../compressedDepth, .../compressed),
+       /<s>/camera_info, /<s>/pose (names from parameters), or /tf + /tf_static (pose_type tf)
+  out: ~/mesh (MarkerArray of the display mesh, transient local), ~/weights (PointCloud2),
+       /diagnostics and ~/status (DiagnosticArray)
+  srv: ~/save_mesh, ~/save_map, ~/load_map, ~/reset (std_srvs/Trigger)
 """
 from __future__ import annotations
 
