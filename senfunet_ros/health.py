@@ -17,6 +17,9 @@ from typing import Any
 __all__ = ["HealthMonitor", "Level", "SensorReport", "StreamReport"]
 
 
+_OPTIONAL = ("color",)  # a colour topic nobody publishes is logged once, it does not hold the sensor at WARN
+
+
 class Level(enum.IntEnum):
     """diagnostic_msgs/DiagnosticStatus levels."""
 
@@ -120,7 +123,7 @@ class HealthMonitor:
     @staticmethod
     def _judge(streams: dict[str, StreamReport], recent: dict[str, int]) -> SensorReport:
         stale = sorted(name for name, r in streams.items() if r.stale)
-        never = sorted(name for name, r in streams.items() if r.never)
+        never = sorted(name for name, r in streams.items() if r.never and name not in _OPTIONAL)
         if stale:
             level = Level.STALE
             message = f"no messages on {', '.join(stale)} for {max(streams[n].silent_s for n in stale):.1f} s"
@@ -134,5 +137,5 @@ class HealthMonitor:
             message = "; ".join(parts)
         else:
             level = Level.OK
-            message = ", ".join(f"{name} {r.rate_hz:.1f} Hz" for name, r in streams.items()) or "ok"
+            message = ", ".join(f"{name} {r.rate_hz:.1f} Hz" for name, r in streams.items() if not r.never) or "ok"
         return SensorReport(level, message, streams, recent)

@@ -107,7 +107,8 @@ DROP_HINTS: dict[str, str] = {
               "skipped (a smaller working_width or a lower sensor rate helps)",
     "out_of_order": "a depth stamp on {s.depth_topic} went back in time",
     "duplicate": "a depth stamp on {s.depth_topic} came twice",
-    "time_jump": "time jumped back (a bag restarting?); the queued images were flushed",
+    "bad_stamp": "a stamp far (time_jump_s) from its stream's timeline, or 0; check the driver's clock",
+    "time_jump": "time restarted (a bag looping?); the queued images were flushed",
     "engine_error": "the engine rejected the frame (the warning before says why)",
     "shutdown": "the node stopped while the frame was being integrated",
 }
@@ -220,6 +221,7 @@ class FusionNode(Node):
         self._last_counters = self.ingest.counters()
         self._mesh_subscribers = 0
         self._engine_stats_at: tuple[float, dict[str, Any]] = (-1e9, {})
+        self._silent_warned: set[tuple[str, str]] = set()
         self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
         self._mesh_lock = threading.Lock()  # one mesh publication at a time (timer vs. reset service)
         # 3. subscriptions: they only enqueue
@@ -567,14 +569,18 @@ class FusionNode(Node):
             self._warn(("status_tick",), f"status failed: {err!r}")
 
     def _warn_silent_topics(self, reports: dict[str, Any]) -> None:
+        """One warning per subscribed topic that has received nothing for a window (once: an unused
+        optional colour topic must not fill the log)."""
         topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in self._streams(sensor)}
                   for sensor in self.settings.sensors}
         for sensor, report in reports.items():
             for stream, r in report.streams.items():
-                if r.never:
-                    self._warn((sensor, stream, "silent"), f"{sensor}: nothing received on {topics[sensor][stream]} "
-                               f"for {r.silent_s:.0f} s; check the topic name (parameter {sensor}.{stream}_topic), "
-                               "its message type and QoS")
+                if r.never and (sensor, stream) not in self._silent_warned:
+                    self._silent_warned.add((sensor, stream))
+                    self.get_logger().warning(
+                        f"{sensor}: nothing received on {topics[sensor][stream]} for {r.silent_s:.0f} s; check the "
+                        f"topic name (parameter {sensor}.{stream}_topic), its message type and QoS"
+                        + (" (colour is optional: set it to '' if there is none)" if stream == "color" else ""))
 
     def status(self) -> DiagnosticArray:
         """Per-sensor health (rates over the recent window, recent drops, STALE streams) with the
