@@ -14,11 +14,14 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.rviz")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
     ],
-    install_requires=["numpy", "scipy", "numba", "scikit-image", "pyyaml", "tqdm"],
-    python_requires=">=3.10",
+    # everything the code imports but ROS 2 (pinned versions: requirements.txt; the ROS 2 packages come from
+    # the ROS install or the ros-jazzy-* wheels); test/ros/test_packaging.py checks the list
+    install_requires=["numpy", "scipy", "numba", "llvmlite", "scikit-image", "pyyaml", "ruamel.yaml", "tqdm", "torch",
+                      "rosbags", "mcap", "opencv-python-headless", "matplotlib"],
+    python_requires=">=3.11",  # the pinned numpy, scipy and scikit-image need it
     zip_safe=False,
     entry_points={
         "console_scripts": [

@@ -2,25 +2,29 @@
 
     ros2 launch senfunet_ros senfunet.launch.py
     ros2 launch senfunet_ros senfunet.launch.py params:=/path/to/my.yaml use_sim_time:=true
+    ros2 launch senfunet_ros senfunet.launch.py rviz:=true      # also RViz with config/senfunet.rviz
 """
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 
 
 def generate_launch_description() -> LaunchDescription:
-    default_params = os.path.join(get_package_share_directory("senfunet_ros"), "config", "default.yaml")
+    share = get_package_share_directory("senfunet_ros")
+    default_params = os.path.join(share, "config", "default.yaml")
     params = LaunchConfiguration("params")
     use_sim_time = LaunchConfiguration("use_sim_time")
     return LaunchDescription([
         DeclareLaunchArgument("params", default_value=default_params,
                               description="parameter file (ros__parameters under 'senfunet')"),
         DeclareLaunchArgument("use_sim_time", default_value="false", description="follow /clock"),
+        DeclareLaunchArgument("rviz", default_value="false", description="also start RViz with config/senfunet.rviz"),
         Node(
             package="senfunet_ros",
             executable="fusion_node",
@@ -28,5 +32,12 @@ def generate_launch_description() -> LaunchDescription:
             output="screen",
             emulate_tty=True,
             parameters=[params, {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
+        ),
+        Node(
+            package="rviz2",
+            executable="rviz2",
+            arguments=["-d", os.path.join(share, "config", "senfunet.rviz")],
+            parameters=[{"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
+            condition=IfCondition(LaunchConfiguration("rviz")),
         ),
     ])

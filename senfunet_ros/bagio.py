@@ -459,7 +459,7 @@ def write_sequence_bag(seq: Sequence, path: str | Path, *, storage: str = "mcap"
         pending.append((log_ns, order, topic, msgtype, msg))
         order += 1
 
-    from senfunet_ros.ingest import quat_from_matrix  # one rotation -> quaternion convention for the project
+    from senfunet_ros.geometry import quat_from_matrix
 
     for sensor, stamps in seq.pose_stamps_s.items():
         for stamp_s, T_wc in zip(stamps, seq.pose_T_world_camera[sensor]):

@@ -18,9 +18,18 @@ Per sensor:
 
 Counters per sensor: `received` (depth images), `integrated` (reported back by the caller with
 `mark_integrated`), `dropped[reason]` (messages of any stream discarded, by reason; see
-`DROP_REASONS`). A stamp jumping backwards by more than `time_jump_s` (a bag restarting) flushes
-all queues and pose buffers and is reported as a `TimeJump` item ahead of the frames that follow
-it, so the caller can reset its map or carry on.
+`DROP_REASONS`).
+
+Time: each stream keeps a timeline (its newest accepted stamp). A stamp more than `time_jump_s`
+behind its stream's timeline, or ahead of the newest stamp of all streams, is dropped as
+`bad_stamp` and does not move any timeline (a glitching driver, one bad message, an unset stamp
+0). Such stamps are remembered as candidates of a new timeline: once every stream that
+spoke since the first candidate has continued on it for `restart_confirm_msgs` messages,
+spanning `restart_confirm_s`, with no message on the old timeline meanwhile, time has restarted
+(a bag looping, a robot restarting its clock): all queues and pose buffers are flushed, the
+streams move to the new timeline and, if it went back, a `TimeJump` item is reported ahead of
+the frames that follow, so the caller can reset its map or keep it. `restart()` confirms one
+from outside (the /clock jumping back under use_sim_time).
 
 Typical use::
 
@@ -42,12 +51,12 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
-from collections.abc import Callable, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
 from senfunet_ros import conversions as conv
+from senfunet_ros.geometry import interpolate_pose
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "integrate_ready"]
 
@@ -64,8 +73,10 @@ DROP_REASONS: tuple[str, ...] = (
     "behind",  # the consumer fell behind: the frame was more than max_lag_s older than its sensor's newest
     "out_of_order",  # depth stamp older than the previous one of the same sensor
     "duplicate",  # depth stamp equal to the previous one of the same sensor
-    "time_jump",  # frames flushed because time jumped backwards
+    "bad_stamp",  # stamp 0, or far from its stream's timeline (past or future): the timeline does not move
+    "time_jump",  # frames flushed, and candidate messages dropped, because time restarted
     "engine_error",  # the engine rejected the frame (reported by the caller)
+    "shutdown",  # taken for integration when the process stopped (reported by the caller)
 )
 
 
@@ -81,9 +92,17 @@ class IngestConfig:
     pose_tolerance_s: float = 0.1  # max distance from a frame to the poses it is interpolated from
     pose_max_wait_s: float = 1.0  # a frame waits this long (stream time) for a later pose, or a first camera_info
     color_tolerance_s: float = 0.02  # max stamp distance of a colour image to its depth image
-    time_jump_s: float = 1.0  # a stamp this far behind its stream's last one means a restart
+    time_jump_s: float = 1.0  # a stamp this far from its stream's timeline is off it (a stray, or a restart)
+    restart_confirm_msgs: int = 5  # a new timeline is confirmed after this many messages on each stream
+    restart_confirm_s: float = 0.5  # ... spanning at least this much of the new timeline
     max_lag_s: float = 0.0  # a ready frame this far behind its sensor's newest depth stamp is skipped; 0 = never
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
+    # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link); absent = identity
+    T_body_camera: dict[str, np.ndarray] = field(default_factory=dict)
+    # poses from TF instead of pose topics: an object with lookup(target, source, stamp_ns) -> 4x4 that
+    # raises senfunet_ros.tf.TfWait (not yet) or TfError (never); each depth image's frame_id in fixed_frame
+    tf: Any = None
+    fixed_frame: str = "map"
 
     def __post_init__(self) -> None:
         if not self.sensors or len(set(self.sensors)) != len(self.sensors):
@@ -147,6 +166,7 @@ class _Pending:
     arrival_s: float  # time.monotonic() when the depth image arrived (statistics only)
     rgb: np.ndarray | None = None  # set, with T, for a posed frame put back by pop_ready
     T: np.ndarray | None = None
+    frame_id: str = ""  # the depth image's optical frame (pose_type tf looks it up)
 
 
 class _SensorState:
@@ -160,6 +180,10 @@ class _SensorState:
         self.poses: list[np.ndarray] = []  # 4x4, parallel to pose_stamps
         self.last_ns: dict[str, int | None] = {"depth": None, "color": None, "pose": None}
         self.color_seen = False
+        # a new timeline in the making: per stream, its consistent off-timeline stamps, whether the
+        # stream spoke since the first of them, and how many bad_stamp drops they were
+        self.candidates: dict[str, list[int]] = {"depth": [], "color": [], "pose": []}
+        self.spoke: dict[str, bool] = {"depth": False, "color": False, "pose": False}
 
     def stream_now_ns(self) -> int | None:
         """The sensor's stream time: the newest stamp seen on any of its streams."""
@@ -180,53 +204,6 @@ class _SensorState:
         return n
 
 
-def quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> unit quaternion (x, y, z, w), numerically stable for any angle."""
-    m = R
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    quat = np.asarray(q, dtype=np.float64)
-    return quat / np.linalg.norm(quat)
-
-
-def _matrix_from_quat(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
-    """Pose at fraction s in [0, 1] from T0 to T1: lerp of translation, slerp of rotation."""
-    q0 = quat_from_matrix(T0[:3, :3])
-    q1 = quat_from_matrix(T1[:3, :3])
-    dot = float(np.dot(q0, q1))
-    if dot < 0.0:  # take the short way round
-        q1, dot = -q1, -dot
-    if dot > 0.9995:  # nearly equal: lerp is exact enough and avoids dividing by sin(~0)
-        q = q0 + s * (q1 - q0)
-    else:
-        theta = np.arccos(dot)
-        q = (np.sin((1 - s) * theta) * q0 + np.sin(s * theta) * q1) / np.sin(theta)
-    T = np.eye(4)
-    T[:3, :3] = _matrix_from_quat(q / np.linalg.norm(q))
-    T[:3, 3] = (1 - s) * T0[:3, 3] + s * T1[:3, 3]
-    return T
-
-
 class Ingest:
     """Per-sensor queues, caches and counters; thread-safe (callbacks add, a timer pops)."""
 
@@ -235,6 +212,7 @@ class Ingest:
         self._lock = threading.Lock()
         self._sensors = {name: _SensorState(config) for name in config.sensors}
         self._jumps: list[TimeJump] = []
+        self._episode_open = False  # off-timeline stamps are being collected as a possible restart
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -244,17 +222,30 @@ class Ingest:
         except KeyError:
             raise ValueError(f"unknown sensor '{sensor}'; configured sensors are {list(self._sensors)}") from None
 
+    def _now_ns(self) -> int | None:
+        """The newest accepted stamp of any stream. Lock held."""
+        stamps = [t for state in self._sensors.values() if (t := state.stream_now_ns()) is not None]
+        return max(stamps) if stamps else None
+
     def _check_time(self, state: _SensorState, sensor: str, stream: str, stamp_ns: int) -> str | None:
-        """Time-jump detection for one stream. Returns a drop reason or None. Lock held."""
-        last = state.last_ns[stream]
-        if last is not None and stamp_ns < last - int(self.config.time_jump_s * 1e9):
-            jump = TimeJump(sensor, stream, last, stamp_ns)
-            self._jumps.append(jump)
-            state.counters.time_jumps += 1
-            for other in self._sensors.values():  # a restart concerns every sensor
-                other.counters.dropped["time_jump"] += other.flush()
-            state.last_ns[stream] = stamp_ns
-            return None
+        """Where a stamp stands against its stream's timeline. Returns a drop reason or None (accepted,
+        the timeline moved). Lock held."""
+        far_ns = int(self.config.time_jump_s * 1e9)
+        last, now = state.last_ns[stream], self._now_ns()
+        behind = last is not None and stamp_ns < last - far_ns
+        ahead = now is not None and stamp_ns > now + far_ns
+        if last is None and now is not None and stamp_ns < now - far_ns:
+            behind = True  # a stream's first message far behind the others
+        if behind or ahead:
+            ref = last if behind and last is not None else now
+            state.counters.errors["bad_stamp"] = (
+                f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is {abs(stamp_ns - ref) * 1e-9:.3f} s "
+                f"{'behind' if behind else 'ahead of'} the stream's timeline; check the driver's clock (a restart "
+                f"is recognised once every stream continues on the new timeline)")
+            self._candidate(state, sensor, stream, stamp_ns, far_ns)
+            return "bad_stamp"
+        if self._episode_open:  # the old timeline is alive: what was building up is not a restart
+            self._close_episode()
         if stream == "depth" and last is not None:
             if stamp_ns == last:
                 return "duplicate"
@@ -262,6 +253,57 @@ class Ingest:
                 return "out_of_order"
         state.last_ns[stream] = stamp_ns if last is None else max(last, stamp_ns)
         return None
+
+    def _candidate(self, state: _SensorState, sensor: str, stream: str, stamp_ns: int, far_ns: int) -> None:
+        """Remember an off-timeline stamp; confirm the new timeline when every stream is on it. Lock held."""
+        self._episode_open = True
+        state.spoke[stream] = True
+        candidates = state.candidates[stream]
+        if candidates and 0 <= stamp_ns - candidates[-1] <= far_ns:
+            if stamp_ns > candidates[-1]:
+                candidates.append(stamp_ns)
+        else:
+            state.candidates[stream] = [stamp_ns]  # not consistent with what came before: start over
+        streams = [(other, name) for other in self._sensors.values() for name, spoke in other.spoke.items() if spoke]
+        lists = [other.candidates[name] for other, name in streams]
+        if any(len(c) < self.config.restart_confirm_msgs for c in lists):
+            return
+        firsts, lasts = [c[0] for c in lists], [c[-1] for c in lists]
+        if max(lasts) - min(firsts) < self.config.restart_confirm_s * 1e9 or max(lasts) - min(lasts) > far_ns:
+            return
+        self._restart(sensor, stream, min(firsts), {(id(o), n): c[-1] for (o, n), c in zip(streams, lists)},
+                      dropped={(id(o), n): len(c) for (o, n), c in zip(streams, lists)})
+
+    def _restart(self, sensor: str, stream: str, to_ns: int, timelines: dict[tuple[int, str], int],
+                 dropped: dict[tuple[int, str], int]) -> None:
+        """Move to a new timeline: flush everything; a TimeJump if it went back. Lock held."""
+        now = self._now_ns()
+        if now is not None and to_ns < now:
+            self._jumps.append(TimeJump(sensor, stream, now, to_ns))
+            self._sensors[sensor].counters.time_jumps += 1
+        if self.config.tf is not None and hasattr(self.config.tf, "clear"):
+            self.config.tf.clear()
+        for state in self._sensors.values():
+            state.counters.dropped["time_jump"] += state.flush()
+            for name in state.last_ns:
+                n = dropped.get((id(state), name), 0)  # the candidates: bad_stamp until now, in fact a restart
+                state.counters.dropped["bad_stamp"] -= n
+                state.counters.dropped["time_jump"] += n
+                state.last_ns[name] = timelines.get((id(state), name))
+        self._close_episode()
+
+    def _close_episode(self) -> None:
+        for state in self._sensors.values():
+            for name in state.candidates:
+                state.candidates[name], state.spoke[name] = [], False
+        self._episode_open = False
+
+    def restart(self, to_ns: int | None = None) -> None:
+        """Time restarted, known from outside (the /clock went back): flush everything, forget the
+        timelines (the next messages start new ones) and report a TimeJump."""
+        with self._lock:
+            sensor = self.config.sensors[0]
+            self._restart(sensor, "clock", to_ns if to_ns is not None else 0, {}, {})
 
     def add_camera_info(self, sensor: str, msg: Any) -> str | None:
         """Cache K and the image size, and queue the depth images that waited for it. Returns the
@@ -310,7 +352,6 @@ class Ingest:
         return None
 
     def _decode_depth(self, state: _SensorState, msg: Any, stamp_ns: int, arrival_s: float) -> tuple[str | None, Any]:
-        assert state.camera_info is not None  # frames wait in awaiting_info until it came
         K, info_size = state.camera_info
         try:
             depth_m = conv.depth_from_image(msg)
@@ -328,7 +369,7 @@ class Ingest:
         if target != (width, height):
             depth_m = conv.resize_depth(depth_m, target)
             K = conv.scale_intrinsics(K, (width, height), target)
-        return None, _Pending(stamp_ns, depth_m, K, arrival_s)
+        return None, _Pending(stamp_ns, depth_m, K, arrival_s, frame_id=str(getattr(msg.header, "frame_id", "")))
 
     def _working_size(self, native: tuple[int, int]) -> tuple[int, int]:
         width, height = self.config.working_size
@@ -344,7 +385,10 @@ class Ingest:
         with self._lock:
             state = self._state(sensor)
             state.counters.color_received += 1
-            self._check_time(state, sensor, "color", stamp_ns)
+            reason = self._check_time(state, sensor, "color", stamp_ns)
+            if reason is not None:
+                state.counters.dropped[reason] += 1
+                return reason
             try:
                 rgb = conv.rgb_from_image(msg)
             except ValueError as err:
@@ -355,6 +399,22 @@ class Ingest:
             state.colors.append((stamp_ns, rgb))
             return None
 
+    def add_tf(self, msg: Any, *, static: bool) -> str | None:
+        """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).
+        Returns the drop reason (bad_pose for NaN or a non-unit quaternion), or None."""
+        if self.config.tf is None or not hasattr(self.config.tf, "add_message"):
+            return None
+        try:
+            self.config.tf.add_message(msg, static=static)
+        except (ValueError, AttributeError) as err:
+            with self._lock:
+                for state in self._sensors.values():
+                    state.counters.dropped["bad_pose"] += 1
+                    state.counters.errors["bad_pose"] = f"tf: {err}"
+                    break
+            return "bad_pose"
+        return None
+
     def add_pose(self, sensor: str, msg: Any) -> str | None:
         """Add one pose message (PoseStamped, Odometry or TransformStamped). Returns the drop reason."""
         with self._lock:
@@ -362,11 +422,16 @@ class Ingest:
             state.counters.pose_received += 1
             try:
                 stamp_ns, T = self.config.pose_parser(msg)
+                if sensor in self.config.T_body_camera:
+                    T = T @ self.config.T_body_camera[sensor]  # T_world_body -> T_world_camera
             except (ValueError, AttributeError) as err:
                 state.counters.dropped["bad_pose"] += 1
                 state.counters.errors["bad_pose"] = str(err)
                 return "bad_pose"
-            self._check_time(state, sensor, "pose", stamp_ns)
+            reason = self._check_time(state, sensor, "pose", stamp_ns)
+            if reason is not None:
+                state.counters.dropped[reason] += 1
+                return reason
             i = bisect.bisect_left(state.pose_stamps, stamp_ns)
             if i < len(state.pose_stamps) and state.pose_stamps[i] == stamp_ns:
                 state.poses[i] = T  # a republished pose: the newest wins
@@ -400,13 +465,11 @@ class Ingest:
                 frames, back = frames[:max_frames], frames[max_frames:]
                 for frame in reversed(back):  # back to the front of their queues, newest last
                     self._sensors[frame.sensor].queue.appendleft(
-                        _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb,
-                                 frame.T_world_camera))
+                        _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb, frame.T_world_camera))
         return [*jumps, *frames]
 
     def _pop_sensor(self, name: str, state: _SensorState) -> list[Frame]:
         cfg = self.config
-        tolerance_ns = int(cfg.pose_tolerance_s * 1e9)
         max_wait_ns = int(cfg.pose_max_wait_s * 1e9)
         color_tolerance_ns = int(cfg.color_tolerance_s * 1e9)
         now_ns = state.stream_now_ns()
@@ -421,40 +484,72 @@ class Ingest:
             t = pending.stamp_ns
             if pending.T is not None:  # posed before, put back by pop_ready(max_frames)
                 state.queue.popleft()
-                # the consumer fell behind: keep latency bounded
-                if lag_ns and newest_ns is not None and newest_ns - t > lag_ns:
+                if lag_ns and newest_ns - t > lag_ns:  # the consumer fell behind: keep latency bounded
                     state.counters.dropped["behind"] += 1
                 else:
                     out.append(Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s))
                 continue
             waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
-            stamps = state.pose_stamps
-            i = bisect.bisect_left(stamps, t)
-            if i == len(stamps):  # no pose at or after the frame yet
-                if waited_too_long:
-                    state.queue.popleft()
-                    state.counters.dropped["pose_timeout"] += 1
-                    continue
-                break  # later frames are newer: they wait too
-            if stamps[i] == t:
-                T = state.poses[i]
-            elif i == 0 or t - stamps[i - 1] > tolerance_ns or stamps[i] - t > tolerance_ns:
-                state.queue.popleft()
-                state.counters.dropped["pose_gap"] += 1
-                continue
-            else:
-                s = (t - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
-                T = interpolate_pose(state.poses[i - 1], state.poses[i], s)
-            # Colour is published next to depth; give it the chance to arrive unless waiting longer
-            # would exceed the limit (then the frame goes without colour).
-            if state.color_seen and not waited_too_long:
-                last_color = state.last_ns["color"]
-                if last_color is None or last_color < t:  # the colour stream has not reached t yet
-                    break
+            pose = self._tf_pose if cfg.tf is not None else self._topic_pose
+            T = pose(state, pending, waited_too_long)
+            if T is None:
+                if state.queue and state.queue[0] is pending:
+                    break  # not yet: later frames are newer, they wait too
+                continue  # dropped and counted
+            if not self._color_ready(state, t, waited_too_long):
+                break
             rgb = self._match_color(state, t, color_tolerance_ns, pending.depth_m.shape)
             state.queue.popleft()
             out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
         return out
+
+    @staticmethod
+    def _color_ready(state: _SensorState, t: int, waited_too_long: bool) -> bool:
+        """Colour is published next to depth: give it the chance to arrive unless waiting longer would
+        exceed the limit (then the frame goes without colour)."""
+        if state.color_seen and not waited_too_long:
+            last_color = state.last_ns["color"]
+            return last_color is not None and last_color >= t  # else the colour stream has not reached t yet
+        return True
+
+    def _topic_pose(self, state: _SensorState, pending: _Pending, waited_too_long: bool) -> np.ndarray | None:
+        """T_world_camera of a queued frame interpolated from its sensor's pose stream; None when it
+        must wait (the frame stays first in the queue) or was dropped (popped and counted). Lock held."""
+        t, stamps = pending.stamp_ns, state.pose_stamps
+        tolerance_ns = int(self.config.pose_tolerance_s * 1e9)
+        i = bisect.bisect_left(stamps, t)
+        if i == len(stamps):  # no pose at or after the frame yet
+            if not waited_too_long:
+                return None
+            reason = "pose_timeout"
+        elif stamps[i] == t:
+            return state.poses[i]
+        elif i == 0 or t - stamps[i - 1] > tolerance_ns or stamps[i] - t > tolerance_ns:
+            reason = "pose_gap"
+        else:
+            s = (t - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
+            return interpolate_pose(state.poses[i - 1], state.poses[i], s)
+        state.queue.popleft()
+        state.counters.dropped[reason] += 1
+        return None
+
+    def _tf_pose(self, state: _SensorState, pending: _Pending, waited_too_long: bool) -> np.ndarray | None:
+        """T_world_camera of a queued frame from TF; None when it must wait (the frame stays first in
+        the queue) or was dropped (popped and counted). Lock held."""
+        from senfunet_ros.tf import TfWait
+
+        try:
+            return self.config.tf.lookup(self.config.fixed_frame, pending.frame_id, pending.stamp_ns)
+        except TfWait as err:
+            if not waited_too_long:
+                return None
+            reason, why = "pose_timeout", str(err)
+        except ValueError as err:  # TfError: a gap, or no frame_id
+            reason, why = "pose_gap", str(err)
+        state.queue.popleft()
+        state.counters.dropped[reason] += 1
+        state.counters.errors[reason] = f"tf: {why}"
+        return None
 
     def _match_color(self, state: _SensorState, t: int, tolerance_ns: int, shape: tuple[int, ...]) -> np.ndarray | None:
         best: tuple[int, np.ndarray] | None = None
@@ -496,6 +591,19 @@ class Ingest:
         """Frames waiting per sensor: for a pose, a colour image, the consumer or a camera_info."""
         with self._lock:
             return {name: state.waiting() for name, state in self._sensors.items()}
+
+    def discard_waiting(self, reason: str) -> int:
+        """Drop every frame still waiting (queued or before its camera_info), counted as `reason`;
+        returns how many."""
+        with self._lock:
+            n = 0
+            for state in self._sensors.values():
+                waiting = state.waiting()
+                state.counters.dropped[reason] += waiting
+                state.queue.clear()
+                state.awaiting_info.clear()
+                n += waiting
+            return n
 
     def clear_frames(self) -> None:
         """Forget queued frames and colour images (a map reset); poses and camera_info stay."""

@@ -1,20 +1,25 @@
-"""The node's parameters as data: one table of (name, default, help).
+"""The node's parameters as data: one table of (name, default, help, range, choices, run-time).
 
-The help text becomes the ROS ParameterDescriptor description, `config/default.yaml` mirrors the
-table (a test checks both), and `declare(node)` returns the values as a frozen `Settings`.
-Names containing `{sensor}` exist once per entry of `sensors`, e.g. `tof.depth_topic`.
+The help text becomes the ROS ParameterDescriptor description (with the range, the choices and
+read-only for those that cannot change at run time), `config/default.yaml` mirrors the table (a
+test checks both), and `declare(node)` returns the values as a frozen `Settings`. Names
+containing `{sensor}` exist once per entry of `sensors`, e.g. `tof.depth_topic`. `validate`
+checks a set of new values the way the node's on-set-parameters callback refuses bad ones.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Any
-from collections.abc import Sequence
+from typing import Any, Sequence
 
-__all__ = ["Param", "GLOBAL_PARAMS", "SENSOR_PARAMS", "NODE_NAME", "expanded_defaults", "Settings", "declare"]
+from senfunet_ros.conversions.poses import PoseType
+
+__all__ = ["Param", "GLOBAL_PARAMS", "SENSOR_PARAMS", "NODE_NAME", "expanded_defaults", "Settings", "declare",
+           "validate", "param_table"]
 
 NODE_NAME = "senfunet"
-POSE_TYPES = ("pose_stamped", "odometry", "transform_stamped")
-ON_TIME_JUMP = ("reset", "ignore")
+ON_TIME_JUMP = ("keep", "reset", "ignore")  # ignore: the older spelling of keep
+INF = math.inf
 
 
 @dataclass(frozen=True)
@@ -22,62 +27,108 @@ class Param:
     name: str
     default: Any
     help: str
+    lo: float | None = None  # inclusive bounds of numbers
+    hi: float | None = None
+    choices: tuple[str, ...] = ()
+    runtime: bool = False  # applied when set at run time; False = read-only after start
+    lo_open: bool = False  # lo itself is refused (a rate of 0)
+
+    def check(self, name: str, value: Any) -> None:
+        """ValueError saying why `value` is refused."""
+        if self.choices and value not in self.choices:
+            raise ValueError(f"parameter '{name}' = {value!r}; use one of {list(self.choices)}")
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value) and not (value == INF and self.hi == INF):
+                raise ValueError(f"parameter '{name}' = {value!r} is not a finite number")
+            if self.lo is not None and (value < self.lo or (self.lo_open and value == self.lo)):
+                raise ValueError(f"parameter '{name}' = {value} must be {'>' if self.lo_open else '>='} {self.lo}")
+            if self.hi is not None and value > self.hi:
+                raise ValueError(f"parameter '{name}' = {value} must be <= {self.hi}")
+
+
+def _rate(name: str, default: float, help_text: str) -> Param:
+    return Param(name, default, help_text, lo=0.0, hi=1000.0, lo_open=True, runtime=True)
 
 
 GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("sensors", ["tof", "stereo"], "sensor names, sensor 1 first (alpha is the weight of sensor 1)"),
-    Param("rgb_sensors", ["stereo"],
-          "sensors whose feature net also takes the colour image (as the weights were trained)"),
-    Param("pose_type", "pose_stamped",
-          "pose message type on every pose topic: pose_stamped | odometry | transform_stamped"),
+    Param("rgb_sensors", ["stereo"], "sensors whose feature net also takes the colour image (as the weights were trained)"),
+    Param("pose_type", "pose_stamped", "where poses come from: pose_stamped | odometry | transform_stamped (the "
+          "pose topics), or tf (each depth image's frame_id looked up in fixed_frame on /tf and /tf_static)",
+          choices=tuple(p.value for p in PoseType)),
     Param("fixed_frame", "map", "frame the poses are given in; frame_id of every output"),
-    Param("voxel_size_m", 0.01, "voxel side length in metres"),
-    Param("band_m", 0.1, "length of the ray segment integrated around each depth measurement, metres"),
-    Param("working_width", 256, "images are resized to this width (K scaled); 0 = native"),
+    Param("voxel_size_m", 0.01, "voxel side length in metres", lo=0.001, hi=10.0),
+    Param("band_m", 0.1, "length of the ray segment integrated around each depth measurement, metres", lo=0.001,
+          hi=10.0),
+    Param("working_width", 256, "images are resized to this width (K scaled); 0 = native", lo=0, hi=8192),
     Param("working_height", 0,
-          "images are resized to this height; 0 = native, or keep the aspect ratio if the width is set"),
-    Param("queue_size", 30, "frames per sensor waiting for their pose; the oldest is dropped beyond this"),
+          "images are resized to this height; 0 = native, or keep the aspect ratio if the width is set",
+          lo=0, hi=8192),
+    Param("queue_size", 30, "frames per sensor waiting for their pose; the oldest is dropped beyond this",
+          lo=1, hi=100000),
     Param("max_lag_s", 0.25, "when integration falls behind, frames more than this (sensor time) older than their "
-          "sensor's newest are skipped, which bounds the latency; 0 = never skip"),
-    Param("pose_buffer_size", 2000, "poses kept per sensor for interpolation"),
-    Param("pose_tolerance_s", 0.1, "max time between a depth stamp and the poses interpolated around it"),
+          "sensor's newest are skipped, which bounds the latency; 0 = never skip", lo=0.0, hi=3600.0, runtime=True),
+    Param("pose_buffer_size", 2000, "poses kept per sensor for interpolation", lo=2, hi=10_000_000),
+    Param("pose_tolerance_s", 0.1, "max time between a depth stamp and the poses interpolated around it", lo=0.0,
+          hi=60.0, lo_open=True, runtime=True),
     Param("pose_max_wait_s", 1.0,
-          "a frame waits this long (sensor time) for a pose after its stamp, or for its first camera_info, "
-          "then is dropped"),
-    Param("color_tolerance_s", 0.02, "max stamp difference between a depth image and the colour image matched to it"),
-    Param("time_jump_s", 1.0,
-          "a stamp this far behind the previous one of its stream means time jumped back (bag restart)"),
-    Param("on_time_jump", "reset", "what a backward time jump does to the map: reset | ignore"),
-    Param("integrate_rate_hz", 30.0, "rate of the timer that integrates queued frames"),
-    Param("mesh_rate_hz", 1.0, "rate of mesh updates (alpha, fusion, meshing of the changed blocks)"),
+          "a frame waits this long (sensor time) for a pose after its stamp, or for its first camera_info, then is dropped",
+          lo=0.0, hi=600.0, lo_open=True, runtime=True),
+    Param("color_tolerance_s", 0.02, "max stamp difference between a depth image and the colour image matched to it",
+          lo=0.0, hi=10.0, runtime=True),
+    Param("time_jump_s", 1.0, "a stamp this far from its stream's timeline (past or future) is dropped as bad_stamp; "
+          "it does not move the timeline", lo=0.0, hi=3600.0, lo_open=True, runtime=True),
+    Param("restart_confirm_msgs", 5, "time restarted (a bag looping) once every stream continued on a new timeline "
+          "for this many messages ...", lo=1, hi=10000, runtime=True),
+    Param("restart_confirm_s", 0.5, "... spanning this much of the new timeline (with use_sim_time, /clock "
+          "jumping back confirms it at once)", lo=0.0, hi=600.0, runtime=True),
+    Param("on_time_jump", "keep", "what a confirmed restart of time does to the map: keep | reset",
+          choices=ON_TIME_JUMP, runtime=True),
+    _rate("integrate_rate_hz", 30.0, "rate of the timer that integrates queued frames"),
+    _rate("mesh_rate_hz", 1.0, "rate of mesh updates (alpha, fusion, meshing of the changed blocks)"),
     Param("alpha_budget_s", 0.2, "seconds per mesh update spent re-evaluating the sensor weighting (after the update "
           "is published; the next one shows it); blocks left over wait for the next turn (those the latest frames "
-          "reached first); 0 = no limit"),
-    Param("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
+          "reached first); 0 = no limit", lo=0.0, hi=600.0, runtime=True),
+    Param("mesh_display_cell_m", 0.03, "~/mesh shows a display mesh whose vertices are merged on a grid of this "
+          "size (per block; the map and ~/save_mesh keep full resolution): a snapshot of a room stays a few tens of "
+          "MB for subscribers over Wi-Fi; 0 (or not above voxel_size_m) = full resolution", lo=0.0, hi=1.0, runtime=True),
+    _rate("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
-          "instructions, else float32) | float32 | bfloat16"),
-    Param("status_rate_hz", 1.0, "rate of ~/status diagnostics"),
+          "instructions, else float32) | float32 | bfloat16", choices=("auto", "float32", "bfloat16")),
+    _rate("status_rate_hz", 1.0, "rate of /diagnostics and ~/status"),
+    Param("diagnostics_window_s", 5.0, "rates are measured over this recent window; a WARN clears this long after "
+          "its cause ends; a subscribed topic silent this long gets a warning", lo=0.1, hi=3600.0, runtime=True),
+    Param("stale_after_s", 2.0, "a stream that received messages and then none for this long is STALE",
+          lo=0.1, hi=3600.0, runtime=True),
     Param("weights_band_m", 0.02,
-          "~/weights holds voxels with |fused TSDF| at most this (near the surface); 0 = all observed"),
-    Param("output_dir", "senfunet_output", "directory ~/save_mesh writes PLY files into"),
+          "~/weights holds voxels with |fused TSDF| at most this (near the surface); 0 = all observed",
+          lo=0.0, hi=100.0, runtime=True),
+    Param("output_dir", "senfunet_output", "directory ~/save_mesh writes PLY files into", runtime=True),
+    Param("map_file", "map.pt", "file ~/save_map writes and ~/load_map reads (relative: in output_dir)",
+          runtime=True),
     Param("weights", "default", "network weights file; 'default' = the shipped weights, 'none' = untrained"),
     Param("device", "cpu", "torch device: cpu | cuda (falls back to cpu with a warning)"),
-    Param("save_on_shutdown", False, "write the PLY files into output_dir when the node stops"),
+    Param("save_on_shutdown", False, "write the PLY files into output_dir when the node stops", runtime=True),
     Param("max_map_blocks", 40000, "memory bound: past this many 8^3-voxel blocks (~20 KB each; the sample room "
-          "needs ~34k at 1 cm) the blocks farthest from the sensor are dropped; 0 = unbounded"),
+          "needs ~34k at 1 cm) the blocks farthest from the sensor are dropped; 0 = unbounded", lo=0, hi=2**31 - 1),
     Param("tsdf_fusion", False, "also keep the plain TSDF Fusion baseline (save_mesh adds tsdf_fusion.ply; "
-          "costs integration time and memory)"),
+          "about 15% more integration time and memory)"),
 )
 
 SENSOR_PARAMS: tuple[Param, ...] = (
-    Param("{sensor}.depth_topic", "/{sensor}/depth", "depth image topic (32FC1 metres or 16UC1 millimetres)"),
-    Param("{sensor}.color_topic", "/{sensor}/color", "colour image topic (rgb8, bgr8, mono8); empty = none"),
+    Param("{sensor}.depth_topic", "/{sensor}/depth", "depth image topic (32FC1 metres or 16UC1 millimetres; a name "
+          "ending in /compressedDepth is sensor_msgs/CompressedImage as image_transport writes it)"),
+    Param("{sensor}.color_topic", "/{sensor}/color", "colour image topic (rgb8, bgr8, mono8; a name ending in "
+          "/compressed is sensor_msgs/CompressedImage jpeg/png); empty = none"),
     Param("{sensor}.camera_info_topic", "/{sensor}/camera_info", "camera_info topic of the depth image"),
-    Param("{sensor}.pose_topic", "/{sensor}/pose", "pose of the sensor's optical frame in fixed_frame"),
-    Param("{sensor}.depth_min_m", 0.1, "depth below this is ignored, metres"),
+    Param("{sensor}.pose_topic", "/{sensor}/pose", "pose topic (unused with pose_type tf)"),
+    Param("{sensor}.T_body_camera", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], "the camera's optical frame in the frame "
+          "the pose topic gives (x y z qx qy qz qw; e.g. base_link of an Odometry); identity = the pose is the "
+          "camera's"),
+    Param("{sensor}.depth_min_m", 0.1, "depth below this is ignored, metres", lo=0.0, hi=1000.0, runtime=True),
     Param("{sensor}.depth_max_m", 3.0, "depth beyond this is ignored, metres (at 1 cm voxels and 256 px, rays beyond "
-          "~3 m are > 2 voxels apart and noise spreads samples over many sparse blocks: memory and time, "
-          "little surface)"),
+          "~3 m are > 2 voxels apart and noise spreads samples over many sparse blocks: memory and time, little surface)",
+          lo=0.0, hi=1000.0, lo_open=True, runtime=True),
 )
 
 
@@ -85,15 +136,21 @@ def _fill(value: Any, sensor: str) -> Any:
     return value.replace("{sensor}", sensor) if isinstance(value, str) else value
 
 
-def expanded_defaults(sensors: Sequence[str] | None = None) -> dict[str, tuple[Any, str]]:
-    """Every parameter name -> (default, help), with per-sensor names expanded."""
+def param_table(sensors: Sequence[str] | None = None) -> dict[str, Param]:
+    """Every parameter name -> its Param (per-sensor names expanded, defaults filled in)."""
     if sensors is None:
         sensors = GLOBAL_PARAMS[0].default
-    out = {p.name: (p.default, p.help) for p in GLOBAL_PARAMS}
+    out = {p.name: p for p in GLOBAL_PARAMS}
     for sensor in sensors:
         for p in SENSOR_PARAMS:
-            out[_fill(p.name, sensor)] = (_fill(p.default, sensor), p.help)
+            name = _fill(p.name, sensor)
+            out[name] = Param(name, _fill(p.default, sensor), p.help, p.lo, p.hi, p.choices, p.runtime, p.lo_open)
     return out
+
+
+def expanded_defaults(sensors: Sequence[str] | None = None) -> dict[str, tuple[Any, str]]:
+    """Every parameter name -> (default, help), with per-sensor names expanded."""
+    return {name: (p.default, p.help) for name, p in param_table(sensors).items()}
 
 
 @dataclass(frozen=True)
@@ -105,6 +162,7 @@ class SensorSettings:
     pose_topic: str
     depth_min_m: float
     depth_max_m: float
+    T_body_camera: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)  # x y z qx qy qz qw
 
 
 @dataclass(frozen=True)
@@ -124,20 +182,43 @@ class Settings:
     def sensor_names(self) -> tuple[str, ...]:
         return tuple(s.name for s in self.sensors)
 
+    @classmethod
+    def from_values(cls, values: dict[str, Any]) -> "Settings":
+        """Settings from checked values (see `check`)."""
+        sensors = tuple(
+            SensorSettings(name=s, depth_topic=values[f"{s}.depth_topic"], color_topic=values[f"{s}.color_topic"],
+                           camera_info_topic=values[f"{s}.camera_info_topic"], pose_topic=values[f"{s}.pose_topic"],
+                           depth_min_m=values[f"{s}.depth_min_m"], depth_max_m=values[f"{s}.depth_max_m"],
+                           T_body_camera=tuple(values[f"{s}.T_body_camera"]))
+            for s in values["sensors"])
+        return cls(values=dict(values), sensors=sensors)
+
 
 def coerce(name: str, value: Any, default: Any) -> Any:
-    """Values in the type of their default, so `mesh_rate_hz: 1` in YAML works."""
+    """Values in the type of their default, so `mesh_rate_hz: 1` in YAML works; ValueError for
+    what cannot be read as that type ('abc' for a number)."""
     try:
         if isinstance(default, bool):
             if isinstance(value, str):
-                return value.strip().lower() in ("1", "true", "yes", "on")
+                text = value.strip().lower()
+                if text not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+                    raise ValueError("use true or false")
+                return text in ("1", "true", "yes", "on")
             return bool(value)
         if isinstance(default, int):
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError("not a whole number")
             return int(value)
         if isinstance(default, float):
             return float(value)
         if isinstance(default, list):
+            if isinstance(value, (str, bytes)):
+                raise ValueError("expected a list")
+            if default and isinstance(default[0], float):
+                return [float(v) for v in value]
             return [str(v) for v in value]
+        if isinstance(value, (list, tuple)):
+            raise ValueError("expected a single value, not a list")
         return str(value)
     except (TypeError, ValueError) as err:
         raise ValueError(f"parameter '{name}' = {value!r} is not a {type(default).__name__}: {err}") from err
@@ -148,61 +229,65 @@ def check(values: dict[str, Any]) -> None:
     sensors = values["sensors"]
     if len(sensors) != 2 or len(set(sensors)) != 2:
         raise ValueError(f"parameter 'sensors' needs two distinct names, got {sensors}")
-    if values["pose_type"] not in POSE_TYPES:
-        raise ValueError(f"parameter 'pose_type' = {values['pose_type']!r}; use one of {POSE_TYPES}")
-    if values["alpha_precision"] not in ("auto", "float32", "bfloat16"):
-        raise ValueError(f"parameter 'alpha_precision' = {values['alpha_precision']!r}; use auto, float32 or bfloat16")
-    if values["on_time_jump"] not in ON_TIME_JUMP:
-        raise ValueError(f"parameter 'on_time_jump' = {values['on_time_jump']!r}; use one of {ON_TIME_JUMP}")
-    for name in ("voxel_size_m", "band_m", "integrate_rate_hz", "mesh_rate_hz", "status_rate_hz", "weights_rate_hz",
-                 "pose_tolerance_s", "pose_max_wait_s", "time_jump_s"):
-        if not values[name] > 0:
-            raise ValueError(f"parameter '{name}' must be > 0, got {values[name]}")
-    if not values["max_lag_s"] >= 0:
-        raise ValueError(f"parameter 'max_lag_s' must be >= 0 (0 = never skip), got {values['max_lag_s']}")
-    if not values["alpha_budget_s"] >= 0:
-        raise ValueError(f"parameter 'alpha_budget_s' must be >= 0 (0 = no limit), got {values['alpha_budget_s']}")
-    if values["queue_size"] < 1 or values["working_width"] < 0 or values["working_height"] < 0:
-        raise ValueError("queue_size must be >= 1 and working_width/height >= 0")
-    if values["max_map_blocks"] < 0:
-        raise ValueError(f"parameter 'max_map_blocks' must be >= 0 (0 = unbounded), got {values['max_map_blocks']}")
+    table = param_table(sensors)
+    for name, p in table.items():
+        p.check(name, values[name])
     for sensor in sensors:
         lo, hi = values[f"{sensor}.depth_min_m"], values[f"{sensor}.depth_max_m"]
         if not 0 <= lo < hi:
             raise ValueError(f"{sensor}: depth range [{lo}, {hi}] m is empty; set depth_min_m < depth_max_m")
+        extrinsic = values[f"{sensor}.T_body_camera"]
+        if len(extrinsic) != 7:
+            raise ValueError(f"parameter '{sensor}.T_body_camera' needs 7 numbers (x y z qx qy qz qw), "
+                             f"got {len(extrinsic)}")
+        from senfunet_ros.geometry import transform_from_tq
+
+        transform_from_tq(extrinsic[:3], extrinsic[3:], f"parameter '{sensor}.T_body_camera'")
+
+
+def validate(current: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """The values after `changes` (name -> new raw value), coerced and checked: ValueError with the
+    reason for an unknown name, a read-only one, a value of the wrong type or out of range."""
+    table = param_table(current["sensors"])
+    values = dict(current)
+    for name, raw in changes.items():
+        p = table.get(name)
+        if p is None:
+            raise ValueError(f"unknown parameter '{name}'")
+        value = coerce(name, raw, p.default)
+        if not p.runtime and value != current[name]:
+            raise ValueError(f"parameter '{name}' cannot change while the node runs; restart the node with it")
+        values[name] = value
+    check(values)
+    return values
 
 
 def declare(node: Any) -> Settings:
-    """Declare every parameter on an rclpy node (help as the descriptor) and read them back."""
-    from rcl_interfaces.msg import ParameterDescriptor
+    """Declare every parameter on an rclpy node and read them back. Descriptors carry the help,
+    the range, the choices and read_only for what cannot change at run time."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 
-    def one(name: str, default: Any, help_text: str) -> Any:
-        # dynamic typing: YAML integers for float parameters (and the like) are coerced, not refused
-        descriptor = ParameterDescriptor(description=help_text, dynamic_typing=True)
-        value = node.declare_parameter(name, default, descriptor).value
-        return coerce(name, default if value is None else value, default)
+    def one(p: Param) -> Any:
+        descriptor = ParameterDescriptor(description=p.help, read_only=not p.runtime,
+                                         additional_constraints=" | ".join(p.choices),
+                                         # YAML integers for float parameters (and the like) are coerced, not refused;
+                                         # the on-set callback checks types
+                                         dynamic_typing=True)
+        if isinstance(p.default, float) and p.lo is not None:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi))]
+        elif isinstance(p.default, int) and not isinstance(p.default, bool) and p.lo is not None:
+            descriptor.integer_range = [IntegerRange(from_value=int(p.lo), to_value=int(p.hi), step=1)]
+        value = node.declare_parameter(p.name, p.default, descriptor).value
+        return coerce(p.name, p.default if value is None else value, p.default)
 
     values: dict[str, Any] = {}
     for p in GLOBAL_PARAMS:
-        values[p.name] = one(p.name, p.default, p.help)
-    for sensor in values["sensors"]:  # per-sensor names depend on the sensors parameter
-        for p in SENSOR_PARAMS:
-            name = _fill(p.name, sensor)
-            values[name] = one(name, _fill(p.default, sensor), p.help)
+        values[p.name] = one(p)
+    for name, p in param_table(values["sensors"]).items():  # per-sensor names depend on the sensors parameter
+        if name not in values:
+            values[name] = one(p)
     check(values)
-    sensors = tuple(
-        SensorSettings(
-            name=s,
-            depth_topic=values[f"{s}.depth_topic"],
-            color_topic=values[f"{s}.color_topic"],
-            camera_info_topic=values[f"{s}.camera_info_topic"],
-            pose_topic=values[f"{s}.pose_topic"],
-            depth_min_m=values[f"{s}.depth_min_m"],
-            depth_max_m=values[f"{s}.depth_max_m"],
-        )
-        for s in values["sensors"]
-    )
-    return Settings(values=values, sensors=sensors)
+    return Settings.from_values(values)
 
 
 def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.ingest.IngestConfig
@@ -211,7 +296,6 @@ def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.
     node passes max_lag_s from its parameter."""
     import dataclasses
 
-    from senfunet_ros import conversions as conv
     from senfunet_ros.ingest import IngestConfig
 
     s = settings
@@ -224,9 +308,30 @@ def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.
         pose_max_wait_s=s.pose_max_wait_s,
         color_tolerance_s=s.color_tolerance_s,
         time_jump_s=s.time_jump_s,
-        pose_parser=conv.POSE_PARSERS[s.pose_type],
+        restart_confirm_msgs=s.restart_confirm_msgs,
+        restart_confirm_s=s.restart_confirm_s,
+        pose_parser=PoseType(s.pose_type).parse,
+        T_body_camera=sensor_extrinsics(s),
     )
+    if PoseType(s.pose_type) is PoseType.TF and "tf" not in overrides:  # replay: /tf and /tf_static from the bag
+        from senfunet_ros.tf import TfBuffer
+
+        config = dataclasses.replace(config, tf=TfBuffer(max_gap_s=s.pose_tolerance_s), fixed_frame=s.fixed_frame)
     return dataclasses.replace(config, **overrides)
+
+
+def sensor_extrinsics(settings: Settings) -> dict[str, Any]:
+    """sensor -> T_body_camera 4x4, for the sensors whose pose topic is not the camera's (not identity)."""
+    import numpy as np
+
+    from senfunet_ros.geometry import transform_from_tq
+
+    out = {}
+    for sensor in settings.sensors:
+        T = transform_from_tq(sensor.T_body_camera[:3], sensor.T_body_camera[3:], f"{sensor.name}.T_body_camera")
+        if not np.array_equal(T, np.eye(4)):
+            out[sensor.name] = T
+    return out
 
 
 def engine_config(settings: Settings, **overrides: Any) -> Any:
@@ -234,11 +339,14 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
     `overrides` replace fields (replay keeps the TSDF Fusion baseline and float32 alpha)."""
     import dataclasses
 
+    import torch
+
     from senfunet_core.engine import EngineConfig
-    from senfunet_core.networks import choose_device
 
     s = settings
-    device = str(choose_device(s.device, cpu_fallback=True).device)
+    device = s.device
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        device = "cpu"
     config = EngineConfig(
         sensors=s.sensor_names,
         sensor_uses_rgb=tuple(name in s.rgb_sensors for name in s.sensor_names),

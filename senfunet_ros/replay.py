@@ -8,9 +8,6 @@ with torch pinned to a fixed thread count, the same mesh bytes.
 
     result = replay_bag("bags/sim_room", "out/replay", gt="bags/sim_room_gt.ply")
     result.stats["sensors"]["tof"]["integrated"]
-
-`BagFeeder` is the same routing for the live node's `bag` parameter: it releases the bag's
-messages at the recorded pace (times a rate) from a timer and pushes them into the node's Ingest.
 """
 from __future__ import annotations
 
@@ -18,16 +15,16 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
-from collections.abc import Callable
+from typing import Any, Callable
 
 import numpy as np
 
 from senfunet_ros import params as P
 from senfunet_ros.params import engine_config, engine_weights, ingest_config
-from senfunet_ros.bagio import (BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype,
-                                open_bag)
-from senfunet_ros.ingest import Frame, Ingest, TimeJump, integrate_ready
+from senfunet_ros.bagio import BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype, open_bag
+from senfunet_ros.conversions import PoseType
+from senfunet_ros.ingest import Ingest
+from senfunet_ros.pipeline import MESH_FILES, Pipeline, Stream
 
 __all__ = [
     "load_settings",
@@ -37,16 +34,10 @@ __all__ = [
     "TopicRouter",
     "ReplayResult",
     "replay_bag",
-    "BagFeeder",
     "MESH_FILES",
 ]
 
-_POSE_TYPES = {
-    "pose_stamped": "geometry_msgs/msg/PoseStamped",
-    "odometry": "nav_msgs/msg/Odometry",
-    "transform_stamped": "geometry_msgs/msg/TransformStamped",
-}
-_IMAGE = "sensor_msgs/msg/Image"
+_IMAGES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 _CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 
 
@@ -105,12 +96,7 @@ def load_settings(params_file: str | Path | None = None, overrides: dict[str, An
         raise ValueError(f"unknown parameter(s) {unknown}{where}; see config/default.yaml for the names")
     values = {name: P.coerce(name, given.get(name, default), default) for name, (default, _) in table.items()}
     P.check(values)
-    sensor_settings = tuple(
-        P.SensorSettings(name=s, depth_topic=values[f"{s}.depth_topic"], color_topic=values[f"{s}.color_topic"],
-                         camera_info_topic=values[f"{s}.camera_info_topic"], pose_topic=values[f"{s}.pose_topic"],
-                         depth_min_m=values[f"{s}.depth_min_m"], depth_max_m=values[f"{s}.depth_max_m"])
-        for s in values["sensors"])
-    return P.Settings(values=values, sensors=sensor_settings)
+    return P.Settings.from_values(values)
 
 
 # --------------------------------------------------------------------------------------------
@@ -120,42 +106,52 @@ def load_settings(params_file: str | Path | None = None, overrides: dict[str, An
 @dataclass(frozen=True)
 class Route:
     topic: str
-    sensor: str
-    stream: str  # "camera_info", "depth", "color" or "pose"
+    sensor: str  # "" for /tf and /tf_static (every sensor's)
+    stream: str  # a senfunet_ros.pipeline.Stream value
     msgtype: str
-    msg_class: type
+    msg_class: type | None  # None: deserialised with rosbags' type store (tf2_msgs has no wheel here)
+
+
+_TF_MSGTYPE = "tf2_msgs/msg/TFMessage"
 
 
 class TopicRouter:
     """Which bag topic feeds which sensor stream; checks the bag has what the node needs.
 
-    Raises BagError (one line) when a sensor's depth, camera_info or pose topic is missing or
-    has the wrong or an unknown type. Colour topics are optional. Other topics are ignored.
+    Raises BagError (one line) when a sensor's depth, camera_info or pose topic (or, with
+    pose_type tf, /tf) is missing or has the wrong or an unknown type. Colour topics and
+    /tf_static are optional. Other topics are ignored.
     """
 
     def __init__(self, settings: P.Settings, topics: dict[str, TopicInfo], bag_path: str | Path) -> None:
         self.bag_path = Path(bag_path)
         self.routes: dict[str, Route] = {}
         self.undecodable: dict[str, int] = {}
-        pose_type = _POSE_TYPES[settings.pose_type]
+        pose_type = PoseType(settings.pose_type)
         missing: list[str] = []
+        wanted: list[tuple[str, str, str, tuple[str, ...], bool]] = []  # sensor, stream, topic, types, required
         for sensor in settings.sensors:
-            wanted = [("camera_info", sensor.camera_info_topic, _CAMERA_INFO, True),
-                      ("depth", sensor.depth_topic, _IMAGE, True),
-                      ("pose", sensor.pose_topic, pose_type, True),
-                      ("color", sensor.color_topic, _IMAGE, False)]
-            for stream, topic, expected, required in wanted:
-                if not topic:
-                    continue
-                info = topics.get(topic)
-                if info is None or (required and info.count == 0):
-                    if required:
-                        missing.append(topic)
-                    continue
-                msgtype = normalize_msgtype(info.msgtype)
-                if msgtype != expected:
-                    raise BagError(self._type_error(topic, msgtype, expected, stream, settings))
-                self.routes[topic] = Route(topic, sensor.name, stream, msgtype, message_class(msgtype))
+            wanted += [(sensor.name, Stream.CAMERA_INFO, sensor.camera_info_topic, (_CAMERA_INFO,), True),
+                       (sensor.name, Stream.DEPTH, sensor.depth_topic, _IMAGES, True),
+                       (sensor.name, Stream.COLOR, sensor.color_topic, _IMAGES, False)]
+            if pose_type is not PoseType.TF:
+                wanted.append((sensor.name, Stream.POSE, sensor.pose_topic, (pose_type.msgtype,), True))
+        if pose_type is PoseType.TF:
+            wanted += [("", Stream.TF, "/tf", (_TF_MSGTYPE,), True),
+                       ("", Stream.TF_STATIC, "/tf_static", (_TF_MSGTYPE,), False)]
+        for sensor_name, stream, topic, expected, required in wanted:
+            if not topic:
+                continue
+            info = topics.get(topic)
+            if info is None or (required and info.count == 0):
+                if required:
+                    missing.append(topic)
+                continue
+            msgtype = normalize_msgtype(info.msgtype)
+            if msgtype not in expected:
+                raise BagError(self._type_error(topic, msgtype, " or ".join(expected), stream, settings))
+            msg_class = None if msgtype == _TF_MSGTYPE else message_class(msgtype)
+            self.routes[topic] = Route(topic, sensor_name, Stream(stream).value, msgtype, msg_class)
         if missing:
             have = sorted(topics)
             shown = ", ".join(have[:12]) + (f" (+{len(have) - 12} more)" if len(have) > 12 else "")
@@ -163,34 +159,41 @@ class TopicRouter:
                 f"{self.bag_path}: no messages on {', '.join(missing)}; the bag has: {shown or 'no topics'}; "
                 "map the topics with --params (e.g. tof.depth_topic: /camera/depth)")
         self.ignored = {t: i.msgtype for t, i in topics.items() if t not in self.routes}
+        self._typestore: Any = None
 
     def _type_error(self, topic: str, msgtype: str, expected: str, stream: str, settings: P.Settings) -> str:
         if stream == "pose":
-            alt = next((name for name, t in _POSE_TYPES.items() if t == msgtype), None)
+            alt = PoseType.from_msgtype(msgtype)
             if alt is not None:
                 return (f"{self.bag_path}: topic {topic} is {msgtype} but parameter pose_type is "
-                        f"'{settings.pose_type}'; set pose_type: {alt} with --params")
+                        f"'{settings.pose_type}'; set pose_type: {alt.value} with --params")
         try:
             message_class(msgtype)
             known = True
         except BagError:
             known = False
         what = f"has type {msgtype}" + ("" if known else ", unknown here,")
-        return (f"{self.bag_path}: topic {topic} {what} but the node takes {expected} there; "
-                f"record {expected} or remap the topic with --params")
+        return f"{self.bag_path}: topic {topic} {what} but the node takes {expected} there; record {expected} or remap the topic with --params"
 
     @property
     def topics(self) -> set[str]:
         return set(self.routes)
 
     def decode(self, msg: BagMessage) -> tuple[Route, Any] | None:
-        """(route, rclpy message), or None for an unrouted topic or bytes that do not deserialise."""
+        """(route, message), or None for an unrouted topic or bytes that do not deserialise. Messages
+        are rclpy's classes (what a live subscription delivers), TF messages rosbags' own."""
         from rclpy.serialization import deserialize_message
 
         route = self.routes.get(msg.topic)
         if route is None:
             return None
         try:
+            if route.msg_class is None:
+                if self._typestore is None:
+                    from rosbags.typesys import Stores, get_typestore
+
+                    self._typestore = get_typestore(Stores.ROS2_JAZZY)
+                return route, self._typestore.deserialize_cdr(msg.data, route.msgtype)
             return route, deserialize_message(msg.data, route.msg_class)
         except Exception:
             self.undecodable[msg.topic] = self.undecodable.get(msg.topic, 0) + 1
@@ -199,20 +202,11 @@ class TopicRouter:
     @staticmethod
     def dispatch(ingest: Ingest, route: Route, message: Any) -> str | None:
         """Hand one message to Ingest as the node's subscription callback does; returns the drop reason."""
-        if route.stream == "depth":
-            return ingest.add_depth(route.sensor, message)
-        if route.stream == "color":
-            return ingest.add_color(route.sensor, message)
-        if route.stream == "pose":
-            return ingest.add_pose(route.sensor, message)
-        return ingest.add_camera_info(route.sensor, message)
+        return Pipeline.dispatch_to(ingest, route.sensor, route.stream, message)
 
 
 # --------------------------------------------------------------------------------------------
 # Replay
-
-
-MESH_FILES = {"fused": "mesh"}  # engine mesh name -> file stem (sensors and tsdf_fusion keep their names)
 
 
 @dataclass
@@ -228,39 +222,17 @@ class ReplayResult:
         return self.error is None and not self.interrupted
 
 
-class _Drain:
-    """Ready frames -> engine, as the node's integration timer does; counts and times."""
+@dataclass
+class _Run:
+    """What one pass through the bag gave."""
 
-    def __init__(self, engine: Any, ingest: Ingest, on_time_jump: str) -> None:
-        self.engine, self.ingest, self.on_time_jump = engine, ingest, on_time_jump
-        self.integrate_s = 0.0
-        self.frames_integrated = 0
-        self.time_jumps = 0
-        self.engine_errors: list[str] = []
-
-    def __call__(self) -> int:
-        integrated = self.frames_integrated
-        integrate_ready(self.engine, self.ingest.pop_ready(), self._time_jump, self._integrated)
-        return self.frames_integrated - integrated
-
-    def _time_jump(self, jump: TimeJump) -> None:
-        self.time_jumps += 1
-        if self.on_time_jump == "reset":
-            self.engine.reset()
-
-    def _integrated(self, frame: Frame, error: Exception | None, seconds: float) -> None:
-        from senfunet_core.errors import SenFuNetError
-
-        self.integrate_s += seconds
-        if error is None:
-            self.ingest.mark_integrated(frame.sensor)
-            self.frames_integrated += 1
-        elif isinstance(error, (SenFuNetError, ValueError)):
-            self.ingest.mark_dropped(frame.sensor, "engine_error")
-            if len(self.engine_errors) < 10:
-                self.engine_errors.append(f"{frame.sensor} at {frame.stamp_ns * 1e-9:.3f} s: {error}")
-        else:
-            raise error
+    bag_info: dict[str, Any]
+    router: TopicRouter
+    total: int  # messages recorded on the fused topics
+    read: int = 0
+    error: str | None = None
+    interrupted: bool = False
+    read_s: float = 0.0
 
 
 def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | None = None,
@@ -273,80 +245,38 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     parameters. A bag that breaks midway still gets its meshes: `result.error` says where it broke.
     `threads` pins torch's CPU threads: the mesh bytes depend on it, so keep it fixed (default 1).
     """
-    from tqdm import tqdm
-
-    from senfunet_core.ply import read_ply
-
     t_start = time.perf_counter()
     log = log or (lambda text: None)
     settings = load_settings(params, {"weights": weights} if weights is not None else None)
-    gt_mesh = None
-    if gt is not None:
-        try:
-            gt_mesh = read_ply(gt)
-        except FileNotFoundError:
-            raise ValueError(f"{gt}: no such ground-truth mesh") from None
-        except Exception as err:
-            raise ValueError(f"{gt}: cannot read the ground-truth mesh: {err}") from None
+    gt_mesh = _read_gt(gt)
     out = Path(out_dir)
     with open_bag(bag) as reader:
         TopicRouter(settings, reader.topics, bag)  # a BagError comes before the heavy imports
-    import torch  # noqa: E402 - heavy: only once the bag is known to be usable
+    import torch  # heavy: only once the bag is known to be usable
 
     from senfunet_core.engine import SenFuNet
 
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))
     try:
-        with open_bag(bag) as reader:
-            if reader.note:
-                log(f"note: {reader.note}")
-            router = TopicRouter(settings, reader.topics, bag)
-            # offline: the whole map, the baseline too, and float32 alpha whatever the CPU
-            engine = SenFuNet(engine_config(settings, tsdf_fusion=True, alpha_dtype="float32", max_blocks=0),
-                              weights=engine_weights(settings))
-            ingest = Ingest(ingest_config(settings))
-            drain = _Drain(engine, ingest, settings.on_time_jump)
-            total = sum(reader.topics[t].count for t in router.topics)
-            bag_info = {"path": str(bag), "storage": reader.storage, "messages": reader.message_count,
-                        "duration_s": round(reader.duration_s, 6), "start_ns": reader.start_ns, "note": reader.note}
-            error, interrupted, read = None, False, 0
-            t_loop = time.perf_counter()
-            with tqdm(total=total, unit="msg", desc="replay", disable=not progress, dynamic_ncols=True,
-                      mininterval=0.5) as bar:
-                try:
-                    for msg in reader.messages(router.topics):
-                        read += 1
-                        bar.update(1)
-                        decoded = router.decode(msg)
-                        if decoded is None:
-                            continue
-                        route, message = decoded
-                        try:
-                            router.dispatch(ingest, route, message)
-                        except ValueError:  # a malformed message: Ingest refuses it like the node's callback
-                            router.undecodable[msg.topic] = router.undecodable.get(msg.topic, 0) + 1
-                            continue
-                        if route.stream != "camera_info" and drain():
-                            bar.set_postfix(frames=sum(engine.frames_integrated.values()), refresh=False)
-                except BagBrokenError as err:
-                    error = str(err)
-                except KeyboardInterrupt:
-                    interrupted = True
-                drain()
-            t_read = time.perf_counter() - t_loop
+        # offline: the whole map, the baseline too, and float32 alpha whatever the CPU
+        engine = SenFuNet(engine_config(settings, tsdf_fusion=True, alpha_dtype="float32", max_blocks=0),
+                          weights=engine_weights(settings))
+        pipeline = Pipeline(engine, Ingest(ingest_config(settings)), on_time_jump=settings.on_time_jump,
+                            log=lambda level, text: log(text) if level == "error" else None)
+        run = _fuse(bag, settings, pipeline, progress=progress, log=log)
     finally:
         torch.set_num_threads(previous_threads)
 
-    counters = ingest.counters()
+    counters = pipeline.ingest.counters()
     n_integrated = sum(c["integrated"] for c in counters.values())
-    result = ReplayResult(stats={}, error=error, interrupted=interrupted)
-    timings: dict[str, Any] = {"read_decode_s": round(t_read - drain.integrate_s, 3),
-                               "integrate_s": round(drain.integrate_s, 3),
-                               "integrate_per_frame_ms": round(1e3 * drain.integrate_s / max(n_integrated, 1), 2)}
-    if result.error is None and not interrupted and read < total:
-        result.error = (f"{bag}: only {read} of the {total} recorded messages on the fused topics could be read; "
-                        "the file is damaged")
+    result = ReplayResult(stats={}, error=run.error, interrupted=run.interrupted)
+    timings: dict[str, Any] = {"read_decode_s": round(run.read_s - pipeline.integrate_s, 3),
+                               "integrate_s": round(pipeline.integrate_s, 3),
+                               "integrate_per_frame_ms": round(1e3 * pipeline.integrate_s / max(n_integrated, 1), 2)}
+    if result.error is None and not run.interrupted and run.read < run.total:
+        result.error = (f"{bag}: only {run.read} of the {run.total} recorded messages on the fused topics could be "
+                        "read; the file is damaged")
     if n_integrated == 0 and result.error is None:
         dropped = "; ".join(f"{s}: " + (", ".join(f"{n} {r}" for r, n in c["dropped"].items() if n) or "no frames")
                             for s, c in counters.items())
@@ -355,75 +285,136 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     if n_integrated:
         torch.set_num_threads(max(1, int(threads)))
         try:
-            extract: dict[str, float] = {}
-            for which in ("fused", *settings.sensor_names, "tsdf_fusion"):
-                t0 = time.perf_counter()
-                result.meshes[MESH_FILES.get(which, which)] = engine.extract_mesh(which)
-                extract[MESH_FILES.get(which, which)] = round(time.perf_counter() - t0, 3)
-            timings["extract_s"] = extract
+            t0 = time.perf_counter()
+            saved = pipeline.save_meshes(out, sensors=settings.sensor_names, tsdf_fusion=True)
+            t_saved = time.perf_counter() - t0
         finally:
             torch.set_num_threads(previous_threads)
-        from senfunet_core.ply import write_ply
-
-        t0 = time.perf_counter()
-        for stem, mesh in result.meshes.items():
-            path = out / f"{stem}.ply"
-            write_ply(path, mesh)
-            result.files[stem] = path
-        timings["write_s"] = round(time.perf_counter() - t0, 3)
-
-    metrics, gt_info = None, None
-    if gt_mesh is not None and result.meshes:
-        from senfunet_core.learning.evaluation import observed_gt_vertices
-        from senfunet_core.metrics import mesh_metrics
-
-        t0 = time.perf_counter()
-        # As `senfunet evaluate` (the paper's protocol): the GT cropped to the surface the
-        # recording observed, the same crop for every mesh.
-        gt_vertices = observed_gt_vertices(engine, gt_mesh.vertices)
-        gt_info = {"path": str(gt), "vertices": gt_mesh.n_vertices, "vertices_observed": int(len(gt_vertices)),
-                   "tau_m": 0.02}
-        if len(gt_vertices):
-            metrics = {stem: {k: round(float(v), 4) for k, v in mesh_metrics(mesh.vertices, gt_vertices).items()}
-                       for stem, mesh in result.meshes.items()}
-        timings["metrics_s"] = round(time.perf_counter() - t0, 3)
+        result.meshes = {stem: s.mesh for stem, s in saved.items()}
+        result.files = {stem: s.path for stem, s in saved.items()}
+        timings["extract_s"] = {stem: round(s.extract_s, 3) for stem, s in saved.items()}
+        timings["write_s"] = round(t_saved - sum(s.extract_s for s in saved.values()), 3)
+    metrics, gt_info = _metrics(pipeline.engine, gt, gt_mesh, result.meshes, timings)
     timings["total_s"] = round(time.perf_counter() - t_start, 3)
+    result.stats = _stats(result, run, pipeline, settings, counters, params=params, threads=threads,
+                          gt_info=gt_info, metrics=metrics, timings=timings)
+    (out / "stats.json").write_text(json.dumps(result.stats, indent=2, default=_json_default) + "\n")
+    result.files["stats"] = out / "stats.json"
+    return result
 
+
+def _read_gt(gt: str | Path | None) -> Any:
+    if gt is None:
+        return None
+    from senfunet_core.ply import read_ply
+
+    try:
+        return read_ply(gt)
+    except FileNotFoundError:
+        raise ValueError(f"{gt}: no such ground-truth mesh") from None
+    except Exception as err:
+        raise ValueError(f"{gt}: cannot read the ground-truth mesh: {err}") from None
+
+
+def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress: bool,
+          log: Callable[[str], None]) -> _Run:
+    """Every routed message of the bag through the pipeline, draining ready frames after each."""
+    from tqdm import tqdm
+
+    ingest = pipeline.ingest
+    with open_bag(bag) as reader:
+        if reader.note:
+            log(f"note: {reader.note}")
+        router = TopicRouter(settings, reader.topics, bag)
+        bag_info = {"path": str(bag), "storage": reader.storage, "messages": reader.message_count,
+                    "duration_s": round(reader.duration_s, 6), "start_ns": reader.start_ns, "note": reader.note}
+        run = _Run(bag_info, router, total=sum(reader.topics[t].count for t in router.topics))
+        t_loop = time.perf_counter()
+        with tqdm(total=run.total, unit="msg", desc="replay", disable=not progress, dynamic_ncols=True,
+                  mininterval=0.5) as bar:
+            try:
+                for msg in reader.messages(router.topics):
+                    run.read += 1
+                    bar.update(1)
+                    decoded = router.decode(msg)
+                    if decoded is None:
+                        continue
+                    route, message = decoded
+                    try:
+                        pipeline.dispatch(route.sensor, route.stream, message)
+                    except ValueError:  # a malformed message: Ingest refuses it like the node's callback
+                        router.undecodable[msg.topic] = router.undecodable.get(msg.topic, 0) + 1
+                        continue
+                    if route.stream != "camera_info" and pipeline.drain(ingest.pop_ready()):
+                        bar.set_postfix(frames=pipeline.frames_integrated, refresh=False)
+            except BagBrokenError as err:
+                run.error = str(err)
+            except KeyboardInterrupt:
+                run.interrupted = True
+            pipeline.drain(ingest.pop_ready())
+        run.read_s = time.perf_counter() - t_loop
+    return run
+
+
+def _metrics(engine: Any, gt: str | Path | None, gt_mesh: Any, meshes: dict[str, Any],
+             timings: dict[str, Any]) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """F-score, precision and recall of each mesh against the GT cropped to the observed surface."""
+    if gt_mesh is None or not meshes:
+        return None, None
+    from senfunet_core.learning.evaluation import observed_gt_vertices
+    from senfunet_core.metrics import mesh_metrics
+
+    t0 = time.perf_counter()
+    # As `senfunet evaluate` (the paper's protocol): the GT cropped to the surface the
+    # recording observed, the same crop for every mesh.
+    gt_vertices = observed_gt_vertices(engine, gt_mesh.vertices)
+    gt_info = {"path": str(gt), "vertices": gt_mesh.n_vertices, "vertices_observed": int(len(gt_vertices)),
+               "tau_m": 0.02}
+    metrics = None
+    if len(gt_vertices):
+        metrics = {stem: {k: round(float(v), 4) for k, v in mesh_metrics(mesh.vertices, gt_vertices).items()}
+                   for stem, mesh in meshes.items()}
+    timings["metrics_s"] = round(time.perf_counter() - t0, 3)
+    return metrics, gt_info
+
+
+def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Settings,
+           counters: dict[str, dict[str, Any]], *, params: str | Path | None, threads: int,
+           gt_info: dict[str, Any] | None, metrics: dict[str, Any] | None,
+           timings: dict[str, Any]) -> dict[str, Any]:
     sensors = {}
     for name, c in counters.items():
         sensors[name] = {
             "received": c["received"], "integrated": c["integrated"],
-            "dropped": {reason: n for reason, n in c["dropped"].items()},
+            "dropped": dict(c["dropped"]),
             "dropped_total": sum(c["dropped"].values()),
             "pending_at_end": c["queue_depth"],  # frames still waiting (for a pose or camera_info) when the bag ended
             "color_received": c["color_received"], "pose_received": c["pose_received"],
             "time_jumps": c["time_jumps"],
         }
-    result.stats = {
-        "bag": bag_info,
+    router = run.router
+    return {
+        "bag": run.bag_info,
         "complete": result.ok,
         "error": result.error,
-        "interrupted": interrupted,
-        "messages_read": read,
+        "interrupted": run.interrupted,
+        "messages_read": run.read,
         "params": str(params) if params else None,
-        "weights": engine.weights_source,
+        "weights": pipeline.engine.weights_source,
         "torch_threads": int(threads),
         "sensors": sensors,
         "topics": {t: {"type": r.msgtype, "sensor": r.sensor, "stream": r.stream,
                        "undecodable": router.undecodable.get(t, 0)} for t, r in sorted(router.routes.items())},
         "ignored_topics": dict(sorted(router.ignored.items())),
-        "time_jumps": drain.time_jumps,
-        "engine_errors": drain.engine_errors,
-        "engine": engine.stats(),
+        "time_jumps": pipeline.time_jumps,
+        "engine_errors": pipeline.engine_errors,
+        "engine": pipeline.engine.stats(),
         "meshes": {stem: {"file": str(result.files[stem]), "vertices": m.n_vertices, "faces": m.n_faces}
                    for stem, m in result.meshes.items()},
         "gt": gt_info,
         "metrics": metrics,
         "timings": timings,
     }
-    (out / "stats.json").write_text(json.dumps(result.stats, indent=2, default=_json_default) + "\n")
-    result.files["stats"] = out / "stats.json"
-    return result
 
 
 def _json_default(value: Any) -> Any:
@@ -434,119 +425,3 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, tuple):
         return list(value)
     return str(value)
-
-
-# --------------------------------------------------------------------------------------------
-# Feeding the live node from a bag
-
-
-class BagFeeder:
-    """Releases a bag's messages into a node's Ingest at the recorded pace, from a timer.
-
-        feeder = BagFeeder(path, node.settings, rate=1.0, loop=False)    # BagError if unusable
-        # in a timer callback (e.g. every 10 ms):
-        feeder.feed(node.ingest, time.monotonic())
-        if feeder.done: ...                   # bag finished (never with loop), or broke: feeder.error
-
-    The first call anchors the bag's first message to `now_s`; after that a message is due when
-    (its log time - the bag's start) / rate has passed. `rate <= 0` means as fast as the node
-    keeps up: `feed` releases messages up to the next depth image, and only while every
-    sensor's queue holds fewer than `backlog` frames. With `loop`, the bag starts over when it
-    ends (its stamps jump back, which Ingest reports as a TimeJump: the node resets or not per
-    its on_time_jump parameter).
-    """
-
-    def __init__(self, bag: str | Path, settings: P.Settings, *, rate: float = 1.0, loop: bool = False,
-                 max_batch: int = 500, backlog: int = 2) -> None:
-        self.path = Path(bag)
-        self.rate = float(rate)
-        self.loop = bool(loop)
-        self.max_batch = int(max_batch)
-        self.backlog = int(backlog)
-        self._reader = open_bag(bag)
-        try:
-            self.router = TopicRouter(settings, self._reader.topics, bag)
-        except BagError:
-            self._reader.close()
-            raise
-        self._start_ns = self._reader.start_ns
-        self._span_ns = max(1, self._reader.end_ns - self._reader.start_ns)
-        self._iter = self._reader.messages(self.router.topics)
-        self._pending: BagMessage | None = None
-        self._anchor_s: float | None = None
-        self._offset_ns = 0  # bag time added per completed loop
-        self.loops = 0
-        self.fed = 0
-        self.done = False
-        self.error: str | None = None
-        self.last_log_time_ns: int | None = None  # recorded time of the last released message
-
-    def _peek(self) -> BagMessage | None:
-        if self._pending is None and not self.done:
-            try:
-                self._pending = next(self._iter)
-            except StopIteration:
-                if self.loop and self.fed:
-                    self.loops += 1
-                    self._offset_ns += self._span_ns
-                    self._iter = self._reader.messages(self.router.topics)
-                    return self._peek()
-                self._finish()
-            except BagBrokenError as err:
-                self.error = str(err)
-                self._finish()
-        return self._pending
-
-    def _finish(self) -> None:
-        self.done = True
-        self._reader.close()
-
-    def due_messages(self, now_s: float, *, ingest: Ingest | None = None) -> list[tuple[Route, Any]]:
-        """Messages whose time has come, deserialised (route, rclpy message), in recorded order."""
-        if self._anchor_s is None:
-            self._anchor_s = now_s
-        out: list[tuple[Route, Any]] = []
-        if self.rate <= 0 and ingest is not None:
-            if max(ingest.queue_depths().values(), default=0) >= self.backlog:
-                return out
-        elapsed_ns = (now_s - self._anchor_s) * 1e9 * self.rate if self.rate > 0 else float("inf")
-        while len(out) < self.max_batch:
-            msg = self._peek()
-            if msg is None:
-                break
-            if msg.log_time_ns - self._start_ns + self._offset_ns > elapsed_ns:
-                break
-            self._pending = None
-            self.last_log_time_ns = msg.log_time_ns
-            self.fed += 1
-            decoded = self.router.decode(msg)
-            if decoded is not None:
-                out.append(decoded)
-                if self.rate <= 0 and decoded[0].stream == "depth":
-                    break  # one frame per call when going as fast as the node keeps up
-        return out
-
-    def feed(self, ingest: Ingest, now_s: float) -> int:
-        """Push the due messages into `ingest`; returns how many were pushed."""
-        n = 0
-        for route, message in self.due_messages(now_s, ingest=ingest):
-            try:
-                TopicRouter.dispatch(ingest, route, message)
-            except ValueError:
-                self.router.undecodable[route.topic] = self.router.undecodable.get(route.topic, 0) + 1
-                continue
-            n += 1
-        return n
-
-    @property
-    def progress(self) -> float:
-        """Fraction of the current pass through the bag, 0..1."""
-        if self.done:
-            return 1.0
-        if self.last_log_time_ns is None:
-            return 0.0
-        return min(1.0, (self.last_log_time_ns - self._start_ns) / self._span_ns)
-
-    def close(self) -> None:
-        if not self.done:
-            self._finish()

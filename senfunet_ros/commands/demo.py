@@ -88,6 +88,10 @@ def _parse_status(msg) -> dict[str, dict[str, int]]:  # noqa: ANN001 - diagnosti
     return out
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def run(args: argparse.Namespace) -> int:
     bag = Path(args.bag) if args.bag else _default_bag()
     if not bag.exists():
@@ -108,14 +112,15 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     _say(f"ROS_DOMAIN_ID={domain}; logs in {out}")
     demo = _Demo(args, bag, out)
+    signal.signal(signal.SIGTERM, _interrupt)  # rclpy takes over SIGINT/SIGTERM while it is initialised
     try:
         mesh_path = demo.run()
     except DemoError as err:
         _say(str(err))
         return 1
-    except KeyboardInterrupt:
-        _say("interrupted")
-        return 130
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: stop the node and play, no traceback
+        _say("interrupted; stopping the node and play")
+        return 0
     finally:
         demo.stop()
     png = None
@@ -150,6 +155,10 @@ class _Demo:
         _stop(self.node_proc)
 
     def _check(self, what: str) -> None:
+        import rclpy
+
+        if not rclpy.ok():  # rclpy's SIGINT/SIGTERM handler shut the context down: an interruption
+            raise KeyboardInterrupt
         if self.node_proc is not None and self.node_proc.poll() is not None:
             raise DemoError(f"the node exited (code {self.node_proc.returncode}) {what}; "
                             f"its log ({self.node_log}):\n{_tail(self.node_log)}")
@@ -258,6 +267,10 @@ class _Demo:
                 if dropped:
                     line += "; dropped: " + ", ".join(f"{v} {k}" for k, v in dropped.items())
                 _say(line)
+        except Exception:
+            if not rclpy.ok():  # the context went away under a spin or a call: Ctrl-C or SIGTERM
+                raise KeyboardInterrupt from None
+            raise
         finally:
             node.destroy_node()
             rclpy.try_shutdown()

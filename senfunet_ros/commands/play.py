@@ -131,6 +131,8 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
                         if wait > _CLOCK_PERIOD_S:
                             now_ns = start_ns + int((time.monotonic() - wall0) * args.rate * 1e9)
                             publish_clock(min(now_ns, msg.log_time_ns))
+                    if not rclpy.ok():  # Ctrl-C / SIGTERM: rclpy's handler shut the context down
+                        raise ExternalShutdownException()
                     publish_clock(msg.log_time_ns)
                     publishers[msg.topic].publish(msg.data)  # raw CDR straight from the bag
                     total += 1
@@ -150,7 +152,13 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
             return _error(broken)
         return 0
     except (KeyboardInterrupt, ExternalShutdownException):
-        return 130
+        say("stopped")
+        return 0  # stopping is how a looping play ends: not an error
+    except Exception:  # the stop raced a publish: the context went away under it
+        if rclpy.ok():
+            raise
+        say("stopped")
+        return 0
     finally:
         if node is not None:
             node.destroy_node()

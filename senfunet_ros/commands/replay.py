@@ -25,8 +25,16 @@ def _error(text: str) -> int:
     return 2
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def run(args: argparse.Namespace) -> int:
+    import signal
+
     from senfunet_ros.bagio import BagError
+
+    signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM stops a replay like Ctrl-C: what was fused is saved
     from senfunet_ros.replay import replay_bag
 
     try:

@@ -10,7 +10,8 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
 from senfunet_ros import conversions as conv
-from senfunet_ros.ingest import Frame, Ingest, IngestConfig, TimeJump, interpolate_pose
+from senfunet_ros.geometry import interpolate_pose
+from senfunet_ros.ingest import Frame, Ingest, IngestConfig, TimeJump
 
 MS = 1_000_000  # nanoseconds
 
@@ -164,20 +165,70 @@ def test_out_of_order_duplicate_and_queue_full() -> None:
 
 
 def test_time_jump_flushes_and_is_reported_first() -> None:
-    ingest = make(time_jump_s=1.0)
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
     ingest.add_pose("tof", pose_msg(5000 * MS))
     ingest.add_depth("tof", depth_msg(5100 * MS))
     ingest.add_depth("stereo", depth_msg(5050 * MS))
-    ingest.add_depth("tof", depth_msg(10 * MS))  # the bag restarted
-    ingest.add_pose("tof", pose_msg(0))
-    ingest.add_pose("tof", pose_msg(20 * MS))
+    # the bag restarted: every stream continues on the new timeline; the first messages are
+    # dropped until that is confirmed (three per stream, spanning 20 ms)
+    for t in (10, 20, 30, 40, 50):
+        ingest.add_pose("tof", pose_msg(t * MS))
+        ingest.add_depth("tof", depth_msg(t * MS + 5 * MS))
+        ingest.add_depth("stereo", depth_msg(t * MS + 6 * MS))
+    ingest.add_pose("tof", pose_msg(60 * MS))
     items = ingest.pop_ready()
     assert isinstance(items[0], TimeJump) and items[0].from_ns == 5100 * MS and items[0].to_ns == 10 * MS
-    assert [f.stamp_ns for f in frames(items)] == [10 * MS]
+    assert [f.stamp_ns for f in frames(items) if f.sensor == "tof"] == [45 * MS, 55 * MS]
     c = ingest.counters()
-    assert c["tof"]["time_jumps"] == 1
-    assert c["tof"]["dropped"]["time_jump"] == 1 and c["stereo"]["dropped"]["time_jump"] == 1
+    assert c["tof"]["time_jumps"] + c["stereo"]["time_jumps"] == 1  # counted on the stream that confirmed it
+    assert c["tof"]["dropped"]["bad_stamp"] == 0  # the candidates count as the restart, not as bad stamps
+    assert c["tof"]["dropped"]["time_jump"] >= 1 + 3 and c["stereo"]["dropped"]["time_jump"] >= 1 + 3
     assert ingest.pop_ready() == []  # reported once
+
+
+@pytest.mark.parametrize("stray_s", [0.0, 2**31 - 1, 3.0, 9.0])
+def test_a_stray_stamp_is_dropped_and_does_not_move_the_timeline(stray_s: float) -> None:
+    ingest = make(time_jump_s=1.0)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    ingest.add_depth("tof", depth_msg(5100 * MS))
+    stray = int(stray_s * 1e9)
+    assert ingest.add_depth("tof", depth_msg(stray)) == "bad_stamp"
+    assert ingest.add_pose("tof", pose_msg(stray)) == "bad_stamp"
+    assert ingest.add_color("tof", color_msg(stray)) == "bad_stamp"
+    ingest.add_pose("tof", pose_msg(5120 * MS))
+    ingest.add_depth("tof", depth_msg(5150 * MS))  # still on the timeline: not out of order, not a jump
+    ingest.add_pose("tof", pose_msg(5200 * MS))
+    items = ingest.pop_ready()
+    assert not any(isinstance(i, TimeJump) for i in items)
+    assert [f.stamp_ns for f in frames(items)] == [5100 * MS, 5150 * MS]
+    c = ingest.counters()["tof"]
+    assert c["dropped"]["bad_stamp"] == 3 and c["time_jumps"] == 0 and c["dropped"]["time_jump"] == 0
+    assert "stamp" in c["errors"]["bad_stamp"]
+
+
+def test_a_burst_of_consistent_stray_stamps_on_one_stream_is_not_a_restart() -> None:
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.05)
+    for i in range(20):  # tof's pose driver sends a burst on another clock while the others go on
+        t = 5000 * MS + i * 10 * MS
+        ingest.add_pose("tof", pose_msg(t))
+        assert ingest.add_pose("tof", pose_msg(100 * MS + i * 10 * MS)) == "bad_stamp"
+        ingest.add_depth("tof", depth_msg(t + 5 * MS))
+    items = ingest.pop_ready()
+    assert not any(isinstance(i, TimeJump) for i in items) and len(frames(items)) == 19
+    assert ingest.counters()["tof"]["dropped"]["bad_stamp"] == 20
+
+
+def test_restart_from_outside_the_streams() -> None:
+    ingest = make(time_jump_s=1.0)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    ingest.add_depth("tof", depth_msg(5100 * MS))
+    ingest.restart(to_ns=0)  # the /clock went back
+    assert ingest.add_depth("tof", depth_msg(10 * MS)) is None  # a new timeline starts at once
+    ingest.add_pose("tof", pose_msg(5 * MS))
+    ingest.add_pose("tof", pose_msg(15 * MS))
+    items = ingest.pop_ready()
+    assert isinstance(items[0], TimeJump) and [f.stamp_ns for f in frames(items)] == [10 * MS]
+    assert ingest.counters()["tof"]["dropped"]["time_jump"] == 1
 
 
 def test_colour_matched_by_nearest_stamp_and_resized() -> None:

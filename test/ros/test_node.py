@@ -142,7 +142,7 @@ def _stamp(msg: Any, t_s: float) -> None:
 
 
 def _pose_msg(t_s: float, T: np.ndarray) -> PoseStamped:
-    from senfunet_ros.ingest import quat_from_matrix
+    from senfunet_ros.geometry import quat_from_matrix
 
     msg = PoseStamped()
     _stamp(msg, t_s)
@@ -498,8 +498,9 @@ def _pose(t_ns: int, nan: bool = False) -> PoseStamped:
 
 def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> None:
     prefix = "bad"
-    run = Running("bad", {**topic_params(prefix), "pose_max_wait_s": 0.3, "time_jump_s": 1.0,
-                          "working_width": 0, "voxel_size_m": 0.04, "band_m": 0.4, "on_time_jump": "ignore"},
+    run = Running("bad", {**topic_params(prefix), "pose_max_wait_s": 0.3, "time_jump_s": 3.0,
+                          "restart_confirm_msgs": 3, "restart_confirm_s": 0.1,
+                          "working_width": 0, "voxel_size_m": 0.04, "band_m": 0.4, "on_time_jump": "keep"},
                   tmp_path)
     pub_node = Node("bad_publisher")
     try:
@@ -540,26 +541,33 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
         wait_for(lambda: dropped("tof", "bad_pose") >= 1, 10, "bad_pose")
 
         # out-of-order and duplicate stamps
-        send("tof", "depth", _image(10 * S, good))
-        send("tof", "depth", _image(10 * S, good))
-        send("tof", "depth", _image(10 * S - S // 2, good))
+        send("tof", "depth", _image(6 * S, good))
+        send("tof", "depth", _image(6 * S, good))
+        send("tof", "depth", _image(6 * S - S // 2, good))
         wait_for(lambda: dropped("tof", "duplicate") >= 1 and dropped("tof", "out_of_order") >= 1, 10,
                  "duplicate and out_of_order")
 
-        # no pose stream: the frame at 10 s times out once stream time passes 10.3 s
-        send("tof", "depth", _image(11 * S, good))
+        # no pose stream: the frame at 6 s times out once stream time passes 6.3 s
+        send("tof", "depth", _image(7 * S, good))
         wait_for(lambda: dropped("tof", "pose_timeout") >= 1, 10, "pose_timeout")
 
-        # time jumping backwards (a bag restarting)
+        # one stray stamp is dropped, it is no time jump
         send("tof", "depth", _image(1 * S, good))
+        wait_for(lambda: dropped("tof", "bad_stamp") >= 1, 10, "bad_stamp")
+        assert ingest.counters()["tof"]["time_jumps"] == 0
+
+        # time going back on every stream that speaks (a bag restarting): confirmed after 3 messages each
+        for k in range(1, 5):
+            send("tof", "pose", _pose(1 * S + k * S // 20))
+            send("tof", "depth", _image(1 * S + k * S // 20 + 1, good))
         wait_for(lambda: ingest.counters()["tof"]["time_jumps"] >= 1, 10, "time jump")
         wait_for(lambda: run.node.time_jumps >= 1, 10, "the node to handle the time jump")
 
         # still alive: a good frame with poses around it is integrated
-        send("tof", "pose", _pose(1 * S + S // 10))
-        send("tof", "pose", _pose(1 * S + S // 5))
-        send("tof", "depth", _image(1 * S + S // 7, good))
-        send("tof", "pose", _pose(1 * S + S // 4))
+        send("tof", "pose", _pose(1 * S + S // 3))
+        send("tof", "pose", _pose(1 * S + S // 2))
+        send("tof", "depth", _image(1 * S + S * 4 // 10, good))
+        send("tof", "pose", _pose(1 * S + S * 6 // 10))
         wait_for(lambda: ingest.counters()["tof"]["integrated"] >= 1, 30, "a good frame to be integrated")
         assert run.thread.is_alive()
         status = run.node.status()

@@ -1,4 +1,4 @@
-"""Offline replay (senfunet_ros.replay): storages agree byte for byte, stats, metrics, BagFeeder pacing."""
+"""Offline replay (senfunet_ros.replay): storages agree byte for byte, stats, metrics."""
 from __future__ import annotations
 
 import json
@@ -10,7 +10,6 @@ from pathlib import Path
 import pytest
 
 from senfunet_ros.bagio import copy_bag, open_bag
-from senfunet_ros.ingest import Frame, Ingest, TimeJump
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / "bags" / "sim_room"
@@ -176,82 +175,3 @@ def test_node_engine_config_runs_on_the_cpu_when_cuda_is_asked_for_and_absent(tm
     settings = load_settings(file)
     assert settings.device == "cuda"
     assert P.engine_config(settings).device == "cpu"
-
-
-# -- BagFeeder ----------------------------------------------------------------------------------
-
-
-def _frames(ingest: Ingest) -> list[Frame | TimeJump]:
-    return ingest.pop_ready()
-
-
-def test_feeder_paces_by_recorded_time(prefix: Path):
-    from senfunet_ros.replay import BagFeeder, ingest_config, load_settings
-
-    settings = load_settings()
-    with open_bag(prefix) as reader:
-        start, total = reader.start_ns, sum(i.count for i in reader.topics.values())
-        first_half = sum(1 for m in reader.messages() if m.log_time_ns - start <= 250_000_000)
-    feeder = BagFeeder(prefix, settings, rate=2.0)
-    ingest = Ingest(ingest_config(settings))
-    assert feeder.feed(ingest, 100.0) >= 1  # the first call anchors the bag's start
-    fed = 1 + feeder.feed(ingest, 100.125)  # 0.125 s of wall time at rate 2 = 0.25 s of bag time
-    assert fed == pytest.approx(first_half, abs=1) and not feeder.done
-    assert 0.2 < feeder.progress < 0.35
-    fed += feeder.feed(ingest, 200.0)
-    assert fed == total and feeder.fed == total
-    assert feeder.feed(ingest, 300.0) == 0 and feeder.done and feeder.error is None
-
-
-def test_feeder_gives_the_frames_replay_gives(prefix: Path):
-    from senfunet_ros.replay import BagFeeder, TopicRouter, ingest_config, load_settings
-
-    settings = load_settings()
-    direct = Ingest(ingest_config(settings))
-    expected = []
-    with open_bag(prefix) as reader:
-        router = TopicRouter(settings, reader.topics, prefix)
-        for msg in reader.messages(router.topics):
-            router.dispatch(direct, *router.decode(msg))
-            expected += [(f.sensor, f.stamp_ns) for f in _frames(direct)]
-    fed = Ingest(ingest_config(settings))
-    feeder = BagFeeder(prefix, settings, rate=0.0)  # as fast as the node keeps up
-    got, calls = [], 0
-    while not feeder.done:
-        feeder.feed(fed, float(calls))
-        got += [(f.sensor, f.stamp_ns) for f in _frames(fed)]  # the node's timer drains
-        calls += 1
-    with open_bag(prefix) as reader:
-        depth_images = reader.topics["/tof/depth"].count + reader.topics["/stereo/depth"].count
-    assert sorted(got) == sorted(expected) and len(got) == depth_images
-    assert calls > len(got)  # one depth image per call at most
-
-
-def test_feeder_backs_off_while_queues_are_full(prefix: Path):
-    from senfunet_ros.replay import BagFeeder, ingest_config, load_settings
-
-    settings = load_settings()
-    ingest = Ingest(ingest_config(settings))
-    feeder = BagFeeder(prefix, settings, rate=0.0, backlog=2)
-    for i in range(200):  # nobody drains: the feeder stops once a queue holds 2 frames
-        feeder.feed(ingest, float(i))
-    assert max(ingest.queue_depths().values()) == 2 and not feeder.done
-    feeder.close()
-
-
-def test_feeder_loops_and_the_time_jump_is_reported(prefix: Path):
-    from senfunet_ros.replay import BagFeeder, ingest_config, load_settings
-
-    settings = load_settings(overrides={"time_jump_s": 0.3})  # the prefix is only 1 s long
-    ingest = Ingest(ingest_config(settings))
-    feeder = BagFeeder(prefix, settings, rate=1.0, loop=True)
-    items = []
-    now = 0.0
-    while feeder.loops < 1 or feeder.progress < 0.5:
-        feeder.feed(ingest, now)
-        items += _frames(ingest)
-        now += 0.05
-        assert now < 10
-    jumps = [i for i in items if isinstance(i, TimeJump)]
-    assert len(jumps) == 1 and not feeder.done
-    feeder.close()

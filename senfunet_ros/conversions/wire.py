@@ -1,48 +1,32 @@
-"""Pure conversions between ROS messages and numpy: no node state, no rclpy Node.
+"""Wire encoding: MarkerArray and PointCloud2 straight into CDR bytes with numpy/numba.
 
-Message inputs are duck-typed (only attribute names are used), so the same functions accept
-rclpy messages from a live subscription and the message objects `rosbags` deserialises from a
-bag. Big outputs (MarkerArray, PointCloud2) are encoded straight into CDR bytes with numpy,
-because filling hundreds of thousands of `geometry_msgs/Point` objects costs about a second;
-`rclpy` publishers accept those bytes as they are.
-
-Convention: depth is float32 (H, W) metres with invalid pixels set to 0; RGB is uint8 (H, W, 3);
-poses are `T_world_camera` (4x4 float64, camera optical frame to the fixed frame, metres);
-stamps are integer nanoseconds. Every failure is a `ValueError` saying what was wrong and what
-to do about it.
+Filling hundreds of thousands of `geometry_msgs/Point` objects costs about a second; `rclpy`
+publishers accept already-serialised bytes as they are (`senfunet_ros.dds.publish_serialized`).
 """
 from __future__ import annotations
 
 import struct
-from typing import Any
 from collections.abc import Iterable, Iterator, Mapping, Sequence
+from typing import Any
 
 import numba
 import numpy as np
 
+from senfunet_ros.conversions.stamps import ns_to_stamp
+
 __all__ = [
-    "stamp_to_ns",
-    "ns_to_stamp",
-    "depth_from_image",
-    "rgb_from_image",
-    "intrinsics_from_camera_info",
-    "resize_depth",
-    "resize_rgb",
-    "scale_intrinsics",
-    "pose_from_pose_stamped",
-    "pose_from_odometry",
-    "pose_from_transform_stamped",
-    "pose_from_msg",
-    "POSE_PARSERS",
-    "block_marker_id",
-    "block_marker_ids",
-    "marker_array_cdr",
-    "delete_all_marker_array_cdr",
-    "point_cloud2_cdr",
-    "MARKER_TRIANGLE_LIST",
     "MARKER_ADD",
+    "MARKER_BYTES_PER_FACE",
     "MARKER_DELETE",
     "MARKER_DELETEALL",
+    "MARKER_TRIANGLE_LIST",
+    "MESH_MESSAGE_MAX_BYTES",
+    "block_marker_id",
+    "block_marker_ids",
+    "delete_all_marker_array_cdr",
+    "marker_array_cdr",
+    "marker_array_messages",
+    "point_cloud2_cdr",
 ]
 
 # visualization_msgs/Marker constants (from the message definition).
@@ -52,229 +36,6 @@ MARKER_DELETE = 2
 MARKER_DELETEALL = 3
 # sensor_msgs/PointField.FLOAT32
 _POINTFIELD_FLOAT32 = 7
-
-# A quaternion whose norm is off by more than this is a driver bug, not rounding: reject it.
-# Smaller deviations (float32 round trips) are renormalised.
-QUATERNION_NORM_TOLERANCE = 1e-2
-
-
-# --------------------------------------------------------------------------------------------
-# Stamps
-
-
-def stamp_to_ns(stamp: Any) -> int:
-    """builtin_interfaces/Time -> integer nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
-def ns_to_stamp(stamp_ns: int) -> tuple[int, int]:
-    """Integer nanoseconds -> (sec, nanosec) for builtin_interfaces/Time."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    return sec, nanosec
-
-
-# --------------------------------------------------------------------------------------------
-# Images
-
-_DEPTH_ENCODINGS: dict[str, tuple[str, float]] = {
-    # encoding -> (numpy dtype without byte order, scale to metres)
-    "32FC1": ("f4", 1.0),
-    "16UC1": ("u2", 1e-3),
-    "mono16": ("u2", 1e-3),  # some drivers label millimetre depth as mono16
-}
-
-_COLOR_ENCODINGS: dict[str, int] = {"rgb8": 3, "bgr8": 3, "mono8": 1, "rgba8": 4, "bgra8": 4}
-
-
-def _image_rows(msg: Any, bytes_per_pixel: int) -> np.ndarray:
-    """The image payload as (H, W * bytes_per_pixel) uint8, honouring `step` row padding."""
-    height, width, step = int(msg.height), int(msg.width), int(msg.step)
-    if height <= 0 or width <= 0:
-        raise ValueError(f"image is empty ({width}x{height}); the driver published no pixels")
-    row_bytes = width * bytes_per_pixel
-    if step < row_bytes:
-        raise ValueError(
-            f"image step {step} B is shorter than width {width} x {bytes_per_pixel} B per pixel; "
-            "fix the driver's step field"
-        )
-    if isinstance(msg.data, np.ndarray):
-        data = msg.data.view(np.uint8).ravel()
-    else:
-        data = np.frombuffer(msg.data, dtype=np.uint8)
-    if data.size < step * height:
-        raise ValueError(
-            f"image data has {data.size} B but step x height = {step * height} B; "
-            "the message is truncated or its step/height are wrong"
-        )
-    return data[: step * height].reshape(height, step)[:, :row_bytes]
-
-
-def depth_from_image(msg: Any) -> np.ndarray:
-    """sensor_msgs/Image (32FC1 metres or 16UC1 millimetres) -> depth_m float32 (H, W).
-
-    0, NaN, inf and negative values are invalid and come out as 0.
-    """
-    encoding = str(msg.encoding)
-    if encoding not in _DEPTH_ENCODINGS:
-        raise ValueError(
-            f"depth encoding '{encoding}' is not supported; publish 32FC1 (metres) or 16UC1 (millimetres)"
-        )
-    kind, scale = _DEPTH_ENCODINGS[encoding]
-    itemsize = int(kind[1])
-    rows = _image_rows(msg, itemsize)
-    dtype = np.dtype((">" if msg.is_bigendian else "<") + kind)
-    raw = np.ascontiguousarray(rows).view(dtype)  # HxW
-    depth_m = raw.astype(np.float32) * np.float32(scale)
-    depth_m[~np.isfinite(depth_m) | (depth_m <= 0.0)] = 0.0
-    return depth_m
-
-
-def rgb_from_image(msg: Any) -> np.ndarray:
-    """sensor_msgs/Image rgb8/bgr8/mono8 (also rgba8/bgra8) -> rgb uint8 (H, W, 3)."""
-    encoding = str(msg.encoding)
-    if encoding not in _COLOR_ENCODINGS:
-        raise ValueError(f"colour encoding '{encoding}' is not supported; publish rgb8, bgr8 or mono8")
-    channels = _COLOR_ENCODINGS[encoding]
-    rows = _image_rows(msg, channels)
-    pixels = rows.reshape(rows.shape[0], -1, channels)  # HxWxC
-    if encoding == "mono8":
-        return np.repeat(pixels, 3, axis=2)
-    if encoding.startswith("bgr"):
-        return np.ascontiguousarray(pixels[:, :, 2::-1])
-    return np.ascontiguousarray(pixels[:, :, :3])
-
-
-def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
-    """sensor_msgs/CameraInfo -> (K 3x3 float64, (width, height))."""
-    k = np.asarray(msg.k, dtype=np.float64)
-    if k.size != 9:
-        raise ValueError(f"camera_info K has {k.size} entries, expected 9 (row-major 3x3)")
-    K = k.reshape(3, 3).copy()
-    width, height = int(msg.width), int(msg.height)
-    if width <= 0 or height <= 0:
-        raise ValueError(f"camera_info size {width}x{height} is empty; set width and height in the driver")
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
-        raise ValueError(f"camera_info K has no positive finite focal lengths (fx={K[0, 0]}, fy={K[1, 1]}); "
-                         "calibrate the camera")
-    return K, (width, height)
-
-
-def scale_intrinsics(K: np.ndarray, src_size: tuple[int, int], dst_size: tuple[int, int]) -> np.ndarray:
-    """K for an image resized from src (width, height) to dst (width, height).
-
-    Pixel centres sit at integer coordinates, so the principal point maps as
-    c' = (c + 0.5) * s - 0.5 (not c * s, which shifts the image by half a pixel).
-    """
-    sx = dst_size[0] / src_size[0]
-    sy = dst_size[1] / src_size[1]
-    out = np.array(K, dtype=np.float64, copy=True)
-    out[0, 0] *= sx
-    out[0, 1] *= sx
-    out[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    out[1, 1] *= sy
-    out[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return out
-
-
-def _source_coords(src: int, dst: int) -> np.ndarray:
-    """Sample positions in the source image for each destination pixel centre."""
-    return (np.arange(dst, dtype=np.float64) + 0.5) * (src / dst) - 0.5
-
-
-def resize_depth(depth_m: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Nearest-neighbour resize of depth to (width, height): never blends across depth edges."""
-    height, width = depth_m.shape
-    if (width, height) == tuple(size):
-        return depth_m
-    rows = np.clip(np.rint(_source_coords(height, size[1])), 0, height - 1).astype(np.intp)
-    cols = np.clip(np.rint(_source_coords(width, size[0])), 0, width - 1).astype(np.intp)
-    return np.ascontiguousarray(depth_m[rows[:, None], cols[None, :]])
-
-
-def resize_rgb(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Bilinear resize of an (H, W, 3) uint8 image to (width, height)."""
-    height, width = rgb.shape[:2]
-    if (width, height) == tuple(size):
-        return rgb
-    y = np.clip(_source_coords(height, size[1]), 0, height - 1)
-    x = np.clip(_source_coords(width, size[0]), 0, width - 1)
-    y0 = np.floor(y).astype(np.intp)
-    x0 = np.floor(x).astype(np.intp)
-    y1 = np.minimum(y0 + 1, height - 1)
-    x1 = np.minimum(x0 + 1, width - 1)
-    wy = (y - y0)[:, None, None].astype(np.float32)
-    wx = (x - x0)[None, :, None].astype(np.float32)
-    img = rgb.astype(np.float32)
-    top = img[y0][:, x0] * (1 - wx) + img[y0][:, x1] * wx
-    bottom = img[y1][:, x0] * (1 - wx) + img[y1][:, x1] * wx
-    return np.clip(np.rint(top * (1 - wy) + bottom * wy), 0, 255).astype(np.uint8)
-
-
-# --------------------------------------------------------------------------------------------
-# Poses
-
-
-def _transform(translation: Any, rotation: Any, what: str) -> np.ndarray:
-    t = np.array([translation.x, translation.y, translation.z], dtype=np.float64)
-    q = np.array([rotation.x, rotation.y, rotation.z, rotation.w], dtype=np.float64)
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
-        raise ValueError(f"{what} contains NaN or inf; the localisation source lost track, fix it upstream")
-    norm = float(np.linalg.norm(q))
-    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise ValueError(
-            f"{what} orientation quaternion has norm {norm:.4f}, not 1; publish a unit quaternion"
-        )
-    x, y, z, w = q / norm
-    T = np.eye(4, dtype=np.float64)
-    T[:3, :3] = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
-    T[:3, 3] = t
-    return T
-
-
-def pose_from_pose_stamped(msg: Any) -> tuple[int, np.ndarray]:
-    """geometry_msgs/PoseStamped -> (stamp_ns, T_world_camera)."""
-    return stamp_to_ns(msg.header.stamp), _transform(msg.pose.position, msg.pose.orientation, "PoseStamped")
-
-
-def pose_from_odometry(msg: Any) -> tuple[int, np.ndarray]:
-    """nav_msgs/Odometry -> (stamp_ns, T_world_camera) from its pose (the twist is ignored)."""
-    pose = msg.pose.pose
-    return stamp_to_ns(msg.header.stamp), _transform(pose.position, pose.orientation, "Odometry")
-
-
-def pose_from_transform_stamped(msg: Any) -> tuple[int, np.ndarray]:
-    """geometry_msgs/TransformStamped -> (stamp_ns, T_world_camera)."""
-    tf = msg.transform
-    return stamp_to_ns(msg.header.stamp), _transform(tf.translation, tf.rotation, "TransformStamped")
-
-
-POSE_PARSERS = {
-    "pose_stamped": pose_from_pose_stamped,
-    "odometry": pose_from_odometry,
-    "transform_stamped": pose_from_transform_stamped,
-}
-
-
-def pose_from_msg(msg: Any) -> tuple[int, np.ndarray]:
-    """Any of the three accepted pose messages, recognised by its fields."""
-    if hasattr(msg, "transform"):
-        return pose_from_transform_stamped(msg)
-    pose = getattr(msg, "pose", None)
-    if pose is not None and hasattr(pose, "pose"):
-        return pose_from_odometry(msg)
-    if pose is not None and hasattr(pose, "position"):
-        return pose_from_pose_stamped(msg)
-    raise ValueError(
-        f"{type(msg).__name__} is not a pose message; publish PoseStamped, Odometry or TransformStamped"
-    )
-
-
-# --------------------------------------------------------------------------------------------
-# CDR encoding (XCDR1, little endian: what rmw_fastrtps puts on the wire and rclpy accepts)
 
 
 class _CdrWriter:
@@ -303,12 +64,6 @@ class _CdrWriter:
 
     def i32(self, value: int) -> None:
         self.raw(struct.pack("<i", value), 4)
-
-    def f32s(self, *values: float) -> None:
-        self.raw(struct.pack(f"<{len(values)}f", *values), 4)
-
-    def f64s(self, *values: float) -> None:
-        self.raw(struct.pack(f"<{len(values)}d", *values), 8)
 
     def string(self, text: str) -> None:
         data = text.encode("utf-8") + b"\x00"
@@ -499,7 +254,6 @@ def marker_array_messages(
         data = marker_array_cdr(meshes.blocks(start, stop), removed if first else (), stamp_ns=stamp_ns,
                                 frame_id=frame_id, delete_all_first=delete_all_first and first, as_array=True,
                                 out=buffer)
-        assert isinstance(data, np.ndarray)  # as_array
         if data.base is not buffer:
             buffer = data
         yield data
@@ -562,9 +316,7 @@ def marker_array_cdr(
 
 def delete_all_marker_array_cdr(*, stamp_ns: int, frame_id: str) -> bytes:
     """A MarkerArray holding one DELETEALL marker: clears every block in the subscriber."""
-    cdr = marker_array_cdr({}, (), stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
-    assert isinstance(cdr, bytes)  # not as_array
-    return cdr
+    return marker_array_cdr({}, (), stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
 
 
 def point_cloud2_cdr(

@@ -1,0 +1,215 @@
+"""Images: sensor_msgs/Image (and CompressedImage) -> numpy depth and colour, resizing, intrinsics.
+
+Convention: depth is float32 (H, W) metres with invalid pixels set to 0; RGB is uint8 (H, W, 3).
+Every failure is a ValueError saying what was wrong and what to do about it.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "depth_from_image",
+    "intrinsics_from_camera_info",
+    "resize_depth",
+    "resize_rgb",
+    "rgb_from_image",
+    "scale_intrinsics",
+]
+
+_DEPTH_ENCODINGS: dict[str, tuple[str, float]] = {
+    # encoding -> (numpy dtype without byte order, scale to metres)
+    "32FC1": ("f4", 1.0),
+    "16UC1": ("u2", 1e-3),
+    "mono16": ("u2", 1e-3),  # some drivers label millimetre depth as mono16
+}
+
+_COLOR_ENCODINGS: dict[str, int] = {"rgb8": 3, "bgr8": 3, "mono8": 1, "rgba8": 4, "bgra8": 4}
+
+
+def _image_rows(msg: Any, bytes_per_pixel: int) -> np.ndarray:
+    """The image payload as (H, W * bytes_per_pixel) uint8, honouring `step` row padding."""
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    if height <= 0 or width <= 0:
+        raise ValueError(f"image is empty ({width}x{height}); the driver published no pixels")
+    row_bytes = width * bytes_per_pixel
+    if step < row_bytes:
+        raise ValueError(
+            f"image step {step} B is shorter than width {width} x {bytes_per_pixel} B per pixel; "
+            "fix the driver's step field"
+        )
+    data = np.frombuffer(msg.data, dtype=np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8).ravel()
+    if data.size < step * height:
+        raise ValueError(
+            f"image data has {data.size} B but step x height = {step * height} B; "
+            "the message is truncated or its step/height are wrong"
+        )
+    return data[: step * height].reshape(height, step)[:, :row_bytes]
+
+
+def _is_compressed(msg: Any) -> bool:
+    return hasattr(msg, "format") and not hasattr(msg, "encoding")
+
+
+# image_transport's compressed_depth_image_transport: a 12-byte ConfigHeader (int32 format, float32
+# depthParam[2]) before the PNG; 16UC1 depth is stored as it is, 32FC1 as quantised inverse depth.
+_COMPRESSED_DEPTH_HEADER = np.dtype([("format", "<i4"), ("depth_a", "<f4"), ("depth_b", "<f4")])
+
+
+def _decode(data: np.ndarray, flags: int, what: str) -> np.ndarray:
+    import cv2
+
+    try:
+        image = cv2.imdecode(data, flags) if data.size else None
+    except cv2.error as err:
+        raise ValueError(f"{what} cannot be decoded ({str(err).strip().splitlines()[-1]})") from None
+    if image is None:
+        raise ValueError(f"{what} is not a readable png/jpeg image; check the publisher's image_transport")
+    return image
+
+
+def depth_from_compressed(msg: Any) -> np.ndarray:
+    """sensor_msgs/CompressedImage as image_transport's compressedDepth writes it -> depth_m float32
+    (H, W): format '16UC1; compressedDepth png' (millimetres) or '32FC1; compressedDepth png'
+    (inverse depth quantised with the header's parameters)."""
+    import cv2
+
+    fmt = str(msg.format)
+    data = np.frombuffer(bytes(msg.data), np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8)
+    if "compressedDepth" not in fmt:
+        raise ValueError(f"compressed depth format '{fmt}' is not compressedDepth; publish depth through "
+                         "image_transport's compressedDepth (png)")
+    encoding = fmt.split(";")[0].strip()
+    if data.size < _COMPRESSED_DEPTH_HEADER.itemsize:
+        raise ValueError(f"compressedDepth message has {data.size} B, less than its 12-byte header")
+    header = data[:_COMPRESSED_DEPTH_HEADER.itemsize].view(_COMPRESSED_DEPTH_HEADER)[0]
+    raw = _decode(data[_COMPRESSED_DEPTH_HEADER.itemsize:], cv2.IMREAD_UNCHANGED, "compressedDepth payload")
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise ValueError(f"compressedDepth payload is {raw.dtype} with {raw.ndim} dims; "
+                         "expected a 16-bit single-channel png")
+    if encoding in ("16UC1", "mono16"):
+        depth_m = raw.astype(np.float32) * np.float32(1e-3)
+    elif encoding == "32FC1":
+        a, b = float(header["depth_a"]), float(header["depth_b"])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth_m = (a / (raw.astype(np.float32) - b)).astype(np.float32)
+        depth_m[raw == 0] = 0.0
+    else:
+        raise ValueError(f"compressedDepth encoding '{encoding}' is not supported; publish 16UC1 or 32FC1")
+    depth_m[~np.isfinite(depth_m) | (depth_m <= 0.0)] = 0.0
+    return depth_m
+
+
+def rgb_from_compressed(msg: Any) -> np.ndarray:
+    """sensor_msgs/CompressedImage (jpeg or png, image_transport's 'compressed') -> rgb uint8 (H, W, 3)."""
+    import cv2
+
+    data = np.frombuffer(bytes(msg.data), np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8)
+    image = _decode(data, cv2.IMREAD_COLOR, f"compressed colour image (format '{msg.format}')")  # BGR
+    return np.ascontiguousarray(image[:, :, ::-1])
+
+
+def depth_from_image(msg: Any) -> np.ndarray:
+    """sensor_msgs/Image (32FC1 metres or 16UC1 millimetres), or a compressedDepth CompressedImage,
+    -> depth_m float32 (H, W).
+
+    0, NaN, inf and negative values are invalid and come out as 0.
+    """
+    if _is_compressed(msg):
+        return depth_from_compressed(msg)
+    encoding = str(msg.encoding)
+    if encoding not in _DEPTH_ENCODINGS:
+        raise ValueError(
+            f"depth encoding '{encoding}' is not supported; publish 32FC1 (metres) or 16UC1 (millimetres)"
+        )
+    kind, scale = _DEPTH_ENCODINGS[encoding]
+    itemsize = int(kind[1])
+    rows = _image_rows(msg, itemsize)
+    dtype = np.dtype((">" if msg.is_bigendian else "<") + kind)
+    raw = np.ascontiguousarray(rows).view(dtype)  # HxW
+    depth_m = raw.astype(np.float32) * np.float32(scale)
+    depth_m[~np.isfinite(depth_m) | (depth_m <= 0.0)] = 0.0
+    return depth_m
+
+
+def rgb_from_image(msg: Any) -> np.ndarray:
+    """sensor_msgs/Image rgb8/bgr8/mono8 (also rgba8/bgra8), or a jpeg/png CompressedImage, -> rgb uint8 (H, W, 3)."""
+    if _is_compressed(msg):
+        return rgb_from_compressed(msg)
+    encoding = str(msg.encoding)
+    if encoding not in _COLOR_ENCODINGS:
+        raise ValueError(f"colour encoding '{encoding}' is not supported; publish rgb8, bgr8 or mono8")
+    channels = _COLOR_ENCODINGS[encoding]
+    rows = _image_rows(msg, channels)
+    pixels = rows.reshape(rows.shape[0], -1, channels)  # HxWxC
+    if encoding == "mono8":
+        return np.repeat(pixels, 3, axis=2)
+    if encoding.startswith("bgr"):
+        return np.ascontiguousarray(pixels[:, :, 2::-1])
+    return np.ascontiguousarray(pixels[:, :, :3])
+
+
+def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
+    """sensor_msgs/CameraInfo -> (K 3x3 float64, (width, height))."""
+    k = np.asarray(msg.k, dtype=np.float64)
+    if k.size != 9:
+        raise ValueError(f"camera_info K has {k.size} entries, expected 9 (row-major 3x3)")
+    K = k.reshape(3, 3).copy()
+    width, height = int(msg.width), int(msg.height)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"camera_info size {width}x{height} is empty; set width and height in the driver")
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
+        raise ValueError(f"camera_info K has no positive finite focal lengths (fx={K[0, 0]}, fy={K[1, 1]}); calibrate the camera")
+    return K, (width, height)
+
+
+def scale_intrinsics(K: np.ndarray, src_size: tuple[int, int], dst_size: tuple[int, int]) -> np.ndarray:
+    """K for an image resized from src (width, height) to dst (width, height).
+
+    Pixel centres sit at integer coordinates, so the principal point maps as
+    c' = (c + 0.5) * s - 0.5 (not c * s, which shifts the image by half a pixel).
+    """
+    sx = dst_size[0] / src_size[0]
+    sy = dst_size[1] / src_size[1]
+    out = np.array(K, dtype=np.float64, copy=True)
+    out[0, 0] *= sx
+    out[0, 1] *= sx
+    out[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    out[1, 1] *= sy
+    out[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return out
+
+
+def _source_coords(src: int, dst: int) -> np.ndarray:
+    """Sample positions in the source image for each destination pixel centre."""
+    return (np.arange(dst, dtype=np.float64) + 0.5) * (src / dst) - 0.5
+
+
+def resize_depth(depth_m: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Nearest-neighbour resize of depth to (width, height): never blends across depth edges."""
+    height, width = depth_m.shape
+    if (width, height) == tuple(size):
+        return depth_m
+    rows = np.clip(np.rint(_source_coords(height, size[1])), 0, height - 1).astype(np.intp)
+    cols = np.clip(np.rint(_source_coords(width, size[0])), 0, width - 1).astype(np.intp)
+    return np.ascontiguousarray(depth_m[rows[:, None], cols[None, :]])
+
+
+def resize_rgb(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Bilinear resize of an (H, W, 3) uint8 image to (width, height)."""
+    height, width = rgb.shape[:2]
+    if (width, height) == tuple(size):
+        return rgb
+    y = np.clip(_source_coords(height, size[1]), 0, height - 1)
+    x = np.clip(_source_coords(width, size[0]), 0, width - 1)
+    y0 = np.floor(y).astype(np.intp)
+    x0 = np.floor(x).astype(np.intp)
+    y1 = np.minimum(y0 + 1, height - 1)
+    x1 = np.minimum(x0 + 1, width - 1)
+    wy = (y - y0)[:, None, None].astype(np.float32)
+    wx = (x - x0)[None, :, None].astype(np.float32)
+    img = rgb.astype(np.float32)
+    top = img[y0][:, x0] * (1 - wx) + img[y0][:, x1] * wx
+    bottom = img[y1][:, x0] * (1 - wx) + img[y1][:, x1] * wx
+    return np.clip(np.rint(top * (1 - wy) + bottom * wy), 0, 255).astype(np.uint8)

@@ -1,0 +1,104 @@
+"""Rotation and pose maths for the ROS layer: quaternions, 4x4 transforms, interpolation.
+
+Convention: quaternions are (x, y, z, w) as in geometry_msgs/Quaternion; transforms are 4x4
+float64 `T_parent_child` (child frame to parent frame, metres). No message types here: the
+conversions pass plain numbers in.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "QUATERNION_NORM_TOLERANCE",
+    "interpolate_pose",
+    "invert_transform",
+    "matrix_from_quat",
+    "quat_from_matrix",
+    "tq_from_transform",
+    "transform_from_tq",
+]
+
+# A quaternion whose norm is off by more than this is a driver bug, not rounding: reject it.
+# Smaller deviations (float32 round trips) are renormalised.
+QUATERNION_NORM_TOLERANCE = 1e-2
+
+
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> unit quaternion (x, y, z, w), numerically stable for any angle."""
+    m = R
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.asarray(q, dtype=np.float64)
+    return q / np.linalg.norm(q)
+
+
+def matrix_from_quat(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) -> 3x3 rotation matrix."""
+    x, y, z, w = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def transform_from_tq(t: np.ndarray, q: np.ndarray, what: str) -> np.ndarray:
+    """Translation (3,) and quaternion (x, y, z, w) -> 4x4 transform. ValueError, naming `what`, for
+    NaN/inf or a quaternion whose norm is not 1 (within QUATERNION_NORM_TOLERANCE)."""
+    t = np.asarray(t, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
+        raise ValueError(f"{what} contains NaN or inf; the localisation source lost track, fix it upstream")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise ValueError(
+            f"{what} orientation quaternion has norm {norm:.4f}, not 1; publish a unit quaternion"
+        )
+    T = np.eye(4, dtype=np.float64)
+    T[:3, :3] = matrix_from_quat(q / norm)
+    T[:3, 3] = t
+    return T
+
+
+def tq_from_transform(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """4x4 transform -> (translation (3,), quaternion (x, y, z, w))."""
+    T = np.asarray(T, dtype=np.float64)
+    return T[:3, 3].copy(), quat_from_matrix(T[:3, :3])
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    out = np.eye(4, dtype=np.float64)
+    R = np.asarray(T, dtype=np.float64)[:3, :3]
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ np.asarray(T, dtype=np.float64)[:3, 3]
+    return out
+
+
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
+    """Pose at fraction s in [0, 1] from T0 to T1: lerp of translation, slerp of rotation."""
+    q0 = quat_from_matrix(T0[:3, :3])
+    q1 = quat_from_matrix(T1[:3, :3])
+    dot = float(np.dot(q0, q1))
+    if dot < 0.0:  # take the short way round
+        q1, dot = -q1, -dot
+    if dot > 0.9995:  # nearly equal: lerp is exact enough and avoids dividing by sin(~0)
+        q = q0 + s * (q1 - q0)
+    else:
+        theta = np.arccos(dot)
+        q = (np.sin((1 - s) * theta) * q0 + np.sin(s * theta) * q1) / np.sin(theta)
+    T = np.eye(4)
+    T[:3, :3] = matrix_from_quat(q / np.linalg.norm(q))
+    T[:3, 3] = (1 - s) * T0[:3, 3] + s * T1[:3, 3]
+    return T

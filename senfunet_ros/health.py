@@ -1,0 +1,141 @@
+"""Stream health for diagnostics: rates over a recent window, WARN that clears when its cause ends,
+STALE when a stream stops, and topics that never received anything.
+
+No rclpy: the node feeds it arrival times and its Ingest counters, and turns `report()` into
+diagnostic_msgs. Times are `time.monotonic()` seconds (wall time: sim time may stand still).
+"""
+from __future__ import annotations
+
+import enum
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = ["HealthMonitor", "Level", "SensorReport", "StreamReport"]
+
+
+_OPTIONAL = ("color",)  # a colour topic nobody publishes is logged once, it does not hold the sensor at WARN
+
+
+class Level(enum.IntEnum):
+    """diagnostic_msgs/DiagnosticStatus levels."""
+
+    OK = 0
+    WARN = 1
+    ERROR = 2
+    STALE = 3
+
+
+@dataclass
+class StreamReport:
+    rate_hz: float  # messages per second over the recent window
+    received: int  # messages ever
+    silent_s: float  # seconds since the last message (since subscribing if none came)
+    stale: bool  # it spoke, then stopped for stale_after_s
+    never: bool  # subscribed for a window and nothing came
+
+
+@dataclass
+class SensorReport:
+    level: Level
+    message: str
+    streams: dict[str, StreamReport] = field(default_factory=dict)
+    recent_drops: dict[str, int] = field(default_factory=dict)  # reason -> drops within the window
+
+
+class _Stream:
+    def __init__(self, now: float) -> None:
+        self.subscribed_s = now
+        self.arrivals: deque[float] = deque()
+        self.received = 0
+        self.last_s: float | None = None
+
+
+class HealthMonitor:
+    """Thread-safe: subscription callbacks call `received`, the status timer the rest."""
+
+    def __init__(self, sensors: dict[str, tuple[str, ...]], *, window_s: float, stale_after_s: float,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        """`sensors`: sensor -> the streams it subscribes to (those a report covers)."""
+        self.window_s = window_s
+        self.stale_after_s = stale_after_s
+        self._clock = clock
+        now = clock()
+        self._lock = threading.Lock()
+        self._streams = {(s, stream): _Stream(now) for s, streams in sensors.items() for stream in streams}
+        self._drops: dict[str, deque[tuple[float, str, int]]] = {s: deque() for s in sensors}
+        self._last_dropped: dict[str, dict[str, int]] = {s: {} for s in sensors}
+
+    def received(self, sensor: str, stream: str) -> None:
+        now = self._clock()
+        with self._lock:
+            state = self._streams.get((sensor, stream))
+            if state is None:
+                return
+            state.arrivals.append(now)
+            state.received += 1
+            state.last_s = now
+            self._expire(state.arrivals, now)
+
+    def _expire(self, arrivals: deque, now: float) -> None:
+        while arrivals and (arrivals[0] if isinstance(arrivals[0], float) else arrivals[0][0]) < now - self.window_s:
+            arrivals.popleft()
+
+    def counters(self, counters: dict[str, dict[str, Any]]) -> None:
+        """Ingest's counters (sensor -> {"dropped": {reason: n}}): new drops enter the window."""
+        now = self._clock()
+        with self._lock:
+            for sensor, c in counters.items():
+                if sensor not in self._drops:
+                    continue
+                before = self._last_dropped[sensor]
+                for reason, n in c["dropped"].items():
+                    if n > before.get(reason, 0):
+                        self._drops[sensor].append((now, reason, n - before.get(reason, 0)))
+                self._last_dropped[sensor] = dict(c["dropped"])
+
+    def report(self) -> dict[str, SensorReport]:
+        now = self._clock()
+        out: dict[str, SensorReport] = {}
+        with self._lock:
+            for sensor, drops in self._drops.items():
+                self._expire(drops, now)
+                recent: dict[str, int] = {}
+                for _, reason, n in drops:
+                    recent[reason] = recent.get(reason, 0) + n
+                streams = {}
+                for (s, stream), state in self._streams.items():
+                    if s != sensor:
+                        continue
+                    self._expire(state.arrivals, now)
+                    span = min(self.window_s, max(now - state.subscribed_s, 1e-9))
+                    silent = now - (state.last_s if state.last_s is not None else state.subscribed_s)
+                    streams[stream] = StreamReport(
+                        rate_hz=len(state.arrivals) / span, received=state.received, silent_s=silent,
+                        stale=state.last_s is not None and silent > self.stale_after_s,
+                        never=state.last_s is None and silent > self.window_s)
+                out[sensor] = self._judge(streams, recent)
+        return out
+
+    @staticmethod
+    def _judge(streams: dict[str, StreamReport], recent: dict[str, int]) -> SensorReport:
+        stale = sorted(name for name, r in streams.items() if r.stale)
+        never = sorted(name for name, r in streams.items() if r.never and name not in _OPTIONAL)
+        if stale:
+            level = Level.STALE
+            message = f"no messages on {', '.join(stale)} for {max(streams[n].silent_s for n in stale):.1f} s"
+        elif never or recent:
+            level = Level.WARN
+            parts = []
+            if never:
+                parts.append(f"nothing received yet on {', '.join(never)}")
+            if recent:
+                parts.append("recently dropped: " + ", ".join(f"{n} {r}" for r, n in sorted(recent.items())))
+            message = "; ".join(parts)
+        else:
+            level = Level.OK
+            message = ", ".join(f"{name} {r.rate_hz:.1f} Hz" for name, r in streams.items() if not r.never) or "ok"
+        return SensorReport(level, message, streams, recent)

@@ -1,0 +1,193 @@
+"""The one piece the live node and offline replay share: what happens to messages, frames, time
+jumps, failures, saving and loading. They differ only in clock and transport (DDS callbacks and
+timers vs. a bag read in a loop).
+
+    pipeline = Pipeline(engine, ingest, on_time_jump="keep", log=print)
+    pipeline.dispatch("tof", Stream.DEPTH, msg)   # a subscription callback / a bag message
+    pipeline.drain(ingest.pop_ready())             # the integration timer / after each message
+    pipeline.save_meshes(Path("out"), sensors=("tof", "stereo"), tsdf_fusion=True)
+
+No rclpy here: messages are duck-typed, logging goes through the `log(level, text)` callback.
+Threading: `dispatch` may run on several threads (Ingest locks); `drain`, `reset`, `load_map`
+run on one thread at a time (the node's integration timer and its services share a lock).
+"""
+from __future__ import annotations
+
+import enum
+import os
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from senfunet_ros.ingest import Frame, Ingest, TimeJump, integrate_ready
+
+__all__ = ["FILE_MODE", "MESH_FILES", "Pipeline", "SavedMesh", "Stream", "TimeJumpAction"]
+
+MESH_FILES = {"fused": "mesh"}  # engine mesh name -> file stem (sensors and tsdf_fusion keep their names)
+FILE_MODE = 0o644  # maps and meshes are for other users and tools too (a temporary file would be 0600)
+
+
+class Stream(str, enum.Enum):
+    """The input streams of a sensor."""
+
+    CAMERA_INFO = "camera_info"
+    DEPTH = "depth"
+    COLOR = "color"
+    POSE = "pose"
+    TF = "tf"  # /tf and /tf_static belong to every sensor (sensor "")
+    TF_STATIC = "tf_static"
+
+
+class TimeJumpAction(str, enum.Enum):
+    """What a confirmed restart of time (a bag looping, a robot rebooting its clock) does to the map."""
+
+    KEEP = "keep"
+    RESET = "reset"
+
+    @classmethod
+    def parse(cls, value: str) -> TimeJumpAction:
+        """'ignore' is the older spelling of 'keep'."""
+        return cls.KEEP if value == "ignore" else cls(value)
+
+
+@dataclass(frozen=True)
+class SavedMesh:
+    path: Path
+    mesh: Any  # senfunet_core.mesher.Mesh
+    extract_s: float
+
+
+Log = Callable[[str, str], None]  # (level: "info" | "warning" | "error", text)
+
+
+class Pipeline:
+    """Messages -> Ingest -> engine, with one policy for time jumps, failures and files."""
+
+    def __init__(self, engine: Any, ingest: Ingest, *, on_time_jump: str = "keep", log: Log | None = None,
+                 on_integrated: Callable[[Frame, float], None] | None = None) -> None:
+        self.engine = engine
+        self.ingest = ingest
+        self.on_time_jump = TimeJumpAction.parse(on_time_jump)
+        self._log = log or (lambda level, text: None)
+        self._on_integrated = on_integrated
+        self.lock = threading.RLock()  # held while the engine is fed, reset, replaced or saved
+        self.latest_stamp_ns = 0  # latest integrated sensor time: the stamp of every output
+        self.frames_integrated = 0
+        self.frames_failed = 0  # the engine rejected them (the map is untouched)
+        self.frames_unfinished = 0  # taken from the queues but not integrated because the process stopped
+        self.time_jumps = 0
+        self.integrate_s = 0.0
+        self.engine_errors: list[str] = []  # the first few, for stats.json and the status
+        self.stopping = False
+
+    # -- messages ---------------------------------------------------------------------------------
+
+    def dispatch(self, sensor: str, stream: Stream | str, message: Any) -> str | None:
+        """Hand one message to Ingest (what a subscription callback does); returns the drop reason."""
+        return self.dispatch_to(self.ingest, sensor, stream, message)
+
+    @staticmethod
+    def dispatch_to(ingest: Ingest, sensor: str, stream: Stream | str, message: Any) -> str | None:
+        stream = Stream(stream)
+        if stream is Stream.DEPTH:
+            return ingest.add_depth(sensor, message)
+        if stream is Stream.COLOR:
+            return ingest.add_color(sensor, message)
+        if stream is Stream.POSE:
+            return ingest.add_pose(sensor, message)
+        if stream in (Stream.TF, Stream.TF_STATIC):
+            return ingest.add_tf(message, static=stream is Stream.TF_STATIC)
+        return ingest.add_camera_info(sensor, message)
+
+    # -- frames ----------------------------------------------------------------------------------
+
+    def drain(self, items: Iterable[Frame | TimeJump]) -> int:
+        """Integrate ready items in order (each next frame's feature net overlapping the current
+        frame's kernels); returns the frames integrated."""
+        with self.lock:
+            before = self.frames_integrated
+            integrate_ready(self.engine, items, self._time_jump, self._frame_done)
+            return self.frames_integrated - before
+
+    def _time_jump(self, jump: TimeJump) -> None:
+        self.time_jumps += 1
+        reset = self.on_time_jump is TimeJumpAction.RESET
+        self._log("warning", f"time jumped back on {jump.sensor} {jump.stream}: {jump.from_ns * 1e-9:.3f} s -> "
+                  f"{jump.to_ns * 1e-9:.3f} s (a bag restarting?); queued frames flushed, map "
+                  f"{'reset' if reset else 'kept'} (parameter on_time_jump)")
+        if reset:
+            self.engine.reset()
+        self.latest_stamp_ns = jump.to_ns
+
+    def _frame_done(self, frame: Frame, error: Exception | None, seconds: float) -> None:
+        self.integrate_s += seconds
+        if error is None:
+            self.frames_integrated += 1
+            self.ingest.mark_integrated(frame.sensor)
+            self.latest_stamp_ns = max(self.latest_stamp_ns, frame.stamp_ns)
+            if self._on_integrated is not None:
+                self._on_integrated(frame, seconds)
+            return
+        if self.stopping and isinstance(error, RuntimeError):  # the worker pools went away under it
+            self.frames_unfinished += 1
+            self.ingest.mark_dropped(frame.sensor, "shutdown")
+            return
+        self.frames_failed += 1  # InputError or worse: this frame is lost, the map is not
+        self.ingest.mark_dropped(frame.sensor, "engine_error")
+        text = f"{frame.sensor} at {frame.stamp_ns * 1e-9:.3f} s: {error}"
+        if len(self.engine_errors) < 10:
+            self.engine_errors.append(text)
+        self._log("warning", f"{frame.sensor}: frame at {frame.stamp_ns * 1e-9:.3f} s rejected by the engine: {error}")
+
+    # -- map and files ---------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Forget the map and the queued frames (poses and camera_info stay)."""
+        with self.lock:
+            self.engine.reset()
+            self.ingest.clear_frames()
+
+    def save_meshes(self, out_dir: str | Path, *, sensors: Iterable[str], tsdf_fusion: bool) -> dict[str, SavedMesh]:
+        """Fused (filtered), per-sensor and, if kept, TSDF Fusion meshes as PLY files (mode 0644)."""
+        from senfunet_core.ply import write_ply
+
+        out = Path(out_dir).expanduser()
+        out.mkdir(parents=True, exist_ok=True)
+        which = ["fused", *sensors] + (["tsdf_fusion"] if tsdf_fusion else [])
+        meshes: dict[str, tuple[Any, float]] = {}
+        with self.lock:
+            for name in which:
+                t0 = time.perf_counter()
+                meshes[MESH_FILES.get(name, name)] = (self.engine.extract_mesh(name), time.perf_counter() - t0)
+        saved = {}
+        for stem, (mesh, seconds) in meshes.items():
+            path = out / f"{stem}.ply"
+            write_ply(path, mesh)
+            os.chmod(path, FILE_MODE)
+            saved[stem] = SavedMesh(path, mesh, seconds)
+        return saved
+
+    def save_map(self, path: str | Path) -> Path:
+        """The whole engine state (grids, networks, config) in one file, mode 0644."""
+        path = Path(path).expanduser()
+        with self.lock:
+            self.engine.save(path)
+        os.chmod(path, FILE_MODE)
+        return path
+
+    def load_map(self, path: str | Path, *, device: str | None = None) -> Any:
+        """Replace the engine by the one saved in `path` (InputError if it is not a saved map); the
+        queued frames go (they belong to the old map's timeline). Returns the new engine."""
+        from senfunet_core.engine import SenFuNet
+
+        path = Path(path).expanduser()
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such map file; set parameter map_file or call ~/save_map first")
+        engine = SenFuNet.load(path, device=device)
+        with self.lock:
+            self.engine = engine
+            self.ingest.clear_frames()
+        return engine

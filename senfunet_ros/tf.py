@@ -1,0 +1,129 @@
+"""A small TF buffer without ROS: /tf and /tf_static transforms in, `T_target_source` at a stamp out.
+
+Used by replay (bags carry /tf and /tf_static) and by the live node when tf2_ros cannot be
+imported but tf2_msgs can. The tree is the usual one: each child frame has one parent; dynamic
+links are interpolated at the stamp (lerp + slerp), static ones hold at any time.
+
+Convention: `lookup(target, source, stamp_ns)` returns the 4x4 transform taking points in
+`source` to `target` (`T_target_source`; with target = fixed frame and source = the camera's
+optical frame, that is `T_world_camera`).
+"""
+from __future__ import annotations
+
+import bisect
+import threading
+from typing import Any
+
+import numpy as np
+
+from senfunet_ros.conversions.poses import transform_from_msg
+from senfunet_ros.conversions.stamps import stamp_to_ns
+from senfunet_ros.geometry import interpolate_pose, invert_transform
+
+__all__ = ["TfBuffer", "TfError", "TfWait"]
+
+
+class TfError(ValueError):
+    """The transform cannot be had at that stamp: no path between the frames, or a gap in a link."""
+
+
+class TfWait(TfError):
+    """Not yet: a link has no transform at or after the stamp (it may still come)."""
+
+
+class _Link:
+    def __init__(self, parent: str) -> None:
+        self.parent = parent
+        self.static: np.ndarray | None = None
+        self.stamps: list[int] = []  # sorted
+        self.transforms: list[np.ndarray] = []
+
+
+class TfBuffer:
+    """Thread-safe. `max_links_history` transforms are kept per dynamic link."""
+
+    def __init__(self, *, max_gap_s: float = 0.1, history: int = 2000) -> None:
+        self.max_gap_ns = int(max_gap_s * 1e9)
+        self.history = history
+        self._links: dict[str, _Link] = {}  # child frame -> link to its parent
+        self._lock = threading.Lock()
+
+    def add_message(self, msg: Any, *, static: bool) -> int:
+        """Every transform of a tf2_msgs/TFMessage (duck-typed); returns how many were added.
+        ValueError naming the frames for a transform with NaN or a non-unit quaternion."""
+        n = 0
+        for tf in msg.transforms:
+            T = transform_from_msg(tf.transform.translation, tf.transform.rotation,
+                                   f"transform {tf.header.frame_id} -> {tf.child_frame_id}")
+            self.add(tf.header.frame_id, tf.child_frame_id, stamp_to_ns(tf.header.stamp), T, static=static)
+            n += 1
+        return n
+
+    def add(self, parent: str, child: str, stamp_ns: int, T_parent_child: np.ndarray, *, static: bool) -> None:
+        parent, child = parent.lstrip("/"), child.lstrip("/")
+        with self._lock:
+            link = self._links.get(child)
+            if link is None or link.parent != parent:  # a new link, or the child moved to another parent
+                link = self._links[child] = _Link(parent)
+            if static:
+                link.static = np.asarray(T_parent_child, np.float64)
+                return
+            i = bisect.bisect_left(link.stamps, stamp_ns)
+            if i < len(link.stamps) and link.stamps[i] == stamp_ns:
+                link.transforms[i] = T_parent_child
+            else:
+                link.stamps.insert(i, stamp_ns)
+                link.transforms.insert(i, np.asarray(T_parent_child, np.float64))
+            if len(link.stamps) > self.history:
+                del link.stamps[0], link.transforms[0]
+
+    def clear(self) -> None:
+        """Forget the dynamic transforms (time restarted); static ones stay."""
+        with self._lock:
+            for link in self._links.values():
+                link.stamps.clear()
+                link.transforms.clear()
+
+    def _link_at(self, child: str, link: _Link, stamp_ns: int) -> np.ndarray:
+        if link.static is not None:
+            return link.static
+        stamps = link.stamps
+        i = bisect.bisect_left(stamps, stamp_ns)
+        if i == len(stamps):
+            raise TfWait(f"no transform {link.parent} -> {child} at or after {stamp_ns * 1e-9:.3f} s yet")
+        if stamps[i] == stamp_ns:
+            return link.transforms[i]
+        if i == 0 or stamp_ns - stamps[i - 1] > self.max_gap_ns or stamps[i] - stamp_ns > self.max_gap_ns:
+            raise TfError(f"the transforms {link.parent} -> {child} around {stamp_ns * 1e-9:.3f} s are more than "
+                          f"{self.max_gap_ns * 1e-9:g} s from it; publish them more often or raise pose_tolerance_s")
+        s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
+        return interpolate_pose(link.transforms[i - 1], link.transforms[i], s)
+
+    def _chain(self, frame: str) -> list[str]:
+        chain = [frame]
+        while chain[-1] in self._links and len(chain) < 100:
+            chain.append(self._links[chain[-1]].parent)
+        return chain
+
+    def _to_ancestor(self, chain: list[str], ancestor: str, stamp_ns: int) -> np.ndarray:
+        """T_ancestor_frame for chain[0], walking up to `ancestor`."""
+        T = np.eye(4)
+        for child in chain[: chain.index(ancestor)]:
+            T = self._link_at(child, self._links[child], stamp_ns) @ T
+        return T
+
+    def lookup(self, target: str, source: str, stamp_ns: int) -> np.ndarray:
+        """T_target_source at stamp_ns. TfWait while a link has nothing at or after the stamp yet,
+        TfError when the frames are not connected or a link has a gap there."""
+        target, source = target.lstrip("/"), source.lstrip("/")
+        if not source:
+            raise TfError("the depth image has no header.frame_id; the driver must name its optical frame")
+        with self._lock:
+            up_source, up_target = self._chain(source), self._chain(target)
+            common = next((f for f in up_source if f in up_target), None)
+            if common is None:
+                raise TfWait(f"no transform path between '{target}' and '{source}' (yet): known chains "
+                             f"{' -> '.join(up_source)} and {' -> '.join(up_target)}")
+            T_common_source = self._to_ancestor(up_source, common, stamp_ns)
+            T_common_target = self._to_ancestor(up_target, common, stamp_ns)
+        return invert_transform(T_common_target) @ T_common_source

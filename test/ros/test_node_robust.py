@@ -1,0 +1,280 @@
+"""The node as a robot runs it: malformed bursts keep the map, run-time parameters, /diagnostics,
+map save/load, file modes. Real rclpy nodes on a private ROS_DOMAIN_ID (see conftest)."""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from test_node import Running, topic_params, wait_for
+
+S = 1_000_000_000
+BASE_S = 1000.0
+SIM = dict(duration_s=2.0, width=96, height=96, tof_rate_hz=6.0, stereo_rate_hz=6.0)
+SMALL = dict(voxel_size_m=0.04, band_m=0.4, working_width=48, queue_size=500, max_lag_s=0.0, integrate_rate_hz=50.0,
+             mesh_rate_hz=2.0, tsdf_fusion=False)
+
+
+@pytest.fixture(scope="module")
+def ros(ros_domain_id: int):
+    rclpy.init()
+    yield ros_domain_id
+    rclpy.try_shutdown()
+
+
+def _stamp(msg: Any, t_s: float) -> None:
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(round((t_s + BASE_S) * 1e9)), S)
+
+
+def scene_messages(seed: int = 5) -> list[tuple[str, str, Any]]:
+    """A short simulated two-sensor scene as (sensor, stream, rclpy message) in stamp order."""
+    from senfunet_core.learning.simulator import make_scene, simulate_sequence
+    from senfunet_ros.geometry import quat_from_matrix
+
+    seq = simulate_sequence(make_scene(seed), seed=seed, **SIM)
+    events: list[tuple[float, int, str, str, Any]] = []
+    for s in ("tof", "stereo"):
+        for t, T in zip(seq.pose_stamps_s[s], seq.pose_T_world_camera[s]):
+            msg = PoseStamped()
+            _stamp(msg, t)
+            msg.header.frame_id = "map"
+            msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in T[:3, 3])
+            o = msg.pose.orientation
+            o.x, o.y, o.z, o.w = (float(v) for v in quat_from_matrix(T[:3, :3]))
+            events.append((t, 0, s, "pose", msg))
+    for f in seq.frames:
+        h, w = f.depth_m.shape
+        info = CameraInfo(width=w, height=h, k=[float(v) for v in f.K.reshape(-1)])
+        _stamp(info, f.stamp_s)
+        depth = Image(height=h, width=w, encoding="32FC1", step=w * 4)
+        depth.data = np.ascontiguousarray(f.depth_m, "<f4").tobytes()
+        _stamp(depth, f.stamp_s)
+        events += [(f.stamp_s, 1, f.sensor, "camera_info", info), (f.stamp_s, 2, f.sensor, "depth", depth)]
+        if f.rgb is not None:
+            color = Image(height=h, width=w, encoding="rgb8", step=w * 3)
+            color.data = np.ascontiguousarray(f.rgb).tobytes()
+            _stamp(color, f.stamp_s)
+            events.append((f.stamp_s, 1, f.sensor, "color", color))
+    events.sort(key=lambda e: (e[0], e[1]))
+    return [(s, stream, msg) for _, _, s, stream, msg in events]
+
+
+def fuse_in_process(run: Running, messages: list[tuple[str, str, Any]]) -> None:
+    """The node's own subscription path (pipeline.dispatch), without DDS, then wait for integration."""
+    for sensor, stream, msg in messages:
+        run.node.pipeline.dispatch(sensor, stream, msg)
+    expected = sum(1 for _, stream, _ in messages if stream == "depth")
+    wait_for(lambda: sum(c["integrated"] for c in run.node.ingest.counters().values()) >= expected - 2, 120,
+             "the scene to be integrated")
+
+
+def malformed(t_s: float, kind: str, i: int) -> Any:
+    """A malformed message of every input type, with a bad stamp every other time."""
+    stamp_s = [0.0 - BASE_S, 2**31 - 1 - BASE_S, t_s][i % 3]
+    if kind == "depth":
+        msg = Image(height=4, width=4, encoding=["bgr8", "32FC1", "16UC1"][i % 3], step=[12, 2, 8][i % 3])
+        msg.data = bytes(range(16))
+    elif kind == "color":
+        msg = Image(height=4, width=4, encoding="yuv422", step=8)
+    elif kind == "camera_info":
+        msg = CameraInfo(width=0, height=4, k=[float("nan")] * 9)
+    else:
+        msg = PoseStamped()
+        msg.pose.orientation.w = [float("nan"), 2.0, 1.0][i % 3]
+    _stamp(msg, stamp_s)
+    return msg
+
+
+def test_malformed_burst_keeps_the_map(ros, tmp_path: Path) -> None:
+    prefix = "burst"
+    run = Running("burst", {**topic_params(prefix), **SMALL}, tmp_path)
+    pub_node = Node("burst_publisher")
+    try:
+        fuse_in_process(run, scene_messages())
+        before = run.node.engine.extract_mesh("fused").n_faces
+        assert before > 100
+        kinds = {"depth": Image, "color": Image, "camera_info": CameraInfo, "pose": PoseStamped}
+        pubs = {(s, k): pub_node.create_publisher(t, f"/{prefix}/{s}/{k}", 50)
+                for s in ("tof", "stereo") for k, t in kinds.items()}
+        wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20, "discovery")
+        time.sleep(1.0)  # the node's side of discovery
+        received_before = {s: c["received"] + c["pose_received"] + c["color_received"]
+                           for s, c in run.node.ingest.counters().items()}
+        for i in range(400):  # 400 malformed messages over every input type of both sensors
+            sensor, kind = list(pubs)[i % len(pubs)]
+            pubs[(sensor, kind)].publish(malformed(2.5, kind, i))
+            if i % 8 == 7:
+                time.sleep(0.01)  # best-effort readers keep 30: let them take the burst
+        wait_for(lambda: sum(c["received"] + c["pose_received"] + c["color_received"]
+                             for c in run.node.ingest.counters().values()) - sum(received_before.values()) >= 100,
+                 20, "the burst to arrive")
+        time.sleep(2.0)  # integration and mesh timers run over it
+        counters = run.node.ingest.counters()
+        assert run.thread.is_alive()
+        assert run.node.time_jumps == 0 and all(c["time_jumps"] == 0 for c in counters.values())
+        assert sum(c["dropped"]["bad_stamp"] for c in counters.values()) > 0
+        assert sum(c["dropped"]["bad_encoding"] + c["dropped"]["bad_pose"] for c in counters.values()) > 0
+        after = run.node.engine.extract_mesh("fused").n_faces
+        assert after == before  # nothing of the burst reached the map, and nothing of the map went
+    finally:
+        pub_node.destroy_node()
+        run.close()
+
+
+def _set(run: Running, **values: Any) -> list[Any]:
+    """SetParameters through the node's parameter service, as `ros2 param set` does."""
+    client = run.helper.create_client(SetParameters, f"{run.prefix}/set_parameters")
+    assert client.wait_for_service(timeout_sec=10.0)
+    request = SetParameters.Request()
+    for name, value in values.items():
+        if isinstance(value, str):
+            pv = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
+        elif isinstance(value, float):
+            pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+        else:
+            pv = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=value)
+        request.parameters.append(ParameterMsg(name=name, value=pv))
+    future = client.call_async(request)
+    wait_for(future.done, 10, "set_parameters")
+    return future.result().results
+
+
+def test_parameters_typed_ranged_read_only_and_applied(ros, tmp_path: Path) -> None:
+    run = Running("params_rt", {**topic_params("params_rt"), **SMALL}, tmp_path)
+    try:
+        (r,) = _set(run, voxel_size_m="abc")
+        assert not r.successful and "voxel_size_m" in r.reason
+        (r,) = _set(run, mesh_rate_hz=-5.0)
+        assert not r.successful and "mesh_rate_hz" in r.reason
+        (r,) = _set(run, mesh_rate_hz="fast")
+        assert not r.successful
+        (r,) = _set(run, voxel_size_m=0.02)  # the map's grid cannot change under it
+        assert not r.successful and "read-only" in r.reason
+        (r,) = _set(run, **{"tof.depth_max_m": 0.05})  # below depth_min_m: an empty range
+        assert not r.successful and "depth" in r.reason
+        assert run.node.settings.mesh_rate_hz == 2.0 and run.node.get_parameter("mesh_rate_hz").value == 2.0
+        (r,) = _set(run, mesh_rate_hz=4)  # an integer for a float parameter is fine
+        assert r.successful, r.reason
+        assert run.node.settings.mesh_rate_hz == 4.0 and run.node._mesh_timer.timer_period_ns == 250_000_000
+        (r,) = _set(run, **{"tof.depth_max_m": 2.0})
+        assert r.successful and run.node.engine.config.depth_max_m[0] == 2.0
+        (r,) = _set(run, max_lag_s=0.5)
+        assert r.successful and run.node.ingest.config.max_lag_s == 0.5
+        descriptor = run.node.describe_parameter("voxel_size_m")
+        assert descriptor.read_only and descriptor.floating_point_range[0].from_value == pytest.approx(0.001)
+        assert not run.node.describe_parameter("mesh_rate_hz").read_only
+    finally:
+        run.close()
+
+
+def test_diagnostics_rates_warn_clears_and_stale(ros, tmp_path: Path) -> None:
+    prefix = "diag"
+    run = Running("diag", {**topic_params(prefix), **SMALL, "status_rate_hz": 5.0, "diagnostics_window_s": 1.5,
+                           "stale_after_s": 1.0}, tmp_path)
+    pub_node = Node("diag_publisher")
+    got: list[DiagnosticArray] = []
+    sub = run.helper.create_subscription(DiagnosticArray, "/diagnostics", got.append, 10)
+    try:
+        pose_pub = pub_node.create_publisher(PoseStamped, f"/{prefix}/tof/pose", 50)
+        wait_for(lambda: pose_pub.get_subscription_count() > 0, 20, "discovery")
+        time.sleep(1.0)
+
+        def tof_status() -> Any:
+            for msg in reversed(got):
+                for status in msg.status:
+                    if status.name == "senfunet: tof":
+                        return status
+            return None
+
+        def values(status: Any) -> dict[str, str]:
+            return {kv.key: kv.value for kv in status.values}
+
+        wait_for(lambda: tof_status() is not None, 10, "/diagnostics")
+        t0 = time.monotonic()
+        t = 10.0
+        while time.monotonic() - t0 < 2.0:  # poses at ~20 Hz, then a bad one, then good ones
+            msg = PoseStamped()
+            msg.pose.orientation.w = 1.0 if abs(time.monotonic() - t0 - 0.5) > 0.05 else float("nan")
+            _stamp(msg, t)
+            pose_pub.publish(msg)
+            t += 0.05
+            time.sleep(0.05)
+        wait_for(lambda: float(values(tof_status()).get("rate_hz.pose", 0)) > 5, 5, "a pose rate")
+        assert int(values(tof_status())["dropped.bad_pose"]) >= 1
+        assert tof_status().level == DiagnosticStatus.STALE or tof_status().level == DiagnosticStatus.WARN
+        # the stream stops: STALE; the old drop leaves the window, so no WARN for it later
+        wait_for(lambda: tof_status().level == DiagnosticStatus.STALE, 10, "STALE after the pose stream stopped")
+        assert "pose" in tof_status().message
+        wait_for(lambda: "recent_dropped.bad_pose" not in values(tof_status()), 10, "the drop to leave the window")
+        # the stereo topics never received anything: a WARN naming them
+        stereo = next(s for s in got[-1].status if s.name == "senfunet: stereo")
+        assert stereo.level == DiagnosticStatus.WARN and "nothing received" in stereo.message
+        assert any(s.name == "senfunet: pipeline" for s in got[-1].status)
+    finally:
+        run.helper.destroy_subscription(sub)
+        pub_node.destroy_node()
+        run.close()
+
+
+def test_save_map_load_map_round_trip_and_file_modes(ros, tmp_path: Path) -> None:
+    run = Running("maps", {**topic_params("maps"), **SMALL, "map_file": "room.pt"}, tmp_path)
+    old_umask = os.umask(0o077)  # a restrictive umask: the files must still be readable by others
+    try:
+        fuse_in_process(run, scene_messages())
+        before = run.node.engine.extract_mesh("fused")
+        r = run.call("save_map")
+        path = tmp_path / "out" / "room.pt"
+        assert r.success and str(path) in r.message, r.message
+        assert path.stat().st_mode & 0o777 == 0o644
+        r = run.call("save_mesh")
+        assert r.success and "mesh.ply" in r.message
+        assert (tmp_path / "out" / "mesh.ply").stat().st_mode & 0o777 == 0o644
+        assert run.call("reset").success
+        assert run.node.engine.extract_mesh("fused").n_faces == 0
+        r = run.call("load_map")
+        assert r.success and str(path) in r.message, r.message
+        after = run.node.engine.extract_mesh("fused")
+        assert after.n_faces == before.n_faces and np.array_equal(after.vertices, before.vertices)
+        (res,) = _set(run, map_file=str(tmp_path / "missing.pt"))
+        assert res.successful
+        r = run.call("load_map")
+        assert not r.success and "missing.pt" in r.message
+    finally:
+        os.umask(old_umask)
+        run.close()
+
+
+def test_compressed_inputs_are_decoded(ros, tmp_path: Path) -> None:
+    import cv2
+
+    from senfunet_ros import conversions as conv
+
+    depth_mm = np.full((8, 10), 1500, np.uint16)
+    depth_mm[0, 0] = 0
+    _, png = cv2.imencode(".png", depth_mm)
+    msg = CompressedImage(format="16UC1; compressedDepth png")
+    msg.data = np.concatenate([np.zeros(12, np.uint8), png.reshape(-1)]).tobytes()
+    depth_m = conv.depth_from_image(msg)
+    assert depth_m.shape == (8, 10) and depth_m[1, 1] == pytest.approx(1.5) and depth_m[0, 0] == 0
+    rgb = np.zeros((8, 10, 3), np.uint8)
+    rgb[..., 0] = 200  # red
+    _ok, jpg = cv2.imencode(".png", rgb[..., ::-1])
+    color = CompressedImage(format="rgb8; png compressed bgr8")
+    color.data = jpg.reshape(-1).tobytes()
+    out = conv.rgb_from_image(color)
+    assert out.shape == (8, 10, 3) and out[0, 0, 0] == 200 and out[0, 0, 2] == 0
+    bad = CompressedImage(format="16UC1; compressedDepth png")
+    bad.data = b"\x00" * 12 + b"not a png"
+    with pytest.raises(ValueError, match="png"):
+        conv.depth_from_image(bad)

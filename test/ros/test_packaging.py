@@ -1,0 +1,87 @@
+"""Packaging: package.xml and setup.py name what the code imports, and `colcon build` of the package
+works (colcon installed from the package index into a throw-away venv)."""
+from __future__ import annotations
+
+import ast
+import importlib.util
+import re
+import shutil
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+# import name -> distribution name in install_requires (where they differ)
+DIST = {"cv2": "opencv-python-headless", "yaml": "pyyaml", "skimage": "scikit-image", "ruamel": "ruamel.yaml"}
+ROS = {"rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "geometry_msgs", "nav_msgs", "visualization_msgs",
+       "diagnostic_msgs", "std_srvs", "rosgraph_msgs", "builtin_interfaces", "tf2_ros", "tf2_msgs", "launch",
+       "launch_ros", "ament_index_python"}
+
+
+def _third_party_imports() -> set[str]:
+    """Top-level modules imported anywhere in the two packages (and the launch file), minus the
+    standard library and the packages themselves."""
+    names: set[str] = set()
+    files = [*REPO.glob("senfunet_core/**/*.py"), *REPO.glob("senfunet_ros/**/*.py"), *REPO.glob("launch/*.py")]
+    for path in files:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names.update(alias.name.split(".")[0] for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names.add(node.module.split(".")[0])
+    return {n for n in names if n not in sys.stdlib_module_names and not n.startswith("senfunet_")}
+
+
+def _setup_kwargs() -> dict:
+    tree = ast.parse((REPO / "setup.py").read_text())
+    call = next(n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "setup")
+    return {k.arg: k.value for k in call.keywords}
+
+
+def test_install_requires_and_package_xml_cover_every_import() -> None:
+    kwargs = _setup_kwargs()
+    requires = {str(ast.literal_eval(e)).split("=")[0].split(">")[0] for e in kwargs["install_requires"].elts}
+    assert ast.literal_eval(kwargs["python_requires"]) == ">=3.11"
+    xml = (REPO / "package.xml").read_text()
+    exec_depends = set(re.findall(r"<exec_depend>([^<]+)</exec_depend>", xml))
+    for name in sorted(_third_party_imports()):
+        if name in ROS:
+            key = "tf2_ros_py" if name == "tf2_ros" else name
+            assert key in exec_depends, f"package.xml lacks <exec_depend>{key}</exec_depend>"
+        else:
+            assert DIST.get(name, name) in requires, f"setup.py install_requires lacks {DIST.get(name, name)}"
+    # keys rosdep no longer resolves, or never did (rosdistro's rosdep/python.yaml)
+    assert not exec_depends & {"python3-pytorch-pip", "python3-mcap-pip"}
+
+
+@pytest.mark.slow
+def test_colcon_build_installs_the_package(tmp_path: Path) -> None:
+    env_dir = tmp_path / "colcon"
+    venv.create(env_dir, with_pip=True)
+    pip = subprocess.run([str(env_dir / "bin" / "python"), "-m", "pip", "install", "-q", "colcon-core", "colcon-ros",
+                          "colcon-python-setup-py", "colcon-package-selection"], capture_output=True, text=True, timeout=600)
+    if pip.returncode != 0:
+        pytest.skip(f"colcon cannot be installed from the package index here: {pip.stderr.strip()[-300:]}")
+    src = tmp_path / "ws" / "src" / "senfunet_ros"
+    files = subprocess.run(["git", "ls-files"], cwd=REPO, capture_output=True, text=True, check=True).stdout.split()
+    for name in files:  # the tracked files only: no build products of the working copy
+        if name.startswith(("bags/", "docs/", "test/")):
+            continue
+        (src / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(REPO / name, src / name)
+    build = subprocess.run([str(env_dir / "bin" / "colcon"), "build", "--packages-select", "senfunet_ros"],
+                           cwd=tmp_path / "ws", capture_output=True, text=True, timeout=600)
+    assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
+    install = tmp_path / "ws" / "install" / "senfunet_ros"
+    for executable in ("fusion_node", "senfunet"):
+        assert (install / "lib" / "senfunet_ros" / executable).is_file()  # where `ros2 run` looks
+    share = install / "share" / "senfunet_ros"
+    for name in ("package.xml", "config/default.yaml", "config/senfunet.rviz", "launch/senfunet.launch.py"):
+        assert (share / name).is_file(), name
+    assert (install / "share" / "ament_index" / "resource_index" / "packages" / "senfunet_ros").is_file()
+    site = next((install / "lib").glob("python3*/site-packages"))
+    assert list((site / "senfunet_core" / "weights").glob("*.pt")) and (site / "senfunet_ros" / "fastdds_profile.xml").is_file()
+    assert importlib.util.find_spec("senfunet_ros") is not None

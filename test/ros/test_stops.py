@@ -1,0 +1,90 @@
+"""Ctrl-C and SIGTERM stop `play`, `node`, `replay` and `demo` quietly: no traceback, queued work
+finished or counted, exit code 0 (130 for an interrupted replay that saved what it fused)."""
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from senfunet_ros.bagio import copy_bag, open_bag
+
+REPO = Path(__file__).resolve().parents[2]
+SAMPLE = REPO / "bags" / "sim_room"
+CLI = [sys.executable, "-m", "senfunet_ros.cli"]
+
+
+@pytest.fixture(scope="module")
+def prefix(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    with open_bag(SAMPLE) as reader:
+        stop = reader.start_ns + 600_000_000
+    return copy_bag(SAMPLE, tmp_path_factory.mktemp("bags") / "prefix", stop_ns=stop)
+
+
+def _wait_for_text(path: Path, text: str, proc: subprocess.Popen, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if text in path.read_text(errors="replace"):
+            return
+        assert proc.poll() is None, f"exited early ({proc.returncode}): {path.read_text(errors='replace')}"
+        time.sleep(0.1)
+    raise AssertionError(f"no '{text}' in {path} after {timeout_s} s: {path.read_text(errors='replace')[-2000:]}")
+
+
+def _start(cmd: list[str], log: Path) -> subprocess.Popen:
+    with log.open("w") as out:
+        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=log.parent)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_play_loop_stops_quietly(prefix: Path, tmp_path: Path, ros_domain_id: int, sig: signal.Signals) -> None:
+    log = tmp_path / "play.log"
+    proc = _start([*CLI, "play", str(prefix), "--loop", "--rate", "2"], log)
+    _wait_for_text(log, "playing", proc, 60)
+    time.sleep(1.5)  # mid-publication, past the first loop
+    proc.send_signal(sig)
+    assert proc.wait(30) == 0, log.read_text()
+    text = log.read_text()
+    assert "Traceback" not in text and "RCLError" not in text and "stopped" in text
+
+
+def test_node_sigterm_finishes_and_exits_zero(tmp_path: Path, ros_domain_id: int) -> None:
+    log = tmp_path / "node.log"
+    proc = _start([*CLI, "node", "--", "-p", "voxel_size_m:=0.04", "-p", "working_width:=64",
+                   "-p", "save_on_shutdown:=true", "-p", f"output_dir:={tmp_path / 'out'}"], log)
+    _wait_for_text(log, "fusing", proc, 180)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(60) == 0, log.read_text()
+    text = log.read_text()
+    assert "Traceback" not in text and "rejected by the engine" not in text
+    assert "senfunet: stopped" in text and (tmp_path / "out" / "mesh.ply").is_file()
+
+
+def test_replay_sigterm_saves_what_it_fused(tmp_path: Path) -> None:
+    log = tmp_path / "replay.log"
+    proc = _start([*CLI, "replay", str(SAMPLE), "--out", str(tmp_path / "out")], log)
+    _wait_for_text(log, "frames=", proc, 300)  # the progress bar shows fused frames
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(300) == 130, log.read_text()
+    text = log.read_text()
+    assert "Traceback" not in text and "interrupted" in text
+    assert (tmp_path / "out" / "mesh.ply").is_file() and (tmp_path / "out" / "stats.json").is_file()
+
+
+@pytest.mark.slow
+def test_demo_ctrl_c_stops_node_and_play(tmp_path: Path, ros_domain_id: int) -> None:
+    log = tmp_path / "demo.log"
+    proc = _start([*CLI, "demo", "--out", str(tmp_path / "demo"), "--no-render", "--domain-id", str(ros_domain_id)],
+                  log)
+    _wait_for_text(log, "node up", proc, 300)
+    time.sleep(3.0)  # play is running
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(120) == 0, log.read_text()
+    text = log.read_text()
+    assert "Traceback" not in text and "interrupted" in text
+    node_log = (tmp_path / "demo" / "node.log")
+    if node_log.exists():
+        assert "Traceback" not in node_log.read_text(errors="replace")

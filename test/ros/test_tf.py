@@ -1,0 +1,148 @@
+"""Poses from TF: the buffer's lookups, and a bag whose poses exist only as /tf (a moving base)
+plus /tf_static (the camera mounts) replays to the mesh of the same recording with pose topics."""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from senfunet_ros.bagio import open_bag, write_sequence_bag
+from senfunet_ros.geometry import invert_transform, quat_from_matrix
+from senfunet_ros.tf import TfBuffer, TfError, TfWait
+
+PARAMS = "senfunet:\n  ros__parameters:\n    working_width: 64\n    voxel_size_m: 0.04\n    band_m: 0.4\n"
+# the base's axes in an optical frame: x forward = optical z, y left = -optical x, z up = -optical y
+T_BASE_OPTICAL = np.array([[0.0, 0, 1, 0.1], [-1, 0, 0, 0], [0, -1, 0, 0.5], [0, 0, 0, 1]])
+
+
+def _rot_z(angle: float, t: tuple[float, float, float] = (0, 0, 0)) -> np.ndarray:
+    T = np.eye(4)
+    T[:2, :2] = [[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]]
+    T[:3, 3] = t
+    return T
+
+
+def test_buffer_chains_interpolates_waits_and_refuses_gaps() -> None:
+    tf = TfBuffer(max_gap_s=0.1)
+    S = 1_000_000_000
+    tf.add("map", "odom", 0, _rot_z(0.0, (1, 0, 0)), static=True)
+    tf.add("odom", "base_link", 10 * S, _rot_z(0.0), static=False)
+    tf.add("odom", "base_link", 10 * S + S // 20, _rot_z(0.2, (0.5, 0, 0)), static=False)
+    tf.add("base_link", "cam", 0, T_BASE_OPTICAL, static=True)
+    T = tf.lookup("map", "cam", 10 * S + S // 40)  # halfway: x 0.25 m, yaw 0.1 rad
+    expected = _rot_z(0.0, (1, 0, 0)) @ _rot_z(0.1, (0.25, 0, 0)) @ T_BASE_OPTICAL
+    assert np.abs(T - expected).max() < 1e-9
+    assert np.abs(tf.lookup("cam", "map", 10 * S) - invert_transform(tf.lookup("map", "cam", 10 * S))).max() < 1e-9
+    with pytest.raises(TfWait):  # nothing at or after it yet: may still come
+        tf.lookup("map", "cam", 11 * S)
+    with pytest.raises(TfError, match="more than"):
+        tf.lookup("map", "cam", 9 * S)  # before the first transform
+    with pytest.raises(TfWait, match="no transform path"):
+        tf.lookup("map", "other_cam", 10 * S)
+
+
+def _tf_only_copy(src: Path, dst: Path) -> None:
+    """The recording with its pose topics replaced by /tf (map -> odom static, odom -> base_link
+    moving, from each sensor's poses) and /tf_static (the camera mounts on base_link)."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from senfunet_core.learning.simulator import _sensor_offset
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    T_ = store.types
+    mounts = {s: T_BASE_OPTICAL @ _sensor_offset(s) for s in ("tof", "stereo")}  # T_base_optical per camera
+
+    def transform(parent: str, child: str, stamp: object, T: np.ndarray) -> object:
+        q = quat_from_matrix(T[:3, :3])
+        return T_["geometry_msgs/msg/TransformStamped"](
+            header=T_["std_msgs/msg/Header"](stamp=stamp, frame_id=parent), child_frame_id=child,
+            transform=T_["geometry_msgs/msg/Transform"](
+                translation=T_["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+                rotation=T_["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
+
+    TFMessage = T_["tf2_msgs/msg/TFMessage"]
+    with open_bag(src) as reader, Writer(dst, version=9) as writer:
+        conns = {}
+        for msg in reader.messages():
+            if msg.topic.endswith("/pose"):
+                pose = store.deserialize_cdr(msg.data, msg.msgtype)
+                p, o = pose.pose.position, pose.pose.orientation
+                from senfunet_ros.geometry import transform_from_tq
+
+                T_world_cam = transform_from_tq([p.x, p.y, p.z], [o.x, o.y, o.z, o.w], "pose")
+                sensor = msg.topic.split("/")[1]
+                T_odom_base = T_world_cam @ invert_transform(mounts[sensor])  # map = odom here
+                topic, out = "/tf", TFMessage(transforms=[transform("odom", "base_link", pose.header.stamp, T_odom_base)])
+            else:
+                topic, out = msg.topic, None
+            if "/tf_static" not in conns:  # latched mounts, recorded first
+                stamp = T_["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
+                static = TFMessage(transforms=[transform("map", "odom", stamp, np.eye(4))] + [
+                    transform("base_link", f"{s}_optical_frame", stamp, mounts[s]) for s in mounts])
+                conns["/tf_static"] = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=store)
+                writer.write(conns["/tf_static"], msg.log_time_ns - 1, store.serialize_cdr(static, "tf2_msgs/msg/TFMessage"))
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, "tf2_msgs/msg/TFMessage" if out is not None else msg.msgtype,
+                                                     typestore=store)
+            data = store.serialize_cdr(out, "tf2_msgs/msg/TFMessage") if out is not None else msg.data
+            writer.write(conns[topic], msg.log_time_ns, data)
+
+
+def _replay(bag: Path, out: Path, params: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "replay", str(bag), "--out", str(out),
+                           "--params", str(params), "--no-progress"], capture_output=True, text=True, timeout=600)
+
+
+def test_tf_only_bag_replays_to_the_pose_topic_mesh(tmp_path: Path) -> None:
+    from senfunet_core.learning import simulator as sim
+    from senfunet_core.ply import read_ply
+
+    seq = sim.simulate_sequence(sim.make_scene(7), 7, duration_s=1.0, width=128, height=128, tof_rate_hz=8,
+                                stereo_rate_hz=8)
+    poses_bag = write_sequence_bag(seq, tmp_path / "poses")
+    tf_bag = tmp_path / "tf_only"
+    _tf_only_copy(poses_bag, tf_bag)
+    with open_bag(tf_bag) as reader:
+        assert not any(t.endswith("/pose") for t in reader.topics) and {"/tf", "/tf_static"} <= set(reader.topics)
+    params = tmp_path / "p.yaml"
+    params.write_text(PARAMS)
+    tf_params = tmp_path / "tf.yaml"
+    tf_params.write_text(PARAMS + "    pose_type: tf\n")
+    ref = _replay(poses_bag, tmp_path / "ref", params)
+    got = _replay(tf_bag, tmp_path / "got", tf_params)
+    assert ref.returncode == 0, ref.stderr
+    assert got.returncode == 0, got.stderr
+    assert ref.stdout.splitlines()[:2] == got.stdout.splitlines()[:2]  # the same frames fused
+    a, b = read_ply(tmp_path / "ref" / "mesh.ply"), read_ply(tmp_path / "got" / "mesh.ply")
+    assert a.n_faces > 100
+    # The same mesh up to interpolation: the base is interpolated, then the mount applied.
+    assert abs(a.n_faces - b.n_faces) <= 0.01 * a.n_faces
+    from scipy.spatial import cKDTree
+
+    distance, _ = cKDTree(a.vertices).query(b.vertices)
+    assert np.quantile(distance, 0.99) < 0.002  # metres, at 4 cm voxels
+    # without the mounts the bag cannot be posed: every frame is dropped, and replay says so
+    broken = _replay(tf_bag, tmp_path / "broken", _write(tmp_path / "b.yaml", PARAMS + "    pose_type: tf\n"
+                                                                               "    fixed_frame: world\n"))
+    assert broken.returncode == 2 and "no frame could be fused" in broken.stderr
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def test_live_node_says_at_start_when_tf_is_unavailable(ros_domain_id: int) -> None:
+    import importlib.util
+
+    if importlib.util.find_spec("tf2_ros") or importlib.util.find_spec("tf2_msgs"):
+        pytest.skip("a ROS 2 install with tf2 is sourced here")
+    proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "node", "--", "--ros-args", "-p", "pose_type:=tf"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "cannot start" in proc.stdout and "tf2_ros" in proc.stdout and "Traceback" not in proc.stderr
