@@ -22,6 +22,7 @@ Topics (see ../shared/DESIGN.md, the interface contract):
 from __future__ import annotations
 
 import dataclasses
+import logging
 import sys
 import threading
 import time
@@ -198,11 +199,32 @@ class _Tf2Lookup:
         self._buffer.clear()
 
 
+class _EngineLogToRos(logging.Handler):
+    """The engine's own log lines (Python logging, e.g. each map-bound eviction) in the node's log."""
+
+    def __init__(self, ros_logger: Any) -> None:
+        super().__init__(logging.INFO)
+        self._ros_logger = ros_logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        text = record.getMessage()
+        if record.levelno >= logging.ERROR:
+            self._ros_logger.error(text)
+        elif record.levelno >= logging.WARNING:
+            self._ros_logger.warning(text)
+        else:
+            self._ros_logger.info(text)
+
+
 class FusionNode(Node):
     """SenFuNet as a ROS 2 node. See the module docstring for its interface."""
 
     def __init__(self, node_name: str = P.NODE_NAME, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
+        self._engine_log = _EngineLogToRos(self.get_logger())
+        engine_logger = logging.getLogger("senfunet")
+        engine_logger.addHandler(self._engine_log)
+        engine_logger.setLevel(min(engine_logger.getEffectiveLevel(), logging.INFO))
         self._warned_at: dict[tuple[str, ...], float] = {}
         self._warn_lock = threading.Lock()
         # 1. parameters
@@ -540,7 +562,9 @@ class FusionNode(Node):
                 self.timings["publish"].add(publish_s)
             self.latency.published(contained)
             t_alpha = time.perf_counter()
-            self.engine.refresh_alpha(s.alpha_budget_s or None)
+            # No frame integrated since the last update (the sensors paused or stopped): the net catches
+            # up on all it has not judged yet, so the mesh soon equals what an offline replay makes.
+            self.engine.refresh_alpha(None if not contained else (s.alpha_budget_s or None))
             self.timings["alpha"].add(time.perf_counter() - t_alpha)
 
     def _display(self, meshes: Any) -> Any:
@@ -697,6 +721,10 @@ class FusionNode(Node):
         """Forget the map and queued frames; subscribers get a DELETEALL right away."""
         self.pipeline.reset()
         self.publish_mesh()
+
+    def destroy_node(self) -> None:
+        logging.getLogger("senfunet").removeHandler(self._engine_log)
+        super().destroy_node()
 
     def _reset_srv(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:

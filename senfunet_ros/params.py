@@ -109,8 +109,9 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("weights", "default", "network weights file; 'default' = the shipped weights, 'none' = untrained"),
     Param("device", "cpu", "torch device: cpu | cuda (falls back to cpu with a warning)"),
     Param("save_on_shutdown", False, "write the PLY files into output_dir when the node stops", runtime=True),
-    Param("max_map_blocks", 40000, "memory bound: past this many 8^3-voxel blocks (~20 KB each; the sample room "
-          "needs ~34k at 1 cm) the blocks farthest from the sensor are dropped; 0 = unbounded", lo=0, hi=2**31 - 1),
+    Param("max_map_blocks", -1, "memory bound in 8^3-voxel blocks: past it, the blocks farthest from the sensor are "
+          "evicted and their final meshes kept (still on ~/mesh and in save_mesh); -1 = half of this machine's "
+          "memory; 0 = unbounded", lo=-1, hi=2**31 - 1),
     Param("tsdf_fusion", False, "also keep the plain TSDF Fusion baseline (save_mesh adds tsdf_fusion.ply; "
           "about 15% more integration time and memory)"),
 )

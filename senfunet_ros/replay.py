@@ -237,9 +237,12 @@ class _Run:
 
 def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | None = None,
                gt: str | Path | None = None, progress: bool = True, threads: int = 1,
-               weights: str | None = None, log: Callable[[str], None] | None = None) -> ReplayResult:
-    """Fuse a recording as fast as possible and write DIR/mesh.ply, DIR/<sensor>.ply,
-    DIR/tsdf_fusion.ply and DIR/stats.json (plus mesh metrics against `gt` if given).
+               weights: str | None = None, compare: bool = False,
+               log: Callable[[str], None] | None = None) -> ReplayResult:
+    """Fuse a recording as fast as possible and write DIR/mesh.ply (the fused, filtered mesh) and
+    DIR/stats.json (plus mesh metrics against `gt` if given). With `compare`, also DIR/<sensor>.ply
+    per sensor and DIR/tsdf_fusion.ply (the plain TSDF Fusion baseline, integrated alongside: more
+    time and memory, which is why it is opt-in).
 
     Raises BagError before anything is fused if the bag cannot be used, ValueError for bad
     parameters. A bag that breaks midway still gets its meshes: `result.error` says where it broke.
@@ -259,8 +262,8 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))
     try:
-        # offline: the whole map, the baseline too, and float32 alpha whatever the CPU
-        engine = SenFuNet(engine_config(settings, tsdf_fusion=True, alpha_dtype="float32", max_blocks=0),
+        # offline: the whole map, float32 alpha whatever the CPU, the baseline when comparing
+        engine = SenFuNet(engine_config(settings, tsdf_fusion=compare, alpha_dtype="float32", max_blocks=0),
                           weights=engine_weights(settings))
         pipeline = Pipeline(engine, Ingest(ingest_config(settings)), on_time_jump=settings.on_time_jump,
                             log=lambda level, text: log(text) if level == "error" else None)
@@ -286,7 +289,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
         torch.set_num_threads(max(1, int(threads)))
         try:
             t0 = time.perf_counter()
-            saved = pipeline.save_meshes(out, sensors=settings.sensor_names, tsdf_fusion=True)
+            saved = pipeline.save_meshes(out, sensors=settings.sensor_names if compare else (), tsdf_fusion=compare)
             t_saved = time.perf_counter() - t0
         finally:
             torch.set_num_threads(previous_threads)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-HELP = "fuse a recorded bag offline as fast as possible: fused, per-sensor and TSDF Fusion meshes + stats"
+HELP = "fuse a recorded bag offline as fast as possible: the fused mesh + stats (--compare: per-sensor and TSDF Fusion)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -17,6 +17,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="network weights ('default' = shipped, 'none' = untrained); overrides --params")
     parser.add_argument("--threads", type=int, default=1, metavar="N",
                         help="torch CPU threads (default 1; the mesh bytes depend on it, keep it fixed)")
+    parser.add_argument("--compare", action="store_true",
+                        help="also write each sensor's mesh and the plain TSDF Fusion baseline (tsdf_fusion.ply), "
+                             "for comparison: the baseline is integrated alongside (more time and memory)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -39,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         result = replay_bag(args.bag, args.out, params=args.params, gt=args.gt, progress=not args.no_progress,
-                            threads=args.threads, weights=args.weights,
+                            threads=args.threads, weights=args.weights, compare=args.compare,
                             log=lambda text: print(f"senfunet replay: {text}", file=sys.stderr))
     except (BagError, ValueError) as err:
         return _error(str(err))

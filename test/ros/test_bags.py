@@ -50,7 +50,8 @@ def tiny_params(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _replay(bag: Path | str, out: Path, params: Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "replay", str(bag), "--out", str(out),
-                           "--params", str(params), "--no-progress"], capture_output=True, text=True, timeout=300)
+                           "--params", str(params), "--no-progress", "--compare"],
+                          capture_output=True, text=True, timeout=300)
 
 
 def _one_line_error(proc: subprocess.CompletedProcess) -> str:
@@ -202,7 +203,7 @@ def test_truncated_mcap_writes_what_was_fused(prefix: Path, tmp_path: Path, tiny
     if as_folder:  # in-process: the replay core reports the break and still writes the meshes
         from senfunet_ros.replay import replay_bag
 
-        result = replay_bag(bag, out, params=tiny_params, progress=False)
+        result = replay_bag(bag, out, params=tiny_params, progress=False, compare=True)
         assert not result.ok and "breaks after" in result.error
     else:  # the command: one line, exit code 2
         line = _one_line_error(_replay(bag, out, tiny_params))

@@ -49,7 +49,7 @@ def cli_replay(prefix: Path, small_params: Path, work: Path) -> tuple[subprocess
     """`senfunet replay` of the mcap prefix with --gt, as a user runs it."""
     out = work / "out_mcap"
     proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "replay", str(prefix), "--out", str(out),
-                           "--params", str(small_params), "--gt", str(SAMPLE_GT)],
+                           "--params", str(small_params), "--gt", str(SAMPLE_GT), "--compare"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return proc, out
@@ -86,7 +86,7 @@ def test_mcap_sqlite3_and_bare_mcap_give_the_same_mesh_bytes(
     sqlite = copy_bag(prefix, work / "prefix_sqlite3", storage="sqlite3")
     bare = next(prefix.glob("*.mcap"))
     for bag, name in ((sqlite, "sqlite3"), (bare, "bare")):
-        result = replay_bag(bag, work / f"out_{name}", params=small_params, progress=False)
+        result = replay_bag(bag, work / f"out_{name}", params=small_params, progress=False, compare=True)
         assert result.ok, result.error
         for mesh in MESHES:  # a different process and storage, the same bytes: deterministic
             assert (work / f"out_{name}" / f"{mesh}.ply").read_bytes() == (out_mcap / f"{mesh}.ply").read_bytes(), \
@@ -114,7 +114,7 @@ def test_metrics_are_those_of_the_written_meshes_against_the_observed_ground_tru
 
     monkeypatch.setattr(evaluation, "observed_gt_vertices", capture)
     out = work / "out_metrics"
-    result = replay_bag(prefix, out, params=small_params, gt=SAMPLE_GT, progress=False)
+    result = replay_bag(prefix, out, params=small_params, gt=SAMPLE_GT, progress=False, compare=True)
     assert result.ok, result.error
     assert len(crops) == 1
     n_gt = read_ply(SAMPLE_GT).n_vertices
@@ -129,6 +129,19 @@ def test_metrics_are_those_of_the_written_meshes_against_the_observed_ground_tru
     assert cli_stats["metrics"] == metrics  # the CLI reports the same numbers for the same bag
 
 
+def test_comparison_meshes_are_opt_in_and_do_not_change_the_fused_mesh(
+        cli_replay: tuple[subprocess.CompletedProcess, Path], prefix: Path, small_params: Path, work: Path):
+    """Without --compare, replay writes the fused mesh and stats only, and integrates no baseline;
+    the fused mesh is byte for byte the one written with --compare."""
+    from senfunet_ros.replay import replay_bag
+
+    out = work / "out_plain"
+    result = replay_bag(prefix, out, params=small_params, progress=False)
+    assert result.ok, result.error
+    assert sorted(p.name for p in out.iterdir()) == ["mesh.ply", "stats.json"]
+    assert (out / "mesh.ply").read_bytes() == (cli_replay[1] / "mesh.ply").read_bytes()
+
+
 @pytest.mark.skipif(not WEIGHTS.is_file(), reason=f"no trained weights at {WEIGHTS} yet")
 def test_fused_mesh_beats_tsdf_fusion(work: Path):
     """With the shipped weights and the default parameters, SenFuNet beats its own TSDF Fusion
@@ -136,7 +149,7 @@ def test_fused_mesh_beats_tsdf_fusion(work: Path):
     from senfunet_ros.replay import replay_bag
 
     bag = _prefix(SAMPLE, work / "prefix_short", 0.6)  # 20 frames: the full-resolution replay is the slow part
-    result = replay_bag(bag, work / "out_default", gt=SAMPLE_GT, progress=False)
+    result = replay_bag(bag, work / "out_default", gt=SAMPLE_GT, progress=False, compare=True)
     assert result.ok, result.error
     assert result.stats["weights"] == str(WEIGHTS)
     metrics = result.stats["metrics"]
