@@ -44,10 +44,11 @@ import numpy as np
 import torch
 
 from . import networks
-from .alpha import WINDOW, evaluate_columns, surface_targets, take_drift, target_columns, weighting_windows
+from .alpha_scheduler import AlphaBatch, AlphaScheduler
+from .block_store import BlockStore, Eviction
 from .errors import InputError
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
-from .grid import BLOCK, BlockGrid, block_keys, kernel_view, neighbour_table
+from .grid import BlockGrid, block_keys
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .mesh_archive import MeshArchive
 from .mesher import BlockMeshes, BlockTriangles, Mesh, alpha_colors, marching_cubes_blocks, to_mesh, weld
@@ -159,30 +160,6 @@ class PreparedFrame:
 
 
 @dataclass
-class _Eviction:
-    """Blocks an eviction dropped, and where the others went (slots stay 0..n_blocks-1)."""
-
-    dropped_keys: np.ndarray  # N int64 keys (grid.block_keys) of the dropped blocks
-    new_slot: np.ndarray  # old slot -> new slot, -1 for a dropped block
-
-    def follow(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The new slots of these blocks, without the dropped ones, and which of them were kept."""
-        moved = self.new_slot[slots]
-        kept = moved >= 0
-        return moved[kept], kept
-
-
-@dataclass
-class _AlphaBatch:
-    """The weighting net's output for a batch of blocks."""
-
-    slots: np.ndarray  # B blocks checked
-    holds: np.ndarray  # B bool: holds voxels alpha matters for (see EngineConfig.alpha_voxels)
-    voxels: np.ndarray  # N flat voxel indices evaluated (slot * 512 + local)
-    alpha: np.ndarray  # N float32
-
-
-@dataclass
 class WeightCloud:
     positions_m: np.ndarray  # Nx3 float32 voxel centres
     alpha: np.ndarray  # N float32 sensor weighting (weight of sensor 1)
@@ -248,7 +225,8 @@ class SenFuNet:
         # features and weight counters in half precision (counters stay exact up to 2048)
         dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight", "drift"))}
         # alpha NaN until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)
-        self.grid = BlockGrid(channels, dtypes=dtypes, fill={"alpha": float("nan")})
+        self.store = BlockStore(BlockGrid(channels, dtypes=dtypes, fill={"alpha": float("nan")}))
+        self.grid = self.store.grid
         self.max_blocks = config.max_blocks  # the map bound in force (resolved from memory for -1)
         if config.max_blocks == -1:
             self.max_blocks = memory_bound_blocks(self.grid.bytes_per_block())
@@ -261,13 +239,16 @@ class SenFuNet:
         self._data_lock = threading.RLock()
         self._scratch: dict[str, np.ndarray] = {}  # integration's working arrays (used under the data lock)
         self._update_lock = threading.RLock()  # one update or extraction at a time
+        self.alpha = AlphaScheduler(self.store, self.weighting_net, self._data_lock, alpha_voxels=config.alpha_voxels,
+                                    alpha_dtype=config.alpha_dtype, alpha_tolerance=config.alpha_tolerance,
+                                    tsdf_input=config.weighting_tsdf_input, band_m=config.band_m, device=self.device)
         # integration past the hard bound waits on this until an eviction (or the running update) ends
         self._eviction_done = threading.Condition()  # reentrant: an evicting waiter notifies
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0}
         self.timings_s: dict[str, float] = {}  # stage -> seconds of its last run
         self.total_s: dict[str, float] = {}  # stage -> seconds summed over all runs
         self.frames_integrated = {name: 0 for name in config.sensors}
-        self._reset_pending()
+        self._reset_state()
 
     # -- verbs ------------------------------------------------------------------------------------
     @torch.inference_mode()
@@ -308,9 +289,9 @@ class SenFuNet:
             update = integrate_frame(self.grid, frame.depth_m, frame.features.result, frame.K, frame.T_world_camera,
                                      (cfg.depth_min_m[s], cfg.depth_max_m[s]), cfg.integrator,
                                      (f"tsdf{s}", f"weight{s}", f"feat{s}"), scratch=self._scratch)
-            self._grow_flags()
-            self._alpha_pending[update.touched_slots] = True
-            self._mesh_pending[update.touched_slots] = True  # the TSDF changed here, whatever alpha does
+            self.store.grow_flags()
+            self.store.alpha_pending[update.touched_slots] = True
+            self.store.mesh_pending[update.touched_slots] = True  # the TSDF changed here, whatever alpha does
             self.frames_integrated[cfg.sensors[s]] += 1
             self._camera_m = np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy()
         self._timed(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
@@ -466,15 +447,15 @@ class SenFuNet:
     def networks_changed(self) -> None:
         """The networks' weights were changed in place: the next update re-evaluates alpha everywhere."""
         with self._data_lock:
-            self._stale[: self.grid.n_blocks] = 2
+            self.store.stale[: self.grid.n_blocks] = 2
 
     def reset(self) -> None:
         """Forget everything fused; the next update reports `cleared`."""
         with self._updating(), self._data_lock:
-            self.grid.clear()
+            self.store.clear()
             self.archive.clear()
             self.frames_integrated = {name: 0 for name in self.config.sensors}
-            self._reset_pending()
+            self._reset_state()
             self._cleared = True
 
     def save(self, path: str | Path) -> None:
@@ -526,9 +507,9 @@ class SenFuNet:
         if "archive" in state:
             engine.archive.load_state_dict({k: v.numpy() for k, v in state["archive"].items()})
             engine._newly_archived = [engine.archive.meshes()]  # re-sent with the whole mesh
-        engine._grow_flags()
-        engine._evaluated[: engine.grid.n_blocks] = True  # alpha is part of the saved state
-        engine._mesh_pending[: engine.grid.n_blocks] = True
+        engine.store.grow_flags()
+        engine.store.evaluated[: engine.grid.n_blocks] = True  # alpha is part of the saved state
+        engine.store.mesh_pending[: engine.grid.n_blocks] = True
         return engine
 
     def stats(self) -> dict:
@@ -536,19 +517,18 @@ class SenFuNet:
         once (else its mesh averages the sensors, see fusion), and up to date (not stale)."""
         n = len(self.config.sensors)
         with self._updating(), self._data_lock:
-            weights = torch.stack([self.grid.pools[f"weight{i}"][: self.grid.n_blocks] for i in range(n)])
-            observed = int((weights > 0).any(dim=0).sum())
+            observed = self.store.observed_voxels([f"weight{i}" for i in range(n)])
             nbytes = self.grid.nbytes()
             meshed = self.grid.lookup(torch.tensor(sorted(self._meshed), dtype=torch.int64).reshape(-1, 3)).numpy()
             meshed = meshed[meshed >= 0]
-            evaluated = self._evaluated[meshed]
+            evaluated = self.store.evaluated[meshed]
         return {"blocks": self.grid.n_blocks, "observed_voxels": observed, "grid_bytes": nbytes,
                 "bytes_per_observed_voxel": nbytes / max(observed, 1),
                 "frames_integrated": dict(self.frames_integrated),
                 "max_blocks": self.max_blocks, "evicted_blocks": self.counters.get("evicted_blocks", 0),
                 "archived_blocks": len(self.archive), "archived_faces": self.archive.n_faces,
                 "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
-                "meshed_blocks_alpha_current": int((evaluated & (self._stale[meshed] == 0)).sum())}
+                "meshed_blocks_alpha_current": int((evaluated & (self.store.stale[meshed] == 0)).sum())}
 
     # -- internals -------------------------------------------------------------------------------
     def _sensor_index(self, sensor: str) -> int:
@@ -564,32 +544,13 @@ class SenFuNet:
         if which == TSDF_FUSION and not self.config.tsdf_fusion:
             raise InputError("this engine keeps no TSDF Fusion baseline; create it with EngineConfig(tsdf_fusion=True)")
 
-    def _reset_pending(self) -> None:
-        # per block, as long as the grid's capacity (see _grow_flags)
-        self._alpha_pending = np.zeros(0, bool)  # integrated into since the last alpha schedule
-        # alpha to re-evaluate: 0 no, 1 inputs drifted, 2 new or sign-changed voxels, 3 never evaluated
-        self._stale = np.zeros(0, np.int8)
-        self._evaluated = np.zeros(0, bool)  # alpha evaluated at least once
-        self._no_targets = np.zeros(0, bool)  # checked when last stale: holds no voxel alpha matters for
-        self._last_reached = np.zeros(0, np.int64)  # the last schedule that made it stale (newest first)
-        self._mesh_pending = np.zeros(0, bool)  # TSDF or alpha changed since it was meshed
-        self._schedules = 0
+    def _reset_state(self) -> None:
+        """The engine's own state beside the store (call with both locks held, or from __init__)."""
+        self.store.clear_flags()
         self._camera_m = np.zeros(3)  # the last integrated frame's camera centre (the map bound keeps what is near)
         self._newly_archived = []
         self._meshed: set[tuple[int, int, int]] = set()
         self._cleared = False
-        self._grow_flags()
-
-    def _grow_flags(self) -> None:
-        """Per-block flags as long as the grid's capacity (call with the data lock held)."""
-        grow = self.grid.capacity - len(self._stale)
-        if grow > 0:
-            self._alpha_pending = np.concatenate([self._alpha_pending, np.zeros(grow, bool)])
-            self._stale = np.concatenate([self._stale, np.zeros(grow, np.int8)])
-            self._evaluated = np.concatenate([self._evaluated, np.zeros(grow, bool)])
-            self._no_targets = np.concatenate([self._no_targets, np.zeros(grow, bool)])
-            self._last_reached = np.concatenate([self._last_reached, np.zeros(grow, np.int64)])
-            self._mesh_pending = np.concatenate([self._mesh_pending, np.zeros(grow, bool)])
 
     def _pixel_features(self, s: int, depth_m: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:
         """5 x H x W features of one frame (in the feature worker thread)."""
@@ -612,111 +573,38 @@ class SenFuNet:
         for name, seconds in stages.items():
             self.total_s[name] = self.total_s.get(name, 0.0) + seconds
 
-    def _views(self, *names: str) -> list[np.ndarray]:
-        """Flat kernel views of pools (fetch them under the data lock: pools move when they grow)."""
-        return [kernel_view(self.grid.pools[name]).reshape(-1) for name in names]
-
     def _refresh_alpha(self, budget_s: float | None = None) -> None:
-        """Re-evaluate alpha on the stale blocks: those the latest frames reached first (a budget that
-        cannot keep up, as on a large room, goes to the part of the map being scanned; served first
-        come first, it seldom reached the blocks on screen); among them, never evaluated ones first,
-        then those with newly observed or sign-changed voxels, then drifted ones. Each
-        batch first drops the blocks that hold no voxel alpha matters for (`_evaluate_alpha`; checked
-        here, not when scheduling, so that a budget also bounds the checking). With a budget
-        (seconds), stop after the batch that exhausts it: the rest stays stale for later."""
+        """Re-evaluate alpha on the stale blocks in the scheduler's order (`AlphaScheduler.order`),
+        batch by batch; each batch first drops the blocks that hold no voxel alpha matters for
+        (checked here, not when scheduling, so that a budget also bounds the checking). With a
+        budget (seconds), stop after the batch that exhausts it: the rest stays stale for later.
+        Between batches, where it holds no slot, it evicts when integration outgrew the bound."""
         cfg = self.config
-        self._schedule_alpha()
-        with self._data_lock:
-            stale = np.flatnonzero(self._stale[: self.grid.n_blocks])
-            order = stale[np.lexsort((-self._stale[stale], -self._last_reached[stale]))]
+        self.alpha.schedule()
+        order = self.alpha.order()
         start = time.perf_counter()
         done = voxels = 0
         # Results are written whenever the data lock is free, not waited for batch by batch: time
         # spent waiting for integration's kernels would come out of the net's budget.
-        results: list[_AlphaBatch] = []
+        results: list[AlphaBatch] = []
         while len(order):
             if budget_s is not None and time.perf_counter() - start > budget_s:
                 break
             if self._eviction_due():
-                self._write_alpha(results, wait=True)  # before slots move
-                order, _ = self._evict().follow(order)  # type: ignore[union-attr]  # due: not None
+                self.alpha.write(results, wait=True)  # before slots move
+                eviction = self._evict()
+                if eviction is not None:
+                    order, _ = eviction.follow(order)
             batch, order = order[:cfg.alpha_batch_blocks], order[cfg.alpha_batch_blocks:]
-            results.append(self._evaluate_alpha(batch))
+            results.append(self.alpha.evaluate(batch))
             done += int(results[-1].holds.sum())
             voxels += len(results[-1].voxels)
-            self._write_alpha(results, wait=False)
-        self._write_alpha(results, wait=True)
+            self.alpha.write(results, wait=False)
+        self.alpha.write(results, wait=True)
         self.counters["alpha_blocks"] += done
         self.counters["alpha_voxels"] += voxels
+        self.counters["alpha_flops"] = self.alpha.flops
         self.counters["alpha_backlog_blocks"] = len(order)
-
-    def _evaluate_alpha(self, slots: np.ndarray) -> _AlphaBatch:
-        """The weighting net on these blocks, where alpha matters (`alpha_voxels`): "all", every voxel
-        of every block; "surface", every voxel of the blocks that hold `alpha.surface_targets` (as
-        blocks with a 2-voxel halo: convolutions); "surface_voxels", those targets alone (layer by
-        layer, as matrix products). Reads the grid without the data lock (see the module docstring)."""
-        cfg = self.config
-        grid = self.grid
-        neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
-        dtype = torch.bfloat16 if cfg.alpha_dtype == "bfloat16" else torch.float32
-        holds = np.ones(len(slots), bool)
-        if cfg.alpha_voxels != "all":
-            targets = surface_targets(neighbours, *self._views("tsdf0", "weight0", "tsdf1", "weight1"))
-            holds = targets.any(axis=1)
-            if not holds.any():
-                return _AlphaBatch(slots, holds, np.zeros(0, np.int64), np.zeros(0, np.float32))
-        if cfg.alpha_voxels == "surface_voxels":
-            columns, gather, voxels = target_columns(neighbours[holds], targets[holds], *self._weighting_inputs())
-            self._count_alpha_flops(layer_1_positions=len(columns), voxels=len(voxels), inputs=columns.shape[1])
-            return _AlphaBatch(slots, holds, voxels, evaluate_columns(self.weighting_net, columns, gather,
-                                                                      dtype=dtype))
-        slots_holding = slots[holds]
-        windows = self._weighting_windows(neighbours[holds])
-        x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
-            alpha = self.weighting_net(x, pad=False).float().reshape(-1).cpu().numpy()
-        voxels = (slots_holding[:, None] * BLOCK**3 + np.arange(BLOCK**3)).reshape(-1)
-        self._count_alpha_flops(layer_1_positions=len(slots_holding) * (WINDOW - 2) ** 3, voxels=len(voxels),
-                                inputs=27 * windows.shape[-1])
-        return _AlphaBatch(slots, holds, voxels, alpha)
-
-    def _count_alpha_flops(self, *, layer_1_positions: int, voxels: int, inputs: int) -> None:
-        """Multiply-adds of the weighting net (x2 = FLOPs), for the benchmark's fraction of peak."""
-        net = self.weighting_net
-        hidden_1, hidden_2 = net.conv1.out_channels, net.conv2.out_channels
-        macs = layer_1_positions * inputs * hidden_1 + voxels * (27 * hidden_1 * hidden_2 + hidden_2)
-        self.counters["alpha_flops"] = self.counters.get("alpha_flops", 0) + 2 * macs
-
-    def _write_alpha(self, results: list[_AlphaBatch], wait: bool) -> None:
-        """Write evaluated batches (and empty `results`), if the data lock is free or `wait`. Where
-        alpha matters in an evaluated block, it is up to date; a block without voxels alpha matters
-        for is not stale either, and remembers it."""
-        if not results or not self._data_lock.acquire(blocking=wait):
-            return
-        try:
-            for batch in results:
-                self.grid.pools["alpha"].numpy().reshape(-1)[batch.voxels] = batch.alpha
-                evaluated = batch.slots[batch.holds]
-                self._stale[batch.slots] = 0
-                self._no_targets[batch.slots] = ~batch.holds
-                self._evaluated[evaluated] = True
-                self._mesh_pending[evaluated] = True
-        finally:
-            self._data_lock.release()
-        results.clear()
-
-    def _weighting_windows(self, neighbours: np.ndarray) -> np.ndarray:
-        """The weighting net's B x 12^3 x C input windows of these blocks (used by training)."""
-        return weighting_windows(neighbours, *self._weighting_inputs())
-
-    def _weighting_inputs(self) -> tuple:
-        """The pools the weighting net reads (alpha.weighting_windows, alpha.target_columns), with the
-        sensors' TSDFs when the net reads them."""
-        if self.config.weighting_tsdf_input:
-            tsdf = self._views("tsdf0", "tsdf1")
-        else:
-            tsdf = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
-        return (*self._views("feat0", "weight0", "feat1", "weight1"), *tsdf, 2.0 / self.config.band_m)
 
     def _wait_for_eviction(self) -> None:
         """Integration outgrew the hard bound (updates come too rarely to keep the bound): evict now
@@ -751,7 +639,7 @@ class SenFuNet:
         (between two batches, where it holds no slot)."""
         return self.max_blocks > 0 and self.grid.n_blocks > _HARD_BOUND * self.max_blocks
 
-    def _evict(self) -> _Eviction | None:
+    def _evict(self) -> Eviction | None:
         """With a map bound, evict the blocks farthest from the last camera position once the map
         holds more (down to 90%, so that it does not happen every update). The evicted blocks'
         final fused meshes, with alpha evaluated where it was stale, go to the archive (the next
@@ -761,29 +649,13 @@ class SenFuNet:
         update lock held."""
         if self.max_blocks <= 0 or self.grid.n_blocks <= self.max_blocks:
             return None
-        grid = self.grid
         t0 = time.perf_counter()
         with self._data_lock:
-            n = grid.n_blocks
-            keep = int(0.9 * self.max_blocks)
-            centres_m = (grid.coords[:n].numpy() * BLOCK + (BLOCK - 1) / 2) * self.config.voxel_size_m
-            distance = np.linalg.norm(centres_m - self._camera_m, axis=1)
-            victims = np.sort(np.argpartition(-distance, n - keep)[: n - keep])
-            victim_coords = grid.coords[victims].numpy()  # copies (fancy index)
+            victims = self.store.farthest(self._camera_m, keep=int(0.9 * self.max_blocks),
+                                          voxel_size_m=self.config.voxel_size_m)
+            victim_coords = self.grid.coords[victims].numpy()  # copies (fancy index)
             self._archive_blocks(victims, victim_coords)
-            victim_keys = grid.slot_keys[victims]
-            around = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, victims)
-            remesh = np.zeros(n, bool)
-            remesh[around[around >= 0]] = True
-            moved_from, moved_to = grid.remove_blocks(victims)
-            new_slot = np.arange(n)
-            new_slot[victims] = -1
-            new_slot[moved_from] = moved_to
-            for flags in (self._alpha_pending, self._stale, self._last_reached, self._evaluated, self._no_targets,
-                          self._mesh_pending, remesh):
-                flags[moved_to] = flags[moved_from]
-                flags[grid.n_blocks:n] = 0
-            self._mesh_pending[: grid.n_blocks] |= remesh[: grid.n_blocks]
+            eviction = self.store.remove(victims)
         self.counters["evicted_blocks"] = self.counters.get("evicted_blocks", 0) + len(victim_coords)
         self.counters["evictions"] = self.counters.get("evictions", 0) + 1
         self._meshed.difference_update(map(tuple, victim_coords.tolist()))
@@ -791,48 +663,21 @@ class SenFuNet:
                  "final meshes kept: %d archived blocks) in %.2f s", len(victim_coords), self.max_blocks,
                  self.counters["evicted_blocks"], len(self.archive), time.perf_counter() - t0)
         self._notify_eviction_waiters()
-        return _Eviction(victim_keys, new_slot)
+        return eviction
 
     def _archive_blocks(self, slots: np.ndarray, coords: np.ndarray) -> None:
         """Judge and mesh blocks about to be evicted, and archive their meshes (data lock held)."""
         cfg = self.config
-        unjudged = slots[(self._stale[slots] > 0) | self._alpha_pending[slots] | ~self._evaluated[slots]]
-        batches = [self._evaluate_alpha(unjudged[start:start + cfg.alpha_batch_blocks])
+        unjudged = slots[(self.store.stale[slots] > 0) | self.store.alpha_pending[slots] | ~self.store.evaluated[slots]]
+        batches = [self.alpha.evaluate(unjudged[start:start + cfg.alpha_batch_blocks])
                    for start in range(0, len(unjudged), cfg.alpha_batch_blocks)]
-        self._write_alpha(batches, wait=True)
+        self.alpha.write(batches, wait=True)
         meshes = [self._to_block_meshes(self._mesh_batch(slots[i:i + cfg.mesh_batch_blocks], FUSED, filtered=True),
                                         coords[i:i + cfg.mesh_batch_blocks])
                   for i in range(0, len(slots), cfg.mesh_batch_blocks)]
         archived = BlockMeshes.concatenate(meshes)
         self.archive.add(archived)
         self._newly_archived.append(archived)
-
-    def _schedule_alpha(self) -> None:
-        """Turn the drift of the blocks integrated since the last call into stale blocks: the
-        blocks it reaches (whether they hold voxels alpha matters for is checked when their turn
-        comes, see `_refresh_alpha`)."""
-        cfg = self.config
-        grid = self.grid
-        with self._data_lock:  # atomic with integration: its drift is either taken now or next time
-            changed = np.flatnonzero(self._alpha_pending[: grid.n_blocks])
-            if len(changed) == 0:
-                return
-            self._alpha_pending[changed] = False
-            reach = take_drift(changed, self._views("drift")[0], cfg.alpha_tolerance)  # B x 27
-        around = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, changed)
-        reached = (around >= 0) & (reach > 0)
-        targets, target_levels = around[reached], reach[reached]
-        level_of = np.zeros(int(targets.max(initial=-1)) + 1, np.int8)
-        for level in range(1, int(target_levels.max(initial=0)) + 1):  # ascending: a block's highest level wins
-            level_of[targets[target_levels == level]] = level
-        candidates = np.flatnonzero(level_of)
-        levels = level_of[candidates]
-        with self._data_lock:
-            self._schedules += 1
-            # alpha NaN there: first, unless the block held nothing to evaluate when last checked
-            levels[~self._evaluated[candidates] & ~self._no_targets[candidates]] = 3
-            self._last_reached[candidates] = self._schedules
-            self._stale[candidates] = np.maximum(self._stale[candidates], levels)
 
     def _block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
         """Fused, filtered meshes of the given blocks (coords: their block keys); blocks without
@@ -867,12 +712,11 @@ class SenFuNet:
 
     def _take_mesh_pending(self) -> np.ndarray:
         """Blocks to re-mesh: those whose cells read a changed block (call with the data lock held)."""
-        pending = np.flatnonzero(self._mesh_pending[: self.grid.n_blocks])
+        pending = np.flatnonzero(self.store.mesh_pending[: self.grid.n_blocks])
         if len(pending) == 0:
             return pending
-        self._mesh_pending[pending] = False
-        grid = self.grid
-        readers = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, pending)[:, _MESH_READER_CODES]
+        self.store.mesh_pending[pending] = False
+        readers = self.store.neighbours(pending)[:, _MESH_READER_CODES]
         return np.unique(readers[readers >= 0])
 
     def _channels(self, which: str) -> list[str]:
@@ -902,14 +746,14 @@ class SenFuNet:
         """Marching cubes over the given blocks of `which` (reads the grid without the data lock)."""
         grid = self.grid
         t0 = time.perf_counter()
-        neighbours = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
+        neighbours = self.store.neighbours(slots)
         if which == FUSED:
             mode, names = WINDOW_FUSED, ("tsdf0", "weight0", "tsdf1", "weight1", "alpha")
         else:
             mode = WINDOW_BASE if which == TSDF_FUSION else WINDOW_SENSOR
             tsdf, weight = self._channels(which)
             names = (tsdf, weight, tsdf, weight, "alpha")
-        tsdf, observed, alpha = mesh_windows(neighbours, mode, filtered, *self._views(*names))
+        tsdf, observed, alpha = mesh_windows(neighbours, mode, filtered, *self.store.views(*names))
         origins = grid.coords[slots].numpy() * 8
         t1 = time.perf_counter()
         triangles = marching_cubes_blocks(tsdf, observed, origins, alpha if which == FUSED else None)

@@ -28,7 +28,7 @@ def test_surface_targets_are_the_corners_of_cells_that_can_hold_triangles():
     grid = engine.grid
     slots = np.arange(grid.n_blocks)
     nb = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
-    views = engine._views("tsdf0", "weight0", "tsdf1", "weight1")
+    views = engine.store.views("tsdf0", "weight0", "tsdf1", "weight1")
     targets = surface_targets(nb, *views)
     # a minority of the voxels of the blocks that hold targets
     assert 0 < targets.sum() < 0.5 * targets.any(axis=1).sum() * 512
@@ -66,13 +66,13 @@ def test_voxel_evaluation_equals_the_block_evaluation_at_the_targets():
         grid = engine.grid
         slots = np.arange(grid.n_blocks)
         nb = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
-        targets = surface_targets(nb, *engine._views("tsdf0", "weight0", "tsdf1", "weight1"))
+        targets = surface_targets(nb, *engine.store.views("tsdf0", "weight0", "tsdf1", "weight1"))
         holding = np.flatnonzero(targets.any(axis=1))
-        windows = weighting_windows(nb[holding], *engine._weighting_inputs())
+        windows = weighting_windows(nb[holding], *engine.alpha.inputs())
         x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3)
         with torch.no_grad():
             block_alpha = engine.weighting_net(x, pad=False).reshape(len(holding), 512).numpy()
-        columns, gather, voxels = target_columns(nb[holding], targets[holding], *engine._weighting_inputs())
+        columns, gather, voxels = target_columns(nb[holding], targets[holding], *engine.alpha.inputs())
         with torch.no_grad():
             alpha = evaluate_columns(engine.weighting_net, columns, gather)
         assert len(alpha) == targets.sum() > 1000

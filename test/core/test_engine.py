@@ -647,7 +647,7 @@ def test_a_budget_serves_the_blocks_the_latest_frames_reached_first(monkeypatch)
 
     engine.weighting_net.forward = slow_forward
     engine.refresh_alpha(0.45)
-    evaluated = np.flatnonzero(engine._evaluated[: engine.grid.n_blocks])
+    evaluated = np.flatnonzero(engine.store.evaluated[: engine.grid.n_blocks])
     assert len(evaluated) == 32 and evaluated.min() >= n_far  # the near sphere's, reached last
 
 
@@ -683,7 +683,7 @@ def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(mo
         if not take.is_set():
             take.set()
             assert holding.wait(timeout=30)
-        batches.append((holding.is_set(), int(engine._evaluated[:n].sum())))
+        batches.append((holding.is_set(), int(engine.store.evaluated[:n].sum())))
         clock.now_s += 0.125
         out = forward(*args, **kwargs)
         if len(batches) == 3:
@@ -698,7 +698,7 @@ def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(mo
     assert len(batches) == 3
     assert all(held for held, _ in batches)  # the net went on while integration held the lock
     assert all(written == 0 for _, written in batches)  # and wrote nothing under it
-    evaluated = engine._evaluated[:n]
+    evaluated = engine.store.evaluated[:n]
     assert evaluated.sum() > 8  # more than one batch, all written once the lock was free
     alpha = engine.grid.pools["alpha"][:n].numpy()
-    assert np.isfinite(alpha[evaluated]).all() and bool((engine._stale[:n][evaluated] == 0).all())
+    assert np.isfinite(alpha[evaluated]).all() and bool((engine.store.stale[:n][evaluated] == 0).all())

@@ -1,0 +1,151 @@
+"""Which blocks the weighting net must judge, in which order, and judging them.
+
+Integration marks the blocks it touched (`BlockStore.alpha_pending`) and accumulates each voxel's
+input drift. `schedule` turns that drift into stale blocks (every block within 2 voxels of a
+drifted voxel, `alpha.take_drift`); `order` lists the stale blocks, those the latest frames reached
+first; `evaluate` runs the net on a batch of them where alpha matters (`EngineConfig.alpha_voxels`,
+see `alpha`); `write` stores the results. The engine decides when (budgets, eviction points) and
+holds its locks as the threading model in `engine` says: the scheduler takes the data lock it is
+given only around its reads of drift and its writes.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from .alpha import WINDOW, evaluate_columns, surface_targets, take_drift, target_columns, weighting_windows
+from .block_store import BlockStore
+from .grid import BLOCK
+
+__all__ = ["AlphaBatch", "AlphaScheduler"]
+
+
+@dataclass
+class AlphaBatch:
+    """The weighting net's output for a batch of blocks."""
+
+    slots: np.ndarray  # B blocks checked
+    holds: np.ndarray  # B bool: holds voxels alpha matters for (see EngineConfig.alpha_voxels)
+    voxels: np.ndarray  # N flat voxel indices evaluated (slot * 512 + local)
+    alpha: np.ndarray  # N float32
+
+
+class AlphaScheduler:
+    """The weighting net's work over a `BlockStore` (see the module docstring)."""
+
+    def __init__(self, store: BlockStore, net: Any, data_lock: threading.RLock, *, alpha_voxels: str,
+                 alpha_dtype: str, alpha_tolerance: float, tsdf_input: bool, band_m: float,
+                 device: torch.device) -> None:
+        self.store = store
+        self.net = net
+        self._data_lock = data_lock
+        self.alpha_voxels = alpha_voxels
+        self.dtype = torch.bfloat16 if alpha_dtype == "bfloat16" else torch.float32
+        self.alpha_tolerance = alpha_tolerance
+        self.tsdf_input = tsdf_input
+        self.tsdf_scale = 2.0 / band_m
+        self.device = device
+        self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
+        self.flops = 0  # weighting-net FLOPs so far (for the benchmark's fraction of peak)
+
+    def schedule(self) -> None:
+        """Turn the drift of the blocks integrated since the last call into stale blocks: the
+        blocks it reaches (whether they hold voxels alpha matters for is checked when their turn
+        comes, in `evaluate`)."""
+        store = self.store
+        with self._data_lock:  # atomic with integration: its drift is either taken now or next time
+            changed = np.flatnonzero(store.alpha_pending[: store.n_blocks])
+            if len(changed) == 0:
+                return
+            store.alpha_pending[changed] = False
+            reach = take_drift(changed, store.views("drift")[0], self.alpha_tolerance)  # B x 27
+        around = store.neighbours(changed)
+        reached = (around >= 0) & (reach > 0)
+        targets, target_levels = around[reached], reach[reached]
+        level_of = np.zeros(int(targets.max(initial=-1)) + 1, np.int8)
+        for level in range(1, int(target_levels.max(initial=0)) + 1):  # ascending: a block's highest level wins
+            level_of[targets[target_levels == level]] = level
+        candidates = np.flatnonzero(level_of)
+        levels = level_of[candidates]
+        with self._data_lock:
+            self.schedules += 1
+            # alpha NaN there: first, unless the block held nothing to evaluate when last checked
+            levels[~store.evaluated[candidates] & ~store.no_targets[candidates]] = 3
+            store.last_reached[candidates] = self.schedules
+            store.stale[candidates] = np.maximum(store.stale[candidates], levels)
+
+    def order(self) -> np.ndarray:
+        """The stale blocks, those the latest frames reached first (a budget that cannot keep up,
+        as on a large room, goes to the part of the map being scanned); among them, never evaluated
+        ones first, then those with newly observed or sign-changed voxels, then drifted ones."""
+        store = self.store
+        with self._data_lock:
+            stale = np.flatnonzero(store.stale[: store.n_blocks])
+            return stale[np.lexsort((-store.stale[stale], -store.last_reached[stale]))]
+
+    def evaluate(self, slots: np.ndarray) -> AlphaBatch:
+        """The weighting net on these blocks, where alpha matters (`alpha_voxels`): "all", every voxel
+        of every block; "surface", every voxel of the blocks that hold `alpha.surface_targets` (as
+        blocks with a 2-voxel halo: convolutions); "surface_voxels", those targets alone (layer by
+        layer, as matrix products). Reads the grid without the data lock (see `engine`)."""
+        neighbours = self.store.neighbours(slots)
+        holds = np.ones(len(slots), bool)
+        if self.alpha_voxels != "all":
+            targets = surface_targets(neighbours, *self.store.views("tsdf0", "weight0", "tsdf1", "weight1"))
+            holds = targets.any(axis=1)
+            if not holds.any():
+                return AlphaBatch(slots, holds, np.zeros(0, np.int64), np.zeros(0, np.float32))
+        if self.alpha_voxels == "surface_voxels":
+            columns, gather, voxels = target_columns(neighbours[holds], targets[holds], *self.inputs())
+            self._count_flops(layer_1_positions=len(columns), voxels=len(voxels), inputs=columns.shape[1])
+            return AlphaBatch(slots, holds, voxels, evaluate_columns(self.net, columns, gather, dtype=self.dtype))
+        slots_holding = slots[holds]
+        windows = self.windows(neighbours[holds])
+        x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.dtype == torch.bfloat16):
+            alpha = self.net(x, pad=False).float().reshape(-1).cpu().numpy()
+        voxels = (slots_holding[:, None] * BLOCK**3 + np.arange(BLOCK**3)).reshape(-1)
+        self._count_flops(layer_1_positions=len(slots_holding) * (WINDOW - 2) ** 3, voxels=len(voxels),
+                          inputs=27 * windows.shape[-1])
+        return AlphaBatch(slots, holds, voxels, alpha)
+
+    def write(self, results: list[AlphaBatch], *, wait: bool) -> None:
+        """Write evaluated batches (and empty `results`), if the data lock is free or `wait`. Where
+        alpha matters in an evaluated block, it is up to date; a block without voxels alpha matters
+        for is not stale either, and remembers it."""
+        if not results or not self._data_lock.acquire(blocking=wait):
+            return
+        store = self.store
+        try:
+            for batch in results:
+                store.grid.pools["alpha"].numpy().reshape(-1)[batch.voxels] = batch.alpha
+                evaluated = batch.slots[batch.holds]
+                store.stale[batch.slots] = 0
+                store.no_targets[batch.slots] = ~batch.holds
+                store.evaluated[evaluated] = True
+                store.mesh_pending[evaluated] = True
+        finally:
+            self._data_lock.release()
+        results.clear()
+
+    def windows(self, neighbours: np.ndarray) -> np.ndarray:
+        """The weighting net's B x 12^3 x C input windows of these blocks (alpha.weighting_windows)."""
+        return weighting_windows(neighbours, *self.inputs())
+
+    def inputs(self) -> tuple:
+        """The pools the weighting net reads (alpha.weighting_windows, alpha.target_columns), with the
+        sensors' TSDFs when the net reads them."""
+        if self.tsdf_input:
+            tsdf = self.store.views("tsdf0", "tsdf1")
+        else:
+            tsdf = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
+        return (*self.store.views("feat0", "weight0", "feat1", "weight1"), *tsdf, self.tsdf_scale)
+
+    def _count_flops(self, *, layer_1_positions: int, voxels: int, inputs: int) -> None:
+        """Multiply-adds of the weighting net (x2 = FLOPs)."""
+        hidden_1, hidden_2 = self.net.conv1.out_channels, self.net.conv2.out_channels
+        self.flops += 2 * (layer_1_positions * inputs * hidden_1 + voxels * (27 * hidden_1 * hidden_2 + hidden_2))
