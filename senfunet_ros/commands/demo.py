@@ -40,6 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timeout", type=float, default=900.0, metavar="S",
                         help="give up after S seconds (default 900)")
     parser.add_argument("--no-render", action="store_true", help="skip the PNG")
+    parser.add_argument("--live-mesh", action="store_true",
+                        help="also write live_mesh.ply: what a subscriber to ~/mesh sees once the node has fused "
+                             "every frame and the weighting net has caught up (before ~/save_mesh)")
 
 
 class DemoError(Exception):
@@ -145,6 +148,7 @@ class _Demo:
         self.play_proc: subprocess.Popen | None = None
         self.status: dict[str, dict[str, int]] = {}  # latest per-sensor counters from ~/status
         self.status_count = 0
+        self.pipeline_values: dict[str, str] = {}  # the node's "senfunet: pipeline" status
 
     def _spawn(self, cmd: list[str], log_path: Path) -> subprocess.Popen:
         with log_path.open("w") as log:
@@ -166,6 +170,9 @@ class _Demo:
             raise DemoError(f"timed out {what} (--timeout {self.args.timeout:g} s); logs in {self.out}")
 
     def _on_status(self, msg) -> None:  # noqa: ANN001 - DiagnosticArray
+        for status in msg.status:
+            if status.name == "senfunet: pipeline":
+                self.pipeline_values = {kv.key: kv.value for kv in status.values}
         parsed = _parse_status(msg)
         if parsed:
             self.status = parsed
@@ -252,6 +259,8 @@ class _Demo:
                 idle = all(c.get("queue_depth", 1) == 0 for c in self.status.values())
                 stable = stable + 1 if idle and snapshot == previous else 0
                 previous = snapshot
+            if args.live_mesh:
+                self._save_live_mesh(node, tick_clock)
             _say("saving the mesh (~/save_mesh)...")
             future = save.call_async(Trigger.Request())
             while not future.done():
@@ -275,6 +284,54 @@ class _Demo:
             node.destroy_node()
             rclpy.try_shutdown()
         return self.out / "mesh.ply"
+
+
+    def _save_live_mesh(self, node, tick_clock) -> None:  # noqa: ANN001 - rclpy Node, callable
+        """Wait until the weighting net has judged every block and the mesh was updated after that,
+        then join ~/mesh as a late subscriber (the node sends its whole mesh) and write what arrives
+        as live_mesh.ply."""
+        import numpy as np
+        import rclpy
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from visualization_msgs.msg import Marker, MarkerArray
+
+        from senfunet_core.mesher import Mesh
+        from senfunet_core.ply import write_ply
+
+        _say("waiting for the weighting net to judge every block...")
+        caught_up = 0
+        while caught_up < 3:  # three status reports in a row with no backlog: updates ran after the last batch
+            before = self.status_count
+            while self.status_count == before:
+                tick_clock()
+                rclpy.spin_once(node, timeout_sec=0.05)
+                self._check("while the weighting net catches up")
+            backlog = self.pipeline_values.get("alpha_backlog_blocks", "1")
+            caught_up = caught_up + 1 if backlog == "0" else 0
+        markers: dict[tuple[str, int], np.ndarray] = {}
+        last_message = [time.monotonic()]
+
+        def on_mesh(msg: MarkerArray) -> None:
+            last_message[0] = time.monotonic()
+            for m in msg.markers:
+                if m.action == Marker.DELETEALL:
+                    markers.clear()
+                elif m.action == Marker.DELETE:
+                    markers.pop((m.ns, m.id), None)
+                else:
+                    markers[(m.ns, m.id)] = np.array([(p.x, p.y, p.z) for p in m.points], np.float32).reshape(-1, 3)
+
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        subscription = node.create_subscription(MarkerArray, f"/{NODE}/mesh", on_mesh, qos)
+        while not markers or time.monotonic() - last_message[0] < 3.0:  # the snapshot comes in parts
+            tick_clock()
+            rclpy.spin_once(node, timeout_sec=0.05)
+            self._check("while receiving ~/mesh")
+        node.destroy_subscription(subscription)
+        points = np.concatenate(list(markers.values()))
+        faces = np.arange(len(points), dtype=np.int32).reshape(-1, 3)
+        write_ply(self.out / "live_mesh.ply", Mesh(points, faces))
+        _say(f"~/mesh as a subscriber sees it: {self.out / 'live_mesh.ply'} ({len(faces)} triangles)")
 
 
 def _cutaway(mesh):  # noqa: ANN001, ANN202 - Mesh in, Mesh out

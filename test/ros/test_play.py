@@ -152,6 +152,33 @@ def test_node_fed_by_play_matches_replay(prefix: Path, tmp_path: Path, ros_domai
     assert 0.85 < live.n_vertices / max(offline.n_vertices, 1) < 1.1
 
 
+@pytest.mark.slow
+def test_mesh_on_the_topic_equals_replay(prefix: Path, tmp_path: Path, ros_domain_id: int):
+    """Default settings but a full-resolution ~/mesh: once the stream has ended, the node fused every
+    frame and its weighting net caught up, the mesh a subscriber to ~/mesh receives is replay's
+    mesh.ply of the same bag (F >= 99 at 2 cm), and so is ~/save_mesh's."""
+    from senfunet_core.metrics import mesh_metrics
+    from senfunet_core.ply import read_ply
+    from senfunet_ros.replay import replay_bag
+
+    params = tmp_path / "full.yaml"
+    params.write_text("senfunet:\n  ros__parameters:\n    mesh_display_cell_m: 0.0\n")
+    out = tmp_path / "demo"
+    proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "demo", "--bag", str(prefix), "--out", str(out),
+                           "--params", str(params), "--rate", "0.5", "--domain-id", str(ros_domain_id),
+                           "--timeout", "500", "--live-mesh", "--no-render"], capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr + (out / "node.log").read_text(errors="replace")
+    replayed = replay_bag(prefix, tmp_path / "replay", params=params, progress=False)
+    assert replayed.ok, replayed.error
+    offline = replayed.meshes["mesh"].vertices
+    live, saved = read_ply(out / "live_mesh.ply"), read_ply(out / "mesh.ply")
+    assert live.n_faces > 10000
+    for name, mesh in (("~/mesh", live), ("~/save_mesh", saved)):
+        agreement = mesh_metrics(mesh.vertices, offline, tau_m=0.02)
+        assert agreement["F"] >= 99.0, (name, agreement, proc.stdout)
+
+
 def test_demo_fuses_every_frame_of_the_sample_bag(tmp_path: Path, ros_domain_id: int):
     """The README's command, `senfunet demo`, with the node's default parameters: every depth image
     of the sample bag crosses DDS and is fused. (With Python's default 5 ms GIL switch interval the
