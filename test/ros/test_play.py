@@ -116,6 +116,7 @@ def test_play_loop_restarts_the_clock(prefix: Path, ros_domain_id: int):
     assert proc.returncode in (0, 130)
 
 
+@pytest.mark.slow
 def test_node_fed_by_play_matches_replay(prefix: Path, tmp_path: Path, ros_domain_id: int):
     """`senfunet demo` runs the node and play as two processes over DDS; its mesh ~ replay's."""
     from collections import Counter
@@ -152,6 +153,7 @@ def test_node_fed_by_play_matches_replay(prefix: Path, tmp_path: Path, ros_domai
     assert 0.85 < live.n_vertices / max(offline.n_vertices, 1) < 1.1
 
 
+@pytest.mark.slow
 def test_demo_fuses_every_frame_of_the_sample_bag(tmp_path: Path, ros_domain_id: int):
     """The README's command, `senfunet demo`, with the node's default parameters: every depth image
     of the sample bag crosses DDS and is fused. (With Python's default 5 ms GIL switch interval the

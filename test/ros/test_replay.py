@@ -142,6 +142,7 @@ def test_comparison_meshes_are_opt_in_and_do_not_change_the_fused_mesh(
     assert (out / "mesh.ply").read_bytes() == (cli_replay[1] / "mesh.ply").read_bytes()
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not WEIGHTS.is_file(), reason=f"no trained weights at {WEIGHTS} yet")
 def test_fused_mesh_beats_tsdf_fusion(work: Path):
     """With the shipped weights and the default parameters, SenFuNet beats its own TSDF Fusion
