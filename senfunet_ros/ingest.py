@@ -51,7 +51,8 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable
+from typing import Any
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
@@ -465,7 +466,8 @@ class Ingest:
                 frames, back = frames[:max_frames], frames[max_frames:]
                 for frame in reversed(back):  # back to the front of their queues, newest last
                     self._sensors[frame.sensor].queue.appendleft(
-                        _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb, frame.T_world_camera))
+                        _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb,
+                                 frame.T_world_camera))
         return [*jumps, *frames]
 
     def _pop_sensor(self, name: str, state: _SensorState) -> list[Frame]:
