@@ -279,9 +279,9 @@ def declare(node: Any) -> Settings:
                                          # YAML integers for float parameters (and the like) are coerced, not refused;
                                          # the on-set callback checks types
                                          dynamic_typing=True)
-        if isinstance(p.default, float) and p.lo is not None:
+        if isinstance(p.default, float) and p.lo is not None and p.hi is not None:
             descriptor.floating_point_range = [FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi))]
-        elif isinstance(p.default, int) and not isinstance(p.default, bool) and p.lo is not None:
+        elif isinstance(p.default, int) and not isinstance(p.default, bool) and p.lo is not None and p.hi is not None:
             descriptor.integer_range = [IntegerRange(from_value=int(p.lo), to_value=int(p.hi), step=1)]
         value = node.declare_parameter(p.name, p.default, descriptor).value
         return coerce(p.name, p.default if value is None else value, p.default)
@@ -334,7 +334,8 @@ def sensor_extrinsics(settings: Settings) -> dict[str, Any]:
 
     out = {}
     for sensor in settings.sensors:
-        T = transform_from_tq(sensor.T_body_camera[:3], sensor.T_body_camera[3:], f"{sensor.name}.T_body_camera")
+        T = transform_from_tq(np.asarray(sensor.T_body_camera[:3]), np.asarray(sensor.T_body_camera[3:]),
+                              f"{sensor.name}.T_body_camera")
         if not np.array_equal(T, np.eye(4)):
             out[sensor.name] = T
     return out

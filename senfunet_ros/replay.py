@@ -136,7 +136,7 @@ class TopicRouter:
             wanted += [(sensor.name, Stream.CAMERA_INFO, sensor.camera_info_topic, (_CAMERA_INFO,), True),
                        (sensor.name, Stream.DEPTH, sensor.depth_topic, _IMAGES, True),
                        (sensor.name, Stream.COLOR, sensor.color_topic, _IMAGES, False)]
-            if pose_type is not PoseType.TF:
+            if pose_type.msgtype is not None:  # every pose type but tf
                 wanted.append((sensor.name, Stream.POSE, sensor.pose_topic, (pose_type.msgtype,), True))
         if pose_type is PoseType.TF:
             wanted += [("", Stream.TF, "/tf", (_TF_MSGTYPE,), True),
