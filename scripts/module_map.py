@@ -1,8 +1,10 @@
 """Write the module map of docs/architecture.md: one row per folder of code, with its modules.
 
-A package's row says what its `__init__` docstring says (first sentence); the other folders'
-descriptions are below. The table sits between the two marker comments in the document; the
-rest of the document is left alone.
+The folders: every package under senfunet_core and senfunet_ros (found, so a new subpackage gets
+its row), every test folder, bench and scripts. A package's row says what its `__init__`
+docstring says (first sentence) unless DESCRIPTIONS below has it; other folders need an entry
+there. The table sits between the two marker comments in the document; the rest of the document
+is left alone.
 
     .venv/bin/python scripts/module_map.py           # rewrite the table
     .venv/bin/python scripts/module_map.py --check   # exit 1 when the table is stale (the tests run this)
@@ -18,10 +20,7 @@ REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / "docs" / "architecture.md"
 BEGIN = "<!-- module-map: written by scripts/module_map.py, do not edit by hand -->"
 END = "<!-- /module-map -->"
-FOLDERS = {  # folder -> description when it is not a package with a docstring
-    "senfunet_core": None,
-    "senfunet_core/learning": None,
-    "senfunet_ros": None,
+DESCRIPTIONS = {  # folder -> description, where the package docstring does not give it
     "senfunet_ros/commands": "One module per `senfunet` sub-command.",
     "test/core": "Tests of the engine modules; no ROS needed (`-m \"not ros\"` runs these).",
     "test/core/learning": "Tests of the offline tooling.",
@@ -37,10 +36,22 @@ def first_sentence(text: str) -> str:
     return paragraph if end < 0 else paragraph[:end + 1]
 
 
+def folders() -> list[str]:
+    """Packages (depth first, in name order), then test folders, then the others described."""
+    def packages(root: Path) -> list[str]:
+        found = [root.relative_to(REPO).as_posix()]
+        for child in sorted(p for p in root.iterdir() if (p / "__init__.py").is_file()):
+            found += packages(child)
+        return found
+
+    out = packages(REPO / "senfunet_core") + packages(REPO / "senfunet_ros")
+    out += sorted({p.parent.relative_to(REPO).as_posix() for p in (REPO / "test").rglob("test_*.py")})
+    return out + [f for f in DESCRIPTIONS if f not in out]
+
+
 def describe(folder: str) -> str:
-    given = FOLDERS[folder]
-    if given is not None:
-        return given
+    if folder in DESCRIPTIONS:
+        return DESCRIPTIONS[folder]
     init = REPO / folder / "__init__.py"
     doc = ast.get_docstring(ast.parse(init.read_text())) if init.is_file() else None
     if not doc:
@@ -50,7 +61,7 @@ def describe(folder: str) -> str:
 
 def table() -> str:
     rows = ["| folder | what it holds | modules |", "| --- | --- | --- |"]
-    for folder in FOLDERS:
+    for folder in folders():
         files = sorted(p for p in (REPO / folder).iterdir() if p.is_file() and p.suffix in (".py", ".sh")
                        and p.name not in ("__init__.py", "conftest.py"))
         modules = ", ".join(f"`{p.stem if p.suffix == '.py' else p.name}`" for p in files)

@@ -7,6 +7,7 @@ percent. `format_table` rescales to the paper's table units and says so in the h
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -107,7 +108,7 @@ def _cell(column: str, value: float | None) -> str:
     return f"{v:.4g}"
 
 
-def format_table(rows: dict[str, dict[str, float]], columns: list[str]) -> str:
+def format_table(rows: Mapping[str, Mapping[str, float | None]], columns: list[str]) -> str:
     """A Markdown table: one row per entry of `rows` (name -> metrics), one column per key.
 
     Known metrics are shown in the paper's units (MSE in 1e-4 m², MAD in cm, IoU in 0..1,

@@ -39,8 +39,8 @@ def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     else:
         s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
         q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.asarray(q, dtype=np.float64)
-    return q / np.linalg.norm(q)
+    quat = np.asarray(q, dtype=np.float64)
+    return quat / np.linalg.norm(quat)
 
 
 def matrix_from_quat(q: np.ndarray) -> np.ndarray:

@@ -28,7 +28,8 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import rclpy
@@ -320,7 +321,7 @@ class FusionNode(Node):
         out = [(Stream.CAMERA_INFO, CameraInfo, sensor.camera_info_topic, _SENSOR_QOS),
                (Stream.DEPTH, depth_type, sensor.depth_topic, _SENSOR_QOS),
                (Stream.COLOR, color_type, sensor.color_topic, _SENSOR_QOS)]
-        if pose_type is not PoseType.TF:
+        if pose_type.msgtype is not None:  # every pose type but tf
             out.append((Stream.POSE, message_class(pose_type.msgtype), sensor.pose_topic, _POSE_QOS))
         return out
 

@@ -15,13 +15,15 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 
 from senfunet_ros import params as P
 from senfunet_ros.params import engine_config, engine_weights, ingest_config
-from senfunet_ros.bagio import BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype, open_bag
+from senfunet_ros.bagio import (BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype,
+                                open_bag)
 from senfunet_ros.conversions import PoseType
 from senfunet_ros.ingest import Ingest
 from senfunet_ros.pipeline import MESH_FILES, Pipeline, Stream
@@ -134,7 +136,7 @@ class TopicRouter:
             wanted += [(sensor.name, Stream.CAMERA_INFO, sensor.camera_info_topic, (_CAMERA_INFO,), True),
                        (sensor.name, Stream.DEPTH, sensor.depth_topic, _IMAGES, True),
                        (sensor.name, Stream.COLOR, sensor.color_topic, _IMAGES, False)]
-            if pose_type is not PoseType.TF:
+            if pose_type.msgtype is not None:  # every pose type but tf
                 wanted.append((sensor.name, Stream.POSE, sensor.pose_topic, (pose_type.msgtype,), True))
         if pose_type is PoseType.TF:
             wanted += [("", Stream.TF, "/tf", (_TF_MSGTYPE,), True),
@@ -173,7 +175,8 @@ class TopicRouter:
         except BagError:
             known = False
         what = f"has type {msgtype}" + ("" if known else ", unknown here,")
-        return f"{self.bag_path}: topic {topic} {what} but the node takes {expected} there; record {expected} or remap the topic with --params"
+        return (f"{self.bag_path}: topic {topic} {what} but the node takes {expected} there; "
+                f"record {expected} or remap the topic with --params")
 
     @property
     def topics(self) -> set[str]:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from typing import Any, cast
 
 _PAUSE_WATCHER = r"""
 import os, struct, sys, time
@@ -46,7 +47,7 @@ class ActiveClock:
         from multiprocessing import shared_memory
 
         self.start = time.monotonic()
-        self._memory = shared_memory.SharedMemory(create=True, size=8)
+        self._memory: Any = cast(Any, shared_memory.SharedMemory(create=True, size=8))  # None once stopped
         self._memory.buf[:8] = bytes(8)
         self._watcher = subprocess.Popen([sys.executable, "-c", _PAUSE_WATCHER, str(os.getpid()), self._memory.name,
                                           str(tick_s), str(gap_s)])

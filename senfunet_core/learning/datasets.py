@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -18,14 +19,15 @@ def write_dataset(seq: Sequence, folder: str | Path, *, gt_voxel_size_m: float =
     (folder / "scene.json").write_text(_scene_to_json(seq.scene))
     for sensor in SENSORS:
         fr = [f for f in seq.frames if f.sensor == sensor]
-        arrays = {
+        arrays: dict[str, Any] = {  # Any: numpy's stub of savez_compressed types **kwds as its own options
             "stamp_s": np.array([f.stamp_s for f in fr], np.float64),
             "depth_m": np.stack([f.depth_m for f in fr]).astype(np.float32) if fr else np.zeros((0, 0, 0), np.float32),
             "K": np.stack([f.K for f in fr]) if fr else np.zeros((0, 3, 3)),
             "T_world_camera": np.stack([f.T_world_camera for f in fr]) if fr else np.zeros((0, 4, 4)),
         }
-        if fr and fr[0].rgb is not None:
-            arrays["rgb"] = np.stack([f.rgb for f in fr]).astype(np.uint8)
+        rgbs = [f.rgb for f in fr if f.rgb is not None]
+        if fr and len(rgbs) == len(fr):
+            arrays["rgb"] = np.stack(rgbs).astype(np.uint8)
         np.savez_compressed(folder / f"{sensor}.npz", **arrays)
         if sensor in seq.pose_stamps_s:
             np.savez_compressed(folder / f"poses_{sensor}.npz", stamp_s=seq.pose_stamps_s[sensor],

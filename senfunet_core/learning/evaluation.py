@@ -18,7 +18,9 @@ import functools
 import math
 import platform
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -328,7 +330,7 @@ class ZeroFeatureNet(torch.nn.Module):
         return torch.cat([zeros, depth_m], dim=1)
 
 
-def _ablation_engines(weights) -> dict[str, object]:
+def _ablation_engines(weights) -> dict[str, Callable[[], Any]]:
     """Ablation name -> a function making its engine: the same weights with the feature nets at
     their seeded initialisation or with zeroed learned channels, and the other shipped model."""
     from .. import networks

@@ -151,7 +151,7 @@ def gt_mesh(scene: Scene, voxel_size_m: float = 0.01) -> Mesh:
     gz = (cf[:, 2, None, None, None] + offs[None, None, :]) * vf
     shape = (n_act, bs + 1, bs + 1, bs + 1)
     gx, gy, gz = (np.broadcast_to(g, shape) for g in (gx, gy, gz))
-    vol = np.full(shape, np.inf, np.float32)
+    vol: np.ndarray = np.full(shape, np.inf, np.float32)
     for k in range(relevant.shape[0]):
         blocks_k = np.nonzero(relevant[k])[0]
         if len(blocks_k) == 0:

@@ -110,14 +110,16 @@ def _intersect(prim: Primitive, o: np.ndarray, dx: np.ndarray, dy: np.ndarray, d
         dx, dy = c * dx + s * dy, -s * dx + c * dy
     q = q.astype(np.float32)
     if prim.kind == "box":
-        tn = tf = None
+        nears, fars = [], []
         for qa, da, ha in ((q[0], dx, prim.size_m[0]), (q[1], dy, prim.size_m[1]), (q[2], dz, prim.size_m[2])):
             # a ray parallel to a slab gets +-huge parameters with the right signs
             inv = np.float32(1.0) / np.where(da == 0, np.float32(1e-20), da)
             t1 = (np.float32(-ha) - qa) * inv
             t2 = (np.float32(ha) - qa) * inv
-            near, far = np.minimum(t1, t2), np.maximum(t1, t2)
-            tn, tf = (near, far) if tn is None else (np.maximum(tn, near), np.minimum(tf, far))
+            nears.append(np.minimum(t1, t2))
+            fars.append(np.maximum(t1, t2))
+        tn = np.maximum(np.maximum(nears[0], nears[1]), nears[2])
+        tf = np.minimum(np.minimum(fars[0], fars[1]), fars[2])
         return np.where((tn <= tf) & (tn > 1e-6), tn, np.float32(np.inf))
     r = np.float32(prim.size_m[0])
     if prim.kind == "sphere":
@@ -181,7 +183,8 @@ def _room_exit(scene: Scene, o: np.ndarray, d: tuple) -> tuple[np.ndarray, np.nd
     """Ray parameter where each ray leaves the room (the nearest of the 6 planes: the camera is
     inside) and the axis of that plane."""
     L = scene.room_size_m
-    depth = axis = None
+    depth: np.ndarray | None = None
+    axis = np.zeros(0, np.int8)  # replaced on the first axis
     for a in range(3):
         da = np.where(d[a] == 0, np.float32(1e-20), d[a])
         ta = np.where(da > 0, np.float32(L[a] - o[a]), np.float32(-o[a])) / da
@@ -191,6 +194,7 @@ def _room_exit(scene: Scene, o: np.ndarray, d: tuple) -> tuple[np.ndarray, np.nd
             closer = ta < depth
             depth = np.where(closer, ta, depth)
             axis = np.where(closer, np.int8(a), axis)
+    assert depth is not None  # set by the first of the 3 axes
     return depth, axis
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -76,7 +77,7 @@ def _room_surface(rng: np.random.Generator, poor: bool, seed: int) -> Surface:
 
 def _surface(rng: np.random.Generator, color: tuple, poor: bool, seed: int) -> Surface:
     return Surface(
-        color_rgb=tuple(float(c) for c in color),
+        color_rgb=(float(color[0]), float(color[1]), float(color[2])),
         texture_poor=bool(poor),
         contrast=float(rng.uniform(0.0, 0.006) if poor else rng.uniform(0.18, 0.4)),
         texel_m=float(rng.uniform(0.006, 0.014)),
@@ -297,7 +298,7 @@ def _site_variation(seed: int, surfaces: list[Surface]) -> tuple[float, float]:
     return float(extra.uniform(0.0, 0.05)), float(extra.uniform(0.002, 0.01))
 
 
-def _sensor_variation(rng: np.random.Generator) -> dict[str, float | int]:
+def _sensor_variation(rng: np.random.Generator) -> dict[str, Any]:
     """Lighting and the per-scene sensor parameters (Scene fields), in the stream's fixed order."""
     return {"light_level": float(rng.uniform(0.35, 1.3)), "ambient": float(rng.uniform(0.12, 0.35)),
             "tof_noise_scale": float(rng.uniform(3.0, 7.0)), "tof_shuffle_px": float(rng.uniform(0.3, 0.8)),

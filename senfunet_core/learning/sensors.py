@@ -70,7 +70,7 @@ def _stereo_grey(view: dict, scene: Scene, rng: np.random.Generator, width: int,
 
 def _sgbm(scene: Scene) -> cv2.StereoSGBM:
     bs = SGBM_BLOCK_SIZE
-    return cv2.StereoSGBM_create(minDisparity=0, numDisparities=SGBM_NUM_DISPARITIES, blockSize=bs,
+    return cv2.StereoSGBM.create(minDisparity=0, numDisparities=SGBM_NUM_DISPARITIES, blockSize=bs,
                                  P1=8 * bs * bs, P2=32 * bs * bs, disp12MaxDiff=1, preFilterCap=31,
                                  uniquenessRatio=scene.stereo_uniqueness,
                                  speckleWindowSize=scene.stereo_speckle_window, speckleRange=2,

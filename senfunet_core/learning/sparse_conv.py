@@ -54,6 +54,7 @@ def sparse_plan(out_index: torch.Tensor, size: tuple[int, int, int]) -> SparsePl
 def sparse_alpha_planned(net: networks.WeightingNet, x_inputs: torch.Tensor, plan: SparsePlan) -> torch.Tensor:
     """G at the plan's output voxels from its inputs x_inputs (K, C) (the box voxels plan.inputs)."""
     conv1, conv2, conv3 = net.conv1, net.conv2, net.conv3
+    assert conv1.bias is not None and conv2.bias is not None and conv3.bias is not None
     w1 = conv1.weight.permute(2, 3, 4, 1, 0).reshape(-1, conv1.out_channels)  # (27 * C, 32), tap-major
     h1 = torch.relu(x_inputs.index_select(0, plan.conv1_taps.reshape(-1)).reshape(len(plan.conv1_taps), -1) @ w1
                     + conv1.bias)
@@ -70,8 +71,8 @@ def sparse_alpha(net: networks.WeightingNet, x: torch.Tensor, size: tuple[int, i
     x: (N, C) inputs of the box's voxels in box-local order ((x * size_y + y) * size_z + z).
     Equals `net(x as 1 x C x box, pad=True)` at those voxels: every 3^3 convolution reads its
     input at box-clamped neighbours (what replicate padding does), conv1 runs only where conv2
-    reads it, and only the inputs conv1 reads are touched. A frame updates ~5% of a 64^3 chunk, so
-    this is several times cheaper than the dense pass, and gradients flow the same way."""
-    size = tuple(int(v) for v in size)
+    reads it, and only the inputs conv1 reads are touched. A frame updates a small part of a 64^3
+    chunk, so this costs far less than the dense pass, and gradients flow the same way."""
+    size = (int(size[0]), int(size[1]), int(size[2]))
     plan = sparse_plan(out_index, size)
     return sparse_alpha_planned(net, x.index_select(0, plan.inputs), plan)

@@ -7,6 +7,7 @@ import random
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -54,8 +55,9 @@ class Trainer:
                                                    "val_F", "val_margin") if k in meta}
         self.feature_nets.train()
         self.weighting_net.train()
-        groups = [{"params": list(self.feature_nets.parameters()), "lr_factor": config.feature_lr_factor},
-                  {"params": list(self.weighting_net.parameters()), "lr_factor": 1.0}]
+        groups: list[dict[str, Any]] = [
+            {"params": list(self.feature_nets.parameters()), "lr_factor": config.feature_lr_factor},
+            {"params": list(self.weighting_net.parameters()), "lr_factor": 1.0}]
         for group in groups:
             group["lr"] = config.lr * group["lr_factor"]
         self.optimizer = torch.optim.Adam(groups, lr=config.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=0)
@@ -152,7 +154,7 @@ class Trainer:
         valid = valid_depth_mask(depth_t, cfg.border_px, cfg.depth_min_m[s], cfg.depth_max_m[s])
         result = StepResult(None)
         if bool(valid.any()):
-            net = self.feature_nets[s]
+            net = cast(networks.FeatureNet, self.feature_nets[s])
             rgb01 = self._rgb01(net.uses_rgb, frame.rgb, depth.shape)
             with torch.no_grad():
                 pixel = net(depth_t.view(1, 1, *depth.shape), rgb01)[0]
@@ -197,7 +199,7 @@ class Trainer:
         updated = np.flatnonzero(counts)  # chunk voxels this frame updated (box-local indices)
         if len(updated) == 0:
             return None, {}
-        box = tuple(int(v) for v in size)
+        box = (int(size[0]), int(size[1]), int(size[2]))
         upd = torch.from_numpy(updated)
         plan = sparse_plan(upd, box)  # G's inputs: the voxels within 2 of an updated one (box-clamped)
         chunk_flat = torch.from_numpy(_box_flat(corner, size, plan.inputs.numpy(), grid.table_keys, grid.table_slots))

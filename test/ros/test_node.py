@@ -317,6 +317,7 @@ def _visible_gt(gt_vertices: np.ndarray, seq: Any, border_px: int = 10, tol_m: f
     return gt_vertices[seen]
 
 
+@pytest.mark.slow
 def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: Path) -> None:
     from senfunet_core.metrics import mesh_metrics
     from senfunet_core.ply import read_ply

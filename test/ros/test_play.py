@@ -116,6 +116,7 @@ def test_play_loop_restarts_the_clock(prefix: Path, ros_domain_id: int):
     assert proc.returncode in (0, 130)
 
 
+@pytest.mark.slow
 def test_node_fed_by_play_matches_replay(prefix: Path, tmp_path: Path, ros_domain_id: int):
     """`senfunet demo` runs the node and play as two processes over DDS; its mesh ~ replay's."""
     from collections import Counter

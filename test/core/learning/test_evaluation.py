@@ -19,6 +19,7 @@ def tiny_result(tmp_path_factory):
     return cfg, result, fig
 
 
+@pytest.mark.slow  # tiny_result evaluates a scene
 def test_table_has_all_rows_and_columns(tiny_result):
     cfg, result, fig = tiny_result
     assert list(result.rows)[:len(ev.METHODS)] == list(ev.METHODS)
@@ -34,6 +35,7 @@ def test_table_has_all_rows_and_columns(tiny_result):
     assert fig.is_file() and fig.stat().st_size > 10_000
 
 
+@pytest.mark.slow  # tiny_result evaluates a scene
 def test_markdown_report(tiny_result):
     cfg, result, _ = tiny_result
     text = report.results_markdown(result, cfg, "senfunet evaluate --scenes 1")
