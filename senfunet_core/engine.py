@@ -1,23 +1,28 @@
-"""The SenFuNet engine: owns the sparse grids and the networks; a few verbs.
+"""The SenFuNet engine: the networks and a few verbs over the map.
 
     engine = SenFuNet(EngineConfig(), weights="default")
     engine.integrate("tof", depth_m, K, T_world_camera)        # at sensor rate
     update = engine.update()                                    # alpha, fusion, meshing of changed blocks
     mesh = engine.extract_mesh("fused")                         # or a sensor name, or "tsdf_fusion"
 
+Rooms: the map's blocks and per-block flags live in `block_store.BlockStore`; which blocks the
+weighting net must judge, and judging them, in `alpha_scheduler.AlphaScheduler`; the final meshes
+of evicted blocks in `mesh_archive.MeshArchive`. This module holds the verbs, the locks, the map
+bound and meshing.
+
 Incremental update: a frame marks the blocks it touched, and every voxel accumulates how much its
-weighting-net inputs drifted (see `alpha`). `update` re-evaluates alpha on the voxels within 2 of
-a drifted one (each block with a 2-voxel halo, which equals evaluating the net over the whole
-grid); then it re-meshes every block whose cells read a changed alpha or TSDF (the changed blocks
-and their -x, -y, -z neighbours, since a block's cells reach one voxel into its +x, +y, +z
-neighbours).
+weighting-net inputs drifted (see `alpha`). `update` re-evaluates alpha within 2 voxels of a
+drifted one, where alpha matters (EngineConfig.alpha_voxels; the result equals evaluating the net
+over the whole grid there); then it re-meshes every block whose cells read a changed alpha or TSDF
+(the changed blocks and their -x, -y, -z neighbours, since a block's cells reach one voxel into its
++x, +y, +z neighbours).
 
 Threading model (the one place it is described):
 - Threads: an integrating thread calls `prepare`/`integrate`; an updating thread calls `update`,
   `refresh_alpha`, the extractions, `save`, `reset`; one feature-net worker thread (module-wide)
   runs the 2D nets. Several threads may integrate, and several may update: the locks serialise them.
-- The update lock (`_updating`) serialises updates, extractions, saves and evictions, and owns the
-  per-block scheduling flags' readers, the mesh archive and the set of meshed blocks.
+- The update lock (`_updating`) serialises updates, extractions, saves and evictions; it owns the
+  alpha scheduler's order, the mesh archive and the set of meshed blocks.
 - The data lock guards the grid's contents and the per-block flags: integration holds it while its
   kernels run, an update while it takes the frames' drift, writes alpha or evicts. An update reads
   input windows without it: a block integrated meanwhile is marked again and re-read by the next
@@ -36,8 +41,8 @@ import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
-from pathlib import Path
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -324,9 +329,12 @@ class SenFuNet:
             live = self._block_meshes(slots, coords)
             has_faces = {tuple(k) for k in live.keys.tolist()}
             self.archive.replace(has_faces)
-            # the evicted blocks' final meshes: subscribers keep showing them
-            archived, self._newly_archived = self._newly_archived, []
-            result.meshes = BlockMeshes.concatenate([live, *archived])
+            # the evicted blocks' final meshes: subscribers keep showing them (unless live again)
+            archived = BlockMeshes.concatenate(self._newly_archived)
+            self._newly_archived = []
+            not_live = [key not in has_faces for key in map(tuple, archived.keys.tolist())]
+            archived = archived.select(np.flatnonzero(not_live))
+            result.meshes = BlockMeshes.concatenate([live, archived])
             for key in map(tuple, coords.tolist()):
                 if key not in has_faces and key in self._meshed:
                     self._meshed.discard(key)

@@ -740,10 +740,16 @@ class FusionNode(Node):
 
 def spin(node: FusionNode, num_threads: int = 6) -> None:
     """Spin until shutdown; enough threads that subscriptions run while both timers are busy."""
+    from rclpy._rclpy_pybind11 import RCLError
+
     executor = MultiThreadedExecutor(num_threads=num_threads)
     executor.add_node(node)
     try:
         executor.spin()
+    except RCLError:
+        if node.context.ok():
+            raise
+        # SIGINT/SIGTERM shut the context down while the executor was building its wait set: a stop
     finally:
         executor.shutdown()
 

@@ -51,7 +51,7 @@ def _tf_only_copy(src: Path, dst: Path) -> None:
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from senfunet_core.learning.simulator import _sensor_offset
+    from senfunet_core.learning.sequences import _sensor_offset
 
     store = get_typestore(Stores.ROS2_JAZZY)
     T_ = store.types
