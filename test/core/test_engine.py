@@ -702,3 +702,27 @@ def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(mo
     assert evaluated.sum() > 8  # more than one batch, all written once the lock was free
     alpha = engine.grid.pools["alpha"][:n].numpy()
     assert np.isfinite(alpha[evaluated]).all() and bool((engine.store.stale[:n][evaluated] == 0).all())
+
+
+def test_the_default_map_bound_follows_the_machines_memory():
+    """max_blocks=-1: as many blocks as fit in half of this machine's memory, at what a block costs."""
+    import os
+
+    from senfunet_core.engine import memory_bound_blocks
+
+    engine = engine_for_tests(max_blocks=-1)
+    per_block = engine.grid.bytes_per_block()
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    assert engine.max_blocks == memory_bound_blocks(per_block)
+    assert 1024 <= engine.max_blocks <= 0.5 * total / per_block
+    # what a block costs covers its rows and its share of the hash table (at most 4 entries a block
+    # past the initial table)
+    T = SPHERE_VIEWS[0]
+    engine.integrate("tof", render_sphere(SPHERE_C, SPHERE_R, SPHERE_K, T), SPHERE_K, T)
+    grid = engine.grid
+    table_bytes = grid.table_keys.nbytes + grid.table_slots.nbytes
+    assert grid.n_blocks > 10 and grid.nbytes() - table_bytes <= grid.n_blocks * per_block
+    entry_bytes = grid.table_keys.itemsize + grid.table_slots.itemsize
+    assert len(grid.table_keys) <= max(4096, 4 * grid.n_blocks) and per_block - 4 * entry_bytes > 512 * 8
+    with pytest.raises(InputError, match="max_blocks"):
+        EngineConfig(max_blocks=-2).validate()
