@@ -234,6 +234,9 @@ class FusionNode(Node):
         s = self.settings
         self.timings = {name: _Timing() for name in ("integrate", "update", "alpha", "weights", "encode", "publish")}
         self.latency = LatencyStats()  # frame arrival -> the mesh that contains it
+        from senfunet_core.colors import ColorGrid
+
+        self.camera_colors = ColorGrid(2 * s.voxel_size_m)  # fed only with mesh_colors: camera
         self._tf_subscriptions: list[Any] = []
         tf = self._make_tf() if PoseType(s.pose_type) is PoseType.TF else None  # before the heavy engine
         ingest = Ingest(P.ingest_config(self.settings, max_lag_s=s.max_lag_s, tf=tf))
@@ -479,6 +482,11 @@ class FusionNode(Node):
     def _integrated(self, frame: Frame, seconds: float) -> None:
         self.timings["integrate"].add(seconds)
         self.latency.integrated(frame.arrival_s)
+        if frame.rgb is not None and self.settings.mesh_colors == "camera":
+            from senfunet_core.colors import unproject
+
+            points, pixels = unproject(frame.depth_m, frame.K, frame.T_world_camera)
+            self.camera_colors.add(points, frame.rgb[pixels[:, 0], pixels[:, 1]])
 
     @property
     def engine(self) -> Any:
@@ -575,7 +583,15 @@ class FusionNode(Node):
         if not isinstance(meshes, BlockMeshes):
             meshes = BlockMeshes.from_meshes(dict(meshes))
         cell_m = self.settings.mesh_display_cell_m
-        return decimate_block_meshes(meshes, cell_m) if cell_m > self.settings.voxel_size_m else meshes
+        if cell_m > self.settings.voxel_size_m:
+            meshes = decimate_block_meshes(meshes, cell_m)
+        if self.settings.mesh_colors == "camera" and len(meshes.vertices):
+            seen = self.camera_colors.lookup(meshes.vertices)
+            known = ~np.isnan(seen[:, 0])
+            colors = np.array(meshes.colors, np.float32, copy=True)
+            colors[known] = seen[known]
+            meshes = dataclasses.replace(meshes, colors=colors)
+        return meshes
 
     def _wait_mesh_acked(self, deadline: float) -> None:
         """Until every reader acknowledged ~/mesh's samples, or time.monotonic() reaches deadline.
@@ -705,6 +721,7 @@ class FusionNode(Node):
             device = P.engine_config(self.settings).device
             with self._mesh_lock:
                 engine = self.pipeline.load_map(path, device=device)
+                self.camera_colors.clear()  # a map file holds no camera colours
                 self._apply_engine_settings(self.settings)
                 self._mesh_subscribers = 0  # subscribers get the loaded map whole
             response.success = True
@@ -720,6 +737,7 @@ class FusionNode(Node):
     def reset_map(self) -> None:
         """Forget the map and queued frames; subscribers get a DELETEALL right away."""
         self.pipeline.reset()
+        self.camera_colors.clear()
         self.publish_mesh()
 
     def destroy_node(self) -> None:

@@ -92,6 +92,9 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("mesh_display_cell_m", 0.03, "~/mesh shows a display mesh whose vertices are merged on a grid of this "
           "size (per block; the map and ~/save_mesh keep full resolution): a snapshot of a room stays a few tens of "
           "MB for subscribers over Wi-Fi; 0 (or not above voxel_size_m) = full resolution", lo=0.0, hi=1.0, runtime=True),
+    Param("mesh_colors", "weighting", "vertex colours of ~/mesh: weighting (amber = sensor 1 trusted, blue = sensor "
+          "2) | camera (the colour images, averaged on a grid of twice the voxel size; the weighting where no "
+          "camera colour was seen)", choices=("weighting", "camera"), runtime=True),
     _rate("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
           "instructions, else float32) | float32 | bfloat16", choices=("auto", "float32", "bfloat16")),

@@ -278,3 +278,26 @@ def test_compressed_inputs_are_decoded(ros, tmp_path: Path) -> None:
     bad.data = b"\x00" * 12 + b"not a png"
     with pytest.raises(ValueError, match="png"):
         conv.depth_from_image(bad)
+
+
+def test_mesh_coloured_by_camera_colour(ros, tmp_path: Path) -> None:
+    run = Running("colours", {**topic_params("colours"), **SMALL, "mesh_colors": "camera"}, tmp_path)
+    try:
+        fuse_in_process(run, scene_messages())
+        run.node.publish_mesh()  # every integrated block meshed
+        meshes = run.node.engine.block_meshes()
+        assert len(meshes.faces) > 100
+        camera = run.node._display(meshes)
+        (r,) = _set(run, mesh_colors="weighting")
+        assert r.successful
+        weighting = run.node._display(meshes)
+        assert len(run.node.camera_colors) > 100  # the stereo colour images were averaged in
+        seen = ~np.isnan(run.node.camera_colors.lookup(meshes.vertices)[:, 0])  # where the stereo camera saw
+        assert seen.mean() > 0.2, seen.mean()
+        assert np.array_equal(camera.colors[~seen], weighting.colors[~seen])  # elsewhere the weighting colours
+        changed = np.abs(camera.colors - weighting.colors).max(axis=1) > 0.02
+        assert changed[seen].mean() > 0.8, changed[seen].mean()
+        assert camera.colors[seen].std(axis=0).max() > 0.02  # texture, not one flat colour
+        assert run.call("reset").success and len(run.node.camera_colors) == 0
+    finally:
+        run.close()
