@@ -301,3 +301,34 @@ def test_mesh_coloured_by_camera_colour(ros, tmp_path: Path) -> None:
         assert run.call("reset").success and len(run.node.camera_colors) == 0
     finally:
         run.close()
+
+
+def test_clock_going_back_restarts_time_at_once(ros, tmp_path: Path) -> None:
+    from rosgraph_msgs.msg import Clock
+
+    run = Running("clock", {**topic_params("clock"), **SMALL, "use_sim_time": True,
+                            "tof.T_body_camera": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}, tmp_path)
+    pub_node = Node("clock_publisher")
+    try:
+        clock = pub_node.create_publisher(Clock, "/clock", 10)
+        wait_for(lambda: clock.get_subscription_count() > 0, 20, "discovery")
+        pose = PoseStamped()
+        pose.pose.orientation.w = 1.0
+        _stamp(pose, 100.0)
+        run.node.pipeline.dispatch("tof", "pose", pose)  # a timeline at 1100 s
+        for t_s in (100.0, 100.5, 10.0):  # the bag loops: /clock goes back by 90 s
+            msg = Clock()
+            msg.clock.sec = int(t_s + BASE_S)
+            clock.publish(msg)
+            time.sleep(0.2)
+        wait_for(lambda: run.node.time_jumps >= 1, 10, "the restart")
+        assert run.node.ingest.counters()["tof"]["dropped"]["bad_stamp"] == 0
+    finally:
+        pub_node.destroy_node()
+        run.close()
+
+
+def test_bad_extrinsic_refuses_to_start(ros, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="T_body_camera"):
+        Running("extrinsic", {**topic_params("extrinsic"), **SMALL, "tof.T_body_camera": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]},
+                tmp_path)
