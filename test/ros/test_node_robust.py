@@ -330,5 +330,5 @@ def test_clock_going_back_restarts_time_at_once(ros, tmp_path: Path) -> None:
 
 def test_bad_extrinsic_refuses_to_start(ros, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="T_body_camera"):
-        Running("extrinsic", {**topic_params("extrinsic"), **SMALL, "tof.T_body_camera": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]},
-                tmp_path)
+        Running("extrinsic", {**topic_params("extrinsic"), **SMALL,
+                              "tof.T_body_camera": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]}, tmp_path)
