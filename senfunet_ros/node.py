@@ -432,7 +432,10 @@ class FusionNode(Node):
                             ("status_rate_hz", self._status_timer)):
             if getattr(new, name) != getattr(old, name):
                 timer.timer_period_ns = int(1e9 / getattr(new, name))
-        self.ingest.config = P.ingest_config(new, max_lag_s=new.max_lag_s, tf=self.ingest.config.tf)
+        tf = self.ingest.config.tf
+        if hasattr(tf, "max_gap_ns"):  # our own TF buffer interpolates within pose_tolerance_s
+            tf.max_gap_ns = int(new.pose_tolerance_s * 1e9)
+        self.ingest.config = P.ingest_config(new, max_lag_s=new.max_lag_s, tf=tf)
         self.pipeline.on_time_jump = TimeJumpAction.parse(new.on_time_jump)
         self.health.window_s, self.health.stale_after_s = new.diagnostics_window_s, new.stale_after_s
         self._apply_engine_settings(new)
