@@ -51,7 +51,8 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable
+from typing import Any
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
@@ -238,6 +239,7 @@ class Ingest:
             behind = True  # a stream's first message far behind the others
         if behind or ahead:
             ref = last if behind and last is not None else now
+            assert ref is not None  # behind or ahead needs a timeline to be off
             state.counters.errors["bad_stamp"] = (
                 f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is {abs(stamp_ns - ref) * 1e-9:.3f} s "
                 f"{'behind' if behind else 'ahead of'} the stream's timeline; check the driver's clock (a restart "
@@ -352,6 +354,7 @@ class Ingest:
         return None
 
     def _decode_depth(self, state: _SensorState, msg: Any, stamp_ns: int, arrival_s: float) -> tuple[str | None, Any]:
+        assert state.camera_info is not None  # depth waits in awaiting_info until it comes
         K, info_size = state.camera_info
         try:
             depth_m = conv.depth_from_image(msg)
@@ -465,7 +468,8 @@ class Ingest:
                 frames, back = frames[:max_frames], frames[max_frames:]
                 for frame in reversed(back):  # back to the front of their queues, newest last
                     self._sensors[frame.sensor].queue.appendleft(
-                        _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb, frame.T_world_camera))
+                        _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb,
+                                 frame.T_world_camera))
         return [*jumps, *frames]
 
     def _pop_sensor(self, name: str, state: _SensorState) -> list[Frame]:
@@ -484,7 +488,8 @@ class Ingest:
             t = pending.stamp_ns
             if pending.T is not None:  # posed before, put back by pop_ready(max_frames)
                 state.queue.popleft()
-                if lag_ns and newest_ns - t > lag_ns:  # the consumer fell behind: keep latency bounded
+                # the consumer fell behind: keep latency bounded
+                if lag_ns and newest_ns is not None and newest_ns - t > lag_ns:
                     state.counters.dropped["behind"] += 1
                 else:
                     out.append(Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s))

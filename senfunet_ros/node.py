@@ -28,7 +28,8 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import rclpy
@@ -323,7 +324,7 @@ class FusionNode(Node):
         out = [(Stream.CAMERA_INFO, CameraInfo, sensor.camera_info_topic, _SENSOR_QOS),
                (Stream.DEPTH, depth_type, sensor.depth_topic, _SENSOR_QOS),
                (Stream.COLOR, color_type, sensor.color_topic, _SENSOR_QOS)]
-        if pose_type is not PoseType.TF:
+        if pose_type.msgtype is not None:  # not TF
             out.append((Stream.POSE, message_class(pose_type.msgtype), sensor.pose_topic, _POSE_QOS))
         return out
 
@@ -331,7 +332,7 @@ class FusionNode(Node):
         """Poses from TF: tf2_ros's buffer and listener when a sourced ROS 2 install provides them, else
         our own buffer fed by /tf and /tf_static when tf2_msgs can be imported; else a clear refusal."""
         try:
-            import tf2_ros
+            import tf2_ros  # type: ignore[import-not-found]  # only in a sourced ROS 2 install
         except ImportError:
             tf2_ros = None
         if tf2_ros is not None:
@@ -340,7 +341,7 @@ class FusionNode(Node):
             self.get_logger().info("pose_type tf: poses from tf2_ros")
             return _Tf2Lookup(buffer, tf2_ros)
         try:
-            from tf2_msgs.msg import TFMessage
+            from tf2_msgs.msg import TFMessage  # type: ignore[import-not-found]  # no wheel on the index
         except ImportError:
             raise ValueError("pose_type tf needs tf2_ros, which cannot be imported here: source a ROS 2 install "
                              "(e.g. . /opt/ros/jazzy/setup.bash) before starting the node, or give poses on pose "

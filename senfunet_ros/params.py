@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 from senfunet_ros.conversions.poses import PoseType
 
@@ -52,7 +53,8 @@ def _rate(name: str, default: float, help_text: str) -> Param:
 
 GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("sensors", ["tof", "stereo"], "sensor names, sensor 1 first (alpha is the weight of sensor 1)"),
-    Param("rgb_sensors", ["stereo"], "sensors whose feature net also takes the colour image (as the weights were trained)"),
+    Param("rgb_sensors", ["stereo"],
+          "sensors whose feature net also takes the colour image (as the weights were trained)"),
     Param("pose_type", "pose_stamped", "where poses come from: pose_stamped | odometry | transform_stamped (the "
           "pose topics), or tf (each depth image's frame_id looked up in fixed_frame on /tf and /tf_static)",
           choices=tuple(p.value for p in PoseType)),
@@ -72,7 +74,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("pose_tolerance_s", 0.1, "max time between a depth stamp and the poses interpolated around it", lo=0.0,
           hi=60.0, lo_open=True, runtime=True),
     Param("pose_max_wait_s", 1.0,
-          "a frame waits this long (sensor time) for a pose after its stamp, or for its first camera_info, then is dropped",
+          "a frame waits this long (sensor time) for a pose after its stamp, or for its first camera_info, then is "
+          "dropped",
           lo=0.0, hi=600.0, lo_open=True, runtime=True),
     Param("color_tolerance_s", 0.02, "max stamp difference between a depth image and the colour image matched to it",
           lo=0.0, hi=10.0, runtime=True),
@@ -91,7 +94,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "reached first); 0 = no limit", lo=0.0, hi=600.0, runtime=True),
     Param("mesh_display_cell_m", 0.03, "~/mesh shows a display mesh whose vertices are merged on a grid of this "
           "size (per block; the map and ~/save_mesh keep full resolution): a snapshot of a room stays a few tens of "
-          "MB for subscribers over Wi-Fi; 0 (or not above voxel_size_m) = full resolution", lo=0.0, hi=1.0, runtime=True),
+          "MB for subscribers over Wi-Fi; 0 (or not above voxel_size_m) = full resolution",
+          lo=0.0, hi=1.0, runtime=True),
     Param("mesh_colors", "weighting", "vertex colours of ~/mesh: weighting (amber = sensor 1 trusted, blue = sensor "
           "2) | camera (the colour images, averaged on a grid of twice the voxel size; the weighting where no "
           "camera colour was seen)", choices=("weighting", "camera"), runtime=True),
@@ -131,7 +135,8 @@ SENSOR_PARAMS: tuple[Param, ...] = (
           "camera's"),
     Param("{sensor}.depth_min_m", 0.1, "depth below this is ignored, metres", lo=0.0, hi=1000.0, runtime=True),
     Param("{sensor}.depth_max_m", 3.0, "depth beyond this is ignored, metres (at 1 cm voxels and 256 px, rays beyond "
-          "~3 m are > 2 voxels apart and noise spreads samples over many sparse blocks: memory and time, little surface)",
+          "~3 m are > 2 voxels apart and noise spreads samples over many sparse blocks: memory and time, little "
+          "surface)",
           lo=0.0, hi=1000.0, lo_open=True, runtime=True),
 )
 
@@ -187,7 +192,7 @@ class Settings:
         return tuple(s.name for s in self.sensors)
 
     @classmethod
-    def from_values(cls, values: dict[str, Any]) -> "Settings":
+    def from_values(cls, values: dict[str, Any]) -> Settings:
         """Settings from checked values (see `check`)."""
         sensors = tuple(
             SensorSettings(name=s, depth_topic=values[f"{s}.depth_topic"], color_topic=values[f"{s}.color_topic"],
@@ -277,9 +282,9 @@ def declare(node: Any) -> Settings:
                                          # YAML integers for float parameters (and the like) are coerced, not refused;
                                          # the on-set callback checks types
                                          dynamic_typing=True)
-        if isinstance(p.default, float) and p.lo is not None:
+        if isinstance(p.default, float) and p.lo is not None and p.hi is not None:
             descriptor.floating_point_range = [FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi))]
-        elif isinstance(p.default, int) and not isinstance(p.default, bool) and p.lo is not None:
+        elif isinstance(p.default, int) and not isinstance(p.default, bool) and p.lo is not None and p.hi is not None:
             descriptor.integer_range = [IntegerRange(from_value=int(p.lo), to_value=int(p.hi), step=1)]
         value = node.declare_parameter(p.name, p.default, descriptor).value
         return coerce(p.name, p.default if value is None else value, p.default)

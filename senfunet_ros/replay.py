@@ -15,13 +15,15 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 
 from senfunet_ros import params as P
 from senfunet_ros.params import engine_config, engine_weights, ingest_config
-from senfunet_ros.bagio import BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype, open_bag
+from senfunet_ros.bagio import (BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype,
+                                open_bag)
 from senfunet_ros.conversions import PoseType
 from senfunet_ros.ingest import Ingest
 from senfunet_ros.pipeline import MESH_FILES, Pipeline, Stream
@@ -129,7 +131,8 @@ class TopicRouter:
         self.undecodable: dict[str, int] = {}
         pose_type = PoseType(settings.pose_type)
         missing: list[str] = []
-        wanted: list[tuple[str, str, str, tuple[str, ...], bool]] = []  # sensor, stream, topic, types, required
+        # sensor, stream, topic, accepted types, required
+        wanted: list[tuple[str, Stream, str, tuple[str | None, ...], bool]] = []
         for sensor in settings.sensors:
             wanted += [(sensor.name, Stream.CAMERA_INFO, sensor.camera_info_topic, (_CAMERA_INFO,), True),
                        (sensor.name, Stream.DEPTH, sensor.depth_topic, _IMAGES, True),
@@ -149,7 +152,8 @@ class TopicRouter:
                 continue
             msgtype = normalize_msgtype(info.msgtype)
             if msgtype not in expected:
-                raise BagError(self._type_error(topic, msgtype, " or ".join(expected), stream, settings))
+                accepted = " or ".join(t for t in expected if t)
+                raise BagError(self._type_error(topic, msgtype, accepted, stream, settings))
             msg_class = None if msgtype == _TF_MSGTYPE else message_class(msgtype)
             self.routes[topic] = Route(topic, sensor_name, Stream(stream).value, msgtype, msg_class)
         if missing:
@@ -173,7 +177,8 @@ class TopicRouter:
         except BagError:
             known = False
         what = f"has type {msgtype}" + ("" if known else ", unknown here,")
-        return f"{self.bag_path}: topic {topic} {what} but the node takes {expected} there; record {expected} or remap the topic with --params"
+        return (f"{self.bag_path}: topic {topic} {what} but the node takes {expected} there; record {expected} or "
+                "remap the topic with --params")
 
     @property
     def topics(self) -> set[str]:

@@ -39,7 +39,8 @@ def _image_rows(msg: Any, bytes_per_pixel: int) -> np.ndarray:
             f"image step {step} B is shorter than width {width} x {bytes_per_pixel} B per pixel; "
             "fix the driver's step field"
         )
-    data = np.frombuffer(msg.data, dtype=np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8).ravel()
+    data = (np.frombuffer(msg.data, dtype=np.uint8) if not isinstance(msg.data, np.ndarray)
+            else msg.data.view(np.uint8).ravel())
     if data.size < step * height:
         raise ValueError(
             f"image data has {data.size} B but step x height = {step * height} B; "
@@ -160,7 +161,8 @@ def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
     if width <= 0 or height <= 0:
         raise ValueError(f"camera_info size {width}x{height} is empty; set width and height in the driver")
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
-        raise ValueError(f"camera_info K has no positive finite focal lengths (fx={K[0, 0]}, fy={K[1, 1]}); calibrate the camera")
+        raise ValueError(f"camera_info K has no positive finite focal lengths (fx={K[0, 0]}, fy={K[1, 1]}); "
+                         "calibrate the camera")
     return K, (width, height)
 
 

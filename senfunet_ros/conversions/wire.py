@@ -254,6 +254,7 @@ def marker_array_messages(
         data = marker_array_cdr(meshes.blocks(start, stop), removed if first else (), stamp_ns=stamp_ns,
                                 frame_id=frame_id, delete_all_first=delete_all_first and first, as_array=True,
                                 out=buffer)
+        assert isinstance(data, np.ndarray)  # as_array
         if data.base is not buffer:
             buffer = data
         yield data
@@ -316,7 +317,9 @@ def marker_array_cdr(
 
 def delete_all_marker_array_cdr(*, stamp_ns: int, frame_id: str) -> bytes:
     """A MarkerArray holding one DELETEALL marker: clears every block in the subscriber."""
-    return marker_array_cdr({}, (), stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
+    data = marker_array_cdr({}, (), stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
+    assert isinstance(data, bytes)  # not as_array
+    return data
 
 
 def point_cloud2_cdr(

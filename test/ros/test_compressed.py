@@ -50,7 +50,8 @@ def _compressed_copy(src: Path, dst: Path) -> None:
 
 def _replay(bag: Path, out: Path, params: Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "replay", str(bag), "--out", str(out),
-                           "--params", str(params), "--no-progress"], capture_output=True, text=True, timeout=600)
+                           "--params", str(params), "--no-progress", "--compare"], capture_output=True, text=True,
+                          timeout=600)
 
 
 def test_compressed_bag_replays_like_the_raw_one(tmp_path: Path) -> None:

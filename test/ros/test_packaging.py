@@ -62,7 +62,8 @@ def test_colcon_build_installs_the_package(tmp_path: Path) -> None:
     env_dir = tmp_path / "colcon"
     venv.create(env_dir, with_pip=True)
     pip = subprocess.run([str(env_dir / "bin" / "python"), "-m", "pip", "install", "-q", "colcon-core", "colcon-ros",
-                          "colcon-python-setup-py", "colcon-package-selection"], capture_output=True, text=True, timeout=600)
+                          "colcon-python-setup-py", "colcon-package-selection"],
+                         capture_output=True, text=True, timeout=600)
     if pip.returncode != 0:
         pytest.skip(f"colcon cannot be installed from the package index here: {pip.stderr.strip()[-300:]}")
     src = tmp_path / "ws" / "src" / "senfunet_ros"
@@ -83,5 +84,6 @@ def test_colcon_build_installs_the_package(tmp_path: Path) -> None:
         assert (share / name).is_file(), name
     assert (install / "share" / "ament_index" / "resource_index" / "packages" / "senfunet_ros").is_file()
     site = next((install / "lib").glob("python3*/site-packages"))
-    assert list((site / "senfunet_core" / "weights").glob("*.pt")) and (site / "senfunet_ros" / "fastdds_profile.xml").is_file()
+    assert list((site / "senfunet_core" / "weights").glob("*.pt"))
+    assert (site / "senfunet_ros" / "fastdds_profile.xml").is_file()
     assert importlib.util.find_spec("senfunet_ros") is not None

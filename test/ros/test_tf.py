@@ -51,7 +51,7 @@ def _tf_only_copy(src: Path, dst: Path) -> None:
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from senfunet_core.learning.simulator import _sensor_offset
+    from senfunet_core.learning.sequences import _sensor_offset  # the rig: where each camera sits on it
 
     store = get_typestore(Stores.ROS2_JAZZY)
     T_ = store.types
@@ -77,7 +77,8 @@ def _tf_only_copy(src: Path, dst: Path) -> None:
                 T_world_cam = transform_from_tq([p.x, p.y, p.z], [o.x, o.y, o.z, o.w], "pose")
                 sensor = msg.topic.split("/")[1]
                 T_odom_base = T_world_cam @ invert_transform(mounts[sensor])  # map = odom here
-                topic, out = "/tf", TFMessage(transforms=[transform("odom", "base_link", pose.header.stamp, T_odom_base)])
+                moving = transform("odom", "base_link", pose.header.stamp, T_odom_base)
+                topic, out = "/tf", TFMessage(transforms=[moving])
             else:
                 topic, out = msg.topic, None
             if "/tf_static" not in conns:  # latched mounts, recorded first
@@ -85,10 +86,11 @@ def _tf_only_copy(src: Path, dst: Path) -> None:
                 static = TFMessage(transforms=[transform("map", "odom", stamp, np.eye(4))] + [
                     transform("base_link", f"{s}_optical_frame", stamp, mounts[s]) for s in mounts])
                 conns["/tf_static"] = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=store)
-                writer.write(conns["/tf_static"], msg.log_time_ns - 1, store.serialize_cdr(static, "tf2_msgs/msg/TFMessage"))
+                writer.write(conns["/tf_static"], msg.log_time_ns - 1,
+                             store.serialize_cdr(static, "tf2_msgs/msg/TFMessage"))
             if topic not in conns:
-                conns[topic] = writer.add_connection(topic, "tf2_msgs/msg/TFMessage" if out is not None else msg.msgtype,
-                                                     typestore=store)
+                msgtype = "tf2_msgs/msg/TFMessage" if out is not None else msg.msgtype
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
             data = store.serialize_cdr(out, "tf2_msgs/msg/TFMessage") if out is not None else msg.data
             writer.write(conns[topic], msg.log_time_ns, data)
 
