@@ -6,6 +6,8 @@ conversions pass plain numbers in.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 __all__ = [
@@ -27,6 +29,7 @@ def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     """Rotation matrix -> unit quaternion (x, y, z, w), numerically stable for any angle."""
     m = R
     trace = m[0, 0] + m[1, 1] + m[2, 2]
+    q: list[float]
     if trace > 0:
         s = 2.0 * np.sqrt(trace + 1.0)
         q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
@@ -53,7 +56,7 @@ def matrix_from_quat(q: np.ndarray) -> np.ndarray:
     ])
 
 
-def transform_from_tq(t: np.ndarray, q: np.ndarray, what: str) -> np.ndarray:
+def transform_from_tq(t: np.ndarray | Sequence[float], q: np.ndarray | Sequence[float], what: str) -> np.ndarray:
     """Translation (3,) and quaternion (x, y, z, w) -> 4x4 transform. ValueError, naming `what`, for
     NaN/inf or a quaternion whose norm is not 1 (within QUATERNION_NORM_TOLERANCE)."""
     t = np.asarray(t, dtype=np.float64)

@@ -238,7 +238,8 @@ class Ingest:
         if last is None and now is not None and stamp_ns < now - far_ns:
             behind = True  # a stream's first message far behind the others
         if behind or ahead:
-            ref = last if behind and last is not None else now if now is not None else stamp_ns
+            ref = last if behind and last is not None else now
+            assert ref is not None  # behind or ahead needs a timeline to be off
             state.counters.errors["bad_stamp"] = (
                 f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is {abs(stamp_ns - ref) * 1e-9:.3f} s "
                 f"{'behind' if behind else 'ahead of'} the stream's timeline; check the driver's clock (a restart "
@@ -353,7 +354,7 @@ class Ingest:
         return None
 
     def _decode_depth(self, state: _SensorState, msg: Any, stamp_ns: int, arrival_s: float) -> tuple[str | None, Any]:
-        assert state.camera_info is not None  # frames wait in awaiting_info until it came
+        assert state.camera_info is not None  # depth waits in awaiting_info until it comes
         K, info_size = state.camera_info
         try:
             depth_m = conv.depth_from_image(msg)

@@ -235,6 +235,9 @@ class FusionNode(Node):
         s = self.settings
         self.timings = {name: _Timing() for name in ("integrate", "update", "alpha", "weights", "encode", "publish")}
         self.latency = LatencyStats()  # frame arrival -> the mesh that contains it
+        from senfunet_core.colors import ColorGrid
+
+        self.camera_colors = ColorGrid(2 * s.voxel_size_m)  # fed only with mesh_colors: camera
         self._tf_subscriptions: list[Any] = []
         tf = self._make_tf() if PoseType(s.pose_type) is PoseType.TF else None  # before the heavy engine
         ingest = Ingest(P.ingest_config(self.settings, max_lag_s=s.max_lag_s, tf=tf))
@@ -321,7 +324,7 @@ class FusionNode(Node):
         out = [(Stream.CAMERA_INFO, CameraInfo, sensor.camera_info_topic, _SENSOR_QOS),
                (Stream.DEPTH, depth_type, sensor.depth_topic, _SENSOR_QOS),
                (Stream.COLOR, color_type, sensor.color_topic, _SENSOR_QOS)]
-        if pose_type.msgtype is not None:  # every pose type but tf
+        if pose_type.msgtype is not None:  # not TF
             out.append((Stream.POSE, message_class(pose_type.msgtype), sensor.pose_topic, _POSE_QOS))
         return out
 
@@ -329,7 +332,7 @@ class FusionNode(Node):
         """Poses from TF: tf2_ros's buffer and listener when a sourced ROS 2 install provides them, else
         our own buffer fed by /tf and /tf_static when tf2_msgs can be imported; else a clear refusal."""
         try:
-            import tf2_ros
+            import tf2_ros  # type: ignore[import-not-found]  # only in a sourced ROS 2 install
         except ImportError:
             tf2_ros = None
         if tf2_ros is not None:
@@ -338,7 +341,7 @@ class FusionNode(Node):
             self.get_logger().info("pose_type tf: poses from tf2_ros")
             return _Tf2Lookup(buffer, tf2_ros)
         try:
-            from tf2_msgs.msg import TFMessage
+            from tf2_msgs.msg import TFMessage  # type: ignore[import-not-found]  # no wheel on the index
         except ImportError:
             raise ValueError("pose_type tf needs tf2_ros, which cannot be imported here: source a ROS 2 install "
                              "(e.g. . /opt/ros/jazzy/setup.bash) before starting the node, or give poses on pose "
@@ -430,7 +433,10 @@ class FusionNode(Node):
                             ("status_rate_hz", self._status_timer)):
             if getattr(new, name) != getattr(old, name):
                 timer.timer_period_ns = int(1e9 / getattr(new, name))
-        self.ingest.config = P.ingest_config(new, max_lag_s=new.max_lag_s, tf=self.ingest.config.tf)
+        tf = self.ingest.config.tf
+        if hasattr(tf, "max_gap_ns"):  # our own TF buffer interpolates within pose_tolerance_s
+            tf.max_gap_ns = int(new.pose_tolerance_s * 1e9)
+        self.ingest.config = P.ingest_config(new, max_lag_s=new.max_lag_s, tf=tf)
         self.pipeline.on_time_jump = TimeJumpAction.parse(new.on_time_jump)
         self.health.window_s, self.health.stale_after_s = new.diagnostics_window_s, new.stale_after_s
         self._apply_engine_settings(new)
@@ -480,6 +486,11 @@ class FusionNode(Node):
     def _integrated(self, frame: Frame, seconds: float) -> None:
         self.timings["integrate"].add(seconds)
         self.latency.integrated(frame.arrival_s)
+        if frame.rgb is not None and self.settings.mesh_colors == "camera":
+            from senfunet_core.colors import unproject
+
+            points, pixels = unproject(frame.depth_m, frame.K, frame.T_world_camera)
+            self.camera_colors.add(points, frame.rgb[pixels[:, 0], pixels[:, 1]])
 
     @property
     def engine(self) -> Any:
@@ -576,7 +587,15 @@ class FusionNode(Node):
         if not isinstance(meshes, BlockMeshes):
             meshes = BlockMeshes.from_meshes(dict(meshes))
         cell_m = self.settings.mesh_display_cell_m
-        return decimate_block_meshes(meshes, cell_m) if cell_m > self.settings.voxel_size_m else meshes
+        if cell_m > self.settings.voxel_size_m:
+            meshes = decimate_block_meshes(meshes, cell_m)
+        if self.settings.mesh_colors == "camera" and len(meshes.vertices):
+            seen = self.camera_colors.lookup(meshes.vertices)
+            known = ~np.isnan(seen[:, 0])
+            colors = np.array(meshes.colors, np.float32, copy=True)
+            colors[known] = seen[known]
+            meshes = dataclasses.replace(meshes, colors=colors)
+        return meshes
 
     def _wait_mesh_acked(self, deadline: float) -> None:
         """Until every reader acknowledged ~/mesh's samples, or time.monotonic() reaches deadline.
@@ -706,6 +725,7 @@ class FusionNode(Node):
             device = P.engine_config(self.settings).device
             with self._mesh_lock:
                 engine = self.pipeline.load_map(path, device=device)
+                self.camera_colors.clear()  # a map file holds no camera colours
                 self._apply_engine_settings(self.settings)
                 self._mesh_subscribers = 0  # subscribers get the loaded map whole
             response.success = True
@@ -721,6 +741,7 @@ class FusionNode(Node):
     def reset_map(self) -> None:
         """Forget the map and queued frames; subscribers get a DELETEALL right away."""
         self.pipeline.reset()
+        self.camera_colors.clear()
         self.publish_mesh()
 
     def destroy_node(self) -> None:

@@ -74,8 +74,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("pose_tolerance_s", 0.1, "max time between a depth stamp and the poses interpolated around it", lo=0.0,
           hi=60.0, lo_open=True, runtime=True),
     Param("pose_max_wait_s", 1.0,
-          "a frame waits this long (sensor time) for a pose after its stamp, or for its first camera_info, "
-          "then is dropped",
+          "a frame waits this long (sensor time) for a pose after its stamp, or for its first camera_info, then is "
+          "dropped",
           lo=0.0, hi=600.0, lo_open=True, runtime=True),
     Param("color_tolerance_s", 0.02, "max stamp difference between a depth image and the colour image matched to it",
           lo=0.0, hi=10.0, runtime=True),
@@ -96,6 +96,9 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "size (per block; the map and ~/save_mesh keep full resolution): a snapshot of a room stays a few tens of "
           "MB for subscribers over Wi-Fi; 0 (or not above voxel_size_m) = full resolution",
           lo=0.0, hi=1.0, runtime=True),
+    Param("mesh_colors", "weighting", "vertex colours of ~/mesh: weighting (amber = sensor 1 trusted, blue = sensor "
+          "2) | camera (the colour images, averaged on a grid of twice the voxel size; the weighting where no "
+          "camera colour was seen)", choices=("weighting", "camera"), runtime=True),
     _rate("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
           "instructions, else float32) | float32 | bfloat16", choices=("auto", "float32", "bfloat16")),
@@ -132,8 +135,8 @@ SENSOR_PARAMS: tuple[Param, ...] = (
           "camera's"),
     Param("{sensor}.depth_min_m", 0.1, "depth below this is ignored, metres", lo=0.0, hi=1000.0, runtime=True),
     Param("{sensor}.depth_max_m", 3.0, "depth beyond this is ignored, metres (at 1 cm voxels and 256 px, rays beyond "
-          "~3 m are > 2 voxels apart and noise spreads samples over many sparse blocks: memory and time, "
-          "little surface)",
+          "~3 m are > 2 voxels apart and noise spreads samples over many sparse blocks: memory and time, little "
+          "surface)",
           lo=0.0, hi=1000.0, lo_open=True, runtime=True),
 )
 
@@ -334,8 +337,7 @@ def sensor_extrinsics(settings: Settings) -> dict[str, Any]:
 
     out = {}
     for sensor in settings.sensors:
-        T = transform_from_tq(np.asarray(sensor.T_body_camera[:3]), np.asarray(sensor.T_body_camera[3:]),
-                              f"{sensor.name}.T_body_camera")
+        T = transform_from_tq(sensor.T_body_camera[:3], sensor.T_body_camera[3:], f"{sensor.name}.T_body_camera")
         if not np.array_equal(T, np.eye(4)):
             out[sensor.name] = T
     return out

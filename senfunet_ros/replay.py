@@ -131,12 +131,13 @@ class TopicRouter:
         self.undecodable: dict[str, int] = {}
         pose_type = PoseType(settings.pose_type)
         missing: list[str] = []
-        wanted: list[tuple[str, str, str, tuple[str, ...], bool]] = []  # sensor, stream, topic, types, required
+        # sensor, stream, topic, accepted types, required
+        wanted: list[tuple[str, Stream, str, tuple[str | None, ...], bool]] = []
         for sensor in settings.sensors:
             wanted += [(sensor.name, Stream.CAMERA_INFO, sensor.camera_info_topic, (_CAMERA_INFO,), True),
                        (sensor.name, Stream.DEPTH, sensor.depth_topic, _IMAGES, True),
                        (sensor.name, Stream.COLOR, sensor.color_topic, _IMAGES, False)]
-            if pose_type.msgtype is not None:  # every pose type but tf
+            if pose_type is not PoseType.TF:
                 wanted.append((sensor.name, Stream.POSE, sensor.pose_topic, (pose_type.msgtype,), True))
         if pose_type is PoseType.TF:
             wanted += [("", Stream.TF, "/tf", (_TF_MSGTYPE,), True),
@@ -151,7 +152,8 @@ class TopicRouter:
                 continue
             msgtype = normalize_msgtype(info.msgtype)
             if msgtype not in expected:
-                raise BagError(self._type_error(topic, msgtype, " or ".join(expected), stream, settings))
+                accepted = " or ".join(t for t in expected if t)
+                raise BagError(self._type_error(topic, msgtype, accepted, stream, settings))
             msg_class = None if msgtype == _TF_MSGTYPE else message_class(msgtype)
             self.routes[topic] = Route(topic, sensor_name, Stream(stream).value, msgtype, msg_class)
         if missing:
@@ -175,8 +177,8 @@ class TopicRouter:
         except BagError:
             known = False
         what = f"has type {msgtype}" + ("" if known else ", unknown here,")
-        return (f"{self.bag_path}: topic {topic} {what} but the node takes {expected} there; "
-                f"record {expected} or remap the topic with --params")
+        return (f"{self.bag_path}: topic {topic} {what} but the node takes {expected} there; record {expected} or "
+                "remap the topic with --params")
 
     @property
     def topics(self) -> set[str]:

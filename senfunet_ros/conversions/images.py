@@ -39,10 +39,8 @@ def _image_rows(msg: Any, bytes_per_pixel: int) -> np.ndarray:
             f"image step {step} B is shorter than width {width} x {bytes_per_pixel} B per pixel; "
             "fix the driver's step field"
         )
-    if isinstance(msg.data, np.ndarray):
-        data = msg.data.view(np.uint8).ravel()
-    else:
-        data = np.frombuffer(msg.data, dtype=np.uint8)
+    data = (np.frombuffer(msg.data, dtype=np.uint8) if not isinstance(msg.data, np.ndarray)
+            else msg.data.view(np.uint8).ravel())
     if data.size < step * height:
         raise ValueError(
             f"image data has {data.size} B but step x height = {step * height} B; "

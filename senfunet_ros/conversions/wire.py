@@ -317,9 +317,9 @@ def marker_array_cdr(
 
 def delete_all_marker_array_cdr(*, stamp_ns: int, frame_id: str) -> bytes:
     """A MarkerArray holding one DELETEALL marker: clears every block in the subscriber."""
-    cdr = marker_array_cdr({}, (), stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
-    assert isinstance(cdr, bytes)  # not as_array
-    return cdr
+    data = marker_array_cdr({}, (), stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
+    assert isinstance(data, bytes)  # not as_array
+    return data
 
 
 def point_cloud2_cdr(

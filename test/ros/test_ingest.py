@@ -340,3 +340,16 @@ def test_integrate_ready_keeps_order_isolates_errors_and_flushes_before_a_time_j
     assert n == reference.grid.n_blocks > 0
     for name in ("tsdf0", "weight0", "feat0", "tsdf1", "weight1", "feat1", "drift"):
         assert torch.equal(engine.grid.pools[name][:n], reference.grid.pools[name][:n]), name
+
+
+def test_pose_of_another_frame_goes_through_the_sensor_extrinsic() -> None:
+    T_body_camera = np.eye(4)
+    T_body_camera[:3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]  # optical axes in a body frame
+    T_body_camera[:3, 3] = [0.2, 0.0, 0.5]
+    ingest = make(T_body_camera={"tof": T_body_camera})
+    ingest.add_pose("tof", pose_msg(0, x=1.0))
+    ingest.add_depth("tof", depth_msg(0))
+    (frame,) = frames(ingest.pop_ready())
+    T_world_body = np.eye(4)
+    T_world_body[0, 3] = 1.0
+    assert np.allclose(frame.T_world_camera, T_world_body @ T_body_camera)

@@ -278,3 +278,57 @@ def test_compressed_inputs_are_decoded(ros, tmp_path: Path) -> None:
     bad.data = b"\x00" * 12 + b"not a png"
     with pytest.raises(ValueError, match="png"):
         conv.depth_from_image(bad)
+
+
+def test_mesh_coloured_by_camera_colour(ros, tmp_path: Path) -> None:
+    run = Running("colours", {**topic_params("colours"), **SMALL, "mesh_colors": "camera"}, tmp_path)
+    try:
+        fuse_in_process(run, scene_messages())
+        run.node.publish_mesh()  # every integrated block meshed
+        meshes = run.node.engine.block_meshes()
+        assert len(meshes.faces) > 100
+        camera = run.node._display(meshes)
+        (r,) = _set(run, mesh_colors="weighting")
+        assert r.successful
+        weighting = run.node._display(meshes)
+        assert len(run.node.camera_colors) > 100  # the stereo colour images were averaged in
+        seen = ~np.isnan(run.node.camera_colors.lookup(meshes.vertices)[:, 0])  # where the stereo camera saw
+        assert seen.mean() > 0.2, seen.mean()
+        assert np.array_equal(camera.colors[~seen], weighting.colors[~seen])  # elsewhere the weighting colours
+        changed = np.abs(camera.colors - weighting.colors).max(axis=1) > 0.02
+        assert changed[seen].mean() > 0.8, changed[seen].mean()
+        assert camera.colors[seen].std(axis=0).max() > 0.02  # texture, not one flat colour
+        assert run.call("reset").success and len(run.node.camera_colors) == 0
+    finally:
+        run.close()
+
+
+def test_clock_going_back_restarts_time_at_once(ros, tmp_path: Path) -> None:
+    from rosgraph_msgs.msg import Clock
+
+    run = Running("clock", {**topic_params("clock"), **SMALL, "use_sim_time": True,
+                            "tof.T_body_camera": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}, tmp_path)
+    pub_node = Node("clock_publisher")
+    try:
+        clock = pub_node.create_publisher(Clock, "/clock", 10)
+        wait_for(lambda: clock.get_subscription_count() > 0, 20, "discovery")
+        pose = PoseStamped()
+        pose.pose.orientation.w = 1.0
+        _stamp(pose, 100.0)
+        run.node.pipeline.dispatch("tof", "pose", pose)  # a timeline at 1100 s
+        for t_s in (100.0, 100.5, 10.0):  # the bag loops: /clock goes back by 90 s
+            msg = Clock()
+            msg.clock.sec = int(t_s + BASE_S)
+            clock.publish(msg)
+            time.sleep(0.2)
+        wait_for(lambda: run.node.time_jumps >= 1, 10, "the restart")
+        assert run.node.ingest.counters()["tof"]["dropped"]["bad_stamp"] == 0
+    finally:
+        pub_node.destroy_node()
+        run.close()
+
+
+def test_bad_extrinsic_refuses_to_start(ros, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="T_body_camera"):
+        Running("extrinsic", {**topic_params("extrinsic"), **SMALL,
+                              "tof.T_body_camera": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]}, tmp_path)

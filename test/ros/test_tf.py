@@ -51,7 +51,7 @@ def _tf_only_copy(src: Path, dst: Path) -> None:
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from senfunet_core.learning.sequences import _sensor_offset
+    from senfunet_core.learning.sequences import _sensor_offset  # the rig: where each camera sits on it
 
     store = get_typestore(Stores.ROS2_JAZZY)
     T_ = store.types
@@ -77,8 +77,8 @@ def _tf_only_copy(src: Path, dst: Path) -> None:
                 T_world_cam = transform_from_tq([p.x, p.y, p.z], [o.x, o.y, o.z, o.w], "pose")
                 sensor = msg.topic.split("/")[1]
                 T_odom_base = T_world_cam @ invert_transform(mounts[sensor])  # map = odom here
-                out = TFMessage(transforms=[transform("odom", "base_link", pose.header.stamp, T_odom_base)])
-                topic = "/tf"
+                moving = transform("odom", "base_link", pose.header.stamp, T_odom_base)
+                topic, out = "/tf", TFMessage(transforms=[moving])
             else:
                 topic, out = msg.topic, None
             if "/tf_static" not in conns:  # latched mounts, recorded first
