@@ -332,7 +332,7 @@ class FusionNode(Node):
         """Poses from TF: tf2_ros's buffer and listener when a sourced ROS 2 install provides them, else
         our own buffer fed by /tf and /tf_static when tf2_msgs can be imported; else a clear refusal."""
         try:
-            import tf2_ros  # type: ignore[import-not-found]  # only in a sourced ROS 2 install
+            import tf2_ros  # only in a sourced ROS 2 install
         except ImportError:
             tf2_ros = None
         if tf2_ros is not None:
@@ -341,7 +341,7 @@ class FusionNode(Node):
             self.get_logger().info("pose_type tf: poses from tf2_ros")
             return _Tf2Lookup(buffer, tf2_ros)
         try:
-            from tf2_msgs.msg import TFMessage  # type: ignore[import-not-found]  # no wheel on the index
+            from tf2_msgs.msg import TFMessage  # no wheel on the index
         except ImportError:
             raise ValueError("pose_type tf needs tf2_ros, which cannot be imported here: source a ROS 2 install "
                              "(e.g. . /opt/ros/jazzy/setup.bash) before starting the node, or give poses on pose "
