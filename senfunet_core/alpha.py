@@ -10,7 +10,7 @@ turn comes, the net is evaluated on the voxels of the evaluated set (EngineConfi
 - "surface": the corners of cells whose 8 corners are observed and whose sensor TSDFs (any
   sensor, where observed) include values <= 0 and >= 0 (`surface_targets`): only these cells can
   hold fused triangles, since the fused value lies between V_1 and V_2. Evaluated voxel by voxel
-  (`target_columns`, `evaluate_columns`); alpha elsewhere may be stale.
+  (`target_gathers`, `evaluate_gathers`); alpha elsewhere may be stale.
 Evaluating more than needed is always allowed: the result then still equals the whole-grid
 evaluation on the evaluated set.
 
@@ -104,11 +104,11 @@ def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: 
     return out
 
 
-# -- voxel-granular evaluation ("surface" mode) -------------------------------------------------------
+# -- voxel-granular evaluation ("surface_voxels" mode) ------------------------------------------------
 # G is three convolutions (3^3, 3^3, 1^3): alpha at a voxel reads layer-1 outputs at its 27
 # neighbours, which read the inputs within 2 voxels. Instead of whole blocks with a 2-voxel halo,
-# only the target voxels are evaluated: layer 1 at the union of their 3^3 neighbourhoods (as rows
-# of an im2col matrix), layer 2 gathers those rows per target. Both layers are then matrix products.
+# only the target voxels are evaluated: layer 1 at the union of their 3^3 neighbourhoods, layer 2
+# at the targets, each as 27 gathered matrix products over tables of distinct positions.
 
 
 @numba.njit(cache=True, nogil=True)
@@ -159,22 +159,24 @@ def surface_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.nda
 
 
 @numba.njit(cache=True, nogil=True)
-def target_columns(neighbours: np.ndarray, targets: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray,
+def target_gathers(neighbours: np.ndarray, targets: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray,
                    features_2: np.ndarray, weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray,
-                   tsdf_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The weighting net's inputs for the target voxels (targets: B x 512) of these blocks:
-    - columns: M x 27*C, one row per layer-1 position (the union of the targets' 3^3
-      neighbourhoods, per block), its 3^3 input neighbourhood, offsets x-major then channels (the
-      layout of conv1's weight permuted to out x kx x ky x kz x in); inputs as in `weighting_windows`;
-    - gather: N x 27, per target, the rows of its 27 layer-1 neighbours (the same order);
+                   tsdf_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the weighting net reads for the target voxels (targets: B x 512) of these blocks, as
+    tables and row indices (per block: positions shared by several targets appear once):
+    - inputs: V x C, the inputs (as in `weighting_windows`) at every position layer 1 reads;
+    - gather_1: M x 27, per layer-1 position (the union of the targets' 3^3 neighbourhoods), the
+      input rows of its 3^3 neighbourhood, offsets x-major (conv1's kernel order);
+    - gather_2: N x 27, per target, the layer-1 rows of its 3^3 neighbourhood (the same order);
     - voxels: N flat voxel indices (slot * 512 + local) of the targets."""
     n_blocks = neighbours.shape[0]
     n_features = features_1.shape[0] // weight_1.shape[0]
     with_tsdf = tsdf_1.shape[0] > 0
     first_tsdf = 2 * (n_features + 1)
     n_channels = first_tsdf + 2 * with_tsdf
-    row_of = np.full((n_blocks, 10, 10, 10), -1, np.int64)  # layer-1 position (window local -1..8) -> row
-    n_rows, n_targets = 0, 0
+    l1_row = np.full((n_blocks, 10, 10, 10), -1, np.int64)  # layer-1 position (window local -1..8) -> row
+    in_row = np.full((n_blocks, WINDOW, WINDOW, WINDOW), -1, np.int64)  # input position (local -2..9) -> row
+    n_l1, n_in, n_targets = 0, 0, 0
     for b in range(n_blocks):
         for local in range(512):
             if not targets[b, local]:
@@ -184,43 +186,51 @@ def target_columns(neighbours: np.ndarray, targets: np.ndarray, features_1: np.n
             for dx in range(3):
                 for dy in range(3):
                     for dz in range(3):
-                        if row_of[b, x + dx, y + dy, z + dz] < 0:
-                            row_of[b, x + dx, y + dy, z + dz] = n_rows
-                            n_rows += 1
-    columns = np.zeros((n_rows, 27 * n_channels), np.float32)
-    gather = np.empty((n_targets, 27), np.int64)
+                        if l1_row[b, x + dx, y + dy, z + dz] >= 0:
+                            continue
+                        l1_row[b, x + dx, y + dy, z + dz] = n_l1
+                        n_l1 += 1
+                        for ex in range(3):
+                            for ey in range(3):
+                                for ez in range(3):
+                                    if in_row[b, x + dx + ex, y + dy + ey, z + dz + ez] < 0:
+                                        in_row[b, x + dx + ex, y + dy + ey, z + dz + ez] = n_in
+                                        n_in += 1
+    inputs = np.zeros((n_in, n_channels), np.float32)
+    gather_1 = np.empty((n_l1, 27), np.int64)
+    gather_2 = np.empty((n_targets, 27), np.int64)
     voxels = np.empty(n_targets, np.int64)
-    window = np.zeros((WINDOW, WINDOW, WINDOW, n_channels), np.float32)
     t = 0
     for b in range(n_blocks):
-        window[:] = 0.0
-        for x in range(WINDOW):  # this block's inputs with their 2-voxel halo
+        for x in range(WINDOW):
             for y in range(WINDOW):
                 for z in range(WINDOW):
+                    row = in_row[b, x, y, z]
+                    if row < 0:
+                        continue
                     v = _neighbour_index(neighbours, b, x - HALO, y - HALO, z - HALO)
                     if v < 0:
                         continue
                     for c in range(n_features):
-                        window[x, y, z, c] = f16_to_f32(features_1[v * n_features + c])
-                        window[x, y, z, n_features + 1 + c] = f16_to_f32(features_2[v * n_features + c])
-                    window[x, y, z, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
-                    window[x, y, z, first_tsdf - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
+                        inputs[row, c] = f16_to_f32(features_1[v * n_features + c])
+                        inputs[row, n_features + 1 + c] = f16_to_f32(features_2[v * n_features + c])
+                    inputs[row, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
+                    inputs[row, first_tsdf - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
                     if with_tsdf:
-                        window[x, y, z, first_tsdf] = tsdf_1[v] * tsdf_scale
-                        window[x, y, z, first_tsdf + 1] = tsdf_2[v] * tsdf_scale
-        for x in range(10):  # layer-1 positions at window x + 1 (local x - 1); inputs at window x .. x + 2
+                        inputs[row, first_tsdf] = tsdf_1[v] * tsdf_scale
+                        inputs[row, first_tsdf + 1] = tsdf_2[v] * tsdf_scale
+        for x in range(10):  # layer-1 position at window x + 1 reads inputs at window x .. x + 2
             for y in range(10):
                 for z in range(10):
-                    row = row_of[b, x, y, z]
+                    row = l1_row[b, x, y, z]
                     if row < 0:
                         continue
-                    col = 0
+                    k = 0
                     for dx in range(3):
                         for dy in range(3):
                             for dz in range(3):
-                                for c in range(n_channels):
-                                    columns[row, col] = window[x + dx, y + dy, z + dz, c]
-                                    col += 1
+                                gather_1[row, k] = in_row[b, x + dx, y + dy, z + dz]
+                                k += 1
         for local in range(512):
             if not targets[b, local]:
                 continue
@@ -229,24 +239,38 @@ def target_columns(neighbours: np.ndarray, targets: np.ndarray, features_1: np.n
             for dx in range(3):
                 for dy in range(3):
                     for dz in range(3):
-                        gather[t, k] = row_of[b, x + dx, y + dy, z + dz]
+                        gather_2[t, k] = l1_row[b, x + dx, y + dy, z + dz]
                         k += 1
             voxels[t] = neighbours[b, 13] * 512 + local
             t += 1
-    return columns, gather, voxels
+    return inputs, gather_1, gather_2, voxels
 
 
-def evaluate_columns(net: Any, columns: np.ndarray, gather: np.ndarray, *,
+def _gathered_conv(table: torch.Tensor, gather: np.ndarray, conv: Any, dtype: torch.dtype) -> torch.Tensor:
+    """A 3^3 convolution at the rows of `gather` (R x 27 rows of `table`), one matrix product over
+    the gathered neighbourhoods (R x 27*C): best for few channels (the net's inputs)."""
+    weight = conv.weight.to(dtype).permute(0, 2, 3, 4, 1).reshape(conv.out_channels, -1)  # out x 27*C
+    columns = table.index_select(0, torch.from_numpy(gather.reshape(-1))).reshape(len(gather), -1)
+    return torch.addmm(conv.bias.to(dtype), columns, weight.t())
+
+
+def _accumulated_conv(table: torch.Tensor, gather: np.ndarray, conv: Any, dtype: torch.dtype) -> torch.Tensor:
+    """The same as `_gathered_conv`, as the bias plus one product per offset (its gathered rows times
+    its weights): for many channels, where the R x 27*C matrix would not stay in cache."""
+    weight = conv.weight.to(dtype)  # out x in x 3 x 3 x 3
+    out = conv.bias.to(dtype).expand(len(gather), -1).clone()
+    index = torch.from_numpy(gather)
+    for k in range(27):
+        out.addmm_(table.index_select(0, index[:, k]), weight[:, :, k // 9, (k // 3) % 3, k % 3].t())
+    return out
+
+
+def evaluate_gathers(net: Any, inputs: np.ndarray, gather_1: np.ndarray, gather_2: np.ndarray, *,
                      dtype: torch.dtype = torch.float32) -> np.ndarray:
-    """Alpha of the targets of `target_columns` with the weighting net's weights (networks.WeightingNet:
-    conv1 3^3, ReLU, conv2 3^3, ReLU, conv3 1^3, sigmoid) as two matrix products and a gather: the
-    same values as the net on the whole grid, up to float rounding."""
-    w1 = net.conv1.weight.permute(0, 2, 3, 4, 1).reshape(net.conv1.out_channels, -1)
-    w2 = net.conv2.weight.permute(0, 2, 3, 4, 1).reshape(net.conv2.out_channels, -1)
-    w3 = net.conv3.weight.reshape(1, -1)
-    x = torch.from_numpy(columns).to(dtype)
-    hidden_1 = torch.relu(torch.addmm(net.conv1.bias.to(dtype), x, w1.t().to(dtype)))  # M x 32
-    x2 = hidden_1[torch.from_numpy(gather)].reshape(len(gather), -1)  # N x 27*32
-    hidden_2 = torch.relu(torch.addmm(net.conv2.bias.to(dtype), x2, w2.t().to(dtype)))  # N x 16
-    logits = torch.addmm(net.conv3.bias.to(dtype), hidden_2, w3.t().to(dtype))
+    """Alpha of the targets of `target_gathers` with the weighting net's weights (networks.WeightingNet:
+    conv1 3^3, ReLU, conv2 3^3, ReLU, conv3 1^3, sigmoid): the same values as the net on the whole
+    grid, up to float rounding."""
+    hidden_1 = torch.relu(_gathered_conv(torch.from_numpy(inputs).to(dtype), gather_1, net.conv1, dtype))
+    hidden_2 = torch.relu(_accumulated_conv(hidden_1, gather_2, net.conv2, dtype))
+    logits = torch.addmm(net.conv3.bias.to(dtype), hidden_2, net.conv3.weight.reshape(1, -1).t().to(dtype))
     return torch.sigmoid(logits.float()).reshape(-1).numpy()

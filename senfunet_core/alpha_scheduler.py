@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .alpha import WINDOW, evaluate_columns, surface_targets, take_drift, target_columns, weighting_windows
+from .alpha import WINDOW, evaluate_gathers, surface_targets, take_drift, target_gathers, weighting_windows
 from .block_store import BlockStore
 from .grid import BLOCK
 
@@ -100,9 +100,10 @@ class AlphaScheduler:
             if not holds.any():
                 return AlphaBatch(slots, holds, np.zeros(0, np.int64), np.zeros(0, np.float32))
         if self.alpha_voxels == "surface_voxels":
-            columns, gather, voxels = target_columns(neighbours[holds], targets[holds], *self.inputs())
-            self._count_flops(layer_1_positions=len(columns), voxels=len(voxels), inputs=columns.shape[1])
-            return AlphaBatch(slots, holds, voxels, evaluate_columns(self.net, columns, gather, dtype=self.dtype))
+            inputs, gather_1, gather_2, voxels = target_gathers(neighbours[holds], targets[holds], *self.inputs())
+            self._count_flops(layer_1_positions=len(gather_1), voxels=len(voxels), inputs=27 * inputs.shape[1])
+            alpha = evaluate_gathers(self.net, inputs, gather_1, gather_2, dtype=self.dtype)
+            return AlphaBatch(slots, holds, voxels, alpha)
         slots_holding = slots[holds]
         windows = self.windows(neighbours[holds])
         x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
@@ -137,7 +138,7 @@ class AlphaScheduler:
         return weighting_windows(neighbours, *self.inputs())
 
     def inputs(self) -> tuple:
-        """The pools the weighting net reads (alpha.weighting_windows, alpha.target_columns), with the
+        """The pools the weighting net reads (alpha.weighting_windows, alpha.target_gathers), with the
         sensors' TSDFs when the net reads them."""
         if self.tsdf_input:
             tsdf = self.store.views("tsdf0", "tsdf1")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from senfunet_core.alpha import evaluate_columns, surface_targets, target_columns, weighting_windows
+from senfunet_core.alpha import evaluate_gathers, surface_targets, target_gathers, weighting_windows
 from senfunet_core.engine import EngineConfig, SenFuNet
 from senfunet_core.grid import neighbour_table
 from test_equivalence import K, frames
@@ -72,9 +72,9 @@ def test_voxel_evaluation_equals_the_block_evaluation_at_the_targets():
         x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3)
         with torch.no_grad():
             block_alpha = engine.weighting_net(x, pad=False).reshape(len(holding), 512).numpy()
-        columns, gather, voxels = target_columns(nb[holding], targets[holding], *engine.alpha.inputs())
+        inputs, gather_1, gather_2, voxels = target_gathers(nb[holding], targets[holding], *engine.alpha.inputs())
         with torch.no_grad():
-            alpha = evaluate_columns(engine.weighting_net, columns, gather)
+            alpha = evaluate_gathers(engine.weighting_net, inputs, gather_1, gather_2)
         assert len(alpha) == targets.sum() > 1000
         expected = np.zeros(grid.n_blocks * 512, np.float32)
         expected.reshape(-1, 512)[holding] = block_alpha
