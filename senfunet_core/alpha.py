@@ -159,6 +159,33 @@ def surface_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.nda
 
 
 @numba.njit(cache=True, nogil=True)
+def _number_positions(targets: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Rows for the layer-1 positions the targets (B x 512) read (window local -1..8, per block) and
+    for the input positions those read (local -2..9): -1 where none; and how many of each."""
+    n_blocks = targets.shape[0]
+    l1_row = np.full((n_blocks, 10, 10, 10), -1, np.int64)
+    in_row = np.full((n_blocks, WINDOW, WINDOW, WINDOW), -1, np.int64)
+    n_l1, n_in = 0, 0
+    for b in range(n_blocks):
+        for local in range(512):
+            if not targets[b, local]:
+                continue
+            x, y, z = local >> 6, (local >> 3) & 7, local & 7
+            for d in range(27):
+                px, py, pz = x + d // 9, y + (d // 3) % 3, z + d % 3
+                if l1_row[b, px, py, pz] >= 0:
+                    continue
+                l1_row[b, px, py, pz] = n_l1
+                n_l1 += 1
+                for e in range(27):
+                    qx, qy, qz = px + e // 9, py + (e // 3) % 3, pz + e % 3
+                    if in_row[b, qx, qy, qz] < 0:
+                        in_row[b, qx, qy, qz] = n_in
+                        n_in += 1
+    return l1_row, in_row, n_l1, n_in
+
+
+@numba.njit(cache=True, nogil=True)
 def target_gathers(neighbours: np.ndarray, targets: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray,
                    features_2: np.ndarray, weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray,
                    tsdf_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -174,30 +201,10 @@ def target_gathers(neighbours: np.ndarray, targets: np.ndarray, features_1: np.n
     with_tsdf = tsdf_1.shape[0] > 0
     first_tsdf = 2 * (n_features + 1)
     n_channels = first_tsdf + 2 * with_tsdf
-    l1_row = np.full((n_blocks, 10, 10, 10), -1, np.int64)  # layer-1 position (window local -1..8) -> row
-    in_row = np.full((n_blocks, WINDOW, WINDOW, WINDOW), -1, np.int64)  # input position (local -2..9) -> row
-    n_l1, n_in, n_targets = 0, 0, 0
-    for b in range(n_blocks):
-        for local in range(512):
-            if not targets[b, local]:
-                continue
-            n_targets += 1
-            x, y, z = local >> 6, (local >> 3) & 7, local & 7
-            for dx in range(3):
-                for dy in range(3):
-                    for dz in range(3):
-                        if l1_row[b, x + dx, y + dy, z + dz] >= 0:
-                            continue
-                        l1_row[b, x + dx, y + dy, z + dz] = n_l1
-                        n_l1 += 1
-                        for ex in range(3):
-                            for ey in range(3):
-                                for ez in range(3):
-                                    if in_row[b, x + dx + ex, y + dy + ey, z + dz + ez] < 0:
-                                        in_row[b, x + dx + ex, y + dy + ey, z + dz + ez] = n_in
-                                        n_in += 1
+    l1_row, in_row, n_l1, n_in = _number_positions(targets)
     inputs = np.zeros((n_in, n_channels), np.float32)
     gather_1 = np.empty((n_l1, 27), np.int64)
+    n_targets = int(targets.sum())
     gather_2 = np.empty((n_targets, 27), np.int64)
     voxels = np.empty(n_targets, np.int64)
     t = 0
