@@ -120,7 +120,7 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "evicted and their final meshes kept (still on ~/mesh and in save_mesh); -1 = half of this machine's "
           "memory; 0 = unbounded", lo=-1, hi=2**31 - 1),
     Param("tsdf_fusion", False, "also keep the plain TSDF Fusion baseline (save_mesh adds tsdf_fusion.ply; "
-          "about 15% more integration time and memory)"),
+          "costs integration time and memory)"),
 )
 
 SENSOR_PARAMS: tuple[Param, ...] = (
