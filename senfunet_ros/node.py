@@ -357,12 +357,13 @@ class FusionNode(Node):
         return buffer
 
     def _make_engine(self) -> Any:
-        import torch  # heavy: imported when a node is made, not when this module is
-
+        # heavy (torch): imported when a node is made, not when this module is
         from senfunet_core.engine import SenFuNet
+        from senfunet_core.networks import choose_device
 
-        if self.settings.device.startswith("cuda") and not torch.cuda.is_available():
-            self.get_logger().warning(f"device '{self.settings.device}' requested but CUDA is not available: using cpu")
+        fallback = choose_device(self.settings.device, cpu_fallback=True).fallback_reason
+        if fallback:
+            self.get_logger().warning(fallback)
         weights = P.engine_weights(self.settings)
         if weights is None:
             self.get_logger().warning("parameter weights = 'none': the networks are untrained")
