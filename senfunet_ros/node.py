@@ -357,12 +357,13 @@ class FusionNode(Node):
         return buffer
 
     def _make_engine(self) -> Any:
-        import torch  # heavy: imported when a node is made, not when this module is
-
+        # heavy (torch): imported when a node is made, not when this module is
         from senfunet_core.engine import SenFuNet
+        from senfunet_core.networks import choose_device
 
-        if self.settings.device.startswith("cuda") and not torch.cuda.is_available():
-            self.get_logger().warning(f"device '{self.settings.device}' requested but CUDA is not available: using cpu")
+        fallback = choose_device(self.settings.device, cpu_fallback=True).fallback_reason
+        if fallback:
+            self.get_logger().warning(fallback)
         weights = P.engine_weights(self.settings)
         if weights is None:
             self.get_logger().warning("parameter weights = 'none': the networks are untrained")
@@ -522,8 +523,8 @@ class FusionNode(Node):
         ~/weights when it is due (every 1 / weights_rate_hz s; `weights` forces or skips it) and
         somebody listens; then the weighting net's turn (engine.refresh_alpha, within
         alpha_budget_s), after publishing: a frame's geometry is shown one alpha phase sooner
-        (median latency on the large benchmark room 2.30 -> 1.85 s), and the alpha it changed
-        comes with the next update."""
+        (the net's budget no longer sits between integration and the mesh subscribers), and the
+        alpha it changed comes with the next update."""
         s = self.settings
         with self._mesh_lock:
             start = time.perf_counter()
@@ -777,10 +778,10 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
 
 # Python hands the GIL to a waiting thread only every switch interval (default 5 ms). Each
 # message needs several hand-overs (the executor's wait returns, a worker takes and converts it),
-# so while integration and a mesh update run Python between their numpy/torch calls, a 5 ms
-# interval held dispatch below the ~70 messages/s of the sample bag at the demo's rate 0.25:
-# `senfunet demo` lost a third to a half of its frames (pose callbacks lagged up to 15 s, frames
-# timed out waiting for them). At 0.5 ms it fuses all of them (test/ros/test_play.py).
+# so while integration and a mesh update run Python between their numpy/torch calls, the default
+# interval holds message dispatch below the rate of the sample bag: pose callbacks lag and frames
+# time out waiting for them. A tenth of it lets `senfunet demo` fuse every frame
+# (test/ros/test_play.py checks that).
 GIL_SWITCH_INTERVAL_S = 0.0005
 
 
@@ -796,10 +797,10 @@ def limit_malloc(arenas: int = 2, mmap_threshold_bytes: int = 4 << 20) -> bool:
     the size from which allocations get their own mapping (returned to the OS when freed). Each
     executor, feature-net and kernel thread would otherwise keep its own heap of freed per-frame
     arrays (arenas), and glibc raises the threshold up to 32 MB after the first such array is freed,
-    after which the per-update arrays of 4-32 MB stay in the heaps. Peak RSS on the large benchmark
-    room: ~2.5 GB -> ~2.1 GB (arenas), -> ~1.85 GB (threshold 4 MB; at 1 MB the page faults of
-    re-mapping cost a fifth of the frame rate, at 8 MB it saved less: 1.91 GB). False where there
-    is no glibc (nothing changes)."""
+    after which the per-update arrays of a few MB and more stay in the heaps. The threshold trades
+    the memory those heaps keep against the page faults of re-mapping: lower costs frame rate,
+    higher keeps more (bench/realtime.py measures both). False where there is no glibc (nothing
+    changes)."""
     import ctypes
     import ctypes.util
 

@@ -120,7 +120,7 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "evicted and their final meshes kept (still on ~/mesh and in save_mesh); -1 = half of this machine's "
           "memory; 0 = unbounded", lo=-1, hi=2**31 - 1),
     Param("tsdf_fusion", False, "also keep the plain TSDF Fusion baseline (save_mesh adds tsdf_fusion.ply; "
-          "about 15% more integration time and memory)"),
+          "costs integration time and memory)"),
 )
 
 SENSOR_PARAMS: tuple[Param, ...] = (
@@ -348,14 +348,11 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
     `overrides` replace fields (replay keeps the TSDF Fusion baseline and float32 alpha)."""
     import dataclasses
 
-    import torch
-
     from senfunet_core.engine import EngineConfig
+    from senfunet_core.networks import choose_device
 
     s = settings
-    device = s.device
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        device = "cpu"
+    device = str(choose_device(s.device, cpu_fallback=True).device)
     config = EngineConfig(
         sensors=s.sensor_names,
         sensor_uses_rgb=tuple(name in s.rgb_sensors for name in s.sensor_names),

@@ -35,3 +35,13 @@ def test_colour_feature_net_without_colour_says_so():
     with pytest.raises(InputError, match="rgb01"):
         net(torch.zeros(1, 1, 8, 8))
     assert net(torch.zeros(1, 1, 8, 8), torch.zeros(1, 3, 8, 8)).shape == (1, 5, 8, 8)
+
+
+def test_the_device_is_decided_in_networks_only():
+    """One device decision: no other module of the packages asks torch whether CUDA is there."""
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[2]
+    askers = sorted(str(path.relative_to(repo)) for package in ("senfunet_core", "senfunet_ros")
+                    for path in (repo / package).rglob("*.py") if "cuda.is_available" in path.read_text())
+    assert askers == ["senfunet_core/networks.py"]
