@@ -350,7 +350,11 @@ def _ablation_engines(weights) -> dict[str, object]:
         engine.feature_nets = torch.nn.ModuleList(ZeroFeatureNet(net.uses_rgb) for net in engine.feature_nets)
         return engine
 
-    makers = {"abl_features_seeded": seeded, "abl_features_zeroed": zeroed}
+    seeded_nets, _ = networks.make_networks(tuple(state.get("sensor_uses_rgb", (False, True))), init_seed)
+    untrained = all(torch.equal(a, b) for net, saved in zip(seeded_nets, state["feature_nets"])
+                    for a, b in zip(net.state_dict().values(), saved.values()))
+    # feature nets that were never trained: the seeded row is the main row (no second run needed)
+    makers = {"abl_features_seeded": None if untrained else seeded, "abl_features_zeroed": zeroed}
     other = "paper" if networks.weights_tsdf_input(path) else "default"
     other_path = networks.NAMED_WEIGHTS[other]
     if other_path.is_file() and other_path.resolve() != path.resolve():
@@ -370,6 +374,9 @@ def _scene_rows(weights, seq, gt_vertices: np.ndarray, config: EvaluationConfig,
     source = engine.weights_source
     del engine
     for name, make in (_ablation_engines(weights).items() if config.ablations else ()):
+        if make is None:
+            rows[name] = dict(rows["senfunet"])
+            continue
         engine = make()
         integrate_frames(engine, seq.frames, stride)
         rows[name] = method_metrics(engine, seq.scene, gt_crop, methods=("senfunet",), common=True)["senfunet"]
