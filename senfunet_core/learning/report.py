@@ -158,8 +158,8 @@ def _ran_lines(meta: dict) -> list[str]:
                      f"batches of {cfg.get('block_batch')} blocks; the feature nets were not trained in it.")
     frames = int(ran.get("online_frames", 0))
     if frames == 0:
-        lines.append("- Online phase (the paper's training): no frame ran, so no chunk, gradient accumulation, "
-                     "random reset or feature-net update happened.")
+        lines.append("- Online phase (the paper's training) up to this checkpoint: no frame, so its networks hold no "
+                     "chunk, gradient accumulation, random reset or feature-net update.")
     else:
         lines.append(
             f"- Online phase (the paper's training): {frames} frames, {ran.get('online_frames_with_chunk', '?')} of "
@@ -203,6 +203,12 @@ def training_notes(weights_source: str, title: str = "Training") -> str:
              (f"G: {n_in} inputs, {n_params} parameters. Training data: {len(scenes)} simulated rooms (seeds "
              f"{min(scenes)}-{max(scenes)}), {cfg.get('duration_s')} s each. What ran:"), ""]
     lines += _ran_lines(meta)
+    total = meta.get("ran_in_total") or {}
+    if int(total.get("online_frames", 0)) > int((meta.get("ran") or {}).get("online_frames", 0)):
+        lines.append(f"- After the kept checkpoint the run went on: {total['online_frames']} online frames in all "
+                     f"({total.get('online_optimizer_steps', '?')} Adam steps, {total.get('random_resets', '?')} random "
+                     f"and {total.get('memory_resets', '?')} memory grid resets); no later validation beat the "
+                     "checkpoint, so none of those frames' updates is in this file.")
     history = meta.get("validation_history") or []
     val = ", ".join(str(s) for s in meta.get("val_scenes", []))
     lines += ["", f"Checkpoint choice on validation rooms {val} (mean F, margin over the better single sensor): "

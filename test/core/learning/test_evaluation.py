@@ -134,3 +134,8 @@ def test_named_weights_resolve():
     assert networks.resolve_weights("none") is None and networks.resolve_weights(None) is None
     with pytest.raises(InputError, match="paper"):
         networks.resolve_weights("no_such_model")
+    from senfunet_core.engine import EngineConfig, SenFuNet
+
+    engine = SenFuNet(EngineConfig(), weights=networks.resolve_weights("paper"))  # the 12-input paper model
+    assert not engine.config.weighting_tsdf_input and engine.weighting_net.conv1.in_channels == 12
+    assert sum(p.numel() for p in engine.weighting_net.parameters()) == 24257
