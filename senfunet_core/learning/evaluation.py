@@ -403,13 +403,14 @@ def _async_rows(weights, seq, gt_vertices: np.ndarray, config: EvaluationConfig,
 
 
 def evaluate(weights="default", config: EvaluationConfig | None = None, *, figure_path: str | Path | None = None,
-             log=print) -> EvaluationResult:
-    """Run the table (and ablation rows), the asynchronous test and (optionally) the figure."""
+             log=print, after_room=None) -> EvaluationResult:
+    """Run the table (and ablation rows), the asynchronous test and (optionally) the figure.
+    after_room(partial result): called after each room (a long run can report as it goes)."""
     config = config or EvaluationConfig()
     t0 = time.perf_counter()
     per_scene, frames_used = [], []
     async_scenes: dict[str, list] = {f"1/{d}": [] for d in config.async_tof_divisors}
-    weights_source = ""
+    weights_source = other = ""
     for index, seed in enumerate(config.seeds):
         seq = cached_sequence(seed, duration_s=config.duration_s, tof_rate_hz=config.tof_rate_hz,
                               stereo_rate_hz=config.stereo_rate_hz, cache_dir=config.cache_dir, log=log,
@@ -421,10 +422,11 @@ def evaluate(weights="default", config: EvaluationConfig | None = None, *, figur
         frames_used.append(used)
         for d in config.async_tof_divisors:
             async_scenes[f"1/{d}"].append(_async_rows(weights, seq, gt_vertices, config, d))
-    other = next((r[k].get("source", "") for r in per_scene for k in r if k.startswith("abl_other")), "")
-    for rows in per_scene:
-        for k in rows:
-            rows[k].pop("source", None)
+        other = next((r[k].pop("source") for r in per_scene for k in r if "source" in r[k]), other)
+        if after_room is not None:
+            after_room(EvaluationResult(mean_rows(per_scene), list(per_scene),
+                                        {k: mean_rows(v) for k, v in async_scenes.items() if v}, list(frames_used),
+                                        time.perf_counter() - t0, weights_source, other))
     return EvaluationResult(mean_rows(per_scene), per_scene, {k: mean_rows(v) for k, v in async_scenes.items() if v},
                             frames_used, time.perf_counter() - t0, weights_source, other)
 

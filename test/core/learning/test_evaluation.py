@@ -15,7 +15,9 @@ def tiny_result(tmp_path_factory):
     cfg = ev.EvaluationConfig(seeds=(7,), duration_s=0.25, frame_stride=1, async_tof_divisors=(2,), cache_dir=None,
                               room_size_m=(2.5, 2.5, 2.4), image_size=(128, 128), ablations=True, seed_set="custom")
     fig = tmp_path_factory.mktemp("fig") / "evaluation.png"
-    result = ev.evaluate("default", cfg, figure_path=fig, log=None)
+    partial = []
+    result = ev.evaluate("default", cfg, figure_path=fig, log=None, after_room=partial.append)
+    assert len(partial) == 1 and partial[0].rows["senfunet"]["F"] == result.rows["senfunet"]["F"]
     return cfg, result, fig
 
 
@@ -44,6 +46,9 @@ def test_markdown_report(tiny_result):
     assert "senfunet evaluate --scenes 1" in text and "Asynchronous" in text
     for section in ("## Ablations", "## F-score spread over the rooms", "## Grid metrics on a common voxel set"):
         assert section in text
+    assert "Partial" not in text
+    two_rooms = __import__("dataclasses").replace(cfg, seeds=(7, 8))
+    assert "Partial: 1 of 2 rooms" in report.results_markdown(result, two_rooms, "senfunet evaluate")
     assert set(ev.bar_check(result.rows)) == {"F >= TSDF Fusion + 10", "F >= best single sensor + 3", "MAD < TSDF Fusion"}
 
 
