@@ -22,7 +22,7 @@ def tiny_result(tmp_path_factory):
 
 
 def test_table_has_all_rows_and_columns(tiny_result):
-    cfg, result, fig = tiny_result
+    _, result, fig = tiny_result
     assert list(result.rows)[:len(ev.METHODS)] == list(ev.METHODS)
     for method, row in result.rows.items():
         for col in ev.COLUMNS:
