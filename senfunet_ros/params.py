@@ -113,7 +113,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("output_dir", "senfunet_output", "directory ~/save_mesh writes PLY files into", runtime=True),
     Param("map_file", "map.pt", "file ~/save_map writes and ~/load_map reads (relative: in output_dir)",
           runtime=True),
-    Param("weights", "default", "network weights file; 'default' = the shipped weights, 'none' = untrained"),
+    Param("weights", "default", "network weights: 'default' (shipped; its weighting net also reads the sensors' "
+          "TSDFs), 'paper' (the shipped paper-exact model), a .pt path, or 'none' (untrained)"),
     Param("device", "cpu", "torch device: cpu | cuda (falls back to cpu with a warning)"),
     Param("save_on_shutdown", False, "write the PLY files into output_dir when the node stops", runtime=True),
     Param("max_map_blocks", -1, "memory bound in 8^3-voxel blocks: past it, the blocks farthest from the sensor are "
@@ -241,6 +242,9 @@ def check(values: dict[str, Any]) -> None:
     table = param_table(sensors)
     for name, p in table.items():
         p.check(name, values[name])
+    from senfunet_core.networks import resolve_weights
+
+    resolve_weights(values["weights"] or "none")  # InputError (a ValueError) naming the choices
     for sensor in sensors:
         lo, hi = values[f"{sensor}.depth_min_m"], values[f"{sensor}.depth_max_m"]
         if not 0 <= lo < hi:
@@ -381,4 +385,8 @@ def alpha_dtype(precision: str, device: str) -> str:
 
 
 def engine_weights(settings: Settings) -> str | None:
-    return None if settings.weights.lower() in ("none", "") else settings.weights
+    """The weights file the engine loads for parameter `weights` (None: untrained networks)."""
+    from senfunet_core.networks import resolve_weights
+
+    path = resolve_weights(settings.weights or "none")
+    return None if path is None else str(path)

@@ -330,9 +330,10 @@ class ZeroFeatureNet(torch.nn.Module):
         return torch.cat([zeros, depth_m], dim=1)
 
 
-def _ablation_engines(weights) -> dict[str, Callable[[], Any]]:
-    """Ablation name -> a function making its engine: the same weights with the feature nets at
-    their seeded initialisation or with zeroed learned channels, and the other shipped model."""
+def _ablation_engines(weights) -> dict[str, Callable[[], Any] | None]:
+    """Ablation name -> a function making its engine (None: the same as the main row): the same
+    weights with the feature nets at their seeded initialisation or with zeroed learned channels,
+    and the other shipped model."""
     from .. import networks
 
     path = networks.resolve_weights(weights)
@@ -352,7 +353,11 @@ def _ablation_engines(weights) -> dict[str, Callable[[], Any]]:
         engine.feature_nets = torch.nn.ModuleList(ZeroFeatureNet(net.uses_rgb) for net in engine.feature_nets)
         return engine
 
-    makers = {"abl_features_seeded": seeded, "abl_features_zeroed": zeroed}
+    seeded_nets, _ = networks.make_networks(tuple(state.get("sensor_uses_rgb", (False, True))), init_seed)
+    untrained = all(torch.equal(a, b) for net, saved in zip(seeded_nets, state["feature_nets"])
+                    for a, b in zip(net.state_dict().values(), saved.values()))
+    # feature nets that were never trained: the seeded row is the main row (no second run needed)
+    makers = {"abl_features_seeded": None if untrained else seeded, "abl_features_zeroed": zeroed}
     other = "paper" if networks.weights_tsdf_input(path) else "default"
     other_path = networks.NAMED_WEIGHTS[other]
     if other_path.is_file() and other_path.resolve() != path.resolve():
@@ -372,6 +377,9 @@ def _scene_rows(weights, seq, gt_vertices: np.ndarray, config: EvaluationConfig,
     source = engine.weights_source
     del engine
     for name, make in (_ablation_engines(weights).items() if config.ablations else ()):
+        if make is None:
+            rows[name] = dict(rows["senfunet"])
+            continue
         engine = make()
         integrate_frames(engine, seq.frames, stride)
         rows[name] = method_metrics(engine, seq.scene, gt_crop, methods=("senfunet",), common=True)["senfunet"]
@@ -398,13 +406,14 @@ def _async_rows(weights, seq, gt_vertices: np.ndarray, config: EvaluationConfig,
 
 
 def evaluate(weights="default", config: EvaluationConfig | None = None, *, figure_path: str | Path | None = None,
-             log=print) -> EvaluationResult:
-    """Run the table (and ablation rows), the asynchronous test and (optionally) the figure."""
+             log=print, after_room=None) -> EvaluationResult:
+    """Run the table (and ablation rows), the asynchronous test and (optionally) the figure.
+    after_room(partial result): called after each room (a long run can report as it goes)."""
     config = config or EvaluationConfig()
     t0 = time.perf_counter()
     per_scene, frames_used = [], []
     async_scenes: dict[str, list] = {f"1/{d}": [] for d in config.async_tof_divisors}
-    weights_source = ""
+    weights_source = other = ""
     for index, seed in enumerate(config.seeds):
         seq = cached_sequence(seed, duration_s=config.duration_s, tof_rate_hz=config.tof_rate_hz,
                               stereo_rate_hz=config.stereo_rate_hz, cache_dir=config.cache_dir, log=log,
@@ -416,10 +425,11 @@ def evaluate(weights="default", config: EvaluationConfig | None = None, *, figur
         frames_used.append(used)
         for d in config.async_tof_divisors:
             async_scenes[f"1/{d}"].append(_async_rows(weights, seq, gt_vertices, config, d))
-    other = next((r[k].get("source", "") for r in per_scene for k in r if k.startswith("abl_other")), "")
-    for rows in per_scene:
-        for k in rows:
-            rows[k].pop("source", None)
+        other = next((r[k].pop("source") for r in per_scene for k in r if "source" in r[k]), other)
+        if after_room is not None:
+            after_room(EvaluationResult(mean_rows(per_scene), list(per_scene),
+                                        {k: mean_rows(v) for k, v in async_scenes.items() if v}, list(frames_used),
+                                        time.perf_counter() - t0, weights_source, other))
     return EvaluationResult(mean_rows(per_scene), per_scene, {k: mean_rows(v) for k, v in async_scenes.items() if v},
                             frames_used, time.perf_counter() - t0, weights_source, other)
 

@@ -62,20 +62,24 @@ def run(args: argparse.Namespace) -> int:
     config = dataclasses.replace(config, **changes)
     out = Path(args.out)
     figure = out / "figures" / "evaluation.png"
+    command = "senfunet evaluate " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 1 and \
+        sys.argv[1] == "evaluate" else "senfunet evaluate"
+    out.mkdir(parents=True, exist_ok=True)
+
+    def write(result) -> None:
+        notes = training_notes(result.weights_source, "Training of the evaluated weights")
+        if result.other_weights_source:
+            notes += "\n" + training_notes(result.other_weights_source, "Training of the other shipped model")
+        (out / "results.md").write_text(results_markdown(result, config, command.strip(), notes))
+
     try:
-        result = evaluate(weights, config, figure_path=figure)
+        result = evaluate(weights, config, figure_path=figure, after_room=write)
     except InputError as err:
         print(f"senfunet evaluate: {err}")
         return 2
     print(format_table(labelled(result.rows), COLUMNS))
     for name, ok in {**goal_check(result.per_scene), **bar_check(result.rows)}.items():
         print(f"{name}: {'met' if ok else 'NOT met'}")
-    command = "senfunet evaluate " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 1 and \
-        sys.argv[1] == "evaluate" else "senfunet evaluate"
-    notes = training_notes(result.weights_source, "Training of the evaluated weights")
-    if result.other_weights_source:
-        notes += "\n" + training_notes(result.other_weights_source, "Training of the other shipped model")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.md").write_text(results_markdown(result, config, command.strip(), notes))
+    write(result)
     print(f"wrote {out / 'results.md'} and {figure} in {result.seconds:.0f} s")
     return 0

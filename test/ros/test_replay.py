@@ -190,3 +190,16 @@ def test_node_engine_config_runs_on_the_cpu_when_cuda_is_asked_for_and_absent(tm
     settings = load_settings(file)
     assert settings.device == "cuda"
     assert P.engine_config(settings).device == "cpu"
+
+
+def test_weights_parameter_takes_a_shipped_name_or_a_path_and_refuses_the_rest(tmp_path: Path):
+    from senfunet_core.networks import NAMED_WEIGHTS, weights_tsdf_input
+    from senfunet_ros import params as P
+    from senfunet_ros.replay import load_settings
+
+    paper = P.engine_weights(load_settings(None, {"weights": "paper"}))
+    assert paper == str(NAMED_WEIGHTS["paper"]) and not weights_tsdf_input(paper)  # the 12-input G
+    assert P.engine_weights(load_settings(None, {"weights": "none"})) is None
+    assert P.engine_weights(load_settings(None, {"weights": paper})) == paper
+    with pytest.raises(ValueError, match="default.*paper"):
+        load_settings(None, {"weights": str(tmp_path / "missing.pt")})

@@ -1,6 +1,7 @@
 """Evaluation on a tiny scene: every method row and every metric column is produced."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -15,13 +16,15 @@ def tiny_result(tmp_path_factory):
     cfg = ev.EvaluationConfig(seeds=(7,), duration_s=0.25, frame_stride=1, async_tof_divisors=(2,), cache_dir=None,
                               room_size_m=(2.5, 2.5, 2.4), image_size=(128, 128), ablations=True, seed_set="custom")
     fig = tmp_path_factory.mktemp("fig") / "evaluation.png"
-    result = ev.evaluate("default", cfg, figure_path=fig, log=None)
+    partial = []
+    result = ev.evaluate("default", cfg, figure_path=fig, log=None, after_room=partial.append)
+    assert len(partial) == 1 and partial[0].rows["senfunet"]["F"] == result.rows["senfunet"]["F"]
     return cfg, result, fig
 
 
 @pytest.mark.slow  # tiny_result evaluates a scene
 def test_table_has_all_rows_and_columns(tiny_result):
-    cfg, result, fig = tiny_result
+    _, result, fig = tiny_result
     assert list(result.rows)[:len(ev.METHODS)] == list(ev.METHODS)
     for method, row in result.rows.items():
         for col in ev.COLUMNS:
@@ -46,6 +49,9 @@ def test_markdown_report(tiny_result):
     assert "senfunet evaluate --scenes 1" in text and "Asynchronous" in text
     for section in ("## Ablations", "## F-score spread over the rooms", "## Grid metrics on a common voxel set"):
         assert section in text
+    assert "Partial" not in text
+    two_rooms = dataclasses.replace(cfg, seeds=(7, 8))
+    assert "Partial: 1 of 2 rooms" in report.results_markdown(result, two_rooms, "senfunet evaluate")
     assert set(ev.bar_check(result.rows)) == {"F >= TSDF Fusion + 10", "F >= best single sensor + 3",
                                               "MAD < TSDF Fusion"}
 
@@ -137,3 +143,8 @@ def test_named_weights_resolve():
     assert networks.resolve_weights("none") is None and networks.resolve_weights(None) is None
     with pytest.raises(InputError, match="paper"):
         networks.resolve_weights("no_such_model")
+    from senfunet_core.engine import EngineConfig, SenFuNet
+
+    engine = SenFuNet(EngineConfig(), weights=networks.resolve_weights("paper"))  # the 12-input paper model
+    assert not engine.config.weighting_tsdf_input and engine.weighting_net.conv1.in_channels == 12
+    assert sum(p.numel() for p in engine.weighting_net.parameters()) == 24257

@@ -119,7 +119,7 @@ def _frames_equal(a: sim.Sequence, b: sim.Sequence) -> bool:
 def test_deterministic_per_seed():
     assert sim.make_scene(7) == sim.make_scene(7)
     assert sim.make_scene(7) != sim.make_scene(8)
-    kw = dict(duration_s=0.3, width=128, height=96)
+    kw = {"duration_s": 0.3, "width": 128, "height": 96}
     a = sim.simulate_sequence(sim.make_scene(7), 3, **kw)
     b = sim.simulate_sequence(sim.make_scene(7), 3, **kw)
     assert len(a.frames) > 5 and _frames_equal(a, b)

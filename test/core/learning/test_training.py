@@ -295,7 +295,7 @@ def test_training_notes_say_what_ran(tmp_path):
     meta = {"trained_steps": 0, "config": cfg, "ran": {"block_steps": 10, "online_frames": 0}, "val_scenes": [900]}
     networks.save_weights(tmp_path / "a.pt", ("tof", "stereo"), feature_nets, g, meta)
     text = training_notes(str(tmp_path / "a.pt"))
-    assert "14 inputs, 25985 parameters" in text and "no frame ran" in text
+    assert "14 inputs, 25985 parameters" in text and "up to this checkpoint: no frame" in text
     assert "not trained" in text and "`block_steps`: G first on blocks" in text
     assert "`lambda1` = 0.1 (paper 0.016" in text and "not listed" in text and "lambda2" not in text
     with torch.no_grad():
