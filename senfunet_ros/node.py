@@ -251,22 +251,7 @@ class FusionNode(Node):
         self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
         self._mesh_lock = threading.Lock()  # one mesh publication at a time (timer vs. reset service)
         # 3. subscriptions: they only enqueue
-        # Each subscription has its own mutually exclusive group: streams run in parallel, but one
-        # stream's messages never overlap, so they reach Ingest in arrival order.
-        self._subscriptions_keep = []
-        subscribed: dict[str, tuple[str, ...]] = {}
-        for sensor in s.sensors:
-            streams = [entry for entry in self._streams(sensor) if entry[2]]  # a topic set
-            subscribed[sensor.name] = tuple(stream.value for stream, *_ in streams)
-            for stream, msg_type, topic, qos in streams:
-                self._subscriptions_keep.append(self.create_subscription(
-                    msg_type, topic, self._guard(sensor.name, stream), qos,
-                    callback_group=MutuallyExclusiveCallbackGroup()))
-        self.health = HealthMonitor(subscribed, window_s=s.diagnostics_window_s, stale_after_s=s.stale_after_s)
-        self._last_clock_ns: int | None = None
-        if self.get_parameter("use_sim_time").value:  # /clock going back confirms a restart at once
-            self._subscriptions_keep.append(self.create_subscription(
-                RosClock, "/clock", self._on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup()))
+        self._subscribe()
         # 4. timers, each in its own group so a long mesh update never stalls integration. They run
         # on the steady clock: with use_sim_time, /clock stops when a bag ends, and queued frames
         # must still be integrated and meshed.
@@ -298,6 +283,26 @@ class FusionNode(Node):
             f"fusing {list(s.sensor_names)} into '{s.fixed_frame}' with weights: {self.engine.weights_source}")
 
     # -- set-up and stop -------------------------------------------------------------------------
+    def _subscribe(self) -> None:
+        """Each sensor's topics, and /clock under use_sim_time (a jump back confirms a restart at
+        once). Each subscription has its own mutually exclusive group: streams run in parallel, but
+        one stream's messages never overlap, so they reach Ingest in arrival order."""
+        s = self.settings
+        self._subscriptions_keep = []
+        subscribed: dict[str, tuple[str, ...]] = {}
+        for sensor in s.sensors:
+            streams = [entry for entry in self._streams(sensor) if entry[2]]  # a topic set
+            subscribed[sensor.name] = tuple(stream.value for stream, *_ in streams)
+            for stream, msg_type, topic, qos in streams:
+                self._subscriptions_keep.append(self.create_subscription(
+                    msg_type, topic, self._guard(sensor.name, stream), qos,
+                    callback_group=MutuallyExclusiveCallbackGroup()))
+        self.health = HealthMonitor(subscribed, window_s=s.diagnostics_window_s, stale_after_s=s.stale_after_s)
+        self._last_clock_ns: int | None = None
+        if self.get_parameter("use_sim_time").value:
+            self._subscriptions_keep.append(self.create_subscription(
+                RosClock, "/clock", self._on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup()))
+
 
     def _stopping(self) -> None:
         self.pipeline.stopping = True

@@ -50,30 +50,15 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
     from rclpy.executors import ExternalShutdownException
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from senfunet_ros.bagio import BagBrokenError, BagError, message_class
+    from senfunet_ros.bagio import BagError
 
     say = (lambda text: None) if args.quiet else (lambda text: print(f"senfunet play: {text}", file=sys.stderr))
     if reader.note:
         say(f"note: {reader.note}")
-    topics = reader.topics
-    if args.topics:
-        missing = [t for t in args.topics if t not in topics]
-        if missing:
-            return _error(f"{reader.path}: no topic {', '.join(missing)}; the bag has {', '.join(sorted(topics))}")
-        topics = {t: topics[t] for t in args.topics}
-    classes: dict[str, type] = {}
-    unknown: dict[str, str] = {}
-    for topic, info in sorted(topics.items()):
-        try:
-            classes[topic] = message_class(info.msgtype)
-        except BagError:
-            unknown[topic] = info.msgtype
-    types = ", ".join(sorted(set(unknown.values())))
-    if not classes:
-        return _error(f"{reader.path}: none of its topics has a message type installed here ({types}); "
-                      "install their packages (pip install ros-jazzy-<package>)")
-    if unknown:
-        say(f"skipping {', '.join(unknown)}: message types not installed here ({types})")
+    try:
+        classes = _message_classes(reader, args.topics, say)
+    except BagError as err:
+        return _error(str(err))
 
     from senfunet_ros.dds import use_large_shm_profile
 
@@ -100,44 +85,16 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
                 clock_pub.publish(clock_msg)
 
         if args.wait_subscribers > 0:
-            deadline = time.monotonic() + args.wait_subscribers
-            while time.monotonic() < deadline:
-                if all(p.get_subscription_count() > 0 for p in publishers.values()):
-                    break
-                time.sleep(0.05)
-            lonely = [t for t, p in publishers.items() if p.get_subscription_count() == 0]
-            if lonely:
-                say(f"no subscriber yet on {', '.join(lonely)}; playing anyway")
-            else:
-                time.sleep(_MATCH_SETTLE_S)  # the subscribers' side of discovery
+            _wait_for_subscribers(publishers, args.wait_subscribers, say)
         if args.delay > 0:
             time.sleep(args.delay)
 
         say(f"playing {reader.path} ({reader.storage}, {reader.duration_s:.1f} s, {len(publishers)} topics) "
             f"at rate {args.rate:g}{' in a loop' if args.loop else ''}")
         total, passes, broken = 0, 0, None
-        start_ns = reader.start_ns
         while True:
-            wall0 = time.monotonic()
-            publish_clock(start_ns)
-            try:
-                for msg in reader.messages(publishers.keys()):
-                    due = wall0 + (msg.log_time_ns - start_ns) * 1e-9 / args.rate
-                    while True:  # sleep until due, ticking /clock meanwhile
-                        wait = due - time.monotonic()
-                        if wait <= 0:
-                            break
-                        time.sleep(min(wait, _CLOCK_PERIOD_S))
-                        if wait > _CLOCK_PERIOD_S:
-                            now_ns = start_ns + int((time.monotonic() - wall0) * args.rate * 1e9)
-                            publish_clock(min(now_ns, msg.log_time_ns))
-                    if not rclpy.ok():  # Ctrl-C / SIGTERM: rclpy's handler shut the context down
-                        raise ExternalShutdownException()
-                    publish_clock(msg.log_time_ns)
-                    publishers[msg.topic].publish(msg.data)  # raw CDR straight from the bag
-                    total += 1
-            except BagBrokenError as err:
-                broken = str(err)
+            published, broken = _play_once(reader, publishers, publish_clock, rate=args.rate)
+            total += published
             passes += 1
             if broken or not args.loop:
                 break
@@ -163,3 +120,78 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+def _message_classes(reader, topics: list[str] | None, say) -> dict[str, type]:  # noqa: ANN001
+    """Topic -> message class of the topics to play (all, or `topics`); topics whose type is not
+    installed here are skipped with a note. BagError when a topic is missing or none can be played."""
+    from senfunet_ros.bagio import BagError, message_class
+
+    infos = reader.topics
+    if topics:
+        missing = [t for t in topics if t not in infos]
+        if missing:
+            raise BagError(f"{reader.path}: no topic {', '.join(missing)}; the bag has {', '.join(sorted(infos))}")
+        infos = {t: infos[t] for t in topics}
+    classes: dict[str, type] = {}
+    unknown: dict[str, str] = {}
+    for topic, info in sorted(infos.items()):
+        try:
+            classes[topic] = message_class(info.msgtype)
+        except BagError:
+            unknown[topic] = info.msgtype
+    types = ", ".join(sorted(set(unknown.values())))
+    if not classes:
+        raise BagError(f"{reader.path}: none of its topics has a message type installed here ({types}); "
+                       "install their packages (pip install ros-jazzy-<package>)")
+    if unknown:
+        say(f"skipping {', '.join(unknown)}: message types not installed here ({types})")
+    return classes
+
+
+def _wait_for_subscribers(publishers: dict, timeout_s: float, say) -> None:  # noqa: ANN001
+    """Up to timeout_s for every topic to have a subscriber (then a moment for their side of discovery)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if all(p.get_subscription_count() > 0 for p in publishers.values()):
+            break
+        time.sleep(0.05)
+    lonely = [t for t, p in publishers.items() if p.get_subscription_count() == 0]
+    if lonely:
+        say(f"no subscriber yet on {', '.join(lonely)}; playing anyway")
+    else:
+        time.sleep(_MATCH_SETTLE_S)  # the subscribers' side of discovery
+
+
+def _play_once(reader, publishers: dict, publish_clock, *, rate: float) -> tuple[int, str | None]:  # noqa: ANN001
+    """One pass through the bag at `rate`, ticking /clock while it waits: the messages published,
+    and where the bag broke (None if it did not). ExternalShutdownException when Ctrl-C or SIGTERM
+    shut rclpy down."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from senfunet_ros.bagio import BagBrokenError
+
+    start_ns = reader.start_ns
+    wall0 = time.monotonic()
+    publish_clock(start_ns)
+    published = 0
+    try:
+        for msg in reader.messages(publishers.keys()):
+            due = wall0 + (msg.log_time_ns - start_ns) * 1e-9 / rate
+            while True:  # sleep until due, ticking /clock meanwhile
+                wait = due - time.monotonic()
+                if wait <= 0:
+                    break
+                time.sleep(min(wait, _CLOCK_PERIOD_S))
+                if wait > _CLOCK_PERIOD_S:
+                    now_ns = start_ns + int((time.monotonic() - wall0) * rate * 1e9)
+                    publish_clock(min(now_ns, msg.log_time_ns))
+            if not rclpy.ok():  # Ctrl-C / SIGTERM: rclpy's handler shut the context down
+                raise ExternalShutdownException()
+            publish_clock(msg.log_time_ns)
+            publishers[msg.topic].publish(msg.data)  # raw CDR straight from the bag
+            published += 1
+    except BagBrokenError as err:
+        return published, str(err)
+    return published, None
