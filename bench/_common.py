@@ -47,3 +47,19 @@ def write_section(title: str, body: str, path: Path = PERFORMANCE_MD) -> None:
         text = text.rstrip() + "\n\n" + section
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
+
+
+def simulated_bag(cache: Path, *, name: str, seed: int, room: tuple[float, float, float], seconds: float,
+                  tof_rate_hz: float, stereo_rate_hz: float) -> Path:
+    """A simulated two-sensor room as a bag under `cache` (made once, then reused)."""
+    from senfunet_core.learning import simulator as sim
+    from senfunet_ros.bagio import write_sequence_bag
+
+    path = cache / f"{name}_seed{seed}_{'x'.join(f'{v:g}' for v in room)}_{seconds:g}s"
+    if not (path / "metadata.yaml").is_file():
+        print(f"simulating {seconds:g} s in a {room} m room (seed {seed}) into {path} ...", flush=True)
+        seq = sim.simulate_sequence(sim.make_scene(seed, room_size_m=room), seed, duration_s=seconds,
+                                    tof_rate_hz=tof_rate_hz, stereo_rate_hz=stereo_rate_hz)
+        cache.mkdir(parents=True, exist_ok=True)
+        write_sequence_bag(seq, path)
+    return path

@@ -39,30 +39,17 @@ from collections.abc import Iterator
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench._common import ROOT, command, machine, write_section  # noqa: E402
+from bench._common import ROOT, command, machine, simulated_bag, write_section  # noqa: E402
 
 MODES = ("throughput", "realtime")
 _BACKLOG_FRAMES = 4  # throughput mode: the feeder waits while this many frames are queued
 
 
-def large_bag(cache: Path, seed: int, room: tuple[float, float, float], seconds: float) -> Path:
-    from senfunet_core.learning import simulator as sim
-    from senfunet_ros.bagio import write_sequence_bag
-
-    path = cache / f"large_seed{seed}_{'x'.join(f'{v:g}' for v in room)}_{seconds:g}s"
-    if not (path / "metadata.yaml").is_file():
-        print(f"simulating {seconds:g} s in a {room} m room (seed {seed}) into {path} ...", flush=True)
-        seq = sim.simulate_sequence(sim.make_scene(seed, room_size_m=room), seed, duration_s=seconds,
-                                    tof_rate_hz=15, stereo_rate_hz=20)
-        cache.mkdir(parents=True, exist_ok=True)
-        write_sequence_bag(seq, path)
-    return path
-
-
 def bag_path(args: argparse.Namespace, case: str) -> Path:
     if case == "sample":
         return Path(args.bag)
-    return large_bag(Path(args.cache), args.large_seed, tuple(args.large_room), args.large_seconds)
+    return simulated_bag(Path(args.cache), name="large", seed=args.large_seed, room=tuple(args.large_room),
+                         seconds=args.large_seconds, tof_rate_hz=15, stereo_rate_hz=20)
 
 
 @contextlib.contextmanager

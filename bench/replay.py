@@ -25,23 +25,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench._common import ROOT, command, machine, write_section  # noqa: E402
+from bench._common import ROOT, command, machine, simulated_bag, write_section  # noqa: E402
 
 GOAL_RATIO = 1.5
-
-
-def large_bag(cache: Path, seed: int, room: tuple[float, float, float], seconds: float) -> Path:
-    from senfunet_core.learning import simulator as sim
-    from senfunet_ros.bagio import write_sequence_bag
-
-    path = cache / f"replay_seed{seed}_{'x'.join(f'{v:g}' for v in room)}_{seconds:g}s"
-    if not (path / "metadata.yaml").is_file():
-        print(f"simulating {seconds:g} s in a {room} m room (seed {seed}) into {path} ...", flush=True)
-        seq = sim.simulate_sequence(sim.make_scene(seed, room_size_m=room), seed, duration_s=seconds,
-                                    tof_rate_hz=15, stereo_rate_hz=10)
-        cache.mkdir(parents=True, exist_ok=True)
-        write_sequence_bag(seq, path)
-    return path
 
 
 def timed_child(argv: list[str]) -> dict:
@@ -162,7 +148,9 @@ def main() -> None:
         sys.exit("bench/replay.py needs open3d: .venv/bin/pip install -r bench/requirements.txt")
     bags = {"sample": Path(args.bag)}
     if "large" in args.cases:
-        bags["large"] = large_bag(Path(args.cache), args.large_seed, tuple(args.large_room), args.large_seconds)
+        bags["large"] = simulated_bag(Path(args.cache), name="replay", seed=args.large_seed,
+                                      room=tuple(args.large_room), seconds=args.large_seconds, tof_rate_hz=15,
+                                      stereo_rate_hz=10)
     results = []
     for case in args.cases:
         results.append(run_case(case, bags[case]))
