@@ -27,10 +27,11 @@ Threading model (the one place it is described):
   kernels run, an update while it takes the frames' drift, writes alpha or evicts. An update reads
   input windows without it: a block integrated meanwhile is marked again and re-read by the next
   update, and pools that grow meanwhile stay valid for whoever still holds the old ones.
-- Lock order: update lock, then data lock, then the eviction condition. Integration never takes the
-  update lock while holding the data lock; past the map's hard bound it releases the data lock and
-  either evicts itself (the update lock free) or waits on the eviction condition, which every
-  eviction and every release of the update lock notifies. No thread polls.
+- Lock order: update lock, then data lock. Integration never takes the update lock while holding
+  the data lock; past the map's hard bound it releases the data lock, takes the eviction condition,
+  and either evicts itself (the update lock free: tried without blocking) or waits on the condition,
+  which every eviction and every release of the update lock notifies. Nobody takes the condition
+  while holding the data lock, so the waiter may evict under it. No thread polls.
 """
 from __future__ import annotations
 
