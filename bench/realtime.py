@@ -129,10 +129,10 @@ def run_node_case(args: argparse.Namespace) -> dict:
     intervals = np.diff([u[0] for u in updates]) if len(updates) > 1 else np.array([np.nan])
     latencies = [u[1] for u in updates if u[3]]
     stats = engine.stats()
+    total = dict(engine.total_s)  # stage times of the stream (before the catch-up below)
+    timings = {name: t.total_s for name, t in node.timings.items()}
     time.sleep(5.0)  # the node's timers run on: its weighting net catches up once no frame comes
     after = engine.stats()
-    total = dict(engine.total_s)
-    timings = {name: t.total_s for name, t in node.timings.items()}
     result = {
         "case": args.case, "mode": args.mode, "bag_seconds": bag_s, "wall_seconds": wall_s,
         "frames_sent": frames_sent, "frames_integrated": frames, "dropped": dropped,
