@@ -32,6 +32,7 @@ class AlphaBatch:
     holds: np.ndarray  # B bool: holds voxels alpha matters for (see EngineConfig.alpha_voxels)
     voxels: np.ndarray  # N flat voxel indices evaluated (slot * 512 + local)
     alpha: np.ndarray  # N float32
+    flops: int = 0  # the net's FLOPs for it (for the benchmark's fraction of peak)
 
 
 class AlphaScheduler:
@@ -50,7 +51,7 @@ class AlphaScheduler:
         self.tsdf_scale = 2.0 / band_m
         self.device = device
         self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
-        self.flops = 0  # weighting-net FLOPs so far (for the benchmark's fraction of peak)
+        self.flops = 0  # weighting-net FLOPs written so far (for the benchmark's fraction of peak)
 
     def schedule(self) -> None:
         """Turn the drift of the blocks integrated since the last call into stale blocks: the
@@ -87,11 +88,13 @@ class AlphaScheduler:
             stale = np.flatnonzero(store.stale[: store.n_blocks])
             return stale[np.lexsort((-store.stale[stale], -store.last_reached[stale]))]
 
+    @torch.inference_mode()  # grad mode is per thread, and evaluating threads may be new
     def evaluate(self, slots: np.ndarray) -> AlphaBatch:
         """The weighting net on these blocks, where alpha matters (`alpha_voxels`): "all", every voxel
         of every block; "surface", every voxel of the blocks that hold `alpha.surface_targets` (as
         blocks with a 2-voxel halo: convolutions); "surface_voxels", those targets alone (layer by
-        layer, as matrix products). Reads the grid without the data lock (see `engine`)."""
+        layer, as matrix products). Reads the grid without the data lock (see `engine`) and writes
+        nothing, so several threads may evaluate batches at once."""
         neighbours = self.store.neighbours(slots)
         holds = np.ones(len(slots), bool)
         if self.alpha_voxels != "all":
@@ -101,18 +104,18 @@ class AlphaScheduler:
                 return AlphaBatch(slots, holds, np.zeros(0, np.int64), np.zeros(0, np.float32))
         if self.alpha_voxels == "surface_voxels":
             inputs, gather_1, gather_2, voxels = target_gathers(neighbours[holds], targets[holds], *self.inputs())
-            self._count_flops(layer_1_positions=len(gather_1), voxels=len(voxels), inputs=27 * inputs.shape[1])
             alpha = evaluate_gathers(self.net, inputs, gather_1, gather_2, dtype=self.dtype)
-            return AlphaBatch(slots, holds, voxels, alpha)
+            flops = self._flops(layer_1_positions=len(gather_1), voxels=len(voxels), inputs=27 * inputs.shape[1])
+            return AlphaBatch(slots, holds, voxels, alpha, flops)
         slots_holding = slots[holds]
         windows = self.windows(neighbours[holds])
         x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.dtype == torch.bfloat16):
             alpha = self.net(x, pad=False).float().reshape(-1).cpu().numpy()
         voxels = (slots_holding[:, None] * BLOCK**3 + np.arange(BLOCK**3)).reshape(-1)
-        self._count_flops(layer_1_positions=len(slots_holding) * (WINDOW - 2) ** 3, voxels=len(voxels),
-                          inputs=27 * windows.shape[-1])
-        return AlphaBatch(slots, holds, voxels, alpha)
+        flops = self._flops(layer_1_positions=len(slots_holding) * (WINDOW - 2) ** 3, voxels=len(voxels),
+                            inputs=27 * windows.shape[-1])
+        return AlphaBatch(slots, holds, voxels, alpha, flops)
 
     def write(self, results: list[AlphaBatch], *, wait: bool) -> None:
         """Write evaluated batches (and empty `results`), if the data lock is free or `wait`. Where
@@ -129,6 +132,7 @@ class AlphaScheduler:
                 store.no_targets[batch.slots] = ~batch.holds
                 store.evaluated[evaluated] = True
                 store.mesh_pending[evaluated] = True
+                self.flops += batch.flops
         finally:
             self._data_lock.release()
         results.clear()
@@ -146,7 +150,7 @@ class AlphaScheduler:
             tsdf = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
         return (*self.store.views("feat0", "weight0", "feat1", "weight1"), *tsdf, self.tsdf_scale)
 
-    def _count_flops(self, *, layer_1_positions: int, voxels: int, inputs: int) -> None:
+    def _flops(self, *, layer_1_positions: int, voxels: int, inputs: int) -> int:
         """Multiply-adds of the weighting net (x2 = FLOPs)."""
         hidden_1, hidden_2 = self.net.conv1.out_channels, self.net.conv2.out_channels
-        self.flops += 2 * (layer_1_positions * inputs * hidden_1 + voxels * (27 * hidden_1 * hidden_2 + hidden_2))
+        return 2 * (layer_1_positions * inputs * hidden_1 + voxels * (27 * hidden_1 * hidden_2 + hidden_2))

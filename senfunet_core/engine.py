@@ -20,13 +20,17 @@ over the whole grid there); then it re-meshes every block whose cells read a cha
 Threading model (the one place it is described):
 - Threads: an integrating thread calls `prepare`/`integrate`; an updating thread calls `update`,
   `refresh_alpha`, the extractions, `save`, `reset`; one feature-net worker thread (module-wide)
-  runs the 2D nets. Several threads may integrate, and several may update: the locks serialise them.
+  runs the 2D nets; with `alpha_threads` > 1, that many alpha threads (per engine) evaluate the
+  weighting net's batches for an update that has no time budget, while the updating thread waits
+  for them in order and writes their results. Several threads may integrate, and several may
+  update: the locks serialise them.
 - The update lock (`_updating`) serialises updates, extractions, saves and evictions; it owns the
   alpha scheduler's order, the mesh archive and the set of meshed blocks.
 - The data lock guards the grid's contents and the per-block flags: integration holds it while its
-  kernels run, an update while it takes the frames' drift, writes alpha or evicts. An update reads
-  input windows without it: a block integrated meanwhile is marked again and re-read by the next
-  update, and pools that grow meanwhile stay valid for whoever still holds the old ones.
+  kernels run, an update while it takes the frames' drift, writes alpha or evicts. An update (or
+  its alpha threads, which write nothing) reads input windows without it: a block integrated
+  meanwhile is marked again and re-read by the next update, and pools that grow meanwhile stay
+  valid for whoever still holds the old ones. Evictions wait for the batches being evaluated.
 - Lock order: update lock, then data lock. Integration never takes the update lock while holding
   the data lock; past the map's hard bound it releases the data lock, takes the eviction condition,
   and either evicts itself (the update lock free: tried without blocking) or waits on the condition,
@@ -35,6 +39,7 @@ Threading model (the one place it is described):
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import logging
 import os
@@ -92,6 +97,8 @@ class EngineConfig:
     mesh_batch_blocks: int = 2048  # blocks per marching-cubes call
     seed: int = 0  # initialisation of untrained networks
     torch_threads: int = 1  # torch intra-op threads the engine sets (0: leave torch's setting); 1 fits 2 shared cores
+    alpha_threads: int = 1  # threads evaluating weighting-net batches side by side in updates without a time budget
+    #                         (extraction, saving, catch-up); each batch stays on one thread, so alpha is the same
     alpha_voxels: str = "all"  # where alpha near a change is re-evaluated: "all" (equals the whole-grid
     #   evaluation on every voxel); "surface" (blocks holding corners of cells whose 8 corners are observed and whose
     #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be
@@ -135,8 +142,8 @@ class EngineConfig:
         if self.max_blocks < -1:
             raise InputError(f"max_blocks must be >= 0 (0 = no bound) or -1 (from the machine's memory), "
                              f"got {self.max_blocks}")
-        if not self.alpha_tolerance >= 0 or self.torch_threads < 0:
-            raise InputError("alpha_tolerance must be >= 0 and torch_threads >= 0")
+        if not self.alpha_tolerance >= 0 or self.torch_threads < 0 or self.alpha_threads < 1:
+            raise InputError("alpha_tolerance must be >= 0, torch_threads >= 0 and alpha_threads >= 1")
 
 
 @dataclass
@@ -170,6 +177,13 @@ class WeightCloud:
     positions_m: np.ndarray  # Nx3 float32 voxel centres
     alpha: np.ndarray  # N float32 sensor weighting (weight of sensor 1)
     weights: np.ndarray  # N x n_sensors float32 weight counters
+
+
+def _done(value: Any) -> Future:
+    """A future that already holds `value`."""
+    future: Future = Future()
+    future.set_result(value)
+    return future
 
 
 def _compact_offsets(offsets: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -248,6 +262,7 @@ class SenFuNet:
         self.alpha = AlphaScheduler(self.store, self.weighting_net, self._data_lock, alpha_voxels=config.alpha_voxels,
                                     alpha_dtype=config.alpha_dtype, alpha_tolerance=config.alpha_tolerance,
                                     tsdf_input=config.weighting_tsdf_input, band_m=config.band_m, device=self.device)
+        self._alpha_executor: ThreadPoolExecutor | None = None  # alpha_threads > 1: evaluates batches of updates
         # integration past the hard bound waits on this until an eviction (or the running update) ends
         self._eviction_done = threading.Condition()  # reentrant: an evicting waiter notifies
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0}
@@ -587,25 +602,36 @@ class SenFuNet:
         batch by batch; each batch first drops the blocks that hold no voxel alpha matters for
         (checked here, not when scheduling, so that a budget also bounds the checking). With a
         budget (seconds), stop after the batch that exhausts it: the rest stays stale for later.
-        Between batches, where it holds no slot, it evicts when integration outgrew the bound."""
+        Without one, `alpha_threads` batches are evaluated at once (each single-threaded, so alpha
+        does not depend on how many). Between batches, where no evaluated batch waits to be written,
+        it evicts when integration outgrew the bound."""
         cfg = self.config
         self.alpha.schedule()
         order = self.alpha.order()
         start = time.perf_counter()
         done = voxels = 0
+        ahead = cfg.alpha_threads if budget_s is None else 1  # batches being evaluated at once
         # Results are written whenever the data lock is free, not waited for batch by batch: time
         # spent waiting for integration's kernels would come out of the net's budget.
         results: list[AlphaBatch] = []
-        while len(order):
+        evaluating: collections.deque[Future[AlphaBatch]] = collections.deque()
+        while len(order) or evaluating:
             if budget_s is not None and time.perf_counter() - start > budget_s:
                 break
             if self._eviction_due():
-                self.alpha.write(results, wait=True)  # before slots move
+                results += [future.result() for future in evaluating]  # read before slots move
+                evaluating.clear()
+                self.alpha.write(results, wait=True)
                 eviction = self._evict()
                 if eviction is not None:
                     order, _ = eviction.follow(order)
-            batch, order = order[:cfg.alpha_batch_blocks], order[cfg.alpha_batch_blocks:]
-            results.append(self.alpha.evaluate(batch))
+            while len(order) and len(evaluating) < ahead:
+                batch, order = order[:cfg.alpha_batch_blocks], order[cfg.alpha_batch_blocks:]
+                evaluating.append(self._alpha_pool().submit(self.alpha.evaluate, batch) if ahead > 1
+                                  else _done(self.alpha.evaluate(batch)))
+            if not evaluating:
+                continue
+            results.append(evaluating.popleft().result())
             done += int(results[-1].holds.sum())
             voxels += len(results[-1].voxels)
             self.alpha.write(results, wait=False)
@@ -614,6 +640,12 @@ class SenFuNet:
         self.counters["alpha_voxels"] += voxels
         self.counters["alpha_flops"] = self.alpha.flops
         self.counters["alpha_backlog_blocks"] = len(order)
+
+    def _alpha_pool(self) -> ThreadPoolExecutor:
+        """The threads that evaluate weighting-net batches side by side (created on first use)."""
+        if self._alpha_executor is None:
+            self._alpha_executor = ThreadPoolExecutor(self.config.alpha_threads, thread_name_prefix="senfunet-alpha")
+        return self._alpha_executor
 
     def _wait_for_eviction(self) -> None:
         """Integration outgrew the hard bound (updates come too rarely to keep the bound): evict now

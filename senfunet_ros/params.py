@@ -9,6 +9,7 @@ checks a set of new values the way the node's on-set-parameters callback refuses
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from typing import Any
 from collections.abc import Sequence
@@ -366,6 +367,7 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
         band_m=s.band_m,
         device=device,
         alpha_voxels="surface",  # the exact fused mesh for the least weighting-net work
+        alpha_threads=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1,
         alpha_dtype=alpha_dtype(s.alpha_precision, device),
         tsdf_fusion=s.tsdf_fusion,
         max_blocks=s.max_map_blocks,

@@ -126,6 +126,23 @@ def test_surface_mode_gives_the_exact_fused_mesh(exact, mode):
     assert engine.counters["alpha_voxels"] < 0.5 * ref.counters["alpha_voxels"]
 
 
+def test_alpha_threads_evaluate_the_same_alpha():
+    """Updates without a time budget evaluate several batches at once (alpha_threads): every voxel's
+    alpha, what was evaluated and the fused mesh are the same, bit for bit, as one batch at a time."""
+    one, _ = run(alpha_voxels="surface", alpha_batch_blocks=4)
+    several, _ = run(alpha_voxels="surface", alpha_batch_blocks=4, alpha_threads=3)
+    n = one.grid.n_blocks
+    assert several.grid.n_blocks == n
+    alpha_one, alpha_several = one.grid.pools["alpha"][:n], several.grid.pools["alpha"][:n]
+    assert alpha_one.isfinite().sum() > 10_000
+    torch.testing.assert_close(alpha_several, alpha_one, rtol=0, atol=0, equal_nan=True)
+    for counter in ("alpha_blocks", "alpha_voxels", "alpha_flops"):
+        assert several.counters[counter] == one.counters[counter] > 0
+    a, b = sorted_mesh(several.extract_mesh("fused")), sorted_mesh(one.extract_mesh("fused"))
+    np.testing.assert_array_equal(a[2], b[2])
+    np.testing.assert_array_equal(a[0], b[0])
+
+
 def test_tolerance_keeps_the_mesh_close(exact):
     """alpha_tolerance=TOL: the fused mesh stays close to the exact one (assert_close_to_exact)."""
     engine, _ = run(alpha_voxels="surface", alpha_tolerance=TOL)
