@@ -153,24 +153,35 @@ def test_node_fed_by_play_matches_replay(prefix: Path, tmp_path: Path, ros_domai
     assert 0.85 < live.n_vertices / max(offline.n_vertices, 1) < 1.1
 
 
-@pytest.mark.slow
-def test_mesh_on_the_topic_equals_replay(prefix: Path, tmp_path: Path, ros_domain_id: int):
-    """Default settings but a full-resolution ~/mesh: once the stream has ended, the node fused every
-    frame and its weighting net caught up, the mesh a subscriber to ~/mesh receives is replay's
-    mesh.ply of the same bag (F >= 99 at 2 cm), and so is ~/save_mesh's."""
+@pytest.fixture(scope="module")
+def large_room(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """4 s of a simulated 8.4 x 7.2 m room (both sensors at 5 Hz, 128 x 128)."""
+    from senfunet_core.learning import simulator as sim
+    from senfunet_ros.bagio import write_sequence_bag
+
+    scene = sim.make_scene(77, room_size_m=(8.4, 7.2, 2.6))
+    sequence = sim.simulate_sequence(scene, 77, duration_s=4.0, tof_rate_hz=5.0, stereo_rate_hz=5.0, width=128,
+                                     height=128)
+    return write_sequence_bag(sequence, tmp_path_factory.mktemp("large") / "room")
+
+
+def assert_live_mesh_is_replays(bag: Path, params_yaml: str, tmp_path: Path, domain_id: int) -> None:
+    """Once the stream has ended, the node fused every frame and its weighting net caught up, the
+    mesh a subscriber to ~/mesh receives is replay's mesh.ply of the same bag (F >= 99 at 2 cm), and
+    so is ~/save_mesh's."""
     from senfunet_core.metrics import mesh_metrics
     from senfunet_core.ply import read_ply
     from senfunet_ros.replay import replay_bag
 
-    params = tmp_path / "full.yaml"
-    params.write_text("senfunet:\n  ros__parameters:\n    mesh_display_cell_m: 0.0\n")
+    params = tmp_path / "params.yaml"
+    params.write_text(params_yaml)
     out = tmp_path / "demo"
-    proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "demo", "--bag", str(prefix), "--out", str(out),
-                           "--params", str(params), "--rate", "0.5", "--domain-id", str(ros_domain_id),
+    proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "demo", "--bag", str(bag), "--out", str(out),
+                           "--params", str(params), "--rate", "0.5", "--domain-id", str(domain_id),
                            "--timeout", "500", "--live-mesh", "--no-render"], capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr + (out / "node.log").read_text(errors="replace")
-    replayed = replay_bag(prefix, tmp_path / "replay", params=params, progress=False)
+    replayed = replay_bag(bag, tmp_path / "replay", params=params, progress=False)
     assert replayed.ok, replayed.error
     offline = replayed.meshes["mesh"].vertices
     live, saved = read_ply(out / "live_mesh.ply"), read_ply(out / "mesh.ply")
@@ -178,6 +189,21 @@ def test_mesh_on_the_topic_equals_replay(prefix: Path, tmp_path: Path, ros_domai
     for name, mesh in (("~/mesh", live), ("~/save_mesh", saved)):
         agreement = mesh_metrics(mesh.vertices, offline, tau_m=0.02)
         assert agreement["F"] >= 99.0, (name, agreement, proc.stdout)
+
+
+@pytest.mark.slow
+def test_mesh_on_the_topic_equals_replay(prefix: Path, tmp_path: Path, ros_domain_id: int):
+    """The sample's first second, default settings but a full-resolution ~/mesh."""
+    assert_live_mesh_is_replays(prefix, "senfunet:\n  ros__parameters:\n    mesh_display_cell_m: 0.0\n", tmp_path,
+                                ros_domain_id)
+
+
+@pytest.mark.slow
+def test_mesh_on_the_topic_equals_replay_on_a_large_room(large_room: Path, tmp_path: Path, ros_domain_id: int):
+    """An 8.4 x 7.2 m room at its native 128 x 128 and 2-cm voxels (to fit the suite's time), with a
+    full-resolution ~/mesh."""
+    assert_live_mesh_is_replays(large_room, "senfunet:\n  ros__parameters:\n    mesh_display_cell_m: 0.0\n"
+                                "    voxel_size_m: 0.02\n    working_width: 0\n", tmp_path, ros_domain_id)
 
 
 def test_demo_fuses_every_frame_of_the_sample_bag(tmp_path: Path, ros_domain_id: int):
