@@ -362,12 +362,13 @@ class SenFuNet:
             return result
 
     @torch.inference_mode()
-    def refresh_alpha(self, budget_s: float | None = None) -> None:
+    def refresh_alpha(self, budget_s: float | None = None, *, until_frame: bool = False) -> None:
         """Re-evaluate alpha where the inputs drifted, at most about budget_s seconds (None: all of
-        it); the next update re-meshes the blocks whose alpha changed."""
+        it), and with `until_frame` only until a frame is integrated (an idle catch-up that yields to
+        the sensors when they resume); the next update re-meshes the blocks whose alpha changed."""
         with self._updating():
             start = time.perf_counter()
-            self._refresh_alpha(budget_s)
+            self._refresh_alpha(budget_s, until_frame=until_frame)
             self._timed(alpha=time.perf_counter() - start)
 
     @torch.inference_mode()
@@ -597,14 +598,15 @@ class SenFuNet:
         for name, seconds in stages.items():
             self.total_s[name] = self.total_s.get(name, 0.0) + seconds
 
-    def _refresh_alpha(self, budget_s: float | None = None) -> None:
+    def _refresh_alpha(self, budget_s: float | None = None, *, until_frame: bool = False) -> None:
         """Re-evaluate alpha on the stale blocks in the scheduler's order (`AlphaScheduler.order`),
         batch by batch; each batch first drops the blocks that hold no voxel alpha matters for
         (checked here, not when scheduling, so that a budget also bounds the checking). With a
-        budget (seconds), stop after the batch that exhausts it: the rest stays stale for later.
-        Without one, `alpha_threads` batches are evaluated at once (each single-threaded, so alpha
-        does not depend on how many). Between batches, where no evaluated batch waits to be written,
-        it evicts when integration outgrew the bound."""
+        budget (seconds), stop after the batch that exhausts it, and with `until_frame` after the
+        batch during which a frame was integrated: the rest stays stale for later. Without a
+        budget, `alpha_threads` batches are evaluated at once (each single-threaded, so alpha does
+        not depend on how many). Between batches, where no evaluated batch waits to be written, it
+        evicts when integration outgrew the bound."""
         cfg = self.config
         self.alpha.schedule()
         order = self.alpha.order()
@@ -615,9 +617,12 @@ class SenFuNet:
         # spent waiting for integration's kernels would come out of the net's budget.
         results: list[AlphaBatch] = []
         evaluating: collections.deque[Future[AlphaBatch]] = collections.deque()
+        frames_at_start = sum(self.frames_integrated.values())
+        left = order[:0]
         while len(order) or evaluating:
-            if budget_s is not None and time.perf_counter() - start > budget_s:
-                break
+            if len(order) and ((budget_s is not None and time.perf_counter() - start > budget_s)
+                               or (until_frame and sum(self.frames_integrated.values()) != frames_at_start)):
+                order, left = order[:0], order  # evaluate no more; the batches under way are written
             if self._eviction_due():
                 results += [future.result() for future in evaluating]  # read before slots move
                 evaluating.clear()
@@ -639,7 +644,7 @@ class SenFuNet:
         self.counters["alpha_blocks"] += done
         self.counters["alpha_voxels"] += voxels
         self.counters["alpha_flops"] = self.alpha.flops
-        self.counters["alpha_backlog_blocks"] = len(order)
+        self.counters["alpha_backlog_blocks"] = len(left)
 
     def _alpha_pool(self) -> ThreadPoolExecutor:
         """The threads that evaluate weighting-net batches side by side (created on first use)."""

@@ -582,7 +582,11 @@ class FusionNode(Node):
             t_alpha = time.perf_counter()
             # No frame integrated since the last update (the sensors paused or stopped): the net catches
             # up on all it has not judged yet, so the mesh soon equals what an offline replay makes.
-            self.engine.refresh_alpha(None if not contained else (s.alpha_budget_s or None))
+            # It stops at the next frame, which the next update's budget then serves.
+            if contained:
+                self.engine.refresh_alpha(s.alpha_budget_s or None)
+            else:
+                self.engine.refresh_alpha(None, until_frame=True)
             self.timings["alpha"].add(time.perf_counter() - t_alpha)
 
     def _display(self, meshes: Any) -> Any:

@@ -726,3 +726,31 @@ def test_the_default_map_bound_follows_the_machines_memory():
     assert len(grid.table_keys) <= max(4096, 4 * grid.n_blocks) and per_block - 4 * entry_bytes > 512 * 8
     with pytest.raises(InputError, match="max_blocks"):
         EngineConfig(max_blocks=-2).validate()
+
+
+@pytest.mark.parametrize("alpha_threads", [1, 2])
+def test_idle_catch_up_yields_to_the_next_frame(alpha_threads):
+    """refresh_alpha(None, until_frame=True), the node's catch-up when the sensors pause, stops
+    after the batches under way once a frame is integrated (here: during its first batch); the rest
+    stays stale for the next update, and a plain refresh finishes it."""
+    engine = engine_for_tests(alpha_batch_blocks=2, alpha_threads=alpha_threads)
+    K = SPHERE_K
+    for T in SPHERE_VIEWS[:3]:
+        engine.integrate("tof", render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
+    evaluate = engine.alpha.evaluate
+    frame = render_sphere(SPHERE_C, SPHERE_R, K, SPHERE_VIEWS[3])
+    batches = []
+
+    def evaluate_while_a_frame_arrives(slots):
+        if not batches:
+            engine.integrate("stereo", frame, K, SPHERE_VIEWS[3])
+        batches.append(len(slots))
+        return evaluate(slots)
+
+    engine.alpha.evaluate = evaluate_while_a_frame_arrives
+    engine.refresh_alpha(None, until_frame=True)
+    assert 1 <= len(batches) <= alpha_threads + 1
+    assert engine.counters["alpha_backlog_blocks"] > 10
+    engine.refresh_alpha(None)
+    assert engine.counters["alpha_backlog_blocks"] == 0
+    assert len(batches) > 10
