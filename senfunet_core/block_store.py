@@ -97,11 +97,14 @@ class BlockStore:
         return np.sort(np.argpartition(-distance, n - keep)[: n - keep])
 
     def remove(self, victims: np.ndarray) -> Eviction:
-        """Drop these blocks; the flags follow the blocks that move into the freed slots, and the
-        neighbours of the dropped blocks are to be re-meshed (their cells read the dropped voxels)."""
+        """Drop these blocks (to the grid's spill, when it has one); the flags follow the blocks that
+        move into the freed slots, and the neighbours of the dropped blocks are to be re-meshed
+        (their cells read the dropped voxels)."""
         grid = self.grid
         n = grid.n_blocks
         victim_keys = grid.slot_keys[victims]
+        if grid.spill is not None:
+            grid.spill.put(victim_keys, [pool[torch.from_numpy(victims)].numpy() for pool in grid.pools.values()])
         around = self.neighbours(victims)
         remesh = np.zeros(n, bool)
         remesh[around[around >= 0]] = True

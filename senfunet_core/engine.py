@@ -7,8 +7,8 @@
 
 Rooms: the map's blocks and per-block flags live in `block_store.BlockStore`; which blocks the
 weighting net must judge, and judging them, in `alpha_scheduler.AlphaScheduler`; the final meshes
-of evicted blocks in `mesh_archive.MeshArchive`. This module holds the verbs, the locks, the map
-bound and meshing.
+of evicted blocks in `mesh_archive.MeshArchive`, and their voxels in `spill.BlockSpill` (on disk).
+This module holds the verbs, the locks, the map bound and meshing.
 
 Incremental update: a frame marks the blocks it touched, and every voxel accumulates how much its
 weighting-net inputs drifted (see `alpha`). `update` re-evaluates alpha within 2 voxels of a
@@ -63,6 +63,7 @@ from .grid import BlockGrid, block_keys
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .mesh_archive import MeshArchive
 from .mesher import BlockMeshes, BlockTriangles, Mesh, alpha_colors, marching_cubes_blocks, to_mesh, weld
+from .spill import BlockSpill
 
 log = logging.getLogger("senfunet.engine")
 
@@ -252,6 +253,9 @@ class SenFuNet:
             self.max_blocks = memory_bound_blocks(self.grid.bytes_per_block())
             log.info("map bound: %d blocks (half of this machine's memory at %d bytes a block)", self.max_blocks,
                      self.grid.bytes_per_block())
+        if self.max_blocks > 0:  # evicted blocks go to disk, and come back when the sensors reach them again
+            self.grid.spill = BlockSpill()
+            self.grid.restored_fill = {"drift": float("inf")}  # alpha within 2 voxels of them is re-judged
         self.archive = MeshArchive()  # final meshes of evicted blocks (owned by the update lock)
         # Writers of the grid (integration, alpha) hold the data lock; the update's readers do not:
         # a block integrated while it is read is marked again and re-read by the next update, and
@@ -498,6 +502,8 @@ class SenFuNet:
                     "archive": {k: torch.from_numpy(np.ascontiguousarray(v))
                                 for k, v in self.archive.state_dict().items()},
                 }
+                if self.grid.spill is not None:
+                    state["spill"] = {k: torch.from_numpy(v) for k, v in self.grid.spill.state_dict().items()}
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".tmp")
@@ -528,6 +534,10 @@ class SenFuNet:
         engine.weighting_net.load_state_dict(state["weighting_net"])
         engine.weights_source = f"{path} (saved state)"
         engine.grid.load_state_dict(state["grid"])
+        if "spill" in state and len(state["spill"]["keys"]):
+            if engine.grid.spill is None:
+                engine.grid.spill = BlockSpill()
+            engine.grid.spill.load_state_dict({k: v.numpy() for k, v in state["spill"].items()})
         engine.frames_integrated.update(state["frames_integrated"])
         if "archive" in state:
             engine.archive.load_state_dict({k: v.numpy() for k, v in state["archive"].items()})
@@ -547,11 +557,15 @@ class SenFuNet:
             meshed = self.grid.lookup(torch.tensor(sorted(self._meshed), dtype=torch.int64).reshape(-1, 3)).numpy()
             meshed = meshed[meshed >= 0]
             evaluated = self.store.evaluated[meshed]
+            spill = self.grid.spill
         return {"blocks": self.grid.n_blocks, "observed_voxels": observed, "grid_bytes": nbytes,
                 "bytes_per_observed_voxel": nbytes / max(observed, 1),
                 "frames_integrated": dict(self.frames_integrated),
                 "max_blocks": self.max_blocks, "evicted_blocks": self.counters.get("evicted_blocks", 0),
                 "archived_blocks": len(self.archive), "archived_faces": self.archive.n_faces,
+                "spilled_blocks": len(spill) if spill is not None else 0,
+                "spill_bytes": spill.nbytes if spill is not None else 0,
+                "restored_blocks": spill.restored if spill is not None else 0,
                 "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
                 "meshed_blocks_alpha_current": int((evaluated & (self.store.stale[meshed] == 0)).sum())}
 
@@ -689,7 +703,8 @@ class SenFuNet:
         """With a map bound, evict the blocks farthest from the last camera position once the map
         holds more (down to 90%, so that it does not happen every update). The evicted blocks'
         final fused meshes, with alpha evaluated where it was stale, go to the archive (the next
-        update sends them; they stay in snapshots and saved meshes). Their neighbours' marching-cubes
+        update sends them; they stay in snapshots and saved meshes), and their voxels to the spill
+        (`spill`), which gives them back when a frame reaches them again. Their neighbours' marching-cubes
         cells that reached into the evicted blocks are re-meshed without them (so a snapshot equals what
         the updates sent), which leaves a seam one cell wide along the eviction front. Call with the
         update lock held."""
@@ -705,9 +720,12 @@ class SenFuNet:
         self.counters["evicted_blocks"] = self.counters.get("evicted_blocks", 0) + len(victim_coords)
         self.counters["evictions"] = self.counters.get("evictions", 0) + 1
         self._meshed.difference_update(map(tuple, victim_coords.tolist()))
+        spill = self.grid.spill
         log.info("map bound: evicted %d blocks farthest from the camera (max_blocks %d; %d evicted so far, their "
-                 "final meshes kept: %d archived blocks) in %.2f s", len(victim_coords), self.max_blocks,
-                 self.counters["evicted_blocks"], len(self.archive), time.perf_counter() - t0)
+                 "final meshes kept: %d archived blocks; their voxels on disk until seen again: %d blocks, %.0f MB) "
+                 "in %.2f s", len(victim_coords), self.max_blocks, self.counters["evicted_blocks"], len(self.archive),
+                 len(spill) if spill is not None else 0, (spill.nbytes if spill is not None else 0) / 1e6,
+                 time.perf_counter() - t0)
         self._notify_eviction_waiters()
         return eviction
 

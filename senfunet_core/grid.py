@@ -25,6 +25,7 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 from .errors import InputError
+from .spill import BlockSpill
 
 BLOCK = 8
 BLOCK_VOXELS = BLOCK**3
@@ -310,10 +311,16 @@ class BlockGrid:
         self.channel_dtypes = {name: (dtypes or {}).get(name, torch.float32) for name in self.channel_shapes}
         self.growth = max(float(growth), 1.1)  # capacity factor when the pools grow (memory slack vs. copies)
         self.fill = dict(fill or {})  # value of a channel in a new block (default 0)
+        # Evicted blocks' rows (spill.BlockSpill), taken back when they are allocated again, with
+        # `restored_fill` channels then set (what tells the engine those voxels changed).
+        self.spill: BlockSpill | None = None
+        self.restored_fill: dict[str, float] = {}
         self._initial_capacity = initial_capacity
         self.clear()
 
     def clear(self) -> None:
+        if self.spill is not None:
+            self.spill.clear()
         cap = self._initial_capacity
         self.capacity = cap
         self.n_blocks = 0
@@ -358,7 +365,17 @@ class BlockGrid:
             self.coords[self.n_blocks:n_blocks] = keys_to_coords(new)
             for name, value in self.fill.items():
                 self.pools[name][self.n_blocks:n_blocks] = value
+            if self.spill is not None and len(self.spill):
+                self._restore(self.n_blocks, n_blocks)
             self.n_blocks = n_blocks
+
+    def _restore(self, first: int, end: int) -> None:
+        """Give the new slots first..end-1 whose blocks were spilled their rows back."""
+        assert self.spill is not None
+        restored = self.spill.take(self.slot_keys[first:end], [pool[first:end].numpy() for pool in self.pools.values()])
+        slots = first + torch.from_numpy(np.flatnonzero(restored))
+        for name, value in self.restored_fill.items():
+            self.pools[name][slots] = value
 
     def reserve(self, n_blocks: int) -> None:
         """Room for n_blocks: pools, slot arrays and a hash table below its load limit."""

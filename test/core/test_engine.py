@@ -754,3 +754,41 @@ def test_idle_catch_up_yields_to_the_next_frame(alpha_threads):
     engine.refresh_alpha(None)
     assert engine.counters["alpha_backlog_blocks"] == 0
     assert len(batches) > 10
+
+
+def test_evicted_blocks_come_back_from_disk_when_seen_again(tmp_path):
+    """A bounded engine spills evicted blocks' voxels to disk; when the sensors come back to them,
+    the blocks continue from what they held: every block then holds exactly what an unbounded
+    engine holds for it, also across save and load of the bounded engine in between."""
+    K = SPHERE_K
+    far = np.array([3.0, 0.0, 0.0])
+    near_views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]]
+    far_views = [(far, look_at(far + 0.9 * (T[:3, 3] - SPHERE_C), far)) for T in SPHERE_VIEWS[:2]]
+    back_views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:3]]
+
+    def integrate(engine: SenFuNet, views) -> None:
+        for centre, T in views:
+            depth = render_sphere(centre, SPHERE_R, K, T)
+            engine.integrate("tof", depth, K, T)
+            engine.integrate("stereo", depth, K, T)
+        engine.update()
+
+    reference = engine_for_tests()
+    for views in (near_views, far_views, back_views):
+        integrate(reference, views)
+    bounded = engine_for_tests(max_blocks=int(0.6 * reference.grid.n_blocks))
+    integrate(bounded, near_views)
+    integrate(bounded, far_views)  # the near sphere's blocks go to disk
+    spilled = bounded.stats()["spilled_blocks"]
+    assert spilled > 100
+    path = tmp_path / "map.pt"
+    bounded.save(path)
+    for engine in (bounded, SenFuNet.load(path)):
+        integrate(engine, back_views)  # ... and come back
+        stats = engine.stats()
+        assert stats["restored_blocks"] > 0.5 * spilled and stats["evicted_blocks"] > 0
+        grid = engine.grid
+        slots = reference.grid.lookup(grid.coords[: grid.n_blocks])
+        assert bool((slots >= 0).all())
+        for name in ("tsdf0", "weight0", "feat0", "tsdf1", "weight1", "feat1", "tsdf_base", "weight_base"):
+            assert torch.equal(grid.pools[name][: grid.n_blocks], reference.grid.pools[name][slots]), name
