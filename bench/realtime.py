@@ -159,6 +159,7 @@ def run_node_case(args: argparse.Namespace) -> dict:
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
         "blocks": stats["blocks"], "observed_voxels": stats["observed_voxels"],
         "evicted_blocks": stats["evicted_blocks"], "archived_blocks": stats["archived_blocks"],
+        "spilled_blocks": stats["spilled_blocks"], "restored_blocks": stats["restored_blocks"],
         "after_5s_meshed": after["meshed_blocks"], "after_5s_current": after["meshed_blocks_alpha_current"],
         "bytes_per_observed_voxel": stats["bytes_per_observed_voxel"],
     }
@@ -264,7 +265,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
         lambda r: f"{r['after_5s_meshed']}: {100 * r['after_5s_current'] / max(r['after_5s_meshed'], 1):.0f}%")
     row("peak RSS (GB)", lambda r: f"{r['peak_rss_bytes'] / 1e9:.2f}")
     row("blocks / observed voxels", lambda r: f"{r['blocks']} / {r['observed_voxels']}")
-    row("blocks evicted / meshes archived", lambda r: f"{r['evicted_blocks']} / {r['archived_blocks']}")
+    row("blocks evicted / meshes archived / on disk at the end / restored from disk",
+        lambda r: f"{r['evicted_blocks']} / {r['archived_blocks']} / {r['spilled_blocks']} / {r['restored_blocks']}")
     row("bytes per observed voxel", lambda r: f"{r['bytes_per_observed_voxel']:.0f}")
     lines.append("")
     for case in cases:
