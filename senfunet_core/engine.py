@@ -704,19 +704,36 @@ class SenFuNet:
         holds more (down to 90%, so that it does not happen every update). The evicted blocks'
         final fused meshes, with alpha evaluated where it was stale, go to the archive (the next
         update sends them; they stay in snapshots and saved meshes), and their voxels to the spill
-        (`spill`), which gives them back when a frame reaches them again. Their neighbours' marching-cubes
-        cells that reached into the evicted blocks are re-meshed without them (so a snapshot equals what
-        the updates sent), which leaves a seam one cell wide along the eviction front. Call with the
-        update lock held."""
+        (`spill`), which gives them back when a frame reaches them again. Their neighbours'
+        marching-cubes cells that reached into the evicted blocks are re-meshed without them (so a
+        snapshot equals what the updates sent), which leaves a seam one cell wide along the eviction
+        front until those blocks come back. Call with the update lock held; the data lock is held
+        only to pick the victims and to remove them, not while they are judged and meshed."""
         if self.max_blocks <= 0 or self.grid.n_blocks <= self.max_blocks:
             return None
         t0 = time.perf_counter()
+        store = self.store
         with self._data_lock:
-            victims = self.store.farthest(self._camera_m, keep=int(0.9 * self.max_blocks),
-                                          voxel_size_m=self.config.voxel_size_m)
+            victims = store.farthest(self._camera_m, keep=int(0.9 * self.max_blocks),
+                                     voxel_size_m=self.config.voxel_size_m)
             victim_coords = self.grid.coords[victims].numpy()  # copies (fancy index)
-            self._archive_blocks(victims, victim_coords)
-            eviction = self.store.remove(victims)
+            unjudged = victims[(store.stale[victims] > 0) | store.alpha_pending[victims] | ~store.evaluated[victims]]
+            store.alpha_pending[victims] = False  # set again by any frame that reaches them from here on
+        # Judged and meshed without the data lock, so that integration goes on meanwhile (slots move
+        # only in evictions, which need the update lock, held here) ...
+        archived = self._final_meshes(victims, victim_coords, unjudged)
+        with self._data_lock:
+            # ... and again, under it, the few that a frame reached in the meantime
+            again = np.flatnonzero(store.alpha_pending[victims])
+            if len(again):
+                redone = {tuple(key) for key in victim_coords[again].tolist()}
+                older = [key not in redone for key in map(tuple, archived.keys.tolist())]
+                archived = BlockMeshes.concatenate([archived.select(np.flatnonzero(older)),
+                                                    self._final_meshes(victims[again], victim_coords[again],
+                                                                       victims[again])])
+            self.archive.add(archived)
+            self._newly_archived.append(archived)
+            eviction = store.remove(victims)
         self.counters["evicted_blocks"] = self.counters.get("evicted_blocks", 0) + len(victim_coords)
         self.counters["evictions"] = self.counters.get("evictions", 0) + 1
         self._meshed.difference_update(map(tuple, victim_coords.tolist()))
@@ -729,19 +746,16 @@ class SenFuNet:
         self._notify_eviction_waiters()
         return eviction
 
-    def _archive_blocks(self, slots: np.ndarray, coords: np.ndarray) -> None:
-        """Judge and mesh blocks about to be evicted, and archive their meshes (data lock held)."""
+    def _final_meshes(self, slots: np.ndarray, coords: np.ndarray, unjudged: np.ndarray) -> BlockMeshes:
+        """Fused, filtered meshes of blocks about to be evicted, alpha first evaluated on `unjudged`."""
         cfg = self.config
-        unjudged = slots[(self.store.stale[slots] > 0) | self.store.alpha_pending[slots] | ~self.store.evaluated[slots]]
         batches = [self.alpha.evaluate(unjudged[start:start + cfg.alpha_batch_blocks])
                    for start in range(0, len(unjudged), cfg.alpha_batch_blocks)]
         self.alpha.write(batches, wait=True)
-        meshes = [self._to_block_meshes(self._mesh_batch(slots[i:i + cfg.mesh_batch_blocks], FUSED, filtered=True),
-                                        coords[i:i + cfg.mesh_batch_blocks])
-                  for i in range(0, len(slots), cfg.mesh_batch_blocks)]
-        archived = BlockMeshes.concatenate(meshes)
-        self.archive.add(archived)
-        self._newly_archived.append(archived)
+        return BlockMeshes.concatenate([
+            self._to_block_meshes(self._mesh_batch(slots[i:i + cfg.mesh_batch_blocks], FUSED, filtered=True),
+                                  coords[i:i + cfg.mesh_batch_blocks])
+            for i in range(0, len(slots), cfg.mesh_batch_blocks)])
 
     def _block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
         """Fused, filtered meshes of the given blocks (coords: their block keys); blocks without
