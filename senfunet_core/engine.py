@@ -72,6 +72,8 @@ FUSED = "fused"
 # Neighbour-table codes of the blocks whose marching-cubes cells read a block: itself and its
 # -x, -y, -z neighbours (code 9*(dx+1) + 3*(dy+1) + (dz+1), offsets in {-1, 0}).
 _MESH_READER_CODES = np.array([9 * dx + 3 * dy + dz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+# ... and of the blocks a block's cells read: itself and its +x, +y, +z neighbours
+_MESH_READ_CODES = np.array([9 * dx + 3 * dy + dz for dx in (1, 2) for dy in (1, 2) for dz in (1, 2)])
 # integrate() itself drops far blocks once the map exceeds max_blocks by this factor (updates do it first)
 _HARD_BOUND = 1.25
 # One thread runs the feature nets (of every engine in the process), so that a frame's feature net
@@ -717,20 +719,25 @@ class SenFuNet:
             victims = store.farthest(self._camera_m, keep=int(0.9 * self.max_blocks),
                                      voxel_size_m=self.config.voxel_size_m)
             victim_coords = self.grid.coords[victims].numpy()  # copies (fancy index)
-            unjudged = victims[(store.stale[victims] > 0) | store.alpha_pending[victims] | ~store.evaluated[victims]]
-            store.alpha_pending[victims] = False  # set again by any frame that reaches them from here on
+            read = store.neighbours(victims)[:, _MESH_READ_CODES]  # the blocks the victims' cells read
+            around = np.unique(read[read >= 0])
         # Judged and meshed without the data lock, so that integration goes on meanwhile (slots move
         # only in evictions, which need the update lock, held here) ...
+        self.alpha.schedule()
+        unjudged = around[(store.stale[around] > 0) | ~store.evaluated[around]]
         archived = self._final_meshes(victims, victim_coords, unjudged)
         with self._data_lock:
-            # ... and again, under it, the few that a frame reached in the meantime
-            again = np.flatnonzero(store.alpha_pending[victims])
-            if len(again):
+            # ... and again, under it, where a frame changed them in the meantime
+            touched = around[store.alpha_pending[around]]
+            self.alpha.schedule()
+            changed = np.union1d(touched, around[store.stale[around] > 0])
+            if len(changed):
+                again = np.flatnonzero(np.isin(read, changed).any(axis=1))
                 redone = {tuple(key) for key in victim_coords[again].tolist()}
                 older = [key not in redone for key in map(tuple, archived.keys.tolist())]
                 archived = BlockMeshes.concatenate([archived.select(np.flatnonzero(older)),
                                                     self._final_meshes(victims[again], victim_coords[again],
-                                                                       victims[again])])
+                                                                       around[store.stale[around] > 0])])
             self.archive.add(archived)
             self._newly_archived.append(archived)
             eviction = store.remove(victims)
@@ -747,7 +754,8 @@ class SenFuNet:
         return eviction
 
     def _final_meshes(self, slots: np.ndarray, coords: np.ndarray, unjudged: np.ndarray) -> BlockMeshes:
-        """Fused, filtered meshes of blocks about to be evicted, alpha first evaluated on `unjudged`."""
+        """Fused, filtered meshes of blocks about to be evicted, alpha first evaluated on the blocks
+        `unjudged` (those the meshes read whose alpha is stale or was never evaluated)."""
         cfg = self.config
         batches = [self.alpha.evaluate(unjudged[start:start + cfg.alpha_batch_blocks])
                    for start in range(0, len(unjudged), cfg.alpha_batch_blocks)]

@@ -792,3 +792,48 @@ def test_evicted_blocks_come_back_from_disk_when_seen_again(tmp_path):
         assert bool((slots >= 0).all())
         for name in ("tsdf0", "weight0", "feat0", "tsdf1", "weight1", "feat1", "tsdf_base", "weight_base"):
             assert torch.equal(grid.pools[name][: grid.n_blocks], reference.grid.pools[name][slots]), name
+
+
+def test_a_frame_reaching_blocks_while_they_are_evicted_is_in_their_final_mesh():
+    """Evicted blocks are judged and meshed without the data lock; a frame that reaches them in
+    the meantime is integrated, and their archived meshes are redone with it: they equal the
+    meshes of an unbounded engine that fused the same frames."""
+    K = SPHERE_K
+    far = np.array([3.0, 0.0, 0.0])
+    views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]]
+    views += [(far, look_at(far + 0.9 * (T[:3, 3] - SPHERE_C), far)) for T in SPHERE_VIEWS[:2]]
+    late_T = SPHERE_VIEWS[2]  # the near sphere again, arriving during the eviction
+    late = render_sphere(SPHERE_C, SPHERE_R, K, late_T)
+
+    def integrate(engine: SenFuNet, centre: np.ndarray, T: np.ndarray) -> None:
+        depth = render_sphere(centre, SPHERE_R, K, T)
+        engine.integrate("tof", depth, K, T)
+        engine.integrate("stereo", depth, K, T)
+
+    reference = engine_for_tests()
+    for centre, T in views:
+        integrate(reference, centre, T)
+    n_all = reference.grid.n_blocks
+    reference.integrate("tof", late, K, late_T)
+    reference.update()
+    bounded = engine_for_tests(max_blocks=int(0.85 * n_all))  # below the hard bound: the update evicts
+    for centre, T in views:
+        integrate(bounded, centre, T)
+    assert bounded.stats()["evicted_blocks"] == 0
+    evaluate = bounded.alpha.evaluate
+
+    def evaluate_while_a_frame_arrives(slots):
+        if bounded.counters.get("evictions", 0) == 0 and bounded.frames_integrated["tof"] == 4:
+            bounded.integrate("tof", late, K, late_T)
+        return evaluate(slots)
+
+    bounded.alpha.evaluate = evaluate_while_a_frame_arrives
+    bounded.update()
+    assert bounded.frames_integrated["tof"] == 5 and bounded.stats()["evicted_blocks"] > 0
+    archived = bounded.archive.meshes().as_dict()
+    expected = reference.block_meshes().as_dict()
+    near = [key for key in archived if np.linalg.norm(np.array(key) * BLOCK * VOXEL) < 1.0]
+    assert len(near) > 50
+    for key in near:
+        assert archived[key].n_faces == expected[key].n_faces, key
+        np.testing.assert_allclose(archived[key].vertices, expected[key].vertices, atol=1e-5)
