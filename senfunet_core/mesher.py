@@ -524,13 +524,27 @@ def weld(vertices_vox: np.ndarray, faces: np.ndarray, vertex_values: np.ndarray 
     base[rows, axis] = np.floor(vertices_vox[rows, axis]).astype(np.int64)
     base[on_node] = np.round(vertices_vox[on_node]).astype(np.int64)
     axis[on_node] = 3
-    keys = np.concatenate([base, axis[:, None]], axis=1)
-    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
+    first, inverse = _unique_edges(base, axis)
     faces = inverse[faces]
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     values = None if vertex_values is None else vertex_values[first]
     return vertices_vox[first], faces[keep], values
+
+
+def _unique_edges(base: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """np.unique over the rows (base x, y, z, axis), lexicographic: the first row of each distinct
+    key and each row's key index. The rows are packed into one int64 where their extent allows
+    (a one-dimensional sort, several times faster than sorting rows)."""
+    low = base.min(axis=0)
+    extent = base.max(axis=0) - low + 1
+    if float(extent[0]) * float(extent[1]) * float(extent[2]) * 4 < 2.0**62:
+        shifted = base - low
+        packed = ((shifted[:, 0] * extent[1] + shifted[:, 1]) * extent[2] + shifted[:, 2]) * 4 + axis
+        _, first, inverse = np.unique(packed, return_index=True, return_inverse=True)
+    else:
+        keys = np.concatenate([base, axis[:, None]], axis=1)
+        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    return first, inverse.reshape(-1)
 
 
 def alpha_colors(alpha: np.ndarray) -> np.ndarray:

@@ -389,3 +389,22 @@ def test_other_block_sizes_give_the_same_surface():
     assert_closed_and_oriented(f5)
     with pytest.raises(ValueError):
         marching_cubes_blocks(np.zeros((2, 17, 17, 17), np.float32), np.ones((2, 17, 17, 17), bool), np.zeros((2, 3)))
+
+
+@pytest.mark.parametrize("spread", [50, 2**40])
+def test_unique_edges_equals_numpy_unique_over_rows(spread):
+    """The packed one-dimensional unique gives np.unique(axis=0)'s order, first rows and inverse;
+    an extent too large to pack takes the row-wise path with the same result."""
+    from senfunet_core.mesher import _unique_edges
+
+    rng = np.random.default_rng(3)
+    base = rng.integers(-spread, spread, (4000, 3))
+    base = np.concatenate([base, base[::3]])  # repeated edges
+    axis = np.concatenate([rng.integers(0, 4, 4000), rng.integers(0, 4, 4000)[::3]])
+    axis[4000:] = axis[:4000][::3]
+    first, inverse = _unique_edges(base, axis)
+    _, first_rows, inverse_rows = np.unique(np.concatenate([base, axis[:, None]], axis=1), axis=0,
+                                           return_index=True, return_inverse=True)
+    np.testing.assert_array_equal(first, first_rows)
+    np.testing.assert_array_equal(inverse, inverse_rows.reshape(-1))
+    assert len(first) < len(base)
