@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
 
 import pytest
 
@@ -27,6 +28,16 @@ def ros_domain_id() -> int:
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # keep test traffic off the network
     return domain
+
+
+@pytest.fixture(scope="module")
+def ros(ros_domain_id: int) -> Iterator[int]:
+    """rclpy initialised for the tests of one module (in this process), shut down after them."""
+    import rclpy
+
+    rclpy.init()
+    yield ros_domain_id
+    rclpy.try_shutdown()
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

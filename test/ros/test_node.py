@@ -125,13 +125,6 @@ def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
 
 
-@pytest.fixture(scope="module")
-def ros(ros_domain_id: int):
-    rclpy.init()
-    yield ros_domain_id
-    rclpy.try_shutdown()
-
-
 # ------------------------------------------------------------------------------------------------
 # the publisher process
 

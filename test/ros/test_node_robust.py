@@ -9,7 +9,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import Parameter as ParameterMsg
@@ -17,42 +16,22 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-from test_node import Running, topic_params, wait_for
+from test_node import BASE_S, Running, _pose_msg, _stamp, topic_params, wait_for
 
-S = 1_000_000_000
-BASE_S = 1000.0
 SIM = dict(duration_s=2.0, width=96, height=96, tof_rate_hz=6.0, stereo_rate_hz=6.0)
 SMALL = dict(voxel_size_m=0.04, band_m=0.4, working_width=48, queue_size=500, max_lag_s=0.0, integrate_rate_hz=50.0,
              mesh_rate_hz=2.0, tsdf_fusion=False)
 
 
-@pytest.fixture(scope="module")
-def ros(ros_domain_id: int):
-    rclpy.init()
-    yield ros_domain_id
-    rclpy.try_shutdown()
-
-
-def _stamp(msg: Any, t_s: float) -> None:
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(round((t_s + BASE_S) * 1e9)), S)
-
-
 def scene_messages(seed: int = 5) -> list[tuple[str, str, Any]]:
     """A short simulated two-sensor scene as (sensor, stream, rclpy message) in stamp order."""
     from senfunet_core.learning.simulator import make_scene, simulate_sequence
-    from senfunet_ros.geometry import quat_from_matrix
 
     seq = simulate_sequence(make_scene(seed), seed=seed, **SIM)
     events: list[tuple[float, int, str, str, Any]] = []
     for s in ("tof", "stereo"):
         for t, T in zip(seq.pose_stamps_s[s], seq.pose_T_world_camera[s]):
-            msg = PoseStamped()
-            _stamp(msg, t)
-            msg.header.frame_id = "map"
-            msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in T[:3, 3])
-            o = msg.pose.orientation
-            o.x, o.y, o.z, o.w = (float(v) for v in quat_from_matrix(T[:3, :3]))
-            events.append((t, 0, s, "pose", msg))
+            events.append((t, 0, s, "pose", _pose_msg(t, T)))
     for f in seq.frames:
         h, w = f.depth_m.shape
         info = CameraInfo(width=w, height=h, k=[float(v) for v in f.K.reshape(-1)])
