@@ -59,7 +59,7 @@ from .alpha_scheduler import AlphaBatch, AlphaScheduler
 from .block_store import BlockStore, Eviction
 from .errors import InputError
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
-from .grid import BlockGrid, block_keys
+from .grid import BlockGrid, block_keys, keys_to_coords
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .mesh_archive import MeshArchive
 from .mesher import BlockMeshes, BlockTriangles, Mesh, alpha_colors, marching_cubes_blocks, to_mesh, weld
@@ -187,6 +187,27 @@ def _done(value: Any) -> Future:
     future: Future = Future()
     future.set_result(value)
     return future
+
+
+def _joined(meshes: list[Mesh]) -> Mesh:
+    """One mesh of several (vertices not shared between them)."""
+    if len(meshes) == 1:
+        return meshes[0]
+    starts = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    colors = [m.colors if m.colors is not None else np.ones((len(m.vertices), 3), np.float32) for m in meshes]
+    return Mesh(np.concatenate([m.vertices for m in meshes]),
+                np.concatenate([m.faces + start for m, start in zip(meshes, starts)]).astype(np.int32),
+                np.concatenate(colors))
+
+
+def _with_seams(archived: BlockMeshes, seams: dict[tuple[int, int, int], Mesh]) -> BlockMeshes:
+    """The evicted blocks' meshes with the seam triangles that go with them (`SenFuNet._seam_meshes`)."""
+    if not seams:
+        return archived
+    meshes = archived.as_dict()
+    for block, seam in seams.items():
+        meshes[block] = _joined([meshes[block], seam]) if block in meshes else seam
+    return BlockMeshes.from_meshes(meshes)
 
 
 def _compact_offsets(offsets: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -708,8 +729,8 @@ class SenFuNet:
         update sends them; they stay in snapshots and saved meshes), and their voxels to the spill
         (`spill`), which gives them back when a frame reaches them again. Their neighbours'
         marching-cubes cells that reached into the evicted blocks are re-meshed without them (so a
-        snapshot equals what the updates sent), which leaves a seam one cell wide along the eviction
-        front until those blocks come back. Call with the update lock held; the data lock is held
+        snapshot equals what the updates sent); the triangles of those cells go to the archive with
+        the evicted blocks (`_seam_meshes`), so no seam opens along the eviction front. Call with the update lock held; the data lock is held
         only to pick the victims and to remove them, not while they are judged and meshed."""
         if self.max_blocks <= 0 or self.grid.n_blocks <= self.max_blocks:
             return None
@@ -720,7 +741,10 @@ class SenFuNet:
                                      voxel_size_m=self.config.voxel_size_m)
             victim_coords = self.grid.coords[victims].numpy()  # copies (fancy index)
             read = store.neighbours(victims)[:, _MESH_READ_CODES]  # the blocks the victims' cells read
-            around = np.unique(read[read >= 0])
+            readers = store.neighbours(victims)[:, _MESH_READER_CODES]  # the blocks whose cells read victims
+            readers = np.setdiff1d(readers[readers >= 0], victims)
+            scope = store.neighbours(np.union1d(victims, readers))[:, _MESH_READ_CODES]
+            around = np.unique(scope[scope >= 0])  # every block whose alpha the final meshes read
         # Judged and meshed without the data lock, so that integration goes on meanwhile (slots move
         # only in evictions, which need the update lock, held here) ...
         self.alpha.schedule()
@@ -738,6 +762,7 @@ class SenFuNet:
                 archived = BlockMeshes.concatenate([archived.select(np.flatnonzero(older)),
                                                     self._final_meshes(victims[again], victim_coords[again],
                                                                        around[store.stale[around] > 0])])
+            archived = _with_seams(archived, self._seam_meshes(readers, victim_coords))
             self.archive.add(archived)
             self._newly_archived.append(archived)
             eviction = store.remove(victims)
@@ -764,6 +789,35 @@ class SenFuNet:
             self._to_block_meshes(self._mesh_batch(slots[i:i + cfg.mesh_batch_blocks], FUSED, filtered=True),
                                   coords[i:i + cfg.mesh_batch_blocks])
             for i in range(0, len(slots), cfg.mesh_batch_blocks)])
+
+    def _seam_meshes(self, readers: np.ndarray, victim_coords: np.ndarray) -> dict[tuple[int, int, int], Mesh]:
+        """The triangles of the cells of blocks staying (`readers`) that read blocks about to be
+        evicted, by the evicted block they go with (the least key among those a cell reads): once
+        the readers are re-meshed without the evicted voxels, the archive shows these instead (data
+        lock held, before the removal)."""
+        size, voxel_size_m = self.config.mesh_batch_blocks, self.config.voxel_size_m
+        victim_keys = np.sort(block_keys(torch.from_numpy(victim_coords)).numpy())
+        seams: dict[tuple[int, int, int], list[Mesh]] = {}
+        for start in range(0, len(readers), size):
+            tris = self._mesh_batch(readers[start:start + size], FUSED, filtered=True)
+            if len(tris.faces) == 0:
+                continue
+            # a triangle's cell: the floor of its centroid (strictly inside the cell it came from)
+            cell = np.floor(tris.vertices_vox[tris.faces].mean(axis=1)).astype(np.int64)
+            owner = np.full(len(cell), np.iinfo(np.int64).max)
+            for corner in np.ndindex(2, 2, 2):  # the blocks of the cell's 8 corners
+                key = block_keys(torch.from_numpy(np.floor_divide(cell + np.array(corner), 8))).numpy()
+                evicted = np.isin(key, victim_keys)
+                owner[evicted] = np.minimum(owner[evicted], key[evicted])
+            seam = np.flatnonzero(owner < np.iinfo(np.int64).max)
+            for key in np.unique(owner[seam]).tolist():
+                faces = tris.faces[seam[owner[seam] == key]]
+                used, local = np.unique(faces, return_inverse=True)
+                values = tris.vertex_values[used] if tris.vertex_values is not None else None
+                mesh = to_mesh(tris.vertices_vox[used], local.reshape(-1, 3), voxel_size_m, values)
+                block = tuple(keys_to_coords(torch.tensor([key])).numpy()[0].tolist())
+                seams.setdefault(block, []).append(mesh)
+        return {block: _joined(parts) for block, parts in seams.items()}
 
     def _block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
         """Fused, filtered meshes of the given blocks (coords: their block keys); blocks without

@@ -165,7 +165,8 @@ def large_room(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_sequence_bag(sequence, tmp_path_factory.mktemp("large") / "room")
 
 
-def assert_live_mesh_is_replays(bag: Path, params_yaml: str, tmp_path: Path, domain_id: int) -> None:
+def assert_live_mesh_is_replays(bag: Path, params_yaml: str, tmp_path: Path, domain_id: int, *,
+                                evictions: bool = False) -> None:
     """Once the stream has ended, the node fused every frame and its weighting net caught up, the
     mesh a subscriber to ~/mesh receives is replay's mesh.ply of the same bag (F >= 99 at 2 cm), and
     so is ~/save_mesh's."""
@@ -186,6 +187,8 @@ def assert_live_mesh_is_replays(bag: Path, params_yaml: str, tmp_path: Path, dom
     offline = replayed.meshes["mesh"].vertices
     live, saved = read_ply(out / "live_mesh.ply"), read_ply(out / "mesh.ply")
     assert live.n_faces > 10000
+    if evictions:
+        assert "map bound: evicted" in (out / "node.log").read_text(errors="replace")
     for name, mesh in (("~/mesh", live), ("~/save_mesh", saved)):
         agreement = mesh_metrics(mesh.vertices, offline, tau_m=0.02)
         assert agreement["F"] >= 99.0, (name, agreement, proc.stdout)
@@ -201,9 +204,12 @@ def test_mesh_on_the_topic_equals_replay(prefix: Path, tmp_path: Path, ros_domai
 @pytest.mark.slow
 def test_mesh_on_the_topic_equals_replay_on_a_large_room(large_room: Path, tmp_path: Path, ros_domain_id: int):
     """An 8.4 x 7.2 m room at its native 128 x 128 and 2-cm voxels (to fit the suite's time), with a
-    full-resolution ~/mesh."""
+    full-resolution ~/mesh, and a map bound of 2500 blocks, under half of what the room needs (replay
+    has none): evicted blocks keep their meshes, seams included, and come back from disk when seen
+    again, so the live mesh is still replay's."""
     assert_live_mesh_is_replays(large_room, "senfunet:\n  ros__parameters:\n    mesh_display_cell_m: 0.0\n"
-                                "    voxel_size_m: 0.02\n    working_width: 0\n", tmp_path, ros_domain_id)
+                                "    voxel_size_m: 0.02\n    working_width: 0\n    max_map_blocks: 2500\n",
+                                tmp_path, ros_domain_id, evictions=True)
 
 
 def test_demo_fuses_every_frame_of_the_sample_bag(tmp_path: Path, ros_domain_id: int):
