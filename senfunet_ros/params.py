@@ -119,8 +119,9 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("device", "cpu", "torch device: cpu | cuda (falls back to cpu with a warning)"),
     Param("save_on_shutdown", False, "write the PLY files into output_dir when the node stops", runtime=True),
     Param("max_map_blocks", -1, "memory bound in 8^3-voxel blocks: past it, the blocks farthest from the sensor are "
-          "evicted and their final meshes kept (still on ~/mesh and in save_mesh); -1 = half of this machine's "
-          "memory; 0 = unbounded", lo=-1, hi=2**31 - 1),
+          "evicted: their final meshes stay on ~/mesh and in save_mesh, their voxels go to disk (the temporary "
+          "directory, $TMPDIR) until a sensor sees them again; -1 = half of this machine's memory; 0 = unbounded",
+          lo=-1, hi=2**31 - 1),
     Param("tsdf_fusion", False, "also keep the plain TSDF Fusion baseline (save_mesh adds tsdf_fusion.ply; "
           "costs integration time and memory)"),
 )
