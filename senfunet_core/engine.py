@@ -730,8 +730,9 @@ class SenFuNet:
         (`spill`), which gives them back when a frame reaches them again. Their neighbours'
         marching-cubes cells that reached into the evicted blocks are re-meshed without them (so a
         snapshot equals what the updates sent); the triangles of those cells go to the archive with
-        the evicted blocks (`_seam_meshes`), so no seam opens along the eviction front. Call with the update lock held; the data lock is held
-        only to pick the victims and to remove them, not while they are judged and meshed."""
+        the evicted blocks (`_seam_meshes`), so no seam opens along the eviction front. Call with
+        the update lock held; the data lock is held only to pick the victims, to redo what a frame
+        changed meanwhile, and to remove them, not while they are first judged and meshed."""
         if self.max_blocks <= 0 or self.grid.n_blocks <= self.max_blocks:
             return None
         t0 = time.perf_counter()
