@@ -166,28 +166,30 @@ def large_room(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def assert_live_mesh_is_replays(bag: Path, params_yaml: str, tmp_path: Path, domain_id: int, *,
-                                evictions: bool = False) -> None:
+                                bound: int = 0) -> None:
     """Once the stream has ended, the node fused every frame and its weighting net caught up, the
-    mesh a subscriber to ~/mesh receives is replay's mesh.ply of the same bag (F >= 99 at 2 cm), and
-    so is ~/save_mesh's."""
+    mesh a subscriber to ~/mesh receives is replay's mesh.ply of the same bag without a map bound
+    (F >= 99 at 2 cm), and so is ~/save_mesh's; with `bound` the node runs with that map bound."""
     from senfunet_core.metrics import mesh_metrics
     from senfunet_core.ply import read_ply
     from senfunet_ros.replay import replay_bag
 
-    params = tmp_path / "params.yaml"
-    params.write_text(params_yaml)
+    params, unbounded = tmp_path / "params.yaml", tmp_path / "unbounded.yaml"
+    params.write_text(params_yaml + (f"    max_map_blocks: {bound}\n" if bound else ""))
+    unbounded.write_text(params_yaml + "    max_map_blocks: 0\n")
     out = tmp_path / "demo"
     proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "demo", "--bag", str(bag), "--out", str(out),
                            "--params", str(params), "--rate", "0.5", "--domain-id", str(domain_id),
                            "--timeout", "500", "--live-mesh", "--no-render"], capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr + (out / "node.log").read_text(errors="replace")
-    replayed = replay_bag(bag, tmp_path / "replay", params=params, progress=False)
+    replayed = replay_bag(bag, tmp_path / "replay", params=unbounded, progress=False)
     assert replayed.ok, replayed.error
+    assert replayed.stats["engine"]["evicted_blocks"] == 0
     offline = replayed.meshes["mesh"].vertices
     live, saved = read_ply(out / "live_mesh.ply"), read_ply(out / "mesh.ply")
     assert live.n_faces > 10000
-    if evictions:
+    if bound:
         assert "map bound: evicted" in (out / "node.log").read_text(errors="replace")
     for name, mesh in (("~/mesh", live), ("~/save_mesh", saved)):
         agreement = mesh_metrics(mesh.vertices, offline, tau_m=0.02)
@@ -204,12 +206,12 @@ def test_mesh_on_the_topic_equals_replay(prefix: Path, tmp_path: Path, ros_domai
 @pytest.mark.slow
 def test_mesh_on_the_topic_equals_replay_on_a_large_room(large_room: Path, tmp_path: Path, ros_domain_id: int):
     """An 8.4 x 7.2 m room at its native 128 x 128 and 2-cm voxels (to fit the suite's time), with a
-    full-resolution ~/mesh, and a map bound of 2500 blocks, under half of what the room needs (replay
-    has none): evicted blocks keep their meshes, seams included, and come back from disk when seen
-    again, so the live mesh is still replay's."""
+    full-resolution ~/mesh, and a map bound of 2500 blocks, under half of what the room needs, against
+    an unbounded replay: evicted blocks keep their meshes, seams included, and come back from disk
+    when seen again, so the live mesh is still replay's."""
     assert_live_mesh_is_replays(large_room, "senfunet:\n  ros__parameters:\n    mesh_display_cell_m: 0.0\n"
-                                "    voxel_size_m: 0.02\n    working_width: 0\n    max_map_blocks: 2500\n",
-                                tmp_path, ros_domain_id, evictions=True)
+                                "    voxel_size_m: 0.02\n    working_width: 0\n", tmp_path, ros_domain_id,
+                                bound=2500)
 
 
 def test_demo_fuses_every_frame_of_the_sample_bag(tmp_path: Path, ros_domain_id: int):

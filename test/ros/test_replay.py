@@ -143,6 +143,35 @@ def test_comparison_meshes_are_opt_in_and_do_not_change_the_fused_mesh(
     assert (out / "mesh.ply").read_bytes() == (cli_replay[1] / "mesh.ply").read_bytes()
 
 
+def test_replay_keeps_the_map_bound_and_the_mesh(prefix: Path, work: Path):
+    """Replay honours max_map_blocks as the node does: past it, far blocks are evicted (meshes kept,
+    voxels spilled to disk and restored when seen again), and the fused mesh stays the unbounded one's."""
+    from senfunet_core.metrics import mesh_metrics
+    from senfunet_ros.replay import replay_bag
+
+    unbounded = replay_bag(prefix, work / "unbounded", params=_params(work, "unbounded", max_map_blocks=0),
+                           progress=False)
+    assert unbounded.ok, unbounded.error
+    blocks = unbounded.stats["engine"]["blocks"]
+    bounded = replay_bag(prefix, work / "bounded", params=_params(work, "bounded", max_map_blocks=blocks // 3),
+                         progress=False)
+    assert bounded.ok, bounded.error
+    engine = bounded.stats["engine"]
+    assert engine["evicted_blocks"] > blocks // 3 and engine["blocks"] <= 1.25 * (blocks // 3)
+    assert engine["restored_blocks"] > 0
+    # Alpha near a block that is on disk is judged without its voxels, so the meshes differ a little
+    # there (here a third of the map stays and most blocks go to disk and back several times).
+    a, b = bounded.meshes["mesh"], unbounded.meshes["mesh"]
+    assert abs(a.n_faces - b.n_faces) <= 0.02 * b.n_faces
+    assert mesh_metrics(a.vertices, b.vertices, tau_m=0.04)["F"] > 99.5  # one voxel
+
+
+def _params(work: Path, name: str, **values: object) -> Path:
+    path = work / f"{name}.yaml"
+    path.write_text(SMALL_PARAMS + "".join(f"    {k}: {v}\n" for k, v in values.items()))
+    return path
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not WEIGHTS.is_file(), reason=f"no trained weights at {WEIGHTS} yet")
 def test_fused_mesh_beats_tsdf_fusion(work: Path):
