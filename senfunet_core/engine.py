@@ -25,8 +25,9 @@ Threading model (the one place it is described):
   alpha scheduler's order, the mesh archive and the set of meshed blocks.
 - The data lock guards the grid's contents and the per-block flags: integration holds it while its
   kernels run, an update while it takes the frames' drift, writes alpha or evicts. An update reads
-  input windows without it: a block integrated meanwhile is marked again and re-read by the next
-  update, and pools that grow meanwhile stay valid for whoever still holds the old ones.
+  input windows without it (and `stats` counts voxels without it): a block integrated meanwhile is
+  marked again and re-read by the next update, and pools that grow meanwhile stay valid for whoever
+  still holds the old ones.
 - Lock order: update lock, then data lock. Integration never takes the update lock while holding
   the data lock; past the map's hard bound it releases the data lock, takes the eviction condition,
   and either evicts itself (the update lock free: tried without blocking) or waits on the condition,
@@ -525,19 +526,23 @@ class SenFuNet:
         """Map size and memory, and how much of the meshed surface has its alpha: evaluated at least
         once (else its mesh averages the sensors, see fusion), and up to date (not stale)."""
         n = len(self.config.sensors)
-        with self._updating(), self._data_lock:
+        with self._updating():
+            with self._data_lock:  # only the flags: integration waits for this lock
+                nbytes = self.grid.nbytes()
+                meshed = self.grid.lookup(torch.tensor(sorted(self._meshed), dtype=torch.int64).reshape(-1, 3)).numpy()
+                meshed = meshed[meshed >= 0]
+                evaluated = self.store.evaluated[meshed]
+                current = evaluated & (self.store.stale[meshed] == 0)
+            # counted without the data lock, as an update reads the grid: a frame integrated meanwhile
+            # may or may not be in the count
             observed = self.store.observed_voxels([f"weight{i}" for i in range(n)])
-            nbytes = self.grid.nbytes()
-            meshed = self.grid.lookup(torch.tensor(sorted(self._meshed), dtype=torch.int64).reshape(-1, 3)).numpy()
-            meshed = meshed[meshed >= 0]
-            evaluated = self.store.evaluated[meshed]
         return {"blocks": self.grid.n_blocks, "observed_voxels": observed, "grid_bytes": nbytes,
                 "bytes_per_observed_voxel": nbytes / max(observed, 1),
                 "frames_integrated": dict(self.frames_integrated),
                 "max_blocks": self.max_blocks, "evicted_blocks": self.counters.get("evicted_blocks", 0),
                 "archived_blocks": len(self.archive), "archived_faces": self.archive.n_faces,
                 "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
-                "meshed_blocks_alpha_current": int((evaluated & (self.store.stale[meshed] == 0)).sum())}
+                "meshed_blocks_alpha_current": int(current.sum())}
 
     # -- internals -------------------------------------------------------------------------------
     def _sensor_index(self, sensor: str) -> int:

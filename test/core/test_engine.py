@@ -726,3 +726,32 @@ def test_the_default_map_bound_follows_the_machines_memory():
     assert len(grid.table_keys) <= max(4096, 4 * grid.n_blocks) and per_block - 4 * entry_bytes > 512 * 8
     with pytest.raises(InputError, match="max_blocks"):
         EngineConfig(max_blocks=-2).validate()
+
+
+def test_stats_counts_the_voxels_without_holding_the_data_lock():
+    """Integration waits for the data lock: the statistics' whole-grid count must not hold it."""
+    import threading
+
+    engine = engine_for_tests()
+    K = pinhole(400.0)
+    T = look_at((0.03, 0.02, 1.0), (0.03, 0.02, 0.0))
+    engine.integrate("tof", render_plane_z(0.0, K, T), K, T)
+    count = engine.store.observed_voxels
+    lock_free_while_counting: list[bool] = []
+
+    def observed_voxels(channels: list[str]) -> int:
+        def try_lock() -> None:  # another thread, as the integrating one
+            got = engine._data_lock.acquire(timeout=2.0)
+            if got:
+                engine._data_lock.release()
+            lock_free_while_counting.append(got)
+
+        other = threading.Thread(target=try_lock)
+        other.start()
+        other.join()
+        return count(channels)
+
+    engine.store.observed_voxels = observed_voxels  # type: ignore[method-assign]
+    stats = engine.stats()
+    assert lock_free_while_counting == [True]
+    assert stats["observed_voxels"] == count(["weight0", "weight1"]) > 1000
