@@ -17,7 +17,7 @@ import numpy as np
 
 from senfunet_core.mesher import BlockMeshes
 
-__all__ = ["decimate_block_meshes"]
+__all__ = ["decimate_block_meshes", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -116,3 +116,11 @@ def decimate_block_meshes(meshes: BlockMeshes, cell_m: float) -> BlockMeshes:
         np.ascontiguousarray(meshes.faces, np.int64), np.asarray(meshes.vertex_offsets, np.int64),
         np.asarray(meshes.face_offsets, np.int64), float(cell_m))
     return BlockMeshes(meshes.keys, vertices, colors, faces, vertex_offsets, face_offsets)
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernel now, not in the first mesh update."""
+    from senfunet_core.mesher import Mesh
+
+    triangle = Mesh(np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.int32([[0, 1, 2]]), np.zeros((3, 3), np.float32))
+    decimate_block_meshes(BlockMeshes.from_meshes({(0, 0, 0): triangle}), 0.5)

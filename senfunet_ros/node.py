@@ -376,6 +376,9 @@ class FusionNode(Node):
         start = time.monotonic()
         engine.warm_up()  # compile the kernels now, not in the first frame's integration
         conv.marker_array_cdr({}, (), stamp_ns=0, frame_id="")
+        from senfunet_core import decimate
+
+        decimate.warm_up()
         self.get_logger().info(f"engine kernels ready in {time.monotonic() - start:.1f} s")
         return engine
 
@@ -580,10 +583,21 @@ class FusionNode(Node):
                 self.timings["publish"].add(publish_s)
             self.latency.published(contained)
             t_alpha = time.perf_counter()
-            # No frame integrated since the last update (the sensors paused or stopped): the net catches
-            # up on all it has not judged yet, so the mesh soon equals what an offline replay makes.
-            self.engine.refresh_alpha(None if not contained else (s.alpha_budget_s or None))
+            self.engine.refresh_alpha(self._alpha_budget_s(idle=not contained and not any(
+                self.ingest.queue_depths().values())))
             self.timings["alpha"].add(time.perf_counter() - t_alpha)
+
+    def _alpha_budget_s(self, *, idle: bool) -> float | None:
+        """The weighting net's turn after a mesh update (None: no limit). While frames come:
+        alpha_budget_s. Idle (no frame integrated since the last update and none queued: the sensors
+        paused or stopped): the whole mesh period, so that the net catches up on all it has not
+        judged yet and the mesh soon equals what an offline replay makes, yet the mesh timer keeps
+        its rate and a frame that arrives meanwhile waits for the mesh thread at most one period
+        (an unlimited catch-up held the mesh updates for as long as the whole backlog took)."""
+        s = self.settings
+        if not s.alpha_budget_s:
+            return None
+        return max(s.alpha_budget_s, 1.0 / s.mesh_rate_hz) if idle else s.alpha_budget_s
 
     def _display(self, meshes: Any) -> Any:
         """The display mesh of a batch of block meshes (parameter mesh_display_cell_m)."""
