@@ -122,5 +122,6 @@ def warm_up() -> None:
     """Compile (or load from numba's cache) the kernel now, not in the first mesh update."""
     from senfunet_core.mesher import Mesh
 
-    triangle = Mesh(np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.int32([[0, 1, 2]]), np.zeros((3, 3), np.float32))
+    triangle = Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 2]], np.int32),
+                    np.zeros((3, 3), np.float32))
     decimate_block_meshes(BlockMeshes.from_meshes({(0, 0, 0): triangle}), 0.5)

@@ -152,6 +152,11 @@ class LatencyStats:
             if len(self._arrivals) < 100_000:
                 self._arrivals.append(arrival_s)
 
+    def pending(self) -> bool:
+        """Frames integrated since the last take()."""
+        with self._lock:
+            return bool(self._arrivals)
+
     def take(self) -> list[float]:
         with self._lock:
             taken, self._arrivals = self._arrivals, []
@@ -583,21 +588,30 @@ class FusionNode(Node):
                 self.timings["publish"].add(publish_s)
             self.latency.published(contained)
             t_alpha = time.perf_counter()
-            self.engine.refresh_alpha(self._alpha_budget_s(idle=not contained and not any(
-                self.ingest.queue_depths().values())))
+            self._weighting_net_turn(idle=not contained and self._no_frame_waiting())
             self.timings["alpha"].add(time.perf_counter() - t_alpha)
 
-    def _alpha_budget_s(self, *, idle: bool) -> float | None:
-        """The weighting net's turn after a mesh update (None: no limit). While frames come:
-        alpha_budget_s. Idle (no frame integrated since the last update and none queued: the sensors
-        paused or stopped): the whole mesh period, so that the net catches up on all it has not
-        judged yet and the mesh soon equals what an offline replay makes, yet the mesh timer keeps
-        its rate and a frame that arrives meanwhile waits for the mesh thread at most one period
-        (an unlimited catch-up held the mesh updates for as long as the whole backlog took)."""
+    def _no_frame_waiting(self) -> bool:
+        """No frame queued in Ingest and none integrated since the last mesh update began."""
+        return not any(self.ingest.queue_depths().values()) and not self.latency.pending()
+
+    def _weighting_net_turn(self, *, idle: bool) -> None:
+        """The weighting net's turn after a mesh update. While frames come: alpha_budget_s (0: no
+        limit). Idle (no frame integrated since the last update and none queued: the sensors paused
+        or stopped): the net catches up on all it has not judged yet, so the mesh soon equals what an
+        offline replay makes, in slices of a mesh period, and stops after the slice in which a frame
+        comes (an unlimited catch-up would hold the mesh updates for as long as the whole backlog
+        takes; a frame queued but not yet integrated is not idleness)."""
         s = self.settings
-        if not s.alpha_budget_s:
-            return None
-        return max(s.alpha_budget_s, 1.0 / s.mesh_rate_hz) if idle else s.alpha_budget_s
+        if not s.alpha_budget_s or not idle:
+            self.engine.refresh_alpha(s.alpha_budget_s or None)
+            return
+        slice_s = max(s.alpha_budget_s, 1.0 / s.mesh_rate_hz)
+        while True:
+            self.engine.refresh_alpha(slice_s)
+            if not self.engine.counters.get("alpha_backlog_blocks", 0) or not self._no_frame_waiting() \
+                    or not self.context.ok():
+                return
 
     def _display(self, meshes: Any) -> Any:
         """The display mesh of a batch of block meshes (parameter mesh_display_cell_m)."""
