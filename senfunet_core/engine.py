@@ -28,9 +28,10 @@ Threading model (the one place it is described):
   alpha scheduler's order, the mesh archive and the set of meshed blocks.
 - The data lock guards the grid's contents and the per-block flags: integration holds it while its
   kernels run, an update while it takes the frames' drift, writes alpha or evicts. An update (or
-  its alpha threads, which write nothing) reads input windows without it: a block integrated
-  meanwhile is marked again and re-read by the next update, and pools that grow meanwhile stay
-  valid for whoever still holds the old ones. Evictions wait for the batches being evaluated.
+  its alpha threads, which write nothing) reads input windows without it (and `stats` counts
+  voxels without it): a block integrated meanwhile is marked again and re-read by the next update,
+  and pools that grow meanwhile stay valid for whoever still holds the old ones. Evictions wait
+  for the batches being evaluated.
 - Lock order: update lock, then data lock. Integration never takes the update lock while holding
   the data lock; past the map's hard bound it releases the data lock, takes the eviction condition,
   and either evicts itself (the update lock free: tried without blocking) or waits on the condition,
@@ -391,8 +392,9 @@ class SenFuNet:
     @torch.inference_mode()
     def refresh_alpha(self, budget_s: float | None = None, *, until_frame: bool = False) -> None:
         """Re-evaluate alpha where the inputs drifted, at most about budget_s seconds (None: all of
-        it), and with `until_frame` only until a frame is integrated (an idle catch-up that yields to
-        the sensors when they resume); the next update re-meshes the blocks whose alpha changed."""
+        it), and with `until_frame` only until a frame is integrated, on `alpha_threads` threads (an
+        idle catch-up that yields to the sensors when they resume); the next update re-meshes the
+        blocks whose alpha changed."""
         with self._updating():
             start = time.perf_counter()
             self._refresh_alpha(budget_s, until_frame=until_frame)
@@ -574,23 +576,26 @@ class SenFuNet:
         """Map size and memory, and how much of the meshed surface has its alpha: evaluated at least
         once (else its mesh averages the sensors, see fusion), and up to date (not stale)."""
         n = len(self.config.sensors)
-        with self._updating(), self._data_lock:
+        with self._updating():
+            with self._data_lock:  # only the flags: integration waits for this lock
+                nbytes = self.grid.nbytes()
+                meshed = self.grid.lookup(torch.tensor(sorted(self._meshed), dtype=torch.int64).reshape(-1, 3)).numpy()
+                meshed = meshed[meshed >= 0]
+                evaluated = self.store.evaluated[meshed]
+                current = evaluated & (self.store.stale[meshed] == 0)
+                spill = self.grid.spill
+                spilled = (len(spill), spill.nbytes, spill.restored) if spill is not None else (0, 0, 0)
+            # counted without the data lock, as an update reads the grid: a frame integrated meanwhile
+            # may or may not be in the count
             observed = self.store.observed_voxels([f"weight{i}" for i in range(n)])
-            nbytes = self.grid.nbytes()
-            meshed = self.grid.lookup(torch.tensor(sorted(self._meshed), dtype=torch.int64).reshape(-1, 3)).numpy()
-            meshed = meshed[meshed >= 0]
-            evaluated = self.store.evaluated[meshed]
-            spill = self.grid.spill
         return {"blocks": self.grid.n_blocks, "observed_voxels": observed, "grid_bytes": nbytes,
                 "bytes_per_observed_voxel": nbytes / max(observed, 1),
                 "frames_integrated": dict(self.frames_integrated),
                 "max_blocks": self.max_blocks, "evicted_blocks": self.counters.get("evicted_blocks", 0),
                 "archived_blocks": len(self.archive), "archived_faces": self.archive.n_faces,
-                "spilled_blocks": len(spill) if spill is not None else 0,
-                "spill_bytes": spill.nbytes if spill is not None else 0,
-                "restored_blocks": spill.restored if spill is not None else 0,
+                "spilled_blocks": spilled[0], "spill_bytes": spilled[1], "restored_blocks": spilled[2],
                 "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
-                "meshed_blocks_alpha_current": int((evaluated & (self.store.stale[meshed] == 0)).sum())}
+                "meshed_blocks_alpha_current": int(current.sum())}
 
     # -- internals -------------------------------------------------------------------------------
     def _sensor_index(self, sensor: str) -> int:
@@ -641,15 +646,16 @@ class SenFuNet:
         (checked here, not when scheduling, so that a budget also bounds the checking). With a
         budget (seconds), stop after the batch that exhausts it, and with `until_frame` after the
         batch during which a frame was integrated: the rest stays stale for later. Without a
-        budget, `alpha_threads` batches are evaluated at once (each single-threaded, so alpha does
-        not depend on how many). Between batches, where no evaluated batch waits to be written, it
-        evicts when integration outgrew the bound."""
+        budget or with `until_frame` (no frame is coming), `alpha_threads` batches are evaluated at
+        once (each single-threaded, so alpha does not depend on how many). Between batches, where
+        no evaluated batch waits to be written, it evicts when integration outgrew the bound."""
         cfg = self.config
         self.alpha.schedule()
         order = self.alpha.order()
         start = time.perf_counter()
         done = voxels = 0
-        ahead = cfg.alpha_threads if budget_s is None else 1  # batches being evaluated at once
+        # batches evaluated at once: one while frames come (integration needs the other core)
+        ahead = cfg.alpha_threads if budget_s is None or until_frame else 1
         # Results are written whenever the data lock is free, not waited for batch by batch: time
         # spent waiting for integration's kernels would come out of the net's budget.
         results: list[AlphaBatch] = []

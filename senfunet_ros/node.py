@@ -152,6 +152,11 @@ class LatencyStats:
             if len(self._arrivals) < 100_000:
                 self._arrivals.append(arrival_s)
 
+    def pending(self) -> bool:
+        """Frames integrated since the last take()."""
+        with self._lock:
+            return bool(self._arrivals)
+
     def take(self) -> list[float]:
         with self._lock:
             taken, self._arrivals = self._arrivals, []
@@ -376,6 +381,9 @@ class FusionNode(Node):
         start = time.monotonic()
         engine.warm_up()  # compile the kernels now, not in the first frame's integration
         conv.marker_array_cdr({}, (), stamp_ns=0, frame_id="")
+        from senfunet_core import decimate
+
+        decimate.warm_up()
         self.get_logger().info(f"engine kernels ready in {time.monotonic() - start:.1f} s")
         return engine
 
@@ -580,14 +588,30 @@ class FusionNode(Node):
                 self.timings["publish"].add(publish_s)
             self.latency.published(contained)
             t_alpha = time.perf_counter()
-            # No frame integrated since the last update (the sensors paused or stopped): the net catches
-            # up on all it has not judged yet, so the mesh soon equals what an offline replay makes.
-            # It stops at the next frame, which the next update's budget then serves.
-            if contained:
-                self.engine.refresh_alpha(s.alpha_budget_s or None)
-            else:
-                self.engine.refresh_alpha(None, until_frame=True)
+            self._weighting_net_turn(idle=not contained and self._no_frame_waiting())
             self.timings["alpha"].add(time.perf_counter() - t_alpha)
+
+    def _no_frame_waiting(self) -> bool:
+        """No frame queued in Ingest and none integrated since the last mesh update began."""
+        return not any(self.ingest.queue_depths().values()) and not self.latency.pending()
+
+    def _weighting_net_turn(self, *, idle: bool) -> None:
+        """The weighting net's turn after a mesh update. While frames come: alpha_budget_s (0: no
+        limit). Idle (no frame integrated since the last update and none queued: the sensors paused
+        or stopped): the net catches up on all it has not judged yet, so the mesh soon equals what an
+        offline replay makes, in slices of a mesh period on every core, and stops as soon as a frame
+        is integrated (an unlimited catch-up would hold the mesh updates for as long as the whole
+        backlog takes; a frame queued but not yet integrated is not idleness)."""
+        s = self.settings
+        if not s.alpha_budget_s or not idle:
+            self.engine.refresh_alpha(s.alpha_budget_s or None)
+            return
+        slice_s = max(s.alpha_budget_s, 1.0 / s.mesh_rate_hz)
+        while True:  # on every core, and stopping as soon as a frame is integrated
+            self.engine.refresh_alpha(slice_s, until_frame=True)
+            if not self.engine.counters.get("alpha_backlog_blocks", 0) or not self._no_frame_waiting() \
+                    or not self.context.ok():
+                return
 
     def _display(self, meshes: Any) -> Any:
         """The display mesh of a batch of block meshes (parameter mesh_display_cell_m)."""

@@ -841,3 +841,32 @@ def test_a_frame_reaching_blocks_while_they_are_evicted_is_in_their_final_mesh()
     for key in near:
         assert archived[key].n_faces == expected[key].n_faces, key
         np.testing.assert_allclose(archived[key].vertices, expected[key].vertices, atol=1e-5)
+
+
+def test_stats_counts_the_voxels_without_holding_the_data_lock():
+    """Integration waits for the data lock: the statistics' whole-grid count must not hold it."""
+    import threading
+
+    engine = engine_for_tests()
+    K = pinhole(400.0)
+    T = look_at((0.03, 0.02, 1.0), (0.03, 0.02, 0.0))
+    engine.integrate("tof", render_plane_z(0.0, K, T), K, T)
+    count = engine.store.observed_voxels
+    lock_free_while_counting: list[bool] = []
+
+    def observed_voxels(channels: list[str]) -> int:
+        def try_lock() -> None:  # another thread, as the integrating one
+            got = engine._data_lock.acquire(timeout=2.0)
+            if got:
+                engine._data_lock.release()
+            lock_free_while_counting.append(got)
+
+        other = threading.Thread(target=try_lock)
+        other.start()
+        other.join()
+        return count(channels)
+
+    engine.store.observed_voxels = observed_voxels  # type: ignore[method-assign]
+    stats = engine.stats()
+    assert lock_free_while_counting == [True]
+    assert stats["observed_voxels"] == count(["weight0", "weight1"]) > 1000

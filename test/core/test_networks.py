@@ -45,3 +45,26 @@ def test_the_device_is_decided_in_networks_only():
     askers = sorted(str(path.relative_to(repo)) for package in ("senfunet_core", "senfunet_ros")
                     for path in (repo / package).rglob("*.py") if "cuda.is_available" in path.read_text())
     assert askers == ["senfunet_core/networks.py"]
+
+
+@pytest.mark.parametrize("uses_rgb", [False, True])
+def test_feature_net_inference_equals_its_training_forward(uses_rgb: bool) -> None:
+    """Without autograd the feature net computes tanh through sigmoid (faster on the CPU): the same
+    features within float32 rounding as the autograd forward, which uses torch.tanh."""
+    from senfunet_core import networks
+
+    feature_nets, weighting_net = networks.make_networks(
+        (False, True), tsdf_input=networks.weights_tsdf_input(networks.DEFAULT_WEIGHTS))
+    networks.load_weights(networks.DEFAULT_WEIGHTS, feature_nets, weighting_net)  # the shipped weights
+    net = feature_nets[int(uses_rgb)]
+    g = torch.Generator().manual_seed(0)
+    depth = torch.rand(1, 1, 48, 40, generator=g) * 3
+    depth[..., :5, :] = 0.0  # invalid pixels, as the engine passes them
+    rgb = torch.rand(1, 3, 48, 40, generator=g) if uses_rgb else None
+    with torch.enable_grad():
+        reference = net(depth, rgb).detach()
+    with torch.inference_mode():
+        fast = net(depth, rgb)
+    assert fast.shape == reference.shape == (1, 5, 48, 40)
+    assert not torch.equal(fast, torch.zeros_like(fast))
+    torch.testing.assert_close(fast, reference, rtol=0, atol=1e-5)

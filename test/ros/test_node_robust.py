@@ -311,3 +311,62 @@ def test_bad_extrinsic_refuses_to_start(ros, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="T_body_camera"):
         Running("extrinsic", {**topic_params("extrinsic"), **SMALL,
                               "tof.T_body_camera": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]}, tmp_path)
+
+
+def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_path: Path) -> None:
+    """While frames come, the net gets alpha_budget_s after each mesh update; when none came since
+    the last update and none is queued, it catches up in slices of the mesh period until nothing is
+    left, and stops after the slice in which a frame comes."""
+    mesh_rate_hz = 500.0  # slices of 2 ms: about one batch of blocks each
+    run = Running("catchup", {**topic_params("catchup"), **SMALL, "voxel_size_m": 0.03, "band_m": 0.3,
+                              "mesh_rate_hz": mesh_rate_hz, "alpha_budget_s": 0.001}, tmp_path)
+    try:
+        # the test calls publish_mesh itself: the timer's next period is far away (the slices still
+        # follow the parameter); one call at the old period may still come, long before the calls below
+        run.node._mesh_timer.timer_period_ns = 10**12
+        messages = scene_messages()
+        last_tof = max(i for i, (sensor, stream, _) in enumerate(messages) if (sensor, stream) == ("tof", "depth"))
+        held_back = [m for i, m in enumerate(messages) if i == last_tof or i == last_tof - 1]
+        assert [stream for _, stream, _ in held_back] == ["camera_info", "depth"]
+        fuse_in_process(run, [m for m in messages if m not in held_back])
+
+        def settled() -> bool:  # every frame received integrated (or dropped): none in flight
+            return all(c["integrated"] + sum(c["dropped"].values()) >= c["received"]
+                       for c in run.node.ingest.counters().values())
+
+        wait_for(settled, 60, "every frame to be integrated")
+        engine = run.node.engine
+        budgets: list[float | None] = []
+        refresh = engine.refresh_alpha
+        arrive: list[Any] = []  # messages to hand over during the next refresh
+
+        def recording_refresh(budget_s: float | None = None) -> None:
+            budgets.append(budget_s)
+            refresh(budget_s)
+            for sensor, stream, msg in arrive:
+                run.node.pipeline.dispatch(sensor, stream, msg)
+            arrive.clear()
+
+        engine.refresh_alpha = recording_refresh
+        run.node.publish_mesh()  # frames were integrated since the last update: the running budget
+        assert budgets == [0.001]
+        backlog = engine.counters["alpha_backlog_blocks"]
+        assert backlog > 0
+        budgets.clear()
+        arrive.extend(held_back)
+        run.node.publish_mesh()  # idle, but a frame comes during the first slice
+        assert budgets == [1.0 / mesh_rate_hz]
+        assert 0 < engine.counters["alpha_backlog_blocks"] < backlog  # stopped with work left
+        wait_for(settled, 60, "the last frame to be integrated")
+        budgets.clear()
+        run.node.publish_mesh()  # the frame came since the last update: the running budget again
+        assert budgets == [0.001]
+        budgets.clear()
+        run.node.publish_mesh()  # idle: slices until the net has judged everything
+        assert len(budgets) > 1 and set(budgets) == {1.0 / mesh_rate_hz}
+        assert engine.counters["alpha_backlog_blocks"] == 0
+        run.node.publish_mesh()  # the update that shows the judged blocks
+        stats = engine.stats()
+        assert stats["meshed_blocks_alpha_current"] == stats["meshed_blocks"] > 0
+    finally:
+        run.close()
