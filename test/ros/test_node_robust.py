@@ -316,7 +316,7 @@ def test_bad_extrinsic_refuses_to_start(ros, tmp_path: Path) -> None:
 def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_path: Path) -> None:
     """While frames come, the net gets alpha_budget_s after each mesh update; when none came since
     the last update and none is queued, it catches up in slices of the mesh period until nothing is
-    left, and stops after the slice in which a frame comes."""
+    left, and stops once a frame comes."""
     mesh_rate_hz = 500.0  # slices of 2 ms: about one batch of blocks each
     run = Running("catchup", {**topic_params("catchup"), **SMALL, "voxel_size_m": 0.03, "band_m": 0.3,
                               "mesh_rate_hz": mesh_rate_hz, "alpha_budget_s": 0.001}, tmp_path)
@@ -340,9 +340,9 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
         refresh = engine.refresh_alpha
         arrive: list[Any] = []  # messages to hand over during the next refresh
 
-        def recording_refresh(budget_s: float | None = None) -> None:
+        def recording_refresh(budget_s: float | None = None, *, until_frame: bool = False) -> None:
             budgets.append(budget_s)
-            refresh(budget_s)
+            refresh(budget_s, until_frame=until_frame)
             for sensor, stream, msg in arrive:
                 run.node.pipeline.dispatch(sensor, stream, msg)
             arrive.clear()
