@@ -105,13 +105,17 @@ class EngineConfig:
     #                           (one more running average per sample and 6 bytes per voxel)
     alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
     #                               (max-norm over [F, tanh(W)], summed over frames); 0 = exact
+    min_new_block_samples: int = 0  # allocation policy: a frame allocates a block only where at least this many of
+    #   its ray samples land; samples in blocks not allocated are dropped and counted (counters
+    #   "sparse_dropped_samples", "sparse_dropped_blocks"); blocks already in the map take every sample. 0 = allocate
+    #   every touched block
     weighting_tsdf_input: bool = False  # the weighting net also reads the sensors' TSDFs (a departure from the
     #   paper, networks.WeightingNet); set from the weights file when it records it
 
     @property
     def integrator(self) -> IntegratorConfig:
         return IntegratorConfig(self.voxel_size_m, self.band_m, self.n_samples, self.n_samples_behind, self.w_max,
-                                self.border_px)
+                                self.border_px, self.min_new_block_samples)
 
     def validate(self) -> None:
         n = len(self.sensors)
@@ -135,6 +139,9 @@ class EngineConfig:
         if self.max_blocks < -1:
             raise InputError(f"max_blocks must be >= 0 (0 = no bound) or -1 (from the machine's memory), "
                              f"got {self.max_blocks}")
+        if self.min_new_block_samples < 0:
+            raise InputError(f"min_new_block_samples must be >= 0 (0 = allocate every touched block), "
+                             f"got {self.min_new_block_samples}")
         if not self.alpha_tolerance >= 0 or self.torch_threads < 0:
             raise InputError("alpha_tolerance must be >= 0 and torch_threads >= 0")
 
@@ -250,7 +257,8 @@ class SenFuNet:
                                     tsdf_input=config.weighting_tsdf_input, band_m=config.band_m, device=self.device)
         # integration past the hard bound waits on this until an eviction (or the running update) ends
         self._eviction_done = threading.Condition()  # reentrant: an evicting waiter notifies
-        self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0}
+        self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0, "sparse_dropped_samples": 0,
+                         "sparse_dropped_blocks": 0}
         self.timings_s: dict[str, float] = {}  # stage -> seconds of its last run
         self.total_s: dict[str, float] = {}  # stage -> seconds summed over all runs
         self.frames_integrated = {name: 0 for name in config.sensors}
@@ -299,6 +307,8 @@ class SenFuNet:
             self.store.alpha_pending[update.touched_slots] = True
             self.store.mesh_pending[update.touched_slots] = True  # the TSDF changed here, whatever alpha does
             self.frames_integrated[cfg.sensors[s]] += 1
+            self.counters["sparse_dropped_samples"] += update.dropped_samples
+            self.counters["sparse_dropped_blocks"] += update.dropped_blocks
             self._camera_m = np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy()
         self._timed(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
         if self._eviction_due():
@@ -535,6 +545,9 @@ class SenFuNet:
                 "bytes_per_observed_voxel": nbytes / max(observed, 1),
                 "frames_integrated": dict(self.frames_integrated),
                 "max_blocks": self.max_blocks, "evicted_blocks": self.counters.get("evicted_blocks", 0),
+                "sparse_dropped_samples": self.counters["sparse_dropped_samples"],
+                "sparse_dropped_blocks": self.counters["sparse_dropped_blocks"],
+                "occupancy": observed / max(self.grid.n_blocks * 512, 1),
                 "archived_blocks": len(self.archive), "archived_faces": self.archive.n_faces,
                 "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
                 "meshed_blocks_alpha_current": int((evaluated & (self.store.stale[meshed] == 0)).sum())}

@@ -115,6 +115,55 @@ def hash_find_or_add(table_keys: np.ndarray, table_slots: np.ndarray, key: int, 
     return slot
 
 
+@numba.njit(inline="always")
+def hash_remove(table_keys: np.ndarray, table_slots: np.ndarray, key: int) -> None:
+    """Remove `key` (if present) by backward-shift deletion: later entries of its probe run that
+    may sit in the freed entry move back, so linear probing still finds every key without tombstones."""
+    mask = table_keys.shape[0] - 1
+    i = _probe(table_keys, key)
+    if table_keys[i] != key:
+        return
+    j = i
+    while True:
+        j = (j + 1) & mask
+        if table_keys[j] == EMPTY_KEY:
+            break
+        home = _bucket(table_keys[j], mask)
+        # the entry at j stays where it is when its home lies cyclically in (i, j]
+        stays = (i < home <= j) if i <= j else (home > i or home <= j)
+        if not stays:
+            table_keys[i] = table_keys[j]
+            table_slots[i] = table_slots[j]
+            i = j
+    table_keys[i] = EMPTY_KEY
+    table_slots[i] = -1
+
+
+@numba.njit(cache=True, nogil=True)
+def drop_new_blocks(table_keys: np.ndarray, table_slots: np.ndarray, slot_keys: np.ndarray, n_before: int,
+                    keep: np.ndarray) -> np.ndarray:
+    """Undo part of an allocation that `hash_find_or_add` made but nobody committed yet: of the
+    blocks in slots n_before..n_before+len(keep)-1, those with keep False leave the hash table and
+    the kept ones move down to stay contiguous (order kept). Returns each of those slots' new slot,
+    -1 where dropped; the caller commits n_before + keep.sum() blocks."""
+    new_slot = np.full(keep.shape[0], -1, np.int64)
+    next_slot = n_before
+    for n in range(keep.shape[0]):
+        if keep[n]:
+            new_slot[n] = next_slot
+            next_slot += 1
+        else:
+            hash_remove(table_keys, table_slots, slot_keys[n_before + n])
+    for n in range(keep.shape[0]):  # ascending: a slot is overwritten only after its own key moved or left
+        target = new_slot[n]
+        if target >= 0 and target != n_before + n:
+            key = slot_keys[n_before + n]
+            slot_keys[target] = key
+            table_slots[_probe(table_keys, key)] = target
+    slot_keys[next_slot:n_before + keep.shape[0]] = EMPTY_KEY
+    return new_slot
+
+
 @numba.njit(cache=True, nogil=True)
 def _find_many(table_keys: np.ndarray, table_slots: np.ndarray, keys: np.ndarray, out: np.ndarray) -> None:
     for n in range(keys.shape[0]):

@@ -138,6 +138,29 @@ def test_plane_tsdf_matches_analytic_distance():
     assert tsdf.min() == pytest.approx(-0.03, abs=1e-6)
 
 
+def test_flying_pixels_do_not_allocate_blocks_and_the_engine_counts_their_samples():
+    K, T = pinhole(100.0), look_at((0, 0, 1.0), (0, 0, 0))
+    depth = render_plane_z(0.004, K, T)  # a floor about 1 m below the camera: dense blocks
+    rng = np.random.default_rng(0)
+    v, u = rng.integers(12, 116, (2, 60))
+    depth[v, u] = rng.uniform(2.0, 4.5, 60).astype(np.float32)  # isolated far pixels (behind the floor)
+    every = engine_for_tests(min_new_block_samples=0, tsdf_fusion=False)
+    policy = engine_for_tests(min_new_block_samples=32, tsdf_fusion=False)
+    for engine in (every, policy):
+        engine.integrate("tof", depth, K, T)
+    dropped = policy.stats()
+    assert dropped["sparse_dropped_samples"] == policy.counters["sparse_dropped_samples"] > 0
+    assert dropped["sparse_dropped_blocks"] == policy.counters["sparse_dropped_blocks"] > 0
+    assert every.counters["sparse_dropped_samples"] == 0
+    assert dropped["blocks"] + dropped["sparse_dropped_blocks"] == every.stats()["blocks"]
+    assert dropped["occupancy"] > every.stats()["occupancy"]
+    # the floor's blocks are all there: the same mesh
+    floor_every, floor_policy = every.extract_mesh("tof"), policy.extract_mesh("tof")
+    assert floor_policy.n_faces == floor_every.n_faces > 1000
+    with pytest.raises(InputError, match="min_new_block_samples"):
+        engine_for_tests(min_new_block_samples=-1)
+
+
 def test_sphere_tsdf_matches_analytic_distance():
     # The TSDF is projective (distance along the ray): it equals the true distance where rays meet
     # the surface head-on, so compare where the surface faces the camera within 30 degrees.
