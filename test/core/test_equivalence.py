@@ -123,7 +123,8 @@ def test_surface_mode_gives_the_exact_fused_mesh(exact, mode):
     assert set(shown) == set(ref_shown)
     for key, mesh in ref_shown.items():
         assert mesh.n_faces == shown[key].n_faces
-    assert engine.counters["alpha_voxels"] < 0.5 * ref.counters["alpha_voxels"]
+    # far less work (the allocation policy keeps most of the blocks without surface out of both maps)
+    assert engine.counters["alpha_voxels"] < 0.6 * ref.counters["alpha_voxels"]
 
 
 def test_tolerance_keeps_the_mesh_close(exact):
