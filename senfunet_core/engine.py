@@ -238,8 +238,10 @@ class SenFuNet:
             channels.update({"tsdf_base": (), "weight_base": ()})
         for i in range(len(config.sensors)):
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
-        # features and weight counters in half precision (counters stay exact up to 2048)
-        dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight", "drift"))}
+        # Every channel in half precision: weight counters stay exact up to 2048 (w_max); TSDF values
+        # within the band keep a relative precision of 2^-11, far below the sensors' noise; alpha is a
+        # weighting in [0, 1] (NaN: not evaluated). Kernels read them through grid.load_f32.
+        dtypes = {name: torch.float16 for name in channels}
         # alpha NaN until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)
         self.store = BlockStore(BlockGrid(channels, dtypes=dtypes, fill={"alpha": float("nan")}))
         self.grid = self.store.grid
@@ -754,7 +756,8 @@ class SenFuNet:
         return [f"tsdf{s}", f"weight{s}"]
 
     def _whole_blocks(self, slots: torch.Tensor, names: list[str]) -> dict[str, torch.Tensor]:
-        return {name: self.grid.pools[name][slots] for name in names}
+        """The channels of whole blocks, as float32 (the pools hold float16)."""
+        return {name: self.grid.pools[name][slots].float() for name in names}
 
     def _values(self, blocks: dict[str, torch.Tensor], which: str, filtered: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """TSDF and observed mask of `which` from per-voxel channel tensors."""

@@ -5,7 +5,8 @@ per-voxel quantity is a "channel": a pool tensor of shape (capacity, 512, *chann
 row `slot` holds one block's voxels in x-major order (local index = 64*x + 8*y + z). Pools live
 on the CPU: the compiled kernels (integrator, alpha windows, mesher) read and write them through
 zero-copy numpy views; float16 channels are handed to the kernels as their int16 bit patterns
-(`f16_to_f32` / `f32_to_f16` convert one value, in hardware where the CPU can).
+(`f16_to_f32` / `f32_to_f16` convert one value, in hardware where the CPU can; `load_f32` /
+`store_f32` read and write a channel of either storage).
 
 Convention: voxel (i, j, k) has its centre at (i, j, k) * voxel_size_m; block (a, b, c) holds the
 voxels 8a..8a+7, 8b..8b+7, 8c..8c+7.
@@ -22,7 +23,7 @@ import torch
 from llvmlite import binding as llvm
 from llvmlite import ir
 from numba.core import cgutils, types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 
 from .errors import InputError
 
@@ -301,6 +302,43 @@ if _hardware_half():
     f32_to_f16, f16_to_f32 = _f32_to_f16_hw, _f16_to_f32_hw
 else:  # pragma: no cover - CPUs without half conversions
     f32_to_f16, f16_to_f32 = _f32_to_f16_soft, _f16_to_f32_soft
+
+
+def load_f32(array: np.ndarray, index: int) -> np.float32:
+    """array[index] as float32, whether the array holds float32 values or float16 bit patterns
+    (int16, `kernel_view`): kernels read channels through this and `store_f32` so that they work on
+    either storage (compiled per dtype; this Python body is only the reference)."""
+    value = array[index]
+    if array.dtype == np.int16:
+        return np.float32(np.array(value, np.int16).view(np.float16))
+    return np.float32(value)
+
+
+def store_f32(array: np.ndarray, index: int, value: float) -> None:
+    """array[index] = value, rounded to float16 (nearest even) where the array holds float16 bits."""
+    if array.dtype == np.int16:
+        array[index] = np.array(value, np.float16).view(np.int16)
+    else:
+        array[index] = value
+
+
+@overload(load_f32, inline="always")
+def _load_f32(array, index):  # noqa: ANN001, ANN202 (numba overload)
+    if isinstance(array, types.Array) and array.dtype == types.int16:
+        return lambda array, index: f16_to_f32(array[index])
+    return lambda array, index: np.float32(array[index])
+
+
+@overload(store_f32, inline="always")
+def _store_f32(array, index, value):  # noqa: ANN001, ANN202 (numba overload)
+    if isinstance(array, types.Array) and array.dtype == types.int16:
+        def store_half(array, index, value):  # noqa: ANN001, ANN202
+            array[index] = f32_to_f16(np.float32(value))
+        return store_half
+
+    def store(array, index, value):  # noqa: ANN001, ANN202
+        array[index] = value
+    return store
 
 
 def kernel_view(pool: torch.Tensor) -> np.ndarray:

@@ -22,7 +22,7 @@ import torch
 
 from .errors import InputError
 from .grid import (BlockGrid, coords_key, drop_new_blocks, f16_to_f32, f32_to_f16, hash_find_or_add, kernel_view,
-                   prefetch, voxel_keys)
+                   load_f32, prefetch, store_f32, voxel_keys)
 
 
 @dataclass(frozen=True)
@@ -355,9 +355,9 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
                 new = f16_to_f32(bits)
                 change = max(change, abs(new - old))
             mean_tsdf = sum_tsdf[local] * inv_count
-            old_tsdf = tsdf[voxel]
-            new_tsdf = keep * old_tsdf + add * mean_tsdf
-            tsdf[voxel] = new_tsdf
+            old_tsdf = load_f32(tsdf, voxel)
+            store_f32(tsdf, voxel, keep * old_tsdf + add * mean_tsdf)
+            new_tsdf = load_f32(tsdf, voxel)  # as stored: drift and the sign test see what readers will
             new_weight = min(old_weight + np.float32(1.0), w_max)
             weight[voxel] = _F16_OF_COUNT[int(new_weight)]
             change = max(change, TANH_OF_COUNT[int(new_weight)] - TANH_OF_COUNT[int(old_weight)])
@@ -368,7 +368,8 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             if tsdf_base.shape[0]:
                 base_weight = f16_to_f32(weight_base[voxel])
                 base_add = np.float32(1.0) / (base_weight + np.float32(1.0))
-                tsdf_base[voxel] = (np.float32(1.0) - base_add) * tsdf_base[voxel] + base_add * mean_tsdf
+                store_f32(tsdf_base, voxel,
+                          (np.float32(1.0) - base_add) * load_f32(tsdf_base, voxel) + base_add * mean_tsdf)
                 weight_base[voxel] = _F16_OF_COUNT[int(min(base_weight + np.float32(1.0), w_max))]
     return updated
 
@@ -387,7 +388,8 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     (skipped when tsdf_base is empty).
     drift[voxel] accumulates the largest change of a weighting-net input (features, tanh(weight))
     or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
-    Weights, features and drift are float16 bit patterns (int16); pixel_features: (H*W) x C float32.
+    Weights, features and drift are float16 bit patterns (int16), TSDFs float16 bits or float32
+    (`grid.load_f32`); pixel_features: (H*W) x C float32.
     Returns the number of voxels updated.
 
     Blocks are independent: a frame of at least SPLIT_MIN_SAMPLES samples has the second half of

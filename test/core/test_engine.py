@@ -133,9 +133,10 @@ def test_plane_tsdf_matches_analytic_distance():
     err = np.abs(tsdf[near] - expected[near])
     assert err.max() < VOXEL
     assert err.mean() < 0.3 * VOXEL
-    # samples are written from +band/2 in front to 3 voxels behind the surface
-    assert tsdf.max() == pytest.approx(0.05, abs=1e-6)
-    assert tsdf.min() == pytest.approx(-0.03, abs=1e-6)
+    # samples are written from +band/2 in front to 3 voxels behind the surface (stored as float16:
+    # the nearest float16 value)
+    assert tsdf.max() == np.float16(0.05)
+    assert tsdf.min() == np.float16(-0.03)
 
 
 def test_flying_pixels_do_not_allocate_blocks_and_the_engine_counts_their_samples():
@@ -277,7 +278,9 @@ def test_incremental_alpha_equals_whole_grid_alpha(tsdf_input):
         whole = alpha[o[0]:o[0] + BLOCK, o[1]:o[1] + BLOCK, o[2]:o[2] + BLOCK]
         worst = max(worst, float((whole - incremental[slot]).abs().max()))
         spread.append(whole)
-    assert worst < 1e-5
+    # the grid stores alpha in float16 (alpha_storage): within one unit in the last place (2^-11 below 1)
+    # of the whole-grid value, plus the float32 rounding of another summation order
+    assert worst < 2**-11 + 1e-5
     assert float(torch.stack(spread).std()) > 0.01  # alpha is not trivially constant
 
 
@@ -300,10 +303,11 @@ def test_fusion_equation_on_c12_c1_c2():
     keys_by_position = {tuple(np.round(c / VOXEL).astype(int)): i for i, c in enumerate(centres)}
     got_centres, got = engine.voxel_values("fused", filtered=False)
     idx = np.array([keys_by_position[tuple(np.round(c / VOXEL).astype(int))] for c in got_centres])
-    v1, w1, v2, w2 = (t.numpy()[idx] for t in (v1, w1, v2, w2))
+    v1, w1, v2, w2 = (t.float().numpy()[idx] for t in (v1, w1, v2, w2))
     c12, c1, c2 = (w1 > 0) & (w2 > 0), (w1 > 0) & (w2 == 0), (w1 == 0) & (w2 > 0)
     assert c12.sum() > 100 and c1.sum() > 100 and c2.sum() > 100
-    np.testing.assert_allclose(got[c12], 0.3 * v1[c12] + 0.7 * v2[c12], atol=1e-6)
+    a = np.float32(np.float16(0.3))  # alpha as the grid stores it
+    np.testing.assert_allclose(got[c12], a * v1[c12] + (1 - a) * v2[c12], atol=1e-6)
     np.testing.assert_allclose(got[c1], v1[c1], atol=1e-7)
     np.testing.assert_allclose(got[c2], v2[c2], atol=1e-7)
     # the outlier filter: alpha 0.3 < 0.5 drops exactly the sensor-1-only voxels
@@ -313,6 +317,18 @@ def test_fusion_equation_on_c12_c1_c2():
     engine.networks_changed()  # the net changed: re-evaluate everywhere
     kept, _ = engine.voxel_values("fused", filtered=True)
     assert len(kept) == int(c12.sum() + c1.sum())
+
+
+def test_stored_alpha_stays_on_its_side_of_one_half():
+    from senfunet_core.alpha_scheduler import alpha_storage
+
+    alpha = np.array([0.5 - 1e-5, 0.5, 0.5 + 1e-5, 0.25, 0.9, np.nan, 0.0, 1.0], np.float32)
+    stored = alpha_storage(alpha).astype(np.float32)
+    assert stored.dtype == np.float32 and alpha_storage(alpha).dtype == np.float16
+    assert stored[0] < 0.5 and stored[1] == 0.5 and stored[2] > 0.5  # the filter decides as on float32
+    np.testing.assert_array_equal(stored[3:5], alpha[3:5].astype(np.float16))  # elsewhere: nearest float16
+    assert np.isnan(stored[5]) and stored[6] == 0.0 and stored[7] == 1.0
+    assert np.all(np.abs(stored[:3] - alpha[:3]) <= 2**-11)
 
 
 def test_outlier_filter_boundaries():
@@ -359,6 +375,37 @@ def test_save_and_load_give_identical_meshes(sphere_engine, tmp_path):
     assert join_block_meshes(list(update.changed.values())).n_faces == sphere_engine.extract_mesh("fused").n_faces
     with pytest.raises(InputError, match="cannot read"):
         SenFuNet.load(tmp_path / "missing.pt")
+
+
+def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_engine, tmp_path):
+    grid = sphere_engine.grid
+    n = grid.n_blocks
+    assert {pool.dtype for pool in grid.pools.values()} == {torch.float16}
+    # per voxel, 18 half-precision values: 2 x (TSDF, weight, 5 features), alpha, drift, the baseline's
+    # TSDF and weight; per block, its coordinates, key and up to 4 hash-table entries
+    assert grid.bytes_per_block() == 512 * 2 * 18 + 3 * 8 + 8 + 4 * 16
+    path = tmp_path / "state.pt"
+    sphere_engine.save(path)
+    loaded = SenFuNet.load(path)
+    assert loaded.grid.n_blocks == n
+    for name, pool in grid.pools.items():  # bit for bit (alpha's NaN where never evaluated included)
+        assert torch.equal(pool[:n].view(torch.int16), loaded.grid.pools[name][:n].view(torch.int16)), name
+    # a map file written when TSDFs and alpha were float32: loads, each value rounded to float16
+    state = torch.load(path, weights_only=True)
+    rng = np.random.default_rng(0)
+    wide = {}
+    for name in ("tsdf0", "tsdf1", "alpha"):
+        values = state["grid"][f"pool.{name}"].float()
+        values = values + torch.from_numpy(rng.uniform(-1e-4, 1e-4, values.shape).astype(np.float32)) * (values != 0)
+        state["grid"][f"pool.{name}"] = wide[name] = values  # not representable in float16
+    old = tmp_path / "float32_state.pt"
+    torch.save(state, old)
+    from_old = SenFuNet.load(old)
+    for name, values in wide.items():
+        got = from_old.grid.pools[name][:n]
+        assert got.dtype == torch.float16
+        assert torch.equal(got.view(torch.int16), values.half().view(torch.int16)), name
+    assert from_old.extract_mesh("tof").n_faces > 1000
 
 
 def grid_snapshot(engine: SenFuNet) -> list[torch.Tensor]:
@@ -427,7 +474,8 @@ def test_weight_cloud_reports_each_voxel_where_it_is_with_its_own_alpha_and_weig
     cloud = engine.weight_cloud()
     n = len(cloud.positions_m)
     assert n > 1000 and cloud.alpha.shape == (n,) and cloud.weights.shape == (n, 2)
-    np.testing.assert_allclose(cloud.alpha, 0.8, atol=1e-5)  # the net's output, not another channel
+    # the net's output as the grid stores it (float16), not another channel
+    np.testing.assert_allclose(cloud.alpha, np.float16(0.8), atol=1e-7)
     tof, stereo = cloud.weights[:, 0], cloud.weights[:, 1]
     assert np.all(tof >= stereo) and np.any((tof > 0) & (stereo == 0)) and np.any(stereo > 0)
     near = engine.weight_cloud(max_abs_tsdf_m=VOXEL)
