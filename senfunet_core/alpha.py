@@ -25,7 +25,7 @@ import numba
 import numpy as np
 import torch
 
-from .grid import f16_to_f32
+from .grid import f16_to_f32, load_f32
 from .integrator import TANH_OF_COUNT
 
 HALO = 2  # alpha depends on inputs within 2 voxels
@@ -99,8 +99,8 @@ def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: 
                     out[b, x, y, z, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
                     out[b, x, y, z, first_tsdf - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
                     if with_tsdf:
-                        out[b, x, y, z, first_tsdf] = tsdf_1[v] * tsdf_scale
-                        out[b, x, y, z, first_tsdf + 1] = tsdf_2[v] * tsdf_scale
+                        out[b, x, y, z, first_tsdf] = load_f32(tsdf_1, v) * tsdf_scale
+                        out[b, x, y, z, first_tsdf + 1] = load_f32(tsdf_2, v) * tsdf_scale
     return out
 
 
@@ -132,9 +132,11 @@ def surface_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.nda
                     low, high, observed = np.float32(np.inf), np.float32(-np.inf), False
                     if v >= 0:
                         if f16_to_f32(weight_1[v]) > 0:
-                            low, high, observed = min(low, tsdf_1[v]), max(high, tsdf_1[v]), True
+                            value = load_f32(tsdf_1, v)
+                            low, high, observed = min(low, value), max(high, value), True
                         if f16_to_f32(weight_2[v]) > 0:
-                            low, high, observed = min(low, tsdf_2[v]), max(high, tsdf_2[v]), True
+                            value = load_f32(tsdf_2, v)
+                            low, high, observed = min(low, value), max(high, value), True
                     lo[x, y, z], hi[x, y, z], seen[x, y, z] = low, high, observed
                     any_low = any_low or bool(low <= 0.0)
                     any_high = any_high or bool(high >= 0.0)
@@ -224,8 +226,8 @@ def target_gathers(neighbours: np.ndarray, targets: np.ndarray, features_1: np.n
                     inputs[row, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
                     inputs[row, first_tsdf - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
                     if with_tsdf:
-                        inputs[row, first_tsdf] = tsdf_1[v] * tsdf_scale
-                        inputs[row, first_tsdf + 1] = tsdf_2[v] * tsdf_scale
+                        inputs[row, first_tsdf] = load_f32(tsdf_1, v) * tsdf_scale
+                        inputs[row, first_tsdf + 1] = load_f32(tsdf_2, v) * tsdf_scale
         for x in range(10):  # layer-1 position at window x + 1 reads inputs at window x .. x + 2
             for y in range(10):
                 for z in range(10):

@@ -35,6 +35,20 @@ class AlphaBatch:
     flops: int = 0  # the net's FLOPs for it (for the benchmark's fraction of peak)
 
 
+_BELOW_HALF = np.nextafter(np.float16(0.5), np.float16(0))
+_ABOVE_HALF = np.nextafter(np.float16(0.5), np.float16(1))
+
+
+def alpha_storage(alpha: np.ndarray) -> np.ndarray:
+    """Alpha (float32) as the grid stores it: float16, except that a value on one side of 0.5 stays
+    on that side (the outlier filter drops single-sensor voxels by alpha < 0.5 and > 0.5, and an
+    alpha that rounded to 0.5 itself would keep both); NaN stays NaN."""
+    stored = alpha.astype(np.float16)
+    stored[(alpha < 0.5) & (stored >= 0.5)] = _BELOW_HALF
+    stored[(alpha > 0.5) & (stored <= 0.5)] = _ABOVE_HALF
+    return stored
+
+
 class AlphaScheduler:
     """The weighting net's work over a `BlockStore` (see the module docstring)."""
 
@@ -126,7 +140,9 @@ class AlphaScheduler:
         store = self.store
         try:
             for batch in results:
-                store.grid.pools["alpha"].numpy().reshape(-1)[batch.voxels] = batch.alpha
+                pool = store.grid.pools["alpha"]
+                pool.numpy().reshape(-1)[batch.voxels] = (alpha_storage(batch.alpha) if pool.dtype == torch.float16
+                                                          else batch.alpha)
                 evaluated = batch.slots[batch.holds]
                 store.stale[batch.slots] = 0
                 store.no_targets[batch.slots] = ~batch.holds

@@ -116,13 +116,20 @@ class EngineConfig:
     #                           (one more running average per sample and 6 bytes per voxel)
     alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
     #                               (max-norm over [F, tanh(W)], summed over frames); 0 = exact
+    min_new_block_samples: int = 16  # allocation policy: a frame allocates a block only where at least this many of
+    #   its ray samples land; samples in blocks not allocated are dropped and counted (counters
+    #   "sparse_dropped_samples", "sparse_dropped_blocks"); blocks already in the map take every sample. 0 = allocate
+    #   every touched block. The default was chosen on the validation rooms (bench/allocation_policy.py): one
+    #   isolated ray writes fewer samples than that (at most (n_samples - 1) / 2 + n_samples_behind + 1), so a new
+    #   block needs two rays or more; larger thresholds started to lose far surfaces (mean F fell), smaller ones kept
+    #   far more nearly empty blocks at no gain in F
     weighting_tsdf_input: bool = False  # the weighting net also reads the sensors' TSDFs (a departure from the
     #   paper, networks.WeightingNet); set from the weights file when it records it
 
     @property
     def integrator(self) -> IntegratorConfig:
         return IntegratorConfig(self.voxel_size_m, self.band_m, self.n_samples, self.n_samples_behind, self.w_max,
-                                self.border_px)
+                                self.border_px, self.min_new_block_samples)
 
     def validate(self) -> None:
         n = len(self.sensors)
@@ -146,6 +153,9 @@ class EngineConfig:
         if self.max_blocks < -1:
             raise InputError(f"max_blocks must be >= 0 (0 = no bound) or -1 (from the machine's memory), "
                              f"got {self.max_blocks}")
+        if self.min_new_block_samples < 0:
+            raise InputError(f"min_new_block_samples must be >= 0 (0 = allocate every touched block), "
+                             f"got {self.min_new_block_samples}")
         if not self.alpha_tolerance >= 0 or self.torch_threads < 0 or self.alpha_threads < 1:
             raise InputError("alpha_tolerance must be >= 0, torch_threads >= 0 and alpha_threads >= 1")
 
@@ -267,8 +277,10 @@ class SenFuNet:
             channels.update({"tsdf_base": (), "weight_base": ()})
         for i in range(len(config.sensors)):
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
-        # features and weight counters in half precision (counters stay exact up to 2048)
-        dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight", "drift"))}
+        # Every channel in half precision: weight counters stay exact up to 2048 (w_max); TSDF values
+        # within the band keep a relative precision of 2^-11, far below the sensors' noise; alpha is a
+        # weighting in [0, 1] (NaN: not evaluated). Kernels read them through grid.load_f32.
+        dtypes = {name: torch.float16 for name in channels}
         # alpha NaN until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)
         self.store = BlockStore(BlockGrid(channels, dtypes=dtypes, fill={"alpha": float("nan")}))
         self.grid = self.store.grid
@@ -293,7 +305,8 @@ class SenFuNet:
         self._alpha_executor: ThreadPoolExecutor | None = None  # alpha_threads > 1: evaluates batches of updates
         # integration past the hard bound waits on this until an eviction (or the running update) ends
         self._eviction_done = threading.Condition()  # reentrant: an evicting waiter notifies
-        self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0}
+        self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0, "sparse_dropped_samples": 0,
+                         "sparse_dropped_blocks": 0}
         self.timings_s: dict[str, float] = {}  # stage -> seconds of its last run
         self.total_s: dict[str, float] = {}  # stage -> seconds summed over all runs
         self.frames_integrated = {name: 0 for name in config.sensors}
@@ -342,6 +355,8 @@ class SenFuNet:
             self.store.alpha_pending[update.touched_slots] = True
             self.store.mesh_pending[update.touched_slots] = True  # the TSDF changed here, whatever alpha does
             self.frames_integrated[cfg.sensors[s]] += 1
+            self.counters["sparse_dropped_samples"] += update.dropped_samples
+            self.counters["sparse_dropped_blocks"] += update.dropped_blocks
             self._camera_m = np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy()
         self._timed(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
         if self._eviction_due():
@@ -592,6 +607,9 @@ class SenFuNet:
                 "bytes_per_observed_voxel": nbytes / max(observed, 1),
                 "frames_integrated": dict(self.frames_integrated),
                 "max_blocks": self.max_blocks, "evicted_blocks": self.counters.get("evicted_blocks", 0),
+                "sparse_dropped_samples": self.counters["sparse_dropped_samples"],
+                "sparse_dropped_blocks": self.counters["sparse_dropped_blocks"],
+                "occupancy": observed / max(self.grid.n_blocks * 512, 1),
                 "archived_blocks": len(self.archive), "archived_faces": self.archive.n_faces,
                 "spilled_blocks": spilled[0], "spill_bytes": spilled[1], "restored_blocks": spilled[2],
                 "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
@@ -876,7 +894,8 @@ class SenFuNet:
         return [f"tsdf{s}", f"weight{s}"]
 
     def _whole_blocks(self, slots: torch.Tensor, names: list[str]) -> dict[str, torch.Tensor]:
-        return {name: self.grid.pools[name][slots] for name in names}
+        """The channels of whole blocks, as float32 (the pools hold float16)."""
+        return {name: self.grid.pools[name][slots].float() for name in names}
 
     def _values(self, blocks: dict[str, torch.Tensor], which: str, filtered: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """TSDF and observed mask of `which` from per-voxel channel tensors."""

@@ -15,7 +15,7 @@ import numba
 import numpy as np
 import torch
 
-from .grid import f16_to_f32
+from .grid import f16_to_f32, load_f32
 
 
 @dataclass
@@ -60,7 +60,7 @@ def mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, tsdf_1:
 
     which: WINDOW_FUSED (eq. 1, with the outlier filter when apply_filter; alpha NaN as in `fuse`,
     shown as 0.5), WINDOW_SENSOR or WINDOW_BASE (tsdf_1/weight_1 hold that surface's channels; the
-    rest is ignored). Weights are float16 bits (int16)."""
+    rest is ignored). Weights are float16 bits (int16); TSDFs and alpha float16 bits or float32."""
     n_blocks = neighbours.shape[0]
     tsdf = np.zeros((n_blocks, 9, 9, 9), np.float32)
     observed = np.zeros((n_blocks, 9, 9, 9), np.bool_)
@@ -76,22 +76,22 @@ def mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, tsdf_1:
                     v = slot * 512 + (x - 8 * bx) * 64 + (y - 8 * by) * 8 + (z - 8 * bz)
                     seen_1 = f16_to_f32(weight_1[v]) > 0
                     if which != WINDOW_FUSED:
-                        tsdf[b, x, y, z] = tsdf_1[v] if seen_1 else 0.0
+                        tsdf[b, x, y, z] = load_f32(tsdf_1, v) if seen_1 else 0.0
                         observed[b, x, y, z] = seen_1
                         continue
                     seen_2 = f16_to_f32(weight_2[v]) > 0
-                    a = alpha[v]
+                    a = load_f32(alpha, v)
                     unknown = a != a  # NaN: not evaluated yet
                     if unknown:
                         a = np.float32(0.5)
                     alpha_out[b, x, y, z] = a
                     if seen_1 and seen_2:
-                        tsdf[b, x, y, z] = a * tsdf_1[v] + (1.0 - a) * tsdf_2[v]
+                        tsdf[b, x, y, z] = a * load_f32(tsdf_1, v) + (1.0 - a) * load_f32(tsdf_2, v)
                         observed[b, x, y, z] = True
                     elif seen_1:
-                        tsdf[b, x, y, z] = tsdf_1[v]
+                        tsdf[b, x, y, z] = load_f32(tsdf_1, v)
                         observed[b, x, y, z] = not (apply_filter and (a < 0.5 or unknown))
                     elif seen_2:
-                        tsdf[b, x, y, z] = tsdf_2[v]
+                        tsdf[b, x, y, z] = load_f32(tsdf_2, v)
                         observed[b, x, y, z] = not (apply_filter and (a > 0.5 or unknown))
     return tsdf, observed, alpha_out

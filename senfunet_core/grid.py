@@ -5,7 +5,8 @@ per-voxel quantity is a "channel": a pool tensor of shape (capacity, 512, *chann
 row `slot` holds one block's voxels in x-major order (local index = 64*x + 8*y + z). Pools live
 on the CPU: the compiled kernels (integrator, alpha windows, mesher) read and write them through
 zero-copy numpy views; float16 channels are handed to the kernels as their int16 bit patterns
-(`f16_to_f32` / `f32_to_f16` convert one value, in hardware where the CPU can).
+(`f16_to_f32` / `f32_to_f16` convert one value, in hardware where the CPU can; `load_f32` /
+`store_f32` read and write a channel of either storage).
 
 Convention: voxel (i, j, k) has its centre at (i, j, k) * voxel_size_m; block (a, b, c) holds the
 voxels 8a..8a+7, 8b..8b+7, 8c..8c+7.
@@ -22,7 +23,7 @@ import torch
 from llvmlite import binding as llvm
 from llvmlite import ir
 from numba.core import cgutils, types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 
 from .errors import InputError
 from .spill import BlockSpill
@@ -114,6 +115,55 @@ def hash_find_or_add(table_keys: np.ndarray, table_slots: np.ndarray, key: int, 
     slot_keys[slot] = key
     state[0] = slot + 1
     return slot
+
+
+@numba.njit(inline="always")
+def hash_remove(table_keys: np.ndarray, table_slots: np.ndarray, key: int) -> None:
+    """Remove `key` (if present) by backward-shift deletion: later entries of its probe run that
+    may sit in the freed entry move back, so linear probing still finds every key without tombstones."""
+    mask = table_keys.shape[0] - 1
+    i = _probe(table_keys, key)
+    if table_keys[i] != key:
+        return
+    j = i
+    while True:
+        j = (j + 1) & mask
+        if table_keys[j] == EMPTY_KEY:
+            break
+        home = _bucket(table_keys[j], mask)
+        # the entry at j stays where it is when its home lies cyclically in (i, j]
+        stays = (i < home <= j) if i <= j else (home > i or home <= j)
+        if not stays:
+            table_keys[i] = table_keys[j]
+            table_slots[i] = table_slots[j]
+            i = j
+    table_keys[i] = EMPTY_KEY
+    table_slots[i] = -1
+
+
+@numba.njit(cache=True, nogil=True)
+def drop_new_blocks(table_keys: np.ndarray, table_slots: np.ndarray, slot_keys: np.ndarray, n_before: int,
+                    keep: np.ndarray) -> np.ndarray:
+    """Undo part of an allocation that `hash_find_or_add` made but nobody committed yet: of the
+    blocks in slots n_before..n_before+len(keep)-1, those with keep False leave the hash table and
+    the kept ones move down to stay contiguous (order kept). Returns each of those slots' new slot,
+    -1 where dropped; the caller commits n_before + keep.sum() blocks."""
+    new_slot = np.full(keep.shape[0], -1, np.int64)
+    next_slot = n_before
+    for n in range(keep.shape[0]):
+        if keep[n]:
+            new_slot[n] = next_slot
+            next_slot += 1
+        else:
+            hash_remove(table_keys, table_slots, slot_keys[n_before + n])
+    for n in range(keep.shape[0]):  # ascending: a slot is overwritten only after its own key moved or left
+        target = new_slot[n]
+        if target >= 0 and target != n_before + n:
+            key = slot_keys[n_before + n]
+            slot_keys[target] = key
+            table_slots[_probe(table_keys, key)] = target
+    slot_keys[next_slot:n_before + keep.shape[0]] = EMPTY_KEY
+    return new_slot
 
 
 @numba.njit(cache=True, nogil=True)
@@ -255,6 +305,43 @@ else:  # pragma: no cover - CPUs without half conversions
     f32_to_f16, f16_to_f32 = _f32_to_f16_soft, _f16_to_f32_soft
 
 
+def load_f32(array: np.ndarray, index: int) -> np.float32:
+    """array[index] as float32, whether the array holds float32 values or float16 bit patterns
+    (int16, `kernel_view`): kernels read channels through this and `store_f32` so that they work on
+    either storage (compiled per dtype; this Python body is only the reference)."""
+    value = array[index]
+    if array.dtype == np.int16:
+        return np.float32(np.array(value, np.int16).view(np.float16))
+    return np.float32(value)
+
+
+def store_f32(array: np.ndarray, index: int, value: float) -> None:
+    """array[index] = value, rounded to float16 (nearest even) where the array holds float16 bits."""
+    if array.dtype == np.int16:
+        array[index] = np.array(value, np.float16).view(np.int16)
+    else:
+        array[index] = value
+
+
+@overload(load_f32, inline="always")
+def _load_f32(array, index):  # noqa: ANN001, ANN202 (numba overload)
+    if isinstance(array, types.Array) and array.dtype == types.int16:
+        return lambda array, index: f16_to_f32(array[index])
+    return lambda array, index: np.float32(array[index])
+
+
+@overload(store_f32, inline="always")
+def _store_f32(array, index, value):  # noqa: ANN001, ANN202 (numba overload)
+    if isinstance(array, types.Array) and array.dtype == types.int16:
+        def store_half(array, index, value):  # noqa: ANN001, ANN202
+            array[index] = f32_to_f16(np.float32(value))
+        return store_half
+
+    def store(array, index, value):  # noqa: ANN001, ANN202
+        array[index] = value
+    return store
+
+
 def kernel_view(pool: torch.Tensor) -> np.ndarray:
     """The numpy view a kernel works on: float32 as is, float16 as int16 bit patterns."""
     if pool.dtype == torch.float16:
@@ -368,6 +455,12 @@ class BlockGrid:
             if self.spill is not None and len(self.spill):
                 self._restore(self.n_blocks, n_blocks)
             self.n_blocks = n_blocks
+
+    def on_disk(self, keys: np.ndarray) -> np.ndarray:
+        """Which of these block keys the spill holds."""
+        if self.spill is None or not len(self.spill):
+            return np.zeros(len(keys), np.bool_)
+        return self.spill.holds(keys)
 
     def _restore(self, first: int, end: int) -> None:
         """Give the new slots first..end-1 whose blocks were spilled their rows back."""

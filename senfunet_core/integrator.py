@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 from .errors import InputError
-from .grid import BlockGrid, coords_key, f16_to_f32, f32_to_f16, hash_find_or_add, kernel_view, prefetch, voxel_keys
+from .grid import (BlockGrid, coords_key, drop_new_blocks, f16_to_f32, f32_to_f16, hash_find_or_add, kernel_view,
+                   load_f32, prefetch, store_f32, voxel_keys)
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,8 @@ class IntegratorConfig:
     n_samples_behind: int = 3  # of those behind the surface, how many are written (authors' code: 3)
     w_max: float = 500.0  # weight counter clip
     border_px: int = 10  # image border masked out
+    min_new_block_samples: int = 0  # a block not yet in the grid is allocated only when at least this many of
+    #   one frame's ray samples fall in it (the rest are dropped and counted); 0 = every touched block
 
     def sample_offsets(self) -> torch.Tensor:
         """Signed sample offsets along the ray in steps (negative: towards the camera)."""
@@ -219,6 +222,51 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
     return n_pixels, n_touched, True
 
 
+@numba.njit(cache=True, nogil=True)
+def drop_sparse_new_blocks(n_before: int, n_after: int, min_samples: int, n_samples_total: int, n_touched: int,
+                           touched_slots: np.ndarray, slot_to_touched: np.ndarray, sample_touched: np.ndarray,
+                           sample_flat: np.ndarray, table_keys: np.ndarray, table_slots: np.ndarray,
+                           slot_keys: np.ndarray, on_disk: np.ndarray) -> tuple[int, int, int, int]:
+    """The allocation policy, after `locate_samples` ran: of the blocks it added (slots
+    n_before..n_after-1, not committed yet), those that received fewer than min_samples of the
+    frame's samples are taken out of the hash table again (flying pixels and far noise scatter
+    a few samples over many blocks that would stay nearly empty). Their samples get
+    sample_touched -1 and sample_flat -1; kept blocks close up their slots, and touched_slots and
+    the samples follow. Blocks that existed before the frame take every sample, and so do blocks
+    coming back from disk (on_disk: per added block, whether the grid's spill holds it).
+    Returns (blocks now in the grid, touched blocks kept, samples dropped, blocks dropped)."""
+    count = np.zeros(n_touched, np.int64)
+    for n in range(n_samples_total):
+        count[sample_touched[n]] += 1
+    keep = np.empty(n_after - n_before, np.bool_)
+    dropped_samples = 0
+    for slot in range(n_before, n_after):
+        c = count[slot_to_touched[slot]]
+        keep[slot - n_before] = c >= min_samples or on_disk[slot - n_before]
+        if not keep[slot - n_before]:
+            dropped_samples += c
+    n_kept_new = int(keep.sum())
+    if n_kept_new == n_after - n_before:
+        return n_after, n_touched, 0, 0
+    new_slot = drop_new_blocks(table_keys, table_slots, slot_keys, n_before, keep)
+    touched_new = np.empty(n_touched, np.int32)
+    kept = 0
+    for b in range(n_touched):
+        slot = touched_slots[b]
+        target = slot if slot < n_before else new_slot[slot - n_before]
+        if target < 0:
+            touched_new[b] = -1
+        else:
+            touched_new[b] = kept
+            touched_slots[kept] = target
+            kept += 1
+    for n in range(n_samples_total):
+        b = touched_new[sample_touched[n]]
+        sample_touched[n] = b
+        sample_flat[n] = -1 if b < 0 else touched_slots[b] * 512 + (sample_flat[n] & 511)
+    return n_before + n_kept_new, kept, dropped_samples, n_after - n_before - n_kept_new
+
+
 # weight counters are integers 0..2048 (w_max): their float16 bits and tanh (a weighting-net input) by table
 _F16_OF_COUNT = np.arange(2049, dtype=np.float16).view(np.int16)
 TANH_OF_COUNT = np.tanh(np.arange(2049, dtype=np.float64)).astype(np.float32)
@@ -234,7 +282,8 @@ def _group_by_block(n_pixels: int, n_samples: int, n_touched: int, sample_flat: 
     total = n_pixels * n_samples
     start = np.zeros(n_touched + 1, np.int64)
     for n in range(total):
-        start[sample_touched[n] + 1] += 1
+        if sample_touched[n] >= 0:  # -1: dropped (its block was not allocated)
+            start[sample_touched[n] + 1] += 1
     for b in range(n_touched):
         start[b + 1] += start[b]
     fill = start[:-1].copy()
@@ -246,6 +295,9 @@ def _group_by_block(n_pixels: int, n_samples: int, n_touched: int, sample_flat: 
         image_pixel = pixel_index[p]
         for k in range(n_samples):
             b = sample_touched[n]
+            if b < 0:
+                n += 1
+                continue
             m = fill[b]
             fill[b] = m + 1
             local[m] = sample_flat[n] & 511  # slot * 512 + local
@@ -304,9 +356,9 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
                 new = f16_to_f32(bits)
                 change = max(change, abs(new - old))
             mean_tsdf = sum_tsdf[local] * inv_count
-            old_tsdf = tsdf[voxel]
-            new_tsdf = keep * old_tsdf + add * mean_tsdf
-            tsdf[voxel] = new_tsdf
+            old_tsdf = load_f32(tsdf, voxel)
+            store_f32(tsdf, voxel, keep * old_tsdf + add * mean_tsdf)
+            new_tsdf = load_f32(tsdf, voxel)  # as stored: drift and the sign test see what readers will
             new_weight = min(old_weight + np.float32(1.0), w_max)
             weight[voxel] = _F16_OF_COUNT[int(new_weight)]
             change = max(change, TANH_OF_COUNT[int(new_weight)] - TANH_OF_COUNT[int(old_weight)])
@@ -317,7 +369,8 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             if tsdf_base.shape[0]:
                 base_weight = f16_to_f32(weight_base[voxel])
                 base_add = np.float32(1.0) / (base_weight + np.float32(1.0))
-                tsdf_base[voxel] = (np.float32(1.0) - base_add) * tsdf_base[voxel] + base_add * mean_tsdf
+                store_f32(tsdf_base, voxel,
+                          (np.float32(1.0) - base_add) * load_f32(tsdf_base, voxel) + base_add * mean_tsdf)
                 weight_base[voxel] = _F16_OF_COUNT[int(min(base_weight + np.float32(1.0), w_max))]
     return updated
 
@@ -336,7 +389,8 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     (skipped when tsdf_base is empty).
     drift[voxel] accumulates the largest change of a weighting-net input (features, tanh(weight))
     or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
-    Weights, features and drift are float16 bit patterns (int16); pixel_features: (H*W) x C float32.
+    Weights, features and drift are float16 bit patterns (int16), TSDFs float16 bits or float32
+    (`grid.load_f32`); pixel_features: (H*W) x C float32.
     Returns the number of voxels updated.
 
     Blocks are independent: a frame of at least SPLIT_MIN_SAMPLES samples has the second half of
@@ -381,16 +435,22 @@ class LocatedSamples:
     sample_touched: np.ndarray  # int32 index into touched_slots of each sample's block
     pixel_index: np.ndarray  # int64 flat image index (v * W + u) of each valid pixel
     touched_slots: np.ndarray  # int64 slots of the touched blocks, in the order first touched
+    dropped_samples: int = 0  # samples in new blocks the allocation policy did not allocate (their
+    #                           sample_flat and sample_touched are -1)
+    dropped_blocks: int = 0  # those blocks
 
 
 def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray, *,
                          depth_range_m: tuple[float, float], border_px: int, offsets_m: np.ndarray,
-                         voxel_size_m: float, scratch: dict[str, np.ndarray] | None = None) -> LocatedSamples:
+                         voxel_size_m: float, min_new_block_samples: int = 0,
+                         scratch: dict[str, np.ndarray] | None = None) -> LocatedSamples:
     """Snap every sample of every valid pixel to its voxel, allocating the blocks it needs in `grid`
     (grown as needed). depth_m: H x W metres (invalid pixels outside depth_range_m, NaN or inf);
-    offsets_m: S float64 signed offsets along each ray (negative: towards the camera).
-    Raises InputError (grid untouched but for empty blocks already allocated) when samples fall
-    outside the key range. `scratch` as in `integrate_frame`."""
+    offsets_m: S float64 signed offsets along each ray (negative: towards the camera);
+    min_new_block_samples: a block the grid does not hold yet is allocated only when at least this
+    many of the frame's samples fall in it; the others' samples are dropped and counted
+    (`drop_sparse_new_blocks`). Raises InputError (grid untouched but for empty blocks already
+    allocated) when samples fall outside the key range. `scratch` as in `integrate_frame`."""
     h, w = depth_m.shape
     n_max = h * w * len(offsets_m)
     sample_flat = _scratch(scratch, "sample_flat", n_max, np.int64)
@@ -400,6 +460,7 @@ def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_
     K64 = np.ascontiguousarray(K, np.float64)
     T64 = np.ascontiguousarray(T_world_camera, np.float64)
     offsets = np.ascontiguousarray(offsets_m, np.float64)
+    n_before = grid.n_blocks
     while True:
         slot_to_touched = _scratch(scratch, "slot_to_touched", grid.capacity, np.int32)
         slot_to_touched.fill(-1)
@@ -409,13 +470,23 @@ def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_
             depth, depth_range_m[0], depth_range_m[1], border_px, K64, T64, offsets, voxel_size_m,
             grid.table_keys, grid.table_slots, state, grid.slot_keys, slot_to_touched, touched_slots, sample_flat,
             sample_touched, pixel_index)
-        grid.commit_new_blocks(int(state[0]))
         if ok:
-            return LocatedSamples(int(n_pixels), int(n_touched), sample_flat, sample_touched, pixel_index,
-                                  touched_slots)
+            break
+        grid.commit_new_blocks(int(state[0]))  # the blocks added so far survive the growth
         if state[0] < state[1]:  # not full: a sample left the key range
             raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
         grid.reserve(max(int(grid.capacity * grid.growth) + 1, grid.n_blocks + 1024))
+    n_blocks, dropped_samples, dropped_blocks = int(state[0]), 0, 0
+    if min_new_block_samples > 1 and n_blocks > n_before:
+        n_blocks, n_touched, dropped_samples, dropped_blocks = drop_sparse_new_blocks(
+            n_before, n_blocks, min_new_block_samples, n_pixels * len(offsets_m), n_touched, touched_slots,
+            slot_to_touched, sample_touched, sample_flat, grid.table_keys, grid.table_slots, grid.slot_keys,
+            grid.on_disk(grid.slot_keys[n_before:n_blocks]))
+        # blocks a grown grid committed before the policy ran: re-committed in their new slots
+        grid.n_blocks = min(grid.n_blocks, n_before)
+    grid.commit_new_blocks(int(n_blocks))
+    return LocatedSamples(int(n_pixels), int(n_touched), sample_flat, sample_touched, pixel_index, touched_slots,
+                          int(dropped_samples), int(dropped_blocks))
 
 
 def update_frame_voxels(grid: BlockGrid, located: LocatedSamples, pixel_features: np.ndarray, *,
@@ -443,6 +514,8 @@ class FrameUpdate:
     voxels_updated: int
     touched_slots: np.ndarray  # int64 slots of the blocks the frame's samples touched
     waited_s: float = 0.0  # time spent waiting for pixel_features()
+    dropped_samples: int = 0  # samples the allocation policy dropped (IntegratorConfig.min_new_block_samples)
+    dropped_blocks: int = 0  # the new blocks they fell in, not allocated
 
 
 def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.ndarray | Callable[[], np.ndarray],
@@ -463,7 +536,8 @@ def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.nda
     offsets_m = config.sample_offsets().numpy().astype(np.float64) * config.step_m
     located = locate_frame_samples(grid, depth_m, K, T_world_camera, depth_range_m=depth_range_m,
                                    border_px=config.border_px, offsets_m=offsets_m,
-                                   voxel_size_m=config.voxel_size_m, scratch=scratch)
+                                   voxel_size_m=config.voxel_size_m,
+                                   min_new_block_samples=config.min_new_block_samples, scratch=scratch)
     waited_s = time.perf_counter()
     if callable(pixel_features):
         pixel_features = pixel_features()
@@ -471,4 +545,5 @@ def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.nda
     features = np.ascontiguousarray(pixel_features.reshape(pixel_features.shape[0], -1).T, np.float32)  # HW x C
     updated = update_frame_voxels(grid, located, features, sample_tsdf_m=-offsets_m, channels=channels, drift=drift,
                                   w_max=config.w_max)
-    return FrameUpdate(int(updated), located.touched_slots[:located.n_touched].copy(), waited_s)
+    return FrameUpdate(int(updated), located.touched_slots[:located.n_touched].copy(), waited_s,
+                       located.dropped_samples, located.dropped_blocks)

@@ -46,6 +46,11 @@ class BlockSpill:
         """Bytes on disk held by spilled blocks (compressed)."""
         return self._end - self._dead
 
+    def holds(self, keys: np.ndarray) -> np.ndarray:
+        """Which of these block keys are spilled (bool per key)."""
+        index = self._index
+        return np.fromiter((key in index for key in keys.tolist()), np.bool_, len(keys))
+
     def put(self, keys: np.ndarray, rows: list[np.ndarray]) -> None:
         """Spill blocks: keys (N int64) and, per channel, its N rows (any dtype, N first)."""
         if len(keys) == 0:
@@ -64,7 +69,7 @@ class BlockSpill:
     def take(self, keys: np.ndarray, rows: list[np.ndarray]) -> np.ndarray:
         """Restore the spilled blocks among `keys` into `rows` (per channel, N rows each, written in
         place) and forget them here; returns which of the N were restored."""
-        found = np.array([key in self._index for key in keys.tolist()], bool)
+        found = self.holds(keys)
         if not found.any():
             return found
         assert self._file is not None

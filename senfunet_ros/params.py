@@ -122,6 +122,11 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "evicted: their final meshes stay on ~/mesh and in save_mesh, their voxels go to disk (the temporary "
           "directory, $TMPDIR) until a sensor sees them again; -1 = half of this machine's memory; 0 = unbounded",
           lo=-1, hi=2**31 - 1),
+    Param("min_new_block_samples", 16, "a frame allocates a block the map does not hold yet "
+          "only where at least this many of its ray samples land (flying pixels and far noise would otherwise fill "
+          "memory with nearly empty blocks); their samples are dropped and counted (engine.counters."
+          "sparse_dropped_samples on ~/status); blocks in the map take every sample; 0 = allocate every touched block",
+          lo=0, hi=1_000_000),
     Param("tsdf_fusion", False, "also keep the plain TSDF Fusion baseline (save_mesh adds tsdf_fusion.ply; "
           "costs integration time and memory)"),
 )
@@ -372,6 +377,7 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
         alpha_dtype=alpha_dtype(s.alpha_precision, device),
         tsdf_fusion=s.tsdf_fusion,
         max_blocks=s.max_map_blocks,
+        min_new_block_samples=s.min_new_block_samples,
     )
     return dataclasses.replace(config, **overrides)
 

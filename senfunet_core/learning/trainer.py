@@ -61,11 +61,11 @@ class Trainer:
         for group in groups:
             group["lr"] = config.lr * group["lr_factor"]
         self.optimizer = torch.optim.Adam(groups, lr=config.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=0)
-        # the engine's grid layout: features, weight counters (and the unused drift) in half precision
+        # the engine's grid layout: every channel (and the unused drift) in half precision
         channels: dict[str, tuple[int, ...]] = {"tsdf_base": (), "weight_base": (), "drift": ()}
         for i in range(len(SENSORS)):
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
-        dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight", "drift"))}
+        dtypes = {name: torch.float16 for name in channels}
         # one set of grids (and GT cache) per scene slot
         self.grids = [BlockGrid(channels, "cpu", dtypes=dtypes) for _ in range(max(1, config.scene_slots))]
         self.gts = [GTCache(config.voxel_size_m, config.band_m) for _ in self.grids]

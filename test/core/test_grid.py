@@ -123,3 +123,29 @@ def test_neighbour_table_matches_coordinates():
 def test_keys_outside_the_range_are_refused():
     with pytest.raises(ValueError, match="5 km"):
         block_keys(torch.tensor([[1 << 17, 0, 0]]))
+
+
+def test_dropping_uncommitted_new_blocks_keeps_every_other_key_findable():
+    """drop_new_blocks on a crowded table (long probe runs): kept keys move down to contiguous
+    slots, dropped keys vanish, the blocks that were there before are untouched."""
+    grid = BlockGrid({"a": ()}, initial_capacity=4096)
+    rng = np.random.default_rng(3)
+    keys = torch.unique(block_keys(torch.from_numpy(rng.integers(-40, 40, (3000, 3)))))[:2000]
+    old, new = keys[:1200], keys[1200:]
+    grid.allocate_keys(old)
+    n_before = grid.n_blocks
+    # add the new keys as a kernel would (not committed), then drop every third one
+    state = np.array([grid.n_blocks, grid.max_blocks_before_rehash()], np.int64)
+    for key in new.tolist():
+        G.hash_find_or_add(grid.table_keys, grid.table_slots, key, state, grid.slot_keys)
+    keep = np.arange(len(new)) % 3 != 0
+    moved = G.drop_new_blocks(grid.table_keys, grid.table_slots, grid.slot_keys, n_before, keep)
+    grid.commit_new_blocks(n_before + int(keep.sum()))
+    assert grid.n_blocks == n_before + keep.sum()
+    assert torch.equal(grid.lookup_keys(old), torch.arange(n_before))
+    kept = grid.lookup_keys(new[torch.from_numpy(keep)])
+    assert torch.equal(kept, torch.arange(n_before, grid.n_blocks))
+    assert torch.equal(kept, torch.from_numpy(moved[keep]))
+    assert (grid.lookup_keys(new[torch.from_numpy(~keep)]) == -1).all()
+    assert torch.equal(block_keys(grid.coords[: grid.n_blocks]), torch.cat([old, new[torch.from_numpy(keep)]]))
+    assert (grid.table_keys != G.EMPTY_KEY).sum() == grid.n_blocks

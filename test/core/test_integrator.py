@@ -1,12 +1,14 @@
 """The compiled integration (engine path) against the reference tensor functions (training path)."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
 from senfunet_core.grid import BLOCK, BlockGrid
 from senfunet_core.integrator import (IntegratorConfig, aggregate_pixel_values, frame_samples, integrate_frame,
-                                      valid_depth_mask)
+                                      locate_frame_samples, valid_depth_mask)
 from senfunet_core.learning.training import keys_to_voxels
 
 SIZE = 64
@@ -117,3 +119,63 @@ def test_splitting_a_frame_between_two_threads_changes_no_bit(monkeypatch):
     assert n == split.n_blocks and n > 50
     for name, pool in whole.pools.items():  # no NaN in these pools: equal values are equal bits
         assert torch.equal(pool[:n], split.pools[name][:n]), name
+
+
+def flying_pixel_frame(seed: int) -> np.ndarray:
+    """A wall ~1 m away over the left half of the image; on the right half, isolated pixels far
+    away at random depths (flying pixels), every other pixel invalid."""
+    rng = np.random.default_rng(seed)
+    depth = np.zeros((SIZE, SIZE), np.float32)
+    depth[:, : SIZE // 2] = 1.0 + rng.normal(0, 0.002, (SIZE, SIZE // 2))
+    v, u = np.nonzero(rng.random((SIZE, SIZE // 2)) < 0.04)
+    depth[v, u + SIZE // 2] = rng.uniform(2.0, 4.5, len(v))
+    return depth
+
+
+def samples_per_block(depth: np.ndarray, T: np.ndarray) -> dict[tuple, int]:
+    """Block -> how many of the frame's ray samples fall in it (located on a fresh grid, no policy)."""
+    grid = BlockGrid({"a": ()}, initial_capacity=64)
+    offsets_m = CONFIG.sample_offsets().numpy().astype(np.float64) * CONFIG.step_m
+    located = locate_frame_samples(grid, depth, K, T, depth_range_m=RANGE, border_px=CONFIG.border_px,
+                                   offsets_m=offsets_m, voxel_size_m=CONFIG.voxel_size_m)
+    counts = np.bincount(located.sample_touched[: located.n_pixels * len(offsets_m)], minlength=located.n_touched)
+    coords = grid.coords[torch.from_numpy(located.touched_slots[: located.n_touched])]
+    return dict(zip(map(tuple, coords.tolist()), counts.tolist()))
+
+
+def test_allocation_policy_keeps_flying_pixels_out_of_new_blocks_and_counts_them():
+    depth, T = flying_pixel_frame(0), pose(0.0, 0.0)
+    counts = samples_per_block(depth, T)
+    features = np.ones((5, SIZE, SIZE), np.float32)
+    minimum = 40
+    dense = {block for block, n in counts.items() if n >= minimum}
+    sparse = {block: n for block, n in counts.items() if n < minimum}
+    assert len(dense) > 10 and len(sparse) > 20  # the frame has both, or the test proves nothing
+    channels = {"drift": (), "tsdf0": (), "weight0": (), "feat0": (5,)}
+    dtypes = {"drift": torch.float16, "weight0": torch.float16, "feat0": torch.float16}
+    every = BlockGrid(channels, initial_capacity=1 << 12, dtypes=dtypes)
+    integrate_frame(every, depth, features, K, T, RANGE, CONFIG, ("tsdf0", "weight0", "feat0"))
+    policy = replace(CONFIG, min_new_block_samples=minimum)
+    grid = BlockGrid(channels, initial_capacity=64, dtypes=dtypes)  # small: grows mid-frame, before the policy
+    update = integrate_frame(grid, depth, features, K, T, RANGE, policy, ("tsdf0", "weight0", "feat0"))
+    assert {tuple(c) for c in grid.coords[: grid.n_blocks].tolist()} == dense
+    assert update.dropped_blocks == len(sparse)
+    assert update.dropped_samples == sum(sparse.values())
+    assert sorted(update.touched_slots.tolist()) == list(range(grid.n_blocks))
+    # the kept blocks took every one of their samples: the same voxels as without the policy
+    slots = every.lookup(grid.coords[: grid.n_blocks])
+    for name in ("tsdf0", "weight0", "feat0"):
+        assert torch.equal(grid.pools[name][: grid.n_blocks], every.pools[name][slots]), name
+    # a later frame's few samples: those in blocks that exist are all taken, the rest follow the policy
+    sparse_again = np.zeros_like(depth)
+    sparse_again[::9, : SIZE // 2 : 9] = depth[::9, : SIZE // 2 : 9]
+    counts = samples_per_block(sparse_again, T)
+    few_in_existing = [block for block, n in counts.items() if block in dense and n < minimum]
+    assert len(few_in_existing) > 5
+    slots = grid.lookup(torch.tensor(few_in_existing))
+    before = grid.pools["weight0"][slots].float().sum(dim=1)
+    total_before = grid.pools["weight0"][: grid.n_blocks].float().sum()
+    update = integrate_frame(grid, sparse_again, features, K, T, RANGE, policy, ("tsdf0", "weight0", "feat0"))
+    assert update.dropped_samples == sum(n for block, n in counts.items() if block not in dense and n < minimum)
+    assert bool((grid.pools["weight0"][slots].float().sum(dim=1) > before).all())
+    assert float(grid.pools["weight0"][: grid.n_blocks].float().sum() - total_before) == update.voxels_updated
