@@ -92,6 +92,17 @@ class GridTruth:
         self.n_blocks = engine.grid.n_blocks
         coords = engine.grid.coords[: self.n_blocks].numpy()
         self.values = gt_tsdf_blocks(scene, coords, engine.config.voxel_size_m, band_m, BLOCK).reshape(-1)
+        self.band_m = band_m
+
+    def for_engine(self, engine, scene) -> GridTruth:
+        """This truth for another engine that integrated the same frames: shared when its blocks sit in
+        the same slots (the block layout does not depend on the networks), else computed afresh."""
+        coords = engine.grid.coords[: engine.grid.n_blocks]
+        if engine.grid.n_blocks != self.n_blocks or not torch.equal(coords, self.engine.grid.coords[: self.n_blocks]):
+            return GridTruth(engine, scene, self.band_m)
+        other = object.__new__(GridTruth)
+        other.__dict__.update(self.__dict__, engine=engine)
+        return other
 
     def at(self, centres_m: np.ndarray) -> np.ndarray:
         if len(centres_m) == 0:
@@ -137,13 +148,14 @@ def common_grid_metrics(pred_tsdf_m: np.ndarray, gt_tsdf_m: np.ndarray, band_m: 
 
 
 def method_metrics(engine, scene, gt_vertices_cropped: np.ndarray, methods=METHODS, band_m: float | None = None,
-                   tau_m: float = TAU_M, *, common: bool = False) -> dict[str, dict[str, float]]:
+                   tau_m: float = TAU_M, *, common: bool = False,
+                   truth: GridTruth | None = None) -> dict[str, dict[str, float]]:
     """The paper's seven metrics for each method read from an engine that integrated a scene.
 
     Grid metrics on each method's own observed voxels (the paper's protocol); with common, also
     on the voxels TSDF Fusion observed (`common_grid_metrics`), as "<metric>_common"."""
     band = engine.config.band_m if band_m is None else band_m
-    truth = GridTruth(engine, scene, band)
+    truth = GridTruth(engine, scene, band) if truth is None else truth
     vs = engine.config.voxel_size_m
     if common:
         ref_centres, _ = engine.voxel_values("tsdf_fusion", filtered=True)
@@ -432,6 +444,109 @@ def evaluate(weights="default", config: EvaluationConfig | None = None, *, figur
                                         time.perf_counter() - t0, weights_source, other))
     return EvaluationResult(mean_rows(per_scene), per_scene, {k: mean_rows(v) for k, v in async_scenes.items() if v},
                             frames_used, time.perf_counter() - t0, weights_source, other)
+
+
+@dataclass
+class SeedRun:
+    """One training seed's weights file: what the seed-spread table says about it."""
+    path: Path
+    sha256: str
+    seed: int | None  # the training config's seed (None when the file does not record it)
+    shipped: bool  # the file is the shipped default (senfunet_core/weights/tof_stereo.pt)
+    record_val_F: float | None = None  # the mean validation F its training recorded (validation rooms only)
+
+
+@dataclass
+class SeedSpreadResult:
+    runs: list[SeedRun]
+    # per room: "tof", "stereo", "tsdf_fusion" rows (the same for every weights file) and "senfunet": one row per run
+    per_scene: list[dict[str, Any]]
+    seconds: float = 0.0
+
+
+def describe_seed_run(path: Path, val_seeds: tuple[int, ...]) -> SeedRun:
+    """A weights file's sha256, training seed and (when it was validated on val_seeds) recorded validation F."""
+    import hashlib
+
+    from .. import networks
+
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    meta = state.get("meta", {})
+    # a file made by starting from a checkpoint (--init-weights) records its seed in the starting point's config
+    chain = [meta, *([meta["init"]["meta"]] if (meta.get("init") or {}).get("meta") else [])]
+    seed = next((int(m["config"]["seed"]) for m in chain if "seed" in m.get("config", {})), None)
+    recorded = None
+    if list(meta.get("val_scenes", [])) == list(val_seeds) and "val_F" in meta:
+        recorded = float(meta["val_F"])
+    shipped = networks.DEFAULT_WEIGHTS.is_file() and path.resolve() == networks.DEFAULT_WEIGHTS.resolve()
+    return SeedRun(path, hashlib.sha256(path.read_bytes()).hexdigest(), seed, shipped, recorded)
+
+
+def seed_spread(weights: list[str | Path], config: EvaluationConfig, *, log=print,
+                after_room: Callable[[SeedSpreadResult], None] | None = None) -> SeedSpreadResult:
+    """The SenFuNet row of several weights files (the same recipe trained with different seeds) on the
+    same rooms, with the single-sensor and TSDF Fusion rows once per room: those do not depend on the
+    networks, and neither does the observed GT crop."""
+    from .. import networks
+    from ..errors import InputError
+
+    paths = []
+    for w in weights:
+        path = networks.resolve_weights(w)
+        if path is None:
+            raise InputError("the seed spread compares trained weights files; 'none' is not one")
+        paths.append(path)
+    runs = [describe_seed_run(p, tuple(config.seeds)) for p in paths]
+    stride = {"tof": config.frame_stride, "stereo": config.frame_stride}
+    t0 = time.perf_counter()
+    per_scene: list[dict[str, Any]] = []
+    for seed in config.seeds:
+        seq = cached_sequence(seed, duration_s=config.duration_s, tof_rate_hz=config.tof_rate_hz,
+                              stereo_rate_hz=config.stereo_rate_hz, cache_dir=config.cache_dir, log=log,
+                              room_size_m=config.room_size_m, image_size=config.image_size)
+        gt_vertices = cached_gt_mesh_vertices(seq.scene, 0.01, config.cache_dir)
+        room: dict[str, Any] = {}
+        senfunet_rows = []
+        crop: np.ndarray | None = None
+        truth: GridTruth | None = None
+        for path in paths:
+            engine = _engine(path)
+            integrate_frames(engine, seq.frames, stride)
+            if crop is None or truth is None:
+                crop = observed_gt_vertices(engine, gt_vertices)
+                truth = GridTruth(engine, seq.scene, engine.config.band_m)
+                rows = method_metrics(engine, seq.scene, crop, methods=("tof", "stereo", "tsdf_fusion", "senfunet"),
+                                      truth=truth)
+            else:
+                truth = truth.for_engine(engine, seq.scene)
+                rows = method_metrics(engine, seq.scene, crop, methods=("senfunet",), truth=truth)
+            senfunet_rows.append(rows.pop("senfunet"))
+            room.update(rows)
+            del engine
+        room["senfunet"] = senfunet_rows
+        per_scene.append(room)
+        if log:
+            log(f"scene {seed}: F tof {room['tof']['F']:.1f} stereo {room['stereo']['F']:.1f} tsdf "
+                f"{room['tsdf_fusion']['F']:.1f}; senfunet " + ", ".join(f"{r['F']:.1f}" for r in room["senfunet"]))
+        if after_room is not None:
+            after_room(SeedSpreadResult(runs, list(per_scene), time.perf_counter() - t0))
+    return SeedSpreadResult(runs, per_scene, time.perf_counter() - t0)
+
+
+def seed_summary(result: SeedSpreadResult) -> list[dict[str, float]]:
+    """Per weights file over the rooms: mean and std of F, mean MAD, mean margin over the better single
+    sensor and over TSDF Fusion, and in how many rooms F is above the better single sensor."""
+    out = []
+    for i in range(len(result.runs)):
+        f = np.array([room["senfunet"][i]["F"] for room in result.per_scene])
+        better = np.array([max(room["tof"]["F"], room["stereo"]["F"]) for room in result.per_scene])
+        tsdf = np.array([room["tsdf_fusion"]["F"] for room in result.per_scene])
+        out.append({"F": float(f.mean()), "F_std": float(f.std()),
+                    "MAD": float(np.mean([room["senfunet"][i]["MAD"] for room in result.per_scene])),
+                    "margin": float((f - better).mean()), "min_margin": float((f - better).min()),
+                    "over_tsdf": float((f - tsdf).mean()), "rooms_above": int((f > better).sum()),
+                    "rooms": len(f)})
+    return out
 
 
 def spread(per_scene: list[dict[str, dict[str, float]]], column: str = "F") -> dict[str, dict[str, float]]:

@@ -23,6 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="validate every N online frames (overrides the config; 0 = at the end only)")
     parser.add_argument("--seed", type=int, default=None, metavar="N",
                         help="training seed and network initialisation seed (overrides the config)")
+    parser.add_argument("--block-steps", type=int, default=None, metavar="N",
+                        help="Adam steps of the block phase (overrides the config: screens a recipe, file untouched)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
 
 
@@ -61,6 +63,12 @@ def run(args: argparse.Namespace) -> int:
         overrides["val_every"] = args.val_every
     if args.seed is not None:
         overrides.update(seed=args.seed, init_seed=args.seed)
+    if args.block_steps is not None:
+        if args.block_steps < 0 or (args.block_steps and args.init_weights is not None):
+            print("senfunet train: --block-steps takes N >= 0, and --init-weights skips the block phase; "
+                  "pass one of them")
+            return 2
+        overrides["block_steps"] = args.block_steps
     config = dataclasses.replace(config, **overrides)
     out = Path(args.out) if args.out else networks.DEFAULT_WEIGHTS
     budget = f", at most {config.time_budget_s:.0f} s" if config.time_budget_s > 0 else ""

@@ -329,3 +329,28 @@ def test_run_from_a_checkpoint_keeps_it_unless_the_online_frames_beat_its_valida
     assert state["meta"]["ran_in_total"]["online_frames"] == 4
     for net, saved in zip(feature_nets, state["feature_nets"]):
         assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), saved.values()))
+
+
+@pytest.mark.slow  # simulates a training and a validation room, integrates and validates them
+def test_train_command_overrides_seed_and_block_steps(tmp_path):
+    """`senfunet train --seed N --block-steps M --steps 0`: a block phase of M steps with that seed, recorded
+    in the weights file, the config file untouched (a tiny run)."""
+    import yaml
+
+    from senfunet_ros import cli
+
+    config = tmp_path / "tiny.yaml"
+    values = {"seed": 0, "init_seed": 0, "train_scenes": [5], "val_scenes": [7], "duration_s": 0.3,
+              "val_duration_s": 0.3, "val_frame_stride": 2, "weighting_tsdf_input": True, "block_steps": 50,
+              "block_batch": 4, "block_scene_blocks": 20, "block_lr": 1e-3, "lambda1": 0.1, "lambda2": 0.08,
+              "threads": 1, "cache_dir": str(tmp_path / "cache")}
+    config.write_text(yaml.safe_dump(values))
+    out = tmp_path / "seed3.pt"
+    argv = ["train", "--config", str(config), "--seed", "3", "--block-steps", "3", "--steps", "0", "--out", str(out),
+            "--no-progress"]
+    assert cli.main(argv) == 0
+    meta = torch.load(out, map_location="cpu", weights_only=True)["meta"]
+    assert meta["ran"]["block_steps"] == 3 and meta["optimizer_steps"] == 3
+    assert meta["config"]["seed"] == 3 and meta["config"]["init_seed"] == 3 and meta["config"]["block_steps"] == 3
+    assert yaml.safe_load(config.read_text())["block_steps"] == 50
+    assert cli.main(["train", "--config", str(config), "--block-steps", "-1"]) == 2
