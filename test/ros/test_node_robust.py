@@ -54,8 +54,13 @@ def fuse_in_process(run: Running, messages: list[tuple[str, str, Any]]) -> None:
     for sensor, stream, msg in messages:
         run.node.pipeline.dispatch(sensor, stream, msg)
     expected = sum(1 for _, stream, _ in messages if stream == "depth")
-    wait_for(lambda: sum(c["integrated"] for c in run.node.ingest.counters().values()) >= expected - 2, 120,
-             "the scene to be integrated")
+
+    def settled() -> bool:  # nearly every frame integrated, and none still in flight
+        counters = run.node.ingest.counters().values()
+        return (sum(c["integrated"] for c in counters) >= expected - 2
+                and all(c["integrated"] + sum(c["dropped"].values()) >= c["received"] for c in counters))
+
+    wait_for(settled, 120, "the scene to be integrated")
 
 
 def malformed(t_s: float, kind: str, i: int) -> Any:
@@ -363,7 +368,7 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
         assert budgets == [0.001]
         budgets.clear()
         run.node.publish_mesh()  # idle: slices until the net has judged everything
-        assert len(budgets) > 1 and set(budgets) == {1.0 / mesh_rate_hz}
+        assert budgets and set(budgets) == {1.0 / mesh_rate_hz}  # as many slices as it takes
         assert engine.counters["alpha_backlog_blocks"] == 0
         run.node.publish_mesh()  # the update that shows the judged blocks
         stats = engine.stats()
