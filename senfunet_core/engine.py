@@ -62,6 +62,7 @@ from .errors import InputError
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BlockGrid, block_keys, keys_to_coords
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
+from .memory import release_free_memory
 from .mesh_archive import MeshArchive
 from .mesher import BlockMeshes, BlockTriangles, Mesh, alpha_colors, marching_cubes_blocks, to_mesh, weld
 from .spill import BlockSpill
@@ -437,6 +438,7 @@ class SenFuNet:
         with self._updating():
             if which == FUSED:
                 self._refresh_alpha()
+                release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise
             parts = []
             with self._data_lock:  # one consistent state of the whole map
                 slots = np.arange(self.grid.n_blocks)
@@ -454,6 +456,8 @@ class SenFuNet:
         vertices = np.concatenate([p.vertices_vox for p in parts])
         faces = np.concatenate([p.faces + o for p, o in zip(parts, offsets)])
         values = np.concatenate([p.vertex_values for p in parts]) if which == FUSED else None
+        parts.clear()  # the batches' buffers, copied above: not held through welding
+        release_free_memory()
         if archived.n_faces == 0:
             vertices, faces, values = weld(vertices, faces, values)
             return to_mesh(vertices, faces, self.config.voxel_size_m, values)

@@ -519,12 +519,14 @@ def weld(vertices_vox: np.ndarray, faces: np.ndarray, vertex_values: np.ndarray 
     off_grid = np.abs(vertices_vox - np.round(vertices_vox))
     axis = np.argmax(off_grid, axis=1)
     on_node = off_grid.max(axis=1) < 1e-4  # the surface passes through a sample exactly
+    del off_grid  # temporaries go as soon as they are used: welding is extraction's memory peak
     base = np.round(vertices_vox).astype(np.int64)
     rows = np.arange(len(base))
     base[rows, axis] = np.floor(vertices_vox[rows, axis]).astype(np.int64)
     base[on_node] = np.round(vertices_vox[on_node]).astype(np.int64)
     axis[on_node] = 3
     first, inverse = _unique_edges(base, axis)
+    del base, axis, on_node
     faces = inverse[faces]
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     values = None if vertex_values is None else vertex_values[first]

@@ -408,3 +408,19 @@ def test_unique_edges_equals_numpy_unique_over_rows(spread):
     np.testing.assert_array_equal(first, first_rows)
     np.testing.assert_array_equal(inverse, inverse_rows.reshape(-1))
     assert len(first) < len(base)
+
+
+@pytest.mark.parametrize("span", [50, 3 << 20])  # packed into one int64 key; too wide to pack: by rows
+def test_edge_keys_are_unique_like_rows(span):
+    from senfunet_core.mesher import _unique_edges
+
+    rng = np.random.default_rng(span)
+    base = rng.integers(-span // 2, span // 2, (20_000, 3))
+    base[rng.random(len(base)) < 0.5] = base[0]  # many repeats
+    base[: 1000] = base[1000:2000]
+    axis = rng.integers(0, 4, len(base))
+    _, first, inverse = np.unique(np.concatenate([base, axis[:, None]], axis=1), axis=0, return_index=True,
+                                  return_inverse=True)
+    got_first, got_inverse = _unique_edges(base, axis)
+    np.testing.assert_array_equal(got_first, first)
+    np.testing.assert_array_equal(got_inverse, inverse.reshape(-1))
