@@ -633,8 +633,9 @@ class FusionNode(Node):
 
     def _wait_mesh_acked(self, deadline: float) -> None:
         """Until every reader acknowledged ~/mesh's samples, or time.monotonic() reaches deadline.
-        Polled with short sleeps, so the node's other threads run meanwhile (a blocking wait in the
-        binding could hold the GIL)."""
+        Polled with short sleeps, so the node's other threads run meanwhile: rclpy's
+        Publisher.wait_for_all_acked holds the GIL for as long as it blocks (its binding does not
+        release it), which would stop integration and the subscriptions."""
         while not self.mesh_pub.wait_for_all_acked(_NO_WAIT) and time.monotonic() < deadline:
             time.sleep(0.002)
 
