@@ -454,7 +454,9 @@ class SenFuNet:
             return Mesh.empty()
         offsets = np.cumsum([0] + [len(p.vertices_vox) for p in parts])
         vertices = np.concatenate([p.vertices_vox for p in parts])
-        faces = np.concatenate([p.faces + o for p, o in zip(parts, offsets)])
+        # int32 indices (a Mesh's): half the memory of the batches' int64 through welding
+        index = np.int32 if offsets[-1] + len(archived.vertices) < np.iinfo(np.int32).max else np.int64
+        faces = np.concatenate([(p.faces + o).astype(index) for p, o in zip(parts, offsets)])
         values = np.concatenate([p.vertex_values for p in parts]) if which == FUSED else None
         parts.clear()  # the batches' buffers, copied above: not held through welding
         release_free_memory()

@@ -527,7 +527,7 @@ def weld(vertices_vox: np.ndarray, faces: np.ndarray, vertex_values: np.ndarray 
     axis[on_node] = 3
     first, inverse = _unique_edges(base, axis)
     del base, axis, on_node
-    faces = inverse[faces]
+    faces = inverse.astype(faces.dtype, copy=False)[faces]  # the faces' index type (int32 halves them)
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     values = None if vertex_values is None else vertex_values[first]
     return vertices_vox[first], faces[keep], values
