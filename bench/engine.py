@@ -122,6 +122,8 @@ def main() -> None:
         base, weights = engine_config(settings), engine_weights(settings)
     except Exception:  # the ROS layer is optional here
         base, weights = EngineConfig(), "default"
+    # G on as many threads as the peak is measured with (the node's config evaluates idle catch-ups on every core)
+    base = replace(base, alpha_threads=args.threads)
     configs = {
         "exact (alpha_voxels=all, tolerance 0)": replace(base, alpha_voxels="all", alpha_tolerance=0.0,
                                                          torch_threads=args.threads),
