@@ -125,8 +125,8 @@ def main() -> None:
     # G on as many threads as the peak is measured with (the node's config evaluates idle catch-ups on every core)
     base = replace(base, alpha_threads=args.threads)
     configs = {
-        "exact (alpha_voxels=all, tolerance 0)": replace(base, alpha_voxels="all", alpha_tolerance=0.0,
-                                                         torch_threads=args.threads),
+        "exact (alpha_voxels=all, tolerance 0, float32)": replace(base, alpha_voxels="all", alpha_tolerance=0.0,
+                                                                  alpha_dtype="float32", torch_threads=args.threads),
         f"node (alpha_voxels=surface, tolerance 0, {base.alpha_dtype})":
             replace(base, alpha_voxels="surface", alpha_tolerance=0.0, torch_threads=args.threads),
         f"voxels (alpha_voxels=surface_voxels, tolerance 0, {base.alpha_dtype})":
