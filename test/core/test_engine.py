@@ -543,28 +543,35 @@ def test_alpha_budget_defers_work_and_holds_back_single_sensor_voxels():
     np.testing.assert_allclose(caught_up.meshes.vertices, full.meshes.vertices, atol=1e-6)
 
 
+FAR_C = np.array([3.0, 0.0, 0.0])  # the map bound tests' second sphere, 3 m from the first
+
+
+def far_views(n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(centre, T_world_camera) views of the sphere at FAR_C, as SPHERE_VIEWS see the first one."""
+    return [(FAR_C, look_at(FAR_C + 0.9 * (T[:3, 3] - SPHERE_C), FAR_C)) for T in SPHERE_VIEWS[:n]]
+
+
+def integrate_views(engine: SenFuNet, views: list[tuple[np.ndarray, np.ndarray]]) -> None:
+    """Both sensors see the same depth image of each (centre, T_world_camera) view."""
+    for centre, T in views:
+        depth = render_sphere(centre, SPHERE_R, SPHERE_K, T)
+        engine.integrate("tof", depth, SPHERE_K, T)
+        engine.integrate("stereo", depth, SPHERE_K, T)
+
+
 def test_max_blocks_evicts_the_blocks_farthest_from_the_camera_and_keeps_their_mesh(tmp_path):
     """The memory bound: past max_blocks, the blocks farthest from the last camera are evicted; the
     blocks kept hold exactly what an unbounded engine holds for them, and are found again; the
     evicted blocks' final meshes stay shown and saved: the fused mesh equals the unbounded one."""
-    K = SPHERE_K
-    far = np.array([3.0, 0.0, 0.0])  # a second sphere, 3 m away, seen last
-    views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]]
-    views += [(far, look_at(far + 0.9 * (T[:3, 3] - SPHERE_C), far)) for T in SPHERE_VIEWS[:2]]
-    def integrate(engine: SenFuNet, centre: np.ndarray, T: np.ndarray) -> None:
-        depth = render_sphere(centre, SPHERE_R, K, T)
-        engine.integrate("tof", depth, K, T)
-        engine.integrate("stereo", depth, K, T)
-
+    views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2)  # the far sphere seen last
     reference = engine_for_tests()
-    for centre, T in views:
-        integrate(reference, centre, T)
+    integrate_views(reference, views)
     reference.update()
     n_all = reference.grid.n_blocks
     bounded = engine_for_tests(max_blocks=int(0.7 * n_all))
     shown: dict = {}
     for i, (centre, T) in enumerate(views):
-        integrate(bounded, centre, T)
+        integrate_views(bounded, [(centre, T)])
         if i == 1:  # the first sphere is meshed (and shown) before the far one comes
             shown.update(bounded.update().changed)
     update = bounded.update()
@@ -838,26 +845,20 @@ def test_evicted_blocks_come_back_from_disk_when_seen_again(tmp_path, min_new_bl
     the blocks continue from what they held (however few samples reach them: they are not new to
     the allocation policy): every block then holds exactly what an unbounded engine holds for it,
     and the two hold the same blocks, also across save and load of the bounded engine in between."""
-    K = SPHERE_K
-    far = np.array([3.0, 0.0, 0.0])
     near_views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]]
-    far_views = [(far, look_at(far + 0.9 * (T[:3, 3] - SPHERE_C), far)) for T in SPHERE_VIEWS[:2]]
     back_views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:3]]
 
     def integrate(engine: SenFuNet, views) -> None:
-        for centre, T in views:
-            depth = render_sphere(centre, SPHERE_R, K, T)
-            engine.integrate("tof", depth, K, T)
-            engine.integrate("stereo", depth, K, T)
+        integrate_views(engine, views)
         engine.update()
 
     reference = engine_for_tests(min_new_block_samples=min_new_block_samples)
-    for views in (near_views, far_views, back_views):
+    for views in (near_views, far_views(2), back_views):
         integrate(reference, views)
     bounded = engine_for_tests(max_blocks=int(0.6 * reference.grid.n_blocks),
                                min_new_block_samples=min_new_block_samples)
     integrate(bounded, near_views)
-    integrate(bounded, far_views)  # the near sphere's blocks go to disk
+    integrate(bounded, far_views(2))  # the near sphere's blocks go to disk
     spilled = bounded.stats()["spilled_blocks"]
     assert spilled > 50
     path = tmp_path / "map.pt"
@@ -882,26 +883,16 @@ def test_a_frame_reaching_blocks_while_they_are_evicted_is_in_their_final_mesh()
     the meantime is integrated, and their archived meshes are redone with it: they equal the
     meshes of an unbounded engine that fused the same frames."""
     K = SPHERE_K
-    far = np.array([3.0, 0.0, 0.0])
-    views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]]
-    views += [(far, look_at(far + 0.9 * (T[:3, 3] - SPHERE_C), far)) for T in SPHERE_VIEWS[:2]]
+    views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2)
     late_T = SPHERE_VIEWS[2]  # the near sphere again, arriving during the eviction
     late = render_sphere(SPHERE_C, SPHERE_R, K, late_T)
-
-    def integrate(engine: SenFuNet, centre: np.ndarray, T: np.ndarray) -> None:
-        depth = render_sphere(centre, SPHERE_R, K, T)
-        engine.integrate("tof", depth, K, T)
-        engine.integrate("stereo", depth, K, T)
-
     reference = engine_for_tests()
-    for centre, T in views:
-        integrate(reference, centre, T)
+    integrate_views(reference, views)
     n_all = reference.grid.n_blocks
     reference.integrate("tof", late, K, late_T)
     reference.update()
     bounded = engine_for_tests(max_blocks=int(0.85 * n_all))  # below the hard bound: the update evicts
-    for centre, T in views:
-        integrate(bounded, centre, T)
+    integrate_views(bounded, views)
     assert bounded.stats()["evicted_blocks"] == 0
     evaluate = bounded.alpha.evaluate
 
