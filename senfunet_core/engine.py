@@ -772,8 +772,9 @@ class SenFuNet:
             victims = store.farthest(self._camera_m, keep=int(0.9 * self.max_blocks),
                                      voxel_size_m=self.config.voxel_size_m)
             victim_coords = self.grid.coords[victims].numpy()  # copies (fancy index)
-            read = store.neighbours(victims)[:, _MESH_READ_CODES]  # the blocks the victims' cells read
-            readers = store.neighbours(victims)[:, _MESH_READER_CODES]  # the blocks whose cells read victims
+            around_victims = store.neighbours(victims)
+            read = around_victims[:, _MESH_READ_CODES]  # the blocks the victims' cells read
+            readers = around_victims[:, _MESH_READER_CODES]  # the blocks whose cells read victims
             readers = np.setdiff1d(readers[readers >= 0], victims)
             scope = store.neighbours(np.union1d(victims, readers))[:, _MESH_READ_CODES]
             around = np.unique(scope[scope >= 0])  # every block whose alpha the final meshes read

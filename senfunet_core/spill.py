@@ -55,16 +55,29 @@ class BlockSpill:
         """Spill blocks: keys (N int64) and, per channel, its N rows (any dtype, N first)."""
         if len(keys) == 0:
             return
-        file = self._open()
-        file.seek(self._end)
         flat = [np.ascontiguousarray(r).reshape(len(keys), -1).view(np.uint8) for r in rows]
-        for n, key in enumerate(keys.tolist()):
-            blob = self._compressor.compress(b"".join(channel[n].tobytes() for channel in flat))
-            if key in self._index:  # spilled before and not taken back: the newer rows win
-                self._dead += self._index[key][1]
-            self._index[key] = (self._end, len(blob))
-            file.write(blob)
-            self._end += len(blob)
+        previous = {key: self._index.get(key) for key in keys.tolist()}  # to undo a failed write
+        end, dead = self._end, self._dead
+        try:
+            file = self._open()
+            file.seek(self._end)
+            for n, key in enumerate(keys.tolist()):
+                blob = self._compressor.compress(b"".join(channel[n].tobytes() for channel in flat))
+                file.write(blob)
+                if key in self._index:  # spilled before and not taken back: the newer rows win
+                    self._dead += self._index[key][1]
+                self._index[key] = (self._end, len(blob))
+                self._end += len(blob)
+        except OSError as err:  # none of them spilled: the caller keeps the blocks in memory
+            for key, entry in previous.items():
+                if entry is None:
+                    self._index.pop(key, None)
+                else:
+                    self._index[key] = entry
+            self._end, self._dead = end, dead
+            where = self._directory or tempfile.gettempdir()
+            raise OSError(f"cannot write evicted blocks to the spill file in {where}: {err}; free disk space "
+                          "there, point TMPDIR at a disk with room, or raise the map bound (max_map_blocks)") from err
 
     def take(self, keys: np.ndarray, rows: list[np.ndarray]) -> np.ndarray:
         """Restore the spilled blocks among `keys` into `rows` (per channel, N rows each, written in

@@ -69,3 +69,25 @@ def test_state_dict_and_compaction_keep_every_block(via, monkeypatch):
     assert spill.take(keys[::-1].copy(), [o[::-1] for o in out]).all()
     for channel, original in zip(out, rows):
         np.testing.assert_array_equal(channel, original)
+
+
+def test_a_failed_write_spills_nothing_and_says_what_to_do(tmp_path, monkeypatch):
+    """A full disk: put raises an error naming the place and the remedies, and the spill holds what
+    it held before (the caller keeps those blocks in memory)."""
+    spill = BlockSpill(str(tmp_path))
+    keys = np.array([1, 2], np.int64)
+    spill.put(keys[:1], rows_of(keys[:1], 0))
+    nbytes = spill.nbytes
+    file = spill._open()
+
+    def full(_data: bytes) -> int:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(file, "write", full)
+    with pytest.raises(OSError, match=f"in {tmp_path}: .*No space left.*TMPDIR.*max_map_blocks"):
+        spill.put(keys, rows_of(keys, 1))
+    assert len(spill) == 1 and 2 not in spill and spill.nbytes == nbytes
+    monkeypatch.undo()
+    out = empty_like(rows_of(keys[:1], 2))
+    assert spill.take(keys[:1], out).all()
+    np.testing.assert_array_equal(out[0], rows_of(keys[:1], 0)[0])
