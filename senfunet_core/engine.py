@@ -843,13 +843,13 @@ class SenFuNet:
                 evicted = np.isin(key, victim_keys)
                 owner[evicted] = np.minimum(owner[evicted], key[evicted])
             seam = np.flatnonzero(owner < np.iinfo(np.int64).max)
-            for key in np.unique(owner[seam]).tolist():
+            owners = np.unique(owner[seam])
+            for key, block in zip(owners.tolist(), keys_to_coords(torch.from_numpy(owners)).tolist()):
                 faces = tris.faces[seam[owner[seam] == key]]
                 used, local = np.unique(faces, return_inverse=True)
                 values = tris.vertex_values[used] if tris.vertex_values is not None else None
                 mesh = to_mesh(tris.vertices_vox[used], local.reshape(-1, 3), voxel_size_m, values)
-                block = tuple(keys_to_coords(torch.tensor([key])).numpy()[0].tolist())
-                seams.setdefault(block, []).append(mesh)
+                seams.setdefault(tuple(block), []).append(mesh)
         return {block: _joined(parts) for block, parts in seams.items()}
 
     def _block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
