@@ -4,13 +4,18 @@ Integration marks the blocks it touched (`BlockStore.alpha_pending`) and accumul
 input drift. `schedule` turns that drift into stale blocks (every block within 2 voxels of a
 drifted voxel, `alpha.take_drift`); `order` lists the stale blocks, those the latest frames reached
 first; `evaluate` runs the net on a batch of them where alpha matters (`EngineConfig.alpha_voxels`,
-see `alpha`); `write` stores the results. The engine decides when (budgets, eviction points) and
-holds its locks as the threading model in `engine` says: the scheduler takes the data lock it is
-given only around its reads of drift and its writes.
+see `alpha`); `write` stores the results; `refresh` does all of it within a budget, on
+`alpha_threads` threads when it may. The engine decides when (budgets, eviction points) and holds
+its locks as the threading model in `engine` says: the scheduler takes the data lock it is given
+only around its reads of drift and its writes.
 """
 from __future__ import annotations
 
+import collections
 import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,10 +23,10 @@ import numpy as np
 import torch
 
 from .alpha import WINDOW, evaluate_gathers, surface_targets, take_drift, target_gathers, weighting_windows
-from .block_store import BlockStore
+from .block_store import BlockStore, Eviction
 from .grid import BLOCK
 
-__all__ = ["AlphaBatch", "AlphaScheduler"]
+__all__ = ["AlphaBatch", "AlphaScheduler", "Refresh"]
 
 
 @dataclass
@@ -33,6 +38,22 @@ class AlphaBatch:
     voxels: np.ndarray  # N flat voxel indices evaluated (slot * 512 + local)
     alpha: np.ndarray  # N float32
     flops: int = 0  # the net's FLOPs for it (for the benchmark's fraction of peak)
+
+
+@dataclass
+class Refresh:
+    """What one `AlphaScheduler.refresh` did."""
+
+    blocks: int  # blocks judged (holding voxels alpha matters for)
+    voxels: int  # voxels evaluated
+    backlog: int  # stale blocks left for later (the budget ran out, or a frame came)
+
+
+def _done(value: Any) -> Future:
+    """A future that already holds `value`."""
+    future: Future = Future()
+    future.set_result(value)
+    return future
 
 
 _BELOW_HALF = np.nextafter(np.float16(0.5), np.float16(0))
@@ -54,7 +75,7 @@ class AlphaScheduler:
 
     def __init__(self, store: BlockStore, net: Any, data_lock: threading.RLock, *, alpha_voxels: str,
                  alpha_dtype: str, alpha_tolerance: float, tsdf_input: bool, band_m: float,
-                 device: torch.device) -> None:
+                 device: torch.device, batch_blocks: int, threads: int) -> None:
         self.store = store
         self.net = net
         self._data_lock = data_lock
@@ -64,6 +85,9 @@ class AlphaScheduler:
         self.tsdf_input = tsdf_input
         self.tsdf_scale = 2.0 / band_m
         self.device = device
+        self.batch_blocks = batch_blocks
+        self.threads = threads
+        self._executor: ThreadPoolExecutor | None = None  # threads > 1: evaluates batches side by side
         self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
         self.flops = 0  # weighting-net FLOPs written so far (for the benchmark's fraction of peak)
 
@@ -153,6 +177,51 @@ class AlphaScheduler:
             self._data_lock.release()
         results.clear()
 
+    def refresh(self, budget_s: float | None, *, until_frame: Callable[[], bool] | None,
+                eviction_due: Callable[[], bool], evict: Callable[[], Eviction | None]) -> Refresh:
+        """Re-evaluate alpha on the stale blocks in `order`, batch by batch; each batch first drops
+        the blocks that hold no voxel alpha matters for (checked then, not when scheduling, so that
+        a budget also bounds the checking). With a budget (seconds), stop after the batch that
+        exhausts it, and with `until_frame` once it says a frame was integrated: the rest stays
+        stale for later. Without a budget or with `until_frame` (no frame is coming), `threads`
+        batches are evaluated at once (each single-threaded, so alpha does not depend on how many).
+        Between batches, where no evaluated batch waits to be written, it calls `evict` when
+        `eviction_due` (integration outgrew the map bound) and follows the blocks that moved."""
+        self.schedule()
+        order = self.order()
+        start = time.perf_counter()
+        done = voxels = 0
+        # batches evaluated at once: one while frames come (integration needs the other core)
+        ahead = self.threads if budget_s is None or until_frame is not None else 1
+        # Results are written whenever the data lock is free, not waited for batch by batch: time
+        # spent waiting for integration's kernels would come out of the net's budget.
+        results: list[AlphaBatch] = []
+        evaluating: collections.deque[Future[AlphaBatch]] = collections.deque()
+        left = order[:0]
+        while len(order) or evaluating:
+            if len(order) and ((budget_s is not None and time.perf_counter() - start > budget_s)
+                               or (until_frame is not None and until_frame())):
+                order, left = order[:0], order  # evaluate no more; the batches under way are written
+            if eviction_due():
+                results += [future.result() for future in evaluating]  # read before slots move
+                evaluating.clear()
+                self.write(results, wait=True)
+                eviction = evict()
+                if eviction is not None:
+                    order, _ = eviction.follow(order)
+            while len(order) and len(evaluating) < ahead:
+                batch, order = order[:self.batch_blocks], order[self.batch_blocks:]
+                evaluating.append(self._pool().submit(self.evaluate, batch) if ahead > 1
+                                  else _done(self.evaluate(batch)))
+            if not evaluating:
+                continue
+            results.append(evaluating.popleft().result())
+            done += int(results[-1].holds.sum())
+            voxels += len(results[-1].voxels)
+            self.write(results, wait=False)
+        self.write(results, wait=True)
+        return Refresh(done, voxels, len(left))
+
     def windows(self, neighbours: np.ndarray) -> np.ndarray:
         """The weighting net's B x 12^3 x C input windows of these blocks (alpha.weighting_windows)."""
         return weighting_windows(neighbours, *self.inputs())
@@ -165,6 +234,12 @@ class AlphaScheduler:
         else:
             tsdf = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
         return (*self.store.views("feat0", "weight0", "feat1", "weight1"), *tsdf, self.tsdf_scale)
+
+    def _pool(self) -> ThreadPoolExecutor:
+        """The threads that evaluate batches side by side (created on first use)."""
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(self.threads, thread_name_prefix="senfunet-alpha")
+        return self._executor
 
     def _flops(self, *, layer_1_positions: int, voxels: int, inputs: int) -> int:
         """Multiply-adds of the weighting net (x2 = FLOPs)."""

@@ -6,9 +6,10 @@
     mesh = engine.extract_mesh("fused")                         # or a sensor name, or "tsdf_fusion"
 
 Rooms: the map's blocks and per-block flags live in `block_store.BlockStore`; which blocks the
-weighting net must judge, and judging them, in `alpha_scheduler.AlphaScheduler`; the final meshes
-of evicted blocks in `mesh_archive.MeshArchive`, and their voxels in `spill.BlockSpill` (on disk).
-This module holds the verbs, the locks, the map bound and meshing.
+weighting net must judge, and judging them, in `alpha_scheduler.AlphaScheduler`; marching cubes
+over blocks in `block_mesher.BlockMesher`; the map bound (which blocks leave memory, their final
+meshes in `mesh_archive.MeshArchive`, their voxels in `spill.BlockSpill` on disk) in
+`map_bound.MapBound`. This module holds the verbs, the networks and the locks.
 
 Incremental update: a frame marks the blocks it touched, and every voxel accumulates how much its
 weighting-net inputs drifted (see `alpha`). `update` re-evaluates alpha within 2 voxels of a
@@ -26,7 +27,7 @@ Threading model (the one place it is described):
   their results. Several threads may integrate, and several may
   update: the locks serialise them.
 - The update lock (`_updating`) serialises updates, extractions, saves and evictions; it owns the
-  alpha scheduler's order, the mesh archive and the set of meshed blocks.
+  alpha scheduler's order, the map bound (its archive) and the set of meshed blocks.
 - The data lock guards the grid's contents and the per-block flags: integration holds it while its
   kernels run, an update while it takes the frames' drift, writes alpha or evicts. An update (or
   its alpha threads, which write nothing) reads input windows without it (and `stats` counts
@@ -41,10 +42,8 @@ Threading model (the one place it is described):
 """
 from __future__ import annotations
 
-import collections
 import contextlib
 import logging
-import os
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -57,28 +56,20 @@ import numpy as np
 import torch
 
 from . import networks
-from .alpha_scheduler import AlphaBatch, AlphaScheduler
+from .alpha_scheduler import AlphaScheduler
+from .block_mesher import FUSED, TSDF_FUSION, BlockMesher, welded_mesh
 from .block_store import BlockStore, Eviction
 from .errors import InputError
-from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BlockGrid, block_keys, keys_to_coords
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
+from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
 from .mesh_archive import MeshArchive
-from .mesher import BlockMeshes, BlockTriangles, Mesh, alpha_colors, marching_cubes_blocks, to_mesh, weld
+from .mesher import BlockMeshes, Mesh
 from .spill import BlockSpill
 
 log = logging.getLogger("senfunet.engine")
 
-TSDF_FUSION = "tsdf_fusion"
-FUSED = "fused"
-# Neighbour-table codes of the blocks whose marching-cubes cells read a block: itself and its
-# -x, -y, -z neighbours (code 9*(dx+1) + 3*(dy+1) + (dz+1), offsets in {-1, 0}).
-_MESH_READER_CODES = np.array([9 * dx + 3 * dy + dz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
-# ... and of the blocks a block's cells read: itself and its +x, +y, +z neighbours
-_MESH_READ_CODES = np.array([9 * dx + 3 * dy + dz for dx in (1, 2) for dy in (1, 2) for dz in (1, 2)])
-# integrate() itself drops far blocks once the map exceeds max_blocks by this factor (updates do it first)
-_HARD_BOUND = 1.25
 # One thread runs the feature nets (of every engine in the process), so that a frame's feature net
 # overlaps the kernels of the frame before it (see `prepare`) and the kernel that locates its samples.
 _FEATURE_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="senfunet-features")
@@ -195,60 +186,10 @@ class WeightCloud:
     weights: np.ndarray  # N x n_sensors float32 weight counters
 
 
-def _done(value: Any) -> Future:
-    """A future that already holds `value`."""
-    future: Future = Future()
-    future.set_result(value)
-    return future
-
-
-def _joined(meshes: list[Mesh]) -> Mesh:
-    """One mesh of several (vertices not shared between them)."""
-    if len(meshes) == 1:
-        return meshes[0]
-    starts = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
-    colors = [m.colors if m.colors is not None else np.ones((len(m.vertices), 3), np.float32) for m in meshes]
-    return Mesh(np.concatenate([m.vertices for m in meshes]),
-                np.concatenate([m.faces + start for m, start in zip(meshes, starts)]).astype(np.int32),
-                np.concatenate(colors))
-
-
-def _with_seams(archived: BlockMeshes, seams: dict[tuple[int, int, int], Mesh]) -> BlockMeshes:
-    """The evicted blocks' meshes with the seam triangles that go with them (`SenFuNet._seam_meshes`)."""
-    if not seams:
-        return archived
-    meshes = archived.as_dict()
-    for block, seam in seams.items():
-        meshes[block] = _joined([meshes[block], seam]) if block in meshes else seam
-    return BlockMeshes.from_meshes(meshes)
-
-
-def _compact_offsets(offsets: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """Offsets of the kept blocks' ranges when the dropped blocks' ranges are empty."""
-    return np.concatenate([[offsets[0]], offsets[keep + 1]]).astype(np.int64)
-
-
-def memory_bound_blocks(bytes_per_block: int, *, memory_fraction: float = 0.5) -> int:
-    """How many blocks fit in `memory_fraction` of this machine's memory (at most 80% of what is
-    available now): the default map bound follows the machine, not a fixed count."""
-    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    available = total
-    try:
-        with open("/proc/meminfo") as meminfo:
-            for line in meminfo:
-                if line.startswith("MemAvailable:"):
-                    available = int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    budget = min(memory_fraction * total, 0.8 * available)
-    return max(1024, int(budget // bytes_per_block))
-
-
 class SenFuNet:
     """Learned two-sensor TSDF fusion on sparse voxel blocks, plus the plain TSDF Fusion baseline."""
 
     _cleared: bool  # reset since the last mesh update (set by _reset_state, which __init__ calls)
-    _newly_archived: list[BlockMeshes]  # evicted blocks' final meshes, sent by the next update
 
     def __init__(self, config: EngineConfig = EngineConfig(), weights: str | Path | None = "default") -> None:
         config.validate()
@@ -294,7 +235,6 @@ class SenFuNet:
         if self.max_blocks > 0:  # evicted blocks go to disk, and come back when the sensors reach them again
             self.grid.spill = BlockSpill()
             self.grid.restored_fill = {"drift": float("inf")}  # alpha within 2 voxels of them is re-judged
-        self.archive = MeshArchive()  # final meshes of evicted blocks (owned by the update lock)
         # Writers of the grid (integration, alpha) hold the data lock; the update's readers do not:
         # a block integrated while it is read is marked again and re-read by the next update, and
         # pools that grow meanwhile stay valid for whoever still holds the old ones.
@@ -303,8 +243,13 @@ class SenFuNet:
         self._update_lock = threading.RLock()  # one update or extraction at a time
         self.alpha = AlphaScheduler(self.store, self.weighting_net, self._data_lock, alpha_voxels=config.alpha_voxels,
                                     alpha_dtype=config.alpha_dtype, alpha_tolerance=config.alpha_tolerance,
-                                    tsdf_input=config.weighting_tsdf_input, band_m=config.band_m, device=self.device)
-        self._alpha_executor: ThreadPoolExecutor | None = None  # alpha_threads > 1: evaluates batches of updates
+                                    tsdf_input=config.weighting_tsdf_input, band_m=config.band_m, device=self.device,
+                                    batch_blocks=config.alpha_batch_blocks, threads=config.alpha_threads)
+        self.mesher = BlockMesher(self.store, sensors=config.sensors, voxel_size_m=config.voxel_size_m,
+                                  mesh_batch_blocks=config.mesh_batch_blocks, timed=self._timed)
+        self.bound = MapBound(self.store, self.alpha, self.mesher, self._data_lock, max_blocks=self.max_blocks,
+                              voxel_size_m=config.voxel_size_m, alpha_batch_blocks=config.alpha_batch_blocks)
+        self.archive: MeshArchive = self.bound.archive  # final meshes of evicted blocks (owned by the update lock)
         # integration past the hard bound waits on this until an eviction (or the running update) ends
         self._eviction_done = threading.Condition()  # reentrant: an evicting waiter notifies
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0, "sparse_dropped_samples": 0,
@@ -359,9 +304,9 @@ class SenFuNet:
             self.frames_integrated[cfg.sensors[s]] += 1
             self.counters["sparse_dropped_samples"] += update.dropped_samples
             self.counters["sparse_dropped_blocks"] += update.dropped_blocks
-            self._camera_m = np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy()
+            self.bound.camera_m = np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy()
         self._timed(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
-        if self._eviction_due():
+        if self.bound.over_hard_bound():
             self._wait_for_eviction()
         return update.voxels_updated
 
@@ -381,7 +326,9 @@ class SenFuNet:
                 self._refresh_alpha(alpha_budget_s)
             t1 = time.perf_counter()
             with self._data_lock:
-                slots = self._take_mesh_pending()
+                pending = np.flatnonzero(self.store.mesh_pending[: self.grid.n_blocks])
+                self.store.mesh_pending[pending] = False
+                slots = self.mesher.mesh_readers(pending)
                 coords = self.grid.coords[slots].numpy().copy()
             self.counters["mesh_blocks"] += len(slots)
             self.counters["mesh_blocks_last"] = len(slots)
@@ -391,8 +338,7 @@ class SenFuNet:
             has_faces = {tuple(k) for k in live.keys.tolist()}
             self.archive.replace(has_faces)
             # the evicted blocks' final meshes: subscribers keep showing them (unless live again)
-            archived = BlockMeshes.concatenate(self._newly_archived)
-            self._newly_archived = []
+            archived = self.bound.take_archived()
             not_live = [key not in has_faces for key in map(tuple, archived.keys.tolist())]
             archived = archived.select(np.flatnonzero(not_live))
             result.meshes = BlockMeshes.concatenate([live, archived])
@@ -440,36 +386,15 @@ class SenFuNet:
             if which == FUSED:
                 self._refresh_alpha()
                 release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise
-            parts = []
             with self._data_lock:  # one consistent state of the whole map
                 slots = np.arange(self.grid.n_blocks)
                 coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
-                for start in range(0, len(slots), self.config.mesh_batch_blocks):
-                    parts.append(self._mesh_batch(slots[start:start + self.config.mesh_batch_blocks], which,
-                                                  filtered))
+                parts = self.mesher.batches(slots, which, filtered)
             archived = Mesh.empty()
             if which == FUSED and filtered and len(self.archive):
                 live_with_faces = np.concatenate([np.diff(p.face_offsets) > 0 for p in parts] or [np.zeros(0, bool)])
                 archived = self.archive.mesh(exclude={tuple(k) for k in coords[live_with_faces].tolist()})
-        if not parts and archived.n_faces == 0:
-            return Mesh.empty()
-        offsets = np.cumsum([0] + [len(p.vertices_vox) for p in parts])
-        vertices = np.concatenate([p.vertices_vox for p in parts])
-        # int32 indices (a Mesh's): half the memory of the batches' int64 through welding
-        index = np.int32 if offsets[-1] + len(archived.vertices) < np.iinfo(np.int32).max else np.int64
-        faces = np.concatenate([(p.faces + o).astype(index) for p, o in zip(parts, offsets)])
-        values = np.concatenate([p.vertex_values for p in parts]) if which == FUSED else None
-        parts.clear()  # the batches' buffers, copied above: not held through welding
-        release_free_memory()
-        if archived.n_faces == 0:
-            vertices, faces, values = weld(vertices, faces, values)
-            return to_mesh(vertices, faces, self.config.voxel_size_m, values)
-        # welded with the archive: colours instead of alpha, the archive's vertices back in voxels
-        faces = np.concatenate([faces, archived.faces + len(vertices)])
-        vertices = np.concatenate([vertices, archived.vertices / self.config.voxel_size_m])
-        assert values is not None and archived.colors is not None  # fused: alpha per vertex; archive: colours
-        welded, faces, colors = weld(vertices, faces, np.concatenate([alpha_colors(values), archived.colors]))
-        return Mesh((welded * self.config.voxel_size_m).astype(np.float32), faces.astype(np.int32), colors)
+        return welded_mesh(parts, archived, voxel_size_m=self.config.voxel_size_m, fused=which == FUSED)
 
     @torch.inference_mode()
     def voxel_values(self, which: str = FUSED, filtered: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -480,7 +405,8 @@ class SenFuNet:
                 self._refresh_alpha()
             with self._data_lock:
                 slots = torch.arange(self.grid.n_blocks)
-                tsdf, observed = self._values(self._whole_blocks(slots, self._channels(which)), which, filtered)
+                blocks = self.mesher.whole_blocks(slots, self.mesher.channels(which))
+                tsdf, observed = self.mesher.values(blocks, which, filtered)
                 centres = self.grid.voxel_centres(slots, self.config.voxel_size_m)
                 return centres[observed].numpy(), tsdf[observed].numpy()
 
@@ -495,13 +421,13 @@ class SenFuNet:
                 self._refresh_alpha()
             with self._data_lock:
                 slots = torch.arange(self.grid.n_blocks)
-                blocks = self._whole_blocks(slots, self._channels(FUSED))
+                blocks = self.mesher.whole_blocks(slots, self.mesher.channels(FUSED))
                 centres = self.grid.voxel_centres(slots, self.config.voxel_size_m)
         n = len(self.config.sensors)
         weights = torch.stack([blocks[f"weight{i}"] for i in range(n)], dim=-1)
         keep = (weights > 0).any(dim=-1) & torch.isfinite(blocks["alpha"])
         if max_abs_tsdf_m is not None:
-            tsdf, _ = self._values(blocks, FUSED, filtered=False)
+            tsdf, _ = self.mesher.values(blocks, FUSED, filtered=False)
             keep &= tsdf.abs() <= max_abs_tsdf_m
         return WeightCloud(centres[keep].numpy(), blocks["alpha"][keep].numpy().astype(np.float32),
                            weights[keep].numpy().astype(np.float32))
@@ -529,7 +455,7 @@ class SenFuNet:
         """Forget everything fused; the next update reports `cleared`."""
         with self._updating(), self._data_lock:
             self.store.clear()
-            self.archive.clear()
+            self.bound.clear()
             self.frames_integrated = {name: 0 for name in self.config.sensors}
             self._reset_state()
             self._cleared = True
@@ -588,7 +514,7 @@ class SenFuNet:
         engine.frames_integrated.update(state["frames_integrated"])
         if "archive" in state:
             engine.archive.load_state_dict({k: v.numpy() for k, v in state["archive"].items()})
-            engine._newly_archived = [engine.archive.meshes()]  # re-sent with the whole mesh
+            engine.bound.newly_archived = [engine.archive.meshes()]  # re-sent with the whole mesh
         engine.store.grow_flags()
         engine.store.evaluated[: engine.grid.n_blocks] = True  # alpha is part of the saved state
         engine.store.mesh_pending[: engine.grid.n_blocks] = True
@@ -613,7 +539,7 @@ class SenFuNet:
         return {"blocks": self.grid.n_blocks, "observed_voxels": observed, "grid_bytes": nbytes,
                 "bytes_per_observed_voxel": nbytes / max(observed, 1),
                 "frames_integrated": dict(self.frames_integrated),
-                "max_blocks": self.max_blocks, "evicted_blocks": self.counters.get("evicted_blocks", 0),
+                "max_blocks": self.max_blocks, "evicted_blocks": self.bound.evicted_blocks,
                 "sparse_dropped_samples": self.counters["sparse_dropped_samples"],
                 "sparse_dropped_blocks": self.counters["sparse_dropped_blocks"],
                 "occupancy": observed / max(self.grid.n_blocks * 512, 1),
@@ -639,8 +565,6 @@ class SenFuNet:
     def _reset_state(self) -> None:
         """The engine's own state beside the store (call with both locks held, or from __init__)."""
         self.store.clear_flags()
-        self._camera_m = np.zeros(3)  # the last integrated frame's camera centre (the map bound keeps what is near)
-        self._newly_archived = []
         self._meshed: set[tuple[int, int, int]] = set()
         self._cleared = False
 
@@ -666,59 +590,16 @@ class SenFuNet:
             self.total_s[name] = self.total_s.get(name, 0.0) + seconds
 
     def _refresh_alpha(self, budget_s: float | None = None, *, until_frame: bool = False) -> None:
-        """Re-evaluate alpha on the stale blocks in the scheduler's order (`AlphaScheduler.order`),
-        batch by batch; each batch first drops the blocks that hold no voxel alpha matters for
-        (checked here, not when scheduling, so that a budget also bounds the checking). With a
-        budget (seconds), stop after the batch that exhausts it, and with `until_frame` after the
-        batch during which a frame was integrated: the rest stays stale for later. Without a
-        budget or with `until_frame` (no frame is coming), `alpha_threads` batches are evaluated at
-        once (each single-threaded, so alpha does not depend on how many). Between batches, where
-        no evaluated batch waits to be written, it evicts when integration outgrew the bound."""
-        cfg = self.config
-        self.alpha.schedule()
-        order = self.alpha.order()
-        start = time.perf_counter()
-        done = voxels = 0
-        # batches evaluated at once: one while frames come (integration needs the other core)
-        ahead = cfg.alpha_threads if budget_s is None or until_frame else 1
-        # Results are written whenever the data lock is free, not waited for batch by batch: time
-        # spent waiting for integration's kernels would come out of the net's budget.
-        results: list[AlphaBatch] = []
-        evaluating: collections.deque[Future[AlphaBatch]] = collections.deque()
+        """`AlphaScheduler.refresh` with this engine's eviction points; with `until_frame`, until a
+        frame is integrated."""
         frames_at_start = sum(self.frames_integrated.values())
-        left = order[:0]
-        while len(order) or evaluating:
-            if len(order) and ((budget_s is not None and time.perf_counter() - start > budget_s)
-                               or (until_frame and sum(self.frames_integrated.values()) != frames_at_start)):
-                order, left = order[:0], order  # evaluate no more; the batches under way are written
-            if self._eviction_due():
-                results += [future.result() for future in evaluating]  # read before slots move
-                evaluating.clear()
-                self.alpha.write(results, wait=True)
-                eviction = self._evict()
-                if eviction is not None:
-                    order, _ = eviction.follow(order)
-            while len(order) and len(evaluating) < ahead:
-                batch, order = order[:cfg.alpha_batch_blocks], order[cfg.alpha_batch_blocks:]
-                evaluating.append(self._alpha_pool().submit(self.alpha.evaluate, batch) if ahead > 1
-                                  else _done(self.alpha.evaluate(batch)))
-            if not evaluating:
-                continue
-            results.append(evaluating.popleft().result())
-            done += int(results[-1].holds.sum())
-            voxels += len(results[-1].voxels)
-            self.alpha.write(results, wait=False)
-        self.alpha.write(results, wait=True)
-        self.counters["alpha_blocks"] += done
-        self.counters["alpha_voxels"] += voxels
+        refresh = self.alpha.refresh(
+            budget_s, until_frame=(lambda: sum(self.frames_integrated.values()) != frames_at_start) if until_frame
+            else None, eviction_due=self.bound.over_hard_bound, evict=self._evict)
+        self.counters["alpha_blocks"] += refresh.blocks
+        self.counters["alpha_voxels"] += refresh.voxels
         self.counters["alpha_flops"] = self.alpha.flops
-        self.counters["alpha_backlog_blocks"] = len(left)
-
-    def _alpha_pool(self) -> ThreadPoolExecutor:
-        """The threads that evaluate weighting-net batches side by side (created on first use)."""
-        if self._alpha_executor is None:
-            self._alpha_executor = ThreadPoolExecutor(self.config.alpha_threads, thread_name_prefix="senfunet-alpha")
-        return self._alpha_executor
+        self.counters["alpha_backlog_blocks"] = refresh.backlog
 
     def _wait_for_eviction(self) -> None:
         """Integration outgrew the hard bound (updates come too rarely to keep the bound): evict now
@@ -727,7 +608,7 @@ class SenFuNet:
         update notifies `_eviction_done`; the waiter holds its lock from the failed try to the wait,
         so no notification falls in between."""
         with self._eviction_done:
-            while self._eviction_due():
+            while self.bound.over_hard_bound():
                 if self._update_lock.acquire(blocking=False):
                     try:
                         self._evict()
@@ -748,188 +629,34 @@ class SenFuNet:
             yield
         self._notify_eviction_waiters()
 
-    def _eviction_due(self) -> bool:
-        """Integration outgrew the hard bound and waits: an update evicts at its next safe point
-        (between two batches, where it holds no slot)."""
-        return self.max_blocks > 0 and self.grid.n_blocks > _HARD_BOUND * self.max_blocks
-
     def _evict(self) -> Eviction | None:
-        """With a map bound, evict the blocks farthest from the last camera position once the map
-        holds more (down to 90%, so that it does not happen every update). The evicted blocks'
-        final fused meshes, with alpha evaluated where it was stale, go to the archive (the next
-        update sends them; they stay in snapshots and saved meshes), and their voxels to the spill
-        (`spill`), which gives them back when a frame reaches them again. Their neighbours'
-        marching-cubes cells that reached into the evicted blocks are re-meshed without them (so a
-        snapshot equals what the updates sent); the triangles of those cells go to the archive with
-        the evicted blocks (`_seam_meshes`), so no seam opens along the eviction front. Call with
-        the update lock held; the data lock is held only to pick the victims, to redo what a frame
-        changed meanwhile, and to remove them, not while they are first judged and meshed."""
-        if self.max_blocks <= 0 or self.grid.n_blocks <= self.max_blocks:
-            return None
-        t0 = time.perf_counter()
-        store = self.store
-        with self._data_lock:
-            victims = store.farthest(self._camera_m, keep=int(0.9 * self.max_blocks),
-                                     voxel_size_m=self.config.voxel_size_m)
-            victim_coords = self.grid.coords[victims].numpy()  # copies (fancy index)
-            around_victims = store.neighbours(victims)
-            read = around_victims[:, _MESH_READ_CODES]  # the blocks the victims' cells read
-            readers = around_victims[:, _MESH_READER_CODES]  # the blocks whose cells read victims
-            readers = np.setdiff1d(readers[readers >= 0], victims)
-            scope = store.neighbours(np.union1d(victims, readers))[:, _MESH_READ_CODES]
-            around = np.unique(scope[scope >= 0])  # every block whose alpha the final meshes read
-        # Judged and meshed without the data lock, so that integration goes on meanwhile (slots move
-        # only in evictions, which need the update lock, held here) ...
-        self.alpha.schedule()
-        unjudged = around[(store.stale[around] > 0) | ~store.evaluated[around]]
-        archived = self._final_meshes(victims, victim_coords, unjudged)
-        with self._data_lock:
-            # ... and again, under it, where a frame changed them in the meantime
-            touched = around[store.alpha_pending[around]]
-            self.alpha.schedule()
-            changed = np.union1d(touched, around[store.stale[around] > 0])
-            if len(changed):
-                again = np.flatnonzero(np.isin(read, changed).any(axis=1))
-                redone = {tuple(key) for key in victim_coords[again].tolist()}
-                older = [key not in redone for key in map(tuple, archived.keys.tolist())]
-                archived = BlockMeshes.concatenate([archived.select(np.flatnonzero(older)),
-                                                    self._final_meshes(victims[again], victim_coords[again],
-                                                                       around[store.stale[around] > 0])])
-            archived = _with_seams(archived, self._seam_meshes(readers, victim_coords))
-            self.archive.add(archived)
-            self._newly_archived.append(archived)
-            eviction = store.remove(victims)
-        self.counters["evicted_blocks"] = self.counters.get("evicted_blocks", 0) + len(victim_coords)
-        self.counters["evictions"] = self.counters.get("evictions", 0) + 1
-        self._meshed.difference_update(map(tuple, victim_coords.tolist()))
-        spill = self.grid.spill
-        log.info("map bound: evicted %d blocks farthest from the camera (max_blocks %d; %d evicted so far, their "
-                 "final meshes kept: %d archived blocks; their voxels on disk until seen again: %d blocks, %.0f MB) "
-                 "in %.2f s", len(victim_coords), self.max_blocks, self.counters["evicted_blocks"], len(self.archive),
-                 len(spill) if spill is not None else 0, (spill.nbytes if spill is not None else 0) / 1e6,
-                 time.perf_counter() - t0)
-        self._notify_eviction_waiters()
+        """`MapBound.evict` (call with the update lock held); the evicted blocks are no longer shown
+        as live meshes (the archive shows them), and an integration waiting for it goes on."""
+        eviction = self.bound.evict()
+        if eviction is not None:
+            self.counters["evicted_blocks"] = self.bound.evicted_blocks
+            self.counters["evictions"] = self.bound.evictions
+            self._meshed.difference_update(map(tuple, keys_to_coords(torch.from_numpy(eviction.dropped_keys)).tolist()))
+            self._notify_eviction_waiters()
         return eviction
 
-    def _final_meshes(self, slots: np.ndarray, coords: np.ndarray, unjudged: np.ndarray) -> BlockMeshes:
-        """Fused, filtered meshes of blocks about to be evicted, alpha first evaluated on the blocks
-        `unjudged` (those the meshes read whose alpha is stale or was never evaluated)."""
-        cfg = self.config
-        batches = [self.alpha.evaluate(unjudged[start:start + cfg.alpha_batch_blocks])
-                   for start in range(0, len(unjudged), cfg.alpha_batch_blocks)]
-        self.alpha.write(batches, wait=True)
-        return BlockMeshes.concatenate([
-            self._to_block_meshes(self._mesh_batch(slots[i:i + cfg.mesh_batch_blocks], FUSED, filtered=True),
-                                  coords[i:i + cfg.mesh_batch_blocks])
-            for i in range(0, len(slots), cfg.mesh_batch_blocks)])
-
-    def _seam_meshes(self, readers: np.ndarray, victim_coords: np.ndarray) -> dict[tuple[int, int, int], Mesh]:
-        """The triangles of the cells of blocks staying (`readers`) that read blocks about to be
-        evicted, by the evicted block they go with (the least key among those a cell reads): once
-        the readers are re-meshed without the evicted voxels, the archive shows these instead (data
-        lock held, before the removal)."""
-        size, voxel_size_m = self.config.mesh_batch_blocks, self.config.voxel_size_m
-        victim_keys = np.sort(block_keys(torch.from_numpy(victim_coords)).numpy())
-        seams: dict[tuple[int, int, int], list[Mesh]] = {}
-        for start in range(0, len(readers), size):
-            tris = self._mesh_batch(readers[start:start + size], FUSED, filtered=True)
-            if len(tris.faces) == 0:
-                continue
-            # a triangle's cell: the floor of its centroid (strictly inside the cell it came from)
-            cell = np.floor(tris.vertices_vox[tris.faces].mean(axis=1)).astype(np.int64)
-            owner = np.full(len(cell), np.iinfo(np.int64).max)
-            for corner in np.ndindex(2, 2, 2):  # the blocks of the cell's 8 corners
-                key = block_keys(torch.from_numpy(np.floor_divide(cell + np.array(corner), 8))).numpy()
-                evicted = np.isin(key, victim_keys)
-                owner[evicted] = np.minimum(owner[evicted], key[evicted])
-            seam = np.flatnonzero(owner < np.iinfo(np.int64).max)
-            owners = np.unique(owner[seam])
-            for key, block in zip(owners.tolist(), keys_to_coords(torch.from_numpy(owners)).tolist()):
-                faces = tris.faces[seam[owner[seam] == key]]
-                used, local = np.unique(faces, return_inverse=True)
-                values = tris.vertex_values[used] if tris.vertex_values is not None else None
-                mesh = to_mesh(tris.vertices_vox[used], local.reshape(-1, 3), voxel_size_m, values)
-                seams.setdefault(tuple(block), []).append(mesh)
-        return {block: _joined(parts) for block, parts in seams.items()}
-
     def _block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
-        """Fused, filtered meshes of the given blocks (coords: their block keys); blocks without
-        triangles, or evicted meanwhile, are left out."""
+        """Fused, filtered meshes of the given blocks (coords: their block keys), batch by batch,
+        evicting between batches when integration outgrew the bound; blocks without triangles, or
+        evicted meanwhile, are left out."""
         parts, evicted = [], []
         size = self.config.mesh_batch_blocks
         while len(slots):
-            if self._eviction_due():
+            if self.bound.over_hard_bound():
                 eviction = self._evict()
-                assert eviction is not None  # _eviction_due()
+                assert eviction is not None  # over the hard bound
                 slots, kept = eviction.follow(slots)
                 coords = coords[kept]
                 evicted.append(eviction.dropped_keys)
             (batch, slots), (batch_coords, coords) = (slots[:size], slots[size:]), (coords[:size], coords[size:])
-            parts.append(self._to_block_meshes(self._mesh_batch(batch, FUSED, filtered=True), batch_coords))
+            parts.append(self.mesher.block_meshes(batch, batch_coords))
         meshes = BlockMeshes.concatenate(parts)
         if evicted:  # blocks meshed in an earlier batch may be gone: they must not be shown
             gone = np.isin(block_keys(torch.from_numpy(meshes.keys)).numpy(), np.concatenate(evicted))
             meshes = meshes.select(np.flatnonzero(~gone))
         return meshes
-
-    def _to_block_meshes(self, tris: BlockTriangles, coords: np.ndarray) -> BlockMeshes:
-        """One marching-cubes batch as per-block meshes in metres (blocks without triangles left out)."""
-        v_start, f_start = tris.vertex_offsets, tris.face_offsets
-        # the whole batch at once; blocks without triangles have empty ranges
-        whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
-                        self.config.voxel_size_m, tris.vertex_values)
-        keep = np.flatnonzero(np.diff(f_start) > 0)
-        assert whole.colors is not None  # alpha colours: the fused mesh interpolates alpha
-        return BlockMeshes(coords[keep], whole.vertices, whole.colors, whole.faces,
-                           _compact_offsets(v_start, keep), _compact_offsets(f_start, keep))
-
-    def _take_mesh_pending(self) -> np.ndarray:
-        """Blocks to re-mesh: those whose cells read a changed block (call with the data lock held)."""
-        pending = np.flatnonzero(self.store.mesh_pending[: self.grid.n_blocks])
-        if len(pending) == 0:
-            return pending
-        self.store.mesh_pending[pending] = False
-        readers = self.store.neighbours(pending)[:, _MESH_READER_CODES]
-        return np.unique(readers[readers >= 0])
-
-    def _channels(self, which: str) -> list[str]:
-        """The channels `_values` reads for `which`."""
-        if which == FUSED:
-            return ["tsdf0", "weight0", "tsdf1", "weight1", "alpha"]
-        if which == TSDF_FUSION:
-            return ["tsdf_base", "weight_base"]
-        s = self._sensor_index(which)
-        return [f"tsdf{s}", f"weight{s}"]
-
-    def _whole_blocks(self, slots: torch.Tensor, names: list[str]) -> dict[str, torch.Tensor]:
-        """The channels of whole blocks, as float32 (the pools hold float16)."""
-        return {name: self.grid.pools[name][slots].float() for name in names}
-
-    def _values(self, blocks: dict[str, torch.Tensor], which: str, filtered: bool) -> tuple[torch.Tensor, torch.Tensor]:
-        """TSDF and observed mask of `which` from per-voxel channel tensors."""
-        if which == FUSED:
-            fused = fuse(blocks["tsdf0"], blocks["weight0"], blocks["tsdf1"], blocks["weight1"], blocks["alpha"],
-                         apply_filter=filtered)
-            return fused.tsdf_m, fused.observed
-        if which == TSDF_FUSION:
-            return blocks["tsdf_base"], blocks["weight_base"] > 0
-        s = self._sensor_index(which)
-        return blocks[f"tsdf{s}"], blocks[f"weight{s}"] > 0
-
-    def _mesh_batch(self, slots: np.ndarray, which: str, filtered: bool) -> BlockTriangles:
-        """Marching cubes over the given blocks of `which` (reads the grid without the data lock)."""
-        grid = self.grid
-        t0 = time.perf_counter()
-        neighbours = self.store.neighbours(slots)
-        if which == FUSED:
-            mode, names = WINDOW_FUSED, ("tsdf0", "weight0", "tsdf1", "weight1", "alpha")
-        else:
-            mode = WINDOW_BASE if which == TSDF_FUSION else WINDOW_SENSOR
-            tsdf, weight = self._channels(which)
-            names = (tsdf, weight, tsdf, weight, "alpha")
-        tsdf, observed, alpha = mesh_windows(neighbours, mode, filtered, *self.store.views(*names))
-        origins = grid.coords[slots].numpy() * 8
-        t1 = time.perf_counter()
-        triangles = marching_cubes_blocks(tsdf, observed, origins, alpha if which == FUSED else None)
-        self._timed(fusion=t1 - t0, marching_cubes=time.perf_counter() - t1)
-        return triangles

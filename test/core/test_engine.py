@@ -652,7 +652,7 @@ def test_integration_past_the_hard_bound_during_an_update_is_served_between_batc
     integrate(SPHERE_C, SPHERE_VIEWS[:1])
     hard_bound = 1.25 * engine.config.max_blocks
     assert engine.grid.n_blocks <= engine.config.max_blocks  # no eviction when the update starts
-    mesh_batch, evict = engine._mesh_batch, engine._evict
+    mesh_batch, evict = engine.mesher.triangles, engine._evict
     beside = SPHERE_C + [0.0, 1.0, 0.0]  # the blocks of the second sphere are not touched again
     worker = threading.Thread(target=integrate, args=(beside, [look_at(beside + [0.0, 0.0, 0.9], beside)]))
     dropped_mid_update: list[np.ndarray] = []
@@ -671,11 +671,11 @@ def test_integration_past_the_hard_bound_during_an_update_is_served_between_batc
             dropped_mid_update.append(eviction.dropped_keys)
         return eviction
 
-    engine._mesh_batch, engine._evict = first_batch_starts_integration, recorded_eviction
+    engine.mesher.triangles, engine._evict = first_batch_starts_integration, recorded_eviction
     first = engine.update()
     worker.join(timeout=120)
     assert not worker.is_alive()
-    engine._mesh_batch, engine._evict = mesh_batch, evict
+    engine.mesher.triangles, engine._evict = mesh_batch, evict
     assert len(dropped_mid_update) == 1, "no eviction at a safe point"
     # the evicted blocks' final meshes are sent (from the archive), not lost
     sent_evicted = np.isin(block_keys(torch.from_numpy(first.meshes.keys)).numpy(), dropped_mid_update[0])
@@ -715,13 +715,13 @@ def _two_spheres_one_scheduled_before(engine: SenFuNet) -> int:
 
 
 def test_a_budget_serves_the_blocks_the_latest_frames_reached_first(monkeypatch):
-    import senfunet_core.engine as engine_module
+    import senfunet_core.alpha_scheduler as scheduler_module
 
     engine = engine_for_tests(alpha_batch_blocks=16)
     n_far = _two_spheres_one_scheduled_before(engine)
     assert engine.grid.n_blocks - n_far > 32
     clock = VirtualClock()
-    monkeypatch.setattr(engine_module, "time", clock)
+    monkeypatch.setattr(scheduler_module, "time", clock)
     forward = engine.weighting_net.forward
 
     def slow_forward(*args, **kwargs):
@@ -742,14 +742,14 @@ def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(mo
     second batch only after the holder gave up (and fail the checks below)."""
     import threading
 
-    import senfunet_core.engine as engine_module
+    import senfunet_core.alpha_scheduler as scheduler_module
 
     engine = engine_for_tests(alpha_batch_blocks=8)
     _two_spheres_one_scheduled_before(engine)
     engine.refresh_alpha(0.0)  # the near sphere scheduled too
     n = engine.grid.n_blocks
     clock = VirtualClock()
-    monkeypatch.setattr(engine_module, "time", clock)
+    monkeypatch.setattr(scheduler_module, "time", clock)
     take, holding, release = threading.Event(), threading.Event(), threading.Event()
 
     def hold_the_lock() -> None:
@@ -791,7 +791,7 @@ def test_the_default_map_bound_follows_the_machines_memory():
     """max_blocks=-1: as many blocks as fit in half of this machine's memory, at what a block costs."""
     import os
 
-    from senfunet_core.engine import memory_bound_blocks
+    from senfunet_core.map_bound import memory_bound_blocks
 
     engine = engine_for_tests(max_blocks=-1)
     per_block = engine.grid.bytes_per_block()

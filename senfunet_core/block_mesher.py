@@ -1,0 +1,190 @@
+"""Meshing the map's blocks: marching cubes over batches of blocks of one surface ("fused", a
+sensor's, or "tsdf_fusion"), as per-block meshes (what the node sends) or as one welded mesh, and
+the seam triangles that go with blocks leaving memory (`map_bound`).
+
+`BlockMesher` reads the grid and changes nothing; whoever calls it decides whether to hold the
+engine's data lock (see the threading model in `engine`).
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from .block_store import BlockStore
+from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
+from .grid import BLOCK, block_keys, keys_to_coords
+from .memory import release_free_memory
+from .mesher import BlockMeshes, BlockTriangles, Mesh, alpha_colors, marching_cubes_blocks, to_mesh, weld
+
+__all__ = ["FUSED", "MESH_READER_CODES", "MESH_READ_CODES", "TSDF_FUSION", "BlockMesher", "joined", "welded_mesh",
+           "with_seams"]
+
+TSDF_FUSION = "tsdf_fusion"
+FUSED = "fused"
+# Neighbour-table codes of the blocks whose marching-cubes cells read a block: itself and its
+# -x, -y, -z neighbours (code 9*(dx+1) + 3*(dy+1) + (dz+1), offsets in {-1, 0}).
+MESH_READER_CODES = np.array([9 * dx + 3 * dy + dz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+# ... and of the blocks a block's cells read: itself and its +x, +y, +z neighbours
+MESH_READ_CODES = np.array([9 * dx + 3 * dy + dz for dx in (1, 2) for dy in (1, 2) for dz in (1, 2)])
+
+
+def joined(meshes: list[Mesh]) -> Mesh:
+    """One mesh of several (vertices not shared between them)."""
+    if len(meshes) == 1:
+        return meshes[0]
+    starts = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    colors = [m.colors if m.colors is not None else np.ones((len(m.vertices), 3), np.float32) for m in meshes]
+    return Mesh(np.concatenate([m.vertices for m in meshes]),
+                np.concatenate([m.faces + start for m, start in zip(meshes, starts)]).astype(np.int32),
+                np.concatenate(colors))
+
+
+def with_seams(archived: BlockMeshes, seams: dict[tuple[int, int, int], Mesh]) -> BlockMeshes:
+    """The evicted blocks' meshes with the seam triangles that go with them (`BlockMesher.seam_meshes`)."""
+    if not seams:
+        return archived
+    meshes = archived.as_dict()
+    for block, seam in seams.items():
+        meshes[block] = joined([meshes[block], seam]) if block in meshes else seam
+    return BlockMeshes.from_meshes(meshes)
+
+
+def _compact_offsets(offsets: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Offsets of the kept blocks' ranges when the dropped blocks' ranges are empty."""
+    return np.concatenate([[offsets[0]], offsets[keep + 1]]).astype(np.int64)
+
+
+def welded_mesh(parts: list[BlockTriangles], archived: Mesh, *, voxel_size_m: float, fused: bool) -> Mesh:
+    """One welded mesh in metres of marching-cubes batches (`parts`, emptied on the way to free their
+    buffers) and, for the fused surface, the archived meshes of evicted blocks (coloured already)."""
+    if not parts and archived.n_faces == 0:
+        return Mesh.empty()
+    offsets = np.cumsum([0] + [len(p.vertices_vox) for p in parts])
+    vertices = np.concatenate([p.vertices_vox for p in parts])
+    # int32 indices (a Mesh's): half the memory of the batches' int64 through welding
+    index = np.int32 if offsets[-1] + len(archived.vertices) < np.iinfo(np.int32).max else np.int64
+    faces = np.concatenate([(p.faces + o).astype(index) for p, o in zip(parts, offsets)])
+    values = np.concatenate([p.vertex_values for p in parts]) if fused else None
+    parts.clear()  # the batches' buffers, copied above: not held through welding
+    release_free_memory()
+    if archived.n_faces == 0:
+        vertices, faces, values = weld(vertices, faces, values)
+        return to_mesh(vertices, faces, voxel_size_m, values)
+    # welded with the archive: colours instead of alpha, the archive's vertices back in voxels
+    faces = np.concatenate([faces, archived.faces + len(vertices)])
+    vertices = np.concatenate([vertices, archived.vertices / voxel_size_m])
+    assert values is not None and archived.colors is not None  # fused: alpha per vertex; archive: colours
+    welded, faces, colors = weld(vertices, faces, np.concatenate([alpha_colors(values), archived.colors]))
+    return Mesh((welded * voxel_size_m).astype(np.float32), faces.astype(np.int32), colors)
+
+
+class BlockMesher:
+    """Marching cubes over a `BlockStore`'s blocks, in batches of `mesh_batch_blocks`.
+
+    `which` names a surface: FUSED (the two sensors fused with alpha, optionally filtered), a
+    sensor's name (its own TSDF), or TSDF_FUSION (the plain baseline's grid). `timed` receives the
+    seconds spent fusing windows and in marching cubes."""
+
+    def __init__(self, store: BlockStore, *, sensors: tuple[str, ...], voxel_size_m: float, mesh_batch_blocks: int,
+                 timed: Callable[..., None]) -> None:
+        self.store = store
+        self.sensors = sensors
+        self.voxel_size_m = voxel_size_m
+        self.batch_blocks = mesh_batch_blocks
+        self._timed = timed
+
+    def channels(self, which: str) -> list[str]:
+        """The channels `values` reads for `which`."""
+        if which == FUSED:
+            return ["tsdf0", "weight0", "tsdf1", "weight1", "alpha"]
+        if which == TSDF_FUSION:
+            return ["tsdf_base", "weight_base"]
+        s = self.sensors.index(which)
+        return [f"tsdf{s}", f"weight{s}"]
+
+    def whole_blocks(self, slots: torch.Tensor, names: list[str]) -> dict[str, torch.Tensor]:
+        """The channels of whole blocks, as float32 (the pools hold float16)."""
+        return {name: self.store.grid.pools[name][slots].float() for name in names}
+
+    def values(self, blocks: dict[str, torch.Tensor], which: str, filtered: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """TSDF and observed mask of `which` from per-voxel channel tensors (`whole_blocks`)."""
+        if which == FUSED:
+            fused = fuse(blocks["tsdf0"], blocks["weight0"], blocks["tsdf1"], blocks["weight1"], blocks["alpha"],
+                         apply_filter=filtered)
+            return fused.tsdf_m, fused.observed
+        if which == TSDF_FUSION:
+            return blocks["tsdf_base"], blocks["weight_base"] > 0
+        s = self.sensors.index(which)
+        return blocks[f"tsdf{s}"], blocks[f"weight{s}"] > 0
+
+    def triangles(self, slots: np.ndarray, which: str, filtered: bool) -> BlockTriangles:
+        """Marching cubes over the given blocks of `which`, in one batch."""
+        t0 = time.perf_counter()
+        neighbours = self.store.neighbours(slots)
+        if which == FUSED:
+            mode, names = WINDOW_FUSED, ("tsdf0", "weight0", "tsdf1", "weight1", "alpha")
+        else:
+            mode = WINDOW_BASE if which == TSDF_FUSION else WINDOW_SENSOR
+            tsdf, weight = self.channels(which)
+            names = (tsdf, weight, tsdf, weight, "alpha")
+        tsdf_m, observed, alpha = mesh_windows(neighbours, mode, filtered, *self.store.views(*names))
+        origins = self.store.grid.coords[slots].numpy() * BLOCK
+        t1 = time.perf_counter()
+        triangles = marching_cubes_blocks(tsdf_m, observed, origins, alpha if which == FUSED else None)
+        self._timed(fusion=t1 - t0, marching_cubes=time.perf_counter() - t1)
+        return triangles
+
+    def batches(self, slots: np.ndarray, which: str, filtered: bool) -> list[BlockTriangles]:
+        """`triangles` over any number of blocks, batch by batch."""
+        return [self.triangles(slots[start:start + self.batch_blocks], which, filtered)
+                for start in range(0, len(slots), self.batch_blocks)]
+
+    def block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
+        """Fused, filtered per-block meshes in metres of one batch of blocks (coords: their block
+        keys); blocks without triangles are left out."""
+        tris = self.triangles(slots, FUSED, filtered=True)
+        v_start, f_start = tris.vertex_offsets, tris.face_offsets
+        # the whole batch at once; blocks without triangles have empty ranges
+        whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
+                        self.voxel_size_m, tris.vertex_values)
+        keep = np.flatnonzero(np.diff(f_start) > 0)
+        assert whole.colors is not None  # alpha colours: the fused mesh interpolates alpha
+        return BlockMeshes(coords[keep], whole.vertices, whole.colors, whole.faces,
+                           _compact_offsets(v_start, keep), _compact_offsets(f_start, keep))
+
+    def seam_meshes(self, readers: np.ndarray, victim_coords: np.ndarray) -> dict[tuple[int, int, int], Mesh]:
+        """The fused triangles of the cells of blocks staying (`readers`) that read blocks about to
+        be evicted, by the evicted block they go with (the least key among those a cell reads):
+        once the readers are re-meshed without the evicted voxels, the archive shows these instead
+        (call before the removal)."""
+        victim_keys = np.sort(block_keys(torch.from_numpy(victim_coords)).numpy())
+        seams: dict[tuple[int, int, int], list[Mesh]] = {}
+        for tris in self.batches(readers, FUSED, filtered=True):
+            if len(tris.faces) == 0:
+                continue
+            # a triangle's cell: the floor of its centroid (strictly inside the cell it came from)
+            cell = np.floor(tris.vertices_vox[tris.faces].mean(axis=1)).astype(np.int64)
+            owner = np.full(len(cell), np.iinfo(np.int64).max)
+            for corner in np.ndindex(2, 2, 2):  # the blocks of the cell's 8 corners
+                key = block_keys(torch.from_numpy(np.floor_divide(cell + np.array(corner), BLOCK))).numpy()
+                evicted = np.isin(key, victim_keys)
+                owner[evicted] = np.minimum(owner[evicted], key[evicted])
+            seam = np.flatnonzero(owner < np.iinfo(np.int64).max)
+            owners = np.unique(owner[seam])
+            for key, block in zip(owners.tolist(), keys_to_coords(torch.from_numpy(owners)).tolist()):
+                faces = tris.faces[seam[owner[seam] == key]]
+                used, local = np.unique(faces, return_inverse=True)
+                values = tris.vertex_values[used] if tris.vertex_values is not None else None
+                mesh = to_mesh(tris.vertices_vox[used], local.reshape(-1, 3), self.voxel_size_m, values)
+                seams.setdefault(tuple(block), []).append(mesh)
+        return {block: joined(parts) for block, parts in seams.items()}
+
+    def mesh_readers(self, changed: np.ndarray) -> np.ndarray:
+        """The blocks whose cells read any of these blocks: those to re-mesh when they changed."""
+        if len(changed) == 0:
+            return changed
+        readers = self.store.neighbours(changed)[:, MESH_READER_CODES]
+        return np.unique(readers[readers >= 0])

@@ -1,0 +1,142 @@
+"""The map bound: past `max_blocks`, the blocks farthest from the camera leave memory, not the mesh.
+
+An eviction picks the blocks farthest from the last camera position (down to 90% of the bound, so
+that it does not happen every update), evaluates the weighting net where their final fused meshes
+read a stale alpha, meshes them, and archives those meshes (`mesh_archive`) with the seam
+triangles of the staying blocks' cells that read them; then the store drops the blocks, their
+voxels going to the grid's spill (`spill`) to come back when a frame reaches them again.
+
+When evictions run and which locks they hold is the engine's business (see its threading model):
+`MapBound.evict` is called with the update lock held and takes the data lock it is given only to
+pick the victims, to redo what a frame changed meanwhile, and to remove them.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+
+import numpy as np
+
+from .alpha_scheduler import AlphaScheduler
+from .block_mesher import MESH_READ_CODES, MESH_READER_CODES, BlockMesher, with_seams
+from .block_store import BlockStore, Eviction
+from .mesh_archive import MeshArchive
+from .mesher import BlockMeshes
+
+__all__ = ["HARD_BOUND", "MapBound", "memory_bound_blocks"]
+
+log = logging.getLogger("senfunet.engine")
+
+# integration itself has blocks evicted once the map exceeds max_blocks by this factor (updates do it first)
+HARD_BOUND = 1.25
+
+
+def memory_bound_blocks(bytes_per_block: int, *, memory_fraction: float = 0.5) -> int:
+    """How many blocks fit in `memory_fraction` of this machine's memory (at most 80% of what is
+    available now): the default map bound follows the machine, not a fixed count."""
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    available = total
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    available = int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    budget = min(memory_fraction * total, 0.8 * available)
+    return max(1024, int(budget // bytes_per_block))
+
+
+class MapBound:
+    """Evicts blocks past `max_blocks` (0: no bound), keeping their final meshes in `archive`."""
+
+    def __init__(self, store: BlockStore, alpha: AlphaScheduler, mesher: BlockMesher, data_lock: threading.RLock, *,
+                 max_blocks: int, voxel_size_m: float, alpha_batch_blocks: int) -> None:
+        self.store = store
+        self.alpha = alpha
+        self.mesher = mesher
+        self._data_lock = data_lock
+        self.max_blocks = max_blocks
+        self.voxel_size_m = voxel_size_m
+        self.alpha_batch_blocks = alpha_batch_blocks
+        self.archive = MeshArchive()  # final meshes of evicted blocks
+        self.newly_archived: list[BlockMeshes] = []  # archived since the last update took them
+        self.camera_m = np.zeros(3)  # the last integrated frame's camera centre: what is near it stays
+        self.evicted_blocks = 0
+        self.evictions = 0
+
+    def clear(self) -> None:
+        """Forget the archive and the camera (the map was reset)."""
+        self.archive.clear()
+        self.newly_archived = []
+        self.camera_m = np.zeros(3)
+
+    def over_hard_bound(self) -> bool:
+        """Integration outgrew the bound by HARD_BOUND: an eviction is due before it goes on."""
+        return self.max_blocks > 0 and self.store.n_blocks > HARD_BOUND * self.max_blocks
+
+    def take_archived(self) -> BlockMeshes:
+        """The meshes archived since the last call (the next update sends them)."""
+        archived = BlockMeshes.concatenate(self.newly_archived)
+        self.newly_archived = []
+        return archived
+
+    def evict(self) -> Eviction | None:
+        """Evict the blocks farthest from the camera if the map holds more than `max_blocks` (see
+        the module docstring); None when it does not. Their neighbours' cells that reached into them
+        are re-meshed without them by the next update (so a snapshot equals what the updates sent)."""
+        store = self.store
+        if self.max_blocks <= 0 or store.n_blocks <= self.max_blocks:
+            return None
+        t0 = time.perf_counter()
+        with self._data_lock:
+            victims = store.farthest(self.camera_m, keep=int(0.9 * self.max_blocks), voxel_size_m=self.voxel_size_m)
+            victim_coords = store.grid.coords[victims].numpy()  # copies (fancy index)
+            around_victims = store.neighbours(victims)
+            read = around_victims[:, MESH_READ_CODES]  # the blocks the victims' cells read
+            readers = around_victims[:, MESH_READER_CODES]  # the blocks whose cells read victims
+            readers = np.setdiff1d(readers[readers >= 0], victims)
+            scope = store.neighbours(np.union1d(victims, readers))[:, MESH_READ_CODES]
+            around = np.unique(scope[scope >= 0])  # every block whose alpha the final meshes read
+        # Judged and meshed without the data lock, so that integration goes on meanwhile (slots move
+        # only in evictions, which the update lock serialises) ...
+        self.alpha.schedule()
+        unjudged = around[(store.stale[around] > 0) | ~store.evaluated[around]]
+        archived = self._final_meshes(victims, victim_coords, unjudged)
+        with self._data_lock:
+            # ... and again, under it, where a frame changed them in the meantime
+            touched = around[store.alpha_pending[around]]
+            self.alpha.schedule()
+            changed = np.union1d(touched, around[store.stale[around] > 0])
+            if len(changed):
+                again = np.flatnonzero(np.isin(read, changed).any(axis=1))
+                redone = {tuple(key) for key in victim_coords[again].tolist()}
+                older = [key not in redone for key in map(tuple, archived.keys.tolist())]
+                archived = BlockMeshes.concatenate([archived.select(np.flatnonzero(older)),
+                                                    self._final_meshes(victims[again], victim_coords[again],
+                                                                       around[store.stale[around] > 0])])
+            archived = with_seams(archived, self.mesher.seam_meshes(readers, victim_coords))
+            self.archive.add(archived)
+            self.newly_archived.append(archived)
+            eviction = store.remove(victims)
+        self.evicted_blocks += len(victim_coords)
+        self.evictions += 1
+        spill = store.grid.spill
+        log.info("map bound: evicted %d blocks farthest from the camera (max_blocks %d; %d evicted so far, their "
+                 "final meshes kept: %d archived blocks; their voxels on disk until seen again: %d blocks, %.0f MB) "
+                 "in %.2f s", len(victim_coords), self.max_blocks, self.evicted_blocks, len(self.archive),
+                 len(spill) if spill is not None else 0, (spill.nbytes if spill is not None else 0) / 1e6,
+                 time.perf_counter() - t0)
+        return eviction
+
+    def _final_meshes(self, slots: np.ndarray, coords: np.ndarray, unjudged: np.ndarray) -> BlockMeshes:
+        """Fused, filtered meshes of blocks about to be evicted, alpha first evaluated on the blocks
+        `unjudged` (those the meshes read whose alpha is stale or was never evaluated)."""
+        size = self.alpha_batch_blocks
+        self.alpha.write([self.alpha.evaluate(unjudged[i:i + size]) for i in range(0, len(unjudged), size)],
+                         wait=True)
+        size = self.mesher.batch_blocks
+        return BlockMeshes.concatenate([self.mesher.block_meshes(slots[i:i + size], coords[i:i + size])
+                                        for i in range(0, len(slots), size)])
