@@ -89,6 +89,8 @@ class AlphaScheduler:
         self.threads = threads
         self._executor: ThreadPoolExecutor | None = None  # threads > 1: evaluates batches side by side
         self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
+        # per schedule, when the oldest integration it took happened (monotonic s; schedule 0: none)
+        self.change_times_s = [float("nan")]
         self.flops = 0  # weighting-net FLOPs written so far (for the benchmark's fraction of peak)
 
     def schedule(self) -> None:
@@ -101,6 +103,7 @@ class AlphaScheduler:
             if len(changed) == 0:
                 return
             store.alpha_pending[changed] = False
+            changed_s, store.first_change_s = store.first_change_s, float("nan")
             reach = take_drift(changed, store.views("drift")[0], self.alpha_tolerance)  # B x 27
         around = store.neighbours(changed)
         reached = (around >= 0) & (reach > 0)
@@ -112,10 +115,22 @@ class AlphaScheduler:
         levels = level_of[candidates]
         with self._data_lock:
             self.schedules += 1
+            self.change_times_s.append(changed_s)
             # alpha NaN there: first, unless the block held nothing to evaluate when last checked
             levels[~store.evaluated[candidates] & ~store.no_targets[candidates]] = 3
             store.last_reached[candidates] = self.schedules
             store.stale[candidates] = np.maximum(store.stale[candidates], levels)
+
+    def waiting_s(self, slots: np.ndarray, now_s: float) -> np.ndarray:
+        """How long alpha has waited on these blocks (whose alpha is not up to date): since the
+        oldest integration of the schedule that last made them stale, or, not scheduled yet, since
+        the oldest integration not scheduled yet (an upper bound: a later frame may have been the
+        one that changed them). Call with the data lock held."""
+        store = self.store
+        waiting = now_s - np.asarray(self.change_times_s)[store.last_reached[slots]]
+        pending = store.alpha_pending[slots]
+        waiting[pending] = np.fmax(waiting[pending], now_s - store.first_change_s)
+        return waiting
 
     def order(self) -> np.ndarray:
         """The stale blocks, those the latest frames reached first (a budget that cannot keep up,

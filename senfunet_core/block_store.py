@@ -38,7 +38,9 @@ class BlockStore:
     - evaluated: alpha evaluated at least once;
     - no_targets: when last checked, the block held no voxel alpha matters for;
     - last_reached: the last alpha schedule that made it stale (the newest are served first);
-    - mesh_pending: TSDF or alpha changed since it was meshed."""
+    - mesh_pending: TSDF or alpha changed since it was meshed.
+    And `first_change_s`: when the oldest integration not scheduled yet happened (monotonic seconds;
+    NaN when every integration was scheduled), so that the scheduler knows how long alpha waits."""
 
     _FLAGS = {"alpha_pending": bool, "stale": np.int8, "evaluated": bool, "no_targets": bool,
               "last_reached": np.int64, "mesh_pending": bool}
@@ -64,6 +66,7 @@ class BlockStore:
         self.clear_flags()
 
     def clear_flags(self) -> None:
+        self.first_change_s = float("nan")
         for name, dtype in self._FLAGS.items():
             setattr(self, name, np.zeros(0, dtype))
         self.grow_flags()

@@ -300,6 +300,8 @@ class SenFuNet:
                                      (f"tsdf{s}", f"weight{s}", f"feat{s}"), scratch=self._scratch)
             self.store.grow_flags()
             self.store.alpha_pending[update.touched_slots] = True
+            if np.isnan(self.store.first_change_s):
+                self.store.first_change_s = time.monotonic()
             self.store.mesh_pending[update.touched_slots] = True  # the TSDF changed here, whatever alpha does
             self.frames_integrated[cfg.sensors[s]] += 1
             self.counters["sparse_dropped_samples"] += update.dropped_samples
@@ -530,7 +532,8 @@ class SenFuNet:
                 meshed = self.grid.lookup(torch.tensor(sorted(self._meshed), dtype=torch.int64).reshape(-1, 3)).numpy()
                 meshed = meshed[meshed >= 0]
                 evaluated = self.store.evaluated[meshed]
-                current = evaluated & (self.store.stale[meshed] == 0)
+                current = evaluated & (self.store.stale[meshed] == 0) & ~self.store.alpha_pending[meshed]
+                waiting_s = self.alpha.waiting_s(meshed[~current], time.monotonic())
                 spill = self.grid.spill
                 spilled = (len(spill), spill.nbytes, spill.restored) if spill is not None else (0, 0, 0)
             # counted without the data lock, as an update reads the grid: a frame integrated meanwhile
@@ -546,7 +549,10 @@ class SenFuNet:
                 "archived_blocks": len(self.archive), "archived_faces": self.archive.n_faces,
                 "spilled_blocks": spilled[0], "spill_bytes": spilled[1], "restored_blocks": spilled[2],
                 "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
-                "meshed_blocks_alpha_current": int(current.sum())}
+                "meshed_blocks_alpha_current": int(current.sum()),
+                # how long the meshed surface waits for the weighting net after it changed
+                "meshed_blocks_unjudged_over_3s": int((waiting_s > 3.0).sum()),
+                "oldest_unjudged_change_s": float(np.nanmax(waiting_s, initial=0.0))}
 
     # -- internals -------------------------------------------------------------------------------
     def _sensor_index(self, sensor: str) -> int:

@@ -734,6 +734,36 @@ def test_a_budget_serves_the_blocks_the_latest_frames_reached_first(monkeypatch)
     assert len(evaluated) == 32 and evaluated.min() >= n_far  # the near sphere's, reached last
 
 
+def test_stats_say_how_long_the_meshed_surface_waits_for_the_weighting_net(monkeypatch):
+    """The live goal "every meshed block judged within 3 s of its last change" is measured by
+    stats(): meshed blocks whose alpha is not up to date, and how long since the change they wait
+    for (on a fake clock: from the frame, whether the change was scheduled yet or not)."""
+    import senfunet_core.engine as engine_module
+
+    clock = VirtualClock()
+    monkeypatch.setattr(engine_module, "time", clock)
+    engine = engine_for_tests()
+    K, T = SPHERE_K, SPHERE_VIEWS[0]
+    depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+    engine.integrate("tof", depth, K, T)
+    engine.integrate("stereo", depth, K, T)
+    clock.now_s = 1.0
+    engine.update(alpha_budget_s=0)  # meshed, not judged, the change not even scheduled
+    clock.now_s = 2.5
+    stats = engine.stats()
+    assert stats["meshed_blocks"] > 0 and stats["meshed_blocks_alpha_current"] == 0
+    assert stats["meshed_blocks_unjudged_over_3s"] == 0 and stats["oldest_unjudged_change_s"] == 2.5
+    engine.alpha.schedule()  # scheduled, not judged: stale, still waiting since the frame
+    clock.now_s = 4.0
+    stats = engine.stats()
+    assert stats["meshed_blocks_unjudged_over_3s"] == stats["meshed_blocks"] > 0
+    assert stats["oldest_unjudged_change_s"] == 4.0
+    engine.update()  # judged: nothing waits
+    stats = engine.stats()
+    assert stats["meshed_blocks_alpha_current"] == stats["meshed_blocks"]
+    assert stats["meshed_blocks_unjudged_over_3s"] == 0 and stats["oldest_unjudged_change_s"] == 0.0
+
+
 def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(monkeypatch):
     """Integration holding the data lock does not stall the weighting net: the batches evaluated
     meanwhile are written once the lock is free. The budget runs on a fake clock (each batch takes
