@@ -142,10 +142,11 @@ class LatencyStats:
     """Frame-to-mesh latency (arrival of a depth image -> publication of the first mesh update
     that began after it was integrated) and the interval between mesh updates, in seconds."""
 
-    def __init__(self, history: int = 1000) -> None:
+    def __init__(self, history: int = 1000, frame_history: int = 10_000) -> None:
         self._lock = threading.Lock()
         self._arrivals: list[float] = []  # frames integrated since the last take()
         self.updates: deque[tuple[float, float, float, int]] = deque(maxlen=history)  # (time, max, mean, frames)
+        self.frames_s: deque[float] = deque(maxlen=frame_history)  # each published frame's latency
 
     def integrated(self, arrival_s: float) -> None:
         with self._lock:
@@ -166,15 +167,18 @@ class LatencyStats:
         now = time.monotonic()
         if arrivals:
             self.updates.append((now, now - min(arrivals), now - sum(arrivals) / len(arrivals), len(arrivals)))
+            self.frames_s.extend(now - arrival for arrival in arrivals)
         else:
             self.updates.append((now, 0.0, 0.0, 0))
 
     def summary(self) -> dict[str, float]:
-        """Last and worst latency over the kept history, and the longest interval between updates."""
+        """Last (the update's oldest frame), median (over frames) and worst latency over the kept
+        history, and the longest interval between updates."""
         updates = list(self.updates)
         with_frames = [u for u in updates if u[3]]
         intervals = [b[0] - a[0] for a, b in zip(updates, updates[1:])]
         return {"latency_last_s": with_frames[-1][1] if with_frames else 0.0,
+                "latency_median_s": float(np.median(self.frames_s)) if self.frames_s else 0.0,
                 "latency_max_s": max((u[1] for u in with_frames), default=0.0),
                 "update_interval_max_s": max(intervals, default=0.0)}
 

@@ -636,3 +636,27 @@ def test_every_drop_reason_has_a_hint_naming_what_to_check() -> None:
     hints = {reason: hint.format(s=sensor) for reason, hint in DROP_HINTS.items()}
     assert "/robot/tof/info" in hints["no_camera_info"] and "tof.camera_info_topic" in hints["no_camera_info"]
     assert "/robot/tof/pose" in hints["pose_timeout"] and "/robot/tof/depth" in hints["out_of_order"]
+
+
+def test_latency_is_counted_per_frame_from_its_arrival_to_the_update_that_publishes_it(monkeypatch) -> None:
+    """The node's frame-to-mesh latency: each integrated frame counts once, from its arrival to the
+    publication of the first update begun after it was integrated; the median is over frames (an
+    update holding many frames weighs more than one holding few)."""
+    import senfunet_ros.node as node_module
+    from senfunet_ros.node import LatencyStats
+
+    from types import SimpleNamespace
+
+    clock = SimpleNamespace(now_s=0.0)
+    monkeypatch.setattr(node_module, "time", SimpleNamespace(monotonic=lambda: clock.now_s))
+    latency = LatencyStats()
+    for arrival in (0.1, 0.2, 0.3):
+        latency.integrated(arrival)
+    contained = latency.take()
+    latency.integrated(0.9)  # integrated while the update runs: the next update's
+    clock.now_s = 1.0
+    latency.published(contained)
+    latency.published(latency.take())
+    assert np.allclose(list(latency.frames_s), [0.9, 0.8, 0.7, 0.1])
+    summary = latency.summary()
+    assert summary["latency_median_s"] == pytest.approx(0.75) and summary["latency_max_s"] == pytest.approx(0.9)
