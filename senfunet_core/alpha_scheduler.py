@@ -2,8 +2,8 @@
 
 Integration marks the blocks it touched (`BlockStore.alpha_pending`) and accumulates each voxel's
 input drift. `schedule` turns that drift into stale blocks (every block within 2 voxels of a
-drifted voxel, `alpha.take_drift`); `order` lists the stale blocks, those the latest frames reached
-first; `evaluate` runs the net on a batch of them where alpha matters (`EngineConfig.alpha_voxels`,
+drifted voxel, `alpha.take_drift`); `order` lists the stale blocks (`EngineConfig.alpha_order`);
+`evaluate` runs the net on a batch of them where alpha matters (`EngineConfig.alpha_voxels`,
 see `alpha`); `write` stores the results; `refresh` does all of it within a budget, on
 `alpha_threads` threads when it may. The engine decides when (budgets, eviction points) and holds
 its locks as the threading model in `engine` says: the scheduler takes the data lock it is given
@@ -75,7 +75,7 @@ class AlphaScheduler:
 
     def __init__(self, store: BlockStore, net: Any, data_lock: threading.RLock, *, alpha_voxels: str,
                  alpha_dtype: str, alpha_tolerance: float, tsdf_input: bool, band_m: float,
-                 device: torch.device, batch_blocks: int, threads: int) -> None:
+                 device: torch.device, batch_blocks: int, threads: int, alpha_order: str) -> None:
         self.store = store
         self.net = net
         self._data_lock = data_lock
@@ -86,6 +86,7 @@ class AlphaScheduler:
         self.tsdf_scale = 2.0 / band_m
         self.device = device
         self.batch_blocks = batch_blocks
+        self.alpha_order = alpha_order
         self.threads = threads
         self._executor: ThreadPoolExecutor | None = None  # threads > 1: evaluates batches side by side
         self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
@@ -133,13 +134,18 @@ class AlphaScheduler:
         return waiting
 
     def order(self) -> np.ndarray:
-        """The stale blocks, those the latest frames reached first (a budget that cannot keep up,
-        as on a large room, goes to the part of the map being scanned); among them, never evaluated
-        ones first, then those with newly observed or sign-changed voxels, then drifted ones."""
+        """The stale blocks in the order they are judged (`alpha_order`): "latest", those the latest
+        frames reached first (a budget that cannot keep up, as on a large room, goes to the part of
+        the map being scanned); "longest_waiting", those whose last change is oldest first (blocks
+        the sensors still see wait until they settle: each is judged about once, and the longest
+        wait is the shortest). Among blocks reached by the same schedule, never evaluated ones
+        first, then those with newly observed or sign-changed voxels, then drifted ones."""
         store = self.store
         with self._data_lock:
             stale = np.flatnonzero(store.stale[: store.n_blocks])
-            return stale[np.lexsort((-store.stale[stale], -store.last_reached[stale]))]
+            reached = store.last_reached[stale]
+            return stale[np.lexsort((-store.stale[stale], reached if self.alpha_order == "longest_waiting"
+                                     else -reached))]
 
     @torch.inference_mode()  # grad mode is per thread, and evaluating threads may be new
     def evaluate(self, slots: np.ndarray) -> AlphaBatch:

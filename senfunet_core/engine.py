@@ -100,6 +100,11 @@ class EngineConfig:
     #   evaluation on every voxel); "surface" (blocks holding corners of cells whose 8 corners are observed and whose
     #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be
     #   stale); "surface_voxels" (those corners alone, voxel by voxel: less arithmetic, more gathering)
+    alpha_order: str = "longest_waiting"  # which stale blocks a time budget serves first: "longest_waiting" (those
+    #   whose last change is oldest: blocks still in view wait until they settle, so each is judged about once) or
+    #   "latest" (those the latest frames reached); see AlphaScheduler.order. Chosen with bench/alpha_order.py on a
+    #   validation room: fewer meshed blocks wait more than 3 s for the net after their last change, and more are
+    #   judged, for the same budget (docs/performance.md)
     alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (faster on CPUs with
     #                               bfloat16 instructions, alpha close to float32's; see test_equivalence.py)
     max_blocks: int = 0  # memory bound: past this many blocks, each update evicts the blocks farthest from the
@@ -141,6 +146,8 @@ class EngineConfig:
             raise InputError("w_max must be at most 2048 (weight counters are float16, exact up to 2048)")
         if self.alpha_dtype not in ("float32", "bfloat16"):
             raise InputError(f"alpha_dtype must be 'float32' or 'bfloat16', got '{self.alpha_dtype}'")
+        if self.alpha_order not in ("latest", "longest_waiting"):
+            raise InputError(f"alpha_order must be 'latest' or 'longest_waiting', got '{self.alpha_order}'")
         if self.alpha_voxels not in ("all", "surface", "surface_voxels"):
             raise InputError(f"alpha_voxels must be 'all', 'surface' or 'surface_voxels', got '{self.alpha_voxels}'")
         if self.max_blocks < -1:
@@ -244,7 +251,8 @@ class SenFuNet:
         self.alpha = AlphaScheduler(self.store, self.weighting_net, self._data_lock, alpha_voxels=config.alpha_voxels,
                                     alpha_dtype=config.alpha_dtype, alpha_tolerance=config.alpha_tolerance,
                                     tsdf_input=config.weighting_tsdf_input, band_m=config.band_m, device=self.device,
-                                    batch_blocks=config.alpha_batch_blocks, threads=config.alpha_threads)
+                                    batch_blocks=config.alpha_batch_blocks, threads=config.alpha_threads,
+                                    alpha_order=config.alpha_order)
         self.mesher = BlockMesher(self.store, sensors=config.sensors, voxel_size_m=config.voxel_size_m,
                                   mesh_batch_blocks=config.mesh_batch_blocks, timed=self._timed)
         self.bound = MapBound(self.store, self.alpha, self.mesher, self._data_lock, max_blocks=self.max_blocks,
@@ -317,7 +325,7 @@ class SenFuNet:
         """Alpha, fusion and meshing over the blocks changed since the last update.
 
         alpha_budget_s: at most about this long re-evaluating alpha; the blocks left over keep their
-        previous alpha until a later update, most recently reached first (where it was never
+        previous alpha until a later update, in `alpha_order` (where it was never
         evaluated, the mesh shows what both sensors saw, averaged: see fusion). None: all of them
         (exact, deterministic). The live node passes 0 and calls `refresh_alpha` after publishing: new
         geometry is shown sooner, and its alpha comes with the next update."""

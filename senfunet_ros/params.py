@@ -91,8 +91,11 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     _rate("integrate_rate_hz", 30.0, "rate of the timer that integrates queued frames"),
     _rate("mesh_rate_hz", 1.0, "rate of mesh updates (alpha, fusion, meshing of the changed blocks)"),
     Param("alpha_budget_s", 0.2, "seconds per mesh update spent re-evaluating the sensor weighting (after the update "
-          "is published; the next one shows it); blocks left over wait for the next turn (those the latest frames "
-          "reached first); 0 = no limit", lo=0.0, hi=600.0, runtime=True),
+          "is published; the next one shows it); blocks left over wait for the next turn (see alpha_order); "
+          "0 = no limit", lo=0.0, hi=600.0, runtime=True),
+    Param("alpha_order", "longest_waiting", "which blocks a short alpha budget judges first: longest_waiting (those "
+          "whose last change is oldest; blocks still in view wait until they settle) | latest (those the latest "
+          "frames reached)", choices=("longest_waiting", "latest")),
     Param("mesh_display_cell_m", 0.03, "~/mesh shows a display mesh whose vertices are merged on a grid of this "
           "size (per block; the map and ~/save_mesh keep full resolution): a snapshot of a room stays a few tens of "
           "MB for subscribers over Wi-Fi; 0 (or not above voxel_size_m) = full resolution",
@@ -375,6 +378,7 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
         alpha_voxels="surface",  # the exact fused mesh for the least weighting-net work
         alpha_threads=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1,
         alpha_dtype=alpha_dtype(s.alpha_precision, device),
+        alpha_order=s.alpha_order,
         tsdf_fusion=s.tsdf_fusion,
         max_blocks=s.max_map_blocks,
         min_new_block_samples=s.min_new_block_samples,

@@ -714,10 +714,13 @@ def _two_spheres_one_scheduled_before(engine: SenFuNet) -> int:
     return n_far
 
 
-def test_a_budget_serves_the_blocks_the_latest_frames_reached_first(monkeypatch):
+@pytest.mark.parametrize("alpha_order", ["latest", "longest_waiting"])
+def test_a_budget_serves_the_blocks_its_order_puts_first(monkeypatch, alpha_order):
+    """"latest": the blocks the latest frames reached (the near sphere's); "longest_waiting": those
+    whose last change is oldest (the far sphere's, reached by an earlier schedule)."""
     import senfunet_core.alpha_scheduler as scheduler_module
 
-    engine = engine_for_tests(alpha_batch_blocks=16)
+    engine = engine_for_tests(alpha_batch_blocks=16, alpha_order=alpha_order)
     n_far = _two_spheres_one_scheduled_before(engine)
     assert engine.grid.n_blocks - n_far > 32
     clock = VirtualClock()
@@ -731,7 +734,11 @@ def test_a_budget_serves_the_blocks_the_latest_frames_reached_first(monkeypatch)
     engine.weighting_net.forward = slow_forward
     engine.refresh_alpha(0.45)
     evaluated = np.flatnonzero(engine.store.evaluated[: engine.grid.n_blocks])
-    assert len(evaluated) == 32 and evaluated.min() >= n_far  # the near sphere's, reached last
+    assert len(evaluated) == 32
+    if alpha_order == "latest":
+        assert evaluated.min() >= n_far  # the near sphere's, reached last
+    else:
+        assert evaluated.max() < n_far  # the far sphere's, waiting since the first schedule
 
 
 def test_stats_say_how_long_the_meshed_surface_waits_for_the_weighting_net(monkeypatch):
