@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import torch
 
@@ -88,9 +89,17 @@ class BlockStore:
         return neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
 
     def observed_voxels(self, weight_channels: list[str]) -> int:
-        n = self.grid.n_blocks
-        weights = torch.stack([self.grid.pools[name][:n] for name in weight_channels])
-        return int((weights > 0).any(dim=0).sum())
+        """Voxels with a positive weight in any of these channels (one or two), counted in place:
+        the status asks for it while the node runs, and a stacked copy of the weight pools grows
+        with the map."""
+        n = self.grid.n_blocks * BLOCK**3
+        first, *rest = (self.grid.pools[name] for name in weight_channels)
+        if len(rest) > 1:
+            raise ValueError(f"observed_voxels counts one or two weight channels, got {len(weight_channels)}")
+        second = rest[0] if rest else first
+        if first.dtype == second.dtype == torch.float16:  # float16 bits: positive exactly where > 0 as int16
+            return int(_count_positive(kernel_view(first).reshape(-1)[:n], kernel_view(second).reshape(-1)[:n]))
+        return int(((first.reshape(-1)[:n] > 0) | (second.reshape(-1)[:n] > 0)).sum())
 
     def farthest(self, point_m: np.ndarray, *, keep: int, voxel_size_m: float) -> np.ndarray:
         """Slots of all blocks but the `keep` nearest to point_m (sorted)."""
@@ -120,3 +129,12 @@ class BlockStore:
             flags[grid.n_blocks:n] = 0
         self.mesh_pending[: grid.n_blocks] |= remesh[: grid.n_blocks]
         return Eviction(victim_keys, new_slot)
+
+
+@numba.njit(cache=True, nogil=True)
+def _count_positive(a: np.ndarray, b: np.ndarray) -> int:
+    """How many i have a[i] > 0 or b[i] > 0."""
+    count = 0
+    for i in range(a.shape[0]):
+        count += (a[i] > 0) | (b[i] > 0)
+    return count
