@@ -107,6 +107,8 @@ class EngineConfig:
     #   judged, for the same budget (docs/performance.md)
     alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (faster on CPUs with
     #                               bfloat16 instructions, alpha close to float32's; see test_equivalence.py)
+    feature_dtype: str = "float32"  # feature-net arithmetic: "float32", or "bfloat16" (faster on CPUs with bfloat16
+    #                                 instructions; features close to float32's, see test_equivalence.py)
     max_blocks: int = 0  # memory bound: past this many blocks, each update evicts the blocks farthest from the
     #   last camera position (down to 90%), and so does integration past 1.25x, keeping their final fused meshes
     #   (mesh_archive); 0 = no bound; -1 = from the machine's memory (`memory_bound_blocks`)
@@ -148,6 +150,8 @@ class EngineConfig:
             raise InputError(f"alpha_dtype must be 'float32' or 'bfloat16', got '{self.alpha_dtype}'")
         if self.alpha_order not in ("latest", "longest_waiting"):
             raise InputError(f"alpha_order must be 'latest' or 'longest_waiting', got '{self.alpha_order}'")
+        if self.feature_dtype not in ("float32", "bfloat16"):
+            raise InputError(f"feature_dtype must be 'float32' or 'bfloat16', got '{self.feature_dtype}'")
         if self.alpha_voxels not in ("all", "surface", "surface_voxels"):
             raise InputError(f"alpha_voxels must be 'all', 'surface' or 'surface_voxels', got '{self.alpha_voxels}'")
         if self.max_blocks < -1:
@@ -220,6 +224,8 @@ class SenFuNet:
             networks.load_weights(weights, self.feature_nets, self.weighting_net)
             self.weights_source = str(weights)
         self.feature_nets.to(self.device).eval()
+        for net in self.feature_nets:
+            net.compute_dtype = getattr(torch, config.feature_dtype)
         self.weighting_net.to(self.device).eval()
         # drift: per voxel, how much its weighting-net inputs changed since alpha around it was evaluated
         channels: dict[str, tuple[int, ...]] = {"alpha": (), "drift": ()}

@@ -106,6 +106,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     _rate("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
           "instructions, else float32) | float32 | bfloat16", choices=("auto", "float32", "bfloat16")),
+    Param("feature_precision", "auto", "feature-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
+          "instructions, else float32) | float32 | bfloat16", choices=("auto", "float32", "bfloat16")),
     _rate("status_rate_hz", 1.0, "rate of /diagnostics and ~/status"),
     Param("diagnostics_window_s", 5.0, "rates are measured over this recent window; a WARN clears this long after "
           "its cause ends; a subscribed topic silent this long gets a warning", lo=0.1, hi=3600.0, runtime=True),
@@ -379,6 +381,7 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
         alpha_threads=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1,
         alpha_dtype=alpha_dtype(s.alpha_precision, device),
         alpha_order=s.alpha_order,
+        feature_dtype=alpha_dtype(s.feature_precision, device),
         tsdf_fusion=s.tsdf_fusion,
         max_blocks=s.max_map_blocks,
         min_new_block_samples=s.min_new_block_samples,
@@ -387,8 +390,9 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
 
 
 def alpha_dtype(precision: str, device: str) -> str:
-    """The engine's alpha_dtype for parameter alpha_precision: 'auto' picks bfloat16 on CPUs with
-    native bfloat16 (oneDNN's check), float32 elsewhere (and on CUDA, where it is cheap anyway)."""
+    """The engine's alpha_dtype (or feature_dtype) for parameter alpha_precision (feature_precision):
+    'auto' picks bfloat16 on CPUs with native bfloat16 (oneDNN's check), float32 elsewhere (and on
+    CUDA, where it is cheap anyway)."""
     if precision != "auto":
         return precision
     import torch

@@ -267,11 +267,12 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))
     try:
-        # offline: float32 alpha whatever the CPU; the node's map bound (max_map_blocks: evicted blocks
+        # offline: float32 alpha and features whatever the CPU; the node's map bound (max_map_blocks: evicted blocks
         # keep their fused meshes and come back from disk, so the mesh stays the same), except when
         # comparing: evicted blocks keep no per-sensor or TSDF Fusion mesh
         bound = {"max_blocks": 0} if compare else {}
-        engine = SenFuNet(engine_config(settings, tsdf_fusion=compare, alpha_dtype="float32", **bound),
+        engine = SenFuNet(engine_config(settings, tsdf_fusion=compare, alpha_dtype="float32",
+                                        feature_dtype="float32", **bound),
                           weights=engine_weights(settings))
         pipeline = Pipeline(engine, Ingest(ingest_config(settings)), on_time_jump=settings.on_time_jump,
                             log=lambda level, text: log(text) if level == "error" else None)

@@ -178,3 +178,18 @@ def test_bfloat16_alpha_keeps_the_mesh_close(exact):
     diff = (engine.grid.pools["alpha"][:n] - same_schedule.grid.pools["alpha"][:n]).abs()[evaluated]
     assert len(diff) > 10_000 and 0 < float(diff.max()) < 0.02  # not float32 arithmetic, but close to it
     assert_close_to_exact(engine, exact[0])
+
+
+def test_bfloat16_features_keep_the_mesh_close(exact):
+    """feature_dtype="bfloat16" (the node's choice on CPUs with bfloat16 instructions): the fused
+    features differ from float32's, but little, and the fused mesh is as close to the exact one as
+    the tolerance test demands."""
+    engine, _ = run(alpha_voxels="all", alpha_tolerance=0.0, feature_dtype="bfloat16")
+    ref = exact[0]
+    n = engine.grid.n_blocks
+    assert ref.grid.n_blocks == n
+    for s in range(2):
+        observed = engine.grid.pools[f"weight{s}"][:n] > 0
+        diff = (engine.grid.pools[f"feat{s}"][:n] - ref.grid.pools[f"feat{s}"][:n]).float().abs()[observed]
+        assert observed.sum() > 10_000 and 0 < float(diff.max()) and float(diff.mean()) < 0.01
+    assert_close_to_exact(engine, ref)
