@@ -66,32 +66,36 @@ def mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, tsdf_1:
     observed = np.zeros((n_blocks, 9, 9, 9), np.bool_)
     alpha_out = np.zeros((n_blocks, 9, 9, 9), np.float32)
     for b in range(n_blocks):
-        for x in range(9):
-            for y in range(9):
-                for z in range(9):
-                    bx, by, bz = x // 8, y // 8, z // 8
+        # the window in 8 parts, one per block it reads (bx, by, bz: 0 = this block, 1 = the next one)
+        for bx in range(2):
+            for by in range(2):
+                for bz in range(2):
                     slot = neighbours[b, (bx + 1) * 9 + (by + 1) * 3 + bz + 1]
                     if slot < 0:
                         continue
-                    v = slot * 512 + (x - 8 * bx) * 64 + (y - 8 * by) * 8 + (z - 8 * bz)
-                    seen_1 = f16_to_f32(weight_1[v]) > 0
-                    if which != WINDOW_FUSED:
-                        tsdf[b, x, y, z] = load_f32(tsdf_1, v) if seen_1 else 0.0
-                        observed[b, x, y, z] = seen_1
-                        continue
-                    seen_2 = f16_to_f32(weight_2[v]) > 0
-                    a = load_f32(alpha, v)
-                    unknown = a != a  # NaN: not evaluated yet
-                    if unknown:
-                        a = np.float32(0.5)
-                    alpha_out[b, x, y, z] = a
-                    if seen_1 and seen_2:
-                        tsdf[b, x, y, z] = a * load_f32(tsdf_1, v) + (1.0 - a) * load_f32(tsdf_2, v)
-                        observed[b, x, y, z] = True
-                    elif seen_1:
-                        tsdf[b, x, y, z] = load_f32(tsdf_1, v)
-                        observed[b, x, y, z] = not (apply_filter and (a < 0.5 or unknown))
-                    elif seen_2:
-                        tsdf[b, x, y, z] = load_f32(tsdf_2, v)
-                        observed[b, x, y, z] = not (apply_filter and (a > 0.5 or unknown))
+                    for x in range(8 * bx, 8 + bx):
+                        for y in range(8 * by, 8 + by):
+                            row = slot * 512 + (x - 8 * bx) * 64 + (y - 8 * by) * 8 - 8 * bz
+                            for z in range(8 * bz, 8 + bz):
+                                v = row + z
+                                seen_1 = f16_to_f32(weight_1[v]) > 0
+                                if which != WINDOW_FUSED:
+                                    tsdf[b, x, y, z] = load_f32(tsdf_1, v) if seen_1 else 0.0
+                                    observed[b, x, y, z] = seen_1
+                                    continue
+                                seen_2 = f16_to_f32(weight_2[v]) > 0
+                                a = load_f32(alpha, v)
+                                unknown = a != a  # NaN: not evaluated yet
+                                if unknown:
+                                    a = np.float32(0.5)
+                                alpha_out[b, x, y, z] = a
+                                if seen_1 and seen_2:
+                                    tsdf[b, x, y, z] = a * load_f32(tsdf_1, v) + (1.0 - a) * load_f32(tsdf_2, v)
+                                    observed[b, x, y, z] = True
+                                elif seen_1:
+                                    tsdf[b, x, y, z] = load_f32(tsdf_1, v)
+                                    observed[b, x, y, z] = not (apply_filter and (a < 0.5 or unknown))
+                                elif seen_2:
+                                    tsdf[b, x, y, z] = load_f32(tsdf_2, v)
+                                    observed[b, x, y, z] = not (apply_filter and (a > 0.5 or unknown))
     return tsdf, observed, alpha_out
