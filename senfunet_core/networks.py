@@ -71,8 +71,8 @@ class FeatureNet(nn.Module):
     def __init__(self, uses_rgb: bool) -> None:
         super().__init__()
         self.uses_rgb = uses_rgb
-        # arithmetic of the convolutions in inference (autograd always runs float32): bfloat16 halves
-        # the convolutions' time on CPUs with native bfloat16; the output stays float32
+        # arithmetic of the convolutions in inference (autograd always runs float32): bfloat16 runs
+        # faster on CPUs with native bfloat16 instructions; the output stays float32
         self.compute_dtype = torch.float32
         in_channels = 4 if uses_rgb else 1
         c = N_FEATURE_CHANNELS
