@@ -179,7 +179,8 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
     n_pixels = 0
     n_touched = 0
     inv_voxel = 1.0 / voxel_size_m
-    last_key, last_slot = np.int64(-1), np.int64(-1)  # consecutive samples mostly share a block
+    # consecutive samples mostly share a block (-2: no block's key, nor coords_key's -1 out of range)
+    last_key, last_slot = np.int64(-2), np.int64(-1)
     for v in range(border_px, h - border_px):
         for u in range(border_px, w - border_px):
             z = np.float64(depth_m[v, u])

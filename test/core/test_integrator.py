@@ -179,3 +179,21 @@ def test_allocation_policy_keeps_flying_pixels_out_of_new_blocks_and_counts_them
     assert update.dropped_samples == sum(n for block, n in counts.items() if block not in dense and n < minimum)
     assert bool((grid.pools["weight0"][slots].float().sum(dim=1) > before).all())
     assert float(grid.pools["weight0"][: grid.n_blocks].float().sum() - total_before) == update.voxels_updated
+
+
+def test_a_frame_outside_the_key_range_is_refused_from_its_first_sample():
+    """Samples beyond the grid's key range (the engine checks poses before, this is the kernel's own
+    guard): InputError and nothing allocated, even when the very first sample is out of range."""
+    import pytest
+
+    from senfunet_core.errors import InputError
+
+    depth, _ = frame(0)
+    T = pose(0.0, 0.0)
+    T[:3, 3] = (60_000.0, 0.0, 0.0)  # far beyond the key range (+-5 km at 1 cm voxels)
+    grid = BlockGrid({"weight0": ()}, initial_capacity=64)
+    with pytest.raises(InputError, match="5 km"):
+        locate_frame_samples(grid, np.nan_to_num(depth), K, T, depth_range_m=RANGE, border_px=CONFIG.border_px,
+                             offsets_m=CONFIG.sample_offsets().numpy().astype(np.float64) * CONFIG.step_m,
+                             voxel_size_m=CONFIG.voxel_size_m)
+    assert grid.n_blocks == 0
