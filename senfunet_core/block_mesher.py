@@ -8,7 +8,6 @@ engine's data lock (see the threading model in `engine`).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -18,6 +17,7 @@ from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BLOCK, block_keys, keys_to_coords
 from .memory import release_free_memory
 from .mesher import BlockMeshes, BlockTriangles, Mesh, alpha_colors, marching_cubes_blocks, to_mesh, weld
+from .stage_times import StageTimes
 
 __all__ = ["FUSED", "MESH_READER_CODES", "MESH_READ_CODES", "TSDF_FUSION", "BlockMesher", "joined", "welded_mesh",
            "with_seams"]
@@ -85,16 +85,16 @@ class BlockMesher:
     """Marching cubes over a `BlockStore`'s blocks, in batches of `mesh_batch_blocks`.
 
     `which` names a surface: FUSED (the two sensors fused with alpha, optionally filtered), a
-    sensor's name (its own TSDF), or TSDF_FUSION (the plain baseline's grid). `timed` receives the
+    sensor's name (its own TSDF), or TSDF_FUSION (the plain baseline's grid). `times` receives the
     seconds spent fusing windows and in marching cubes."""
 
     def __init__(self, store: BlockStore, *, sensors: tuple[str, ...], voxel_size_m: float, mesh_batch_blocks: int,
-                 timed: Callable[..., None]) -> None:
+                 times: StageTimes) -> None:
         self.store = store
         self.sensors = sensors
         self.voxel_size_m = voxel_size_m
         self.batch_blocks = mesh_batch_blocks
-        self._timed = timed
+        self.times = times
 
     def channels(self, which: str) -> list[str]:
         """The channels `values` reads for `which`."""
@@ -134,7 +134,7 @@ class BlockMesher:
         origins = self.store.grid.coords[slots].numpy() * BLOCK
         t1 = time.perf_counter()
         triangles = marching_cubes_blocks(tsdf_m, observed, origins, alpha if which == FUSED else None)
-        self._timed(fusion=t1 - t0, marching_cubes=time.perf_counter() - t1)
+        self.times.add(fusion=t1 - t0, marching_cubes=time.perf_counter() - t1)
         return triangles
 
     def batches(self, slots: np.ndarray, which: str, filtered: bool) -> list[BlockTriangles]:

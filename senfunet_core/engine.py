@@ -67,6 +67,7 @@ from .memory import release_free_memory
 from .mesh_archive import MeshArchive
 from .mesher import BlockMeshes, Mesh
 from .spill import BlockSpill
+from .stage_times import StageTimes
 
 log = logging.getLogger("senfunet.engine")
 
@@ -254,13 +255,16 @@ class SenFuNet:
         self._data_lock = threading.RLock()
         self._scratch: dict[str, np.ndarray] = {}  # integration's working arrays (used under the data lock)
         self._update_lock = threading.RLock()  # one update or extraction at a time
+        self.times = StageTimes()
+        self.timings_s = self.times.last_s  # stage -> seconds of its last run
+        self.total_s = self.times.total_s  # stage -> seconds summed over all runs
         self.alpha = AlphaScheduler(self.store, self.weighting_net, self._data_lock, alpha_voxels=config.alpha_voxels,
                                     alpha_dtype=config.alpha_dtype, alpha_tolerance=config.alpha_tolerance,
                                     tsdf_input=config.weighting_tsdf_input, band_m=config.band_m, device=self.device,
                                     batch_blocks=config.alpha_batch_blocks, threads=config.alpha_threads,
                                     alpha_order=config.alpha_order)
         self.mesher = BlockMesher(self.store, sensors=config.sensors, voxel_size_m=config.voxel_size_m,
-                                  mesh_batch_blocks=config.mesh_batch_blocks, timed=self._timed)
+                                  mesh_batch_blocks=config.mesh_batch_blocks, times=self.times)
         self.bound = MapBound(self.store, self.alpha, self.mesher, self._data_lock, max_blocks=self.max_blocks,
                               voxel_size_m=config.voxel_size_m, alpha_batch_blocks=config.alpha_batch_blocks)
         self.archive: MeshArchive = self.bound.archive  # final meshes of evicted blocks (owned by the update lock)
@@ -268,8 +272,6 @@ class SenFuNet:
         self._eviction_done = threading.Condition()  # reentrant: an evicting waiter notifies
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0, "sparse_dropped_samples": 0,
                          "sparse_dropped_blocks": 0}
-        self.timings_s: dict[str, float] = {}  # stage -> seconds of its last run
-        self.total_s: dict[str, float] = {}  # stage -> seconds summed over all runs
         self.frames_integrated = {name: 0 for name in config.sensors}
         self._reset_state()
 
@@ -321,7 +323,7 @@ class SenFuNet:
             self.counters["sparse_dropped_samples"] += update.dropped_samples
             self.counters["sparse_dropped_blocks"] += update.dropped_blocks
             self.bound.camera_m = np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy()
-        self._timed(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
+        self.times.add(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
         if self.bound.over_hard_bound():
             self._wait_for_eviction()
         return update.voxels_updated
@@ -365,7 +367,7 @@ class SenFuNet:
                         result.removed.append(key)
             self._meshed.update(has_faces)
             self.counters["meshed_blocks"] = len(self._meshed)
-            self._timed(alpha=t1 - t0, mesh=time.perf_counter() - t1)
+            self.times.add(alpha=t1 - t0, mesh=time.perf_counter() - t1)
             return result
 
     @torch.inference_mode()
@@ -377,7 +379,7 @@ class SenFuNet:
         with self._updating():
             start = time.perf_counter()
             self._refresh_alpha(budget_s, until_frame=until_frame)
-            self._timed(alpha=time.perf_counter() - start)
+            self.times.add(alpha=time.perf_counter() - start)
 
     @torch.inference_mode()
     def block_meshes(self) -> BlockMeshes:
@@ -601,13 +603,8 @@ class SenFuNet:
                 rgb01 = torch.from_numpy(rgb).to(self.device).permute(2, 0, 1).unsqueeze(0).float() / 255.0
         with torch.inference_mode():
             features = net(depth.view(1, 1, *depth.shape), rgb01)[0].cpu().numpy()
-        self._timed(feature_net=time.perf_counter() - start)
+        self.times.add(feature_net=time.perf_counter() - start)
         return features
-
-    def _timed(self, **stages: float) -> None:
-        self.timings_s.update(stages)
-        for name, seconds in stages.items():
-            self.total_s[name] = self.total_s.get(name, 0.0) + seconds
 
     def _refresh_alpha(self, budget_s: float | None = None, *, until_frame: bool = False) -> None:
         """`AlphaScheduler.refresh` with this engine's eviction points; with `until_frame`, until a

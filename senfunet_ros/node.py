@@ -22,6 +22,7 @@ Topics (see ../shared/DESIGN.md, the interface contract):
 from __future__ import annotations
 
 import dataclasses
+import gc
 import logging
 import sys
 import threading
@@ -804,6 +805,13 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
 
     executor = MultiThreadedExecutor(num_threads=num_threads)
     executor.add_node(node)
+    # What exists now (modules, networks, the node and its engine) leaves the cycle collector's full
+    # passes, which otherwise walk it all while holding the GIL, stalling every thread of the node. An
+    # engine is freed by reference counting alone (no reference cycles: test_engine checks it), so a
+    # map replaced by ~/load_map still goes. Unfrozen when the spin ends, so that a process spinning
+    # several nodes in turn (tests, benchmarks) can collect the ones it is done with.
+    gc.collect()
+    gc.freeze()
     try:
         executor.spin()
     except RCLError:
@@ -812,6 +820,7 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
         # SIGINT/SIGTERM shut the context down while the executor was building its wait set: a stop
     finally:
         executor.shutdown()
+        gc.unfreeze()
 
 
 # Python hands the GIL to a waiting thread only every switch interval (default 5 ms). Each

@@ -977,3 +977,24 @@ def test_stats_counts_the_voxels_without_holding_the_data_lock():
     stats = engine.stats()
     assert lock_free_while_counting == [True]
     assert stats["observed_voxels"] == count(["weight0", "weight1"]) > 1000
+
+
+def test_an_engine_is_freed_without_the_cycle_collector():
+    """The node freezes what exists when it starts spinning (node.spin: gc.freeze), so an engine
+    replaced by ~/load_map must go by reference counting alone: no part of it may refer back to it."""
+    import gc
+    import weakref
+
+    engine = engine_for_tests(max_blocks=100)  # a map bound: its parts (archive, spill) too
+    integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]])
+    engine.update()
+    engine.extract_mesh()
+    gone = weakref.ref(engine)
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        del engine
+        assert gone() is None, "a reference cycle keeps the engine (and its grid) alive"
+    finally:
+        if enabled:
+            gc.enable()
