@@ -281,8 +281,10 @@ class SenFuNet:
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
         # Every channel in half precision: weight counters stay exact up to 2048 (w_max); TSDF values
         # within the band keep a relative precision of 2^-11, far below the sensors' noise; alpha is a
-        # weighting in [0, 1] (NaN: not evaluated). Kernels read them through grid.load_f32.
-        dtypes = {name: torch.float16 for name in channels}
+        # weighting in [0, 1] (NaN: not evaluated). Kernels read them through grid.load_f32. The
+        # learned features lie in [-1, 1]: int8 (steps of 1/127), the depth feature float16, packed
+        # in one int8 pool (grid.FEATURE_SCALE, read through grid.load_feature / decode_features).
+        dtypes = {name: torch.int8 if name.startswith("feat") else torch.float16 for name in channels}
         # alpha NaN until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)
         self.store = BlockStore(BlockGrid(channels, dtypes=dtypes, fill={"alpha": float("nan")}))
         self.grid = self.store.grid
