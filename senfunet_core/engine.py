@@ -65,7 +65,7 @@ from .grid import BlockGrid, block_keys, keys_to_coords
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .memory import release_free_memory
 from .mesh_archive import MeshArchive
-from .mesher import BlockMeshes, BlockTriangles, Mesh, alpha_colors, marching_cubes_blocks, to_mesh, weld
+from .mesher import BlockMeshes, BlockTriangles, Mesh, StreamingWeld, marching_cubes_blocks, to_mesh
 from .spill import BlockSpill
 
 log = logging.getLogger("senfunet.engine")
@@ -442,36 +442,26 @@ class SenFuNet:
             if which == FUSED:
                 self._refresh_alpha()
                 release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise
-            parts = []
+            live_with_faces = []
             with self._data_lock:  # one consistent state of the whole map
                 slots = np.arange(self.grid.n_blocks)
                 coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
+                # each batch goes into the weld's compact arrays at once (extraction's memory peak)
+                welder = StreamingWeld(self.config.voxel_size_m, coords.min(axis=0, initial=0),
+                                       coords.max(axis=0, initial=0))
                 for start in range(0, len(slots), self.config.mesh_batch_blocks):
-                    parts.append(self._mesh_batch(slots[start:start + self.config.mesh_batch_blocks], which,
-                                                  filtered))
-            archived = Mesh.empty()
+                    part = self._mesh_batch(slots[start:start + self.config.mesh_batch_blocks], which, filtered)
+                    welder.add(part.vertices_vox, part.faces, part.vertex_values if which == FUSED else None)
+                    live_with_faces.append(np.diff(part.face_offsets) > 0)
+                    del part
             if which == FUSED and filtered and len(self.archive):
-                live_with_faces = np.concatenate([np.diff(p.face_offsets) > 0 for p in parts] or [np.zeros(0, bool)])
-                archived = self.archive.mesh(exclude={tuple(k) for k in coords[live_with_faces].tolist()})
-        if not parts and archived.n_faces == 0:
-            return Mesh.empty()
-        offsets = np.cumsum([0] + [len(p.vertices_vox) for p in parts])
-        vertices = np.concatenate([p.vertices_vox for p in parts])
-        # int32 indices (a Mesh's): half the memory of the batches' int64 through welding
-        index = np.int32 if offsets[-1] + len(archived.vertices) < np.iinfo(np.int32).max else np.int64
-        faces = np.concatenate([(p.faces + o).astype(index) for p, o in zip(parts, offsets)])
-        values = np.concatenate([p.vertex_values for p in parts]) if which == FUSED else None
-        parts.clear()  # the batches' buffers, copied above: not held through welding
-        release_free_memory()
-        if archived.n_faces == 0:
-            vertices, faces, values = weld(vertices, faces, values)
-            return to_mesh(vertices, faces, self.config.voxel_size_m, values)
-        # welded with the archive: colours instead of alpha, the archive's vertices back in voxels
-        faces = np.concatenate([faces, archived.faces + len(vertices)])
-        vertices = np.concatenate([vertices, archived.vertices / self.config.voxel_size_m])
-        assert values is not None and archived.colors is not None  # fused: alpha per vertex; archive: colours
-        welded, faces, colors = weld(vertices, faces, np.concatenate([alpha_colors(values), archived.colors]))
-        return Mesh((welded * self.config.voxel_size_m).astype(np.float32), faces.astype(np.int32), colors)
+                live = np.concatenate(live_with_faces or [np.zeros(0, bool)])
+                archived = self.archive.mesh(exclude={tuple(k) for k in coords[live].tolist()})
+                if archived.n_faces:  # welded with the live mesh: colours instead of alpha
+                    assert archived.colors is not None
+                    welder.add_colored_m(archived.vertices, archived.faces, archived.colors)
+        release_free_memory()  # the batches' buffers
+        return welder.mesh()
 
     @torch.inference_mode()
     def voxel_values(self, which: str = FUSED, filtered: bool = True) -> tuple[np.ndarray, np.ndarray]:
