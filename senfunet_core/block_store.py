@@ -84,10 +84,17 @@ class BlockStore:
         grid = self.grid
         return neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
 
-    def observed_voxels(self, weight_channels: list[str]) -> int:
+    def observed_voxels(self, weight_channels: list[str], chunk_blocks: int = 4096) -> int:
+        """Voxels some sensor observed, counted a chunk of blocks at a time (masks of the whole map
+        would be the largest allocation of a replay's end)."""
         n = self.grid.n_blocks
-        weights = torch.stack([self.grid.pools[name][:n] for name in weight_channels])
-        return int((weights > 0).any(dim=0).sum())
+        total = 0
+        for start in range(0, n, chunk_blocks):
+            observed = self.grid.pools[weight_channels[0]][start:start + chunk_blocks] > 0
+            for name in weight_channels[1:]:
+                observed |= self.grid.pools[name][start:start + chunk_blocks] > 0
+            total += int(observed.sum())
+        return total
 
     def farthest(self, point_m: np.ndarray, *, keep: int, voxel_size_m: float) -> np.ndarray:
         """Slots of all blocks but the `keep` nearest to point_m (sorted)."""

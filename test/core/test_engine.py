@@ -5,6 +5,7 @@ import math
 import subprocess
 import sys
 import time
+from pathlib import Path
 from dataclasses import replace
 
 import numpy as np
@@ -960,3 +961,42 @@ def test_stats_counts_the_voxels_without_holding_the_data_lock():
     stats = engine.stats()
     assert lock_free_while_counting == [True]
     assert stats["observed_voxels"] == count(["weight0", "weight1"]) > 1000
+
+
+def test_observed_voxels_counted_in_chunks_equal_the_whole_grid_count():
+    """stats() counts observed voxels a chunk of blocks at a time: the same count as whole-grid
+    masks, whatever the chunk (one block, a chunk boundary inside the map, the whole map)."""
+    engine = engine_for_tests()
+    K = pinhole(400.0)
+    T = look_at((0.03, 0.02, 1.0), (0.03, 0.02, 0.0))
+    engine.integrate("tof", render_plane_z(0.0, K, T), K, T)
+    T2 = look_at((0.5, 0.02, 1.0), (0.5, 0.02, 0.0))
+    engine.integrate("stereo", render_plane_z(0.02, K, T2), K, T2,
+                     np.zeros((*render_plane_z(0.02, K, T2).shape, 3), np.uint8))
+    n = engine.grid.n_blocks
+    w0, w1 = engine.grid.pools["weight0"][:n], engine.grid.pools["weight1"][:n]
+    whole = int(((w0 > 0) | (w1 > 0)).sum())
+    assert int((w0 > 0).sum()) < whole and int((w1 > 0).sum()) < whole  # each sensor saw voxels the other did not
+    for chunk in (1, 7, n, 4096):
+        assert engine.store.observed_voxels(["weight0", "weight1"], chunk_blocks=chunk) == whole, chunk
+    assert engine.stats()["observed_voxels"] == whole
+
+
+def test_large_allocations_are_given_back_when_freed():
+    """With the engine's malloc setting, a large temporary is unmapped when freed: the resident
+    memory falls back (glibc's default would keep such blocks in its heap once its threshold rose)."""
+    from senfunet_core.memory import large_allocations_outside_the_heap
+
+    if not large_allocations_outside_the_heap():
+        pytest.skip("not glibc")
+
+    def rss_kb() -> int:
+        return int(Path("/proc/self/status").read_text().split("VmRSS:")[1].split()[0])
+
+    np.ones(24 << 20, np.uint8)  # freed at once: glibc's default would now keep 16 MB blocks in its heap
+    for _ in range(3):
+        before = rss_kb()
+        block = np.ones(16 << 20, np.uint8)
+        assert rss_kb() - before > 12 << 10
+        del block
+        assert rss_kb() - before < 4 << 10
