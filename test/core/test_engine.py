@@ -246,7 +246,7 @@ def dense_alpha(engine: SenFuNet) -> dict[tuple, float]:
         for slot in range(grid.n_blocks):
             o = (coords[slot] * BLOCK - lo).tolist()
             sl = (slice(o[0], o[0] + BLOCK), slice(o[1], o[1] + BLOCK), slice(o[2], o[2] + BLOCK))
-            feat[sl] = grid.pools[f"feat{i}"][slot].view(BLOCK, BLOCK, BLOCK, -1)
+            feat[sl] = decode_features(grid.pools[f"feat{i}"][slot]).view(BLOCK, BLOCK, BLOCK, -1)
             weight[sl] = grid.pools[f"weight{i}"][slot].view(BLOCK, BLOCK, BLOCK)
             tsdf[sl] = grid.pools[f"tsdf{i}"][slot].view(BLOCK, BLOCK, BLOCK)
         channels.append((feat, weight, tsdf))
