@@ -25,7 +25,7 @@ import numba
 import numpy as np
 import torch
 
-from .grid import f16_to_f32, load_f32
+from .grid import f16_to_f32, features_per_voxel, load_f32, load_feature
 from .integrator import TANH_OF_COUNT
 
 HALO = 2  # alpha depends on inputs within 2 voxels
@@ -80,9 +80,9 @@ def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: 
     """B x 12^3 x C weighting-net inputs of each block with its 2-voxel halo (channels last), zero
     where no block exists: [F_1 (5), tanh(W_1), F_2 (5), tanh(W_2)] (C = 12) and, unless tsdf_1 and
     tsdf_2 are empty, [V_1, V_2] * tsdf_scale (C = 14, the inputs of WeightingNet.tsdf_input).
-    features_i: flat int16 bits."""
+    features_i: flat feature-pool views (`grid.load_feature`)."""
     n_blocks = neighbours.shape[0]
-    n_features = features_1.shape[0] // weight_1.shape[0]
+    n_features = features_per_voxel(features_1, weight_1.shape[0])
     with_tsdf = tsdf_1.shape[0] > 0
     first_tsdf = 2 * (n_features + 1)
     out = np.zeros((n_blocks, WINDOW, WINDOW, WINDOW, first_tsdf + 2 * with_tsdf), np.float32)
@@ -94,8 +94,8 @@ def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: 
                     if v < 0:
                         continue
                     for c in range(n_features):
-                        out[b, x, y, z, c] = f16_to_f32(features_1[v * n_features + c])
-                        out[b, x, y, z, n_features + 1 + c] = f16_to_f32(features_2[v * n_features + c])
+                        out[b, x, y, z, c] = load_feature(features_1, n_features, v, c)
+                        out[b, x, y, z, n_features + 1 + c] = load_feature(features_2, n_features, v, c)
                     out[b, x, y, z, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
                     out[b, x, y, z, first_tsdf - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
                     if with_tsdf:
@@ -199,7 +199,7 @@ def target_gathers(neighbours: np.ndarray, targets: np.ndarray, features_1: np.n
     - gather_2: N x 27, per target, the layer-1 rows of its 3^3 neighbourhood (the same order);
     - voxels: N flat voxel indices (slot * 512 + local) of the targets."""
     n_blocks = neighbours.shape[0]
-    n_features = features_1.shape[0] // weight_1.shape[0]
+    n_features = features_per_voxel(features_1, weight_1.shape[0])
     with_tsdf = tsdf_1.shape[0] > 0
     first_tsdf = 2 * (n_features + 1)
     n_channels = first_tsdf + 2 * with_tsdf
@@ -221,8 +221,8 @@ def target_gathers(neighbours: np.ndarray, targets: np.ndarray, features_1: np.n
                     if v < 0:
                         continue
                     for c in range(n_features):
-                        inputs[row, c] = f16_to_f32(features_1[v * n_features + c])
-                        inputs[row, n_features + 1 + c] = f16_to_f32(features_2[v * n_features + c])
+                        inputs[row, c] = load_feature(features_1, n_features, v, c)
+                        inputs[row, n_features + 1 + c] = load_feature(features_2, n_features, v, c)
                     inputs[row, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
                     inputs[row, first_tsdf - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
                     if with_tsdf:

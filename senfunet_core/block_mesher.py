@@ -1,6 +1,6 @@
 """Meshing the map's blocks: marching cubes over batches of blocks of one surface ("fused", a
-sensor's, or "tsdf_fusion"), as per-block meshes (what the node sends) or as one welded mesh, and
-the seam triangles that go with blocks leaving memory (`map_bound`).
+sensor's, or "tsdf_fusion"), as per-block meshes (what the node sends) or as triangle batches (that
+`extract_mesh` welds), and the seam triangles that go with blocks leaving memory (`map_bound`).
 
 `BlockMesher` reads the grid and changes nothing; whoever calls it decides whether to hold the
 engine's data lock (see the threading model in `engine`).
@@ -15,12 +15,10 @@ import torch
 from .block_store import BlockStore
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BLOCK, block_keys, keys_to_coords
-from .memory import release_free_memory
-from .mesher import BlockMeshes, BlockTriangles, Mesh, alpha_colors, marching_cubes_blocks, to_mesh, weld
+from .mesher import BlockMeshes, BlockTriangles, Mesh, marching_cubes_blocks, to_mesh
 from .stage_times import StageTimes
 
-__all__ = ["FUSED", "MESH_READER_CODES", "MESH_READ_CODES", "TSDF_FUSION", "BlockMesher", "joined", "welded_mesh",
-           "with_seams"]
+__all__ = ["FUSED", "MESH_READER_CODES", "MESH_READ_CODES", "TSDF_FUSION", "BlockMesher", "joined", "with_seams"]
 
 TSDF_FUSION = "tsdf_fusion"
 FUSED = "fused"
@@ -55,30 +53,6 @@ def with_seams(archived: BlockMeshes, seams: dict[tuple[int, int, int], Mesh]) -
 def _compact_offsets(offsets: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """Offsets of the kept blocks' ranges when the dropped blocks' ranges are empty."""
     return np.concatenate([[offsets[0]], offsets[keep + 1]]).astype(np.int64)
-
-
-def welded_mesh(parts: list[BlockTriangles], archived: Mesh, *, voxel_size_m: float, fused: bool) -> Mesh:
-    """One welded mesh in metres of marching-cubes batches (`parts`, emptied on the way to free their
-    buffers) and, for the fused surface, the archived meshes of evicted blocks (coloured already)."""
-    if not parts and archived.n_faces == 0:
-        return Mesh.empty()
-    offsets = np.cumsum([0] + [len(p.vertices_vox) for p in parts])
-    vertices = np.concatenate([p.vertices_vox for p in parts])
-    # int32 indices (a Mesh's): half the memory of the batches' int64 through welding
-    index = np.int32 if offsets[-1] + len(archived.vertices) < np.iinfo(np.int32).max else np.int64
-    faces = np.concatenate([(p.faces + o).astype(index) for p, o in zip(parts, offsets)])
-    values = np.concatenate([p.vertex_values for p in parts]) if fused else None
-    parts.clear()  # the batches' buffers, copied above: not held through welding
-    release_free_memory()
-    if archived.n_faces == 0:
-        vertices, faces, values = weld(vertices, faces, values)
-        return to_mesh(vertices, faces, voxel_size_m, values)
-    # welded with the archive: colours instead of alpha, the archive's vertices back in voxels
-    faces = np.concatenate([faces, archived.faces + len(vertices)])
-    vertices = np.concatenate([vertices, archived.vertices / voxel_size_m])
-    assert values is not None and archived.colors is not None  # fused: alpha per vertex; archive: colours
-    welded, faces, colors = weld(vertices, faces, np.concatenate([alpha_colors(values), archived.colors]))
-    return Mesh((welded * voxel_size_m).astype(np.float32), faces.astype(np.int32), colors)
 
 
 class BlockMesher:

@@ -57,15 +57,15 @@ import torch
 
 from . import networks
 from .alpha_scheduler import AlphaScheduler
-from .block_mesher import FUSED, TSDF_FUSION, BlockMesher, welded_mesh
+from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
 from .grid import BlockGrid, block_keys, keys_to_coords
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .map_bound import MapBound, memory_bound_blocks
-from .memory import release_free_memory
+from .memory import large_allocations_outside_the_heap, release_free_memory
 from .mesh_archive import MeshArchive
-from .mesher import BlockMeshes, Mesh
+from .mesher import BlockMeshes, Mesh, StreamingWeld
 from .spill import BlockSpill
 from .stage_times import StageTimes
 
@@ -206,6 +206,7 @@ class SenFuNet:
     def __init__(self, config: EngineConfig = EngineConfig(), weights: str | Path | None = "default") -> None:
         config.validate()
         self.config = config
+        large_allocations_outside_the_heap()  # the net's batch tensors: else a heap as deep as several stays
         self.device = networks.choose_device(config.device, cpu_fallback=False).device
         if config.torch_threads > 0 and torch.get_num_threads() != config.torch_threads:
             torch.set_num_threads(config.torch_threads)
@@ -236,8 +237,10 @@ class SenFuNet:
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
         # Every channel in half precision: weight counters stay exact up to 2048 (w_max); TSDF values
         # within the band keep a relative precision of 2^-11, far below the sensors' noise; alpha is a
-        # weighting in [0, 1] (NaN: not evaluated). Kernels read them through grid.load_f32.
-        dtypes = {name: torch.float16 for name in channels}
+        # weighting in [0, 1] (NaN: not evaluated). Kernels read them through grid.load_f32. The
+        # learned features lie in [-1, 1]: int8 (steps of 1/127), the depth feature float16, packed
+        # in one int8 pool (grid.FEATURE_SCALE, read through grid.load_feature / decode_features).
+        dtypes = {name: torch.int8 if name.startswith("feat") else torch.float16 for name in channels}
         # alpha NaN until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)
         self.store = BlockStore(BlockGrid(channels, dtypes=dtypes, fill={"alpha": float("nan")}))
         self.grid = self.store.grid
@@ -404,15 +407,26 @@ class SenFuNet:
             if which == FUSED:
                 self._refresh_alpha()
                 release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise
+            live_with_faces = []
             with self._data_lock:  # one consistent state of the whole map
                 slots = np.arange(self.grid.n_blocks)
                 coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
-                parts = self.mesher.batches(slots, which, filtered)
-            archived = Mesh.empty()
+                # each batch goes into the weld's compact arrays at once (extraction's memory peak)
+                welder = StreamingWeld(self.config.voxel_size_m, coords.min(axis=0, initial=0),
+                                       coords.max(axis=0, initial=0))
+                for start in range(0, len(slots), self.config.mesh_batch_blocks):
+                    part = self.mesher.triangles(slots[start:start + self.config.mesh_batch_blocks], which, filtered)
+                    welder.add(part.vertices_vox, part.faces, part.vertex_values if which == FUSED else None)
+                    live_with_faces.append(np.diff(part.face_offsets) > 0)
+                    del part
             if which == FUSED and filtered and len(self.archive):
-                live_with_faces = np.concatenate([np.diff(p.face_offsets) > 0 for p in parts] or [np.zeros(0, bool)])
-                archived = self.archive.mesh(exclude={tuple(k) for k in coords[live_with_faces].tolist()})
-        return welded_mesh(parts, archived, voxel_size_m=self.config.voxel_size_m, fused=which == FUSED)
+                live = np.concatenate(live_with_faces or [np.zeros(0, bool)])
+                archived = self.archive.mesh(exclude={tuple(k) for k in coords[live].tolist()})
+                if archived.n_faces:  # welded with the live mesh: colours instead of alpha
+                    assert archived.colors is not None
+                    welder.add_colored_m(archived.vertices, archived.faces, archived.colors)
+        release_free_memory()  # the batches' buffers
+        return welder.mesh()
 
     @torch.inference_mode()
     def voxel_values(self, which: str = FUSED, filtered: bool = True) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,9 @@ row `slot` holds one block's voxels in x-major order (local index = 64*x + 8*y +
 on the CPU: the compiled kernels (integrator, alpha windows, mesher) read and write them through
 zero-copy numpy views; float16 channels are handed to the kernels as their int16 bit patterns
 (`f16_to_f32` / `f32_to_f16` convert one value, in hardware where the CPU can; `load_f32` /
-`store_f32` read and write a channel of either storage).
+`store_f32` read and write a channel of either storage). A feature channel may be int8, features
+packed per voxel (`FEATURE_SCALE`; `load_feature` / `store_feature` in kernels, `decode_features`
+/ `encode_features` in torch).
 
 Convention: voxel (i, j, k) has its centre at (i, j, k) * voxel_size_m; block (a, b, c) holds the
 voxels 8a..8a+7, 8b..8b+7, 8c..8c+7.
@@ -342,6 +344,102 @@ def _store_f32(array, index, value):  # noqa: ANN001, ANN202 (numba overload)
     return store
 
 
+# -- feature channels: int8 learned features, float16 depth ------------------------------------------
+# A feature channel of dtype int8 packs a voxel's n features in n + 1 bytes: the first n - 1 (the
+# learned ones, L2-normalised per pixel, so in [-1, 1], and so are their running averages) as
+# round(FEATURE_SCALE * f), the last (the depth, metres) as its float16 bits, low byte first.
+FEATURE_SCALE = 127.0
+
+
+def feature_storage_shape(n_features: int, dtype: torch.dtype) -> tuple[int]:
+    """A voxel's row in a feature pool of this dtype: n values, or n + 1 bytes packed (int8)."""
+    return (n_features + 1,) if dtype == torch.int8 else (n_features,)
+
+
+def decode_features(rows: torch.Tensor) -> torch.Tensor:
+    """Float32 features (..., n) of feature-pool rows (..., n + 1 packed int8, or n float values)."""
+    if rows.dtype != torch.int8:
+        return rows.float()
+    learned = rows[..., :-2].float() / FEATURE_SCALE
+    depth = rows[..., -2:].contiguous().view(torch.int16).view(torch.float16).float()
+    return torch.cat([learned, depth], dim=-1)
+
+
+def encode_features(values: torch.Tensor) -> torch.Tensor:
+    """Packed int8 rows (..., n + 1) of features (..., n): `decode_features`' inverse up to rounding
+    (to nearest, ties to even, as the kernels' `store_feature`)."""
+    values = values.float()
+    learned = torch.round(values[..., :-1] * FEATURE_SCALE).clamp(-FEATURE_SCALE, FEATURE_SCALE).to(torch.int8)
+    depth = values[..., -1:].half().contiguous().view(torch.int8)
+    return torch.cat([learned, depth], dim=-1)
+
+
+def features_per_voxel(features: np.ndarray, n_voxels: int) -> int:
+    """n, the features per voxel of a flat feature-pool view of n_voxels voxels (numba too)."""
+    stride = features.shape[0] // max(n_voxels, 1)
+    return stride - 1 if features.dtype == np.int8 else stride
+
+
+def load_feature(features: np.ndarray, n_features: int, voxel: int, c: int) -> np.float32:
+    """Feature c of a voxel from a flat feature-pool view: float32, float16 bits (int16) or packed
+    int8 (see FEATURE_SCALE). Kernels compile this per dtype; this body is the reference."""
+    if features.dtype != np.int8:
+        return load_f32(features, voxel * n_features + c)
+    base = voxel * (n_features + 1)
+    if c < n_features - 1:
+        return np.float32(features[base + c] / np.float32(FEATURE_SCALE))
+    return np.float32(features[base + c:base + c + 2].view(np.float16)[0])
+
+
+def store_feature(features: np.ndarray, n_features: int, voxel: int, c: int, value: float) -> None:
+    """Feature c of a voxel = value, rounded to the storage (`load_feature` reads it back)."""
+    if features.dtype != np.int8:
+        store_f32(features, voxel * n_features + c, value)
+        return
+    base = voxel * (n_features + 1)
+    if c < n_features - 1:
+        features[base + c] = np.clip(np.rint(np.float32(value) * np.float32(FEATURE_SCALE)), -127, 127)
+    else:
+        features[base + c:base + c + 2] = np.array([value], np.float16).view(np.int8)
+
+
+@overload(features_per_voxel, inline="always")
+def _features_per_voxel(features, n_voxels):  # noqa: ANN001, ANN202 (numba overload)
+    packed = isinstance(features, types.Array) and features.dtype == types.int8
+    return lambda features, n_voxels: features.shape[0] // max(n_voxels, 1) - (1 if packed else 0)
+
+
+@overload(load_feature, inline="always")
+def _load_feature(features, n_features, voxel, c):  # noqa: ANN001, ANN202 (numba overload)
+    if not (isinstance(features, types.Array) and features.dtype == types.int8):
+        return lambda features, n_features, voxel, c: load_f32(features, voxel * n_features + c)
+
+    def load_packed(features, n_features, voxel, c):  # noqa: ANN001, ANN202
+        base = voxel * (n_features + 1)
+        if c < n_features - 1:
+            return np.float32(features[base + c]) / np.float32(FEATURE_SCALE)
+        bits = (np.int64(features[base + c]) & 0xFF) | (np.int64(features[base + c + 1]) << 8)
+        return f16_to_f32(np.int16(bits))
+    return load_packed
+
+
+@overload(store_feature, inline="always")
+def _store_feature(features, n_features, voxel, c, value):  # noqa: ANN001, ANN202 (numba overload)
+    if not (isinstance(features, types.Array) and features.dtype == types.int8):
+        return lambda features, n_features, voxel, c, value: store_f32(features, voxel * n_features + c, value)
+
+    def store_packed(features, n_features, voxel, c, value):  # noqa: ANN001, ANN202
+        base = voxel * (n_features + 1)
+        if c < n_features - 1:
+            q = np.rint(np.float32(value) * np.float32(FEATURE_SCALE))
+            features[base + c] = np.int8(min(max(q, np.float32(-127.0)), np.float32(127.0)))
+        else:
+            bits = np.int64(f32_to_f16(np.float32(value)))
+            features[base + c] = np.int8(((bits & 0xFF) ^ 0x80) - 0x80)
+            features[base + c + 1] = np.int8(bits >> 8)
+    return store_packed
+
+
 def kernel_view(pool: torch.Tensor) -> np.ndarray:
     """The numpy view a kernel works on: float32 as is, float16 as int16 bit patterns."""
     if pool.dtype == torch.float16:
@@ -355,7 +453,8 @@ def _zeros(shape: tuple[int, ...], dtype: torch.dtype) -> tuple[torch.Tensor, mm
     memory, and pools rarely need to grow (a copy of everything). Transparent huge pages are
     requested for it: 512x fewer page faults and TLB misses when frames touch new blocks.
     Returns the pool and its mapping (`_release_rows` gives pages back through it)."""
-    numpy_dtype = {torch.float32: np.float32, torch.float16: np.float16, torch.int64: np.int64}[dtype]
+    numpy_dtype = {torch.float32: np.float32, torch.float16: np.float16, torch.int64: np.int64,
+                   torch.int8: np.int8}[dtype]
     nbytes = max(int(np.prod(shape)) * np.dtype(numpy_dtype).itemsize, 1)
     memory = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
     if hasattr(mmap, "MADV_HUGEPAGE"):
@@ -418,7 +517,10 @@ class BlockGrid:
         self.pools: dict[str, torch.Tensor] = {}
         self._memory: dict[str, mmap.mmap] = {}  # each pool's mapping (to give memory back)
         for name, shape in self.channel_shapes.items():
-            self.pools[name], self._memory[name] = _zeros((cap, BLOCK_VOXELS, *shape), self.channel_dtypes[name])
+            dtype = self.channel_dtypes[name]
+            if dtype == torch.int8:  # packed features (FEATURE_SCALE)
+                shape = feature_storage_shape(shape[0], dtype)
+            self.pools[name], self._memory[name] = _zeros((cap, BLOCK_VOXELS, *shape), dtype)
 
     # -- lookup and allocation ------------------------------------------------------------
     def lookup_keys(self, keys: torch.Tensor) -> torch.Tensor:
@@ -532,8 +634,11 @@ class BlockGrid:
     def load_state_dict(self, state: dict) -> None:
         self.clear()
         slots = self.allocate_keys(block_keys(state["coords"]))
-        for name in self.pools:
-            self.pools[name][slots] = state[f"pool.{name}"].to(self.pools[name].dtype)
+        for name, pool in self.pools.items():
+            saved = state[f"pool.{name}"]
+            if pool.dtype == torch.int8 and saved.dtype != torch.int8:  # a map saved before features were packed
+                saved = encode_features(saved)
+            pool[slots] = saved.to(pool.dtype)
 
     def nbytes(self) -> int:
         """Bytes of the blocks in use and the index (pool pages beyond them are never committed)."""

@@ -22,7 +22,7 @@ import torch
 
 from .errors import InputError
 from .grid import (BlockGrid, coords_key, drop_new_blocks, f16_to_f32, f32_to_f16, hash_find_or_add, kernel_view,
-                   load_f32, prefetch, store_f32, voxel_keys)
+                   load_f32, load_feature, prefetch, store_f32, store_feature, voxel_keys)
 
 
 @dataclass(frozen=True)
@@ -315,6 +315,7 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
                    drift: np.ndarray, w_max: float) -> int:
     """update_voxels' per-block work (blocks are independent of each other)."""
     n_channels = pixel_features.shape[1]
+    feature_stride = features.shape[0] // max(weight.shape[0], 1)  # a voxel's feature-pool entries
     updated = 0
     count = np.zeros(512, np.int64)  # per block: zero again after use
     sum_tsdf = np.empty(512, np.float32)
@@ -328,7 +329,7 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
                 sum_features[local, :] = 0.0
                 # the voxel's scattered pool entries, needed below: fetched while the samples are summed
                 voxel = base_index + local
-                prefetch(features, voxel * n_channels)
+                prefetch(features, voxel * feature_stride)
                 prefetch(tsdf, voxel)
                 prefetch(weight, voxel)
                 prefetch(drift, voxel)
@@ -349,12 +350,10 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             keep = old_weight / (old_weight + np.float32(1.0))  # running average: keep*old + add*update
             add = np.float32(1.0) / (old_weight + np.float32(1.0))
             change: float | np.float32 = np.float32(0.0)
-            for c in range(n_channels):
-                index = voxel * n_channels + c
-                old = f16_to_f32(features[index])
-                bits = f32_to_f16(keep * old + add * (sum_features[local, c] * inv_count))
-                features[index] = bits
-                new = f16_to_f32(bits)
+            for c in range(n_channels):  # averaged in float32, rounded to the pool's storage on store
+                old = load_feature(features, n_channels, voxel, c)
+                store_feature(features, n_channels, voxel, c, keep * old + add * (sum_features[local, c] * inv_count))
+                new = load_feature(features, n_channels, voxel, c)
                 change = max(change, abs(new - old))
             mean_tsdf = sum_tsdf[local] * inv_count
             old_tsdf = load_f32(tsdf, voxel)
@@ -390,8 +389,9 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     (skipped when tsdf_base is empty).
     drift[voxel] accumulates the largest change of a weighting-net input (features, tanh(weight))
     or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
-    Weights, features and drift are float16 bit patterns (int16), TSDFs float16 bits or float32
-    (`grid.load_f32`); pixel_features: (H*W) x C float32.
+    Weights and drift are float16 bit patterns (int16), TSDFs float16 bits or float32
+    (`grid.load_f32`), features float16 bits or packed int8 (`grid.load_feature`); pixel_features:
+    (H*W) x C float32.
     Returns the number of voxels updated.
 
     Blocks are independent: a frame of at least SPLIT_MIN_SAMPLES samples has the second half of

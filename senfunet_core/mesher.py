@@ -516,6 +516,16 @@ def weld(vertices_vox: np.ndarray, faces: np.ndarray, vertex_values: np.ndarray 
     """
     if len(vertices_vox) == 0:
         return vertices_vox, faces, vertex_values
+    first, inverse = _unique_edges(*_edges(vertices_vox))
+    faces = inverse.astype(faces.dtype, copy=False)[faces]  # the faces' index type (int32 halves them)
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    values = None if vertex_values is None else vertex_values[first]
+    return vertices_vox[first], faces[keep], values
+
+
+def _edges(vertices_vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The grid edge of each vertex: its lower end (V x 3 int64) and axis (V: 0-2, or 3 for a
+    vertex within 1e-4 voxel of a sample, identified by that sample)."""
     off_grid = np.abs(vertices_vox - np.round(vertices_vox))
     axis = np.argmax(off_grid, axis=1)
     on_node = off_grid.max(axis=1) < 1e-4  # the surface passes through a sample exactly
@@ -525,12 +535,102 @@ def weld(vertices_vox: np.ndarray, faces: np.ndarray, vertex_values: np.ndarray 
     base[rows, axis] = np.floor(vertices_vox[rows, axis]).astype(np.int64)
     base[on_node] = np.round(vertices_vox[on_node]).astype(np.int64)
     axis[on_node] = 3
-    first, inverse = _unique_edges(base, axis)
-    del base, axis, on_node
-    faces = inverse.astype(faces.dtype, copy=False)[faces]  # the faces' index type (int32 halves them)
-    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
-    values = None if vertex_values is None else vertex_values[first]
-    return vertices_vox[first], faces[keep], values
+    return base, axis
+
+
+class StreamingWeld:
+    """`weld` + `to_mesh` over marching-cubes batches added one at a time, for the whole map's mesh
+    without holding every batch's float64 vertices and int64 faces at once (extraction's memory
+    peak on a large map). Per vertex it keeps its edge key (int64), its position in metres
+    (float32, as the mesh will hold it) and its value (float32); per face three int32 indices.
+    The mesh equals `to_mesh(*weld(all vertices, all faces, all values))` byte for byte: the edge
+    keys sort the same way (lexicographic in lower end, then axis), the first copy of each vertex
+    is kept, and each kept vertex is converted exactly as there.
+
+    block_coords_min / _max: the bounds of the blocks' coordinates, which bound the vertices'
+    edges (packed into one int64 key where the extent allows, else kept as rows)."""
+
+    def __init__(self, voxel_size_m: float, block_coords_min: np.ndarray, block_coords_max: np.ndarray,
+                 block_size: int = 8) -> None:
+        self.voxel_size_m = voxel_size_m
+        self._low = np.asarray(block_coords_min, np.int64) * block_size - 1
+        self._extent = (np.asarray(block_coords_max, np.int64) - block_coords_min + 1) * block_size + 3
+        self._packed = float(np.prod(self._extent.astype(np.float64))) * 4 < 2.0**62
+        self._keys: list[np.ndarray] = []
+        self._vertices_m: list[np.ndarray] = []
+        self._values: list[np.ndarray] = []
+        self._colors: list[np.ndarray] = []
+        self._faces: list[np.ndarray] = []
+        self.n_vertices = 0
+
+    def add(self, vertices_vox: np.ndarray, faces: np.ndarray, vertex_values: np.ndarray | None = None) -> None:
+        """One batch: V x 3 voxel coordinates, F x 3 indices into them, V values (or None)."""
+        base, axis = _edges(vertices_vox)
+        if self._packed and len(base) and (np.any(base.min(axis=0) < self._low)
+                                           or np.any(base.max(axis=0) - self._low >= self._extent)):
+            self._unpack()  # beyond the bounds given (an archived block elsewhere): rows from now on
+        if self._packed:
+            shifted = base - self._low
+            e = self._extent
+            self._keys.append(((shifted[:, 0] * e[1] + shifted[:, 1]) * e[2] + shifted[:, 2]) * 4 + axis)
+        else:
+            self._keys.append(np.concatenate([base, axis[:, None]], axis=1))
+        del base, axis
+        self._vertices_m.append((vertices_vox * self.voxel_size_m).astype(np.float32))
+        if vertex_values is not None:
+            self._values.append(np.asarray(vertex_values, np.float32))
+        index = np.int32 if self.n_vertices + len(vertices_vox) < np.iinfo(np.int32).max else np.int64
+        self._faces.append((faces + self.n_vertices).astype(index))
+        self.n_vertices += len(vertices_vox)
+
+    def _unpack(self) -> None:
+        """Packed keys -> rows (lower end x, y, z, axis), for vertices beyond the bounds."""
+        e = self._extent
+        for n, key in enumerate(self._keys):
+            axis, rest = key % 4, key // 4
+            z, rest = rest % e[2], rest // e[2]
+            y, x = rest % e[1], rest // e[1]
+            self._keys[n] = np.stack([x, y, z], axis=1) + self._low
+            self._keys[n] = np.concatenate([self._keys[n], axis[:, None]], axis=1)
+        self._packed = False
+
+    def add_colored_m(self, vertices_m: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> None:
+        """A mesh in metres with colours (an archived one), after every batch: the whole mesh then
+        takes colours (`alpha_colors` of the batches' values) instead of values."""
+        if self._values:
+            self._colors.append(alpha_colors(np.concatenate(self._values)))
+            self._values.clear()
+        # in voxels as `weld` of the whole would see them: the quotient in the mesh's float32, then widened
+        self.add((vertices_m / self.voxel_size_m).astype(np.float64), faces)
+        self._colors.append(np.asarray(colors, np.float32))
+
+    def mesh(self) -> Mesh:
+        """The welded mesh; empties this weld."""
+        if self.n_vertices == 0:
+            return Mesh.empty()
+        keys = np.concatenate(self._keys)
+        self._keys.clear()
+        if keys.ndim == 1:
+            _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        else:
+            _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+        del keys
+        faces = np.concatenate(self._faces)
+        self._faces.clear()
+        faces = inverse.reshape(-1).astype(faces.dtype, copy=False)[faces]
+        del inverse
+        faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+        vertices = np.concatenate(self._vertices_m)[first]
+        self._vertices_m.clear()
+        colors = None
+        if self._colors:
+            colors = np.concatenate(self._colors)[first]
+        elif self._values:
+            colors = alpha_colors(np.concatenate(self._values)[first])
+        self._colors.clear()
+        self._values.clear()
+        self.n_vertices = 0
+        return Mesh(vertices, faces.astype(np.int32), colors)
 
 
 def _unique_edges(base: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -36,6 +36,9 @@ _FACE_LIST_NAMES = ("vertex_indices", "vertex_index")
 # Writing
 
 
+_CHUNK_ROWS = 1 << 18  # rows per write
+
+
 def write_ply(path: str | os.PathLike, mesh: Mesh) -> None:
     """Write `mesh` as a binary little-endian PLY file, atomically (temp file + rename)."""
     path = Path(path)
@@ -57,15 +60,22 @@ def write_ply(path: str | os.PathLike, mesh: Mesh) -> None:
         vfields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
     header += [f"element face {n_f}", "property list uchar int vertex_indices", "end_header"]
 
-    vrec = np.empty(n_v, dtype=np.dtype(vfields))  # packed (no alignment padding)
-    vrec["x"], vrec["y"], vrec["z"] = vertices[:, 0], vertices[:, 1], vertices[:, 2]
-    if has_color:
-        # Round to the nearest 1/255 so a read-back is within half a step of the input.
-        c8 = np.clip(np.rint(np.asarray(colors, np.float64) * 255.0), 0, 255).astype(np.uint8)
-        vrec["red"], vrec["green"], vrec["blue"] = c8[:, 0], c8[:, 1], c8[:, 2]
-    frec = np.empty(n_f, dtype=np.dtype([("n", "u1"), ("idx", "<i4", (3,))]))
-    frec["n"] = 3
-    frec["idx"] = faces
+    def vertex_rows(start: int, stop: int) -> np.ndarray:
+        rec = np.empty(stop - start, dtype=np.dtype(vfields))  # packed (no alignment padding)
+        v = vertices[start:stop]
+        rec["x"], rec["y"], rec["z"] = v[:, 0], v[:, 1], v[:, 2]
+        if has_color:
+            # Round to the nearest 1/255 so a read-back is within half a step of the input.
+            assert colors is not None
+            c8 = np.clip(np.rint(np.asarray(colors[start:stop], np.float64) * 255.0), 0, 255).astype(np.uint8)
+            rec["red"], rec["green"], rec["blue"] = c8[:, 0], c8[:, 1], c8[:, 2]
+        return rec
+
+    def face_rows(start: int, stop: int) -> np.ndarray:
+        rec = np.empty(stop - start, dtype=np.dtype([("n", "u1"), ("idx", "<i4", (3,))]))
+        rec["n"] = 3
+        rec["idx"] = faces[start:stop]
+        return rec
 
     directory = path.parent if str(path.parent) else Path(".")
     # Temp file in the target directory so os.replace is a same-filesystem atomic rename.
@@ -73,8 +83,11 @@ def write_ply(path: str | os.PathLike, mesh: Mesh) -> None:
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(vrec.tobytes())
-            f.write(frec.tobytes())
+            # in chunks: records (and float64 colours) of a whole large mesh at once would be a
+            # replay's memory peak
+            for rows, n in ((vertex_rows, n_v), (face_rows, n_f)):
+                for start in range(0, n, _CHUNK_ROWS):
+                    rows(start, min(start + _CHUNK_ROWS, n)).tofile(f)
         os.replace(tmp, path)
     except BaseException:
         try:

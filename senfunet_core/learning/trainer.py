@@ -14,7 +14,7 @@ import torch
 
 from .. import networks
 from ..errors import InputError
-from ..grid import BlockGrid, kernel_view
+from ..grid import BlockGrid, decode_features, kernel_view
 from ..integrator import locate_samples, update_voxels, valid_depth_mask
 from .chunks import sample_chunk
 from .config import SENSORS, TrainConfig
@@ -208,7 +208,7 @@ class Trainer:
 
         def channel(name: str) -> torch.Tensor:
             pool = grid.pools[name]
-            values = pool.reshape(-1, *pool.shape[2:])[index].float()
+            values = decode_features(pool.reshape(-1, *pool.shape[2:])[index])  # float32 (float16 or packed)
             mask = present.reshape(-1, *([1] * (values.dim() - 1)))
             return torch.where(mask, values, torch.zeros((), dtype=values.dtype))
 

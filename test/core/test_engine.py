@@ -5,6 +5,7 @@ import math
 import subprocess
 import sys
 import time
+from pathlib import Path
 from dataclasses import replace
 
 import numpy as np
@@ -16,7 +17,7 @@ from senfunet_core import networks
 from senfunet_core.engine import EngineConfig, SenFuNet
 from senfunet_core.errors import InputError
 from senfunet_core.fusion import fuse
-from senfunet_core.grid import BLOCK, block_keys
+from senfunet_core.grid import BLOCK, block_keys, decode_features
 from senfunet_core.mesher import Mesh, weld
 
 VOXEL = 0.01
@@ -245,7 +246,7 @@ def dense_alpha(engine: SenFuNet) -> dict[tuple, float]:
         for slot in range(grid.n_blocks):
             o = (coords[slot] * BLOCK - lo).tolist()
             sl = (slice(o[0], o[0] + BLOCK), slice(o[1], o[1] + BLOCK), slice(o[2], o[2] + BLOCK))
-            feat[sl] = grid.pools[f"feat{i}"][slot].view(BLOCK, BLOCK, BLOCK, -1)
+            feat[sl] = decode_features(grid.pools[f"feat{i}"][slot]).view(BLOCK, BLOCK, BLOCK, -1)
             weight[sl] = grid.pools[f"weight{i}"][slot].view(BLOCK, BLOCK, BLOCK)
             tsdf[sl] = grid.pools[f"tsdf{i}"][slot].view(BLOCK, BLOCK, BLOCK)
         channels.append((feat, weight, tsdf))
@@ -380,16 +381,36 @@ def test_save_and_load_give_identical_meshes(sphere_engine, tmp_path):
 def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_engine, tmp_path):
     grid = sphere_engine.grid
     n = grid.n_blocks
-    assert {pool.dtype for pool in grid.pools.values()} == {torch.float16}
-    # per voxel, 18 half-precision values: 2 x (TSDF, weight, 5 features), alpha, drift, the baseline's
-    # TSDF and weight; per block, its coordinates, key and up to 4 hash-table entries
-    assert grid.bytes_per_block() == 512 * 2 * 18 + 3 * 8 + 8 + 4 * 16
+    features = {name for name in grid.pools if name.startswith("feat")}
+    assert features == {"feat0", "feat1"}
+    assert {grid.pools[name].dtype for name in features} == {torch.int8}
+    assert {pool.dtype for name, pool in grid.pools.items() if name not in features} == {torch.float16}
+    # per voxel, 8 half-precision values (2 x (TSDF, weight), alpha, drift, the baseline's TSDF and
+    # weight) and 2 x 6 bytes of features (4 int8, the depth's float16); per block, its coordinates,
+    # key and up to 4 hash-table entries
+    assert grid.bytes_per_block() == 512 * (2 * 8 + 2 * 6) + 3 * 8 + 8 + 4 * 16
     path = tmp_path / "state.pt"
     sphere_engine.save(path)
     loaded = SenFuNet.load(path)
     assert loaded.grid.n_blocks == n
     for name, pool in grid.pools.items():  # bit for bit (alpha's NaN where never evaluated included)
-        assert torch.equal(pool[:n].view(torch.int16), loaded.grid.pools[name][:n].view(torch.int16)), name
+        assert torch.equal(pool[:n].view(torch.int8), loaded.grid.pools[name][:n].view(torch.int8)), name
+    # a map file written when features were float16 (5 per voxel): loads, each feature rounded to int8
+    state = torch.load(path, weights_only=True)
+    for name in sorted(features):
+        half = decode_features(state["grid"][f"pool.{name}"]).half()
+        assert half.shape == (n, 512, 5)
+        half[..., :4] = half[..., :4] + 0.003 * (half[..., :4] != 0)  # off the int8 steps
+        state["grid"][f"pool.{name}"] = half
+    old_features = tmp_path / "float16_features_state.pt"
+    torch.save(state, old_features)
+    from_half = SenFuNet.load(old_features)
+    for name in sorted(features):
+        got = decode_features(from_half.grid.pools[name][:n])
+        want = state["grid"][f"pool.{name}"].float()
+        assert torch.equal(got[..., 4], want[..., 4]), name  # the depth as it was
+        assert float((got[..., :4] - want[..., :4]).abs().max()) <= 0.5 / 127 + 1e-6, name
+        assert not torch.equal(got[..., :4], want[..., :4])
     # a map file written when TSDFs and alpha were float32: loads, each value rounded to float16
     state = torch.load(path, weights_only=True)
     rng = np.random.default_rng(0)
@@ -998,3 +1019,23 @@ def test_an_engine_is_freed_without_the_cycle_collector():
     finally:
         if enabled:
             gc.enable()
+
+
+def test_large_allocations_are_given_back_when_freed():
+    """With the engine's malloc setting, a large temporary is unmapped when freed: the resident
+    memory falls back (glibc's default would keep such blocks in its heap once its threshold rose)."""
+    from senfunet_core.memory import large_allocations_outside_the_heap
+
+    if not large_allocations_outside_the_heap():
+        pytest.skip("not glibc")
+
+    def rss_kb() -> int:
+        return int(Path("/proc/self/status").read_text().split("VmRSS:")[1].split()[0])
+
+    np.ones(24 << 20, np.uint8)  # freed at once: glibc's default would now keep 16 MB blocks in its heap
+    for _ in range(3):
+        before = rss_kb()
+        block = np.ones(16 << 20, np.uint8)
+        assert rss_kb() - before > 12 << 10
+        del block
+        assert rss_kb() - before < 4 << 10

@@ -149,3 +149,43 @@ def test_dropping_uncommitted_new_blocks_keeps_every_other_key_findable():
     assert (grid.lookup_keys(new[torch.from_numpy(~keep)]) == -1).all()
     assert torch.equal(block_keys(grid.coords[: grid.n_blocks]), torch.cat([old, new[torch.from_numpy(keep)]]))
     assert (grid.table_keys != G.EMPTY_KEY).sum() == grid.n_blocks
+
+
+@numba.njit
+def _store_load_features(values, packed):
+    n_voxels, n = values.shape
+    back = np.empty_like(values)
+    for v in range(n_voxels):
+        for c in range(n):
+            G.store_feature(packed, n, v, c, values[v, c])
+    n_read = G.features_per_voxel(packed, n_voxels)
+    for v in range(n_voxels):
+        for c in range(n_read):
+            back[v, c] = G.load_feature(packed, n_read, v, c)
+    return back
+
+
+def test_packed_features_in_kernels_equal_encode_and_decode():
+    """The kernels' int8 feature storage (4 learned features in steps of 1/127, the depth as float16
+    bits) matches the torch encoder and decoder bit for bit: ties to even, clamping, negative depth bits."""
+    rng = np.random.default_rng(3)
+    learned = rng.uniform(-1.0, 1.0, (500, 4)).astype(np.float32)
+    learned[:20] = (np.arange(-10, 10)[:, None] + 0.5).astype(np.float32) / np.float32(127.0)  # ties
+    learned[20:25] = [[1.2, -1.3, 1.0, -1.0]] * 5  # beyond the range: clamped to +-127
+    depth = rng.uniform(0.1, 12.0, (500, 1)).astype(np.float32)
+    depth[25] = -2.5  # a float16 with its sign bit set
+    values = np.concatenate([learned, depth], axis=1)
+    packed = np.zeros(500 * 6, np.int8)
+    back = _store_load_features(values, packed)
+    encoded = G.encode_features(torch.from_numpy(values))
+    assert encoded.dtype == torch.int8 and encoded.shape == (500, 6)
+    assert np.array_equal(packed.reshape(500, 6), encoded.numpy())
+    decoded = G.decode_features(encoded).numpy()
+    assert np.array_equal(back, decoded)
+    assert np.array_equal(decoded[:, 4], depth[:, 0].astype(np.float16).astype(np.float32))
+    assert np.abs(decoded[25:, :4] - learned[25:]).max() <= 0.5 / 127 + 1e-7
+    assert decoded[20:25, :4].tolist() == [[1.0, -1.0, 1.0, -1.0]] * 5
+    # a float16 feature pool takes the same calls, one value per feature
+    half = np.zeros(500 * 5, np.int16)
+    back_half = _store_load_features(values, half)
+    assert np.array_equal(back_half, values.astype(np.float16).astype(np.float32))

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from senfunet_core.mesher import _TABLES, BlockTriangles, marching_cubes_blocks, weld
+from senfunet_core.mesher import (_TABLES, BlockTriangles, Mesh, StreamingWeld, alpha_colors, marching_cubes_blocks,
+                                  to_mesh, weld)
 
 BLOCK = 8
 N = BLOCK + 1
@@ -424,3 +425,52 @@ def test_edge_keys_are_unique_like_rows(span):
     got_first, got_inverse = _unique_edges(base, axis)
     np.testing.assert_array_equal(got_first, first)
     np.testing.assert_array_equal(got_inverse, inverse.reshape(-1))
+
+
+def _assert_same_mesh(got: Mesh, want: Mesh) -> None:
+    assert got.vertices.dtype == want.vertices.dtype == np.float32 and got.faces.dtype == want.faces.dtype == np.int32
+    assert got.vertices.tobytes() == want.vertices.tobytes() and got.faces.tobytes() == want.faces.tobytes()
+    assert (got.colors is None) == (want.colors is None)
+    if want.colors is not None:
+        assert got.colors.tobytes() == want.colors.tobytes()
+
+
+@pytest.mark.parametrize("bounds", ["blocks", "too small"])
+def test_streaming_weld_equals_weld_of_all_batches_byte_for_byte(bounds):
+    """Batches welded as they come (compact keys, float32 metres) give the mesh `weld` + `to_mesh`
+    make of all batches at once: same vertex order, faces and colours; also past the given block
+    bounds (keys then kept as rows) and with a coloured mesh in metres (an archive) added last."""
+    volume = torus(25, (12.1, 11.74, 12.36), 6.2, 2.4) + 0.3 * np.sin(grid_points(25).sum(-1))
+    volume[np.abs(volume) < 0.05] = 0.0  # samples exactly on the surface: vertices on grid nodes
+    extra = np.clip(grid_points(25) @ np.array([0.01, 0.02, -0.01]) + 0.4, 0.0, 1.0)
+    tsdf, obs, origins, ext = to_blocks(volume, extra=extra)
+    origins = origins - np.array([80, 8, -16])  # negative block coordinates too
+    voxel_size_m = 0.01
+    coords = origins // BLOCK
+    low, high = (coords.min(axis=0), coords.max(axis=0)) if bounds == "blocks" else (coords[0], coords[0])
+    welder = StreamingWeld(voxel_size_m, low, high)
+    batches = [marching_cubes_blocks(tsdf[i:i + 5], obs[i:i + 5], origins[i:i + 5], ext[i:i + 5])
+               for i in range(0, len(tsdf), 5)]
+    for b in batches:
+        welder.add(b.vertices_vox, b.faces, b.vertex_values)
+    offsets = np.cumsum([0] + [len(b.vertices_vox) for b in batches])
+    vertices = np.concatenate([b.vertices_vox for b in batches])
+    faces = np.concatenate([b.faces + o for b, o in zip(batches, offsets)]).astype(np.int32)
+    values = np.concatenate([b.vertex_values for b in batches])
+    welded, welded_faces, welded_values = weld(vertices, faces, values)
+    assert len(welded) < len(vertices) and np.any(np.abs(welded - np.round(welded)).max(axis=1) < 1e-4)
+    want = to_mesh(welded, welded_faces, voxel_size_m, welded_values)
+    # the same batches and a coloured mesh in metres elsewhere (sharing some vertices with them)
+    far = Mesh((vertices[:300] * voxel_size_m + np.array([0.0, 0.0, 0.96])).astype(np.float32),
+               faces[faces.max(axis=1) < 300][:100], np.full((300, 3), 0.5, np.float32))
+    far.vertices[:50] = (vertices[:50] * voxel_size_m).astype(np.float32)
+    with_far = StreamingWeld(voxel_size_m, low, high)
+    for b in batches:
+        with_far.add(b.vertices_vox, b.faces, b.vertex_values)
+    with_far.add_colored_m(far.vertices, far.faces, far.colors)
+    _assert_same_mesh(welder.mesh(), want)
+    both_v = np.concatenate([vertices, far.vertices / voxel_size_m])
+    both_f = np.concatenate([faces, far.faces + len(vertices)])
+    w, f, c = weld(both_v, both_f, np.concatenate([alpha_colors(values), far.colors]))
+    _assert_same_mesh(with_far.mesh(), Mesh((w * voxel_size_m).astype(np.float32), f.astype(np.int32), c))
+    assert welder.mesh().n_faces == 0  # emptied

@@ -139,3 +139,21 @@ def test_bad_face_index(tmp_path):
                  "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 5\n")
     with pytest.raises(InputError, match="bad.ply.*indices"):
         read_ply(p)
+
+
+def test_writing_in_chunks_gives_the_same_bytes(tmp_path, monkeypatch):
+    """write_ply writes its records a chunk at a time (memory): the file does not depend on the
+    chunk size, colours rounded the same way."""
+    from senfunet_core import ply
+
+    rng = np.random.default_rng(5)
+    mesh = Mesh(rng.normal(size=(1001, 3)).astype(np.float32), rng.integers(0, 1001, (2003, 3)).astype(np.int32),
+                rng.uniform(0.0, 1.0, (1001, 3)).astype(np.float32))
+    ply.write_ply(tmp_path / "whole.ply", mesh)
+    monkeypatch.setattr(ply, "_CHUNK_ROWS", 7)
+    ply.write_ply(tmp_path / "chunked.ply", mesh)
+    whole = (tmp_path / "whole.ply").read_bytes()
+    assert whole == (tmp_path / "chunked.ply").read_bytes()
+    back = ply.read_ply(tmp_path / "chunked.ply")
+    assert np.array_equal(back.vertices, mesh.vertices) and np.array_equal(back.faces, mesh.faces)
+    assert np.abs(back.colors - mesh.colors).max() <= 0.5 / 255 + 1e-6
