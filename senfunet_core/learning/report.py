@@ -31,7 +31,7 @@ def _seed_text(config: EvaluationConfig) -> str:
     seeds = ", ".join(str(s) for s in config.seeds)
     if config.seed_set == "held-out":
         return (f"Held-out rooms {seeds}: never trained on, never used for a choice, scored once with the final "
-                "weights (the earlier held-out rooms 1001-1006 steered earlier work and are retired)")
+                "weights (the earlier held-out rooms 1001-1006 and 4001-4008 steered earlier work and are retired)")
     if config.seed_set == "validation":
         return f"Validation rooms {seeds}: the rooms every training and shipping choice was made on (not held out)"
     return f"Rooms {seeds}"
