@@ -49,6 +49,13 @@ class TrainConfig:
     block_mixed: bool = False  # a batch draws its blocks from all scenes (False: all from one random scene)
     block_lr: float = 0.0  # the block phase's learning rate (0: lr)
     block_lr_final_fraction: float = 1.0  # cosine decay of the block phase's learning rate to block_lr * this
+    # the feature nets' per-pixel pretraining before the block phase (not the paper's training; see
+    # feature_pretrain.py): feature_pretrain_steps Adam steps per sensor on batches of feature_pretrain_batch
+    # random crops of feature_pretrain_crop_px, learning which pixels lie within eta_m of the true depth
+    feature_pretrain_steps: int = 0
+    feature_pretrain_lr: float = 1e-3
+    feature_pretrain_batch: int = 8
+    feature_pretrain_crop_px: int = 64
     init_weights: str = ""  # start from this weights file's networks (e.g. after a block phase), not init_seed
     feature_lr_factor: float = 1.0  # the feature nets' learning rate is lr * this (1 = the paper's single rate)
     lr_final_fraction: float = 1.0  # cosine decay of the learning rate to lr * this over the run (1 = constant)
@@ -100,4 +107,5 @@ def load_config(path: str | Path) -> TrainConfig:
 PAPER_TRAINING = {"chunk_size": 64, "min_update_voxels": 2000, "max_chunk_tries": 600, "lr": 1e-4,
                   "accumulate_frames": 20, "clip_grad_norm": 1.0, "reset_probability": 0.01,
                   "lambda1": 1 / 60, "lambda2": 1 / 600, "eta_m": 0.04, "weighting_tsdf_input": False,
-                  "block_steps": 0, "feature_lr_factor": 1.0, "lr_final_fraction": 1.0, "time_budget_s": 0.0}
+                  "block_steps": 0, "feature_pretrain_steps": 0, "feature_lr_factor": 1.0, "lr_final_fraction": 1.0,
+                  "time_budget_s": 0.0}

@@ -31,7 +31,7 @@ def _seed_text(config: EvaluationConfig) -> str:
     seeds = ", ".join(str(s) for s in config.seeds)
     if config.seed_set == "held-out":
         return (f"Held-out rooms {seeds}: never trained on, never used for a choice, scored once with the final "
-                "weights (the earlier held-out rooms 1001-1006 steered earlier work and are retired)")
+                "weights (the earlier held-out rooms 1001-1006 and 4001-4008 steered earlier work and are retired)")
     if config.seed_set == "validation":
         return f"Validation rooms {seeds}: the rooms every training and shipping choice was made on (not held out)"
     return f"Rooms {seeds}"
@@ -167,11 +167,19 @@ def _ran_lines(meta: dict) -> list[str]:
     if init.get("meta"):
         lines += _ran_lines(init["meta"])
         lines.append(f"- Then started from that checkpoint (`{init.get('path')}`):")
+    pre = ran.get("feature_pretrain") or {}
+    if pre.get("steps"):
+        accuracy = ", ".join(f"{s} {pre[s]['balanced_accuracy']:.2f}" for s in ("tof", "stereo") if s in pre)
+        lines.append(f"- Feature-net pretraining (not the paper's training): each sensor's feature net took "
+                     f"{pre['steps']} Adam steps with a 1x1 auxiliary head on per-pixel labels (depth within "
+                     f"{cfg.get('eta_m')} m of the rendered true depth) from the training scenes' frames; the head's "
+                     f"balanced accuracy at the end: {accuracy}. The head is not kept.")
     if ran.get("block_steps"):
         where = (f" on {ran['blocks']} blocks of {ran['block_scenes']} integrated training scenes"
                  if "blocks" in ran else " on blocks of the integrated training scenes")
         lines.append(f"- Block phase (not the paper's training): G alone took {ran['block_steps']} Adam steps{where}, "
-                     f"batches of {cfg.get('block_batch')} blocks; the feature nets were not trained in it.")
+                     f"batches of {cfg.get('block_batch')} blocks; the feature nets were not trained in it"
+                     + (" (their pretrained features filled the grids)." if pre.get("steps") else "."))
     frames = int(ran.get("online_frames", 0))
     if frames == 0:
         lines.append("- Online phase (the paper's training) up to this checkpoint: no frame, so its networks hold no "

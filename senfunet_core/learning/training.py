@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..errors import InputError
 from .block_phase import block_batch
 from .chunks import keys_to_voxels, sample_chunk, update_box
 from .clock import ActiveClock
@@ -205,12 +206,28 @@ class _Run:
             progress_frac = max(progress_frac, self.clock.active() / cfg.time_budget_s)
         return cosine_lr(cfg.lr, cfg.lr_final_fraction, progress_frac)
 
+    def run_feature_pretrain(self) -> None:
+        """The feature nets' per-pixel pretraining (feature_pretrain.py) on the training scenes' frames."""
+        from .feature_pretrain import pixel_frames, pretrain_feature_nets
+
+        cfg = self.config
+        t0 = time.perf_counter()
+        frames = pixel_frames((self.sequence(seed) for seed in cfg.train_scenes), frame_stride=cfg.val_frame_stride,
+                              eta_m=cfg.eta_m, depth_min_m=cfg.depth_min_m, depth_max_m=cfg.depth_max_m,
+                              border_px=cfg.border_px)
+        got = pretrain_feature_nets(self.trainer.feature_nets, frames, steps=cfg.feature_pretrain_steps,
+                                    lr=cfg.feature_pretrain_lr, batch=cfg.feature_pretrain_batch,
+                                    crop_px=cfg.feature_pretrain_crop_px, seed=cfg.seed, log=self.log)
+        self.block_phase["feature_pretrain"] = {"steps": cfg.feature_pretrain_steps, **got}
+        self.log(f"feature nets pretrained per pixel: {cfg.feature_pretrain_steps} steps per sensor "
+                 f"({time.perf_counter() - t0:.0f} s)")
+
     def run_block_phase(self) -> None:
         cfg = self.config
         t0 = time.perf_counter()
         got = self.trainer.train_weighting_net_on_blocks((self.sequence(seed) for seed in cfg.train_scenes),
                                                          self.validator.engine_config(), self.log)
-        self.block_phase = {"block_scenes": got["scenes"], "blocks": got["blocks"]}
+        self.block_phase.update(block_scenes=got["scenes"], blocks=got["blocks"])
         self.log(f"G on {got['blocks']} blocks of {got['scenes']} integrated scenes: {cfg.block_steps} steps "
                  f"({time.perf_counter() - t0:.0f} s)")
         self.validate(0)
@@ -261,7 +278,12 @@ class _Run:
 
 def train(config: TrainConfig, out_path: str | Path, *, log=print, progress: bool = True) -> dict:
     """The whole training run; writes the best checkpoint to out_path and returns a summary."""
+    if config.feature_pretrain_steps > 0 and config.block_steps <= 0:
+        raise InputError("feature_pretrain_steps > 0 changes the features G reads: it needs the block phase "
+                         "(block_steps > 0, no --init-weights)")
     run = _Run(config, Path(out_path), log, progress)
+    if config.feature_pretrain_steps > 0:
+        run.run_feature_pretrain()
     if config.block_steps > 0:
         run.run_block_phase()
     elif config.init_weights:

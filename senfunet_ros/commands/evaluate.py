@@ -13,7 +13,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "12-input model, tof_stereo_paper.pt), a .pt path, or 'none' (untrained)")
     parser.add_argument("--set", dest="seed_set", choices=("validation", "held-out"), default="validation",
                         help="rooms: 'validation' (900-905, where choices are made; default) or 'held-out' "
-                             "(4001-4008, to be scored once at the end)")
+                             "(6001-6008, to be scored once at the end)")
     parser.add_argument("--scenes", type=int, default=None, metavar="N", help="only the first N rooms of the set")
     parser.add_argument("--ablations", action="store_true",
                         help="also: feature nets seeded / zeroed, the other shipped model (TSDF input on/off)")

@@ -25,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training seed and network initialisation seed (overrides the config)")
     parser.add_argument("--block-steps", type=int, default=None, metavar="N",
                         help="Adam steps of the block phase (overrides the config: screens a recipe, file untouched)")
+    parser.add_argument("--feature-pretrain-steps", type=int, default=None, metavar="N",
+                        help="per-pixel pretraining steps of each feature net before the block phase (overrides the "
+                             "config; 0 = none, the feature nets stay at their seeded initialisation)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
 
 
@@ -69,6 +72,12 @@ def run(args: argparse.Namespace) -> int:
                   "pass one of them")
             return 2
         overrides["block_steps"] = args.block_steps
+    if args.feature_pretrain_steps is not None:
+        if args.feature_pretrain_steps < 0 or (args.feature_pretrain_steps and args.init_weights is not None):
+            print("senfunet train: --feature-pretrain-steps takes N >= 0 and runs before the block phase, which "
+                  "--init-weights skips; pass one of them")
+            return 2
+        overrides["feature_pretrain_steps"] = args.feature_pretrain_steps
     config = dataclasses.replace(config, **overrides)
     out = Path(args.out) if args.out else networks.DEFAULT_WEIGHTS
     budget = f", at most {config.time_budget_s:.0f} s" if config.time_budget_s > 0 else ""

@@ -356,3 +356,90 @@ def test_train_command_overrides_seed_and_block_steps(tmp_path):
     assert meta["config"]["seed"] == 3 and meta["config"]["init_seed"] == 3 and meta["config"]["block_steps"] == 3
     assert yaml.safe_load(config.read_text())["block_steps"] == 50
     assert cli.main(["train", "--config", str(config), "--block-steps", "-1"]) == 2
+
+
+def test_pixel_labels_against_the_rendered_true_depth(tiny_sequence):
+    """A pixel is an inlier when its depth lies within eta of the true depth; invalid and border pixels are neither."""
+    from senfunet_core.learning import feature_pretrain as fp
+    from senfunet_core.learning.raycast import render_view
+
+    frames = fp.pixel_frames([tiny_sequence], frame_stride=1, eta_m=0.04, depth_min_m=(0.1, 0.1),
+                             depth_max_m=(5.0, 5.0), border_px=4)
+    assert set(frames) == {"tof", "stereo"} and frames["tof"].rgb is None and frames["stereo"].rgb is not None
+    first = next(f for f in tiny_sequence.frames if f.sensor == "stereo")
+    true = render_view(tiny_sequence.scene, first.T_world_camera, first.K, 128, 128, with_rgb=False)["depth_m"]
+    got = frames["stereo"]
+    valid = (first.depth_m >= 0.1) & (first.depth_m <= 5.0)
+    valid[:4], valid[-4:], valid[:, :4], valid[:, -4:] = False, False, False, False
+    assert np.array_equal(got.valid[0], valid)
+    assert np.array_equal(got.inlier[0], valid & (np.abs(first.depth_m - true) < 0.04))
+    assert 0 < got.inlier[0].sum() < valid.sum()  # the simulated stereo has both
+
+
+def test_balanced_bce_weights_each_class_to_half():
+    from senfunet_core.learning.feature_pretrain import balanced_bce
+
+    logit = torch.tensor([[0.0, 2.0, -1.0, 5.0]])
+    inlier = torch.tensor([[True, True, True, False]])
+    mask = torch.tensor([[True, True, True, True]])
+    bce = torch.nn.functional.binary_cross_entropy_with_logits
+    want = 0.5 * bce(logit[0, :3], torch.ones(3)) + 0.5 * bce(logit[0, 3:], torch.zeros(1))
+    assert float(balanced_bce(logit, inlier, mask)) == pytest.approx(float(want))
+    only_in = torch.tensor([[True, False, False, False]])
+    assert float(balanced_bce(logit, inlier, only_in)) == pytest.approx(float(bce(logit[0, :1], torch.ones(1))))
+
+
+def test_feature_pretraining_learns_the_pixel_labels():
+    """Labels the depth image determines (inlier: nearer than 1.5 m): the head separates them after a few
+    hundred steps, the loss falls, and only the trained sensor's net leaves its initialisation."""
+    from senfunet_core import networks
+    from senfunet_core.learning import feature_pretrain as fp
+
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 2.5, (6, 1, 8, 8)).repeat(8, axis=2).repeat(8, axis=3)[:, 0].astype(np.float32)
+    valid = np.ones(depth.shape, bool)
+    frames = {"tof": fp.PixelFrames(depth, None, depth < 1.5, valid)}
+    nets, _ = networks.make_networks((False, True), 0)
+    got = fp.pretrain_feature_nets(nets, frames, steps=300, lr=3e-3, batch=4, crop_px=48, seed=0,
+                                   log=lambda *_: None)["tof"]
+    assert got["loss_last_tenth"] < 0.7 * got["loss_first_tenth"] and got["balanced_accuracy"] > 0.8
+    seeded, _ = networks.make_networks((False, True), 0)
+    assert not torch.equal(seeded[0].blocks[0][0].weight, nets[0].blocks[0][0].weight)
+    assert all(torch.equal(a, b) for a, b in zip(seeded[1].state_dict().values(), nets[1].state_dict().values()))
+
+
+@pytest.mark.slow  # simulates a training and a validation room, integrates and validates them
+def test_train_command_pretrains_the_feature_nets(tmp_path):
+    """`senfunet train --feature-pretrain-steps N`: the feature nets learn per pixel before the block phase,
+    the weights file keeps them and records it, and the generated Training section says so (a tiny run)."""
+    import yaml
+
+    from senfunet_core import networks
+    from senfunet_core.learning.report import training_notes
+    from senfunet_ros import cli
+
+    config = tmp_path / "tiny.yaml"
+    values = {"seed": 0, "init_seed": 0, "train_scenes": [5], "val_scenes": [7], "duration_s": 0.3,
+              "val_duration_s": 0.3, "val_frame_stride": 2, "weighting_tsdf_input": True, "block_steps": 2,
+              "block_batch": 4, "block_scene_blocks": 20, "block_lr": 1e-3, "lambda1": 0.1, "lambda2": 0.08,
+              "feature_pretrain_batch": 2, "feature_pretrain_crop_px": 48, "threads": 1,
+              "cache_dir": str(tmp_path / "cache")}
+    config.write_text(yaml.safe_dump(values))
+    out = tmp_path / "pre.pt"
+    argv = ["train", "--config", str(config), "--feature-pretrain-steps", "4", "--steps", "0", "--out", str(out),
+            "--no-progress"]
+    assert cli.main(argv) == 0
+    state = torch.load(out, map_location="cpu", weights_only=True)
+    pre = state["meta"]["ran"]["feature_pretrain"]
+    assert pre["steps"] == 4 and set(pre) >= {"tof", "stereo"}
+    assert state["meta"]["config"]["feature_pretrain_steps"] == 4
+    seeded, _ = networks.make_networks((False, True), 0, tsdf_input=True)
+    for net, saved in zip(seeded, state["feature_nets"]):
+        assert not torch.equal(net.blocks[0][0].weight, saved["blocks.0.0.weight"])
+    text = training_notes(str(out))
+    assert "Feature-net pretraining" in text and "4 Adam steps" in text and "trained: they differ" in text
+    assert "`feature_pretrain_steps` = 4 (paper 0): not listed" in text
+    argv = ["train", "--config", str(config), "--feature-pretrain-steps", "4", "--init-weights", str(out)]
+    assert cli.main(argv) == 2
+    assert cli.main(["train", "--config", str(config), "--feature-pretrain-steps", "-1"]) == 2
