@@ -63,7 +63,7 @@ from .errors import InputError
 from .grid import BlockGrid, block_keys, keys_to_coords
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .map_bound import MapBound, memory_bound_blocks
-from .memory import large_allocations_outside_the_heap, release_free_memory
+from .memory import release_free_memory
 from .mesh_archive import MeshArchive
 from .mesher import BlockMeshes, Mesh, StreamingWeld
 from .spill import BlockSpill
@@ -206,7 +206,6 @@ class SenFuNet:
     def __init__(self, config: EngineConfig = EngineConfig(), weights: str | Path | None = "default") -> None:
         config.validate()
         self.config = config
-        large_allocations_outside_the_heap()  # the net's batch tensors: else a heap as deep as several stays
         self.device = networks.choose_device(config.device, cpu_fallback=False).device
         if config.torch_threads > 0 and torch.get_num_threads() != config.torch_threads:
             torch.set_num_threads(config.torch_threads)

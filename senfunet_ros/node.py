@@ -851,10 +851,12 @@ def limit_malloc(arenas: int = 2, mmap_threshold_bytes: int = 4 << 20) -> bool:
     import ctypes
     import ctypes.util
 
+    from senfunet_core.memory import large_allocations_outside_the_heap
+
+    threshold_set = large_allocations_outside_the_heap(mmap_threshold_bytes)
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        threshold_set = libc.mallopt(-3, mmap_threshold_bytes)  # M_MMAP_THRESHOLD
-        return bool(libc.mallopt(-8, arenas)) and bool(threshold_set)  # M_ARENA_MAX
+        return bool(libc.mallopt(-8, arenas)) and threshold_set  # M_ARENA_MAX
     except (OSError, AttributeError):
         return False
 
