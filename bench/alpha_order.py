@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench._common import ROOT, command, machine, simulated_bag, write_section  # noqa: E402
+from bench._common import ROOT, bag_frames, command, machine, simulated_bag, write_section  # noqa: E402
 
 
 class _Clock:
@@ -44,24 +44,6 @@ class _Clock:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(time, name)
-
-
-def frames_of(bag: Path) -> list:
-    from senfunet_ros.bagio import open_bag
-    from senfunet_ros.ingest import Frame, Ingest
-    from senfunet_ros.replay import TopicRouter, ingest_config, load_settings
-
-    settings = load_settings(None)
-    frames = []
-    with open_bag(bag) as reader:
-        router = TopicRouter(settings, reader.topics, bag)
-        ingest = Ingest(ingest_config(settings))
-        for msg in reader.messages(router.topics):
-            decoded = router.decode(msg)
-            if decoded is not None:
-                router.dispatch(ingest, *decoded)
-                frames += [f for f in ingest.pop_ready() if isinstance(f, Frame)]
-    return sorted(frames, key=lambda f: f.stamp_ns)
 
 
 def run(frames: list, order: str, blocks_per_update: int) -> dict:
@@ -125,7 +107,7 @@ def main() -> None:
     torch.set_num_threads(1)
     bag = simulated_bag(Path(args.cache), name="alpha_order", seed=args.seed, room=tuple(args.room),
                         seconds=args.seconds, tof_rate_hz=15.0, stereo_rate_hz=20.0)
-    frames = frames_of(bag)
+    frames = sorted(bag_frames(bag), key=lambda f: f.stamp_ns)
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
              f"Virtual time (see the script's docstring): a simulated validation room (seed {args.seed}, "
              f"{' x '.join(f'{v:g}' for v in args.room)} m, {args.seconds:g} s, {len(frames)} depth frames, every one "

@@ -21,30 +21,14 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench._common import ROOT, command, machine, write_section  # noqa: E402
+from bench._common import ROOT, bag_frames, command, machine, write_section  # noqa: E402
 
 
 def load_frames(bag: Path, n: int, seed: int):
     """[(sensor, depth, K, T, rgb)] of the first n frames in arrival order."""
     if (bag / "metadata.yaml").is_file() or bag.suffix == ".mcap":
-        from senfunet_ros.bagio import open_bag
-        from senfunet_ros.ingest import Frame, Ingest
-        from senfunet_ros.replay import TopicRouter, ingest_config, load_settings
-
-        settings = load_settings(None)
-        frames = []
-        with open_bag(bag) as reader:
-            router = TopicRouter(settings, reader.topics, bag)
-            ingest = Ingest(ingest_config(settings))
-            for msg in reader.messages(router.topics):
-                decoded = router.decode(msg)
-                if decoded is not None:
-                    router.dispatch(ingest, *decoded)
-                    frames += [(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb) for f in ingest.pop_ready()
-                               if isinstance(f, Frame)]
-                if len(frames) >= n:
-                    break
-        return frames[:n], f"`{bag.relative_to(ROOT) if bag.is_relative_to(ROOT) else bag}`"
+        frames = [(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb) for f in bag_frames(bag, n)]
+        return frames, f"`{bag.relative_to(ROOT) if bag.is_relative_to(ROOT) else bag}`"
     from senfunet_core.learning import simulator as sim
 
     seq = sim.simulate_sequence(sim.make_scene(seed), seed, duration_s=n / 35 + 0.1)

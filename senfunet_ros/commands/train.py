@@ -66,18 +66,15 @@ def run(args: argparse.Namespace) -> int:
         overrides["val_every"] = args.val_every
     if args.seed is not None:
         overrides.update(seed=args.seed, init_seed=args.seed)
-    if args.block_steps is not None:
-        if args.block_steps < 0 or (args.block_steps and args.init_weights is not None):
-            print("senfunet train: --block-steps takes N >= 0, and --init-weights skips the block phase; "
-                  "pass one of them")
+    for option, field, phase in (("--block-steps", "block_steps", "is the block phase"),
+                                 ("--feature-pretrain-steps", "feature_pretrain_steps", "runs before the block phase")):
+        steps = getattr(args, field)
+        if steps is None:
+            continue
+        if steps < 0 or (steps and args.init_weights is not None):
+            print(f"senfunet train: {option} takes N >= 0 and {phase}, which --init-weights skips; pass one of them")
             return 2
-        overrides["block_steps"] = args.block_steps
-    if args.feature_pretrain_steps is not None:
-        if args.feature_pretrain_steps < 0 or (args.feature_pretrain_steps and args.init_weights is not None):
-            print("senfunet train: --feature-pretrain-steps takes N >= 0 and runs before the block phase, which "
-                  "--init-weights skips; pass one of them")
-            return 2
-        overrides["feature_pretrain_steps"] = args.feature_pretrain_steps
+        overrides[field] = steps
     config = dataclasses.replace(config, **overrides)
     out = Path(args.out) if args.out else networks.DEFAULT_WEIGHTS
     budget = f", at most {config.time_budget_s:.0f} s" if config.time_budget_s > 0 else ""
