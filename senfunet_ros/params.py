@@ -106,7 +106,7 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     _rate("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
           "instructions, else float32) | float32 | bfloat16", choices=("auto", "float32", "bfloat16")),
-    Param("feature_precision", "auto", "feature-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
+    Param("feature_precision", "float32", "feature-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
           "instructions, else float32) | float32 | bfloat16", choices=("auto", "float32", "bfloat16")),
     _rate("status_rate_hz", 1.0, "rate of /diagnostics and ~/status"),
     Param("diagnostics_window_s", 5.0, "rates are measured over this recent window; a WARN clears this long after "

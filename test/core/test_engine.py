@@ -5,7 +5,6 @@ import math
 import subprocess
 import sys
 import time
-from pathlib import Path
 from dataclasses import replace
 
 import numpy as np
@@ -1019,23 +1018,3 @@ def test_an_engine_is_freed_without_the_cycle_collector():
     finally:
         if enabled:
             gc.enable()
-
-
-def test_large_allocations_are_given_back_when_freed():
-    """With the engine's malloc setting, a large temporary is unmapped when freed: the resident
-    memory falls back (glibc's default would keep such blocks in its heap once its threshold rose)."""
-    from senfunet_core.memory import large_allocations_outside_the_heap
-
-    if not large_allocations_outside_the_heap():
-        pytest.skip("not glibc")
-
-    def rss_kb() -> int:
-        return int(Path("/proc/self/status").read_text().split("VmRSS:")[1].split()[0])
-
-    np.ones(24 << 20, np.uint8)  # freed at once: glibc's default would now keep 16 MB blocks in its heap
-    for _ in range(3):
-        before = rss_kb()
-        block = np.ones(16 << 20, np.uint8)
-        assert rss_kb() - before > 12 << 10
-        del block
-        assert rss_kb() - before < 4 << 10
