@@ -21,11 +21,12 @@ over the whole grid there); then it re-meshes every block whose cells read a cha
 Threading model (the one place it is described):
 - Threads: an integrating thread calls `prepare`/`integrate`; an updating thread calls `update`,
   `refresh_alpha`, the extractions, `save`, `reset`; one feature-net worker thread (module-wide)
-  runs the 2D nets; with `alpha_threads` > 1, that many alpha threads (per engine) evaluate the
-  weighting net's batches for an update that has no time budget (or an idle catch-up,
-  `refresh_alpha(until_frame=True)`), while the updating thread waits for them in order and writes
-  their results. Several threads may integrate, and several may
-  update: the locks serialise them.
+  runs the 2D nets; with `alpha_threads` > 1, that many alpha threads (per engine, owned by its
+  `AlphaScheduler`) evaluate the weighting net's batches for an update that has no time budget (or
+  an idle catch-up, `refresh_alpha(until_frame=True)`), while the updating thread waits for them in
+  order and writes their results. Several threads may integrate, and several may update: the locks
+  serialise them. The engine's parts (`AlphaScheduler`, `BlockMesher`, `MapBound`) start no thread
+  of their own besides those alpha threads, and take only the data lock they are given.
 - The update lock (`_updating`) serialises updates, extractions, saves and evictions; it owns the
   alpha scheduler's order, the map bound (its archive) and the set of meshed blocks.
 - The data lock guards the grid's contents and the per-block flags: integration holds it while its
