@@ -8,6 +8,7 @@ engine's data lock (see the threading model in `engine`).
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import torch
@@ -111,10 +112,11 @@ class BlockMesher:
         self.times.add(fusion=t1 - t0, marching_cubes=time.perf_counter() - t1)
         return triangles
 
-    def batches(self, slots: np.ndarray, which: str, filtered: bool) -> list[BlockTriangles]:
-        """`triangles` over any number of blocks, batch by batch."""
-        return [self.triangles(slots[start:start + self.batch_blocks], which, filtered)
-                for start in range(0, len(slots), self.batch_blocks)]
+    def batches(self, slots: np.ndarray, which: str, filtered: bool) -> Iterator[BlockTriangles]:
+        """`triangles` over any number of blocks, one batch at a time (a caller that keeps only
+        what it needs of each holds one batch's buffers at once)."""
+        for start in range(0, len(slots), self.batch_blocks):
+            yield self.triangles(slots[start:start + self.batch_blocks], which, filtered)
 
     def block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
         """Fused, filtered per-block meshes in metres of one batch of blocks (coords: their block

@@ -414,8 +414,7 @@ class SenFuNet:
                 # each batch goes into the weld's compact arrays at once (extraction's memory peak)
                 welder = StreamingWeld(self.config.voxel_size_m, coords.min(axis=0, initial=0),
                                        coords.max(axis=0, initial=0))
-                for start in range(0, len(slots), self.config.mesh_batch_blocks):
-                    part = self.mesher.triangles(slots[start:start + self.config.mesh_batch_blocks], which, filtered)
+                for part in self.mesher.batches(slots, which, filtered):
                     welder.add(part.vertices_vox, part.faces, part.vertex_values if which == FUSED else None)
                     live_with_faces.append(np.diff(part.face_offsets) > 0)
                     del part
