@@ -20,6 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .errors import InputError
+from .feature_conv import feature_net_forward
 
 N_FEATURE_CHANNELS = 4  # learned channels; the depth is appended to make n = 5
 N_FEATURES = N_FEATURE_CHANNELS + 1
@@ -89,6 +90,27 @@ class FeatureNet(nn.Module):
             raise InputError("this feature net takes depth and colour: pass rgb01 (Bx3xHxW in 0..1)")
         else:
             x = torch.cat([depth_m, rgb01], dim=1)
+        if not torch.is_grad_enabled() and self.compute_dtype == torch.float32 and x.device.type == "cpu":
+            x = self._conv_stack_kernel(x)
+        else:
+            x = self._conv_stack_torch(x)
+        # per-pixel L2 normalisation, written out: F.normalize's strided norm over dim 1 is slower here
+        x = x / torch.sqrt((x * x).sum(dim=1, keepdim=True)).clamp(min=1e-8)
+        return torch.cat([x, depth_m], dim=1)
+
+    def _convs(self) -> list[nn.Conv2d]:
+        return [cast(nn.Conv2d, conv) for block in self.blocks for conv in cast(nn.ModuleList, block)]
+
+    def _conv_stack_kernel(self, x: torch.Tensor) -> torch.Tensor:
+        """The residual conv-tanh stack in float32 inference on the CPU: `feature_conv`'s kernel, image
+        by image."""
+        convs = [(conv.weight.detach().float().numpy(), cast(torch.Tensor, conv.bias).detach().float().numpy())
+                 for conv in self._convs()]
+        return torch.stack([torch.from_numpy(feature_net_forward(convs, image.float().contiguous().numpy()))
+                            for image in x])
+
+    def _conv_stack_torch(self, x: torch.Tensor) -> torch.Tensor:
+        """The residual conv-tanh stack with torch's convolutions (training, bfloat16, GPUs)."""
         # channels last: oneDNN's 4-channel convolutions are faster in that layout on the CPU. A
         # 1-channel input is laid out the same either way, so the first output is converted too
         # (else the depth-only net stays in the slower layout throughout).
@@ -103,10 +125,7 @@ class FeatureNet(nn.Module):
             if previous is not None:  # each block's output is added to the next block's output
                 x = x + previous
             previous = x
-        x = x.to(torch.float32).contiguous()
-        # per-pixel L2 normalisation, written out: F.normalize's strided norm over dim 1 is slower here
-        x = x / torch.sqrt((x * x).sum(dim=1, keepdim=True)).clamp(min=1e-8)
-        return torch.cat([x, depth_m], dim=1)
+        return x.to(torch.float32).contiguous()
 
 
 class WeightingNet(nn.Module):

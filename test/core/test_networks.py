@@ -48,23 +48,29 @@ def test_the_device_is_decided_in_networks_only():
 
 
 @pytest.mark.parametrize("uses_rgb", [False, True])
-def test_feature_net_inference_equals_its_training_forward(uses_rgb: bool) -> None:
-    """Without autograd the feature net computes tanh through sigmoid (faster on the CPU): the same
-    features within float32 rounding as the autograd forward, which uses torch.tanh."""
+def test_feature_net_inference_equals_its_training_forward(uses_rgb: bool, monkeypatch) -> None:
+    """Without autograd, in float32 on the CPU, the feature net runs feature_conv's kernel (its own
+    convolutions and tanh): the same features within float32 rounding as the autograd forward, which
+    uses torch's convolutions and torch.tanh; image by image in a batch."""
     from senfunet_core import networks
+    from senfunet_core.feature_conv import feature_net_forward
 
     feature_nets, weighting_net = networks.make_networks(
         (False, True), tsdf_input=networks.weights_tsdf_input(networks.DEFAULT_WEIGHTS))
     networks.load_weights(networks.DEFAULT_WEIGHTS, feature_nets, weighting_net)  # the shipped weights
     net = feature_nets[int(uses_rgb)]
     g = torch.Generator().manual_seed(0)
-    depth = torch.rand(1, 1, 48, 40, generator=g) * 3
+    depth = torch.rand(2, 1, 48, 40, generator=g) * 3
     depth[..., :5, :] = 0.0  # invalid pixels, as the engine passes them
-    rgb = torch.rand(1, 3, 48, 40, generator=g) if uses_rgb else None
+    rgb = torch.rand(2, 3, 48, 40, generator=g) if uses_rgb else None
     with torch.enable_grad():
         reference = net(depth, rgb).detach()
+    images = []
+    monkeypatch.setattr(networks, "feature_net_forward",
+                        lambda convs, image: images.append(image.shape) or feature_net_forward(convs, image))
     with torch.inference_mode():
         fast = net(depth, rgb)
-    assert fast.shape == reference.shape == (1, 5, 48, 40)
+    assert images == [(4 if uses_rgb else 1, 48, 40)] * 2  # the kernel ran, once per image
+    assert fast.shape == reference.shape == (2, 5, 48, 40)
     assert not torch.equal(fast, torch.zeros_like(fast))
     torch.testing.assert_close(fast, reference, rtol=0, atol=1e-5)
