@@ -833,10 +833,26 @@ GIL_SWITCH_INTERVAL_S = 0.0005
 
 
 def prepare_process() -> None:
-    """Process settings for a node with busy timers: a short GIL switch interval (see above) and
-    glibc malloc limits (`limit_malloc`). Call before the executor's threads exist."""
+    """Process settings for a node with busy timers: a short GIL switch interval (see above), glibc
+    malloc limits (`limit_malloc`) and OpenMP threads that sleep when idle (`passive_openmp_threads`).
+    Call before the executor's threads exist and before torch is imported."""
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     limit_malloc()
+    passive_openmp_threads()
+
+
+def passive_openmp_threads() -> bool:
+    """OMP_WAIT_POLICY=PASSIVE unless the user set a policy: torch's OpenMP workers (the weighting
+    net's intra-op threads) otherwise spin for a while after each parallel region, burning the
+    cores that the integration and the mesh updates need (bench/realtime.py measures the process's
+    CPU time per frame). OpenMP reads it once, when torch loads: False (nothing changes) if torch is
+    already imported."""
+    import os
+
+    if "torch" in sys.modules:
+        return False
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    return True
 
 
 def limit_malloc(arenas: int = 2, mmap_threshold_bytes: int = 4 << 20) -> bool:

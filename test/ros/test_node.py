@@ -626,6 +626,23 @@ def test_prepare_process_shortens_the_gil_switch_interval() -> None:
         sys.setswitchinterval(before)
 
 
+@pytest.mark.parametrize("user_policy", [None, "ACTIVE"])
+def test_prepare_process_makes_openmp_threads_sleep_unless_the_user_chose(user_policy: str | None) -> None:
+    """In a fresh interpreter (OpenMP reads the policy once, when torch loads): the node's process
+    preparation sets OMP_WAIT_POLICY=PASSIVE before torch is imported, and keeps a policy the user set."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if user_policy:
+        env["OMP_WAIT_POLICY"] = user_policy
+    code = ("import os, sys; from senfunet_ros.node import prepare_process; prepare_process(); "
+            "assert 'torch' not in sys.modules; import torch; print(os.environ['OMP_WAIT_POLICY'])")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == (user_policy or "PASSIVE")
+
+
 def test_every_drop_reason_has_a_hint_naming_what_to_check() -> None:
     from senfunet_ros.ingest import DROP_REASONS
     from senfunet_ros.node import DROP_HINTS
