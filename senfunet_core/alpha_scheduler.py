@@ -90,8 +90,6 @@ class AlphaScheduler:
         self.threads = threads
         self._executor: ThreadPoolExecutor | None = None  # threads > 1: evaluates batches side by side
         self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
-        # per schedule, when the oldest integration it took happened (monotonic s; schedule 0: none)
-        self.change_times_s = [float("nan")]
         self.flops = 0  # weighting-net FLOPs written so far (for the benchmark's fraction of peak)
 
     def schedule(self) -> None:
@@ -116,10 +114,10 @@ class AlphaScheduler:
         levels = level_of[candidates]
         with self._data_lock:
             self.schedules += 1
-            self.change_times_s.append(changed_s)
             # alpha NaN there: first, unless the block held nothing to evaluate when last checked
             levels[~store.evaluated[candidates] & ~store.no_targets[candidates]] = 3
             store.last_reached[candidates] = self.schedules
+            store.stale_since_s[candidates] = changed_s
             store.stale[candidates] = np.maximum(store.stale[candidates], levels)
 
     def waiting_s(self, slots: np.ndarray, now_s: float) -> np.ndarray:
@@ -128,7 +126,7 @@ class AlphaScheduler:
         the oldest integration not scheduled yet (an upper bound: a later frame may have been the
         one that changed them). Call with the data lock held."""
         store = self.store
-        waiting = now_s - np.asarray(self.change_times_s)[store.last_reached[slots]]
+        waiting = now_s - store.stale_since_s[slots]
         pending = store.alpha_pending[slots]
         waiting[pending] = np.fmax(waiting[pending], now_s - store.first_change_s)
         return waiting

@@ -39,18 +39,22 @@ class BlockStore:
     - evaluated: alpha evaluated at least once;
     - no_targets: when last checked, the block held no voxel alpha matters for;
     - last_reached: the last alpha schedule that made it stale (the newest are served first);
+    - stale_since_s: when the oldest integration of that schedule happened (monotonic seconds; NaN:
+      never made stale), so that the scheduler knows how long alpha has waited there;
     - mesh_pending: TSDF or alpha changed since it was meshed.
     And `first_change_s`: when the oldest integration not scheduled yet happened (monotonic seconds;
     NaN when every integration was scheduled), so that the scheduler knows how long alpha waits."""
 
     _FLAGS = {"alpha_pending": bool, "stale": np.int8, "evaluated": bool, "no_targets": bool,
-              "last_reached": np.int64, "mesh_pending": bool}
+              "last_reached": np.int64, "stale_since_s": np.float64, "mesh_pending": bool}
+    _FILL = {"stale_since_s": np.nan}  # the others start at 0 (False)
 
     alpha_pending: np.ndarray
     stale: np.ndarray
     evaluated: np.ndarray
     no_targets: np.ndarray
     last_reached: np.ndarray
+    stale_since_s: np.ndarray
     mesh_pending: np.ndarray
 
     def __init__(self, grid: BlockGrid) -> None:
@@ -77,7 +81,8 @@ class BlockStore:
         grow = self.grid.capacity - len(self.stale)
         if grow > 0:
             for name, dtype in self._FLAGS.items():
-                setattr(self, name, np.concatenate([getattr(self, name), np.zeros(grow, dtype)]))
+                setattr(self, name, np.concatenate([getattr(self, name),
+                                                    np.full(grow, self._FILL.get(name, 0), dtype)]))
 
     def views(self, *names: str) -> list[np.ndarray]:
         """Flat kernel views of pools (fetch them under the data lock: pools move when they grow)."""
@@ -124,9 +129,10 @@ class BlockStore:
         new_slot = np.arange(n)
         new_slot[victims] = -1
         new_slot[moved_from] = moved_to
-        for flags in (*(getattr(self, name) for name in self._FLAGS), remesh):
+        for name in (*self._FLAGS, None):
+            flags = remesh if name is None else getattr(self, name)
             flags[moved_to] = flags[moved_from]
-            flags[grid.n_blocks:n] = 0
+            flags[grid.n_blocks:n] = self._FILL.get(name or "", 0)
         self.mesh_pending[: grid.n_blocks] |= remesh[: grid.n_blocks]
         return Eviction(victim_keys, new_slot)
 

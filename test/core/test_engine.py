@@ -791,6 +791,40 @@ def test_stats_say_how_long_the_meshed_surface_waits_for_the_weighting_net(monke
     assert stats["meshed_blocks_unjudged_over_3s"] == 0 and stats["oldest_unjudged_change_s"] == 0.0
 
 
+def test_the_scheduler_keeps_no_state_per_schedule(monkeypatch):
+    """How long alpha waits is kept per block (the map's size), not per schedule: a node that
+    schedules once a second for a week would otherwise hold, and copy on every status, a value per
+    schedule. Many schedules of the same view leave the scheduler's state the same size; the wait
+    still counts from the frame that made the block stale."""
+    import senfunet_core.engine as engine_module
+
+    clock = VirtualClock()
+    monkeypatch.setattr(engine_module, "time", clock)
+    engine = engine_for_tests()
+    K, T = SPHERE_K, SPHERE_VIEWS[0]
+    depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+
+    def state_size() -> int:
+        return sum(v.nbytes if isinstance(v, np.ndarray) else len(v) if isinstance(v, (list, dict, set)) else 0
+                   for v in (*vars(engine.alpha).values(), *vars(engine.store).values()))
+
+    engine.integrate("tof", depth, K, T)
+    engine.integrate("stereo", depth, K, T)
+    engine.update(alpha_budget_s=0)  # meshed, alpha not judged
+    engine.alpha.schedule()
+    size = state_size()
+    for i in range(50):
+        clock.now_s = float(i + 1)
+        engine.integrate("stereo", depth, K, T)
+        engine.alpha.schedule()
+    assert engine.alpha.schedules == 51 and state_size() == size
+    clock.now_s = 55.0
+    stats = engine.stats()
+    # nothing judged: every meshed block has waited at least since the last frame (50 s)
+    assert stats["meshed_blocks_unjudged_over_3s"] == stats["meshed_blocks"] > 0
+    assert 5.0 <= stats["oldest_unjudged_change_s"] <= 55.0
+
+
 def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(monkeypatch):
     """Integration holding the data lock does not stall the weighting net: the batches evaluated
     meanwhile are written once the lock is free. The budget runs on a fake clock (each batch takes
