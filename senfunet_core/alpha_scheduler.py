@@ -134,16 +134,19 @@ class AlphaScheduler:
     def order(self) -> np.ndarray:
         """The stale blocks in the order they are judged (`alpha_order`): "latest", those the latest
         frames reached first (a budget that cannot keep up, as on a large room, goes to the part of
-        the map being scanned); "longest_waiting", those whose last change is oldest first (blocks
-        the sensors still see wait until they settle: each is judged about once, and the longest
-        wait is the shortest). Among blocks reached by the same schedule, never evaluated ones
-        first, then those with newly observed or sign-changed voxels, then drifted ones."""
+        the map being scanned); "longest_waiting", blocks with a mesh first (what a subscriber sees;
+        the others' turn comes when those are judged, or when the sensors pause), and among them
+        those whose last change is oldest first (blocks the sensors still see wait until they settle:
+        each is judged about once, and the longest wait is the shortest). Among blocks reached by the
+        same schedule, never evaluated ones first, then those with newly observed or sign-changed
+        voxels, then drifted ones."""
         store = self.store
         with self._data_lock:
             stale = np.flatnonzero(store.stale[: store.n_blocks])
             reached = store.last_reached[stale]
-            return stale[np.lexsort((-store.stale[stale], reached if self.alpha_order == "longest_waiting"
-                                     else -reached))]
+            if self.alpha_order == "latest":
+                return stale[np.lexsort((-store.stale[stale], -reached))]
+            return stale[np.lexsort((-store.stale[stale], reached, ~store.meshed[stale]))]
 
     @torch.inference_mode()  # grad mode is per thread, and evaluating threads may be new
     def evaluate(self, slots: np.ndarray) -> AlphaBatch:

@@ -41,12 +41,14 @@ class BlockStore:
     - last_reached: the last alpha schedule that made it stale (the newest are served first);
     - stale_since_s: when the oldest integration of that schedule happened (monotonic seconds; NaN:
       never made stale), so that the scheduler knows how long alpha has waited there;
-    - mesh_pending: TSDF or alpha changed since it was meshed.
+    - mesh_pending: TSDF or alpha changed since it was meshed;
+    - meshed: its fused mesh had triangles when last meshed.
     And `first_change_s`: when the oldest integration not scheduled yet happened (monotonic seconds;
     NaN when every integration was scheduled), so that the scheduler knows how long alpha waits."""
 
     _FLAGS = {"alpha_pending": bool, "stale": np.int8, "evaluated": bool, "no_targets": bool,
-              "last_reached": np.int64, "stale_since_s": np.float64, "mesh_pending": bool}
+              "last_reached": np.int64, "stale_since_s": np.float64, "mesh_pending": bool,
+              "meshed": bool}
     _FILL = {"stale_since_s": np.nan}  # the others start at 0 (False)
 
     alpha_pending: np.ndarray
@@ -56,6 +58,7 @@ class BlockStore:
     last_reached: np.ndarray
     stale_since_s: np.ndarray
     mesh_pending: np.ndarray
+    meshed: np.ndarray
 
     def __init__(self, grid: BlockGrid) -> None:
         self.grid = grid

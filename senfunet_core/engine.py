@@ -102,8 +102,9 @@ class EngineConfig:
     #   evaluation on every voxel); "surface" (blocks holding corners of cells whose 8 corners are observed and whose
     #   sensor TSDFs straddle 0: all that the fused mesh, its filter and its colours read; alpha elsewhere may be
     #   stale); "surface_voxels" (those corners alone, voxel by voxel: less arithmetic, more gathering)
-    alpha_order: str = "longest_waiting"  # which stale blocks a time budget serves first: "longest_waiting" (those
-    #   whose last change is oldest: blocks still in view wait until they settle, so each is judged about once) or
+    alpha_order: str = "longest_waiting"  # which stale blocks a time budget serves first: "longest_waiting" (blocks
+    #   with a mesh first, and among them those whose last change is oldest: blocks still in view wait until they
+    #   settle, so each is judged about once) or
     #   "latest" (those the latest frames reached); see AlphaScheduler.order. Chosen with bench/alpha_order.py on a
     #   validation room: fewer meshed blocks wait more than 3 s for the net after their last change, and more are
     #   judged, for the same budget (docs/performance.md)
@@ -370,6 +371,9 @@ class SenFuNet:
                         result.removed.append(key)
             self._meshed.update(has_faces)
             self.counters["meshed_blocks"] = len(self._meshed)
+            with self._data_lock:  # for the weighting net's order (slots stay put while the update lock is held)
+                self.store.meshed[slots] = np.isin(block_keys(torch.from_numpy(coords)).numpy(),
+                                                   block_keys(torch.from_numpy(live.keys)).numpy())
             self.times.add(alpha=t1 - t0, mesh=time.perf_counter() - t1)
             return result
 

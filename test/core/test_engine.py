@@ -761,6 +761,40 @@ def test_a_budget_serves_the_blocks_its_order_puts_first(monkeypatch, alpha_orde
         assert evaluated.max() < n_far  # the far sphere's, waiting since the first schedule
 
 
+def test_longest_waiting_judges_the_blocks_with_a_mesh_first(monkeypatch):
+    """A far sphere seen by one sensor (no mesh while its alpha is unknown: the filter holds
+    single-sensor voxels back) has waited longer than a near sphere both sensors saw, which has a
+    mesh; a short budget still judges the near sphere's meshed blocks first: they are what a
+    subscriber sees."""
+    import senfunet_core.alpha_scheduler as scheduler_module
+
+    engine = engine_for_tests(alpha_batch_blocks=16)
+    K = SPHERE_K
+    far = SPHERE_C + [3.0, 0.0, 0.0]
+    far_view = look_at(far + 0.9 * (SPHERE_VIEWS[0][:3, 3] - SPHERE_C), far)
+    engine.integrate("tof", render_sphere(far, SPHERE_R, K, far_view), K, far_view)
+    engine.refresh_alpha(0.0)  # scheduled first, nothing judged
+    n_far = engine.grid.n_blocks
+    depth = render_sphere(SPHERE_C, SPHERE_R, K, SPHERE_VIEWS[0])
+    engine.integrate("tof", depth, K, SPHERE_VIEWS[0])
+    engine.integrate("stereo", depth, K, SPHERE_VIEWS[0])
+    engine.update(alpha_budget_s=0)  # meshed, not judged
+    meshed = engine.store.meshed[: engine.grid.n_blocks]
+    assert not meshed[:n_far].any() and meshed[n_far:].sum() > 32
+    clock = VirtualClock()
+    monkeypatch.setattr(scheduler_module, "time", clock)
+    forward = engine.weighting_net.forward
+
+    def slow_forward(*args, **kwargs):
+        clock.now_s += 0.3  # each batch takes 0.3 fake seconds: a budget of 0.45 s runs exactly two
+        return forward(*args, **kwargs)
+
+    engine.weighting_net.forward = slow_forward
+    engine.refresh_alpha(0.45)
+    evaluated = np.flatnonzero(engine.store.evaluated[: engine.grid.n_blocks])
+    assert len(evaluated) == 32 and meshed[evaluated].all()
+
+
 def test_stats_say_how_long_the_meshed_surface_waits_for_the_weighting_net(monkeypatch):
     """The live goal "every meshed block judged within 3 s of its last change" is measured by
     stats(): meshed blocks whose alpha is not up to date, and how long since the change they wait
