@@ -82,6 +82,7 @@ _CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=Re
 _CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
 _ENGINE_STATS_PERIOD_S = 5.0
+_MESH_PERIOD_MARGIN = 0.05  # of the mesh period: the weighting net's turn ends this early, for the timer's dispatch
 # /tf as tf2_ros's listener subscribes to it; /tf_static latched (transient local) so mounts published
 # before the node started still arrive.
 _TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
@@ -593,23 +594,32 @@ class FusionNode(Node):
                 self.timings["publish"].add(publish_s)
             self.latency.published(contained)
             t_alpha = time.perf_counter()
-            self._weighting_net_turn(idle=not contained and self._no_frame_waiting())
+            # what is left of this mesh period (less a margin for the timer's dispatch): the next update
+            # is not to wait for the net
+            left_s = (1.0 - _MESH_PERIOD_MARGIN) / s.mesh_rate_hz - (t_alpha - start)
+            self._weighting_net_turn(idle=not contained and self._no_frame_waiting(), period_left_s=left_s)
             self.timings["alpha"].add(time.perf_counter() - t_alpha)
 
     def _no_frame_waiting(self) -> bool:
         """No frame queued in Ingest and none integrated since the last mesh update began."""
         return not any(self.ingest.queue_depths().values()) and not self.latency.pending()
 
-    def _weighting_net_turn(self, *, idle: bool) -> None:
+    def _weighting_net_turn(self, *, idle: bool, period_left_s: float) -> None:
         """The weighting net's turn after a mesh update. While frames come: alpha_budget_s (0: no
-        limit). Idle (no frame integrated since the last update and none queued: the sensors paused
-        or stopped): the net catches up on all it has not judged yet, so the mesh soon equals what an
-        offline replay makes, in slices of a mesh period on every core, and stops as soon as a frame
-        is integrated (an unlimited catch-up would hold the mesh updates for as long as the whole
-        backlog takes; a frame queued but not yet integrated is not idleness)."""
+        limit), but no longer than what is left of the mesh period (none when the update took it
+        all): the mesh refresh rate comes first. Idle (no frame integrated since the last update and
+        none queued: the sensors paused or stopped): the net catches up on all it has not judged yet,
+        so the mesh soon equals what an offline replay makes, in slices of a mesh period on every
+        core, and stops as soon as a frame is integrated (an unlimited catch-up would hold the mesh
+        updates for as long as the whole backlog takes; a frame queued but not yet integrated is not
+        idleness)."""
         s = self.settings
-        if not s.alpha_budget_s or not idle:
-            self.engine.refresh_alpha(s.alpha_budget_s or None)
+        if not s.alpha_budget_s:
+            self.engine.refresh_alpha(None)
+            return
+        if not idle:
+            if period_left_s > 0:
+                self.engine.refresh_alpha(min(s.alpha_budget_s, period_left_s))
             return
         slice_s = max(s.alpha_budget_s, 1.0 / s.mesh_rate_hz)
         while True:  # on every core, and stopping as soon as a frame is integrated
