@@ -18,6 +18,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from test_node import BASE_S, Running, _pose_msg, _stamp, topic_params, wait_for
 
+from senfunet_ros import params as P
+
 SIM = dict(duration_s=2.0, width=96, height=96, tof_rate_hz=6.0, stereo_rate_hz=6.0)
 SMALL = dict(voxel_size_m=0.04, band_m=0.4, working_width=48, queue_size=500, max_lag_s=0.0, integrate_rate_hz=50.0,
              mesh_rate_hz=2.0, tsdf_fusion=False)
@@ -353,7 +355,14 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
             arrive.clear()
 
         engine.refresh_alpha = recording_refresh
+        slices = run.node.settings
+
+        def running_budget_period() -> None:  # a 2 ms mesh period leaves no time for the running budget
+            run.node.settings = P.Settings.from_values({**slices.values, "mesh_rate_hz": 1.0})
+
+        running_budget_period()
         run.node.publish_mesh()  # frames were integrated since the last update: the running budget
+        run.node.settings = slices
         assert budgets == [0.001]
         backlog = engine.counters["alpha_backlog_blocks"]
         assert backlog > 0
@@ -364,7 +373,9 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
         assert 0 < engine.counters["alpha_backlog_blocks"] < backlog  # stopped with work left
         wait_for(settled, 60, "the last frame to be integrated")
         budgets.clear()
+        running_budget_period()
         run.node.publish_mesh()  # the frame came since the last update: the running budget again
+        run.node.settings = slices
         assert budgets == [0.001]
         budgets.clear()
         run.node.publish_mesh()  # idle: slices until the net has judged everything
