@@ -28,7 +28,6 @@ import sys
 import threading
 import time
 from collections import deque
-from pathlib import Path
 from typing import Any
 from collections.abc import Callable, Iterator
 
@@ -55,6 +54,7 @@ from senfunet_ros.conversions import PoseType
 from senfunet_ros.dds import publish_serialized
 from senfunet_ros.health import HealthMonitor
 from senfunet_ros.ingest import DROP_REASONS, Frame, Ingest, TimeJump
+from senfunet_ros.map_services import MapServices
 from senfunet_ros.pipeline import Pipeline, Stream, TimeJumpAction
 
 __all__ = ["FusionNode", "main"]
@@ -279,9 +279,11 @@ class FusionNode(Node):
         self.status_pub = self.create_publisher(DiagnosticArray, "~/status", _STATUS_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", _STATUS_QOS)
         # 6. services
+        self.map_services = MapServices(self.pipeline, lambda: self.settings, self._mesh_lock, self._map_loaded,
+                                        self._map_reset, self.get_logger())
         services_group = MutuallyExclusiveCallbackGroup()
-        for name, handler in (("save_mesh", self._save_mesh_srv), ("save_map", self._save_map_srv),
-                              ("load_map", self._load_map_srv), ("reset", self._reset_srv)):
+        for name, handler in (("save_mesh", self.map_services.save_mesh), ("save_map", self.map_services.save_map),
+                              ("load_map", self.map_services.load_map), ("reset", self.map_services.reset)):
             self.create_service(Trigger, f"~/{name}", handler, callback_group=services_group)
         # 7. run-time parameter changes: checked first (a bad value is refused with the reason), then applied
         self._validated: dict[str, Any] | None = None
@@ -733,80 +735,22 @@ class FusionNode(Node):
                 self._engine_stats_at = (now, self._engine_stats_at[1])
         return self._engine_stats_at[1]
 
-    # -- services -------------------------------------------------------------------------------
+    # -- map services (senfunet_ros.map_services) ------------------------------------------------
+    def _map_loaded(self) -> None:
+        """~/load_map replaced the engine (under the mesh lock): what the node derived from the old
+        map goes, and subscribers get the loaded map whole."""
+        self.camera_colors.clear()  # a map file holds no camera colours
+        self._apply_engine_settings(self.settings)
+        self._mesh_subscribers = 0
 
-    def save_meshes(self, output_dir: str | Path | None = None) -> list[Path]:
-        """Fused (filtered), per-sensor and TSDF Fusion meshes as PLY files; returns their paths."""
-        saved = self.pipeline.save_meshes(output_dir or self.settings.output_dir, sensors=self.settings.sensor_names,
-                                          tsdf_fusion=self.engine.config.tsdf_fusion)
-        return [s.path for s in saved.values()]
-
-    def _save_mesh_srv(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        try:
-            paths = self.save_meshes()
-            response.success = True
-            response.message = "wrote " + ", ".join(str(p) for p in paths)
-            self.get_logger().info(response.message)
-        except Exception as err:
-            response.success = False
-            response.message = f"saving failed: {err}; check parameter output_dir"
-            self.get_logger().error(response.message)
-        return response
-
-    def map_path(self) -> Path:
-        """Parameter map_file; a relative path is in output_dir."""
-        path = Path(self.settings.map_file).expanduser()
-        return path if path.is_absolute() else Path(self.settings.output_dir).expanduser() / path
-
-    def _save_map_srv(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        try:
-            path = self.pipeline.save_map(self.map_path())
-            response.success, response.message = True, f"wrote {path}"
-            self.get_logger().info(response.message)
-        except Exception as err:
-            response.success = False
-            response.message = f"saving the map failed: {err}; check parameters output_dir and map_file"
-            self.get_logger().error(response.message)
-        return response
-
-    def _load_map_srv(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        try:
-            path = self.map_path()
-            device = P.engine_config(self.settings).device
-            with self._mesh_lock:
-                engine = self.pipeline.load_map(path, device=device)
-                self.camera_colors.clear()  # a map file holds no camera colours
-                self._apply_engine_settings(self.settings)
-                self._mesh_subscribers = 0  # subscribers get the loaded map whole
-            response.success = True
-            response.message = (f"loaded {path}: {sum(engine.frames_integrated.values())} frames, "
-                                f"{engine.grid.n_blocks} blocks")
-            self.get_logger().info(response.message)
-        except Exception as err:
-            response.success = False
-            response.message = f"loading the map failed: {err}"
-            self.get_logger().error(response.message)
-        return response
-
-    def reset_map(self) -> None:
-        """Forget the map and queued frames; subscribers get a DELETEALL right away."""
-        self.pipeline.reset()
+    def _map_reset(self) -> None:
+        """~/reset emptied the map: subscribers get a DELETEALL right away."""
         self.camera_colors.clear()
         self.publish_mesh()
 
     def destroy_node(self) -> None:
         logging.getLogger("senfunet").removeHandler(self._engine_log)
         super().destroy_node()
-
-    def _reset_srv(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        try:
-            self.reset_map()
-            response.success, response.message = True, "map reset"
-            self.get_logger().info("map reset by ~/reset")
-        except Exception as err:
-            response.success, response.message = False, f"reset failed: {err}"
-            self.get_logger().error(response.message)
-        return response
 
 
 def spin(node: FusionNode, num_threads: int = 6) -> None:
@@ -914,7 +858,7 @@ def main(args: list[str] | None = None) -> int:
                 print(f"senfunet: finishing the queued frames failed: {err}", flush=True)
             if node.settings.save_on_shutdown:
                 try:
-                    paths = node.save_meshes()
+                    paths = node.map_services.save_meshes()
                     print("senfunet: saved " + ", ".join(str(p) for p in paths), flush=True)
                 except Exception as err:
                     print(f"senfunet: saving on shutdown failed: {err}", flush=True)

@@ -1,0 +1,79 @@
+"""The node's map services: ~/save_mesh, ~/save_map, ~/load_map and ~/reset (std_srvs/Trigger).
+
+What each does with the pipeline, and the reply it sends: a handler never raises, a failure is
+its reply (and an error in the log) and leaves the map as it was. The node owns the transport;
+`MapServices` gets the parts it acts on and what the node must redo when the map is replaced.
+"""
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from senfunet_ros import params as P
+from senfunet_ros.pipeline import Pipeline
+
+
+@dataclass
+class MapServices:
+    pipeline: Pipeline
+    settings: Callable[[], P.Settings]  # the node's parameters now (they change at run time)
+    mesh_lock: threading.Lock  # held while ~/load_map replaces the engine: no mesh update meanwhile
+    map_loaded: Callable[[], None]  # the node's state derived from the old map, redone (under mesh_lock)
+    map_reset: Callable[[], None]  # after ~/reset: the same, and subscribers told at once
+    logger: Any  # the node's logger
+
+    def save_meshes(self, output_dir: str | Path | None = None) -> list[Path]:
+        """Fused (filtered), per-sensor and TSDF Fusion meshes as PLY files; returns their paths."""
+        s = self.settings()
+        saved = self.pipeline.save_meshes(output_dir or s.output_dir, sensors=s.sensor_names,
+                                          tsdf_fusion=self.pipeline.engine.config.tsdf_fusion)
+        return [saved_mesh.path for saved_mesh in saved.values()]
+
+    def map_path(self) -> Path:
+        """Parameter map_file; a relative path is in output_dir."""
+        s = self.settings()
+        path = Path(s.map_file).expanduser()
+        return path if path.is_absolute() else Path(s.output_dir).expanduser() / path
+
+    def save_mesh(self, request: Any, response: Any) -> Any:
+        return self._reply(response, self._save_mesh, "saving failed: {err}; check parameter output_dir")
+
+    def save_map(self, request: Any, response: Any) -> Any:
+        return self._reply(response, lambda: f"wrote {self.pipeline.save_map(self.map_path())}",
+                           "saving the map failed: {err}; check parameters output_dir and map_file")
+
+    def load_map(self, request: Any, response: Any) -> Any:
+        return self._reply(response, self._load_map, "loading the map failed: {err}")
+
+    def reset(self, request: Any, response: Any) -> Any:
+        return self._reply(response, self.reset_map, "reset failed: {err}", log="map reset by ~/reset")
+
+    def reset_map(self) -> str:
+        """Forget the map and queued frames (then `map_reset`)."""
+        self.pipeline.reset()
+        self.map_reset()
+        return "map reset"
+
+    def _save_mesh(self) -> str:
+        return "wrote " + ", ".join(str(p) for p in self.save_meshes())
+
+    def _load_map(self) -> str:
+        path = self.map_path()
+        with self.mesh_lock:
+            engine = self.pipeline.load_map(path, device=P.engine_config(self.settings()).device)
+            self.map_loaded()
+        return f"loaded {path}: {sum(engine.frames_integrated.values())} frames, {engine.grid.n_blocks} blocks"
+
+    def _reply(self, response: Any, action: Callable[[], str], failure: str, log: str | None = None) -> Any:
+        try:
+            response.message = action()
+            response.success = True
+            self.logger.info(log or response.message)
+        except Exception as err:
+            response.success = False
+            response.message = failure.format(err=err)
+            self.logger.error(response.message)
+        return response
