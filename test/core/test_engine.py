@@ -734,26 +734,32 @@ def _two_spheres_one_scheduled_before(engine: SenFuNet) -> int:
     return n_far
 
 
-@pytest.mark.parametrize("alpha_order", ["latest", "longest_waiting"])
-def test_a_budget_serves_the_blocks_its_order_puts_first(monkeypatch, alpha_order):
-    """"latest": the blocks the latest frames reached (the near sphere's); "longest_waiting": those
-    whose last change is oldest (the far sphere's, reached by an earlier schedule)."""
+def _judge_two_batches(engine: SenFuNet, monkeypatch) -> np.ndarray:
+    """refresh_alpha with a budget that runs exactly two batches (on a fake clock, each batch takes
+    0.3 s of it, the budget is 0.45 s); returns the slots judged so far."""
     import senfunet_core.alpha_scheduler as scheduler_module
 
-    engine = engine_for_tests(alpha_batch_blocks=16, alpha_order=alpha_order)
-    n_far = _two_spheres_one_scheduled_before(engine)
-    assert engine.grid.n_blocks - n_far > 32
     clock = VirtualClock()
     monkeypatch.setattr(scheduler_module, "time", clock)
     forward = engine.weighting_net.forward
 
     def slow_forward(*args, **kwargs):
-        clock.now_s += 0.3  # each batch takes 0.3 fake seconds: a budget of 0.45 s runs exactly two
+        clock.now_s += 0.3
         return forward(*args, **kwargs)
 
     engine.weighting_net.forward = slow_forward
     engine.refresh_alpha(0.45)
-    evaluated = np.flatnonzero(engine.store.evaluated[: engine.grid.n_blocks])
+    return np.flatnonzero(engine.store.evaluated[: engine.grid.n_blocks])
+
+
+@pytest.mark.parametrize("alpha_order", ["latest", "longest_waiting"])
+def test_a_budget_serves_the_blocks_its_order_puts_first(monkeypatch, alpha_order):
+    """"latest": the blocks the latest frames reached (the near sphere's); "longest_waiting": those
+    whose last change is oldest (the far sphere's, reached by an earlier schedule)."""
+    engine = engine_for_tests(alpha_batch_blocks=16, alpha_order=alpha_order)
+    n_far = _two_spheres_one_scheduled_before(engine)
+    assert engine.grid.n_blocks - n_far > 32
+    evaluated = _judge_two_batches(engine, monkeypatch)
     assert len(evaluated) == 32
     if alpha_order == "latest":
         assert evaluated.min() >= n_far  # the near sphere's, reached last
@@ -766,8 +772,6 @@ def test_longest_waiting_judges_the_blocks_with_a_mesh_first(monkeypatch):
     single-sensor voxels back) has waited longer than a near sphere both sensors saw, which has a
     mesh; a short budget still judges the near sphere's meshed blocks first: they are what a
     subscriber sees."""
-    import senfunet_core.alpha_scheduler as scheduler_module
-
     engine = engine_for_tests(alpha_batch_blocks=16)
     K = SPHERE_K
     far = SPHERE_C + [3.0, 0.0, 0.0]
@@ -781,17 +785,7 @@ def test_longest_waiting_judges_the_blocks_with_a_mesh_first(monkeypatch):
     engine.update(alpha_budget_s=0)  # meshed, not judged
     meshed = engine.store.meshed[: engine.grid.n_blocks]
     assert not meshed[:n_far].any() and meshed[n_far:].sum() > 32
-    clock = VirtualClock()
-    monkeypatch.setattr(scheduler_module, "time", clock)
-    forward = engine.weighting_net.forward
-
-    def slow_forward(*args, **kwargs):
-        clock.now_s += 0.3  # each batch takes 0.3 fake seconds: a budget of 0.45 s runs exactly two
-        return forward(*args, **kwargs)
-
-    engine.weighting_net.forward = slow_forward
-    engine.refresh_alpha(0.45)
-    evaluated = np.flatnonzero(engine.store.evaluated[: engine.grid.n_blocks])
+    evaluated = _judge_two_batches(engine, monkeypatch)
     assert len(evaluated) == 32 and meshed[evaluated].all()
 
 
