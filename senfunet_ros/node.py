@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
@@ -53,9 +53,10 @@ from senfunet_ros.bagio import message_class
 from senfunet_ros.conversions import PoseType
 from senfunet_ros.dds import publish_serialized
 from senfunet_ros.health import HealthMonitor
-from senfunet_ros.ingest import DROP_REASONS, Frame, Ingest, TimeJump
+from senfunet_ros.ingest import Frame, Ingest, TimeJump
 from senfunet_ros.map_services import MapServices
 from senfunet_ros.pipeline import Pipeline, Stream, TimeJumpAction
+from senfunet_ros.status import StatusReport
 
 __all__ = ["FusionNode", "main"]
 
@@ -81,7 +82,6 @@ _CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=Re
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
-_ENGINE_STATS_PERIOD_S = 5.0
 _MESH_PERIOD_MARGIN = 0.05  # of the mesh period: the weighting net's turn ends this early, for the timer's dispatch
 # /tf as tf2_ros's listener subscribes to it; /tf_static latched (transient local) so mounts published
 # before the node started still arrive.
@@ -116,11 +116,6 @@ DROP_HINTS: dict[str, str] = {
     "engine_error": "the engine rejected the frame (the warning before says why)",
     "shutdown": "the node stopped while the frame was being integrated",
 }
-
-
-def _short(value: Any) -> str:
-    """A statistic as diagnostics text: floats rounded."""
-    return f"{value:.4g}" if isinstance(value, float) else str(value)
 
 
 class _Timing:
@@ -257,12 +252,15 @@ class FusionNode(Node):
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.counters()
         self._mesh_subscribers = 0
-        self._engine_stats_at: tuple[float, dict[str, Any]] = (-1e9, {})
-        self._silent_warned: set[tuple[str, str]] = set()
         self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
         self._mesh_lock = threading.Lock()  # one mesh publication at a time (timer vs. reset service)
-        # 3. subscriptions: they only enqueue
+        # 3. subscriptions: they only enqueue; the status reports their health
         self._subscribe()
+        topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in self._streams(sensor)}
+                  for sensor in s.sensors}
+        self.status_report = StatusReport(self.pipeline, self.health, self.timings, self.latency, topics=topics,
+                                          hardware_id=self.get_fully_qualified_name(), warn=self._warn,
+                                          logger=self.get_logger())
         # 4. timers, each in its own group so a long mesh update never stalls integration. They run
         # on the steady clock: with use_sim_time, /clock stops when a bag ends, and queued frames
         # must still be integrated and meshed.
@@ -664,76 +662,9 @@ class FusionNode(Node):
         except Exception as err:
             self._warn(("status_tick",), f"status failed: {err!r}")
 
-    def _warn_silent_topics(self, reports: dict[str, Any]) -> None:
-        """One warning per subscribed topic that has received nothing for a window (once: an unused
-        optional colour topic must not fill the log)."""
-        topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in self._streams(sensor)}
-                  for sensor in self.settings.sensors}
-        for sensor, report in reports.items():
-            for stream, r in report.streams.items():
-                if r.never and (sensor, stream) not in self._silent_warned:
-                    self._silent_warned.add((sensor, stream))
-                    self.get_logger().warning(
-                        f"{sensor}: nothing received on {topics[sensor][stream]} for {r.silent_s:.0f} s; check the "
-                        f"topic name (parameter {sensor}.{stream}_topic), its message type and QoS"
-                        + (" (colour is optional: set it to '' if there is none)" if stream == "color" else ""))
-
     def status(self) -> DiagnosticArray:
-        """Per-sensor health (rates over the recent window, recent drops, STALE streams) with the
-        counters, then the pipeline's timings and the engine's statistics (every key it reports)."""
-        msg = DiagnosticArray()
-        sec, nanosec = conv.ns_to_stamp(self.latest_stamp_ns)
-        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
-        msg.header.frame_id = self.settings.fixed_frame
-        hardware_id = self.get_fully_qualified_name()
-        counters = self.ingest.counters()
-        self.health.counters(counters)
-        reports = self.health.report()
-        self._warn_silent_topics(reports)
-        for sensor, c in counters.items():
-            report = reports[sensor]
-            values = [KeyValue(key=k, value=str(c[k])) for k in
-                      ("received", "integrated", "queue_depth", "color_received", "pose_received", "time_jumps")]
-            for stream, r in report.streams.items():
-                values += [KeyValue(key=f"rate_hz.{stream}", value=f"{r.rate_hz:.2f}"),
-                           KeyValue(key=f"silent_s.{stream}", value=f"{r.silent_s:.1f}")]
-            values += [KeyValue(key=f"dropped.{reason}", value=str(c["dropped"][reason])) for reason in DROP_REASONS]
-            values += [KeyValue(key=f"recent_dropped.{reason}", value=str(n))
-                       for reason, n in report.recent_drops.items()]
-            values += [KeyValue(key=f"error.{reason}", value=why) for reason, why in c["errors"].items()]
-            summary = (f"{report.message}; {c['integrated']} of {c['received']} frames integrated, "
-                       f"{sum(c['dropped'].values())} messages dropped in all")
-            msg.status.append(DiagnosticStatus(level=bytes([int(report.level)]), name=f"senfunet: {sensor}",
-                                               message=summary, hardware_id=hardware_id, values=values))
-        values = [KeyValue(key=f"{stage}_ms", value=f"{t.last_ms:.1f} (mean {t.mean_ms:.1f})")
-                  for stage, t in self.timings.items()]
-        values += [KeyValue(key=k, value=f"{v:.2f}") for k, v in self.latency.summary().items()]
-        values += [KeyValue(key="time_jumps", value=str(self.time_jumps)),
-                   KeyValue(key="frames_failed", value=str(self.frames_failed)),
-                   KeyValue(key="frames_unfinished", value=str(self.pipeline.frames_unfinished))]
-        engine = self.engine
-        counters_engine = dict(getattr(engine, "counters", {}))
-        values += [KeyValue(key="alpha_backlog_blocks", value=str(counters_engine.get("alpha_backlog_blocks", 0))),
-                   KeyValue(key="mesh_blocks", value=str(counters_engine.get("meshed_blocks", 0)))]
-        values += [KeyValue(key=f"engine.counters.{k}", value=str(v)) for k, v in counters_engine.items()]
-        values += [KeyValue(key=f"engine.{k}_ms", value=f"{v * 1e3:.1f}")
-                   for k, v in dict(getattr(engine, "timings_s", {})).items()]
-        values += [KeyValue(key=f"engine.stats.{k}", value=_short(v)) for k, v in self._engine_stats().items()]
-        msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name="senfunet: pipeline",
-                                           message=f"{counters_engine.get('meshed_blocks', 0)} mesh blocks",
-                                           hardware_id=hardware_id, values=values))
-        return msg
-
-    def _engine_stats(self) -> dict[str, Any]:
-        """engine.stats(), at most every few seconds (it takes the engine's locks and sums the grid)."""
-        now = time.monotonic()
-        if now - self._engine_stats_at[0] >= _ENGINE_STATS_PERIOD_S:
-            try:
-                self._engine_stats_at = (now, dict(self.engine.stats()))
-            except Exception as err:  # statistics never stop the status
-                self._warn(("engine_stats",), f"engine statistics failed: {err!r}")
-                self._engine_stats_at = (now, self._engine_stats_at[1])
-        return self._engine_stats_at[1]
+        """~/status and /diagnostics now (`senfunet_ros.status.StatusReport`)."""
+        return self.status_report.message(self.settings.fixed_frame)
 
     # -- map services (senfunet_ros.map_services) ------------------------------------------------
     def _map_loaded(self) -> None:

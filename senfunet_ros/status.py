@@ -1,0 +1,117 @@
+"""~/status and /diagnostics: the node's health, counters, timings and engine statistics, as one
+diagnostic_msgs/DiagnosticArray per status tick.
+
+One DiagnosticStatus per sensor (rates over the recent window, recent drops, STALE streams, the
+counters) and one for the pipeline (stage timings, frame-to-mesh latency, the engine's counters,
+timings and statistics: every key it reports). A subscribed topic that never received anything is
+named in the log once.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+from senfunet_ros import conversions as conv
+from senfunet_ros.health import HealthMonitor
+from senfunet_ros.ingest import DROP_REASONS
+from senfunet_ros.pipeline import Pipeline
+
+ENGINE_STATS_PERIOD_S = 5.0  # engine.stats() takes the engine's locks and sums the grid: at most this often
+
+
+def _short(value: Any) -> str:
+    """A statistic as diagnostics text: floats rounded."""
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
+class StatusReport:
+    """Builds the node's DiagnosticArray from the pipeline and the node's monitors (shared, read
+    here): `health`, `timings` (stage -> an object with last_ms, mean_ms) and `latency` (with
+    summary()). topics: sensor -> stream -> topic, for the warnings; warn(key, text): the node's
+    throttled warning."""
+
+    def __init__(self, pipeline: Pipeline, health: HealthMonitor, timings: dict[str, Any], latency: Any, *,
+                 topics: dict[str, dict[str, str]], hardware_id: str, warn: Callable[[tuple[str, ...], str], None],
+                 logger: Any) -> None:
+        self.pipeline = pipeline
+        self.health = health
+        self.timings = timings
+        self.latency = latency
+        self.topics = topics
+        self.hardware_id = hardware_id
+        self._warn = warn
+        self._logger = logger
+        self._engine_stats_at: tuple[float, dict[str, Any]] = (-1e9, {})
+        self._silent_warned: set[tuple[str, str]] = set()
+
+    def message(self, fixed_frame: str) -> DiagnosticArray:
+        """Per-sensor health (rates over the recent window, recent drops, STALE streams) with the
+        counters, then the pipeline's timings and the engine's statistics (every key it reports)."""
+        pipeline = self.pipeline
+        msg = DiagnosticArray()
+        sec, nanosec = conv.ns_to_stamp(pipeline.latest_stamp_ns)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+        msg.header.frame_id = fixed_frame
+        counters = pipeline.ingest.counters()
+        self.health.counters(counters)
+        reports = self.health.report()
+        self._warn_silent_topics(reports)
+        for sensor, c in counters.items():
+            report = reports[sensor]
+            values = [KeyValue(key=k, value=str(c[k])) for k in
+                      ("received", "integrated", "queue_depth", "color_received", "pose_received", "time_jumps")]
+            for stream, r in report.streams.items():
+                values += [KeyValue(key=f"rate_hz.{stream}", value=f"{r.rate_hz:.2f}"),
+                           KeyValue(key=f"silent_s.{stream}", value=f"{r.silent_s:.1f}")]
+            values += [KeyValue(key=f"dropped.{reason}", value=str(c["dropped"][reason])) for reason in DROP_REASONS]
+            values += [KeyValue(key=f"recent_dropped.{reason}", value=str(n))
+                       for reason, n in report.recent_drops.items()]
+            values += [KeyValue(key=f"error.{reason}", value=why) for reason, why in c["errors"].items()]
+            summary = (f"{report.message}; {c['integrated']} of {c['received']} frames integrated, "
+                       f"{sum(c['dropped'].values())} messages dropped in all")
+            msg.status.append(DiagnosticStatus(level=bytes([int(report.level)]), name=f"senfunet: {sensor}",
+                                               message=summary, hardware_id=self.hardware_id, values=values))
+        values = [KeyValue(key=f"{stage}_ms", value=f"{t.last_ms:.1f} (mean {t.mean_ms:.1f})")
+                  for stage, t in self.timings.items()]
+        values += [KeyValue(key=k, value=f"{v:.2f}") for k, v in self.latency.summary().items()]
+        values += [KeyValue(key="time_jumps", value=str(pipeline.time_jumps)),
+                   KeyValue(key="frames_failed", value=str(pipeline.frames_failed)),
+                   KeyValue(key="frames_unfinished", value=str(pipeline.frames_unfinished))]
+        engine = pipeline.engine
+        counters_engine = dict(getattr(engine, "counters", {}))
+        values += [KeyValue(key="alpha_backlog_blocks", value=str(counters_engine.get("alpha_backlog_blocks", 0))),
+                   KeyValue(key="mesh_blocks", value=str(counters_engine.get("meshed_blocks", 0)))]
+        values += [KeyValue(key=f"engine.counters.{k}", value=str(v)) for k, v in counters_engine.items()]
+        values += [KeyValue(key=f"engine.{k}_ms", value=f"{v * 1e3:.1f}")
+                   for k, v in dict(getattr(engine, "timings_s", {})).items()]
+        values += [KeyValue(key=f"engine.stats.{k}", value=_short(v)) for k, v in self._engine_stats().items()]
+        msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name="senfunet: pipeline",
+                                           message=f"{counters_engine.get('meshed_blocks', 0)} mesh blocks",
+                                           hardware_id=self.hardware_id, values=values))
+        return msg
+
+    def _warn_silent_topics(self, reports: dict[str, Any]) -> None:
+        """One warning per subscribed topic that has received nothing for a window (once: an unused
+        optional colour topic must not fill the log)."""
+        for sensor, report in reports.items():
+            for stream, r in report.streams.items():
+                if r.never and (sensor, stream) not in self._silent_warned:
+                    self._silent_warned.add((sensor, stream))
+                    self._logger.warning(
+                        f"{sensor}: nothing received on {self.topics[sensor][stream]} for {r.silent_s:.0f} s; check "
+                        f"the topic name (parameter {sensor}.{stream}_topic), its message type and QoS"
+                        + (" (colour is optional: set it to '' if there is none)" if stream == "color" else ""))
+
+    def _engine_stats(self) -> dict[str, Any]:
+        """engine.stats(), at most every ENGINE_STATS_PERIOD_S (a failure keeps the last ones)."""
+        now = time.monotonic()
+        if now - self._engine_stats_at[0] >= ENGINE_STATS_PERIOD_S:
+            try:
+                self._engine_stats_at = (now, dict(self.pipeline.engine.stats()))
+            except Exception as err:  # statistics never stop the status
+                self._warn(("engine_stats",), f"engine statistics failed: {err!r}")
+                self._engine_stats_at = (now, self._engine_stats_at[1])
+        return self._engine_stats_at[1]
