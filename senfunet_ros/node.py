@@ -83,6 +83,7 @@ _CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=Re
 _CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
 _MESH_PERIOD_MARGIN = 0.05  # of the mesh period: the weighting net's turn ends this early, for the timer's dispatch
+_MIN_TURN_SHARE = 0.25  # of alpha_budget_s: the net's turn while frames come, however long the update took
 # /tf as tf2_ros's listener subscribes to it; /tf_static latched (transient local) so mounts published
 # before the node started still arrive.
 _TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
@@ -606,8 +607,9 @@ class FusionNode(Node):
 
     def _weighting_net_turn(self, *, idle: bool, period_left_s: float) -> None:
         """The weighting net's turn after a mesh update. While frames come: alpha_budget_s (0: no
-        limit), but no longer than what is left of the mesh period (none when the update took it
-        all): the mesh refresh rate comes first. Idle (no frame integrated since the last update and
+        limit), but no longer than what is left of the mesh period, so that the mesh refresh keeps
+        its rate; and at least a quarter of alpha_budget_s, so that on a map whose updates take the
+        whole period the net still judges while the sensors stream. Idle (no frame integrated since the last update and
         none queued: the sensors paused or stopped): the net catches up on all it has not judged yet,
         so the mesh soon equals what an offline replay makes, in slices of a mesh period on every
         core, and stops as soon as a frame is integrated (an unlimited catch-up would hold the mesh
@@ -618,8 +620,7 @@ class FusionNode(Node):
             self.engine.refresh_alpha(None)
             return
         if not idle:
-            if period_left_s > 0:
-                self.engine.refresh_alpha(min(s.alpha_budget_s, period_left_s))
+            self.engine.refresh_alpha(min(s.alpha_budget_s, max(period_left_s, _MIN_TURN_SHARE * s.alpha_budget_s)))
             return
         slice_s = max(s.alpha_budget_s, 1.0 / s.mesh_rate_hz)
         while True:  # on every core, and stopping as soon as a frame is integrated
