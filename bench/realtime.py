@@ -233,8 +233,9 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
     bound = {-1: "half of the machine's memory", 0: "none"}.get(default["max_map_blocks"],
                                                                f"{default['max_map_blocks']} blocks")
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
-             "The real `FusionNode` with its default parameters (config/default.yaml: mesh update every "
-             f"{1 / default['mesh_rate_hz']:g} s, weighting-net budget {default['alpha_budget_s']:g} s per update, "
+             "The real `FusionNode` with its default parameters (config/default.yaml: mesh updates at "
+             f"{default['mesh_rate_hz']:g} Hz (scheduled 5% more often), weighting-net budget "
+             f"{default['alpha_budget_s']:g} s per update (within the mesh period, at least a quarter of it), "
              f"alpha on surface blocks, frames more than {default['max_lag_s']:g} s behind skipped, map bound "
              f"{bound}, malloc arenas capped at 2, allocations from 4 MB mapped), "
              "spun by a MultiThreadedExecutor in "

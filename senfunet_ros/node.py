@@ -82,7 +82,8 @@ _CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=Re
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
-_MESH_PERIOD_MARGIN = 0.05  # of the mesh period: the weighting net's turn ends this early, for the timer's dispatch
+_MESH_PERIOD_MARGIN = 0.05  # the mesh timer runs this much faster than mesh_rate_hz, and the weighting net's turn
+#   ends this much before its period: the refresh holds the rate asked for despite the updates' jitter
 _MIN_TURN_SHARE = 0.25  # of alpha_budget_s: the net's turn while frames come, however long the update took
 # /tf as tf2_ros's listener subscribes to it; /tf_static latched (transient local) so mounts published
 # before the node started still arrive.
@@ -268,7 +269,7 @@ class FusionNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._integrate_timer = self.create_timer(1.0 / s.integrate_rate_hz, self._integrate_tick, clock=steady,
                                                   callback_group=MutuallyExclusiveCallbackGroup())
-        self._mesh_timer = self.create_timer(1.0 / s.mesh_rate_hz, self._mesh_tick, clock=steady,
+        self._mesh_timer = self.create_timer(_mesh_period_s(s.mesh_rate_hz), self._mesh_tick, clock=steady,
                                              callback_group=MutuallyExclusiveCallbackGroup())
         self._status_timer = self.create_timer(1.0 / s.status_rate_hz, self._status_tick, clock=steady,
                                                callback_group=MutuallyExclusiveCallbackGroup())
@@ -450,10 +451,11 @@ class FusionNode(Node):
             return
         old, new = self.settings, P.Settings.from_values(values)
         self.settings = new
-        for name, timer in (("integrate_rate_hz", self._integrate_timer), ("mesh_rate_hz", self._mesh_timer),
-                            ("status_rate_hz", self._status_timer)):
+        for name, timer, period_s in (("integrate_rate_hz", self._integrate_timer, 1.0 / new.integrate_rate_hz),
+                                      ("mesh_rate_hz", self._mesh_timer, _mesh_period_s(new.mesh_rate_hz)),
+                                      ("status_rate_hz", self._status_timer, 1.0 / new.status_rate_hz)):
             if getattr(new, name) != getattr(old, name):
-                timer.timer_period_ns = int(1e9 / getattr(new, name))
+                timer.timer_period_ns = int(1e9 * period_s)
         tf = self.ingest.config.tf
         if hasattr(tf, "max_gap_ns"):  # our own TF buffer interpolates within pose_tolerance_s
             tf.max_gap_ns = int(new.pose_tolerance_s * 1e9)
@@ -597,7 +599,7 @@ class FusionNode(Node):
             t_alpha = time.perf_counter()
             # what is left of this mesh period (less a margin for the timer's dispatch): the next update
             # is not to wait for the net
-            left_s = (1.0 - _MESH_PERIOD_MARGIN) / s.mesh_rate_hz - (t_alpha - start)
+            left_s = (1.0 - _MESH_PERIOD_MARGIN) * _mesh_period_s(s.mesh_rate_hz) - (t_alpha - start)
             self._weighting_net_turn(idle=not contained and self._no_frame_waiting(), period_left_s=left_s)
             self.timings["alpha"].add(time.perf_counter() - t_alpha)
 
@@ -683,6 +685,11 @@ class FusionNode(Node):
     def destroy_node(self) -> None:
         logging.getLogger("senfunet").removeHandler(self._engine_log)
         super().destroy_node()
+
+
+def _mesh_period_s(mesh_rate_hz: float) -> float:
+    """The mesh timer's period for parameter mesh_rate_hz (a little shorter: see _MESH_PERIOD_MARGIN)."""
+    return (1.0 - _MESH_PERIOD_MARGIN) / mesh_rate_hz
 
 
 def spin(node: FusionNode, num_threads: int = 6) -> None:
