@@ -597,7 +597,7 @@ class FusionNode(Node):
                 self.timings["publish"].add(publish_s)
             self.latency.published(contained)
             t_alpha = time.perf_counter()
-            # what is left of this mesh period (less a margin for the timer's dispatch): the next update
+            # what is left of this mesh period (less a margin for the updates' jitter): the next update
             # is not to wait for the net
             left_s = (1.0 - _MESH_PERIOD_MARGIN) * _mesh_period_s(s.mesh_rate_hz) - (t_alpha - start)
             self._weighting_net_turn(idle=not contained and self._no_frame_waiting(), period_left_s=left_s)
@@ -608,15 +608,16 @@ class FusionNode(Node):
         return not any(self.ingest.queue_depths().values()) and not self.latency.pending()
 
     def _weighting_net_turn(self, *, idle: bool, period_left_s: float) -> None:
-        """The weighting net's turn after a mesh update. While frames come: alpha_budget_s (0: no
-        limit), but no longer than what is left of the mesh period, so that the mesh refresh keeps
-        its rate; and at least a quarter of alpha_budget_s, so that on a map whose updates take the
-        whole period the net still judges while the sensors stream. Idle (no frame integrated since the last update and
-        none queued: the sensors paused or stopped): the net catches up on all it has not judged yet,
-        so the mesh soon equals what an offline replay makes, in slices of a mesh period on every
-        core, and stops as soon as a frame is integrated (an unlimited catch-up would hold the mesh
-        updates for as long as the whole backlog takes; a frame queued but not yet integrated is not
-        idleness)."""
+        """The weighting net's turn after a mesh update.
+
+        While frames come: alpha_budget_s (0: no limit), but no longer than what is left of the mesh
+        period, so that the mesh refresh keeps its rate; and at least a quarter of alpha_budget_s,
+        so that on a map whose updates take the whole period the net still judges while the sensors
+        stream. Idle (no frame integrated since the last update and none queued: the sensors paused
+        or stopped): the net catches up on all it has not judged yet, so the mesh soon equals what
+        an offline replay makes, in slices of a mesh period on every core, and stops as soon as a
+        frame is integrated (an unlimited catch-up would hold the mesh updates for as long as the
+        whole backlog takes; a frame queued but not yet integrated is not idleness)."""
         s = self.settings
         if not s.alpha_budget_s:
             self.engine.refresh_alpha(None)
