@@ -80,8 +80,9 @@ def coords_key(a: int, b: int, c: int) -> int:
 
 @numba.njit(inline="always")
 def _bucket(key: int, mask: int) -> int:
-    # Fibonacci hashing: keys of neighbouring blocks differ in low bits of each axis field
-    return ((key * -7046029254386353131) >> 20) & mask
+    # Fibonacci hashing: the product's high half depends on every bit of the key (all three axis
+    # fields), so neighbouring blocks spread over the table whatever its size
+    return int(np.int64((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(32))) & mask
 
 
 @numba.njit(inline="always")
@@ -438,6 +439,48 @@ def _store_feature(features, n_features, voxel, c, value):  # noqa: ANN001, ANN2
             features[base + c] = np.int8(((bits & 0xFF) ^ 0x80) - 0x80)
             features[base + c + 1] = np.int8(bits >> 8)
     return store_packed
+
+
+def blend_features(features: np.ndarray, n_features: int, voxel: int, keep: float | np.float32,
+                   add: float | np.float32, sums: np.ndarray, inv_count: float | np.float32) -> float:
+    """A voxel's features = keep * old + add * sums * inv_count (a running average), rounded to the
+    storage; returns the largest change of a feature as stored. Kernels compile this per dtype
+    (packed int8 without a decode and re-read); this body is the reference."""
+    change = 0.0
+    for c in range(n_features):
+        old = load_feature(features, n_features, voxel, c)
+        store_feature(features, n_features, voxel, c, keep * old + add * (sums[c] * inv_count))
+        change = max(change, float(abs(load_feature(features, n_features, voxel, c) - old)))
+    return change
+
+
+@overload(blend_features, inline="always")
+def _blend_features(features, n_features, voxel, keep, add, sums, inv_count):  # noqa: ANN001, ANN202 (numba)
+    if not (isinstance(features, types.Array) and features.dtype == types.int8):
+        def blend(features, n_features, voxel, keep, add, sums, inv_count):  # noqa: ANN001, ANN202
+            change = np.float32(0.0)
+            for c in range(n_features):
+                old = load_feature(features, n_features, voxel, c)
+                store_feature(features, n_features, voxel, c, keep * old + add * (sums[c] * inv_count))
+                change = max(change, abs(load_feature(features, n_features, voxel, c) - old))
+            return change
+        return blend
+
+    def blend_packed(features, n_features, voxel, keep, add, sums, inv_count):  # noqa: ANN001, ANN202
+        base = voxel * (n_features + 1)
+        scale = np.float32(FEATURE_SCALE)
+        change = np.float32(0.0)
+        for c in range(n_features - 1):  # in units of the stored integers: no division, no re-read
+            old = np.float32(features[base + c])
+            q = np.rint(keep * old + add * scale * (sums[c] * inv_count))
+            q = min(max(q, -scale), scale)
+            features[base + c] = np.int8(q)
+            change = max(change, abs(q - old) / scale)
+        c = n_features - 1
+        old = load_feature(features, n_features, voxel, c)
+        store_feature(features, n_features, voxel, c, keep * old + add * (sums[c] * inv_count))
+        return max(change, abs(load_feature(features, n_features, voxel, c) - old))
+    return blend_packed
 
 
 def kernel_view(pool: torch.Tensor) -> np.ndarray:

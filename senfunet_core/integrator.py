@@ -21,8 +21,8 @@ import numpy as np
 import torch
 
 from .errors import InputError
-from .grid import (BlockGrid, coords_key, drop_new_blocks, f16_to_f32, f32_to_f16, hash_find_or_add, kernel_view,
-                   load_f32, load_feature, prefetch, store_f32, store_feature, voxel_keys)
+from .grid import (BlockGrid, blend_features, coords_key, drop_new_blocks, f16_to_f32, f32_to_f16, hash_find_or_add,
+                   kernel_view, load_f32, prefetch, store_f32, voxel_keys)
 
 
 @dataclass(frozen=True)
@@ -180,7 +180,9 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
     n_touched = 0
     inv_voxel = 1.0 / voxel_size_m
     # consecutive samples mostly share a block (-2: no block's key, nor coords_key's -1 out of range)
-    last_key, last_slot = np.int64(-2), np.int64(-1)
+    last_key, last_slot, touched = np.int64(-2), np.int64(-1), np.int64(-1)
+    ray_keys = np.empty(n_samples, np.int64)  # one pixel's samples: block key, voxel in the block
+    ray_locals = np.empty(n_samples, np.int64)
     for v in range(border_px, h - border_px):
         for u in range(border_px, w - border_px):
             z = np.float64(depth_m[v, u])
@@ -195,28 +197,29 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
             norm = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
             dx, dy, dz = dx / norm, dy / norm, dz / norm
             base = n_pixels * n_samples
-            for k in range(n_samples):
+            for k in range(n_samples):  # arithmetic only: this loop vectorises
                 o = offsets_m[k]
                 i = np.int64(np.rint((px + o * dx) * inv_voxel))
                 j = np.int64(np.rint((py + o * dy) * inv_voxel))
                 k_ = np.int64(np.rint((pz + o * dz) * inv_voxel))
-                key = coords_key(i >> 3, j >> 3, k_ >> 3)
-                if key == last_key:
-                    slot = last_slot
-                else:
+                ray_keys[k] = coords_key(i >> 3, j >> 3, k_ >> 3)
+                ray_locals[k] = ((i & 7) << 6) + ((j & 7) << 3) + (k_ & 7)
+            for k in range(n_samples):
+                key = ray_keys[k]
+                if key != last_key:
                     if key < 0:
                         return n_pixels, n_touched, False
                     slot = hash_find_or_add(table_keys, table_slots, key, state, slot_keys)
                     if slot < 0:
                         return n_pixels, n_touched, False
                     last_key, last_slot = key, slot
-                touched = slot_to_touched[slot]
-                if touched < 0:
-                    touched = n_touched
-                    slot_to_touched[slot] = touched
-                    touched_slots[touched] = slot
-                    n_touched += 1
-                sample_flat[base + k] = slot * 512 + ((i & 7) << 6) + ((j & 7) << 3) + (k_ & 7)
+                    touched = slot_to_touched[slot]
+                    if touched < 0:
+                        touched = np.int64(n_touched)
+                        slot_to_touched[slot] = touched
+                        touched_slots[touched] = slot
+                        n_touched += 1
+                sample_flat[base + k] = last_slot * 512 + ray_locals[k]
                 sample_touched[base + k] = touched
             pixel_index[n_pixels] = v * w + u
             n_pixels += 1
@@ -349,12 +352,8 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             old_weight = f16_to_f32(weight[voxel])
             keep = old_weight / (old_weight + np.float32(1.0))  # running average: keep*old + add*update
             add = np.float32(1.0) / (old_weight + np.float32(1.0))
-            change: float | np.float32 = np.float32(0.0)
-            for c in range(n_channels):  # averaged in float32, rounded to the pool's storage on store
-                old = load_feature(features, n_channels, voxel, c)
-                store_feature(features, n_channels, voxel, c, keep * old + add * (sum_features[local, c] * inv_count))
-                new = load_feature(features, n_channels, voxel, c)
-                change = max(change, abs(new - old))
+            # averaged in float32, rounded to the pool's storage on store
+            change = blend_features(features, n_channels, voxel, keep, add, sum_features[local], inv_count)
             mean_tsdf = sum_tsdf[local] * inv_count
             old_tsdf = load_f32(tsdf, voxel)
             store_f32(tsdf, voxel, keep * old_tsdf + add * mean_tsdf)
@@ -476,7 +475,7 @@ def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_
         grid.commit_new_blocks(int(state[0]))  # the blocks added so far survive the growth
         if state[0] < state[1]:  # not full: a sample left the key range
             raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
-        grid.reserve(max(int(grid.capacity * grid.growth) + 1, grid.n_blocks + 1024))
+        grid.reserve(grid.n_blocks + 1024)
     n_blocks, dropped_samples, dropped_blocks = int(state[0]), 0, 0
     if min_new_block_samples > 1 and n_blocks > n_before:
         n_blocks, n_touched, dropped_samples, dropped_blocks = drop_sparse_new_blocks(

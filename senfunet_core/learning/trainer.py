@@ -129,7 +129,7 @@ class Trainer:
                 break
             if state[0] < state[1]:
                 raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
-            grid.reserve(max(int(grid.capacity * grid.growth) + 1, grid.n_blocks + 1024))
+            grid.reserve(grid.n_blocks + 1024)
         n_samples = n_pixels * len(self.offsets_m)
         features = np.ascontiguousarray(pixel_features.reshape(pixel_features.shape[0], -1).T, np.float32)
         views = [kernel_view(grid.pools[name]).reshape(-1) for name in

@@ -189,3 +189,54 @@ def test_packed_features_in_kernels_equal_encode_and_decode():
     half = np.zeros(500 * 5, np.int16)
     back_half = _store_load_features(values, half)
     assert np.array_equal(back_half, values.astype(np.float16).astype(np.float32))
+
+
+@numba.njit
+def _blend_all(features, n, keep, add, sums, inv_count, changes):
+    for v in range(changes.shape[0]):
+        changes[v] = G.blend_features(features, n, v, keep[v], add[v], sums[v], inv_count[v])
+
+
+@pytest.mark.parametrize("storage", ["packed int8", "float16 bits"])
+def test_blended_features_match_the_reference_average(storage):
+    """The kernels' running average of a voxel's features (the packed path works in stored integers)
+    agrees with load, average in float32, store, for every feature, and reports the largest change."""
+    rng = np.random.default_rng(5)
+    n_voxels, n = 2000, 5
+    start = np.concatenate([rng.uniform(-1, 1, (n_voxels, 4)), rng.uniform(0.2, 6, (n_voxels, 1))], 1)
+    sums = np.concatenate([rng.uniform(-3, 3, (n_voxels, 4)), rng.uniform(0.6, 18, (n_voxels, 1))], 1)
+    count = rng.integers(1, 4, n_voxels).astype(np.float32)
+    sums = (sums * count[:, None] / 3).astype(np.float32)
+    weight = rng.integers(0, 40, n_voxels).astype(np.float32)
+    keep, add = weight / (weight + 1), 1 / (weight + 1)
+    pool = np.zeros(n_voxels * (n + 1), np.int8) if storage == "packed int8" else np.zeros(n_voxels * n, np.int16)
+    _store_load_features(start.astype(np.float32), pool)
+    reference = pool.copy()
+    old = np.array([[G.load_feature(reference, n, v, c) for c in range(n)] for v in range(n_voxels)], np.float32)
+    for v in range(n_voxels):
+        for c in range(n):
+            G.store_feature(reference, n, v, c, keep[v] * old[v, c] + add[v] * (sums[v, c] / count[v]))
+    changes = np.empty(n_voxels, np.float32)
+    _blend_all(pool, n, keep, add, sums, (1 / count).astype(np.float32), changes)
+    new = np.array([[G.load_feature(pool, n, v, c) for c in range(n)] for v in range(n_voxels)], np.float32)
+    expected = np.array([[G.load_feature(reference, n, v, c) for c in range(n)] for v in range(n_voxels)], np.float32)
+    step = 1 / 127 if storage == "packed int8" else 0.0
+    # the packed path rounds once in integer units: at most one step apart where a value sits on a tie
+    assert np.abs(new - expected).max() <= step + 1e-6
+    assert (new == expected).mean() > 0.99
+    np.testing.assert_allclose(changes, np.abs(new - old).max(axis=1), atol=1e-6)
+    assert changes.max() > 0.1  # the averages moved
+
+
+def test_hash_table_follows_the_blocks_and_spreads_neighbours():
+    """The table grows with the blocks it holds (a small table stays in cache) and neighbouring
+    blocks, which differ in a few low bits of each axis field, land in distinct buckets."""
+    grid = BlockGrid({"a": ()}, initial_capacity=1 << 16)
+    x, y, z = np.meshgrid(np.arange(-60, 60), np.arange(-40, 40), np.arange(0, 3), indexing="ij")
+    keys = torch.unique(block_keys(torch.from_numpy(np.stack([x, y, z], -1).reshape(-1, 3))))
+    grid.allocate_keys(keys)
+    assert len(grid.table_keys) <= 4 * grid.n_blocks + 4096  # sized by the blocks, not the pools' capacity
+    mask = len(grid.table_keys) - 1
+    homes = np.array([G._bucket(int(k), mask) for k in keys.tolist()])
+    assert len(np.unique(homes)) > 0.7 * len(keys)
+    assert torch.equal(grid.lookup_keys(keys), torch.arange(len(keys)))

@@ -86,6 +86,8 @@ def test_compiled_integration_equals_the_reference():
     assert all(got[v][1] == want[v][1] for v in common)
     features_error = max(np.abs(got[v][2] - want[v][2]).max() for v in common)
     assert features_error < 2e-3  # float16 storage, rounded once per frame
+    # growing mid-frame grew the hash table with the blocks, not with the pools' capacity
+    assert len(grid.table_keys) <= 4 * (grid.n_blocks + 1024)
     # the TSDF Fusion baseline saw the same (single-sensor) frames
     n = grid.n_blocks
     np.testing.assert_array_equal(grid.pools["weight_base"][:n].numpy(), grid.pools["weight0"][:n].numpy())
