@@ -3,7 +3,8 @@
 Constructed in one order: parameters, engine, subscriptions, timers, publishers, services.
 Callbacks only hand messages to `Ingest` (bounded queues); the integration timer drains them
 into the engine, oldest first; the slower mesh timer runs `engine.update()`, publishes the
-changed blocks, then gives the weighting net its time budget (`engine.refresh_alpha`). Each
+changed blocks, then gives the weighting net its time budget (`engine.refresh_alpha`; all three
+in `senfunet_ros.mesh_publisher`). Each
 timer has its own callback group under a MultiThreadedExecutor, and the engine is thread-safe,
 so integration and mesh updates run at the same time on two cores. No callback raises: failures
 are counted and logged, throttled per cause.
@@ -37,24 +38,22 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
-from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as RosClock
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import MarkerArray
 
 from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
 from senfunet_ros.bagio import message_class
 from senfunet_ros.conversions import PoseType
-from senfunet_ros.dds import publish_serialized
 from senfunet_ros.health import HealthMonitor
 from senfunet_ros.ingest import Frame, Ingest, TimeJump
 from senfunet_ros.map_services import MapServices
+from senfunet_ros.mesh_publisher import MeshPublisher, mesh_period_s
 from senfunet_ros.pipeline import Pipeline, Stream, TimeJumpAction
 from senfunet_ros.status import StatusReport
 
@@ -72,19 +71,8 @@ _SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=30, reliability=
 # Poses come at ~100 Hz: 1000 is 10 s, so a busy executor that takes them late loses none.
 _POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT,
                        durability=DurabilityPolicy.VOLATILE)
-# The map: reliable and kept for late subscribers. Depth > 1 so a burst (delta then snapshot) is
-# not overwritten before a slow reader acknowledged it.
-_MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
-_NO_WAIT = Duration(seconds=0)
-_PARTS_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the later parts of one update at most this, in all
-_CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
-_MESH_PERIOD_MARGIN = 0.05  # the mesh timer runs this much faster than mesh_rate_hz, and the weighting net's turn
-#   ends this much before its period: the refresh holds the rate asked for despite the updates' jitter
-_MIN_TURN_SHARE = 0.25  # of alpha_budget_s: the net's turn while frames come, however long the update took
 # /tf as tf2_ros's listener subscribes to it; /tf_static latched (transient local) so mounts published
 # before the node started still arrive.
 _TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
@@ -253,9 +241,6 @@ class FusionNode(Node):
                                  on_integrated=self._integrated)
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.counters()
-        self._mesh_subscribers = 0
-        self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
-        self._mesh_lock = threading.Lock()  # one mesh publication at a time (timer vs. reset service)
         # 3. subscriptions: they only enqueue; the status reports their health
         self._subscribe()
         topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in self._streams(sensor)}
@@ -269,18 +254,19 @@ class FusionNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._integrate_timer = self.create_timer(1.0 / s.integrate_rate_hz, self._integrate_tick, clock=steady,
                                                   callback_group=MutuallyExclusiveCallbackGroup())
-        self._mesh_timer = self.create_timer(_mesh_period_s(s.mesh_rate_hz), self._mesh_tick, clock=steady,
+        self._mesh_timer = self.create_timer(mesh_period_s(s.mesh_rate_hz), self._mesh_tick, clock=steady,
                                              callback_group=MutuallyExclusiveCallbackGroup())
         self._status_timer = self.create_timer(1.0 / s.status_rate_hz, self._status_tick, clock=steady,
                                                callback_group=MutuallyExclusiveCallbackGroup())
         # 5. publishers
-        self.mesh_pub = self.create_publisher(MarkerArray, "~/mesh", _MESH_QOS)
-        self.weights_pub = self.create_publisher(PointCloud2, "~/weights", _CLOUD_QOS)
+        self.mesh_publisher = MeshPublisher(self, self.pipeline, lambda: self.settings, timings=self.timings,
+                                            latency=self.latency, camera_colors=self.camera_colors,
+                                            frame_waiting=lambda: any(self.ingest.queue_depths().values()))
         self.status_pub = self.create_publisher(DiagnosticArray, "~/status", _STATUS_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", _STATUS_QOS)
         # 6. services
-        self.map_services = MapServices(self.pipeline, lambda: self.settings, self._mesh_lock, self._map_loaded,
-                                        self._map_reset, self.get_logger())
+        self.map_services = MapServices(self.pipeline, lambda: self.settings, self.mesh_publisher.lock,
+                                        self._map_loaded, self._map_reset, self.get_logger())
         services_group = MutuallyExclusiveCallbackGroup()
         for name, handler in (("save_mesh", self.map_services.save_mesh), ("save_map", self.map_services.save_map),
                               ("load_map", self.map_services.load_map), ("reset", self.map_services.reset)):
@@ -452,7 +438,7 @@ class FusionNode(Node):
         old, new = self.settings, P.Settings.from_values(values)
         self.settings = new
         for name, timer, period_s in (("integrate_rate_hz", self._integrate_timer, 1.0 / new.integrate_rate_hz),
-                                      ("mesh_rate_hz", self._mesh_timer, _mesh_period_s(new.mesh_rate_hz)),
+                                      ("mesh_rate_hz", self._mesh_timer, mesh_period_s(new.mesh_rate_hz)),
                                       ("status_rate_hz", self._status_timer, 1.0 / new.status_rate_hz)):
             if getattr(new, name) != getattr(old, name):
                 timer.timer_period_ns = int(1e9 * period_s)
@@ -541,122 +527,8 @@ class FusionNode(Node):
             self._warn(("mesh_tick",), f"mesh update failed: {err!r}")
 
     def publish_mesh(self, weights: bool | None = None) -> None:
-        """engine.update() -> ~/mesh (changed blocks, or a full snapshot for new subscribers), and
-        ~/weights when it is due (every 1 / weights_rate_hz s; `weights` forces or skips it) and
-        somebody listens; then the weighting net's turn (engine.refresh_alpha, within
-        alpha_budget_s), after publishing: a frame's geometry is shown one alpha phase sooner
-        (the net's budget no longer sits between integration and the mesh subscribers), and the
-        alpha it changed comes with the next update."""
-        s = self.settings
-        with self._mesh_lock:
-            start = time.perf_counter()
-            now = time.monotonic()
-            if weights is None:
-                weights = now >= self._next_weights_s
-            weights = weights and self.weights_pub.get_subscription_count() > 0
-            contained = self.latency.take()  # frames integrated before this update began
-            update = self.engine.update(alpha_budget_s=0.0)
-            stamp_ns = self.latest_stamp_ns
-            t_update = time.perf_counter()
-            self.timings["update"].add(t_update - start)
-            cloud = None
-            if weights:
-                self._next_weights_s = now + 1.0 / s.weights_rate_hz
-                band = s.weights_band_m
-                # alpha as the budgeted updates left it (NaN: not evaluated yet), not a full refresh
-                cloud = self.engine.weight_cloud(band if band > 0 else None, refresh_alpha=False)
-                self.timings["weights"].add(time.perf_counter() - t_update)
-            t_cloud = time.perf_counter()
-            frame_id = s.fixed_frame
-            subscribers = self.mesh_pub.get_subscription_count()
-            messages = None
-            if subscribers > self._mesh_subscribers:
-                # Someone new joined: transient local only holds the last few messages, so send it all.
-                messages = conv.marker_array_messages(self._display(self.engine.block_meshes()), (),
-                                                      stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
-            elif update.cleared or len(update.meshes) or update.removed:
-                messages = conv.marker_array_messages(self._display(update.meshes), update.removed, stamp_ns=stamp_ns,
-                                                      frame_id=frame_id, delete_all_first=update.cleared)
-            self._mesh_subscribers = subscribers
-            publish_s = 0.0  # the rest, from t_cloud on, is encoding (the parts are encoded as they are taken)
-            if cloud is not None:
-                cloud_data = conv.point_cloud2_cdr(cloud.positions_m, cloud.alpha, cloud.weights,
-                                                   s.sensor_names, stamp_ns=stamp_ns, frame_id=frame_id)
-                t_encoded = time.perf_counter()
-                publish_serialized(self.weights_pub, np.frombuffer(cloud_data, np.uint8))
-                publish_s += time.perf_counter() - t_encoded
-            ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
-            for i, data in enumerate(messages or ()):
-                t_encoded = time.perf_counter()
-                if i:  # the history holds 2: let readers take the previous part before it can be overwritten
-                    self._wait_mesh_acked(ack_deadline)
-                publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
-                publish_s += time.perf_counter() - t_encoded
-            if messages is not None or cloud is not None:
-                self.timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
-                self.timings["publish"].add(publish_s)
-            self.latency.published(contained)
-            t_alpha = time.perf_counter()
-            # what is left of this mesh period (less a margin for the updates' jitter): the next update
-            # is not to wait for the net
-            left_s = (1.0 - _MESH_PERIOD_MARGIN) * _mesh_period_s(s.mesh_rate_hz) - (t_alpha - start)
-            self._weighting_net_turn(idle=not contained and self._no_frame_waiting(), period_left_s=left_s)
-            self.timings["alpha"].add(time.perf_counter() - t_alpha)
-
-    def _no_frame_waiting(self) -> bool:
-        """No frame queued in Ingest and none integrated since the last mesh update began."""
-        return not any(self.ingest.queue_depths().values()) and not self.latency.pending()
-
-    def _weighting_net_turn(self, *, idle: bool, period_left_s: float) -> None:
-        """The weighting net's turn after a mesh update.
-
-        While frames come: alpha_budget_s (0: no limit), but no longer than what is left of the mesh
-        period, so that the mesh refresh keeps its rate; and at least a quarter of alpha_budget_s,
-        so that on a map whose updates take the whole period the net still judges while the sensors
-        stream. Idle (no frame integrated since the last update and none queued: the sensors paused
-        or stopped): the net catches up on all it has not judged yet, so the mesh soon equals what
-        an offline replay makes, in slices of a mesh period on every core, and stops as soon as a
-        frame is integrated (an unlimited catch-up would hold the mesh updates for as long as the
-        whole backlog takes; a frame queued but not yet integrated is not idleness)."""
-        s = self.settings
-        if not s.alpha_budget_s:
-            self.engine.refresh_alpha(None)
-            return
-        if not idle:
-            self.engine.refresh_alpha(min(s.alpha_budget_s, max(period_left_s, _MIN_TURN_SHARE * s.alpha_budget_s)))
-            return
-        slice_s = max(s.alpha_budget_s, 1.0 / s.mesh_rate_hz)
-        while True:  # on every core, and stopping as soon as a frame is integrated
-            self.engine.refresh_alpha(slice_s, until_frame=True)
-            if not self.engine.counters.get("alpha_backlog_blocks", 0) or not self._no_frame_waiting() \
-                    or not self.context.ok():
-                return
-
-    def _display(self, meshes: Any) -> Any:
-        """The display mesh of a batch of block meshes (parameter mesh_display_cell_m)."""
-        from senfunet_core.decimate import decimate_block_meshes
-        from senfunet_core.mesher import BlockMeshes
-
-        if not isinstance(meshes, BlockMeshes):
-            meshes = BlockMeshes.from_meshes(dict(meshes))
-        cell_m = self.settings.mesh_display_cell_m
-        if cell_m > self.settings.voxel_size_m:
-            meshes = decimate_block_meshes(meshes, cell_m)
-        if self.settings.mesh_colors == "camera" and len(meshes.vertices):
-            seen = self.camera_colors.lookup(meshes.vertices)
-            known = ~np.isnan(seen[:, 0])
-            colors = np.array(meshes.colors, np.float32, copy=True)
-            colors[known] = seen[known]
-            meshes = dataclasses.replace(meshes, colors=colors)
-        return meshes
-
-    def _wait_mesh_acked(self, deadline: float) -> None:
-        """Until every reader acknowledged ~/mesh's samples, or time.monotonic() reaches deadline.
-        Polled with short sleeps, so the node's other threads run meanwhile: rclpy's
-        Publisher.wait_for_all_acked holds the GIL for as long as it blocks (its binding does not
-        release it), which would stop integration and the subscriptions."""
-        while not self.mesh_pub.wait_for_all_acked(_NO_WAIT) and time.monotonic() < deadline:
-            time.sleep(0.002)
+        """What the mesh timer does, now (`MeshPublisher.publish`)."""
+        self.mesh_publisher.publish(weights)
 
     def _status_tick(self) -> None:
         try:
@@ -676,7 +548,7 @@ class FusionNode(Node):
         map goes, and subscribers get the loaded map whole."""
         self.camera_colors.clear()  # a map file holds no camera colours
         self._apply_engine_settings(self.settings)
-        self._mesh_subscribers = 0
+        self.mesh_publisher.resend_all()
 
     def _map_reset(self) -> None:
         """~/reset emptied the map: subscribers get a DELETEALL right away."""
@@ -686,11 +558,6 @@ class FusionNode(Node):
     def destroy_node(self) -> None:
         logging.getLogger("senfunet").removeHandler(self._engine_log)
         super().destroy_node()
-
-
-def _mesh_period_s(mesh_rate_hz: float) -> float:
-    """The mesh timer's period for parameter mesh_rate_hz (a little shorter: see _MESH_PERIOD_MARGIN)."""
-    return (1.0 - _MESH_PERIOD_MARGIN) / mesh_rate_hz
 
 
 def spin(node: FusionNode, num_threads: int = 6) -> None:

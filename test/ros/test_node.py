@@ -689,10 +689,10 @@ def test_the_weighting_net_turn_leaves_the_mesh_period_to_the_next_update(ros, t
         budgets: list[float | None] = []
         run.node.engine.refresh_alpha = lambda budget_s=None, until_frame=False: budgets.append(budget_s)
         for left_s in (0.9, 0.1, 0.0, -0.2):
-            run.node._weighting_net_turn(idle=False, period_left_s=left_s)
+            run.node.mesh_publisher.weighting_net_turn(idle=False, period_left_s=left_s)
         assert budgets == pytest.approx([0.3, 0.1, 0.075, 0.075])
         run.node.set_parameters([Parameter("alpha_budget_s", value=0.0)])
-        run.node._weighting_net_turn(idle=False, period_left_s=-0.2)
+        run.node.mesh_publisher.weighting_net_turn(idle=False, period_left_s=-0.2)
         assert budgets[4:] == [None]
     finally:
         run.close()

@@ -274,10 +274,10 @@ def test_mesh_coloured_by_camera_colour(ros, tmp_path: Path) -> None:
         run.node.publish_mesh()  # every integrated block meshed
         meshes = run.node.engine.block_meshes()
         assert len(meshes.faces) > 100
-        camera = run.node._display(meshes)
+        camera = run.node.mesh_publisher.display(meshes)
         (r,) = _set(run, mesh_colors="weighting")
         assert r.successful
-        weighting = run.node._display(meshes)
+        weighting = run.node.mesh_publisher.display(meshes)
         assert len(run.node.camera_colors) > 100  # the stereo colour images were averaged in
         seen = ~np.isnan(run.node.camera_colors.lookup(meshes.vertices)[:, 0])  # where the stereo camera saw
         assert seen.mean() > 0.2, seen.mean()

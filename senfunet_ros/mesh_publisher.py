@@ -1,0 +1,191 @@
+"""~/mesh and ~/weights: the node's mesh timer work, from `engine.update()` to the readers.
+
+One `publish` at a time (`lock`, shared with the map services that replace or empty the map):
+update the engine's meshes, encode and publish the changed blocks (or the whole map for a
+subscriber that just joined) and, when due, the weight cloud; then give the weighting net its
+turn. The engine is thread-safe: integration goes on meanwhile on the other core.
+"""
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from rclpy.duration import Duration
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from visualization_msgs.msg import MarkerArray
+
+from senfunet_ros import conversions as conv
+from senfunet_ros import params as P
+from senfunet_ros.dds import publish_serialized
+from senfunet_ros.pipeline import Pipeline
+
+# The map: reliable and kept for late subscribers. Depth > 1 so a burst (delta then snapshot) is
+# not overwritten before a slow reader acknowledged it.
+MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+_NO_WAIT = Duration(seconds=0)
+_PARTS_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the later parts of one update at most this, in all
+MESH_PERIOD_MARGIN = 0.05  # the mesh timer runs this much faster than mesh_rate_hz, and the weighting net's turn
+#   ends this much before its period: the refresh holds the rate asked for despite the updates' jitter
+MIN_TURN_SHARE = 0.25  # of alpha_budget_s: the net's turn while frames come, however long the update took
+
+
+def mesh_period_s(mesh_rate_hz: float) -> float:
+    """The mesh timer's period for parameter mesh_rate_hz (a little shorter: see MESH_PERIOD_MARGIN)."""
+    return (1.0 - MESH_PERIOD_MARGIN) / mesh_rate_hz
+
+
+class MeshPublisher:
+    """The node's ~/mesh and ~/weights publishers and what the mesh timer does with them.
+
+    timings: the node's stage timings ("update", "alpha", "weights", "encode", "publish" are
+    added here); latency: frame arrival -> the update that shows it; camera_colors: the colour
+    grid of mesh_colors "camera"; frame_waiting: whether a frame waits in Ingest.
+    """
+
+    def __init__(self, node: Node, pipeline: Pipeline, settings: Callable[[], P.Settings], *, timings: dict[str, Any],
+                 latency: Any, camera_colors: Any, frame_waiting: Callable[[], bool]) -> None:
+        self.pipeline = pipeline
+        self._settings = settings
+        self._timings = timings
+        self._latency = latency
+        self._camera_colors = camera_colors
+        self._frame_waiting = frame_waiting
+        self._context = node.context
+        self.lock = threading.Lock()  # one publication at a time (timer vs. reset and load_map services)
+        self.mesh_pub = node.create_publisher(MarkerArray, "~/mesh", MESH_QOS)
+        self.weights_pub = node.create_publisher(PointCloud2, "~/weights", CLOUD_QOS)
+        self._subscribers = 0  # mesh readers at the last publication: one more gets the whole map
+        self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
+
+    def resend_all(self) -> None:
+        """The next publication sends the whole map (a loaded map replaced what readers hold)."""
+        self._subscribers = 0
+
+    def publish(self, weights: bool | None = None) -> None:
+        """engine.update() -> ~/mesh (changed blocks, or a full snapshot for new subscribers), and
+        ~/weights when it is due (every 1 / weights_rate_hz s; `weights` forces or skips it) and
+        somebody listens; then the weighting net's turn (engine.refresh_alpha, within
+        alpha_budget_s), after publishing: a frame's geometry is shown one alpha phase sooner
+        (the net's budget no longer sits between integration and the mesh subscribers), and the
+        alpha it changed comes with the next update."""
+        s = self._settings()
+        engine = self.pipeline.engine
+        with self.lock:
+            start = time.perf_counter()
+            now = time.monotonic()
+            if weights is None:
+                weights = now >= self._next_weights_s
+            weights = weights and self.weights_pub.get_subscription_count() > 0
+            contained = self._latency.take()  # frames integrated before this update began
+            update = engine.update(alpha_budget_s=0.0)
+            stamp_ns = self.pipeline.latest_stamp_ns
+            t_update = time.perf_counter()
+            self._timings["update"].add(t_update - start)
+            cloud = None
+            if weights:
+                self._next_weights_s = now + 1.0 / s.weights_rate_hz
+                band = s.weights_band_m
+                # alpha as the budgeted updates left it (NaN: not evaluated yet), not a full refresh
+                cloud = engine.weight_cloud(band if band > 0 else None, refresh_alpha=False)
+                self._timings["weights"].add(time.perf_counter() - t_update)
+            t_cloud = time.perf_counter()
+            frame_id = s.fixed_frame
+            subscribers = self.mesh_pub.get_subscription_count()
+            messages = None
+            if subscribers > self._subscribers:
+                # Someone new joined: transient local only holds the last few messages, so send it all.
+                messages = conv.marker_array_messages(self.display(engine.block_meshes()), (),
+                                                      stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
+            elif update.cleared or len(update.meshes) or update.removed:
+                messages = conv.marker_array_messages(self.display(update.meshes), update.removed, stamp_ns=stamp_ns,
+                                                      frame_id=frame_id, delete_all_first=update.cleared)
+            self._subscribers = subscribers
+            publish_s = 0.0  # the rest, from t_cloud on, is encoding (the parts are encoded as they are taken)
+            if cloud is not None:
+                cloud_data = conv.point_cloud2_cdr(cloud.positions_m, cloud.alpha, cloud.weights,
+                                                   s.sensor_names, stamp_ns=stamp_ns, frame_id=frame_id)
+                t_encoded = time.perf_counter()
+                publish_serialized(self.weights_pub, np.frombuffer(cloud_data, np.uint8))
+                publish_s += time.perf_counter() - t_encoded
+            ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
+            for i, data in enumerate(messages or ()):
+                t_encoded = time.perf_counter()
+                if i:  # the history holds 2: let readers take the previous part before it can be overwritten
+                    self._wait_mesh_acked(ack_deadline)
+                publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
+                publish_s += time.perf_counter() - t_encoded
+            if messages is not None or cloud is not None:
+                self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
+                self._timings["publish"].add(publish_s)
+            self._latency.published(contained)
+            t_alpha = time.perf_counter()
+            # what is left of this mesh period (less a margin for the updates' jitter): the next update
+            # is not to wait for the net
+            left_s = (1.0 - MESH_PERIOD_MARGIN) * mesh_period_s(s.mesh_rate_hz) - (t_alpha - start)
+            self.weighting_net_turn(idle=not contained and self._no_frame_waiting(), period_left_s=left_s)
+            self._timings["alpha"].add(time.perf_counter() - t_alpha)
+
+    def _no_frame_waiting(self) -> bool:
+        """No frame queued in Ingest and none integrated since the last mesh update began."""
+        return not self._frame_waiting() and not self._latency.pending()
+
+    def weighting_net_turn(self, *, idle: bool, period_left_s: float) -> None:
+        """The weighting net's turn after a mesh update.
+
+        While frames come: alpha_budget_s (0: no limit), but no longer than what is left of the mesh
+        period, so that the mesh refresh keeps its rate; and at least a quarter of alpha_budget_s,
+        so that on a map whose updates take the whole period the net still judges while the sensors
+        stream. Idle (no frame integrated since the last update and none queued: the sensors paused
+        or stopped): the net catches up on all it has not judged yet, so the mesh soon equals what
+        an offline replay makes, in slices of a mesh period on every core, and stops as soon as a
+        frame is integrated (an unlimited catch-up would hold the mesh updates for as long as the
+        whole backlog takes; a frame queued but not yet integrated is not idleness)."""
+        s = self._settings()
+        engine = self.pipeline.engine
+        if not s.alpha_budget_s:
+            engine.refresh_alpha(None)
+            return
+        if not idle:
+            engine.refresh_alpha(min(s.alpha_budget_s, max(period_left_s, MIN_TURN_SHARE * s.alpha_budget_s)))
+            return
+        slice_s = max(s.alpha_budget_s, 1.0 / s.mesh_rate_hz)
+        while True:  # on every core, and stopping as soon as a frame is integrated
+            engine.refresh_alpha(slice_s, until_frame=True)
+            if not engine.counters.get("alpha_backlog_blocks", 0) or not self._no_frame_waiting() \
+                    or not self._context.ok():
+                return
+
+    def display(self, meshes: Any) -> Any:
+        """The display mesh of a batch of block meshes (parameter mesh_display_cell_m)."""
+        from senfunet_core.decimate import decimate_block_meshes
+        from senfunet_core.mesher import BlockMeshes
+
+        s = self._settings()
+        if not isinstance(meshes, BlockMeshes):
+            meshes = BlockMeshes.from_meshes(dict(meshes))
+        if s.mesh_display_cell_m > s.voxel_size_m:
+            meshes = decimate_block_meshes(meshes, s.mesh_display_cell_m)
+        if s.mesh_colors == "camera" and len(meshes.vertices):
+            seen = self._camera_colors.lookup(meshes.vertices)
+            known = ~np.isnan(seen[:, 0])
+            colors = np.array(meshes.colors, np.float32, copy=True)
+            colors[known] = seen[known]
+            meshes = dataclasses.replace(meshes, colors=colors)
+        return meshes
+
+    def _wait_mesh_acked(self, deadline: float) -> None:
+        """Until every reader acknowledged ~/mesh's samples, or time.monotonic() reaches deadline.
+        Polled with short sleeps, so the node's other threads run meanwhile: rclpy's
+        Publisher.wait_for_all_acked holds the GIL for as long as it blocks (its binding does not
+        release it), which would stop integration and the subscriptions."""
+        while not self.mesh_pub.wait_for_all_acked(_NO_WAIT) and time.monotonic() < deadline:
+            time.sleep(0.002)
