@@ -321,13 +321,17 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
     feature_stride = features.shape[0] // max(weight.shape[0], 1)  # a voxel's feature-pool entries
     updated = 0
     count = np.zeros(512, np.int64)  # per block: zero again after use
+    block_voxels = np.empty(512, np.int64)  # per block: its voxels with samples, as first met
     sum_tsdf = np.empty(512, np.float32)
     sum_features = np.empty((512, n_channels), np.float32)
     for b in range(start.shape[0] - 1):
         base_index = touched_slots[b] * 512
+        n_voxels = 0
         for m in range(start[b], start[b + 1]):
             local = sample_local[m]
             if count[local] == 0:
+                block_voxels[n_voxels] = local
+                n_voxels += 1
                 sum_tsdf[local] = 0.0
                 sum_features[local, :] = 0.0
                 # the voxel's scattered pool entries, needed below: fetched while the samples are summed
@@ -341,10 +345,9 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             p = sample_pixel[m]
             for c in range(n_channels):
                 sum_features[local, c] += pixel_features[p, c]
-        for local in range(512):
+        for i in range(n_voxels):  # a frame reaches a fraction of a block: no scan of all 512
+            local = block_voxels[i]
             cnt = count[local]
-            if cnt == 0:
-                continue
             count[local] = 0
             updated += 1
             voxel = base_index + local
