@@ -148,7 +148,8 @@ class WeightingNet(nn.Module):
         for conv in (self.conv1, self.conv2):
             if pad:
                 x = F.pad(x, (1, 1, 1, 1, 1, 1), mode="replicate")
-            x = F.relu(conv(x))
+            # in inference, in place: a second large tensor per layer costs more than the ReLU itself
+            x = F.relu(conv(x), inplace=not torch.is_grad_enabled())
         return torch.sigmoid(self.conv3(x))
 
 
