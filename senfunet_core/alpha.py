@@ -279,7 +279,7 @@ def evaluate_gathers(net: Any, inputs: np.ndarray, gather_1: np.ndarray, gather_
     """Alpha of the targets of `target_gathers` with the weighting net's weights (networks.WeightingNet:
     conv1 3^3, ReLU, conv2 3^3, ReLU, conv3 1^3, sigmoid): the same values as the net on the whole
     grid, up to float rounding."""
-    hidden_1 = torch.relu(_gathered_conv(torch.from_numpy(inputs).to(dtype), gather_1, net.conv1, dtype))
-    hidden_2 = torch.relu(_accumulated_conv(hidden_1, gather_2, net.conv2, dtype))
+    hidden_1 = torch.relu_(_gathered_conv(torch.from_numpy(inputs).to(dtype), gather_1, net.conv1, dtype))
+    hidden_2 = torch.relu_(_accumulated_conv(hidden_1, gather_2, net.conv2, dtype))
     logits = torch.addmm(net.conv3.bias.to(dtype), hidden_2, net.conv3.weight.reshape(1, -1).t().to(dtype))
     return torch.sigmoid(logits.float()).reshape(-1).numpy()

@@ -170,8 +170,11 @@ class AlphaScheduler:
         slots_holding = slots[holds]
         windows = self.windows(neighbours[holds])
         x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.dtype == torch.bfloat16):
-            alpha = self.net(x, pad=False).float().reshape(-1).cpu().numpy()
+        if self.device.type == "cpu":
+            alpha = self.net.infer(x, self.dtype).reshape(-1).numpy()
+        else:
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.dtype == torch.bfloat16):
+                alpha = self.net(x, pad=False).float().reshape(-1).cpu().numpy()
         voxels = (slots_holding[:, None] * BLOCK**3 + np.arange(BLOCK**3)).reshape(-1)
         flops = self._flops(layer_1_positions=len(slots_holding) * (WINDOW - 2) ** 3, voxels=len(voxels),
                             inputs=27 * windows.shape[-1])

@@ -741,13 +741,13 @@ def _judge_two_batches(engine: SenFuNet, monkeypatch) -> np.ndarray:
 
     clock = VirtualClock()
     monkeypatch.setattr(scheduler_module, "time", clock)
-    forward = engine.weighting_net.forward
+    infer = engine.weighting_net.infer  # what the scheduler runs the net through on the CPU
 
-    def slow_forward(*args, **kwargs):
+    def slow_infer(*args, **kwargs):
         clock.now_s += 0.3
-        return forward(*args, **kwargs)
+        return infer(*args, **kwargs)
 
-    engine.weighting_net.forward = slow_forward
+    engine.weighting_net.infer = slow_infer
     engine.refresh_alpha(0.45)
     return np.flatnonzero(engine.store.evaluated[: engine.grid.n_blocks])
 
@@ -878,7 +878,7 @@ def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(mo
             release.wait(timeout=10)  # only a failing engine lets this time out
             holding.clear()
 
-    forward = engine.weighting_net.forward
+    infer = engine.weighting_net.infer
     batches: list[tuple[bool, int]] = []  # per batch: the lock held by the holder? blocks written so far
 
     def batch_while_the_lock_is_held(*args, **kwargs):
@@ -887,14 +887,14 @@ def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(mo
             assert holding.wait(timeout=30)
         batches.append((holding.is_set(), int(engine.store.evaluated[:n].sum())))
         clock.now_s += 0.125
-        out = forward(*args, **kwargs)
+        out = infer(*args, **kwargs)
         if len(batches) == 3:
             release.set()
         return out
 
     holder = threading.Thread(target=hold_the_lock)
     holder.start()
-    engine.weighting_net.forward = batch_while_the_lock_is_held
+    engine.weighting_net.infer = batch_while_the_lock_is_held
     engine.refresh_alpha(0.3)
     holder.join(timeout=30)
     assert len(batches) == 3

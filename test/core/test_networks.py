@@ -74,3 +74,22 @@ def test_feature_net_inference_equals_its_training_forward(uses_rgb: bool, monke
     assert fast.shape == reference.shape == (2, 5, 48, 40)
     assert not torch.equal(fast, torch.zeros_like(fast))
     torch.testing.assert_close(fast, reference, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_weighting_net_inference_equals_its_forward(dtype: torch.dtype) -> None:
+    """The scheduler's path (`WeightingNet.infer`: ReLUs fused into the convolutions where torch has
+    oneDNN's fused kernel) gives the forward's alpha on halo-padded windows: float32 as the plain
+    forward, bfloat16 as the forward under autocast."""
+    from senfunet_core.networks import WeightingNet
+
+    torch.manual_seed(0)
+    net = WeightingNet(tsdf_input=True).eval()
+    x = torch.randn(3, 14, 12, 12, 12).contiguous(memory_format=torch.channels_last_3d)
+    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
+        want = net(x, pad=False).float()
+    got = net.infer(x, dtype)
+    assert got.shape == want.shape == (3, 1, 8, 8, 8)
+    tolerance = 1e-5 if dtype == torch.float32 else 1e-2
+    torch.testing.assert_close(got, want, rtol=0, atol=tolerance)
+    assert float(want.std()) > 0.01  # alpha varies: the comparison has something to compare
