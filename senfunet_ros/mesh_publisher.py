@@ -78,8 +78,8 @@ class MeshPublisher:
         (the net's budget no longer sits between integration and the mesh subscribers), and the
         alpha it changed comes with the next update."""
         s = self._settings()
-        engine = self.pipeline.engine
         with self.lock:
+            engine = self.pipeline.engine  # under the lock: ~/load_map replaces it under the same lock
             start = time.perf_counter()
             now = time.monotonic()
             if weights is None:
