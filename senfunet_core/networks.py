@@ -138,7 +138,8 @@ def _fused_conv_relu_works(dtype: torch.dtype) -> bool:
     if fused is None:
         return False
     generator = torch.Generator().manual_seed(0)
-    x = torch.randn(2, 5, 6, 6, 6, generator=generator).to(dtype)
+    # laid out as the scheduler's windows are (channels last), the layout the fused kernel must handle
+    x = torch.randn(2, 6, 6, 6, 5, generator=generator).to(dtype).permute(0, 4, 1, 2, 3)
     weight, bias = torch.randn(3, 5, 3, 3, 3, generator=generator).to(dtype), torch.randn(3).to(dtype)
     try:
         with torch.inference_mode():

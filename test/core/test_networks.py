@@ -76,13 +76,17 @@ def test_feature_net_inference_equals_its_training_forward(uses_rgb: bool, monke
     torch.testing.assert_close(fast, reference, rtol=0, atol=1e-5)
 
 
+@pytest.mark.parametrize("fused", [True, False])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
-def test_weighting_net_inference_equals_its_forward(dtype: torch.dtype) -> None:
+def test_weighting_net_inference_equals_its_forward(dtype: torch.dtype, fused: bool, monkeypatch) -> None:
     """The scheduler's path (`WeightingNet.infer`: ReLUs fused into the convolutions where torch has
-    oneDNN's fused kernel) gives the forward's alpha on halo-padded windows: float32 as the plain
-    forward, bfloat16 as the forward under autocast."""
+    oneDNN's fused kernel, else conv and in-place ReLU) gives the forward's alpha on halo-padded
+    windows: float32 as the plain forward, bfloat16 as the forward under autocast."""
+    from senfunet_core import networks
     from senfunet_core.networks import WeightingNet
 
+    if not fused:
+        monkeypatch.setattr(networks, "_fused_conv_relu_works", lambda dtype: False)
     torch.manual_seed(0)
     net = WeightingNet(tsdf_input=True).eval()
     x = torch.randn(3, 14, 12, 12, 12).contiguous(memory_format=torch.channels_last_3d)
