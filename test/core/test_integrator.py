@@ -86,12 +86,26 @@ def test_compiled_integration_equals_the_reference():
     assert all(got[v][1] == want[v][1] for v in common)
     features_error = max(np.abs(got[v][2] - want[v][2]).max() for v in common)
     assert features_error < 2e-3  # float16 storage, rounded once per frame
-    # growing mid-frame grew the hash table with the blocks, not with the pools' capacity
-    assert len(grid.table_keys) <= 4 * (grid.n_blocks + 1024)
     # the TSDF Fusion baseline saw the same (single-sensor) frames
     n = grid.n_blocks
     np.testing.assert_array_equal(grid.pools["weight_base"][:n].numpy(), grid.pools["weight0"][:n].numpy())
     np.testing.assert_allclose(grid.pools["tsdf_base"][:n].numpy(), grid.pools["tsdf0"][:n].numpy(), atol=1e-6)
+
+
+def test_a_full_hash_table_grows_with_the_blocks_not_with_the_pools(monkeypatch):
+    """A frame that fills the hash table mid-frame grows it to fit the blocks (a small table stays in
+    cache), not to the pools' capacity, which is large and costs nothing until used."""
+    import senfunet_core.grid as grid_module
+
+    monkeypatch.setattr(grid_module, "_INITIAL_TABLE", 16)  # full after 8 blocks, early in the frame
+    grid = BlockGrid({"tsdf0": (), "weight0": (), "feat0": (5,), "drift": ()}, initial_capacity=1 << 15)
+    depth, features = frame(0)
+    integrate_frame(grid, np.nan_to_num(depth), features, K, pose(0.0, 0.0), RANGE, CONFIG,
+                    ("tsdf0", "weight0", "feat0"))
+    assert grid.n_blocks > 8 and grid.capacity == 1 << 15
+    assert len(grid.table_keys) <= 4 * (grid.n_blocks + 1024)
+    assert (grid.lookup_keys(torch.from_numpy(grid.slot_keys[:grid.n_blocks])).numpy()
+            == np.arange(grid.n_blocks)).all()
 
 
 def test_drift_marks_new_voxels_and_accumulates_change():
