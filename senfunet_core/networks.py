@@ -129,13 +129,17 @@ class FeatureNet(nn.Module):
         return x.to(torch.float32).contiguous()
 
 
+def _fused_conv_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """oneDNN's convolution with its ReLU fused (the op torch's own compiler emits): no padding, stride 1."""
+    return torch.ops.mkldnn._convolution_pointwise(x, weight, bias, [0, 0, 0], [1, 1, 1], [1, 1, 1], 1, "relu", [],
+                                                   "")
+
+
 @functools.cache
 def _fused_conv_relu_works(dtype: torch.dtype) -> bool:
-    """Whether this torch has oneDNN's fused convolution + ReLU for 3D CPU tensors of `dtype`
-    (torch.ops.mkldnn._convolution_pointwise, which torch's own compiler emits) and it gives
-    what the two steps give, on a small probe."""
-    fused = getattr(torch.ops.mkldnn, "_convolution_pointwise", None) if torch.backends.mkldnn.is_available() else None
-    if fused is None:
+    """Whether this torch has `_fused_conv_relu` for 3D CPU tensors of `dtype` and it gives what the
+    two steps give, on a small probe."""
+    if not torch.backends.mkldnn.is_available() or not hasattr(torch.ops.mkldnn, "_convolution_pointwise"):
         return False
     generator = torch.Generator().manual_seed(0)
     # laid out as the scheduler's windows are (channels last), the layout the fused kernel must handle
@@ -143,7 +147,7 @@ def _fused_conv_relu_works(dtype: torch.dtype) -> bool:
     weight, bias = torch.randn(3, 5, 3, 3, 3, generator=generator).to(dtype), torch.randn(3).to(dtype)
     try:
         with torch.inference_mode():
-            got = fused(x, weight, bias, [0, 0, 0], [1, 1, 1], [1, 1, 1], 1, "relu", [], "")
+            got = _fused_conv_relu(x, weight, bias)
             want = F.conv3d(x, weight, bias).relu_()
     except (RuntimeError, NotImplementedError):
         return False
@@ -155,8 +159,7 @@ def conv3d_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> to
     with the ReLU fused where torch provides it (the ReLU as a separate pass over the output costs
     a third of the convolution), else the convolution and an in-place ReLU."""
     if x.device.type == "cpu" and _fused_conv_relu_works(x.dtype):
-        return torch.ops.mkldnn._convolution_pointwise(x, weight, bias, [0, 0, 0], [1, 1, 1], [1, 1, 1], 1,
-                                                       "relu", [], "")
+        return _fused_conv_relu(x, weight, bias)
     return F.conv3d(x, weight, bias).relu_()
 
 
