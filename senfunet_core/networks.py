@@ -149,7 +149,7 @@ def _fused_conv_relu_works(dtype: torch.dtype) -> bool:
         with torch.inference_mode():
             got = _fused_conv_relu(x, weight, bias)
             want = F.conv3d(x, weight, bias).relu_()
-    except (RuntimeError, NotImplementedError):
+    except Exception:  # a private op: whatever way it fails on this torch or CPU, the two steps serve
         return False
     return bool(torch.allclose(got.float(), want.float(), rtol=1e-2, atol=1e-2))
 
