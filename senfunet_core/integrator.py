@@ -161,6 +161,9 @@ def aggregate_pixel_values(samples: FrameSamples, pixel_values: torch.Tensor) ->
 # ------------------------------------------------------------------------------------------------
 
 
+_RECENT_BITS = 12  # entries of locate_samples' table of recent blocks: 2^12
+
+
 @numba.njit(cache=True, nogil=True)
 def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, border_px: int, K: np.ndarray,
                    T_world_camera: np.ndarray, offsets_m: np.ndarray, voxel_size_m: float, table_keys: np.ndarray,
@@ -183,6 +186,11 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
     last_key, last_slot, touched = np.int64(-2), np.int64(-1), np.int64(-1)
     ray_keys = np.empty(n_samples, np.int64)  # one pixel's samples: block key, voxel in the block
     ray_locals = np.empty(n_samples, np.int64)
+    # the blocks met lately (direct-mapped by key): neighbouring rays cross the same blocks, and this
+    # small table stays in the core's first cache where the hash table and slot_to_touched do not
+    recent_keys = np.full(1 << _RECENT_BITS, -2, np.int64)
+    recent_slots = np.zeros(1 << _RECENT_BITS, np.int64)
+    recent_touched = np.zeros(1 << _RECENT_BITS, np.int64)
     for v in range(border_px, h - border_px):
         for u in range(border_px, w - border_px):
             z = np.float64(depth_m[v, u])
@@ -209,16 +217,19 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
                 if key != last_key:
                     if key < 0:
                         return n_pixels, n_touched, False
-                    slot = hash_find_or_add(table_keys, table_slots, key, state, slot_keys)
-                    if slot < 0:
-                        return n_pixels, n_touched, False
-                    last_key, last_slot = key, slot
-                    touched = slot_to_touched[slot]
-                    if touched < 0:
-                        touched = np.int64(n_touched)
-                        slot_to_touched[slot] = touched
-                        touched_slots[touched] = slot
-                        n_touched += 1
+                    c = int((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(64 - _RECENT_BITS))
+                    if recent_keys[c] != key:
+                        slot = hash_find_or_add(table_keys, table_slots, key, state, slot_keys)
+                        if slot < 0:
+                            return n_pixels, n_touched, False
+                        touched = slot_to_touched[slot]
+                        if touched < 0:
+                            touched = np.int64(n_touched)
+                            slot_to_touched[slot] = touched
+                            touched_slots[touched] = slot
+                            n_touched += 1
+                        recent_keys[c], recent_slots[c], recent_touched[c] = key, slot, touched
+                    last_key, last_slot, touched = key, recent_slots[c], recent_touched[c]
                 sample_flat[base + k] = last_slot * 512 + ray_locals[k]
                 sample_touched[base + k] = touched
             pixel_index[n_pixels] = v * w + u
