@@ -61,7 +61,7 @@ from .alpha_scheduler import AlphaScheduler
 from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
-from .grid import BlockGrid, block_keys, keys_to_coords
+from .grid import BlockGrid, block_keys
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
@@ -357,23 +357,21 @@ class SenFuNet:
             result = MeshUpdate(cleared=self._cleared)
             self._cleared = False
             live = self._block_meshes(slots, coords)
-            has_faces = {tuple(k) for k in live.keys.tolist()}
-            self.archive.replace(has_faces)
+            live_keys, changed_keys = (block_keys(torch.from_numpy(c)).numpy() for c in (live.keys, coords))
+            if len(self.archive):
+                self.archive.replace({tuple(k) for k in live.keys.tolist()})
             # the evicted blocks' final meshes: subscribers keep showing them (unless live again)
             archived = self.bound.take_archived()
-            not_live = [key not in has_faces for key in map(tuple, archived.keys.tolist())]
-            archived = archived.select(np.flatnonzero(not_live))
+            archived = archived.select(np.flatnonzero(~np.isin(block_keys(torch.from_numpy(archived.keys)).numpy(),
+                                                               live_keys)))
             result.meshes = BlockMeshes.concatenate([live, archived])
-            for key in map(tuple, coords.tolist()):
-                if key not in has_faces and key in self._meshed:
-                    self._meshed.discard(key)
-                    if key not in self.archive:
-                        result.removed.append(key)
-            self._meshed.update(has_faces)
+            has_faces = np.isin(changed_keys, live_keys)
+            vanished = coords[~has_faces & np.isin(changed_keys, self._meshed)]
+            result.removed = [key for key in map(tuple, vanished.tolist()) if key not in self.archive]
+            self._meshed = np.union1d(np.setdiff1d(self._meshed, changed_keys), live_keys)
             self.counters["meshed_blocks"] = len(self._meshed)
             with self._data_lock:  # for the weighting net's order (slots stay put while the update lock is held)
-                self.store.meshed[slots] = np.isin(block_keys(torch.from_numpy(coords)).numpy(),
-                                                   block_keys(torch.from_numpy(live.keys)).numpy())
+                self.store.meshed[slots] = has_faces
             self.times.add(alpha=t1 - t0, mesh=time.perf_counter() - t1)
             return result
 
@@ -562,7 +560,7 @@ class SenFuNet:
         with self._updating():
             with self._data_lock:  # only the flags: integration waits for this lock
                 nbytes = self.grid.nbytes()
-                meshed = self.grid.lookup(torch.tensor(sorted(self._meshed), dtype=torch.int64).reshape(-1, 3)).numpy()
+                meshed = self.grid.lookup_keys(torch.from_numpy(self._meshed)).numpy()
                 meshed = meshed[meshed >= 0]
                 evaluated = self.store.evaluated[meshed]
                 current = evaluated & (self.store.stale[meshed] == 0) & ~self.store.alpha_pending[meshed]
@@ -604,7 +602,7 @@ class SenFuNet:
     def _reset_state(self) -> None:
         """The engine's own state beside the store (call with both locks held, or from __init__)."""
         self.store.clear_flags()
-        self._meshed: set[tuple[int, int, int]] = set()
+        self._meshed = np.zeros(0, np.int64)  # sorted block keys of the blocks with a live mesh
         self._cleared = False
 
     def _pixel_features(self, s: int, depth_m: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:
@@ -670,7 +668,7 @@ class SenFuNet:
         if eviction is not None:
             self.counters["evicted_blocks"] = self.bound.evicted_blocks
             self.counters["evictions"] = self.bound.evictions
-            self._meshed.difference_update(map(tuple, keys_to_coords(torch.from_numpy(eviction.dropped_keys)).tolist()))
+            self._meshed = np.setdiff1d(self._meshed, eviction.dropped_keys)
             self._notify_eviction_waiters()
         return eviction
 

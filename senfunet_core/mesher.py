@@ -714,8 +714,8 @@ class BlockMeshes:
             z = np.zeros((0, 3), np.float32)
             return BlockMeshes(np.zeros((0, 3), np.int64), z, z.copy(), np.zeros((0, 3), np.int32),
                                np.zeros(1, np.int64), np.zeros(1, np.int64))
-        if len(parts) == 1:
-            return parts[0]
+        if sum(len(p) > 0 for p in parts) <= 1:  # nothing to join: no copy
+            return max(parts, key=len)
         v_base = np.cumsum([0] + [p.vertex_offsets[-1] for p in parts[:-1]])
         f_base = np.cumsum([0] + [p.face_offsets[-1] for p in parts[:-1]])
         return BlockMeshes(
