@@ -24,8 +24,10 @@ from typing import Any
 import numba
 import numpy as np
 import torch
+from numba.core import types
+from numba.extending import overload
 
-from .grid import f16_to_f32, features_per_voxel, load_f32, load_feature
+from .grid import f16_to_f32, f32_to_bf16, features_per_voxel, load_f32, load_feature
 from .integrator import TANH_OF_COUNT
 
 HALO = 2  # alpha depends on inputs within 2 voxels
@@ -74,34 +76,75 @@ def take_drift(slots: np.ndarray, drift: np.ndarray, tolerance: float) -> np.nda
     return levels
 
 
-@numba.njit(cache=True, nogil=True)
+def window_channels(features_1: np.ndarray, weight_1: np.ndarray, tsdf_1: np.ndarray) -> int:
+    """C, the weighting-net input channels per voxel (`weighting_windows`)."""
+    n_features = features_1.shape[0] // max(weight_1.shape[0], 1) - (1 if features_1.dtype == np.int8 else 0)
+    return 2 * (n_features + 1) + (2 if tsdf_1.shape[0] > 0 else 0)
+
+
 def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray, features_2: np.ndarray,
-                      weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray, tsdf_scale: float) -> np.ndarray:
+                      weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray, tsdf_scale: float, *,
+                      out: np.ndarray | None = None) -> np.ndarray:
     """B x 12^3 x C weighting-net inputs of each block with its 2-voxel halo (channels last), zero
     where no block exists: [F_1 (5), tanh(W_1), F_2 (5), tanh(W_2)] (C = 12) and, unless tsdf_1 and
     tsdf_2 are empty, [V_1, V_2] * tsdf_scale (C = 14, the inputs of WeightingNet.tsdf_input).
-    features_i: flat feature-pool views (`grid.load_feature`)."""
-    n_blocks = neighbours.shape[0]
+    features_i: flat feature-pool views (`grid.load_feature`). out: a flat buffer of at least
+    B * 12^3 * C entries to write them to (reused between batches: a fresh array of this size costs
+    its page faults), float32, or uint16 for bfloat16 bits (what the net computes in; no
+    conversion pass); default a new float32 array."""
+    shape = (neighbours.shape[0], WINDOW, WINDOW, WINDOW, window_channels(features_1, weight_1, tsdf_1))
+    size = int(np.prod(shape))
+    out = np.empty(size, np.float32) if out is None else out[:size]
+    _fill_windows(out, neighbours, features_1, weight_1, features_2, weight_2, tsdf_1, tsdf_2, tsdf_scale)
+    return out.reshape(shape)
+
+
+def _store_input(out: np.ndarray, index: int, value: float | np.float32) -> None:
+    """out[index] = value, as bfloat16 bits where out is uint16 (numba)."""
+    out[index] = f32_to_bf16(value) if out.dtype == np.uint16 else value
+
+
+@overload(_store_input, inline="always")
+def _store_input_overload(out, index, value):  # noqa: ANN001, ANN202 (numba overload)
+    if isinstance(out, types.Array) and out.dtype == types.uint16:
+        def store_bf16(out, index, value):  # noqa: ANN001, ANN202
+            out[index] = f32_to_bf16(np.float32(value))
+        return store_bf16
+
+    def store(out, index, value):  # noqa: ANN001, ANN202
+        out[index] = value
+    return store
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray,
+                  features_2: np.ndarray, weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray,
+                  tsdf_scale: float) -> None:
+    """`weighting_windows`' kernel: every entry of out written (out may hold an earlier batch)."""
     n_features = features_per_voxel(features_1, weight_1.shape[0])
     with_tsdf = tsdf_1.shape[0] > 0
     first_tsdf = 2 * (n_features + 1)
-    out = np.zeros((n_blocks, WINDOW, WINDOW, WINDOW, first_tsdf + 2 * with_tsdf), np.float32)
-    for b in range(n_blocks):
+    channels = first_tsdf + 2 * with_tsdf
+    i = 0  # out[i:i + channels]: the inputs at window position (b, x, y, z)
+    for b in range(neighbours.shape[0]):
         for x in range(WINDOW):
             for y in range(WINDOW):
                 for z in range(WINDOW):
                     v = _neighbour_index(neighbours, b, x - HALO, y - HALO, z - HALO)
                     if v < 0:
+                        for c in range(channels):
+                            _store_input(out, i + c, 0.0)
+                        i += channels
                         continue
                     for c in range(n_features):
-                        out[b, x, y, z, c] = load_feature(features_1, n_features, v, c)
-                        out[b, x, y, z, n_features + 1 + c] = load_feature(features_2, n_features, v, c)
-                    out[b, x, y, z, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
-                    out[b, x, y, z, first_tsdf - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
+                        _store_input(out, i + c, load_feature(features_1, n_features, v, c))
+                        _store_input(out, i + n_features + 1 + c, load_feature(features_2, n_features, v, c))
+                    _store_input(out, i + n_features, TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))])
+                    _store_input(out, i + first_tsdf - 1, TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))])
                     if with_tsdf:
-                        out[b, x, y, z, first_tsdf] = load_f32(tsdf_1, v) * tsdf_scale
-                        out[b, x, y, z, first_tsdf + 1] = load_f32(tsdf_2, v) * tsdf_scale
-    return out
+                        _store_input(out, i + first_tsdf, load_f32(tsdf_1, v) * tsdf_scale)
+                        _store_input(out, i + first_tsdf + 1, load_f32(tsdf_2, v) * tsdf_scale)
+                    i += channels
 
 
 # -- voxel-granular evaluation ("surface_voxels" mode) ------------------------------------------------

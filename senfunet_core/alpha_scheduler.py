@@ -89,6 +89,7 @@ class AlphaScheduler:
         self.alpha_order = alpha_order
         self.threads = threads
         self._executor: ThreadPoolExecutor | None = None  # threads > 1: evaluates batches side by side
+        self._buffers = threading.local()  # per evaluating thread: its input windows' buffer
         self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
         self.flops = 0  # weighting-net FLOPs written so far (for the benchmark's fraction of peak)
 
@@ -168,11 +169,15 @@ class AlphaScheduler:
             flops = self._flops(layer_1_positions=len(gather_1), voxels=len(voxels), inputs=27 * inputs.shape[1])
             return AlphaBatch(slots, holds, voxels, alpha, flops)
         slots_holding = slots[holds]
-        windows = self.windows(neighbours[holds])
-        x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
-        if self.device.type == "cpu":
-            alpha = self.net.infer(x, self.dtype).reshape(-1).numpy()
+        if self.device.type == "cpu":  # the inputs written in the net's dtype, to this thread's buffer
+            bfloat16 = self.dtype == torch.bfloat16
+            windows = weighting_windows(neighbours[holds], *self.inputs(), out=self._window_buffer(
+                len(slots_holding) * WINDOW**3 * self.net.conv1.in_channels, np.uint16 if bfloat16 else np.float32))
+            x = torch.from_numpy(windows.view(np.int16)).view(torch.bfloat16) if bfloat16 else torch.from_numpy(windows)
+            alpha = self.net.infer(x.permute(0, 4, 1, 2, 3), self.dtype).reshape(-1).numpy()  # channels last
         else:
+            windows = self.windows(neighbours[holds])
+            x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.dtype == torch.bfloat16):
                 alpha = self.net(x, pad=False).float().reshape(-1).cpu().numpy()
         voxels = (slots_holding[:, None] * BLOCK**3 + np.arange(BLOCK**3)).reshape(-1)
@@ -250,6 +255,13 @@ class AlphaScheduler:
     def windows(self, neighbours: np.ndarray) -> np.ndarray:
         """The weighting net's B x 12^3 x C input windows of these blocks (alpha.weighting_windows)."""
         return weighting_windows(neighbours, *self.inputs())
+
+    def _window_buffer(self, size: int, dtype: type) -> np.ndarray:
+        """The calling thread's buffer for input windows (`weighting_windows`' out), at least `size`."""
+        buffer = getattr(self._buffers, "windows", None)
+        if buffer is None or buffer.dtype != dtype or len(buffer) < size:
+            buffer = self._buffers.windows = np.empty(max(size, self.batch_blocks * WINDOW**3 * 14), dtype)
+        return buffer
 
     def inputs(self) -> tuple:
         """The pools the weighting net reads (alpha.weighting_windows, alpha.target_gathers), with the

@@ -204,6 +204,7 @@ class SenFuNet:
     """Learned two-sensor TSDF fusion on sparse voxel blocks, plus the plain TSDF Fusion baseline."""
 
     _cleared: bool  # reset since the last mesh update (set by _reset_state, which __init__ calls)
+    _meshed: np.ndarray  # sorted block keys of the blocks with a live mesh (set by _reset_state)
 
     def __init__(self, config: EngineConfig = EngineConfig(), weights: str | Path | None = "default") -> None:
         config.validate()
@@ -602,7 +603,7 @@ class SenFuNet:
     def _reset_state(self) -> None:
         """The engine's own state beside the store (call with both locks held, or from __init__)."""
         self.store.clear_flags()
-        self._meshed = np.zeros(0, np.int64)  # sorted block keys of the blocks with a live mesh
+        self._meshed = np.zeros(0, np.int64)
         self._cleared = False
 
     def _pixel_features(self, s: int, depth_m: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:

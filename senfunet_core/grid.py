@@ -258,6 +258,20 @@ def prefetch(typingctx, array, index):  # noqa: ANN001 (numba intrinsic)
     return types.none(array, index), codegen
 
 
+@intrinsic
+def _f32_bits(typingctx, x):  # noqa: ANN001 (numba intrinsic)
+    def codegen(context, builder, signature, args):  # noqa: ANN001
+        return builder.bitcast(args[0], ir.IntType(32))
+    return types.uint32(types.float32), codegen
+
+
+@numba.njit(inline="always")
+def f32_to_bf16(x: float) -> np.uint16:
+    """float32 -> bfloat16 bits, rounded to nearest even as torch's conversion (finite values)."""
+    bits = _f32_bits(np.float32(x))
+    return np.uint16((bits + np.uint32(0x7FFF) + ((bits >> np.uint32(16)) & np.uint32(1))) >> np.uint32(16))
+
+
 _F16_TABLE = np.arange(1 << 16, dtype=np.uint16).view(np.float16).astype(np.float32)
 
 

@@ -80,3 +80,17 @@ def test_voxel_evaluation_equals_the_block_evaluation_at_the_targets():
         expected.reshape(-1, 512)[holding] = block_alpha
         np.testing.assert_allclose(alpha, expected[voxels], atol=2e-6)
         assert alpha.std() > 0.05  # the weights spread alpha: a wrong gather would show
+
+
+def test_windows_written_to_a_reused_buffer_as_bfloat16_equal_torch_rounding_of_the_float32_windows():
+    engine = _engine(True)
+    grid = engine.grid
+    nb = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, np.arange(grid.n_blocks))
+    expected = weighting_windows(nb, *engine.alpha.inputs())
+    assert (expected == 0).any() and (expected != 0).mean() > 0.1  # missing neighbours and inputs both
+    want_bits = torch.from_numpy(expected).to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16)
+    for dtype, want in ((np.float32, expected), (np.uint16, want_bits)):
+        buffer = np.full(expected.size + 7, 12345, dtype)  # an earlier batch's leftovers: all overwritten
+        got = weighting_windows(nb, *engine.alpha.inputs(), out=buffer)
+        np.testing.assert_array_equal(got, want)
+        assert np.shares_memory(got, buffer)
