@@ -470,13 +470,18 @@ class SenFuNet:
         """Compile (or load from numba's cache) every kernel on a small synthetic frame per sensor,
         then forget it: the first real frame and update then run at full speed."""
         size = 4 * self.config.border_px + 32
-        K = np.array([[size / 2, 0, (size - 1) / 2], [0, size / 2, (size - 1) / 2], [0, 0, 1]], np.float64)
-        depth = np.full((size, size), 0.5 * (self.config.depth_min_m[0] + self.config.depth_max_m[0]), np.float32)
+        depth_m = 0.5 * (self.config.depth_min_m[0] + self.config.depth_max_m[0])
+        # pixels half a voxel apart on the plane: cells with all corners observed, which the weighting
+        # net's kernels need to run at all
+        focal = 2.0 * depth_m / self.config.voxel_size_m
+        K = np.array([[focal, 0, (size - 1) / 2], [0, focal, (size - 1) / 2], [0, 0, 1]], np.float64)
+        depth = np.full((size, size), depth_m, np.float32)
         rgb = np.full((size, size, 3), 128, np.uint8)
         for sensor in self.config.sensors:
             self.integrate(sensor, depth, K, np.eye(4), rgb)
         self.update()
         self.extract_mesh(self.config.sensors[0])
+        self.grid.warm_up()
         self.reset()
         self._cleared = False
 

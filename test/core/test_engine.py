@@ -1080,3 +1080,33 @@ def test_an_engine_is_freed_without_the_cycle_collector():
     finally:
         if enabled:
             gc.enable()
+
+
+def _kernel_signatures() -> dict[str, int]:
+    """Compiled signatures of every numba kernel of the engine's modules."""
+    import numba
+
+    from senfunet_core import alpha, fusion, grid, integrator, mesher
+
+    return {f"{module.__name__}.{name}": len(kernel.signatures) for module in (alpha, fusion, grid, integrator, mesher)
+            for name, kernel in vars(module).items() if isinstance(kernel, numba.core.registry.CPUDispatcher)}
+
+
+def test_warm_up_compiles_every_kernel_a_stream_calls():
+    """A kernel first compiled in the middle of a stream stalls the node for seconds (GIL held):
+    after warm_up, frames, updates and statistics compile nothing new."""
+    engine = SenFuNet(EngineConfig(depth_min_m=(0.05, 0.05)), weights="default")
+    engine.warm_up()
+    before = _kernel_signatures()
+    K = SPHERE_K
+    rgb = np.full((128, 128, 3), 100, np.uint8)
+    for T in SPHERE_VIEWS[:6]:
+        depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+        for sensor in engine.config.sensors:
+            engine.integrate(sensor, depth + (0.004 if sensor == engine.config.sensors[1] else 0.0), K, T, rgb)
+        engine.update(alpha_budget_s=0.0)
+        engine.refresh_alpha(None)
+    engine.update()
+    assert engine.counters["alpha_blocks"] > 0 and engine.stats()["blocks"] > 0
+    after = _kernel_signatures()
+    assert {name: count for name, count in after.items() if count != before.get(name, 0)} == {}
