@@ -240,16 +240,18 @@ def locate_samples(depth_m: np.ndarray, depth_min_m: float, depth_max_m: float, 
 @numba.njit(cache=True, nogil=True)
 def drop_sparse_new_blocks(n_before: int, n_after: int, min_samples: int, n_samples_total: int, n_touched: int,
                            touched_slots: np.ndarray, slot_to_touched: np.ndarray, sample_touched: np.ndarray,
-                           sample_flat: np.ndarray, table_keys: np.ndarray, table_slots: np.ndarray,
-                           slot_keys: np.ndarray, on_disk: np.ndarray) -> tuple[int, int, int, int]:
+                           table_keys: np.ndarray, table_slots: np.ndarray, slot_keys: np.ndarray,
+                           on_disk: np.ndarray) -> tuple[int, int, int, int, np.ndarray]:
     """The allocation policy, after `locate_samples` ran: of the blocks it added (slots
     n_before..n_after-1, not committed yet), those that received fewer than min_samples of the
     frame's samples are taken out of the hash table again (flying pixels and far noise scatter
-    a few samples over many blocks that would stay nearly empty). Their samples get
-    sample_touched -1 and sample_flat -1; kept blocks close up their slots, and touched_slots and
-    the samples follow. Blocks that existed before the frame take every sample, and so do blocks
-    coming back from disk (on_disk: per added block, whether the grid's spill holds it).
-    Returns (blocks now in the grid, touched blocks kept, samples dropped, blocks dropped)."""
+    a few samples over many blocks that would stay nearly empty). Kept blocks close up their
+    slots, and touched_slots follows; the samples are not rewritten (a pass over all of them):
+    the returned touched_map takes their sample_touched to the kept touched blocks (-1: dropped;
+    empty when nothing was dropped), and their voxel in the block stays sample_flat & 511.
+    Blocks that existed before the frame take every sample, and so do blocks coming back from
+    disk (on_disk: per added block, whether the grid's spill holds it).
+    Returns (blocks now in the grid, touched blocks kept, samples dropped, blocks dropped, touched_map)."""
     count = np.zeros(n_touched, np.int64)
     for n in range(n_samples_total):
         count[sample_touched[n]] += 1
@@ -262,24 +264,20 @@ def drop_sparse_new_blocks(n_before: int, n_after: int, min_samples: int, n_samp
             dropped_samples += c
     n_kept_new = int(keep.sum())
     if n_kept_new == n_after - n_before:
-        return n_after, n_touched, 0, 0
+        return n_after, n_touched, 0, 0, np.zeros(0, np.int32)
     new_slot = drop_new_blocks(table_keys, table_slots, slot_keys, n_before, keep)
-    touched_new = np.empty(n_touched, np.int32)
+    touched_map = np.empty(n_touched, np.int32)
     kept = 0
     for b in range(n_touched):
         slot = touched_slots[b]
         target = slot if slot < n_before else new_slot[slot - n_before]
         if target < 0:
-            touched_new[b] = -1
+            touched_map[b] = -1
         else:
-            touched_new[b] = kept
+            touched_map[b] = kept
             touched_slots[kept] = target
             kept += 1
-    for n in range(n_samples_total):
-        b = touched_new[sample_touched[n]]
-        sample_touched[n] = b
-        sample_flat[n] = -1 if b < 0 else touched_slots[b] * 512 + (sample_flat[n] & 511)
-    return n_before + n_kept_new, kept, dropped_samples, n_after - n_before - n_kept_new
+    return n_before + n_kept_new, kept, dropped_samples, n_after - n_before - n_kept_new, touched_map
 
 
 # weight counters are integers 0..2048 (w_max): their float16 bits and tanh (a weighting-net input) by table
@@ -289,16 +287,19 @@ TANH_OF_COUNT = np.tanh(np.arange(2049, dtype=np.float64)).astype(np.float32)
 
 @numba.njit(cache=True, nogil=True)
 def _group_by_block(n_pixels: int, n_samples: int, n_touched: int, sample_flat: np.ndarray,
-                    sample_touched: np.ndarray, pixel_index: np.ndarray
+                    sample_touched: np.ndarray, touched_map: np.ndarray, pixel_index: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Counting sort of the samples by touched block: start (n_touched + 1) and, in block order,
-    each sample's voxel in its block, image pixel and step along the ray. Walking pixels and steps
-    in two loops spares the per-sample division the accumulation would otherwise need."""
+    """Counting sort of the samples by touched block (sample_touched through touched_map where it
+    is not empty, see `drop_sparse_new_blocks`; -1: dropped): start (n_touched + 1) and, in block
+    order, each sample's voxel in its block, image pixel and step along the ray. Walking pixels and
+    steps in two loops spares the per-sample division the accumulation would otherwise need."""
     total = n_pixels * n_samples
+    mapped = touched_map.shape[0] > 0
     start = np.zeros(n_touched + 1, np.int64)
     for n in range(total):
-        if sample_touched[n] >= 0:  # -1: dropped (its block was not allocated)
-            start[sample_touched[n] + 1] += 1
+        b = touched_map[sample_touched[n]] if mapped else sample_touched[n]
+        if b >= 0:
+            start[b + 1] += 1
     for b in range(n_touched):
         start[b + 1] += start[b]
     fill = start[:-1].copy()
@@ -309,7 +310,7 @@ def _group_by_block(n_pixels: int, n_samples: int, n_touched: int, sample_flat: 
     for p in range(n_pixels):
         image_pixel = pixel_index[p]
         for k in range(n_samples):
-            b = sample_touched[n]
+            b = touched_map[sample_touched[n]] if mapped else sample_touched[n]
             if b < 0:
                 n += 1
                 continue
@@ -388,6 +389,8 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
     return updated
 
 
+_NO_MAP = np.zeros(0, np.int32)
+
 # update_voxels hands the second half of a frame's blocks to this worker from this many samples on
 SPLIT_MIN_SAMPLES = 50_000
 _UPDATE_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="senfunet-update")
@@ -396,7 +399,8 @@ _UPDATE_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="senfunet-
 def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample_touched: np.ndarray,
                   sample_tsdf_m: np.ndarray, pixel_index: np.ndarray, pixel_features: np.ndarray,
                   touched_slots: np.ndarray, tsdf: np.ndarray, weight: np.ndarray, features: np.ndarray,
-                  tsdf_base: np.ndarray, weight_base: np.ndarray, drift: np.ndarray, w_max: float) -> int:
+                  tsdf_base: np.ndarray, weight_base: np.ndarray, drift: np.ndarray, w_max: float, *,
+                  touched_map: np.ndarray | None = None) -> int:
     """Per voxel: the mean of this frame's samples (TSDF value and the pixel's features), then the
     running averages of the sensor's TSDF, weight and features and of the TSDF Fusion baseline
     (skipped when tsdf_base is empty).
@@ -404,7 +408,7 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
     Weights and drift are float16 bit patterns (int16), TSDFs float16 bits or float32
     (`grid.load_f32`), features float16 bits or packed int8 (`grid.load_feature`); pixel_features:
-    (H*W) x C float32.
+    (H*W) x C float32; touched_map: as `drop_sparse_new_blocks` returns it (None: none).
     Returns the number of voxels updated.
 
     Blocks are independent: a frame of at least SPLIT_MIN_SAMPLES samples has the second half of
@@ -412,7 +416,8 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     over costs more than it saves). This is the integration thread's longest step, and it waits on
     memory more than it computes. The flat form: call it through `update_frame_voxels`."""
     start, local, pixel, step = _group_by_block(n_pixels, sample_tsdf_m.shape[0], n_touched, sample_flat,
-                                                sample_touched, pixel_index)
+                                                sample_touched, _NO_MAP if touched_map is None else touched_map,
+                                                pixel_index)
 
     def blocks(block_start: np.ndarray, block_slots: np.ndarray) -> int:
         return _update_blocks(block_start, local, pixel, step, sample_tsdf_m, pixel_features, block_slots, tsdf,
@@ -446,12 +451,14 @@ class LocatedSamples:
     n_pixels: int  # P
     n_touched: int  # blocks touched by the samples
     sample_flat: np.ndarray  # int64 pool index (slot * 512 + local voxel) of each sample, pixel-major
-    sample_touched: np.ndarray  # int32 index into touched_slots of each sample's block
+    sample_touched: np.ndarray  # int32 index into touched_slots of each sample's block (through touched_map)
     pixel_index: np.ndarray  # int64 flat image index (v * W + u) of each valid pixel
     touched_slots: np.ndarray  # int64 slots of the touched blocks, in the order first touched
-    dropped_samples: int = 0  # samples in new blocks the allocation policy did not allocate (their
-    #                           sample_flat and sample_touched are -1)
+    dropped_samples: int = 0  # samples in new blocks the allocation policy did not allocate
     dropped_blocks: int = 0  # those blocks
+    # when the policy dropped blocks: sample_touched -> index into touched_slots (-1: dropped), and
+    # sample_flat's slot part is the one before the policy (see drop_sparse_new_blocks); else None
+    touched_map: np.ndarray | None = None
 
 
 def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray, *,
@@ -490,17 +497,18 @@ def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_
         if state[0] < state[1]:  # not full: a sample left the key range
             raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
         grid.reserve(grid.n_blocks + 1024)
-    n_blocks, dropped_samples, dropped_blocks = int(state[0]), 0, 0
+    n_blocks, dropped_samples, dropped_blocks, touched_map = int(state[0]), 0, 0, None
     if min_new_block_samples > 1 and n_blocks > n_before:
-        n_blocks, n_touched, dropped_samples, dropped_blocks = drop_sparse_new_blocks(
+        n_blocks, n_touched, dropped_samples, dropped_blocks, touched_map = drop_sparse_new_blocks(
             n_before, n_blocks, min_new_block_samples, n_pixels * len(offsets_m), n_touched, touched_slots,
-            slot_to_touched, sample_touched, sample_flat, grid.table_keys, grid.table_slots, grid.slot_keys,
+            slot_to_touched, sample_touched, grid.table_keys, grid.table_slots, grid.slot_keys,
             grid.on_disk(grid.slot_keys[n_before:n_blocks]))
+        touched_map = touched_map if len(touched_map) else None
         # blocks a grown grid committed before the policy ran: re-committed in their new slots
         grid.n_blocks = min(grid.n_blocks, n_before)
     grid.commit_new_blocks(int(n_blocks))
     return LocatedSamples(int(n_pixels), int(n_touched), sample_flat, sample_touched, pixel_index, touched_slots,
-                          int(dropped_samples), int(dropped_blocks))
+                          int(dropped_samples), int(dropped_blocks), touched_map)
 
 
 def update_frame_voxels(grid: BlockGrid, located: LocatedSamples, pixel_features: np.ndarray, *,
@@ -518,7 +526,8 @@ def update_frame_voxels(grid: BlockGrid, located: LocatedSamples, pixel_features
         tsdf_base, weight_base = np.zeros(0, np.float32), np.zeros(0, np.int16)
     return update_voxels(located.n_pixels, located.n_touched, located.sample_flat, located.sample_touched,
                          sample_tsdf_m, located.pixel_index, pixel_features, located.touched_slots, tsdf, weight,
-                         feature, tsdf_base, weight_base, kernel_view(grid.pools[drift]).reshape(-1), w_max)
+                         feature, tsdf_base, weight_base, kernel_view(grid.pools[drift]).reshape(-1), w_max,
+                         touched_map=located.touched_map)
 
 
 @dataclass
