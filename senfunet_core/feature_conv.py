@@ -2,9 +2,10 @@
 
 oneDNN is built for many channels; with the feature nets' 4 it spends most of a frame's feature
 time on layout and dispatch, and torch's tanh (or sigmoid) is another pass over the image per
-layer. Here each output row is one pass per input channel with the 9 taps as scalars, which the
-compiler vectorises over the row, and the tanh is applied to the row while it is in cache, from
-an exp written in plain arithmetic (a libm exp per value would not vectorise). Float32; the sums
+layer. Here each output row is one pass per input channel and pair of output channels with the
+taps as scalars, which the compiler vectorises over the row, and the tanh is applied to the row
+while it is in cache, from an exp written in plain arithmetic (a libm exp per value would not
+vectorise). Float32; the sums
 run in another order than oneDNN's and the tanh is within a few 1e-7 of torch's, so the features
 equal torch's within 1e-5 (test_networks).
 """
@@ -38,29 +39,52 @@ def conv3x3_tanh(x_padded: np.ndarray, weight: np.ndarray, bias: np.ndarray, res
     residual (Cout, H+2, W+2) or empty -> out_padded[:, 1:H+1, 1:W+1] (its border untouched)."""
     n_in, h_padded, w_padded = x_padded.shape
     h, w = h_padded - 2, w_padded - 2
-    acc = np.empty(w, np.float32)
-    for co in range(weight.shape[0]):
-        for y in range(h):
-            acc[:] = bias[co]
-            for ci in range(n_in):
-                # one pass over the row per input channel with all 9 taps: the accumulator is read and
-                # written once per pass, and the taps are scalars, so the loop over x vectorises
+    n_out = weight.shape[0]
+    acc = np.empty((n_out, w), np.float32)
+    for y in range(h):
+        for co in range(n_out):
+            acc[co, :] = bias[co]
+        for ci in range(n_in):
+            # one pass over the row per input channel and pair of output channels, with the 9 taps
+            # of both as scalars: the loop over x vectorises, and the two accumulators share each
+            # loaded input (a pass per output channel loads every input once more)
+            r0, r1, r2 = x_padded[ci, y], x_padded[ci, y + 1], x_padded[ci, y + 2]
+            for co in range(0, n_out - 1, 2):
                 k00, k01, k02 = weight[co, ci, 0, 0], weight[co, ci, 0, 1], weight[co, ci, 0, 2]
                 k10, k11, k12 = weight[co, ci, 1, 0], weight[co, ci, 1, 1], weight[co, ci, 1, 2]
                 k20, k21, k22 = weight[co, ci, 2, 0], weight[co, ci, 2, 1], weight[co, ci, 2, 2]
-                r0, r1, r2 = x_padded[ci, y], x_padded[ci, y + 1], x_padded[ci, y + 2]
+                m00, m01, m02 = weight[co + 1, ci, 0, 0], weight[co + 1, ci, 0, 1], weight[co + 1, ci, 0, 2]
+                m10, m11, m12 = weight[co + 1, ci, 1, 0], weight[co + 1, ci, 1, 1], weight[co + 1, ci, 1, 2]
+                m20, m21, m22 = weight[co + 1, ci, 2, 0], weight[co + 1, ci, 2, 1], weight[co + 1, ci, 2, 2]
+                a, b = acc[co], acc[co + 1]
                 for x in range(w):
-                    acc[x] += (k00 * r0[x] + k01 * r0[x + 1] + k02 * r0[x + 2]
-                               + k10 * r1[x] + k11 * r1[x + 1] + k12 * r1[x + 2]
-                               + k20 * r2[x] + k21 * r2[x + 1] + k22 * r2[x + 2])
+                    v00, v01, v02 = r0[x], r0[x + 1], r0[x + 2]
+                    v10, v11, v12 = r1[x], r1[x + 1], r1[x + 2]
+                    v20, v21, v22 = r2[x], r2[x + 1], r2[x + 2]
+                    a[x] += (k00 * v00 + k01 * v01 + k02 * v02 + k10 * v10 + k11 * v11 + k12 * v12
+                             + k20 * v20 + k21 * v21 + k22 * v22)
+                    b[x] += (m00 * v00 + m01 * v01 + m02 * v02 + m10 * v10 + m11 * v11 + m12 * v12
+                             + m20 * v20 + m21 * v21 + m22 * v22)
+            if n_out % 2:  # an odd last output channel: its pass alone
+                co = n_out - 1
+                k00, k01, k02 = weight[co, ci, 0, 0], weight[co, ci, 0, 1], weight[co, ci, 0, 2]
+                k10, k11, k12 = weight[co, ci, 1, 0], weight[co, ci, 1, 1], weight[co, ci, 1, 2]
+                k20, k21, k22 = weight[co, ci, 2, 0], weight[co, ci, 2, 1], weight[co, ci, 2, 2]
+                a = acc[co]
+                for x in range(w):
+                    a[x] += (k00 * r0[x] + k01 * r0[x + 1] + k02 * r0[x + 2]
+                             + k10 * r1[x] + k11 * r1[x + 1] + k12 * r1[x + 2]
+                             + k20 * r2[x] + k21 * r2[x + 1] + k22 * r2[x + 2])
+        for co in range(n_out):
             out = out_padded[co, y + 1]
+            a = acc[co]
             if residual.size:
                 res = residual[co, y + 1]
                 for x in range(w):
-                    out[x + 1] = _tanh(acc[x]) + res[x + 1]
+                    out[x + 1] = _tanh(a[x]) + res[x + 1]
             else:
                 for x in range(w):
-                    out[x + 1] = _tanh(acc[x])
+                    out[x + 1] = _tanh(a[x])
 
 
 def feature_net_forward(convs: list[tuple[np.ndarray, np.ndarray]], x: np.ndarray) -> np.ndarray:

@@ -1,6 +1,7 @@
 """The networks' device decision and input checks."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -74,6 +75,22 @@ def test_feature_net_inference_equals_its_training_forward(uses_rgb: bool, monke
     assert fast.shape == reference.shape == (2, 5, 48, 40)
     assert not torch.equal(fast, torch.zeros_like(fast))
     torch.testing.assert_close(fast, reference, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("n_out", [1, 3, 4])
+def test_feature_conv_kernel_equals_torch_for_any_number_of_output_channels(n_out: int) -> None:
+    """The kernel takes output channels in pairs: an odd last one runs alone."""
+    from senfunet_core.feature_conv import conv3x3_tanh
+
+    g = torch.Generator().manual_seed(n_out)
+    x = torch.rand(3, 20, 24, generator=g) - 0.5
+    weight, bias = torch.randn(n_out, 3, 3, 3, generator=g), torch.randn(n_out, generator=g)
+    residual = torch.randn(n_out, 22, 26, generator=g)
+    expected = torch.tanh(torch.nn.functional.conv2d(x[None], weight, bias, padding=1))[0] + residual[:, 1:-1, 1:-1]
+    out = np.zeros((n_out, 22, 26), np.float32)
+    conv3x3_tanh(torch.nn.functional.pad(x, (1, 1, 1, 1)).numpy(), weight.numpy(), bias.numpy(), residual.numpy(), out)
+    torch.testing.assert_close(torch.from_numpy(out[:, 1:-1, 1:-1]), expected, rtol=0, atol=1e-5)
+    assert not out[:, 0].any() and not out[:, :, 0].any()  # the border untouched
 
 
 @pytest.mark.parametrize("fused", [True, False])
