@@ -51,27 +51,42 @@ def fuse(tsdf_1: torch.Tensor, weight_1: torch.Tensor, tsdf_2: torch.Tensor, wei
 WINDOW_FUSED, WINDOW_SENSOR, WINDOW_BASE = 0, 1, 2
 
 
-@numba.njit(cache=True, nogil=True)
 def mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, tsdf_1: np.ndarray, weight_1: np.ndarray,
-                 tsdf_2: np.ndarray, weight_2: np.ndarray, alpha: np.ndarray
+                 tsdf_2: np.ndarray, weight_2: np.ndarray, alpha: np.ndarray, *,
+                 out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per block, the 9^3 samples marching cubes reads (its 8^3 voxels and one layer of its +x, +y,
     +z neighbours): TSDF, observed mask and alpha, each B x 9 x 9 x 9.
 
     which: WINDOW_FUSED (eq. 1, with the outlier filter when apply_filter; alpha NaN as in `fuse`,
     shown as 0.5), WINDOW_SENSOR or WINDOW_BASE (tsdf_1/weight_1 hold that surface's channels; the
-    rest is ignored). Weights are float16 bits (int16); TSDFs and alpha float16 bits or float32."""
-    n_blocks = neighbours.shape[0]
-    tsdf = np.zeros((n_blocks, 9, 9, 9), np.float32)
-    observed = np.zeros((n_blocks, 9, 9, 9), np.bool_)
-    alpha_out = np.zeros((n_blocks, 9, 9, 9), np.float32)
-    for b in range(n_blocks):
+    rest is ignored). Weights are float16 bits (int16); TSDFs and alpha float16 bits or float32.
+    out: flat float32, bool and float32 buffers of at least B * 9^3 entries to write them to
+    (reused between batches: fresh arrays of this size cost their page faults); default new ones."""
+    size = neighbours.shape[0] * 9**3
+    if out is None:
+        out = (np.empty(size, np.float32), np.empty(size, np.bool_), np.empty(size, np.float32))
+    tsdf, observed, alpha_out = (buffer[:size].reshape(-1, 9, 9, 9) for buffer in out)
+    _fill_mesh_windows(neighbours, which, apply_filter, tsdf_1, weight_1, tsdf_2, weight_2, alpha, tsdf, observed,
+                       alpha_out)
+    return tsdf, observed, alpha_out
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, tsdf_1: np.ndarray,
+                       weight_1: np.ndarray, tsdf_2: np.ndarray, weight_2: np.ndarray, alpha: np.ndarray,
+                       tsdf: np.ndarray, observed: np.ndarray, alpha_out: np.ndarray) -> None:
+    """`mesh_windows`' kernel: every entry of the outputs written (they may hold an earlier batch)."""
+    for b in range(neighbours.shape[0]):
         # the window in 8 parts, one per block it reads (bx, by, bz: 0 = this block, 1 = the next one)
         for bx in range(2):
             for by in range(2):
                 for bz in range(2):
                     slot = neighbours[b, (bx + 1) * 9 + (by + 1) * 3 + bz + 1]
-                    if slot < 0:
+                    if slot < 0:  # no block there: unobserved
+                        tsdf[b, 8 * bx:8 + bx, 8 * by:8 + by, 8 * bz:8 + bz] = 0.0
+                        observed[b, 8 * bx:8 + bx, 8 * by:8 + by, 8 * bz:8 + bz] = False
+                        alpha_out[b, 8 * bx:8 + bx, 8 * by:8 + by, 8 * bz:8 + bz] = 0.0
                         continue
                     for x in range(8 * bx, 8 + bx):
                         for y in range(8 * by, 8 + by):
@@ -82,6 +97,7 @@ def mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, tsdf_1:
                                 if which != WINDOW_FUSED:
                                     tsdf[b, x, y, z] = load_f32(tsdf_1, v) if seen_1 else 0.0
                                     observed[b, x, y, z] = seen_1
+                                    alpha_out[b, x, y, z] = 0.0
                                     continue
                                 seen_2 = f16_to_f32(weight_2[v]) > 0
                                 a = load_f32(alpha, v)
@@ -98,4 +114,6 @@ def mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, tsdf_1:
                                 elif seen_2:
                                     tsdf[b, x, y, z] = load_f32(tsdf_2, v)
                                     observed[b, x, y, z] = not (apply_filter and (a > 0.5 or unknown))
-    return tsdf, observed, alpha_out
+                                else:
+                                    tsdf[b, x, y, z] = 0.0
+                                    observed[b, x, y, z] = False

@@ -1110,3 +1110,22 @@ def test_warm_up_compiles_every_kernel_a_stream_calls():
     assert engine.counters["alpha_blocks"] > 0 and engine.stats()["blocks"] > 0
     after = _kernel_signatures()
     assert {name: count for name, count in after.items() if count != before.get(name, 0)} == {}
+
+
+def test_mesh_windows_written_to_reused_buffers_equal_fresh_ones(sphere_engine):
+    """Every entry is written, where a neighbour block is missing too: a batch never sees the
+    previous batch's leftovers in the buffers the mesher reuses."""
+    from senfunet_core.fusion import WINDOW_FUSED, WINDOW_SENSOR, mesh_windows
+
+    store = sphere_engine.store
+    neighbours = store.neighbours(np.arange(sphere_engine.grid.n_blocks))
+    assert (neighbours < 0).any()
+    for which, names in ((WINDOW_FUSED, ("tsdf0", "weight0", "tsdf1", "weight1", "alpha")),
+                         (WINDOW_SENSOR, ("tsdf0", "weight0", "tsdf0", "weight0", "alpha"))):
+        fresh = mesh_windows(neighbours, which, True, *store.views(*names))
+        size = len(neighbours) * 9**3 + 5
+        dirty = (np.full(size, 7.0, np.float32), np.ones(size, np.bool_), np.full(size, 7.0, np.float32))
+        reused = mesh_windows(neighbours, which, True, *store.views(*names), out=dirty)
+        for got, want in zip(reused, fresh):
+            np.testing.assert_array_equal(got, want)
+        assert fresh[1].any() and not fresh[1].all()
