@@ -616,15 +616,17 @@ def passive_openmp_threads() -> bool:
     return True
 
 
-def limit_malloc(arenas: int = 2, mmap_threshold_bytes: int = 4 << 20) -> bool:
+def limit_malloc(arenas: int = 2, mmap_threshold_bytes: int = 4 << 20, trim_threshold_bytes: int = 64 << 20) -> bool:
     """Cap glibc's malloc arenas (default: 8 per core) for the threads started from now on, and fix
     the size from which allocations get their own mapping (returned to the OS when freed). Each
     executor, feature-net and kernel thread would otherwise keep its own heap of freed per-frame
     arrays (arenas), and glibc raises the threshold up to 32 MB after the first such array is freed,
     after which the per-update arrays of a few MB and more stay in the heaps. The threshold trades
     the memory those heaps keep against the page faults of re-mapping: lower costs frame rate,
-    higher keeps more (bench/realtime.py measures both). False where there is no glibc (nothing
-    changes)."""
+    higher keeps more (bench/realtime.py measures both). Fixing it also fixes the trim threshold
+    (free memory at a heap's top given back) at 128 KB, so every frame's arrays below the mmap
+    threshold would be given back and faulted in again: trim_threshold_bytes keeps that much.
+    False where there is no glibc (nothing changes)."""
     import ctypes
     import ctypes.util
 
@@ -633,6 +635,7 @@ def limit_malloc(arenas: int = 2, mmap_threshold_bytes: int = 4 << 20) -> bool:
     threshold_set = large_allocations_outside_the_heap(mmap_threshold_bytes)
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.mallopt(-1, trim_threshold_bytes)  # M_TRIM_THRESHOLD
         return bool(libc.mallopt(-8, arenas)) and threshold_set  # M_ARENA_MAX
     except (OSError, AttributeError):
         return False
