@@ -4,10 +4,11 @@ Constructed in one order: parameters, engine, subscriptions, timers, publishers,
 Callbacks only hand messages to `Ingest` (bounded queues); the integration timer drains them
 into the engine, oldest first; the slower mesh timer runs `engine.update()`, publishes the
 changed blocks, then gives the weighting net its time budget (`engine.refresh_alpha`; all three
-in `senfunet_ros.mesh_publisher`). Each
-timer has its own callback group under a MultiThreadedExecutor, and the engine is thread-safe,
-so integration and mesh updates run at the same time on two cores. No callback raises: failures
-are counted and logged, throttled per cause.
+in `senfunet_ros.mesh_publisher`). Each timer has its own callback group under a
+MultiThreadedExecutor; the mesh timer hands its work to a thread of its own at a lower priority
+(`lower_thread_priority`), so that frames come first where the cores are short. The engine is
+thread-safe, so integration and mesh updates run at the same time on two cores. No callback
+raises: failures are counted and logged, throttled per cause.
 
 What happens to messages, frames, time jumps, failures and files is decided by
 `senfunet_ros.pipeline.Pipeline`, shared with offline replay; this module adds the clock (timers,
@@ -29,6 +30,7 @@ import sys
 import threading
 import time
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 from collections.abc import Callable, Iterator
 
@@ -256,6 +258,12 @@ class FusionNode(Node):
                                                   callback_group=MutuallyExclusiveCallbackGroup())
         self._mesh_timer = self.create_timer(mesh_period_s(s.mesh_rate_hz), self._mesh_tick, clock=steady,
                                              callback_group=MutuallyExclusiveCallbackGroup())
+        # the mesh timer's work runs on a thread of its own at a lower priority than integration's
+        # (`lower_thread_priority`): where the cores cannot do both at once, frames come first, and
+        # the mesh and the weighting net take the time left
+        self._mesh_worker = ThreadPoolExecutor(1, thread_name_prefix="senfunet-mesh", initializer=lower_thread_priority,
+                                               initargs=(MESH_THREAD_NICE,))
+        self._mesh_job: Future | None = None
         self._status_timer = self.create_timer(1.0 / s.status_rate_hz, self._status_tick, clock=steady,
                                                callback_group=MutuallyExclusiveCallbackGroup())
         # 5. publishers
@@ -519,12 +527,17 @@ class FusionNode(Node):
         return self.pipeline.frames_failed
 
     def _mesh_tick(self) -> None:
+        """A mesh update on the mesh thread, unless the last one is still running (then the next tick)."""
+        if self._mesh_job is None or self._mesh_job.done():
+            self._mesh_job = self._mesh_worker.submit(self._mesh_update)
+
+    def _mesh_update(self) -> None:
         try:
             self.publish_mesh()
         except Exception as err:
             if not self.context.ok():  # shutting down: the publishers went away under this update
                 return
-            self._warn(("mesh_tick",), f"mesh update failed: {err!r}")
+            self._warn(("mesh_update",), f"mesh update failed: {err!r}")
 
     def publish_mesh(self, weights: bool | None = None) -> None:
         """What the mesh timer does, now (`MeshPublisher.publish`)."""
@@ -556,6 +569,8 @@ class FusionNode(Node):
         self.publish_mesh()
 
     def destroy_node(self) -> None:
+        self._mesh_timer.cancel()
+        self._mesh_worker.shutdown(wait=True)  # the update under way finishes while its publishers exist
         logging.getLogger("senfunet").removeHandler(self._engine_log)
         super().destroy_node()
 
@@ -600,6 +615,27 @@ def prepare_process() -> None:
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     limit_malloc()
     passive_openmp_threads()
+
+
+# How much lower the mesh thread's priority is than the other threads' (a nice value, Linux)
+MESH_THREAD_NICE = 5
+
+
+def lower_thread_priority(nice: int) -> bool:
+    """Lower the calling thread's scheduling priority by `nice` (Linux keeps a nice value per thread,
+    and the threads it starts inherit it: the weighting net's threads that the mesh thread starts
+    run at its priority). Not undone: raising a priority back needs privileges. False where it
+    cannot be done (nothing changes)."""
+    import os
+
+    if not sys.platform.startswith("linux"):  # elsewhere PRIO_PROCESS would take the whole process
+        return False
+    try:
+        thread = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, thread, os.getpriority(os.PRIO_PROCESS, thread) + nice)
+        return True
+    except (AttributeError, OSError):
+        return False
 
 
 def passive_openmp_threads() -> bool:

@@ -604,6 +604,33 @@ def test_publish_serialized_delivers_the_same_message(ros) -> None:
         node.destroy_node()
 
 
+def test_the_mesh_timer_runs_the_mesh_update_on_a_thread_of_lower_priority(ros, tmp_path: Path, monkeypatch) -> None:
+    """Frames come first: the mesh timer's update runs on its own thread, MESH_THREAD_NICE below the
+    threads that integrate; the timer's thread is free again at once."""
+    import os
+    import sys
+
+    from senfunet_ros import node as node_module
+
+    running = Running("mesh_priority", topic_params("mesh_priority"), tmp_path)
+    try:
+        seen: list[tuple[int, int]] = []
+
+        def publish(weights: bool | None = None) -> None:
+            thread = threading.get_native_id()
+            seen.append((thread, os.getpriority(os.PRIO_PROCESS, thread)))
+
+        monkeypatch.setattr(running.node, "publish_mesh", publish)
+        wait_for(lambda: len(seen) >= 2, 10.0, "two mesh updates")
+        mesh_threads = {thread for thread, _ in seen}
+        assert len(mesh_threads) == 1 and threading.get_native_id() not in mesh_threads
+        if sys.platform.startswith("linux"):
+            here = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+            assert {nice for _, nice in seen} == {min(here + node_module.MESH_THREAD_NICE, 19)}
+    finally:
+        running.close()
+
+
 def test_limit_malloc_applies_on_glibc() -> None:
     import platform
 
