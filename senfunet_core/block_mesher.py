@@ -17,7 +17,7 @@ import torch
 from .block_store import BlockStore
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BLOCK, block_keys, keys_to_coords
-from .mesher import BlockMeshes, BlockTriangles, Mesh, marching_cubes_blocks, to_mesh
+from .mesher import BlockMeshes, BlockTriangles, Mesh, block_mesh_arrays, marching_cubes_blocks, to_mesh
 from .stage_times import StageTimes
 
 __all__ = ["FUSED", "MESH_READER_CODES", "MESH_READ_CODES", "TSDF_FUSION", "BlockMesher", "joined", "with_seams"]
@@ -136,13 +136,13 @@ class BlockMesher:
         keys); blocks without triangles are left out."""
         tris = self.triangles(slots, FUSED, filtered=True)
         v_start, f_start = tris.vertex_offsets, tris.face_offsets
+        assert tris.vertex_values is not None  # the fused mesh interpolates alpha (its colours)
         # the whole batch at once; blocks without triangles have empty ranges
-        whole = to_mesh(tris.vertices_vox, tris.faces - np.repeat(v_start[:-1], np.diff(f_start))[:, None],
-                        self.voxel_size_m, tris.vertex_values)
+        vertices, faces, colors = block_mesh_arrays(tris.vertices_vox, tris.faces, tris.vertex_values, v_start, f_start,
+                                                    self.voxel_size_m)
         keep = np.flatnonzero(np.diff(f_start) > 0)
-        assert whole.colors is not None  # alpha colours: the fused mesh interpolates alpha
-        return BlockMeshes(coords[keep], whole.vertices, whole.colors, whole.faces,
-                           _compact_offsets(v_start, keep), _compact_offsets(f_start, keep))
+        return BlockMeshes(coords[keep], vertices, colors, faces, _compact_offsets(v_start, keep),
+                           _compact_offsets(f_start, keep))
 
     def seam_meshes(self, readers: np.ndarray, victim_coords: np.ndarray) -> dict[tuple[int, int, int], Mesh]:
         """The fused triangles of the cells of blocks staying (`readers`) that read blocks about to

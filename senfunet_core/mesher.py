@@ -649,12 +649,37 @@ def _unique_edges(base: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.nd
     return first, inverse.reshape(-1)
 
 
+_SENSOR_1_COLOR = np.array([1.0, 0.72, 0.1], np.float32)  # amber
+_SENSOR_2_COLOR = np.array([0.15, 0.4, 1.0], np.float32)  # blue
+
+
 def alpha_colors(alpha: np.ndarray) -> np.ndarray:
     """Sensor weighting as colour: alpha 1 (trust sensor 1) amber, alpha 0 (sensor 2) blue."""
     a = np.clip(np.asarray(alpha, dtype=np.float32), 0, 1)[:, None]
-    sensor_1 = np.array([1.0, 0.72, 0.1], np.float32)
-    sensor_2 = np.array([0.15, 0.4, 1.0], np.float32)
-    return a * sensor_1 + (1 - a) * sensor_2
+    return a * _SENSOR_1_COLOR + (1 - a) * _SENSOR_2_COLOR
+
+
+@numba.njit(cache=True, nogil=True)
+def block_mesh_arrays(vertices_vox: np.ndarray, faces: np.ndarray, vertex_alpha: np.ndarray,
+                      vertex_offsets: np.ndarray, face_offsets: np.ndarray, voxel_size_m: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A marching-cubes batch (`BlockTriangles`' arrays) as per-block mesh arrays in one pass: what
+    `to_mesh` makes of it, with each block's faces indexing its own vertices: vertices in metres
+    (float32), faces (int32) and `alpha_colors` (float32), the same values to the bit."""
+    vertices = np.empty((vertices_vox.shape[0], 3), np.float32)
+    colors = np.empty((vertices_vox.shape[0], 3), np.float32)
+    for v in range(vertices_vox.shape[0]):
+        a = np.float32(vertex_alpha[v])
+        a = np.float32(0.0) if a < 0.0 else (np.float32(1.0) if a > 1.0 else a)  # NaN stays NaN, as np.clip
+        for axis in range(3):
+            vertices[v, axis] = np.float32(vertices_vox[v, axis] * voxel_size_m)
+            colors[v, axis] = a * _SENSOR_1_COLOR[axis] + (np.float32(1.0) - a) * _SENSOR_2_COLOR[axis]
+    local_faces = np.empty((faces.shape[0], 3), np.int32)
+    for b in range(vertex_offsets.shape[0] - 1):
+        for f in range(face_offsets[b], face_offsets[b + 1]):
+            for corner in range(3):
+                local_faces[f, corner] = faces[f, corner] - vertex_offsets[b]
+    return vertices, local_faces, colors
 
 
 def to_mesh(vertices_vox: np.ndarray, faces: np.ndarray, voxel_size_m: float, vertex_alpha: np.ndarray | None) -> Mesh:

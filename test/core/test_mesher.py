@@ -474,3 +474,26 @@ def test_streaming_weld_equals_weld_of_all_batches_byte_for_byte(bounds):
     w, f, c = weld(both_v, both_f, np.concatenate([alpha_colors(values), far.colors]))
     _assert_same_mesh(with_far.mesh(), Mesh((w * voxel_size_m).astype(np.float32), f.astype(np.int32), c))
     assert welder.mesh().n_faces == 0  # emptied
+
+
+def test_block_mesh_arrays_equal_to_mesh_per_block_to_the_bit():
+    """The one-pass kernel the live mesh uses makes what `to_mesh` makes of each block's triangles
+    (faces local to the block), alpha outside 0..1 and NaN included."""
+    from senfunet_core.mesher import block_mesh_arrays
+
+    volume = torus(25, (12.1, 11.74, 12.36), 6.2, 2.4)
+    tsdf, obs, origins, ext = to_blocks(volume, extra=np.zeros_like(volume))
+    tris = marching_cubes_blocks(tsdf, obs, origins - np.array([80, 8, -16]), ext)
+    values = np.linspace(-0.5, 1.5, len(tris.vertices_vox))  # below 0 and above 1 too
+    values[::97] = np.nan
+    vertices, faces, colors = block_mesh_arrays(tris.vertices_vox, tris.faces, values, tris.vertex_offsets,
+                                                tris.face_offsets, 0.013)
+    blocks = [b for b in range(len(tris.vertex_offsets) - 1) if tris.face_offsets[b + 1] > tris.face_offsets[b]]
+    assert len(blocks) > 3
+    for b in blocks:
+        v0, v1 = tris.vertex_offsets[b], tris.vertex_offsets[b + 1]
+        f0, f1 = tris.face_offsets[b], tris.face_offsets[b + 1]
+        want = to_mesh(tris.vertices_vox[v0:v1], tris.faces[f0:f1] - v0, 0.013, values[v0:v1])
+        np.testing.assert_array_equal(vertices[v0:v1], want.vertices)
+        np.testing.assert_array_equal(faces[f0:f1], want.faces)
+        np.testing.assert_array_equal(colors[v0:v1], want.colors)
