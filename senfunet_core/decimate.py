@@ -113,7 +113,7 @@ def decimate_block_meshes(meshes: BlockMeshes, cell_m: float) -> BlockMeshes:
         return meshes
     vertices, colors, faces, vertex_offsets, face_offsets = _decimate(
         np.ascontiguousarray(meshes.vertices, np.float32), np.ascontiguousarray(meshes.colors, np.float32),
-        np.ascontiguousarray(meshes.faces, np.int64), np.asarray(meshes.vertex_offsets, np.int64),
+        np.ascontiguousarray(meshes.faces), np.asarray(meshes.vertex_offsets, np.int64),
         np.asarray(meshes.face_offsets, np.int64), float(cell_m))
     return BlockMeshes(meshes.keys, vertices, colors, faces, vertex_offsets, face_offsets)
 
