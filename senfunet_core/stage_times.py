@@ -1,6 +1,8 @@
 """Seconds spent per stage (integration, feature net, alpha, fusion, marching cubes, ...)."""
 from __future__ import annotations
 
+import threading
+
 __all__ = ["StageTimes"]
 
 
@@ -11,8 +13,10 @@ class StageTimes:
     def __init__(self) -> None:
         self.last_s: dict[str, float] = {}
         self.total_s: dict[str, float] = {}
+        self._lock = threading.Lock()  # integrating and meshing threads add at once
 
     def add(self, **stages: float) -> None:
-        self.last_s.update(stages)
-        for name, seconds in stages.items():
-            self.total_s[name] = self.total_s.get(name, 0.0) + seconds
+        with self._lock:
+            self.last_s.update(stages)
+            for name, seconds in stages.items():
+                self.total_s[name] = self.total_s.get(name, 0.0) + seconds
