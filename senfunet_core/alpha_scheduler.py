@@ -263,6 +263,11 @@ class AlphaScheduler:
             buffer = self._buffers.windows = np.empty(max(size, self.batch_blocks * WINDOW**3 * 14), dtype)
         return buffer
 
+    def release_buffers(self) -> None:
+        """Let go of every thread's window buffer (after a bulk evaluation; the next batch allocates
+        again); a batch under way keeps its own until it is done."""
+        self._buffers = threading.local()
+
     def inputs(self) -> tuple:
         """The pools the weighting net reads (alpha.weighting_windows, alpha.target_gathers), with the
         sensors' TSDFs when the net reads them."""

@@ -125,6 +125,11 @@ class BlockMesher:
                                                np.empty(size, np.float32))
         return buffers
 
+    def release_buffers(self) -> None:
+        """Let go of every thread's window buffers (after a bulk extraction; the next batch
+        allocates again)."""
+        self._buffers = threading.local()
+
     def batches(self, slots: np.ndarray, which: str, filtered: bool) -> Iterator[BlockTriangles]:
         """`triangles` over any number of blocks, one batch at a time (a caller that keeps only
         what it needs of each holds one batch's buffers at once)."""

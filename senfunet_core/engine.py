@@ -409,6 +409,7 @@ class SenFuNet:
         with self._updating():
             if which == FUSED:
                 self._refresh_alpha()
+                self.alpha.release_buffers()
                 release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise
             live_with_faces = []
             with self._data_lock:  # one consistent state of the whole map
@@ -427,6 +428,7 @@ class SenFuNet:
                 if archived.n_faces:  # welded with the live mesh: colours instead of alpha
                     assert archived.colors is not None
                     welder.add_colored_m(archived.vertices, archived.faces, archived.colors)
+        self.mesher.release_buffers()
         release_free_memory()  # the batches' buffers
         return welder.mesh()
 
