@@ -3,7 +3,8 @@
 One `publish` at a time (`lock`, shared with the map services that replace or empty the map):
 update the engine's meshes, encode and publish the changed blocks (or the whole map for a
 subscriber that just joined) and, when due, the weight cloud; then give the weighting net its
-turn. The engine is thread-safe: integration goes on meanwhile on the other core.
+turn. The node calls `publish` from its mesh thread, at a lower priority than integration's (see
+`node.lower_thread_priority`); the engine is thread-safe: integration goes on meanwhile.
 """
 from __future__ import annotations
 
