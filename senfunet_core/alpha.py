@@ -24,10 +24,8 @@ from typing import Any
 import numba
 import numpy as np
 import torch
-from numba.core import types
-from numba.extending import overload
 
-from .grid import f16_to_f32, f32_to_bf16, features_per_voxel, load_f32, load_feature
+from .grid import f16_to_f32, features_per_voxel, load_f32, load_feature, store_f32
 from .integrator import TANH_OF_COUNT
 
 HALO = 2  # alpha depends on inputs within 2 voxels
@@ -99,23 +97,6 @@ def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: 
     return out.reshape(shape)
 
 
-def _store_input(out: np.ndarray, index: int, value: float | np.float32) -> None:
-    """out[index] = value, as bfloat16 bits where out is uint16 (numba)."""
-    out[index] = f32_to_bf16(value) if out.dtype == np.uint16 else value
-
-
-@overload(_store_input, inline="always")
-def _store_input_overload(out, index, value):  # noqa: ANN001, ANN202 (numba overload)
-    if isinstance(out, types.Array) and out.dtype == types.uint16:
-        def store_bf16(out, index, value):  # noqa: ANN001, ANN202
-            out[index] = f32_to_bf16(np.float32(value))
-        return store_bf16
-
-    def store(out, index, value):  # noqa: ANN001, ANN202
-        out[index] = value
-    return store
-
-
 @numba.njit(cache=True, nogil=True)
 def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray,
                   features_2: np.ndarray, weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray,
@@ -133,17 +114,17 @@ def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarra
                     v = _neighbour_index(neighbours, b, x - HALO, y - HALO, z - HALO)
                     if v < 0:
                         for c in range(channels):
-                            _store_input(out, i + c, 0.0)
+                            store_f32(out, i + c, 0.0)
                         i += channels
                         continue
                     for c in range(n_features):
-                        _store_input(out, i + c, load_feature(features_1, n_features, v, c))
-                        _store_input(out, i + n_features + 1 + c, load_feature(features_2, n_features, v, c))
-                    _store_input(out, i + n_features, TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))])
-                    _store_input(out, i + first_tsdf - 1, TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))])
+                        store_f32(out, i + c, load_feature(features_1, n_features, v, c))
+                        store_f32(out, i + n_features + 1 + c, load_feature(features_2, n_features, v, c))
+                    store_f32(out, i + n_features, TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))])
+                    store_f32(out, i + first_tsdf - 1, TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))])
                     if with_tsdf:
-                        _store_input(out, i + first_tsdf, load_f32(tsdf_1, v) * tsdf_scale)
-                        _store_input(out, i + first_tsdf + 1, load_f32(tsdf_2, v) * tsdf_scale)
+                        store_f32(out, i + first_tsdf, load_f32(tsdf_1, v) * tsdf_scale)
+                        store_f32(out, i + first_tsdf + 1, load_f32(tsdf_2, v) * tsdf_scale)
                     i += channels
 
 

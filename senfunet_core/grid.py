@@ -332,10 +332,13 @@ def load_f32(array: np.ndarray, index: int) -> np.float32:
     return np.float32(value)
 
 
-def store_f32(array: np.ndarray, index: int, value: float) -> None:
-    """array[index] = value, rounded to float16 (nearest even) where the array holds float16 bits."""
+def store_f32(array: np.ndarray, index: int, value: float | np.float32) -> None:
+    """array[index] = value, rounded (to nearest even) to float16 where the array holds float16 bits
+    (int16), to bfloat16 where it holds bfloat16 bits (uint16: `f32_to_bf16`)."""
     if array.dtype == np.int16:
         array[index] = np.array(value, np.float16).view(np.int16)
+    elif array.dtype == np.uint16:
+        array[index] = torch.tensor([value], dtype=torch.float32).to(torch.bfloat16).view(torch.int16).numpy()[0]
     else:
         array[index] = value
 
@@ -353,6 +356,10 @@ def _store_f32(array, index, value):  # noqa: ANN001, ANN202 (numba overload)
         def store_half(array, index, value):  # noqa: ANN001, ANN202
             array[index] = f32_to_f16(np.float32(value))
         return store_half
+    if isinstance(array, types.Array) and array.dtype == types.uint16:
+        def store_bfloat16(array, index, value):  # noqa: ANN001, ANN202
+            array[index] = f32_to_bf16(np.float32(value))
+        return store_bfloat16
 
     def store(array, index, value):  # noqa: ANN001, ANN202
         array[index] = value
