@@ -25,6 +25,7 @@ import torch
 from .alpha import WINDOW, evaluate_gathers, surface_targets, take_drift, target_gathers, weighting_windows
 from .block_store import BlockStore, Eviction
 from .grid import BLOCK
+from .scratch import ThreadScratch
 
 __all__ = ["AlphaBatch", "AlphaScheduler", "Refresh"]
 
@@ -89,7 +90,7 @@ class AlphaScheduler:
         self.alpha_order = alpha_order
         self.threads = threads
         self._executor: ThreadPoolExecutor | None = None  # threads > 1: evaluates batches side by side
-        self._buffers = threading.local()  # per evaluating thread: its input windows' buffer
+        self._scratch = ThreadScratch()  # per evaluating thread: its input windows' buffer
         self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
         self.flops = 0  # weighting-net FLOPs written so far (for the benchmark's fraction of peak)
 
@@ -171,8 +172,9 @@ class AlphaScheduler:
         slots_holding = slots[holds]
         if self.device.type == "cpu":  # the inputs written in the net's dtype, to this thread's buffer
             bfloat16 = self.dtype == torch.bfloat16
-            windows = weighting_windows(neighbours[holds], *self.inputs(), out=self._window_buffer(
-                len(slots_holding) * WINDOW**3 * self.net.conv1.in_channels, np.uint16 if bfloat16 else np.float32))
+            windows = weighting_windows(neighbours[holds], *self.inputs(), out=self._scratch.array(
+                "windows", len(slots_holding) * WINDOW**3 * self.net.conv1.in_channels,
+                np.uint16 if bfloat16 else np.float32))
             x = torch.from_numpy(windows.view(np.int16)).view(torch.bfloat16) if bfloat16 else torch.from_numpy(windows)
             alpha = self.net.infer(x.permute(0, 4, 1, 2, 3), self.dtype).reshape(-1).numpy()  # channels last
         else:
@@ -256,17 +258,9 @@ class AlphaScheduler:
         """The weighting net's B x 12^3 x C input windows of these blocks (alpha.weighting_windows)."""
         return weighting_windows(neighbours, *self.inputs())
 
-    def _window_buffer(self, size: int, dtype: type) -> np.ndarray:
-        """The calling thread's buffer for input windows (`weighting_windows`' out), at least `size`."""
-        buffer = getattr(self._buffers, "windows", None)
-        if buffer is None or buffer.dtype != dtype or len(buffer) < size:
-            buffer = self._buffers.windows = np.empty(max(size, self.batch_blocks * WINDOW**3 * 14), dtype)
-        return buffer
-
     def release_buffers(self) -> None:
-        """Let go of every thread's window buffer (after a bulk evaluation; the next batch allocates
-        again); a batch under way keeps its own until it is done."""
-        self._buffers = threading.local()
+        """Let go of every thread's window buffer (after a bulk evaluation)."""
+        self._scratch.release()
 
     def inputs(self) -> tuple:
         """The pools the weighting net reads (alpha.weighting_windows, alpha.target_gathers), with the

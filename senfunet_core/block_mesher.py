@@ -7,7 +7,6 @@ engine's data lock (see the threading model in `engine`).
 """
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Iterator
 
@@ -18,6 +17,7 @@ from .block_store import BlockStore
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
 from .grid import BLOCK, block_keys, keys_to_coords
 from .mesher import BlockMeshes, BlockTriangles, Mesh, block_mesh_arrays, marching_cubes_blocks, to_mesh
+from .scratch import ThreadScratch
 from .stage_times import StageTimes
 
 __all__ = ["FUSED", "MESH_READER_CODES", "MESH_READ_CODES", "TSDF_FUSION", "BlockMesher", "joined", "with_seams"]
@@ -71,7 +71,7 @@ class BlockMesher:
         self.voxel_size_m = voxel_size_m
         self.batch_blocks = mesh_batch_blocks
         self.times = times
-        self._buffers = threading.local()  # per meshing thread: its mesh windows' buffers
+        self._scratch = ThreadScratch()  # per meshing thread: its mesh windows' buffers
 
     def channels(self, which: str) -> list[str]:
         """The channels `values` reads for `which`."""
@@ -107,28 +107,19 @@ class BlockMesher:
             mode = WINDOW_BASE if which == TSDF_FUSION else WINDOW_SENSOR
             tsdf, weight = self.channels(which)
             names = (tsdf, weight, tsdf, weight, "alpha")
-        tsdf_m, observed, alpha = mesh_windows(neighbours, mode, filtered, *self.store.views(*names),
-                                               out=self._window_buffers(len(slots)))
+        size = len(slots) * 9**3
+        out = (self._scratch.array("tsdf", size, np.float32), self._scratch.array("observed", size, np.bool_),
+               self._scratch.array("alpha", size, np.float32))  # kept per thread between batches
+        tsdf_m, observed, alpha = mesh_windows(neighbours, mode, filtered, *self.store.views(*names), out=out)
         origins = self.store.grid.coords[slots].numpy() * BLOCK
         t1 = time.perf_counter()
         triangles = marching_cubes_blocks(tsdf_m, observed, origins, alpha if which == FUSED else None)
         self.times.add(fusion=t1 - t0, marching_cubes=time.perf_counter() - t1)
         return triangles
 
-    def _window_buffers(self, n_blocks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The calling thread's buffers for `mesh_windows` (marching cubes reads them before the next
-        batch), of at least n_blocks windows."""
-        buffers = getattr(self._buffers, "windows", None)
-        if buffers is None or len(buffers[1]) < n_blocks * 9**3:
-            size = max(n_blocks, self.batch_blocks) * 9**3
-            buffers = self._buffers.windows = (np.empty(size, np.float32), np.empty(size, np.bool_),
-                                               np.empty(size, np.float32))
-        return buffers
-
     def release_buffers(self) -> None:
-        """Let go of every thread's window buffers (after a bulk extraction; the next batch
-        allocates again)."""
-        self._buffers = threading.local()
+        """Let go of every thread's window buffers (after a bulk extraction)."""
+        self._scratch.release()
 
     def batches(self, slots: np.ndarray, which: str, filtered: bool) -> Iterator[BlockTriangles]:
         """`triangles` over any number of blocks, one batch at a time (a caller that keeps only

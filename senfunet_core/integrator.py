@@ -23,6 +23,7 @@ import torch
 from .errors import InputError
 from .grid import (BlockGrid, blend_features, coords_key, drop_new_blocks, f16_to_f32, f32_to_f16, hash_find_or_add,
                    kernel_view, load_f32, prefetch, store_f32, voxel_keys)
+from .scratch import scratch as scratch_array
 
 
 @dataclass(frozen=True)
@@ -430,16 +431,6 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     return blocks(start[:middle + 1], touched_slots) + second.result()
 
 
-def _scratch(store: dict[str, np.ndarray] | None, name: str, size: int, dtype: type) -> np.ndarray:
-    """A working array of at least `size` elements, reused from `store` when it is big enough."""
-    if store is None:
-        return np.empty(size, dtype)
-    array = store.get(name)
-    if array is None or len(array) < size:
-        array = store[name] = np.empty(size, dtype)
-    return array[:size]
-
-
 @dataclass
 class LocatedSamples:
     """Where one frame's ray samples fell (`locate_frame_samples`): P valid pixels x S samples.
@@ -474,18 +465,18 @@ def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_
     allocated) when samples fall outside the key range. `scratch` as in `integrate_frame`."""
     h, w = depth_m.shape
     n_max = h * w * len(offsets_m)
-    sample_flat = _scratch(scratch, "sample_flat", n_max, np.int64)
-    sample_touched = _scratch(scratch, "sample_touched", n_max, np.int32)
-    pixel_index = _scratch(scratch, "pixel_index", h * w, np.int64)
+    sample_flat = scratch_array(scratch, "sample_flat", n_max, np.int64)
+    sample_touched = scratch_array(scratch, "sample_touched", n_max, np.int32)
+    pixel_index = scratch_array(scratch, "pixel_index", h * w, np.int64)
     depth = np.ascontiguousarray(depth_m, np.float32)
     K64 = np.ascontiguousarray(K, np.float64)
     T64 = np.ascontiguousarray(T_world_camera, np.float64)
     offsets = np.ascontiguousarray(offsets_m, np.float64)
     n_before = grid.n_blocks
     while True:
-        slot_to_touched = _scratch(scratch, "slot_to_touched", grid.capacity, np.int32)
+        slot_to_touched = scratch_array(scratch, "slot_to_touched", grid.capacity, np.int32)
         slot_to_touched.fill(-1)
-        touched_slots = _scratch(scratch, "touched_slots", grid.capacity, np.int64)
+        touched_slots = scratch_array(scratch, "touched_slots", grid.capacity, np.int64)
         state = np.array([grid.n_blocks, min(grid.max_blocks_before_rehash(), grid.capacity)], np.int64)
         n_pixels, n_touched, ok = locate_samples(
             depth, depth_range_m[0], depth_range_m[1], border_px, K64, T64, offsets, voxel_size_m,

@@ -43,3 +43,28 @@ def test_large_allocations_are_given_back_when_freed():
     for line in filter(None, out):
         grown_kb, left_kb = map(int, line.split())
         assert grown_kb > 12 << 10 and left_kb < 4 << 10, out
+
+
+def test_scratch_arrays_are_reused_per_thread_and_per_dtype_until_released():
+    import threading
+
+    import numpy as np
+
+    from senfunet_core.scratch import ThreadScratch, scratch
+
+    store: dict = {}
+    first = scratch(store, "a", 100, np.int64)
+    assert np.shares_memory(scratch(store, "a", 60, np.int64), first)  # big enough: the same memory
+    assert len(scratch(store, "a", 60, np.int64)) == 60
+    assert not np.shares_memory(scratch(store, "a", 200, np.int64), first)  # too small: grown
+    assert scratch(store, "a", 10, np.float32).dtype == np.float32  # another dtype: a new array
+    pool = ThreadScratch()
+    mine = pool.array("w", 50, np.uint16)
+    assert np.shares_memory(pool.array("w", 50, np.uint16), mine)
+    theirs: list[np.ndarray] = []
+    worker = threading.Thread(target=lambda: theirs.append(pool.array("w", 50, np.uint16)))
+    worker.start()
+    worker.join()
+    assert not np.shares_memory(theirs[0], mine)  # another thread: its own
+    pool.release()
+    assert not np.shares_memory(pool.array("w", 50, np.uint16), mine)
