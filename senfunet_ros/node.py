@@ -30,7 +30,7 @@ import sys
 import threading
 import time
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 from collections.abc import Callable, Iterator
 
@@ -263,7 +263,9 @@ class FusionNode(Node):
         # the mesh and the weighting net take the time left
         self._mesh_worker = ThreadPoolExecutor(1, thread_name_prefix="senfunet-mesh", initializer=lower_thread_priority,
                                                initargs=(MESH_THREAD_NICE,))
-        self._mesh_job: Future | None = None
+        self._mesh_lock = threading.Lock()  # guards the two flags below (timer thread vs. mesh thread)
+        self._mesh_running = False  # an update is under way on the mesh thread
+        self._mesh_due = False  # a tick came meanwhile: the next update starts as soon as that one ends
         self._status_timer = self.create_timer(1.0 / s.status_rate_hz, self._status_tick, clock=steady,
                                                callback_group=MutuallyExclusiveCallbackGroup())
         # 5. publishers
@@ -527,9 +529,24 @@ class FusionNode(Node):
         return self.pipeline.frames_failed
 
     def _mesh_tick(self) -> None:
-        """A mesh update on the mesh thread, unless the last one is still running (then the next tick)."""
-        if self._mesh_job is None or self._mesh_job.done():
-            self._mesh_job = self._mesh_worker.submit(self._mesh_update)
+        """A mesh update on the mesh thread; if one is under way, the next starts as soon as it ends
+        (an update longer than the period is followed at once, not at the tick after)."""
+        with self._mesh_lock:
+            if self._mesh_running:
+                self._mesh_due = True
+                return
+            self._mesh_running = True
+        self._mesh_worker.submit(self._mesh_updates)
+
+    def _mesh_updates(self) -> None:
+        """Mesh updates on the mesh thread, as long as ticks came during the last one."""
+        while True:
+            self._mesh_update()
+            with self._mesh_lock:
+                if not self._mesh_due or not self.context.ok():
+                    self._mesh_running = False
+                    return
+                self._mesh_due = False
 
     def _mesh_update(self) -> None:
         try:

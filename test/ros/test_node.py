@@ -606,27 +606,33 @@ def test_publish_serialized_delivers_the_same_message(ros) -> None:
 
 def test_the_mesh_timer_runs_the_mesh_update_on_a_thread_of_lower_priority(ros, tmp_path: Path, monkeypatch) -> None:
     """Frames come first: the mesh timer's update runs on its own thread, MESH_THREAD_NICE below the
-    threads that integrate; the timer's thread is free again at once."""
+    threads that integrate; an update longer than the mesh period is followed at once by the next
+    (not at the tick after: that would stretch the refresh to two periods)."""
     import os
     import sys
 
     from senfunet_ros import node as node_module
+    from senfunet_ros.mesh_publisher import mesh_period_s
 
     running = Running("mesh_priority", topic_params("mesh_priority"), tmp_path)
     try:
-        seen: list[tuple[int, int]] = []
+        period_s = mesh_period_s(running.node.settings.mesh_rate_hz)
+        seen: list[tuple[int, int, float]] = []
 
         def publish(weights: bool | None = None) -> None:
             thread = threading.get_native_id()
-            seen.append((thread, os.getpriority(os.PRIO_PROCESS, thread)))
+            seen.append((thread, os.getpriority(os.PRIO_PROCESS, thread), time.monotonic()))
+            time.sleep(1.3 * period_s)
 
         monkeypatch.setattr(running.node, "publish_mesh", publish)
-        wait_for(lambda: len(seen) >= 2, 10.0, "two mesh updates")
-        mesh_threads = {thread for thread, _ in seen}
+        wait_for(lambda: len(seen) >= 4, 20 * period_s, "four mesh updates")
+        mesh_threads = {thread for thread, _, _ in seen}
         assert len(mesh_threads) == 1 and threading.get_native_id() not in mesh_threads
         if sys.platform.startswith("linux"):
             here = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-            assert {nice for _, nice in seen} == {min(here + node_module.MESH_THREAD_NICE, 19)}
+            assert {nice for _, nice, _ in seen} == {min(here + node_module.MESH_THREAD_NICE, 19)}
+        starts = [t for _, _, t in seen]
+        assert float(np.median(np.diff(starts))) < 1.6 * period_s
     finally:
         running.close()
 
