@@ -76,8 +76,7 @@ def take_drift(slots: np.ndarray, drift: np.ndarray, tolerance: float) -> np.nda
 
 def window_channels(features_1: np.ndarray, weight_1: np.ndarray, tsdf_1: np.ndarray) -> int:
     """C, the weighting-net input channels per voxel (`weighting_windows`)."""
-    n_features = features_1.shape[0] // max(weight_1.shape[0], 1) - (1 if features_1.dtype == np.int8 else 0)
-    return 2 * (n_features + 1) + (2 if tsdf_1.shape[0] > 0 else 0)
+    return 2 * (features_per_voxel(features_1, weight_1.shape[0]) + 1) + (2 if tsdf_1.shape[0] > 0 else 0)
 
 
 def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray, features_2: np.ndarray,
