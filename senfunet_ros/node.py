@@ -536,7 +536,11 @@ class FusionNode(Node):
                 self._mesh_due = True
                 return
             self._mesh_running = True
-        self._mesh_worker.submit(self._mesh_updates)
+        try:
+            self._mesh_worker.submit(self._mesh_updates)
+        except RuntimeError:  # destroy_node shut the mesh thread down under this last tick
+            with self._mesh_lock:
+                self._mesh_running = False
 
     def _mesh_updates(self) -> None:
         """Mesh updates on the mesh thread, as long as ticks came during the last one."""
