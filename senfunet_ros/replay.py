@@ -12,6 +12,7 @@ with torch pinned to a fixed thread count, the same mesh bytes.
 from __future__ import annotations
 
 import json
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -243,7 +244,7 @@ class _Run:
 def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | None = None,
                gt: str | Path | None = None, progress: bool = True, threads: int = 1,
                weights: str | None = None, compare: bool = False,
-               log: Callable[[str], None] | None = None) -> ReplayResult:
+               log: Callable[[str], None] | None = None, stop: threading.Event | None = None) -> ReplayResult:
     """Fuse a recording as fast as possible and write DIR/mesh.ply (the fused, filtered mesh) and
     DIR/stats.json (plus mesh metrics against `gt` if given). With `compare`, also DIR/<sensor>.ply
     per sensor and DIR/tsdf_fusion.ply (the plain TSDF Fusion baseline, integrated alongside: more
@@ -252,6 +253,8 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     Raises BagError before anything is fused if the bag cannot be used, ValueError for bad
     parameters. A bag that breaks midway still gets its meshes: `result.error` says where it broke.
     `threads` pins torch's CPU threads: the mesh bytes depend on it, so keep it fixed (default 1).
+    `stop`, once set, ends the reading like a KeyboardInterrupt (`result.interrupted`): what was
+    fused is still meshed and written.
     """
     t_start = time.perf_counter()
     log = log or (lambda text: None)
@@ -276,7 +279,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
                           weights=engine_weights(settings))
         pipeline = Pipeline(engine, Ingest(ingest_config(settings)), on_time_jump=settings.on_time_jump,
                             log=lambda level, text: log(text) if level == "error" else None)
-        run = _fuse(bag, settings, pipeline, progress=progress, log=log)
+        run = _fuse(bag, settings, pipeline, progress=progress, log=log, stop=stop)
     finally:
         torch.set_num_threads(previous_threads)
 
@@ -329,7 +332,7 @@ def _read_gt(gt: str | Path | None) -> Any:
 
 
 def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress: bool,
-          log: Callable[[str], None]) -> _Run:
+          log: Callable[[str], None], stop: threading.Event | None = None) -> _Run:
     """Every routed message of the bag through the pipeline, draining ready frames after each."""
     from tqdm import tqdm
 
@@ -346,6 +349,8 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                   mininterval=0.5) as bar:
             try:
                 for msg in reader.messages(router.topics):
+                    if stop is not None and stop.is_set():
+                        raise KeyboardInterrupt
                     run.read += 1
                     bar.update(1)
                     decoded = router.decode(msg)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import threading
 
 HELP = "fuse a recorded bag offline as fast as possible: the fused mesh + stats (--compare: per-sensor and TSDF Fusion)"
 
@@ -28,7 +29,13 @@ def _error(text: str) -> int:
     return 2
 
 
+# Set by Ctrl-C and SIGTERM. Their KeyboardInterrupt alone can be lost: raised in Python code that a
+# C extension calls (rclpy's deserialisation builds the message objects), it never reaches the loop.
+_STOP = threading.Event()
+
+
 def _interrupt(signum: int, frame: object) -> None:
+    _STOP.set()
     raise KeyboardInterrupt
 
 
@@ -37,13 +44,14 @@ def run(args: argparse.Namespace) -> int:
 
     from senfunet_ros.bagio import BagError
 
-    signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM stops a replay like Ctrl-C: what was fused is saved
+    for sig in (signal.SIGINT, signal.SIGTERM):  # they stop a replay: what was fused is saved
+        signal.signal(sig, _interrupt)
     from senfunet_ros.replay import replay_bag
 
     try:
         result = replay_bag(args.bag, args.out, params=args.params, gt=args.gt, progress=not args.no_progress,
                             threads=args.threads, weights=args.weights, compare=args.compare,
-                            log=lambda text: print(f"senfunet replay: {text}", file=sys.stderr))
+                            log=lambda text: print(f"senfunet replay: {text}", file=sys.stderr), stop=_STOP)
     except (BagError, ValueError) as err:
         return _error(str(err))
     except OSError as err:

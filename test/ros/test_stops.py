@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -72,6 +73,31 @@ def test_replay_sigterm_saves_what_it_fused(tmp_path: Path) -> None:
     text = log.read_text()
     assert "Traceback" not in text and "interrupted" in text
     assert (tmp_path / "out" / "mesh.ply").is_file() and (tmp_path / "out" / "stats.json").is_file()
+
+
+class _StopAfter(threading.Event):
+    """Set once it was asked n times: a stop at a known point of the reading loop."""
+
+    def __init__(self, n: int) -> None:
+        super().__init__()
+        self.n = n
+
+    def is_set(self) -> bool:
+        self.n -= 1
+        return self.n < 0
+
+
+def test_replay_stops_on_its_stop_event_even_without_an_exception(tmp_path: Path) -> None:
+    """The signal handlers' KeyboardInterrupt can be lost inside rclpy's deserialisation; the stop
+    event they also set ends the reading all the same, and what was fused is written."""
+    from senfunet_ros.replay import replay_bag
+
+    result = replay_bag(SAMPLE, tmp_path, progress=False, stop=_StopAfter(400))
+    assert result.interrupted and result.error is None
+    sensors = result.stats["sensors"]
+    assert sum(c["integrated"] for c in sensors.values()) > 0
+    assert result.stats["messages_read"] < 500 < result.stats["bag"]["messages"]  # it stopped at its 400th message
+    assert (tmp_path / "mesh.ply").is_file() and (tmp_path / "stats.json").is_file()
 
 
 @pytest.mark.slow
