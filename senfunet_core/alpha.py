@@ -25,7 +25,7 @@ import numba
 import numpy as np
 import torch
 
-from .grid import f16_to_f32, features_per_voxel, load_f32, load_feature, store_f32
+from .grid import drift_value, f16_to_f32, features_per_voxel, load_f32, load_feature, store_f32
 from .integrator import TANH_OF_COUNT
 
 HALO = 2  # alpha depends on inputs within 2 voxels
@@ -48,16 +48,17 @@ def take_drift(slots: np.ndarray, drift: np.ndarray, tolerance: float) -> np.nda
     """Which neighbours the drift of these blocks reaches: B x 27 levels (neighbour code
     9*(dx+1) + 3*(dy+1) + (dz+1)), 2 where a voxel within 2 of that neighbour was first observed
     or changed sign (drift inf), else 1 where one drifted more than the tolerance, else 0. The
-    drift of those voxels restarts: alpha around them is now scheduled. drift: float16 bits."""
+    drift of those voxels restarts: alpha around them is now scheduled. drift: 8-bit codes
+    (`grid.add_drift`)."""
     levels = np.zeros((slots.shape[0], 27), np.int8)
-    words = drift.view(np.int64)  # 4 voxels a word: most voxels of a changed block did not drift at all
+    words = drift.view(np.int64)  # 8 voxels a word: most voxels of a changed block did not drift at all
     for b in range(slots.shape[0]):
         base = slots[b] * 512
-        for word in range(base >> 2, (base + 512) >> 2):
+        for word in range(base >> 3, (base + 512) >> 3):
             if words[word] == 0:
                 continue
-            for voxel in range(word << 2, (word << 2) + 4):
-                d = f16_to_f32(drift[voxel])
+            for voxel in range(word << 3, (word << 3) + 8):
+                d = drift_value(drift[voxel])
                 if not d > tolerance:
                     continue
                 drift[voxel] = 0

@@ -24,7 +24,7 @@ import torch
 
 from .alpha import WINDOW, evaluate_gathers, surface_targets, take_drift, target_gathers, weighting_windows
 from .block_store import BlockStore, Eviction
-from .grid import BLOCK
+from .grid import BLOCK, encode_alpha
 from .scratch import ThreadScratch
 
 __all__ = ["AlphaBatch", "AlphaScheduler", "Refresh"]
@@ -55,20 +55,6 @@ def _done(value: Any) -> Future:
     future: Future = Future()
     future.set_result(value)
     return future
-
-
-_BELOW_HALF = np.nextafter(np.float16(0.5), np.float16(0))
-_ABOVE_HALF = np.nextafter(np.float16(0.5), np.float16(1))
-
-
-def alpha_storage(alpha: np.ndarray) -> np.ndarray:
-    """Alpha (float32) as the grid stores it: float16, except that a value on one side of 0.5 stays
-    on that side (the outlier filter drops single-sensor voxels by alpha < 0.5 and > 0.5, and an
-    alpha that rounded to 0.5 itself would keep both); NaN stays NaN."""
-    stored = alpha.astype(np.float16)
-    stored[(alpha < 0.5) & (stored >= 0.5)] = _BELOW_HALF
-    stored[(alpha > 0.5) & (stored <= 0.5)] = _ABOVE_HALF
-    return stored
 
 
 class AlphaScheduler:
@@ -197,7 +183,7 @@ class AlphaScheduler:
         try:
             for batch in results:
                 pool = store.grid.pools["alpha"]
-                pool.numpy().reshape(-1)[batch.voxels] = (alpha_storage(batch.alpha) if pool.dtype == torch.float16
+                pool.numpy().reshape(-1)[batch.voxels] = (encode_alpha(batch.alpha) if pool.dtype == torch.uint8
                                                           else batch.alpha)
                 evaluated = batch.slots[batch.holds]
                 store.stale[batch.slots] = 0

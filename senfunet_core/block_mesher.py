@@ -15,7 +15,7 @@ import torch
 
 from .block_store import BlockStore
 from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
-from .grid import BLOCK, block_keys, keys_to_coords
+from .grid import BLOCK, block_keys, decode_alpha, keys_to_coords
 from .mesher import BlockMeshes, BlockTriangles, Mesh, block_mesh_arrays, marching_cubes_blocks, to_mesh
 from .scratch import ThreadScratch
 from .stage_times import StageTimes
@@ -83,8 +83,10 @@ class BlockMesher:
         return [f"tsdf{s}", f"weight{s}"]
 
     def whole_blocks(self, slots: torch.Tensor, names: list[str]) -> dict[str, torch.Tensor]:
-        """The channels of whole blocks, as float32 (the pools hold float16)."""
-        return {name: self.store.grid.pools[name][slots].float() for name in names}
+        """The channels of whole blocks, as float32 (the pools hold float16, alpha 8-bit codes)."""
+        pools = self.store.grid.pools
+        return {name: decode_alpha(pools[name][slots]) if name == "alpha" else pools[name][slots].float()
+                for name in names}
 
     def values(self, blocks: dict[str, torch.Tensor], which: str, filtered: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """TSDF and observed mask of `which` from per-voxel channel tensors (`whole_blocks`)."""

@@ -61,7 +61,7 @@ from .alpha_scheduler import AlphaScheduler
 from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
-from .grid import BlockGrid, block_keys
+from .grid import ALPHA_UNKNOWN, DRIFT_RESET, MAX_DRIFT_TOLERANCE, BlockGrid, block_keys, encode_alpha
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
@@ -163,8 +163,9 @@ class EngineConfig:
         if self.min_new_block_samples < 0:
             raise InputError(f"min_new_block_samples must be >= 0 (0 = allocate every touched block), "
                              f"got {self.min_new_block_samples}")
-        if not self.alpha_tolerance >= 0 or self.torch_threads < 0 or self.alpha_threads < 1:
-            raise InputError("alpha_tolerance must be >= 0, torch_threads >= 0 and alpha_threads >= 1")
+        if not 0 <= self.alpha_tolerance < MAX_DRIFT_TOLERANCE or self.torch_threads < 0 or self.alpha_threads < 1:
+            raise InputError(f"alpha_tolerance must lie in [0, {MAX_DRIFT_TOLERANCE:g}) (drift is counted in 8 bits), "
+                             "torch_threads >= 0 and alpha_threads >= 1")
 
 
 @dataclass
@@ -237,14 +238,16 @@ class SenFuNet:
             channels.update({"tsdf_base": (), "weight_base": ()})
         for i in range(len(config.sensors)):
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
-        # Every channel in half precision: weight counters stay exact up to 2048 (w_max); TSDF values
-        # within the band keep a relative precision of 2^-11, far below the sensors' noise; alpha is a
-        # weighting in [0, 1] (NaN: not evaluated). Kernels read them through grid.load_f32. The
-        # learned features lie in [-1, 1]: int8 (steps of 1/127), the depth feature float16, packed
-        # in one int8 pool (grid.FEATURE_SCALE, read through grid.load_feature / decode_features).
+        # TSDFs and weights in half precision: weight counters stay exact up to 2048 (w_max); TSDF
+        # values within the band keep a relative precision of 2^-11, far below the sensors' noise
+        # (kernels read them through grid.load_f32). The learned features lie in [-1, 1]: int8
+        # (steps of 1/127), the depth feature float16, packed in one int8 pool (grid.FEATURE_SCALE,
+        # read through grid.load_feature / decode_features). Alpha, a weighting in [0, 1], and drift,
+        # compared with a tolerance, in 8 bits (grid.encode_alpha, grid.add_drift).
         dtypes = {name: torch.int8 if name.startswith("feat") else torch.float16 for name in channels}
-        # alpha NaN until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)
-        self.store = BlockStore(BlockGrid(channels, dtypes=dtypes, fill={"alpha": float("nan")}))
+        dtypes.update(alpha=torch.uint8, drift=torch.uint8)
+        # alpha unknown until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)
+        self.store = BlockStore(BlockGrid(channels, dtypes=dtypes, fill={"alpha": ALPHA_UNKNOWN}))
         self.grid = self.store.grid
         self.max_blocks = config.max_blocks  # the map bound in force (resolved from memory for -1)
         if config.max_blocks == -1:
@@ -253,7 +256,7 @@ class SenFuNet:
                      self.grid.bytes_per_block())
         if self.max_blocks > 0:  # evicted blocks go to disk, and come back when the sensors reach them again
             self.grid.spill = BlockSpill()
-            self.grid.restored_fill = {"drift": float("inf")}  # alpha within 2 voxels of them is re-judged
+            self.grid.restored_fill = {"drift": DRIFT_RESET}  # alpha within 2 voxels of them is re-judged
         # Writers of the grid (integration, alpha) hold the data lock; the update's readers do not:
         # a block integrated while it is read is marked again and re-read by the next update, and
         # pools that grow meanwhile stay valid for whoever still holds the old ones.
@@ -547,7 +550,7 @@ class SenFuNet:
             net.load_state_dict(net_state)
         engine.weighting_net.load_state_dict(state["weighting_net"])
         engine.weights_source = f"{path} (saved state)"
-        engine.grid.load_state_dict(state["grid"])
+        engine.grid.load_state_dict(_eight_bit_alpha_and_drift(path, state))
         if "spill" in state and len(state["spill"]["keys"]):
             if engine.grid.spill is None:
                 engine.grid.spill = BlockSpill()
@@ -700,3 +703,17 @@ class SenFuNet:
             gone = np.isin(block_keys(torch.from_numpy(meshes.keys)).numpy(), np.concatenate(evicted))
             meshes = meshes.select(np.flatnonzero(~gone))
         return meshes
+
+
+def _eight_bit_alpha_and_drift(path: Path, state: dict) -> dict:
+    """The grid state of a saved map, with alpha and drift as 8-bit codes: maps saved before they
+    took 8 bits hold float16 values (converted here; a voxel that had drifted is re-judged)."""
+    grid_state = dict(state["grid"])
+    if grid_state["pool.alpha"].dtype == torch.uint8:
+        return grid_state
+    if "spill" in state and len(state["spill"]["keys"]):
+        raise InputError(f"{path} was saved by an earlier version with blocks spilled to disk, whose rows this "
+                         "version cannot read: replay the recording to rebuild the map")
+    grid_state["pool.alpha"] = torch.from_numpy(encode_alpha(grid_state["pool.alpha"].float().numpy()))
+    grid_state["pool.drift"] = torch.where(grid_state["pool.drift"].float() > 0, DRIFT_RESET, 0).to(torch.uint8)
+    return grid_state

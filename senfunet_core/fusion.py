@@ -15,7 +15,7 @@ import numba
 import numpy as np
 import torch
 
-from .grid import f16_to_f32, load_f32
+from .grid import f16_to_f32, load_alpha, load_f32
 
 
 @dataclass
@@ -100,7 +100,7 @@ def _fill_mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, t
                                     alpha_out[b, x, y, z] = 0.0
                                     continue
                                 seen_2 = f16_to_f32(weight_2[v]) > 0
-                                a = load_f32(alpha, v)
+                                a = load_alpha(alpha, v)
                                 unknown = a != a  # NaN: not evaluated yet
                                 if unknown:
                                     a = np.float32(0.5)

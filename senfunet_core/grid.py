@@ -8,7 +8,8 @@ zero-copy numpy views; float16 channels are handed to the kernels as their int16
 (`f16_to_f32` / `f32_to_f16` convert one value, in hardware where the CPU can; `load_f32` /
 `store_f32` read and write a channel of either storage). A feature channel may be int8, features
 packed per voxel (`FEATURE_SCALE`; `load_feature` / `store_feature` in kernels, `decode_features`
-/ `encode_features` in torch).
+/ `encode_features` in torch). Alpha and drift may be 8-bit codes (`encode_alpha` / `load_alpha` /
+`decode_alpha`, `add_drift` / `drift_value`).
 
 Convention: voxel (i, j, k) has its centre at (i, j, k) * voxel_size_m; block (a, b, c) holds the
 voxels 8a..8a+7, 8b..8b+7, 8c..8c+7.
@@ -504,6 +505,81 @@ def _blend_features(features, n_features, voxel, keep, add, sums, inv_count):  #
     return blend_packed
 
 
+# -- 8-bit channels: alpha and drift ------------------------------------------------------------------
+# Alpha (the sensor weighting, in [0, 1]) as code = round(254 * alpha), so 0.5 is code 127 exactly;
+# a value on one side of 0.5 keeps its side (the outlier filter tests alpha < 0.5 and > 0.5).
+# ALPHA_UNKNOWN: not evaluated yet (NaN). A channel of another dtype holds alpha values as they are.
+ALPHA_UNKNOWN = 255
+_ALPHA_STEPS = 254
+
+
+def encode_alpha(alpha: np.ndarray) -> np.ndarray:
+    """uint8 codes of alpha values (float, NaN = not evaluated)."""
+    alpha = np.asarray(alpha, np.float32)
+    code = np.rint(np.clip(np.nan_to_num(alpha, nan=0.5), 0.0, 1.0) * _ALPHA_STEPS).astype(np.uint8)
+    code[(alpha < 0.5) & (code > _ALPHA_STEPS // 2 - 1)] = _ALPHA_STEPS // 2 - 1
+    code[(alpha > 0.5) & (code < _ALPHA_STEPS // 2 + 1)] = _ALPHA_STEPS // 2 + 1
+    code[np.isnan(alpha)] = ALPHA_UNKNOWN
+    return code
+
+
+def decode_alpha(codes: torch.Tensor) -> torch.Tensor:
+    """Float32 alpha (NaN: not evaluated) of an alpha channel's entries (uint8 codes, or values)."""
+    if codes.dtype != torch.uint8:
+        return codes.float()
+    alpha = codes.float() / _ALPHA_STEPS
+    return alpha.masked_fill_(codes == ALPHA_UNKNOWN, float("nan"))
+
+
+def load_alpha(alpha: np.ndarray, voxel: int) -> np.float32:
+    """Alpha of a voxel from an alpha channel's kernel view (uint8 codes, or float16 bits / float32
+    values through `load_f32`); NaN where not evaluated. Compiled per dtype; this body is the reference."""
+    if alpha.dtype != np.uint8:
+        return load_f32(alpha, voxel)
+    code = alpha[voxel]
+    return np.float32(np.nan) if code == ALPHA_UNKNOWN else np.float32(code) / np.float32(_ALPHA_STEPS)
+
+
+@overload(load_alpha, inline="always")
+def _load_alpha(alpha, voxel):  # noqa: ANN001, ANN202 (numba overload)
+    if not (isinstance(alpha, types.Array) and alpha.dtype == types.uint8):
+        return lambda alpha, voxel: load_f32(alpha, voxel)
+
+    def load_code(alpha, voxel):  # noqa: ANN001, ANN202
+        code = alpha[voxel]
+        if code == ALPHA_UNKNOWN:
+            return np.float32(np.nan)
+        return np.float32(code) / np.float32(_ALPHA_STEPS)
+    return load_code
+
+
+# Drift (how much a voxel's weighting-net inputs changed since alpha around it was evaluated) as a
+# count of DRIFT_STEPs, each change rounded up, so the count never falls below the true drift; it
+# saturates at DRIFT_SATURATED (which exceeds any tolerance EngineConfig accepts). DRIFT_RESET: the
+# voxel was first observed or its TSDF changed sign (infinite drift: alpha around it is re-judged).
+DRIFT_STEP = 2.0**-10
+DRIFT_SATURATED = 254
+DRIFT_RESET = 255
+MAX_DRIFT_TOLERANCE = DRIFT_SATURATED * DRIFT_STEP  # tolerances must lie below this
+
+
+@numba.njit(inline="always")
+def add_drift(code: np.uint8, change: float) -> np.uint8:
+    """A drift code after a change (>= 0; inf: reset) of the inputs."""
+    if code == DRIFT_RESET or not change < np.inf:  # inf or NaN
+        return np.uint8(DRIFT_RESET)
+    total = np.int64(code) + math.ceil(min(np.float64(change), DRIFT_SATURATED * DRIFT_STEP) / DRIFT_STEP)
+    return np.uint8(total if total < DRIFT_SATURATED else DRIFT_SATURATED)
+
+
+@numba.njit(inline="always")
+def drift_value(code: np.uint8) -> np.float32:
+    """An upper bound of the drift a code stands for (inf for DRIFT_RESET)."""
+    if code == DRIFT_RESET:
+        return np.float32(np.inf)
+    return np.float32(code * DRIFT_STEP)
+
+
 def kernel_view(pool: torch.Tensor) -> np.ndarray:
     """The numpy view a kernel works on: float32 as is, float16 as int16 bit patterns."""
     if pool.dtype == torch.float16:
@@ -518,7 +594,7 @@ def _zeros(shape: tuple[int, ...], dtype: torch.dtype) -> tuple[torch.Tensor, mm
     requested for it: 512x fewer page faults and TLB misses when frames touch new blocks.
     Returns the pool and its mapping (`_release_rows` gives pages back through it)."""
     numpy_dtype = {torch.float32: np.float32, torch.float16: np.float16, torch.int64: np.int64,
-                   torch.int8: np.int8}[dtype]
+                   torch.int8: np.int8, torch.uint8: np.uint8}[dtype]
     nbytes = max(int(np.prod(shape)) * np.dtype(numpy_dtype).itemsize, 1)
     memory = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
     if hasattr(mmap, "MADV_HUGEPAGE"):

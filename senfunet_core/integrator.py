@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from .errors import InputError
-from .grid import (BlockGrid, blend_features, coords_key, drop_new_blocks, f16_to_f32, f32_to_f16, hash_find_or_add,
+from .grid import (BlockGrid, add_drift, blend_features, coords_key, drop_new_blocks, f16_to_f32, hash_find_or_add,
                    kernel_view, load_f32, prefetch, store_f32, voxel_keys)
 from .scratch import scratch as scratch_array
 
@@ -380,7 +380,7 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             change = max(change, abs(new_tsdf - old_tsdf))
             if old_weight == 0.0 or (new_tsdf < 0.0) != (old_tsdf < 0.0):
                 change = np.inf  # the voxel may join the observed or the surface set: always re-evaluate
-            drift[voxel] = f32_to_f16(f16_to_f32(drift[voxel]) + change)
+            drift[voxel] = add_drift(drift[voxel], change)
             if tsdf_base.shape[0]:
                 base_weight = f16_to_f32(weight_base[voxel])
                 base_add = np.float32(1.0) / (base_weight + np.float32(1.0))
@@ -407,7 +407,7 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     (skipped when tsdf_base is empty).
     drift[voxel] accumulates the largest change of a weighting-net input (features, tanh(weight))
     or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
-    Weights and drift are float16 bit patterns (int16), TSDFs float16 bits or float32
+    Drift is in 8-bit codes (`grid.add_drift`), weights float16 bit patterns (int16), TSDFs float16 bits or float32
     (`grid.load_f32`), features float16 bits or packed int8 (`grid.load_feature`); pixel_features:
     (H*W) x C float32; touched_map: as `drop_sparse_new_blocks` returns it (None: none).
     Returns the number of voxels updated.

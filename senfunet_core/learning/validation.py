@@ -8,6 +8,7 @@ import math
 import numpy as np
 import torch
 
+from ..grid import decode_alpha
 from .config import SENSORS, TrainConfig
 
 ALPHA_STATISTICS = ("c12_alpha_mean", "c12_tof_share", "c1_kept", "c2_kept")
@@ -22,7 +23,7 @@ def alpha_statistics(engine) -> dict[str, float]:
     n = grid.n_blocks
     w0 = grid.pools["weight0"][:n].reshape(-1).float()
     w1 = grid.pools["weight1"][:n].reshape(-1).float()
-    alpha = grid.pools["alpha"][:n].reshape(-1)
+    alpha = decode_alpha(grid.pools["alpha"][:n].reshape(-1))
     c12, c1, c2 = (w0 > 0) & (w1 > 0), (w0 > 0) & (w1 == 0), (w0 == 0) & (w1 > 0)
 
     def share(mask: torch.Tensor) -> float:

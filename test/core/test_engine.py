@@ -16,7 +16,8 @@ from senfunet_core import networks
 from senfunet_core.engine import EngineConfig, SenFuNet
 from senfunet_core.errors import InputError
 from senfunet_core.fusion import fuse
-from senfunet_core.grid import BLOCK, block_keys, decode_features
+from senfunet_core.grid import (ALPHA_UNKNOWN, BLOCK, DRIFT_RESET, block_keys, decode_alpha, decode_features,
+                                encode_alpha)
 from senfunet_core.mesher import Mesh, weld
 
 VOXEL = 0.01
@@ -162,6 +163,13 @@ def test_flying_pixels_do_not_allocate_blocks_and_the_engine_counts_their_sample
         engine_for_tests(min_new_block_samples=-1)
 
 
+def test_alpha_tolerances_beyond_what_drift_counts_are_refused():
+    engine_for_tests(alpha_tolerance=0.2)
+    for tolerance in (0.25, -0.01, float("nan")):
+        with pytest.raises(InputError, match="alpha_tolerance"):
+            engine_for_tests(alpha_tolerance=tolerance)
+
+
 def test_sphere_tsdf_matches_analytic_distance():
     # The TSDF is projective (distance along the ray): it equals the true distance where rays meet
     # the surface head-on, so compare where the surface faces the camera within 30 degrees.
@@ -270,7 +278,7 @@ def test_incremental_alpha_equals_whole_grid_alpha(tsdf_input):
         engine.update()  # incremental: only the blocks touched since the previous update
     alpha, lo = dense_alpha(engine)
     grid = engine.grid
-    incremental = grid.pools["alpha"][: grid.n_blocks].view(-1, BLOCK, BLOCK, BLOCK)
+    incremental = decode_alpha(grid.pools["alpha"][: grid.n_blocks]).view(-1, BLOCK, BLOCK, BLOCK)
     worst = 0.0
     spread = []
     for slot in range(grid.n_blocks):
@@ -278,9 +286,10 @@ def test_incremental_alpha_equals_whole_grid_alpha(tsdf_input):
         whole = alpha[o[0]:o[0] + BLOCK, o[1]:o[1] + BLOCK, o[2]:o[2] + BLOCK]
         worst = max(worst, float((whole - incremental[slot]).abs().max()))
         spread.append(whole)
-    # the grid stores alpha in float16 (alpha_storage): within one unit in the last place (2^-11 below 1)
-    # of the whole-grid value, plus the float32 rounding of another summation order
-    assert worst < 2**-11 + 1e-5
+    # the grid stores alpha in steps of 1/254 (grid.encode_alpha): within half a step of the
+    # whole-grid value, a whole one next to 0.5 (which keeps its side), plus the float32 rounding of
+    # another summation order
+    assert worst < 1 / 254 + 1e-5
     assert float(torch.stack(spread).std()) > 0.01  # alpha is not trivially constant
 
 
@@ -306,7 +315,7 @@ def test_fusion_equation_on_c12_c1_c2():
     v1, w1, v2, w2 = (t.float().numpy()[idx] for t in (v1, w1, v2, w2))
     c12, c1, c2 = (w1 > 0) & (w2 > 0), (w1 > 0) & (w2 == 0), (w1 == 0) & (w2 > 0)
     assert c12.sum() > 100 and c1.sum() > 100 and c2.sum() > 100
-    a = np.float32(np.float16(0.3))  # alpha as the grid stores it
+    a = np.float32(np.rint(0.3 * 254)) / np.float32(254)  # alpha as the grid stores it (grid.encode_alpha)
     np.testing.assert_allclose(got[c12], a * v1[c12] + (1 - a) * v2[c12], atol=1e-6)
     np.testing.assert_allclose(got[c1], v1[c1], atol=1e-7)
     np.testing.assert_allclose(got[c2], v2[c2], atol=1e-7)
@@ -320,15 +329,15 @@ def test_fusion_equation_on_c12_c1_c2():
 
 
 def test_stored_alpha_stays_on_its_side_of_one_half():
-    from senfunet_core.alpha_scheduler import alpha_storage
-
-    alpha = np.array([0.5 - 1e-5, 0.5, 0.5 + 1e-5, 0.25, 0.9, np.nan, 0.0, 1.0], np.float32)
-    stored = alpha_storage(alpha).astype(np.float32)
-    assert stored.dtype == np.float32 and alpha_storage(alpha).dtype == np.float16
+    alpha = np.array([0.5 - 1e-5, 0.5, 0.5 + 1e-5, 0.25, 0.9, np.nan, 0.0, 1.0, 0.3 + 1 / 508], np.float32)
+    codes = encode_alpha(alpha)
+    assert codes.dtype == np.uint8 and codes[5] == ALPHA_UNKNOWN
+    stored = decode_alpha(torch.from_numpy(codes)).numpy()
     assert stored[0] < 0.5 and stored[1] == 0.5 and stored[2] > 0.5  # the filter decides as on float32
-    np.testing.assert_array_equal(stored[3:5], alpha[3:5].astype(np.float16))  # elsewhere: nearest float16
+    np.testing.assert_array_equal(codes[[3, 4, 6, 7]], np.rint(alpha[[3, 4, 6, 7]] * 254))  # elsewhere: nearest step
     assert np.isnan(stored[5]) and stored[6] == 0.0 and stored[7] == 1.0
-    assert np.all(np.abs(stored[:3] - alpha[:3]) <= 2**-11)
+    assert np.all(np.abs(stored[[0, 1, 2, 3, 4, 6, 7, 8]] - alpha[[0, 1, 2, 3, 4, 6, 7, 8]]) <= 1 / 254 + 1e-7)
+    assert np.all(np.abs(stored[3:5] - alpha[3:5]) <= 0.5 / 254 + 1e-7)
 
 
 def test_outlier_filter_boundaries():
@@ -383,11 +392,13 @@ def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_eng
     features = {name for name in grid.pools if name.startswith("feat")}
     assert features == {"feat0", "feat1"}
     assert {grid.pools[name].dtype for name in features} == {torch.int8}
-    assert {pool.dtype for name, pool in grid.pools.items() if name not in features} == {torch.float16}
-    # per voxel, 8 half-precision values (2 x (TSDF, weight), alpha, drift, the baseline's TSDF and
-    # weight) and 2 x 6 bytes of features (4 int8, the depth's float16); per block, its coordinates,
-    # key and up to 4 hash-table entries
-    assert grid.bytes_per_block() == 512 * (2 * 8 + 2 * 6) + 3 * 8 + 8 + 4 * 16
+    eight_bit = {"alpha", "drift"}
+    assert {grid.pools[name].dtype for name in eight_bit} == {torch.uint8}
+    assert {pool.dtype for name, pool in grid.pools.items() if name not in features | eight_bit} == {torch.float16}
+    # per voxel, 6 half-precision values (2 x (TSDF, weight), the baseline's TSDF and weight), alpha
+    # and drift in a byte each and 2 x 6 bytes of features (4 int8, the depth's float16); per block,
+    # its coordinates, key and up to 4 hash-table entries
+    assert grid.bytes_per_block() == 512 * (2 * 6 + 2 + 2 * 6) + 3 * 8 + 8 + 4 * 16
     path = tmp_path / "state.pt"
     sphere_engine.save(path)
     loaded = SenFuNet.load(path)
@@ -410,21 +421,30 @@ def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_eng
         assert torch.equal(got[..., 4], want[..., 4]), name  # the depth as it was
         assert float((got[..., :4] - want[..., :4]).abs().max()) <= 0.5 / 127 + 1e-6, name
         assert not torch.equal(got[..., :4], want[..., :4])
-    # a map file written when TSDFs and alpha were float32: loads, each value rounded to float16
+    # a map file written when TSDFs, alpha and drift were float32: loads, TSDFs rounded to float16,
+    # alpha to its 8-bit code, and a voxel that had drifted marked for the net
     state = torch.load(path, weights_only=True)
     rng = np.random.default_rng(0)
     wide = {}
     for name in ("tsdf0", "tsdf1", "alpha"):
-        values = state["grid"][f"pool.{name}"].float()
+        values = state["grid"][f"pool.{name}"].float() if name != "alpha" else decode_alpha(state["grid"]["pool.alpha"])
         values = values + torch.from_numpy(rng.uniform(-1e-4, 1e-4, values.shape).astype(np.float32)) * (values != 0)
         state["grid"][f"pool.{name}"] = wide[name] = values  # not representable in float16
+    wide["alpha"][0, :10] = float("nan")  # not evaluated
+    drifted = torch.from_numpy(rng.uniform(size=(n, 512)) < 0.1)
+    state["grid"]["pool.drift"] = drifted.float() * 0.01
     old = tmp_path / "float32_state.pt"
     torch.save(state, old)
     from_old = SenFuNet.load(old)
     for name, values in wide.items():
         got = from_old.grid.pools[name][:n]
-        assert got.dtype == torch.float16
-        assert torch.equal(got.view(torch.int16), values.half().view(torch.int16)), name
+        if name == "alpha":
+            assert got.dtype == torch.uint8 and torch.equal(got, torch.from_numpy(encode_alpha(values.numpy())))
+            assert int((got == ALPHA_UNKNOWN).sum()) == 10 and bool(torch.isfinite(values).any())
+        else:
+            assert got.dtype == torch.float16
+            assert torch.equal(got.view(torch.int16), values.half().view(torch.int16)), name
+    assert torch.equal(from_old.grid.pools["drift"][:n] == DRIFT_RESET, drifted)
     assert from_old.extract_mesh("tof").n_faces > 1000
 
 
@@ -495,7 +515,7 @@ def test_weight_cloud_reports_each_voxel_where_it_is_with_its_own_alpha_and_weig
     n = len(cloud.positions_m)
     assert n > 1000 and cloud.alpha.shape == (n,) and cloud.weights.shape == (n, 2)
     # the net's output as the grid stores it (float16), not another channel
-    np.testing.assert_allclose(cloud.alpha, np.float16(0.8), atol=1e-7)
+    np.testing.assert_allclose(cloud.alpha, np.rint(0.8 * 254) / 254, atol=1e-7)  # as stored (grid.encode_alpha)
     tof, stereo = cloud.weights[:, 0], cloud.weights[:, 1]
     assert np.all(tof >= stereo) and np.any((tof > 0) & (stereo == 0)) and np.any(stereo > 0)
     near = engine.weight_cloud(max_abs_tsdf_m=VOXEL)
@@ -548,15 +568,14 @@ def test_alpha_budget_defers_work_and_holds_back_single_sensor_voxels():
     held = engine.update(alpha_budget_s=0.0)
     engine.refresh_alpha(0.0)
     n = engine.grid.n_blocks
-    assert bool(torch.isnan(engine.grid.pools["alpha"][:n]).all())
+    assert bool((engine.grid.pools["alpha"][:n] == ALPHA_UNKNOWN).all())
     assert engine.counters["alpha_backlog_blocks"] > 0
     full = reference.update()
     assert 0 < len(held.meshes.faces) < len(full.meshes.faces)  # C1 voxels held back
     assert np.isfinite(held.meshes.colors).all()
     engine.refresh_alpha()  # no budget: everything evaluated
     assert engine.counters["alpha_backlog_blocks"] == 0
-    np.testing.assert_allclose(engine.grid.pools["alpha"][:n].numpy(), reference.grid.pools["alpha"][:n].numpy(),
-                               atol=1e-6)
+    np.testing.assert_array_equal(engine.grid.pools["alpha"][:n].numpy(), reference.grid.pools["alpha"][:n].numpy())
     caught_up = engine.update(alpha_budget_s=0.0)
     assert len(caught_up.meshes) == len(full.meshes)
     np.testing.assert_array_equal(caught_up.meshes.faces, full.meshes.faces)
@@ -902,7 +921,7 @@ def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(mo
     assert all(written == 0 for _, written in batches)  # and wrote nothing under it
     evaluated = engine.store.evaluated[:n]
     assert evaluated.sum() > 8  # more than one batch, all written once the lock was free
-    alpha = engine.grid.pools["alpha"][:n].numpy()
+    alpha = decode_alpha(engine.grid.pools["alpha"][:n]).numpy()
     assert np.isfinite(alpha[evaluated]).all() and bool((engine.store.stale[:n][evaluated] == 0).all())
 
 

@@ -19,7 +19,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from senfunet_core.engine import EngineConfig, SenFuNet
-from senfunet_core.grid import decode_features
+from senfunet_core.grid import decode_alpha, decode_features
 
 VOXEL = 0.01
 SIZE = 96
@@ -140,7 +140,7 @@ def test_alpha_threads_evaluate_the_same_alpha():
     several, _ = run(alpha_voxels="surface", alpha_batch_blocks=4, alpha_threads=3)
     n = one.grid.n_blocks
     assert several.grid.n_blocks == n
-    alpha_one, alpha_several = one.grid.pools["alpha"][:n], several.grid.pools["alpha"][:n]
+    alpha_one, alpha_several = (decode_alpha(engine.grid.pools["alpha"][:n]) for engine in (one, several))
     assert alpha_one.isfinite().sum() > 10_000
     torch.testing.assert_close(alpha_several, alpha_one, rtol=0, atol=0, equal_nan=True)
     for counter in ("alpha_blocks", "alpha_voxels", "alpha_flops"):
@@ -175,8 +175,9 @@ def test_bfloat16_alpha_keeps_the_mesh_close(exact):
     engine, _ = run(alpha_voxels="surface", alpha_dtype="bfloat16")
     same_schedule, _ = run(alpha_voxels="surface")
     n = engine.grid.n_blocks
-    evaluated = torch.isfinite(engine.grid.pools["alpha"][:n])  # surface mode: blocks that can hold triangles
-    diff = (engine.grid.pools["alpha"][:n] - same_schedule.grid.pools["alpha"][:n]).abs()[evaluated]
+    alpha, same_alpha = (decode_alpha(e.grid.pools["alpha"][:n]) for e in (engine, same_schedule))
+    evaluated = torch.isfinite(alpha)  # surface mode: blocks that can hold triangles
+    diff = (alpha - same_alpha).abs()[evaluated]
     assert len(diff) > 10_000 and 0 < float(diff.max()) < 0.02  # not float32 arithmetic, but close to it
     assert_close_to_exact(engine, exact[0])
 

@@ -6,7 +6,8 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from senfunet_core.grid import BLOCK, BlockGrid
+from senfunet_core.grid import (BLOCK, DRIFT_RESET, DRIFT_SATURATED, DRIFT_STEP, MAX_DRIFT_TOLERANCE, BlockGrid,
+                                add_drift, drift_value)
 from senfunet_core.integrator import (IntegratorConfig, aggregate_pixel_values, frame_samples, integrate_frame,
                                       locate_frame_samples, valid_depth_mask)
 from senfunet_core.learning.training import keys_to_voxels
@@ -58,7 +59,8 @@ def reference(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> dict[t
 
 def compiled(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[BlockGrid, dict[tuple, tuple]]:
     channels = {"tsdf_base": (), "weight_base": (), "drift": (), "tsdf0": (), "weight0": (), "feat0": (5,)}
-    dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight", "drift"))}
+    dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight"))}
+    dtypes["drift"] = torch.uint8
     grid = BlockGrid(channels, initial_capacity=64, dtypes=dtypes)  # small: growth happens mid-frame
     for depth, features, T in frames:
         integrate_frame(grid, np.nan_to_num(depth), features, K, T, RANGE, CONFIG, ("tsdf0", "weight0", "feat0"))
@@ -98,7 +100,8 @@ def test_a_full_hash_table_grows_with_the_blocks_not_with_the_pools(monkeypatch)
     import senfunet_core.grid as grid_module
 
     monkeypatch.setattr(grid_module, "_INITIAL_TABLE", 16)  # full after 8 blocks, early in the frame
-    grid = BlockGrid({"tsdf0": (), "weight0": (), "feat0": (5,), "drift": ()}, initial_capacity=1 << 15)
+    grid = BlockGrid({"tsdf0": (), "weight0": (), "feat0": (5,), "drift": ()}, initial_capacity=1 << 15,
+                     dtypes={"drift": torch.uint8})
     depth, features = frame(0)
     integrate_frame(grid, np.nan_to_num(depth), features, K, pose(0.0, 0.0), RANGE, CONFIG,
                     ("tsdf0", "weight0", "feat0"))
@@ -112,15 +115,28 @@ def test_drift_marks_new_voxels_and_accumulates_change():
     depth, features = frame(0)
     T = pose(0.0, 0.0)
     grid, _ = compiled([(depth, features, T)])
-    drift = grid.pools["drift"][: grid.n_blocks].float()
+    drift = grid.pools["drift"][: grid.n_blocks]
     seen = grid.pools["weight0"][: grid.n_blocks] > 0
-    assert bool(torch.isinf(drift[seen]).all()) and bool((drift[~seen] == 0).all())  # first observations
+    assert bool((drift[seen] == DRIFT_RESET).all()) and bool((drift[~seen] == 0).all())  # first observations
     grid.pools["drift"][: grid.n_blocks] = 0
     integrate_frame(grid, depth, features * 0.5, K, T, RANGE, CONFIG, ("tsdf0", "weight0", "feat0"))
-    drift = grid.pools["drift"][: grid.n_blocks].float()
-    finite = torch.isfinite(drift) & seen
-    assert bool((drift[finite] > 0).all())  # the features moved towards half their value
-    assert float(drift[finite].max()) < 2.0
+    drift = grid.pools["drift"][: grid.n_blocks]
+    finite = (drift != DRIFT_RESET) & seen
+    assert int(finite.sum()) > 1000
+    # the features moved towards half their value: at least a step each, some by more than a tolerance
+    assert bool((drift[finite] > 0).all()) and bool((drift[finite] > 0.05 / DRIFT_STEP).any())
+
+
+def test_drift_codes_round_up_saturate_and_reset():
+    assert add_drift(np.uint8(0), 0.0) == 0
+    assert add_drift(np.uint8(0), 1e-9) == 1  # any change counts: a tolerance of 0 sees it
+    assert add_drift(np.uint8(3), 2.5 * DRIFT_STEP) == 6  # rounded up: never below the true drift
+    assert add_drift(np.uint8(250), 1.0) == DRIFT_SATURATED
+    assert add_drift(np.uint8(DRIFT_SATURATED), 1e-3) == DRIFT_SATURATED
+    assert add_drift(np.uint8(7), np.inf) == DRIFT_RESET and add_drift(np.uint8(7), np.nan) == DRIFT_RESET
+    assert add_drift(np.uint8(DRIFT_RESET), 0.0) == DRIFT_RESET
+    assert drift_value(np.uint8(6)) == np.float32(6 * DRIFT_STEP) and drift_value(np.uint8(DRIFT_RESET)) == np.inf
+    assert drift_value(np.uint8(DRIFT_SATURATED)) > MAX_DRIFT_TOLERANCE - 1e-9
 
 
 def test_splitting_a_frame_between_two_threads_changes_no_bit(monkeypatch):
@@ -168,7 +184,7 @@ def test_allocation_policy_keeps_flying_pixels_out_of_new_blocks_and_counts_them
     sparse = {block: n for block, n in counts.items() if n < minimum}
     assert len(dense) > 10 and len(sparse) > 20  # the frame has both, or the test proves nothing
     channels = {"drift": (), "tsdf0": (), "weight0": (), "feat0": (5,)}
-    dtypes = {"drift": torch.float16, "weight0": torch.float16, "feat0": torch.float16}
+    dtypes = {"drift": torch.uint8, "weight0": torch.float16, "feat0": torch.float16}
     every = BlockGrid(channels, initial_capacity=1 << 12, dtypes=dtypes)
     integrate_frame(every, depth, features, K, T, RANGE, CONFIG, ("tsdf0", "weight0", "feat0"))
     policy = replace(CONFIG, min_new_block_samples=minimum)
