@@ -538,6 +538,9 @@ def _edges(vertices_vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return base, axis
 
 
+_CHUNK = 1 << 20  # rows at a time in StreamingWeld.mesh's passes over all vertices
+
+
 class StreamingWeld:
     """`weld` + `to_mesh` over marching-cubes batches added one at a time, for the whole map's mesh
     without holding every batch's float64 vertices and int64 faces at once (extraction's memory
@@ -605,32 +608,66 @@ class StreamingWeld:
         self._colors.append(np.asarray(colors, np.float32))
 
     def mesh(self) -> Mesh:
-        """The welded mesh; empties this weld."""
+        """The welded mesh; empties this weld. Each batch's arrays are let go as soon as they are
+        used (this is extraction's memory peak, on top of the whole grid)."""
         if self.n_vertices == 0:
             return Mesh.empty()
-        keys = np.concatenate(self._keys)
-        self._keys.clear()
-        if keys.ndim == 1:
-            _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-        else:
-            _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-        del keys
-        faces = np.concatenate(self._faces)
-        self._faces.clear()
-        faces = inverse.reshape(-1).astype(faces.dtype, copy=False)[faces]
-        del inverse
-        faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
-        vertices = np.concatenate(self._vertices_m)[first]
-        self._vertices_m.clear()
+        first, inverse = self._first_and_inverse()
+        faces = np.empty((sum(len(f) for f in self._faces), 3), inverse.dtype)
+        end = 0
+        self._faces.reverse()
+        while self._faces:  # each batch's faces to the welded vertices, degenerate ones dropped
+            mapped = inverse[self._faces.pop()]
+            mapped = mapped[(mapped[:, 0] != mapped[:, 1]) & (mapped[:, 1] != mapped[:, 2])
+                            & (mapped[:, 0] != mapped[:, 2])]
+            faces[end:end + len(mapped)] = mapped
+            end += len(mapped)
+        vertices = _take_firsts(self._vertices_m, first, inverse, np.empty((len(first), 3), np.float32))
         colors = None
         if self._colors:
-            colors = np.concatenate(self._colors)[first]
+            colors = _take_firsts(self._colors, first, inverse, np.empty((len(first), 3), np.float32))
         elif self._values:
-            colors = alpha_colors(np.concatenate(self._values)[first])
-        self._colors.clear()
-        self._values.clear()
+            values = _take_firsts(self._values, first, inverse, np.empty(len(first), np.float32))
+            colors = np.empty((len(first), 3), np.float32)
+            for start in range(0, len(first), _CHUNK):  # alpha_colors' temporaries stay small
+                colors[start:start + _CHUNK] = alpha_colors(values[start:start + _CHUNK])
         self.n_vertices = 0
-        return Mesh(vertices, faces.astype(np.int32), colors)
+        return Mesh(vertices, faces[:end].astype(np.int32, copy=False), colors)
+
+    def _first_and_inverse(self) -> tuple[np.ndarray, np.ndarray]:
+        """np.unique(keys, return_index=True, return_inverse=True)'s index and inverse (the first
+        vertex of each edge, in key order, and each vertex's edge), without its int64 temporaries:
+        a stable argsort, the inverse as int32."""
+        keys = np.concatenate(self._keys)
+        self._keys.clear()
+        if keys.ndim == 2:  # rows (an extent beyond one int64 key): rare, np.unique over rows
+            _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+            return first, inverse.reshape(-1)
+        order = np.argsort(keys, kind="stable")  # stable: the first copy of each key comes first
+        sorted_keys = keys[order]
+        del keys
+        starts = np.empty(len(order), bool)
+        starts[0] = True
+        np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=starts[1:])
+        del sorted_keys
+        index = np.int32 if len(order) < np.iinfo(np.int32).max else np.int64
+        inverse = np.empty(len(order), index)
+        inverse[order] = np.cumsum(starts, dtype=index) - 1
+        return order[starts], inverse
+
+
+def _take_firsts(parts: list[np.ndarray], first: np.ndarray, inverse: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """out[u] = row first[u] of the parts' concatenation (inverse: each row's u), without that
+    concatenation: the parts are let go one by one (emptying the list)."""
+    offset = 0
+    parts.reverse()
+    while parts:
+        part = parts.pop()
+        ids = inverse[offset:offset + len(part)]
+        kept = first[ids] == np.arange(offset, offset + len(part))
+        out[ids[kept]] = part[kept]
+        offset += len(part)
+    return out
 
 
 def _unique_edges(base: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
