@@ -166,6 +166,7 @@ def run_node_case(args: argparse.Namespace) -> dict:
         "spilled_blocks": stats["spilled_blocks"], "restored_blocks": stats["restored_blocks"],
         "after_5s_meshed": after["meshed_blocks"], "after_5s_current": after["meshed_blocks_alpha_current"],
         "after_5s_unjudged_over_3s": after["meshed_blocks_unjudged_over_3s"],
+        "after_5s_backlog_blocks": engine.counters.get("alpha_backlog_blocks", 0),
         "bytes_per_observed_voxel": stats["bytes_per_observed_voxel"],
     }
     rclpy.try_shutdown()  # ends the executor's spin
@@ -274,9 +275,9 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
         f"{100 * r['meshed_alpha_current'] / max(r['meshed_blocks'], 1):.0f}%")
     row("meshed blocks at the end: alpha waiting more than 3 s after a change; the oldest wait (s)",
         lambda r: f"{100 * r['unjudged_over_3s'] / max(r['meshed_blocks'], 1):.0f}%; {r['oldest_unjudged_s']:.1f}")
-    row("5 s after the stream: meshed blocks with alpha up to date; waiting more than 3 s",
+    row("5 s after the stream: meshed blocks with alpha up to date; waiting more than 3 s; blocks still to judge",
         lambda r: f"{r['after_5s_meshed']}: {100 * r['after_5s_current'] / max(r['after_5s_meshed'], 1):.0f}%; "
-        f"{100 * r['after_5s_unjudged_over_3s'] / max(r['after_5s_meshed'], 1):.0f}%")
+        f"{100 * r['after_5s_unjudged_over_3s'] / max(r['after_5s_meshed'], 1):.0f}%; {r['after_5s_backlog_blocks']}")
     row("peak RSS (GB)", lambda r: f"{r['peak_rss_bytes'] / 1e9:.2f}")
     row("blocks / observed voxels", lambda r: f"{r['blocks']} / {r['observed_voxels']}")
     row("blocks evicted / meshes archived / on disk at the end / restored from disk",
