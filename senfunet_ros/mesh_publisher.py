@@ -53,15 +53,13 @@ class MeshPublisher:
     """
 
     def __init__(self, node: Node, pipeline: Pipeline, settings: Callable[[], P.Settings], *, timings: dict[str, Any],
-                 latency: Any, camera_colors: Any, frame_waiting: Callable[[], bool],
-                 update_due: Callable[[], bool] = lambda: False) -> None:
+                 latency: Any, camera_colors: Any, frame_waiting: Callable[[], bool]) -> None:
         self.pipeline = pipeline
         self._settings = settings
         self._timings = timings
         self._latency = latency
         self._camera_colors = camera_colors
         self._frame_waiting = frame_waiting
-        self._update_due = update_due  # the mesh timer ticked during this publication
         self._context = node.context
         self.lock = threading.Lock()  # one publication at a time (timer vs. reset and load_map services)
         self.mesh_pub = node.create_publisher(MarkerArray, "~/mesh", MESH_QOS)
@@ -149,11 +147,9 @@ class MeshPublisher:
         so that on a map whose updates take the whole period the net still judges while the sensors
         stream. Idle (no frame integrated since the last update and none queued: the sensors paused
         or stopped): the net catches up on all it has not judged yet, so the mesh soon equals what
-        an offline replay makes, in slices of a mesh period on every core; it stops as soon as a
-        frame is integrated (a frame queued but not yet integrated is not idleness) and, once the
-        mesh timer has ticked, hands over to that update, which publishes what was judged and gives
-        the net its next turn (an unbroken catch-up would hold the mesh back for as long as the
-        whole backlog takes)."""
+        an offline replay makes, in slices of a mesh period on every core, and stops as soon as a
+        frame is integrated (an unlimited catch-up would hold the mesh updates for as long as the
+        whole backlog takes; a frame queued but not yet integrated is not idleness)."""
         s = self._settings()
         engine = self.pipeline.engine
         if not s.alpha_budget_s:
@@ -166,7 +162,7 @@ class MeshPublisher:
         while True:  # on every core, and stopping as soon as a frame is integrated
             engine.refresh_alpha(slice_s, until_frame=True)
             if not engine.counters.get("alpha_backlog_blocks", 0) or not self._no_frame_waiting() \
-                    or self._update_due() or not self._context.ok():
+                    or not self._context.ok():
                 return
 
     def display(self, meshes: Any) -> Any:

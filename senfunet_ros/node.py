@@ -271,8 +271,7 @@ class FusionNode(Node):
         # 5. publishers
         self.mesh_publisher = MeshPublisher(self, self.pipeline, lambda: self.settings, timings=self.timings,
                                             latency=self.latency, camera_colors=self.camera_colors,
-                                            frame_waiting=lambda: any(self.ingest.queue_depths().values()),
-                                            update_due=self._mesh_update_due)
+                                            frame_waiting=lambda: any(self.ingest.queue_depths().values()))
         self.status_pub = self.create_publisher(DiagnosticArray, "~/status", _STATUS_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", _STATUS_QOS)
         # 6. services
@@ -542,11 +541,6 @@ class FusionNode(Node):
         except RuntimeError:  # destroy_node shut the mesh thread down under this last tick
             with self._mesh_lock:
                 self._mesh_running = False
-
-    def _mesh_update_due(self) -> bool:
-        """Whether a mesh tick came during the update under way."""
-        with self._mesh_lock:
-            return self._mesh_due
 
     def _mesh_updates(self) -> None:
         """Mesh updates on the mesh thread, as long as ticks came during the last one."""
