@@ -133,6 +133,7 @@ def run_node_case(args: argparse.Namespace) -> dict:
     stats = engine.stats()
     total = dict(engine.total_s)  # stage times of the stream (before the catch-up below)
     timings = {name: t.total_s for name, t in node.timings.items()}
+    alpha_counters = dict(engine.counters)  # the weighting net's work at the stream's end
     time.sleep(5.0)  # the node's timers run on: its weighting net catches up once no frame comes
     after = engine.stats()
     result = {
@@ -154,8 +155,8 @@ def run_node_case(args: argparse.Namespace) -> dict:
         "update_interval_s": {"median": float(np.median(intervals)), "max": float(np.max(intervals))},
         "latency_s": {"median": float(np.median(latencies)) if latencies else float("nan"),
                       "max": float(np.max(latencies)) if latencies else float("nan")},
-        "alpha_blocks": engine.counters["alpha_blocks"],
-        "alpha_backlog_blocks": engine.counters.get("alpha_backlog_blocks", 0),
+        "alpha_blocks": alpha_counters["alpha_blocks"],
+        "alpha_backlog_blocks": alpha_counters.get("alpha_backlog_blocks", 0),
         "meshed_blocks": stats["meshed_blocks"], "meshed_alpha_evaluated": stats["meshed_blocks_alpha_evaluated"],
         "meshed_alpha_current": stats["meshed_blocks_alpha_current"],
         "unjudged_over_3s": stats["meshed_blocks_unjudged_over_3s"],
