@@ -538,7 +538,7 @@ def _edges(vertices_vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return base, axis
 
 
-_CHUNK = 1 << 20  # rows at a time in StreamingWeld.mesh's passes over all vertices
+_COLOR_CHUNK = 1 << 20  # vertices StreamingWeld.mesh colours at a time
 
 
 class StreamingWeld:
@@ -629,8 +629,8 @@ class StreamingWeld:
         elif self._values:
             values = _take_firsts(self._values, first, inverse, np.empty(len(first), np.float32))
             colors = np.empty((len(first), 3), np.float32)
-            for start in range(0, len(first), _CHUNK):  # alpha_colors' temporaries stay small
-                colors[start:start + _CHUNK] = alpha_colors(values[start:start + _CHUNK])
+            for start in range(0, len(first), _COLOR_CHUNK):  # alpha_colors' temporaries stay small
+                colors[start:start + _COLOR_CHUNK] = alpha_colors(values[start:start + _COLOR_CHUNK])
         self.n_vertices = 0
         return Mesh(vertices, faces[:end].astype(np.int32, copy=False), colors)
 
