@@ -518,9 +518,13 @@ def weld(vertices_vox: np.ndarray, faces: np.ndarray, vertex_values: np.ndarray 
         return vertices_vox, faces, vertex_values
     first, inverse = _unique_edges(*_edges(vertices_vox))
     faces = inverse.astype(faces.dtype, copy=False)[faces]  # the faces' index type (int32 halves them)
-    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     values = None if vertex_values is None else vertex_values[first]
-    return vertices_vox[first], faces[keep], values
+    return vertices_vox[first], faces[_proper(faces)], values
+
+
+def _proper(faces: np.ndarray) -> np.ndarray:
+    """Which welded faces keep three distinct vertices (the others collapsed)."""
+    return (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
 
 
 def _edges(vertices_vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -573,9 +577,7 @@ class StreamingWeld:
                                            or np.any(base.max(axis=0) - self._low >= self._extent)):
             self._unpack()  # beyond the bounds given (an archived block elsewhere): rows from now on
         if self._packed:
-            shifted = base - self._low
-            e = self._extent
-            self._keys.append(((shifted[:, 0] * e[1] + shifted[:, 1]) * e[2] + shifted[:, 2]) * 4 + axis)
+            self._keys.append(_pack_edges(base, axis, self._low, self._extent))
         else:
             self._keys.append(np.concatenate([base, axis[:, None]], axis=1))
         del base, axis
@@ -612,14 +614,13 @@ class StreamingWeld:
         used (this is extraction's memory peak, on top of the whole grid)."""
         if self.n_vertices == 0:
             return Mesh.empty()
-        first, inverse = self._first_and_inverse()
+        first, inverse = _first_and_inverse(self._keys)
         faces = np.empty((sum(len(f) for f in self._faces), 3), inverse.dtype)
         end = 0
         self._faces.reverse()
         while self._faces:  # each batch's faces to the welded vertices, degenerate ones dropped
             mapped = inverse[self._faces.pop()]
-            mapped = mapped[(mapped[:, 0] != mapped[:, 1]) & (mapped[:, 1] != mapped[:, 2])
-                            & (mapped[:, 0] != mapped[:, 2])]
+            mapped = mapped[_proper(mapped)]
             faces[end:end + len(mapped)] = mapped
             end += len(mapped)
         vertices = _take_firsts(self._vertices_m, first, inverse, np.empty((len(first), 3), np.float32))
@@ -633,27 +634,6 @@ class StreamingWeld:
                 colors[start:start + _COLOR_CHUNK] = alpha_colors(values[start:start + _COLOR_CHUNK])
         self.n_vertices = 0
         return Mesh(vertices, faces[:end].astype(np.int32, copy=False), colors)
-
-    def _first_and_inverse(self) -> tuple[np.ndarray, np.ndarray]:
-        """np.unique(keys, return_index=True, return_inverse=True)'s index and inverse (the first
-        vertex of each edge, in key order, and each vertex's edge), without its int64 temporaries:
-        a stable argsort, the inverse as int32."""
-        keys = np.concatenate(self._keys)
-        self._keys.clear()
-        if keys.ndim == 2:  # rows (an extent beyond one int64 key): rare, np.unique over rows
-            _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-            return first, inverse.reshape(-1)
-        order = np.argsort(keys, kind="stable")  # stable: the first copy of each key comes first
-        sorted_keys = keys[order]
-        del keys
-        starts = np.empty(len(order), bool)
-        starts[0] = True
-        np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=starts[1:])
-        del sorted_keys
-        index = np.int32 if len(order) < np.iinfo(np.int32).max else np.int64
-        inverse = np.empty(len(order), index)
-        inverse[order] = np.cumsum(starts, dtype=index) - 1
-        return order[starts], inverse
 
 
 def _take_firsts(parts: list[np.ndarray], first: np.ndarray, inverse: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -677,13 +657,38 @@ def _unique_edges(base: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.nd
     low = base.min(axis=0)
     extent = base.max(axis=0) - low + 1
     if float(extent[0]) * float(extent[1]) * float(extent[2]) * 4 < 2.0**62:
-        shifted = base - low
-        packed = ((shifted[:, 0] * extent[1] + shifted[:, 1]) * extent[2] + shifted[:, 2]) * 4 + axis
-        _, first, inverse = np.unique(packed, return_index=True, return_inverse=True)
-    else:
-        keys = np.concatenate([base, axis[:, None]], axis=1)
+        return _first_and_inverse([_pack_edges(base, axis, low, extent)])
+    return _first_and_inverse([np.concatenate([base, axis[:, None]], axis=1)])
+
+
+def _pack_edges(base: np.ndarray, axis: np.ndarray, low: np.ndarray, extent: np.ndarray) -> np.ndarray:
+    """One int64 key per edge, ordered as the rows (lower end x, y, z, axis): lower ends within
+    low .. low + extent - 1 (whose product times 4 the caller checked fits)."""
+    shifted = base - low
+    return ((shifted[:, 0] * extent[1] + shifted[:, 1]) * extent[2] + shifted[:, 2]) * 4 + axis
+
+
+def _first_and_inverse(parts: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """np.unique(keys, return_index=True, return_inverse=True)'s index and inverse (the first row of
+    each distinct key, in key order, and each row's key) for the keys of the parts concatenated,
+    one int64 each (or rows, sorted as np.unique does), without its int64 temporaries: a stable
+    argsort, the inverse as int32. Empties `parts`, so that the keys go once sorted."""
+    keys = np.concatenate(parts) if len(parts) > 1 else parts[0]
+    parts.clear()
+    if keys.ndim == 2:  # rows (an extent beyond one int64 key): rare, np.unique over rows
         _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    return first, inverse.reshape(-1)
+        return first, inverse.reshape(-1)
+    order = np.argsort(keys, kind="stable")  # stable: the first copy of each key comes first
+    sorted_keys = keys[order]
+    del keys
+    starts = np.empty(len(order), bool)
+    starts[0] = True
+    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=starts[1:])
+    del sorted_keys
+    index = np.int32 if len(order) < np.iinfo(np.int32).max else np.int64
+    inverse = np.empty(len(order), index)
+    inverse[order] = np.cumsum(starts, dtype=index) - 1
+    return order[starts], inverse
 
 
 _SENSOR_1_COLOR = np.array([1.0, 0.72, 0.1], np.float32)  # amber
