@@ -116,7 +116,7 @@ class EngineConfig:
     #   last camera position (down to 90%), and so does integration past 1.25x, keeping their final fused meshes
     #   (mesh_archive); 0 = no bound; -1 = from the machine's memory (`memory_bound_blocks`)
     tsdf_fusion: bool = True  # also integrate every frame into one plain TSDF grid: the "tsdf_fusion" baseline
-    #                           (one more running average per sample and 6 bytes per voxel)
+    #                           (one more running average per sample and 4 bytes per voxel)
     alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
     #                               (max-norm over [F, tanh(W)], summed over frames); 0 = exact
     min_new_block_samples: int = 16  # allocation policy: a frame allocates a block only where at least this many of
@@ -241,8 +241,8 @@ class SenFuNet:
         # TSDFs and weights in half precision: weight counters stay exact up to 2048 (w_max); TSDF
         # values within the band keep a relative precision of 2^-11, far below the sensors' noise
         # (kernels read them through grid.load_f32). The learned features lie in [-1, 1]: int8
-        # (steps of 1/127), the depth feature float16, packed in one int8 pool (grid.FEATURE_SCALE,
-        # read through grid.load_feature / decode_features). Alpha, a weighting in [0, 1], and drift,
+        # (steps of 1/127), the depth feature an 8-bit float, packed in one int8 pool (grid.FEATURE_SCALE,
+        # grid.encode_depth, read through grid.load_feature / decode_features). Alpha, a weighting in [0, 1], and drift,
         # compared with a tolerance, in 8 bits (grid.encode_alpha, grid.add_drift).
         dtypes = {name: torch.int8 if name.startswith("feat") else torch.float16 for name in channels}
         dtypes.update(alpha=torch.uint8, drift=torch.uint8)

@@ -7,7 +7,7 @@ on the CPU: the compiled kernels (integrator, alpha windows, mesher) read and wr
 zero-copy numpy views; float16 channels are handed to the kernels as their int16 bit patterns
 (`f16_to_f32` / `f32_to_f16` convert one value, in hardware where the CPU can; `load_f32` /
 `store_f32` read and write a channel of either storage). A feature channel may be int8, features
-packed per voxel (`FEATURE_SCALE`; `load_feature` / `store_feature` in kernels, `decode_features`
+packed per voxel (`FEATURE_SCALE`, `encode_depth`; `load_feature` / `store_feature` in kernels, `decode_features`
 / `encode_features` in torch). Alpha and drift may be 8-bit codes (`encode_alpha` / `load_alpha` /
 `decode_alpha`, `add_drift` / `drift_value`).
 
@@ -367,40 +367,73 @@ def _store_f32(array, index, value):  # noqa: ANN001, ANN202 (numba overload)
     return store
 
 
-# -- feature channels: int8 learned features, float16 depth ------------------------------------------
-# A feature channel of dtype int8 packs a voxel's n features in n + 1 bytes: the first n - 1 (the
+# -- feature channels: int8 learned features, 8-bit depth ------------------------------------------
+# A feature channel of dtype int8 packs a voxel's n features in n bytes: the first n - 1 (the
 # learned ones, L2-normalised per pixel, so in [-1, 1], and so are their running averages) as
-# round(FEATURE_SCALE * f), the last (the depth, metres) as its float16 bits, low byte first.
+# round(FEATURE_SCALE * f), the last (the depth, metres) as an unsigned 8-bit float (`encode_depth`).
 FEATURE_SCALE = 127.0
+
+# The depth feature's code: 3 exponent bits, 5 mantissa bits. Codes 32..255 are 2^(e - 3) * (1 + m/32)
+# for code = 32 e + m, [0.25, 31.5] m in steps of 1/32 of an octave (a relative error of at most
+# 1/64 after rounding, below the sensors' depth noise at range); codes 0..32 are steps of 1/128 m
+# from 0 (so a zeroed pool holds depth 0). Larger depths saturate at 31.5 m.
+DEPTH_MAX_M = 31.5
+_DEPTH_CODES = np.arange(256)
+DEPTH_OF_CODE = np.where(_DEPTH_CODES < 32, _DEPTH_CODES / 128.0,
+                         2.0 ** ((_DEPTH_CODES >> 5) - 3.0) * (1.0 + (_DEPTH_CODES & 31) / 32.0)).astype(np.float32)
+_DEPTH_OF_CODE_T = torch.from_numpy(DEPTH_OF_CODE)
+
+
+@numba.njit(cache=True, inline="always")
+def encode_depth(depth_m: float) -> np.int8:
+    """The 8-bit code of a depth (metres), rounded to the nearest representable depth, stored in an
+    int8 (read it back with `DEPTH_OF_CODE[code & 0xFF]`)."""
+    d = min(max(np.float32(depth_m), np.float32(0.0)), np.float32(DEPTH_MAX_M))
+    if d < np.float32(0.25):
+        code = np.int64(np.rint(d * np.float32(128.0)))
+    else:  # d = f * 2^k, f in [0.5, 1): code = 32 (k + 1) + round(64 f), which carries into the next octave
+        f, k = math.frexp(d)
+        code = 32 * (k + 1) + np.int64(np.rint(np.float32(64.0) * np.float32(f)))
+    return np.int8(((code & 0xFF) ^ 0x80) - 0x80)
 
 
 def feature_storage_shape(n_features: int, dtype: torch.dtype) -> tuple[int]:
-    """A voxel's row in a feature pool of this dtype: n values, or n + 1 bytes packed (int8)."""
-    return (n_features + 1,) if dtype == torch.int8 else (n_features,)
+    """A voxel's row in a feature pool: n values (int8 packed, or float)."""
+    return (n_features,)
 
 
 def decode_features(rows: torch.Tensor) -> torch.Tensor:
-    """Float32 features (..., n) of feature-pool rows (..., n + 1 packed int8, or n float values)."""
+    """Float32 features (..., n) of feature-pool rows (..., n packed int8, or n float values)."""
     if rows.dtype != torch.int8:
         return rows.float()
+    learned = rows[..., :-1].float() / FEATURE_SCALE
+    depth = _DEPTH_OF_CODE_T[rows[..., -1:].view(torch.uint8).long()]
+    return torch.cat([learned, depth], dim=-1)
+
+
+def encode_features(values: torch.Tensor) -> torch.Tensor:
+    """Packed int8 rows (..., n) of features (..., n): `decode_features`' inverse up to rounding
+    (to nearest, as the kernels' `store_feature`)."""
+    values = values.float()
+    learned = torch.round(values[..., :-1] * FEATURE_SCALE).clamp(-FEATURE_SCALE, FEATURE_SCALE).to(torch.int8)
+    depth = values[..., -1:].clamp(0.0, DEPTH_MAX_M)
+    mantissa, exponent = torch.frexp(depth)
+    code = torch.where(depth < 0.25, torch.round(depth * 128.0), 32.0 * (exponent + 1) + torch.round(64.0 * mantissa))
+    return torch.cat([learned, code.to(torch.uint8).view(torch.int8)], dim=-1)
+
+
+def unpack_float16_depth_features(rows: torch.Tensor) -> torch.Tensor:
+    """Float32 features (..., n) of the packed rows maps were saved with before the depth took 8 bits:
+    (..., n + 1) int8, the depth as its float16 bits."""
     learned = rows[..., :-2].float() / FEATURE_SCALE
     depth = rows[..., -2:].contiguous().view(torch.int16).view(torch.float16).float()
     return torch.cat([learned, depth], dim=-1)
 
 
-def encode_features(values: torch.Tensor) -> torch.Tensor:
-    """Packed int8 rows (..., n + 1) of features (..., n): `decode_features`' inverse up to rounding
-    (to nearest, ties to even, as the kernels' `store_feature`)."""
-    values = values.float()
-    learned = torch.round(values[..., :-1] * FEATURE_SCALE).clamp(-FEATURE_SCALE, FEATURE_SCALE).to(torch.int8)
-    depth = values[..., -1:].half().contiguous().view(torch.int8)
-    return torch.cat([learned, depth], dim=-1)
-
-
+@numba.njit(cache=True, inline="always")
 def features_per_voxel(features: np.ndarray, n_voxels: int) -> int:
-    """n, the features per voxel of a flat feature-pool view of n_voxels voxels (numba too)."""
-    stride = features.shape[0] // max(n_voxels, 1)
-    return stride - 1 if features.dtype == np.int8 else stride
+    """n, the features per voxel of a flat feature-pool view of n_voxels voxels."""
+    return features.shape[0] // max(n_voxels, 1)
 
 
 def load_feature(features: np.ndarray, n_features: int, voxel: int, c: int) -> np.float32:
@@ -408,10 +441,10 @@ def load_feature(features: np.ndarray, n_features: int, voxel: int, c: int) -> n
     int8 (see FEATURE_SCALE). Kernels compile this per dtype; this body is the reference."""
     if features.dtype != np.int8:
         return load_f32(features, voxel * n_features + c)
-    base = voxel * (n_features + 1)
+    code = features[voxel * n_features + c]
     if c < n_features - 1:
-        return np.float32(features[base + c] / np.float32(FEATURE_SCALE))
-    return np.float32(features[base + c:base + c + 2].view(np.float16)[0])
+        return np.float32(code / np.float32(FEATURE_SCALE))
+    return DEPTH_OF_CODE[int(code) & 0xFF]
 
 
 def store_feature(features: np.ndarray, n_features: int, voxel: int, c: int, value: float) -> None:
@@ -419,17 +452,10 @@ def store_feature(features: np.ndarray, n_features: int, voxel: int, c: int, val
     if features.dtype != np.int8:
         store_f32(features, voxel * n_features + c, value)
         return
-    base = voxel * (n_features + 1)
     if c < n_features - 1:
-        features[base + c] = np.clip(np.rint(np.float32(value) * np.float32(FEATURE_SCALE)), -127, 127)
+        features[voxel * n_features + c] = np.clip(np.rint(np.float32(value) * np.float32(FEATURE_SCALE)), -127, 127)
     else:
-        features[base + c:base + c + 2] = np.array([value], np.float16).view(np.int8)
-
-
-@overload(features_per_voxel, inline="always")
-def _features_per_voxel(features, n_voxels):  # noqa: ANN001, ANN202 (numba overload)
-    packed = isinstance(features, types.Array) and features.dtype == types.int8
-    return lambda features, n_voxels: features.shape[0] // max(n_voxels, 1) - (1 if packed else 0)
+        features[voxel * n_features + c] = encode_depth(value)
 
 
 @overload(load_feature, inline="always")
@@ -438,11 +464,10 @@ def _load_feature(features, n_features, voxel, c):  # noqa: ANN001, ANN202 (numb
         return lambda features, n_features, voxel, c: load_f32(features, voxel * n_features + c)
 
     def load_packed(features, n_features, voxel, c):  # noqa: ANN001, ANN202
-        base = voxel * (n_features + 1)
+        code = features[voxel * n_features + c]
         if c < n_features - 1:
-            return np.float32(features[base + c]) / np.float32(FEATURE_SCALE)
-        bits = (np.int64(features[base + c]) & 0xFF) | (np.int64(features[base + c + 1]) << 8)
-        return f16_to_f32(np.int16(bits))
+            return np.float32(code) / np.float32(FEATURE_SCALE)
+        return DEPTH_OF_CODE[np.int64(code) & 0xFF]
     return load_packed
 
 
@@ -452,14 +477,11 @@ def _store_feature(features, n_features, voxel, c, value):  # noqa: ANN001, ANN2
         return lambda features, n_features, voxel, c, value: store_f32(features, voxel * n_features + c, value)
 
     def store_packed(features, n_features, voxel, c, value):  # noqa: ANN001, ANN202
-        base = voxel * (n_features + 1)
         if c < n_features - 1:
             q = np.rint(np.float32(value) * np.float32(FEATURE_SCALE))
-            features[base + c] = np.int8(min(max(q, np.float32(-127.0)), np.float32(127.0)))
+            features[voxel * n_features + c] = np.int8(min(max(q, np.float32(-127.0)), np.float32(127.0)))
         else:
-            bits = np.int64(f32_to_f16(np.float32(value)))
-            features[base + c] = np.int8(((bits & 0xFF) ^ 0x80) - 0x80)
-            features[base + c + 1] = np.int8(bits >> 8)
+            features[voxel * n_features + c] = encode_depth(value)
     return store_packed
 
 
@@ -489,7 +511,7 @@ def _blend_features(features, n_features, voxel, keep, add, sums, inv_count):  #
         return blend
 
     def blend_packed(features, n_features, voxel, keep, add, sums, inv_count):  # noqa: ANN001, ANN202
-        base = voxel * (n_features + 1)
+        base = voxel * n_features
         scale = np.float32(FEATURE_SCALE)
         change = np.float32(0.0)
         for c in range(n_features - 1):  # in units of the stored integers: no division, no re-read
@@ -784,6 +806,8 @@ class BlockGrid:
             saved = state[f"pool.{name}"]
             if pool.dtype == torch.int8 and saved.dtype != torch.int8:  # a map saved before features were packed
                 saved = encode_features(saved)
+            elif pool.dtype == torch.int8 and saved.shape[-1] == pool.shape[-1] + 1:  # ... before the depth took 8 bits
+                saved = encode_features(unpack_float16_depth_features(saved))
             pool[slots] = saved.to(pool.dtype)
 
     def nbytes(self) -> int:

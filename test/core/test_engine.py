@@ -17,7 +17,7 @@ from senfunet_core.engine import EngineConfig, SenFuNet
 from senfunet_core.errors import InputError
 from senfunet_core.fusion import fuse
 from senfunet_core.grid import (ALPHA_UNKNOWN, BLOCK, DRIFT_RESET, block_keys, decode_alpha, decode_features,
-                                encode_alpha)
+                                encode_alpha, encode_features, unpack_float16_depth_features)
 from senfunet_core.mesher import Mesh, weld
 
 VOXEL = 0.01
@@ -396,9 +396,9 @@ def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_eng
     assert {grid.pools[name].dtype for name in eight_bit} == {torch.uint8}
     assert {pool.dtype for name, pool in grid.pools.items() if name not in features | eight_bit} == {torch.float16}
     # per voxel, 6 half-precision values (2 x (TSDF, weight), the baseline's TSDF and weight), alpha
-    # and drift in a byte each and 2 x 6 bytes of features (4 int8, the depth's float16); per block,
+    # and drift in a byte each and 2 x 5 bytes of features (4 int8, the depth's 8-bit code); per block,
     # its coordinates, key and up to 4 hash-table entries
-    assert grid.bytes_per_block() == 512 * (2 * 6 + 2 + 2 * 6) + 3 * 8 + 8 + 4 * 16
+    assert grid.bytes_per_block() == 512 * (2 * 6 + 2 + 2 * 5) + 3 * 8 + 8 + 4 * 16
     path = tmp_path / "state.pt"
     sphere_engine.save(path)
     loaded = SenFuNet.load(path)
@@ -418,9 +418,26 @@ def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_eng
     for name in sorted(features):
         got = decode_features(from_half.grid.pools[name][:n])
         want = state["grid"][f"pool.{name}"].float()
-        assert torch.equal(got[..., 4], want[..., 4]), name  # the depth as it was
+        assert torch.equal(got[..., 4], decode_features(encode_features(want))[..., 4]), name  # depth to its code
         assert float((got[..., :4] - want[..., :4]).abs().max()) <= 0.5 / 127 + 1e-6, name
         assert not torch.equal(got[..., :4], want[..., :4])
+    # a map file written when the depth feature was packed as float16 bits (n + 1 bytes a voxel):
+    # loads with the learned features as they were and the depth rounded to its 8-bit code
+    state = torch.load(path, weights_only=True)
+    for name in sorted(features):
+        rows = state["grid"][f"pool.{name}"]
+        depth = decode_features(rows)[..., 4:] + 0.002 * (rows[..., 4:] != 0)  # off the 8-bit steps
+        state["grid"][f"pool.{name}"] = torch.cat([rows[..., :4], depth.half().view(torch.int8)], dim=-1)
+    old_packing = tmp_path / "float16_depth_state.pt"
+    torch.save(state, old_packing)
+    from_packed = SenFuNet.load(old_packing)
+    for name in sorted(features):
+        got = from_packed.grid.pools[name][:n]
+        assert torch.equal(got[..., :4], grid.pools[name][:n, :, :4]), name
+        want = unpack_float16_depth_features(state["grid"][f"pool.{name}"])[..., 4:]
+        want = torch.cat([torch.zeros(*want.shape[:-1], 4), want], dim=-1)
+        assert torch.equal(decode_features(got)[..., 4:], decode_features(encode_features(want))[..., 4:]), name
+        assert not torch.equal(decode_features(got)[..., 4:], want[..., 4:])
     # a map file written when TSDFs, alpha and drift were float32: loads, TSDFs rounded to float16,
     # alpha to its 8-bit code, and a voxel that had drifted marked for the net
     state = torch.load(path, weights_only=True)

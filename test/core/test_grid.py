@@ -166,29 +166,44 @@ def _store_load_features(values, packed):
 
 
 def test_packed_features_in_kernels_equal_encode_and_decode():
-    """The kernels' int8 feature storage (4 learned features in steps of 1/127, the depth as float16
-    bits) matches the torch encoder and decoder bit for bit: ties to even, clamping, negative depth bits."""
+    """The kernels' int8 feature storage (4 learned features in steps of 1/127, the depth as an 8-bit
+    code) matches the torch encoder and decoder bit for bit: ties to even, clamping, depths out of range."""
     rng = np.random.default_rng(3)
     learned = rng.uniform(-1.0, 1.0, (500, 4)).astype(np.float32)
     learned[:20] = (np.arange(-10, 10)[:, None] + 0.5).astype(np.float32) / np.float32(127.0)  # ties
     learned[20:25] = [[1.2, -1.3, 1.0, -1.0]] * 5  # beyond the range: clamped to +-127
-    depth = rng.uniform(0.1, 12.0, (500, 1)).astype(np.float32)
-    depth[25] = -2.5  # a float16 with its sign bit set
+    depth = rng.uniform(0.01, 12.0, (500, 1)).astype(np.float32)
+    depth[25:28, 0] = [-2.5, 40.0, np.float32(G.DEPTH_OF_CODE[100] + G.DEPTH_OF_CODE[101]) / 2]  # clamped; a tie
     values = np.concatenate([learned, depth], axis=1)
-    packed = np.zeros(500 * 6, np.int8)
+    packed = np.zeros(500 * 5, np.int8)
     back = _store_load_features(values, packed)
     encoded = G.encode_features(torch.from_numpy(values))
-    assert encoded.dtype == torch.int8 and encoded.shape == (500, 6)
-    assert np.array_equal(packed.reshape(500, 6), encoded.numpy())
+    assert encoded.dtype == torch.int8 and encoded.shape == (500, 5)
+    assert np.array_equal(packed.reshape(500, 5), encoded.numpy())
     decoded = G.decode_features(encoded).numpy()
     assert np.array_equal(back, decoded)
-    assert np.array_equal(decoded[:, 4], depth[:, 0].astype(np.float16).astype(np.float32))
+    assert decoded[25:28, 4].tolist() == [0.0, G.DEPTH_MAX_M, G.DEPTH_OF_CODE[100]]  # tie to the even code
     assert np.abs(decoded[25:, :4] - learned[25:]).max() <= 0.5 / 127 + 1e-7
     assert decoded[20:25, :4].tolist() == [[1.0, -1.0, 1.0, -1.0]] * 5
     # a float16 feature pool takes the same calls, one value per feature
     half = np.zeros(500 * 5, np.int16)
     back_half = _store_load_features(values, half)
     assert np.array_equal(back_half, values.astype(np.float16).astype(np.float32))
+
+
+def test_depth_code_rounds_to_the_nearest_representable_depth():
+    """The depth feature's 8-bit code: increasing, 0 m at code 0, and every depth in range goes to
+    its nearest code (relative error at most 1/64 from 0.25 m, at most 1/256 m below)."""
+    table = G.DEPTH_OF_CODE.astype(np.float64)
+    assert table[0] == 0.0 and (np.diff(table) > 0).all() and table[-1] == G.DEPTH_MAX_M
+    depth = np.random.default_rng(8).uniform(0.0, G.DEPTH_MAX_M, 20000).astype(np.float32)
+    codes = np.array([G.encode_depth(d) for d in depth]).astype(np.int64) & 0xFF
+    nearest = np.abs(depth[:, None].astype(np.float64) - table[None, :]).argmin(axis=1)
+    got, best = table[codes], table[nearest]
+    assert np.allclose(np.abs(got - depth), np.abs(best - depth), rtol=0, atol=1e-6)
+    far = depth >= 0.25
+    assert (np.abs(got - depth)[far] / depth[far]).max() <= 1 / 64 + 1e-6
+    assert np.abs(got - depth)[~far].max() <= 1 / 256 + 1e-6
 
 
 @numba.njit
@@ -209,7 +224,7 @@ def test_blended_features_match_the_reference_average(storage):
     sums = (sums * count[:, None] / 3).astype(np.float32)
     weight = rng.integers(0, 40, n_voxels).astype(np.float32)
     keep, add = weight / (weight + 1), 1 / (weight + 1)
-    pool = np.zeros(n_voxels * (n + 1), np.int8) if storage == "packed int8" else np.zeros(n_voxels * n, np.int16)
+    pool = np.zeros(n_voxels * n, np.int8 if storage == "packed int8" else np.int16)
     _store_load_features(start.astype(np.float32), pool)
     reference = pool.copy()
     old = np.array([[G.load_feature(reference, n, v, c) for c in range(n)] for v in range(n_voxels)], np.float32)
