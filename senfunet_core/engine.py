@@ -61,13 +61,13 @@ from .alpha_scheduler import AlphaScheduler
 from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
-from .grid import ALPHA_UNKNOWN, DRIFT_RESET, MAX_DRIFT_TOLERANCE, BlockGrid, block_keys, encode_alpha
+from .grid import ALPHA_UNKNOWN, DRIFT_RESET, MAX_DRIFT_TOLERANCE, BlockGrid, block_keys, encode_alpha, keys_to_coords
 from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
 from .mesh_archive import MeshArchive
 from .mesher import BlockMeshes, Mesh, StreamingWeld
-from .spill import BlockSpill
+from .spill import BlockSpill, spilled_rows
 from .stage_times import StageTimes
 
 log = logging.getLogger("senfunet.engine")
@@ -550,8 +550,9 @@ class SenFuNet:
             net.load_state_dict(net_state)
         engine.weighting_net.load_state_dict(state["weighting_net"])
         engine.weights_source = f"{path} (saved state)"
-        engine.grid.load_state_dict(_eight_bit_alpha_and_drift(path, state))
-        if "spill" in state and len(state["spill"]["keys"]):
+        grid_state, spill_loads = _grid_state_for(engine.grid, path, state)
+        engine.grid.load_state_dict(grid_state)
+        if spill_loads:
             if engine.grid.spill is None:
                 engine.grid.spill = BlockSpill()
             engine.grid.spill.load_state_dict({k: v.numpy() for k, v in state["spill"].items()})
@@ -705,12 +706,35 @@ class SenFuNet:
         return meshes
 
 
-def _eight_bit_alpha_and_drift(path: Path, state: dict) -> dict:
-    """The grid state of a saved map, with alpha and drift as 8-bit codes: maps saved before they
-    took 8 bits hold float16 values (converted here; a voxel that had drifted is re-judged)."""
+def _grid_state_for(grid: BlockGrid, path: Path, state: dict) -> tuple[dict, bool]:
+    """The grid state of a saved map in this version's layout, and whether its spill can be loaded
+    as it is. Maps saved by earlier versions hold alpha and drift as float16 values (converted here;
+    a voxel that had drifted is re-judged); other feature packings convert in `BlockGrid.load_state_dict`.
+    A spill written with another row layout cannot be read block by block later: its blocks come back
+    into memory here, converted with the others (the map bound evicts them again)."""
     grid_state = dict(state["grid"])
-    if grid_state["pool.alpha"].dtype == torch.uint8:
-        return grid_state
+    saved = {name[len("pool."):]: pool for name, pool in grid_state.items() if name.startswith("pool.")}
+    saved_layout = [(name, int(np.prod(pool.shape[1:])) * pool.element_size()) for name, pool in saved.items()]
+    layout = [(name, pool[0].numel() * pool.element_size()) for name, pool in grid.pools.items()]
+    spill = {k: v.numpy() for k, v in state["spill"].items()} if "spill" in state else None
+    spill_loads = spill is not None and len(spill["keys"]) > 0 and saved_layout == layout
+    if spill is not None and len(spill["keys"]) and not spill_loads:
+        keys, rows = spilled_rows(spill)
+        sizes = [size for _, size in saved_layout]
+        if rows.shape[1] != sum(sizes):
+            raise InputError(f"{path}: its spilled blocks hold {rows.shape[1]} bytes each where its channels "
+                             f"need {sum(sizes)}: the file is damaged; replay the recording to rebuild the map")
+        columns = np.split(rows, np.cumsum(sizes)[:-1], axis=1)
+        for (name, pool), column in zip(saved.items(), columns):
+            back = torch.from_numpy(column.copy()).view(pool.dtype).reshape(len(keys), *pool.shape[1:])
+            grid_state[f"pool.{name}"] = torch.cat([pool, back])
+        grid_state["coords"] = torch.cat([grid_state["coords"], keys_to_coords(torch.from_numpy(keys))])
+        log.info("%s: %d blocks it had spilled to disk were saved in an earlier layout: loaded into memory "
+                 "(past the map bound they go back to disk at the next update)", path, len(keys))
+    if grid_state["pool.alpha"].dtype != torch.uint8:
+        grid_state["pool.alpha"] = torch.from_numpy(encode_alpha(grid_state["pool.alpha"].float().numpy()))
+        grid_state["pool.drift"] = torch.where(grid_state["pool.drift"].float() > 0, DRIFT_RESET, 0).to(torch.uint8)
+    return grid_state, spill_loads
     if "spill" in state and len(state["spill"]["keys"]):
         raise InputError(f"{path} was saved by an earlier version with blocks spilled to disk, whose rows this "
                          "version cannot read: replay the recording to rebuild the map")

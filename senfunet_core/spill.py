@@ -16,7 +16,7 @@ from typing import IO
 import numpy as np
 import zstandard
 
-__all__ = ["BlockSpill"]
+__all__ = ["BlockSpill", "spilled_rows"]
 
 # Rewrite the file once the space of taken blocks exceeds both this and the space still in use.
 _COMPACT_MIN_BYTES = 64 << 20
@@ -155,3 +155,15 @@ class BlockSpill:
             self._index[key] = (self._end, length)
             self._end += length
         old.close()
+
+
+def spilled_rows(state: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The blocks of a saved spill (`BlockSpill.state_dict`): their keys (N int64) and rows, decompressed
+    (N x row bytes, uint8: each channel's row after the other, in the channel order they were put with)."""
+    decompressor = zstandard.ZstdDecompressor()
+    ends = np.cumsum(state["lengths"])
+    blobs = np.ascontiguousarray(state["blobs"], np.uint8)
+    rows = [np.frombuffer(decompressor.decompress(blobs[end - length:end].tobytes()), np.uint8)
+            for end, length in zip(ends.tolist(), np.asarray(state["lengths"]).tolist())]
+    return np.asarray(state["keys"], np.int64), np.stack(rows) if rows else np.zeros((0, 0), np.uint8)
+

@@ -10,6 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+import zstandard
 from scipy.spatial import cKDTree
 
 from senfunet_core import networks
@@ -19,6 +20,7 @@ from senfunet_core.fusion import fuse
 from senfunet_core.grid import (ALPHA_UNKNOWN, BLOCK, DRIFT_RESET, block_keys, decode_alpha, decode_features,
                                 encode_alpha, encode_features, unpack_float16_depth_features)
 from senfunet_core.mesher import Mesh, weld
+from senfunet_core.spill import spilled_rows
 
 VOXEL = 0.01
 
@@ -994,12 +996,38 @@ def test_idle_catch_up_yields_to_the_next_frame(alpha_threads):
     assert len(batches) > 10
 
 
+def with_float16_depth_packing(state: dict, grid) -> dict:
+    """A saved engine state as an earlier version wrote it: feature rows of n + 1 bytes (the depth
+    feature as float16 bits), in the grid and in the spill's blobs."""
+    def repack(rows: torch.Tensor) -> torch.Tensor:
+        return torch.cat([rows[..., :-1], decode_features(rows)[..., -1:].half().view(torch.int8)], dim=-1)
+
+    names = list(grid.pools)
+    for name in names:
+        if name.startswith("feat"):
+            state["grid"][f"pool.{name}"] = repack(state["grid"][f"pool.{name}"])
+    keys, rows = spilled_rows({k: v.numpy() for k, v in state["spill"].items()})
+    sizes = [pool[0].numel() * pool.element_size() for pool in grid.pools.values()]
+    columns = np.split(rows, np.cumsum(sizes)[:-1], axis=1)
+    for i, name in enumerate(names):
+        if name.startswith("feat"):
+            packed = torch.from_numpy(columns[i].copy()).view(torch.int8).reshape(len(keys), 512, -1)
+            columns[i] = repack(packed).reshape(len(keys), -1).view(torch.uint8).numpy()
+    compressor = zstandard.ZstdCompressor()
+    blobs = [compressor.compress(np.concatenate(row).tobytes()) for row in zip(*columns)]
+    state["spill"] = {"keys": torch.from_numpy(keys), "lengths": torch.tensor([len(b) for b in blobs]),
+                      "blobs": torch.from_numpy(np.frombuffer(b"".join(blobs), np.uint8).copy())}
+    return state
+
+
 @pytest.mark.parametrize("min_new_block_samples", [0, 300])
 def test_evicted_blocks_come_back_from_disk_when_seen_again(tmp_path, min_new_block_samples):
     """A bounded engine spills evicted blocks' voxels to disk; when the sensors come back to them,
     the blocks continue from what they held (however few samples reach them: they are not new to
     the allocation policy): every block then holds exactly what an unbounded engine holds for it,
-    and the two hold the same blocks, also across save and load of the bounded engine in between."""
+    and the two hold the same blocks, also across save and load of the bounded engine in between,
+    and when the map was saved by an earlier version with another row layout (its spilled blocks
+    load into memory, converted)."""
     near_views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]]
     back_views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:3]]
 
@@ -1018,10 +1046,15 @@ def test_evicted_blocks_come_back_from_disk_when_seen_again(tmp_path, min_new_bl
     assert spilled > 50
     path = tmp_path / "map.pt"
     bounded.save(path)
-    for engine in (bounded, SenFuNet.load(path)):
+    earlier = tmp_path / "map_float16_depth.pt"  # as saved when the depth feature was float16 bits
+    torch.save(with_float16_depth_packing(torch.load(path, weights_only=True), bounded.grid), earlier)
+    from_earlier = SenFuNet.load(earlier)  # its spilled blocks come back into memory, converted
+    assert from_earlier.grid.n_blocks == bounded.grid.n_blocks + spilled and not len(from_earlier.grid.spill or [])
+    for engine in (bounded, SenFuNet.load(path), from_earlier):
         integrate(engine, back_views)  # ... and come back
         stats = engine.stats()
-        assert stats["restored_blocks"] > 0.5 * spilled and stats["evicted_blocks"] > 0
+        assert stats["restored_blocks"] > (0.5 * spilled if engine is not from_earlier else -1)
+        assert stats["evicted_blocks"] > 0
         grid = engine.grid
         slots = reference.grid.lookup(grid.coords[: grid.n_blocks])
         assert bool((slots >= 0).all())
