@@ -7,8 +7,8 @@ throughput, meshing time per block, bytes per observed voxel.
 
 Frames come from the sample bag through the node's Ingest (as `senfunet replay` reads them) or,
 without a bag, from `senfunet_core.learning.simulator`. The alpha figures are given for the exact
-configuration (alpha_voxels="all", alpha_tolerance=0: every voxel within 2 voxels of a change) and
-for the fast one the node uses (see docs/performance.md and test/core/test_equivalence.py).
+configuration (alpha_voxels="all": every voxel within 2 voxels of a change) and for the ones the
+node can use (see docs/performance.md and test/core/test_equivalence.py).
 """
 from __future__ import annotations
 
@@ -93,7 +93,6 @@ def main() -> None:
     ap.add_argument("--update-every", type=int, default=12, help="engine.update() after this many frames")
     ap.add_argument("--seed", type=int, default=4242, help="simulated room when there is no bag")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--fast-tolerance", type=float, default=0.02)
     ap.add_argument("--no-write", dest="write", action="store_false")
     args = ap.parse_args()
     from senfunet_core.engine import EngineConfig
@@ -109,14 +108,12 @@ def main() -> None:
     # G on as many threads as the peak is measured with (the node's config evaluates idle catch-ups on every core)
     base = replace(base, alpha_threads=args.threads)
     configs = {
-        "exact (alpha_voxels=all, tolerance 0, float32)": replace(base, alpha_voxels="all", alpha_tolerance=0.0,
-                                                                  alpha_dtype="float32", torch_threads=args.threads),
-        f"node (alpha_voxels=surface, tolerance 0, {base.alpha_dtype})":
-            replace(base, alpha_voxels="surface", alpha_tolerance=0.0, torch_threads=args.threads),
-        f"voxels (alpha_voxels=surface_voxels, tolerance 0, {base.alpha_dtype})":
-            replace(base, alpha_voxels="surface_voxels", alpha_tolerance=0.0, torch_threads=args.threads),
-        f"fast (alpha_voxels=surface, tolerance {args.fast_tolerance:g})":
-            replace(base, alpha_voxels="surface", alpha_tolerance=args.fast_tolerance, torch_threads=args.threads),
+        "exact (alpha_voxels=all, float32)": replace(base, alpha_voxels="all", alpha_dtype="float32",
+                                                     torch_threads=args.threads),
+        f"node (alpha_voxels=surface, {base.alpha_dtype})":
+            replace(base, alpha_voxels="surface", torch_threads=args.threads),
+        f"voxels (alpha_voxels=surface_voxels, {base.alpha_dtype})":
+            replace(base, alpha_voxels="surface_voxels", torch_threads=args.threads),
     }
     results = {name: measure(frames, cfg, weights, args.update_every) for name, cfg in configs.items()}
     peaks = {dtype: peak_flop_per_s(dtype, args.threads) for dtype in ("float32", "bfloat16")}

@@ -1,10 +1,10 @@
 """Where the sensor weighting alpha must be re-evaluated, and the weighting net's inputs there.
 
 Alpha at a voxel depends on the weighting-net inputs [F_1, tanh(W_1), F_2, tanh(W_2)] within
-2 voxels (receptive field 5^3). Integration accumulates, per voxel, how much those inputs drifted
-since alpha around the voxel was last evaluated (`drift`, see integrator.update_voxels). A block
-is stale when a voxel within 2 of it drifted more than the tolerance (`take_drift`); when its
-turn comes, the net is evaluated on the voxels of the evaluated set (EngineConfig.alpha_voxels):
+2 voxels (receptive field 5^3). Integration collects, per block, the blocks within 2 voxels of
+its voxels whose inputs changed since alpha was last scheduled (integrator.update_voxels); those
+are stale (`reach_levels`); when a block's turn comes, the net is evaluated on the voxels of the
+evaluated set (EngineConfig.alpha_voxels):
 - "all": every voxel of the block, as blocks with a 2-voxel halo (`weighting_windows`): the exact,
   whole-grid result on every voxel;
 - "surface": the corners of cells whose 8 corners are observed and whose sensor TSDFs (any
@@ -25,7 +25,7 @@ import numba
 import numpy as np
 import torch
 
-from .grid import drift_value, f16_to_f32, features_per_voxel, load_f32, load_feature, store_f32
+from .grid import f16_to_f32, features_per_voxel, load_f32, load_feature, store_f32
 from .integrator import TANH_OF_COUNT
 
 HALO = 2  # alpha depends on inputs within 2 voxels
@@ -43,36 +43,14 @@ def _neighbour_index(neighbours: np.ndarray, b: int, x: int, y: int, z: int) -> 
     return slot * 512 + (x & 7) * 64 + (y & 7) * 8 + (z & 7)
 
 
-@numba.njit(cache=True, nogil=True)
-def take_drift(slots: np.ndarray, drift: np.ndarray, tolerance: float) -> np.ndarray:
-    """Which neighbours the drift of these blocks reaches: B x 27 levels (neighbour code
-    9*(dx+1) + 3*(dy+1) + (dz+1)), 2 where a voxel within 2 of that neighbour was first observed
-    or changed sign (drift inf), else 1 where one drifted more than the tolerance, else 0. The
-    drift of those voxels restarts: alpha around them is now scheduled. drift: 8-bit codes
-    (`grid.add_drift`)."""
-    levels = np.zeros((slots.shape[0], 27), np.int8)
-    words = drift.view(np.int64)  # 8 voxels a word: most voxels of a changed block did not drift at all
-    for b in range(slots.shape[0]):
-        base = slots[b] * 512
-        for word in range(base >> 3, (base + 512) >> 3):
-            if words[word] == 0:
-                continue
-            for voxel in range(word << 3, (word << 3) + 8):
-                d = drift_value(drift[voxel])
-                if not d > tolerance:
-                    continue
-                drift[voxel] = 0
-                level = 2 if d == np.inf else 1
-                local = voxel - base
-                x, y, z = local >> 6, (local >> 3) & 7, local & 7
-                # neighbours within HALO voxels of this one, per axis: -1 (x < 2), 0, +1 (x > 5)
-                for dx in range(-1 if x < HALO else 0, 2 if x >= 8 - HALO else 1):
-                    for dy in range(-1 if y < HALO else 0, 2 if y >= 8 - HALO else 1):
-                        for dz in range(-1 if z < HALO else 0, 2 if z >= 8 - HALO else 1):
-                            code = 9 * (dx + 1) + 3 * (dy + 1) + dz + 1
-                            if levels[b, code] < level:
-                                levels[b, code] = level
-    return levels
+def reach_levels(changed: np.ndarray, renewed: np.ndarray) -> np.ndarray:
+    """B x 27 levels (neighbour code 9*(dx+1) + 3*(dy+1) + (dz+1)) of the reach bits integration
+    collected per block (integrator.REACH_OF_VOXEL): 2 where a voxel within 2 of that neighbour was
+    first observed or changed sign, else 1 where a voxel's inputs changed, else 0."""
+    bits = np.arange(27, dtype=np.int32)
+    changed_bits = (changed.astype(np.int32)[:, None] >> bits) & 1
+    renewed_bits = (renewed.astype(np.int32)[:, None] >> bits) & 1
+    return np.where(renewed_bits > 0, 2, changed_bits).astype(np.int8)
 
 
 def window_channels(features_1: np.ndarray, weight_1: np.ndarray, tsdf_1: np.ndarray) -> int:

@@ -1,13 +1,13 @@
 """Which blocks the weighting net must judge, in which order, and judging them.
 
-Integration marks the blocks it touched (`BlockStore.alpha_pending`) and accumulates each voxel's
-input drift. `schedule` turns that drift into stale blocks (every block within 2 voxels of a
-drifted voxel, `alpha.take_drift`); `order` lists the stale blocks (`EngineConfig.alpha_order`);
-`evaluate` runs the net on a batch of them where alpha matters (`EngineConfig.alpha_voxels`,
-see `alpha`); `write` stores the results; `refresh` does all of it within a budget, on
-`alpha_threads` threads when it may. The engine decides when (budgets, eviction points) and holds
+Integration marks the blocks it touched (`BlockStore.alpha_pending`) and collects, per block, the
+blocks within 2 voxels of its changed voxels (`BlockStore.reach_changed`, `reach_renewed`).
+`schedule` turns those into stale blocks (`alpha.reach_levels`); `order` lists the stale blocks
+(`EngineConfig.alpha_order`); `evaluate` runs the net on a batch of them where alpha matters
+(`EngineConfig.alpha_voxels`, see `alpha`); `write` stores the results; `refresh` does all of it
+within a budget, on `alpha_threads` threads when it may. The engine decides when (budgets, eviction points) and holds
 its locks as the threading model in `engine` says: the scheduler takes the data lock it is given
-only around its reads of drift and its writes.
+only around its reads of the reach bits and its writes.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .alpha import WINDOW, evaluate_gathers, surface_targets, take_drift, target_gathers, weighting_windows
+from .alpha import WINDOW, evaluate_gathers, reach_levels, surface_targets, target_gathers, weighting_windows
 from .block_store import BlockStore, Eviction
 from .grid import BLOCK, encode_alpha
 from .scratch import ThreadScratch
@@ -61,14 +61,13 @@ class AlphaScheduler:
     """The weighting net's work over a `BlockStore` (see the module docstring)."""
 
     def __init__(self, store: BlockStore, net: Any, data_lock: threading.RLock, *, alpha_voxels: str,
-                 alpha_dtype: str, alpha_tolerance: float, tsdf_input: bool, band_m: float,
+                 alpha_dtype: str, tsdf_input: bool, band_m: float,
                  device: torch.device, batch_blocks: int, threads: int, alpha_order: str) -> None:
         self.store = store
         self.net = net
         self._data_lock = data_lock
         self.alpha_voxels = alpha_voxels
         self.dtype = torch.bfloat16 if alpha_dtype == "bfloat16" else torch.float32
-        self.alpha_tolerance = alpha_tolerance
         self.tsdf_input = tsdf_input
         self.tsdf_scale = 2.0 / band_m
         self.device = device
@@ -81,17 +80,19 @@ class AlphaScheduler:
         self.flops = 0  # weighting-net FLOPs written so far (for the benchmark's fraction of peak)
 
     def schedule(self) -> None:
-        """Turn the drift of the blocks integrated since the last call into stale blocks: the
-        blocks it reaches (whether they hold voxels alpha matters for is checked when their turn
+        """Turn the changes of the blocks integrated since the last call into stale blocks: the
+        blocks they reach (whether they hold voxels alpha matters for is checked when their turn
         comes, in `evaluate`)."""
         store = self.store
-        with self._data_lock:  # atomic with integration: its drift is either taken now or next time
+        with self._data_lock:  # atomic with integration: its reach is either taken now or next time
             changed = np.flatnonzero(store.alpha_pending[: store.n_blocks])
             if len(changed) == 0:
                 return
             store.alpha_pending[changed] = False
             changed_s, store.first_change_s = store.first_change_s, float("nan")
-            reach = take_drift(changed, store.views("drift")[0], self.alpha_tolerance)  # B x 27
+            reach = reach_levels(store.reach_changed[changed], store.reach_renewed[changed])  # B x 27
+            store.reach_changed[changed] = 0
+            store.reach_renewed[changed] = 0
         around = store.neighbours(changed)
         reached = (around >= 0) & (reach > 0)
         targets, target_levels = around[reached], reach[reached]

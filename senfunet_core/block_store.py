@@ -35,6 +35,9 @@ class Eviction:
 class BlockStore:
     """The grid and, per block slot (arrays as long as the grid's capacity):
     - alpha_pending: integrated into since the last alpha schedule;
+    - reach_changed, reach_renewed: since then, the blocks within 2 voxels of its voxels whose
+      weighting-net inputs changed, and of those first observed or whose TSDF changed sign
+      (bits of neighbour codes, integrator.REACH_OF_VOXEL);
     - stale: alpha to re-evaluate: 0 no, 1 inputs drifted, 2 new or sign-changed voxels, 3 never evaluated;
     - evaluated: alpha evaluated at least once;
     - no_targets: when last checked, the block held no voxel alpha matters for;
@@ -46,12 +49,14 @@ class BlockStore:
     And `first_change_s`: when the oldest integration not scheduled yet happened (monotonic seconds;
     NaN when every integration was scheduled), so that the scheduler knows how long alpha waits."""
 
-    _FLAGS = {"alpha_pending": bool, "stale": np.int8, "evaluated": bool, "no_targets": bool,
-              "last_reached": np.int64, "stale_since_s": np.float64, "mesh_pending": bool,
-              "meshed": bool}
+    _FLAGS = {"alpha_pending": bool, "reach_changed": np.int32, "reach_renewed": np.int32, "stale": np.int8,
+              "evaluated": bool, "no_targets": bool, "last_reached": np.int64, "stale_since_s": np.float64,
+              "mesh_pending": bool, "meshed": bool}
     _FILL = {"stale_since_s": np.nan}  # the others start at 0 (False)
 
     alpha_pending: np.ndarray
+    reach_changed: np.ndarray
+    reach_renewed: np.ndarray
     stale: np.ndarray
     evaluated: np.ndarray
     no_targets: np.ndarray

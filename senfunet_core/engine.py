@@ -11,9 +11,9 @@ over blocks in `block_mesher.BlockMesher`; the map bound (which blocks leave mem
 meshes in `mesh_archive.MeshArchive`, their voxels in `spill.BlockSpill` on disk) in
 `map_bound.MapBound`. This module holds the verbs, the networks and the locks.
 
-Incremental update: a frame marks the blocks it touched, and every voxel accumulates how much its
-weighting-net inputs drifted (see `alpha`). `update` re-evaluates alpha within 2 voxels of a
-drifted one, where alpha matters (EngineConfig.alpha_voxels; the result equals evaluating the net
+Incremental update: a frame marks the blocks it touched, and which blocks lie within 2 voxels of
+its voxels whose weighting-net inputs changed (see `alpha`). `update` re-evaluates alpha there,
+where alpha matters (EngineConfig.alpha_voxels; the result equals evaluating the net
 over the whole grid there); then it re-meshes every block whose cells read a changed alpha or TSDF
 (the changed blocks and their -x, -y, -z neighbours, since a block's cells reach one voxel into its
 +x, +y, +z neighbours).
@@ -30,7 +30,7 @@ Threading model (the one place it is described):
 - The update lock (`_updating`) serialises updates, extractions, saves and evictions; it owns the
   alpha scheduler's order, the map bound (its archive) and the set of meshed blocks.
 - The data lock guards the grid's contents and the per-block flags: integration holds it while its
-  kernels run, an update while it takes the frames' drift, writes alpha or evicts. An update (or
+  kernels run, an update while it takes the frames' changes, writes alpha or evicts. An update (or
   its alpha threads, which write nothing) reads input windows without it (and `stats` counts
   voxels without it): a block integrated meanwhile is marked again and re-read by the next update,
   and pools that grow meanwhile stay valid for whoever still holds the old ones. Evictions wait
@@ -61,8 +61,8 @@ from .alpha_scheduler import AlphaScheduler
 from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
-from .grid import ALPHA_UNKNOWN, DRIFT_RESET, MAX_DRIFT_TOLERANCE, BlockGrid, block_keys, encode_alpha, keys_to_coords
-from .integrator import IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
+from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, encode_alpha, keys_to_coords
+from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
 from .mesh_archive import MeshArchive
@@ -117,8 +117,6 @@ class EngineConfig:
     #   (mesh_archive); 0 = no bound; -1 = from the machine's memory (`memory_bound_blocks`)
     tsdf_fusion: bool = True  # also integrate every frame into one plain TSDF grid: the "tsdf_fusion" baseline
     #                           (one more running average per sample and 4 bytes per voxel)
-    alpha_tolerance: float = 0.0  # re-evaluate alpha around a voxel only once its inputs drifted more than this
-    #                               (max-norm over [F, tanh(W)], summed over frames); 0 = exact
     min_new_block_samples: int = 16  # allocation policy: a frame allocates a block only where at least this many of
     #   its ray samples land; samples in blocks not allocated are dropped and counted (counters
     #   "sparse_dropped_samples", "sparse_dropped_blocks"); blocks already in the map take every sample. 0 = allocate
@@ -163,9 +161,9 @@ class EngineConfig:
         if self.min_new_block_samples < 0:
             raise InputError(f"min_new_block_samples must be >= 0 (0 = allocate every touched block), "
                              f"got {self.min_new_block_samples}")
-        if not 0 <= self.alpha_tolerance < MAX_DRIFT_TOLERANCE or self.torch_threads < 0 or self.alpha_threads < 1:
-            raise InputError(f"alpha_tolerance must lie in [0, {MAX_DRIFT_TOLERANCE:g}) (drift is counted in 8 bits), "
-                             "torch_threads >= 0 and alpha_threads >= 1")
+        if self.torch_threads < 0 or self.alpha_threads < 1:
+            raise InputError(f"torch_threads must be >= 0 and alpha_threads >= 1, got {self.torch_threads} "
+                             f"and {self.alpha_threads}")
 
 
 @dataclass
@@ -232,8 +230,7 @@ class SenFuNet:
         for net in self.feature_nets:
             net.compute_dtype = getattr(torch, config.feature_dtype)
         self.weighting_net.to(self.device).eval()
-        # drift: per voxel, how much its weighting-net inputs changed since alpha around it was evaluated
-        channels: dict[str, tuple[int, ...]] = {"alpha": (), "drift": ()}
+        channels: dict[str, tuple[int, ...]] = {"alpha": ()}
         if config.tsdf_fusion:
             channels.update({"tsdf_base": (), "weight_base": ()})
         for i in range(len(config.sensors)):
@@ -242,10 +239,10 @@ class SenFuNet:
         # values within the band keep a relative precision of 2^-11, far below the sensors' noise
         # (kernels read them through grid.load_f32). The learned features lie in [-1, 1]: int8
         # (steps of 1/127), the depth feature an 8-bit float, packed in one int8 pool (grid.FEATURE_SCALE,
-        # grid.encode_depth, read through grid.load_feature / decode_features). Alpha, a weighting in [0, 1], and drift,
-        # compared with a tolerance, in 8 bits (grid.encode_alpha, grid.add_drift).
+        # grid.encode_depth, read through grid.load_feature / decode_features). Alpha, a weighting in [0, 1],
+        # in 8 bits (grid.encode_alpha).
         dtypes = {name: torch.int8 if name.startswith("feat") else torch.float16 for name in channels}
-        dtypes.update(alpha=torch.uint8, drift=torch.uint8)
+        dtypes["alpha"] = torch.uint8
         # alpha unknown until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)
         self.store = BlockStore(BlockGrid(channels, dtypes=dtypes, fill={"alpha": ALPHA_UNKNOWN}))
         self.grid = self.store.grid
@@ -256,7 +253,6 @@ class SenFuNet:
                      self.grid.bytes_per_block())
         if self.max_blocks > 0:  # evicted blocks go to disk, and come back when the sensors reach them again
             self.grid.spill = BlockSpill()
-            self.grid.restored_fill = {"drift": DRIFT_RESET}  # alpha within 2 voxels of them is re-judged
         # Writers of the grid (integration, alpha) hold the data lock; the update's readers do not:
         # a block integrated while it is read is marked again and re-read by the next update, and
         # pools that grow meanwhile stay valid for whoever still holds the old ones.
@@ -267,7 +263,7 @@ class SenFuNet:
         self.timings_s = self.times.last_s  # stage -> seconds of its last run
         self.total_s = self.times.total_s  # stage -> seconds summed over all runs
         self.alpha = AlphaScheduler(self.store, self.weighting_net, self._data_lock, alpha_voxels=config.alpha_voxels,
-                                    alpha_dtype=config.alpha_dtype, alpha_tolerance=config.alpha_tolerance,
+                                    alpha_dtype=config.alpha_dtype,
                                     tsdf_input=config.weighting_tsdf_input, band_m=config.band_m, device=self.device,
                                     batch_blocks=config.alpha_batch_blocks, threads=config.alpha_threads,
                                     alpha_order=config.alpha_order)
@@ -324,6 +320,10 @@ class SenFuNet:
                                      (f"tsdf{s}", f"weight{s}", f"feat{s}"), scratch=self._scratch)
             self.store.grow_flags()
             self.store.alpha_pending[update.touched_slots] = True
+            self.store.reach_changed[update.touched_slots] |= update.reach[:, 0]
+            self.store.reach_renewed[update.touched_slots] |= update.reach[:, 1]
+            # blocks back from the spill: alpha around them was judged without them
+            self.store.reach_renewed[self.grid.take_restored_slots()] = REACH_ALL
             if np.isnan(self.store.first_change_s):
                 self.store.first_change_s = time.monotonic()
             self.store.mesh_pending[update.touched_slots] = True  # the TSDF changed here, whatever alpha does
@@ -381,7 +381,7 @@ class SenFuNet:
 
     @torch.inference_mode()
     def refresh_alpha(self, budget_s: float | None = None, *, until_frame: bool = False) -> None:
-        """Re-evaluate alpha where the inputs drifted, at most about budget_s seconds (None: all of
+        """Re-evaluate alpha where the inputs changed, at most about budget_s seconds (None: all of
         it), and with `until_frame` only until a frame is integrated, on `alpha_threads` threads (an
         idle catch-up that yields to the sensors when they resume); the next update re-meshes the
         blocks whose alpha changed."""
@@ -552,6 +552,9 @@ class SenFuNet:
         engine.weights_source = f"{path} (saved state)"
         grid_state, spill_loads = _grid_state_for(engine.grid, path, state)
         engine.grid.load_state_dict(grid_state)
+        drifted = np.flatnonzero(_drifted_blocks(grid_state))  # slots follow the saved order
+        engine.store.alpha_pending[drifted] = True
+        engine.store.reach_renewed[drifted] = REACH_ALL
         if spill_loads:
             if engine.grid.spill is None:
                 engine.grid.spill = BlockSpill()
@@ -708,8 +711,8 @@ class SenFuNet:
 
 def _grid_state_for(grid: BlockGrid, path: Path, state: dict) -> tuple[dict, bool]:
     """The grid state of a saved map in this version's layout, and whether its spill can be loaded
-    as it is. Maps saved by earlier versions hold alpha and drift as float16 values (converted here;
-    a voxel that had drifted is re-judged); other feature packings convert in `BlockGrid.load_state_dict`.
+    as it is. Maps saved by earlier versions hold alpha as float16 values (converted here) and a
+    per-voxel drift channel (`_drifted_blocks`); other feature packings convert in `BlockGrid.load_state_dict`.
     A spill written with another row layout cannot be read block by block later: its blocks come back
     into memory here, converted with the others (the map bound evicts them again)."""
     grid_state = dict(state["grid"])
@@ -733,11 +736,13 @@ def _grid_state_for(grid: BlockGrid, path: Path, state: dict) -> tuple[dict, boo
                  "(past the map bound they go back to disk at the next update)", path, len(keys))
     if grid_state["pool.alpha"].dtype != torch.uint8:
         grid_state["pool.alpha"] = torch.from_numpy(encode_alpha(grid_state["pool.alpha"].float().numpy()))
-        grid_state["pool.drift"] = torch.where(grid_state["pool.drift"].float() > 0, DRIFT_RESET, 0).to(torch.uint8)
     return grid_state, spill_loads
-    if "spill" in state and len(state["spill"]["keys"]):
-        raise InputError(f"{path} was saved by an earlier version with blocks spilled to disk, whose rows this "
-                         "version cannot read: replay the recording to rebuild the map")
-    grid_state["pool.alpha"] = torch.from_numpy(encode_alpha(grid_state["pool.alpha"].float().numpy()))
-    grid_state["pool.drift"] = torch.where(grid_state["pool.drift"].float() > 0, DRIFT_RESET, 0).to(torch.uint8)
-    return grid_state
+
+
+def _drifted_blocks(grid_state: dict) -> np.ndarray:
+    """Which blocks of a saved grid state (from a version that kept a per-voxel drift channel) had
+    inputs that changed since alpha was last scheduled there (bool per block; none without it)."""
+    drift = grid_state.get("pool.drift")
+    if drift is None:
+        return np.zeros(len(grid_state["coords"]), bool)
+    return (drift.reshape(len(drift), -1) != 0).any(dim=1).numpy()

@@ -8,8 +8,8 @@ zero-copy numpy views; float16 channels are handed to the kernels as their int16
 (`f16_to_f32` / `f32_to_f16` convert one value, in hardware where the CPU can; `load_f32` /
 `store_f32` read and write a channel of either storage). A feature channel may be int8, features
 packed per voxel (`FEATURE_SCALE`, `encode_depth`; `load_feature` / `store_feature` in kernels, `decode_features`
-/ `encode_features` in torch). Alpha and drift may be 8-bit codes (`encode_alpha` / `load_alpha` /
-`decode_alpha`, `add_drift` / `drift_value`).
+/ `encode_features` in torch). Alpha may be 8-bit codes (`encode_alpha` / `load_alpha` /
+`decode_alpha`).
 
 Convention: voxel (i, j, k) has its centre at (i, j, k) * voxel_size_m; block (a, b, c) holds the
 voxels 8a..8a+7, 8b..8b+7, 8c..8c+7.
@@ -527,7 +527,7 @@ def _blend_features(features, n_features, voxel, keep, add, sums, inv_count):  #
     return blend_packed
 
 
-# -- 8-bit channels: alpha and drift ------------------------------------------------------------------
+# -- 8-bit channel: alpha -------------------------------------------------------------------------------
 # Alpha (the sensor weighting, in [0, 1]) as code = round(254 * alpha), so 0.5 is code 127 exactly;
 # a value on one side of 0.5 keeps its side (the outlier filter tests alpha < 0.5 and > 0.5).
 # ALPHA_UNKNOWN: not evaluated yet (NaN). A channel of another dtype holds alpha values as they are.
@@ -573,33 +573,6 @@ def _load_alpha(alpha, voxel):  # noqa: ANN001, ANN202 (numba overload)
             return np.float32(np.nan)
         return np.float32(code) / np.float32(_ALPHA_STEPS)
     return load_code
-
-
-# Drift (how much a voxel's weighting-net inputs changed since alpha around it was evaluated) as a
-# count of DRIFT_STEPs, each change rounded up, so the count never falls below the true drift; it
-# saturates at DRIFT_SATURATED (which exceeds any tolerance EngineConfig accepts). DRIFT_RESET: the
-# voxel was first observed or its TSDF changed sign (infinite drift: alpha around it is re-judged).
-DRIFT_STEP = 2.0**-10
-DRIFT_SATURATED = 254
-DRIFT_RESET = 255
-MAX_DRIFT_TOLERANCE = DRIFT_SATURATED * DRIFT_STEP  # tolerances must lie below this
-
-
-@numba.njit(inline="always")
-def add_drift(code: np.uint8, change: float) -> np.uint8:
-    """A drift code after a change (>= 0; inf: reset) of the inputs."""
-    if code == DRIFT_RESET or not change < np.inf:  # inf or NaN
-        return np.uint8(DRIFT_RESET)
-    total = np.int64(code) + math.ceil(min(np.float64(change), DRIFT_SATURATED * DRIFT_STEP) / DRIFT_STEP)
-    return np.uint8(total if total < DRIFT_SATURATED else DRIFT_SATURATED)
-
-
-@numba.njit(inline="always")
-def drift_value(code: np.uint8) -> np.float32:
-    """An upper bound of the drift a code stands for (inf for DRIFT_RESET)."""
-    if code == DRIFT_RESET:
-        return np.float32(np.inf)
-    return np.float32(code * DRIFT_STEP)
 
 
 def kernel_view(pool: torch.Tensor) -> np.ndarray:
@@ -659,10 +632,10 @@ class BlockGrid:
         self.channel_dtypes = {name: (dtypes or {}).get(name, torch.float32) for name in self.channel_shapes}
         self.growth = max(float(growth), 1.1)  # capacity factor when the pools grow (memory slack vs. copies)
         self.fill = dict(fill or {})  # value of a channel in a new block (default 0)
-        # Evicted blocks' rows (spill.BlockSpill), taken back when they are allocated again, with
-        # `restored_fill` channels then set (what tells the engine those voxels changed).
+        # Evicted blocks' rows (spill.BlockSpill), taken back when they are allocated again; their
+        # slots are kept until `take_restored_slots` (the engine marks their surroundings as changed).
         self.spill: BlockSpill | None = None
-        self.restored_fill: dict[str, float] = {}
+        self._restored_slots: list[np.ndarray] = []
         self._initial_capacity = initial_capacity
         self.clear()
 
@@ -672,6 +645,7 @@ class BlockGrid:
         cap = self._initial_capacity
         self.capacity = cap
         self.n_blocks = 0
+        self._restored_slots = []
         self.slot_keys = np.full(cap, EMPTY_KEY, np.int64)
         self.coords = _zeros((cap, 3), torch.int64)[0]
         self.table_keys = np.full(_INITIAL_TABLE, EMPTY_KEY, np.int64)
@@ -736,9 +710,12 @@ class BlockGrid:
         """Give the new slots first..end-1 whose blocks were spilled their rows back."""
         assert self.spill is not None
         restored = self.spill.take(self.slot_keys[first:end], [pool[first:end].numpy() for pool in self.pools.values()])
-        slots = first + torch.from_numpy(np.flatnonzero(restored))
-        for name, value in self.restored_fill.items():
-            self.pools[name][slots] = value
+        self._restored_slots.append(first + np.flatnonzero(restored))
+
+    def take_restored_slots(self) -> np.ndarray:
+        """The slots of blocks taken back from the spill since the last call (before any removal)."""
+        slots, self._restored_slots = self._restored_slots, []
+        return np.concatenate(slots) if slots else np.zeros(0, np.int64)
 
     def reserve(self, n_blocks: int) -> None:
         """Room for n_blocks: pools, slot arrays and a hash table below its load limit."""

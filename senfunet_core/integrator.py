@@ -21,8 +21,9 @@ import numpy as np
 import torch
 
 from .errors import InputError
-from .grid import (BlockGrid, add_drift, blend_features, coords_key, drop_new_blocks, f16_to_f32, hash_find_or_add,
+from .grid import (BlockGrid, blend_features, coords_key, drop_new_blocks, f16_to_f32, hash_find_or_add,
                    kernel_view, load_f32, prefetch, store_f32, voxel_keys)
+from .networks import WEIGHTING_HALO
 from .scratch import scratch as scratch_array
 
 
@@ -286,6 +287,27 @@ _F16_OF_COUNT = np.arange(2049, dtype=np.float16).view(np.int16)
 TANH_OF_COUNT = np.tanh(np.arange(2049, dtype=np.float64)).astype(np.float32)
 
 
+def _reach_of_voxel(halo: int) -> np.ndarray:
+    """Per local voxel index (64 x + 8 y + z), the blocks within `halo` voxels of it, as bits of their
+    neighbour codes 9 (dx + 1) + 3 (dy + 1) + (dz + 1) (the block itself: code 13)."""
+    x, y, z = np.unravel_index(np.arange(512), (8, 8, 8))
+    reach = np.zeros(512, np.int32)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                near = np.ones(512, bool)
+                for d, c in ((dx, x), (dy, y), (dz, z)):
+                    near &= (c < halo) if d < 0 else (c >= 8 - halo) if d > 0 else True
+                reach[near] |= 1 << (9 * (dx + 1) + 3 * (dy + 1) + dz + 1)
+    return reach
+
+
+# A change of the weighting-net inputs at a voxel can move alpha within WEIGHTING_HALO voxels of it:
+# in the blocks these bits name (`update_voxels` collects them per block)
+REACH_OF_VOXEL = _reach_of_voxel(WEIGHTING_HALO)
+REACH_ALL = (1 << 27) - 1
+
+
 @numba.njit(cache=True, nogil=True)
 def _group_by_block(n_pixels: int, n_samples: int, n_touched: int, sample_flat: np.ndarray,
                     sample_touched: np.ndarray, touched_map: np.ndarray, pixel_index: np.ndarray
@@ -328,7 +350,7 @@ def _group_by_block(n_pixels: int, n_samples: int, n_touched: int, sample_flat: 
 def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np.ndarray, sample_step: np.ndarray,
                    sample_tsdf_m: np.ndarray, pixel_features: np.ndarray, touched_slots: np.ndarray, tsdf: np.ndarray,
                    weight: np.ndarray, features: np.ndarray, tsdf_base: np.ndarray, weight_base: np.ndarray,
-                   drift: np.ndarray, w_max: float) -> int:
+                   reach: np.ndarray, w_max: float) -> int:
     """update_voxels' per-block work (blocks are independent of each other)."""
     n_channels = pixel_features.shape[1]
     feature_stride = features.shape[0] // max(weight.shape[0], 1)  # a voxel's feature-pool entries
@@ -340,6 +362,8 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
     for b in range(start.shape[0] - 1):
         base_index = touched_slots[b] * 512
         n_voxels = 0
+        changed = np.int32(0)  # the block's reach bits (REACH_OF_VOXEL) of voxels whose inputs changed
+        renewed = np.int32(0)  # ... of voxels first observed or whose TSDF changed sign
         for m in range(start[b], start[b + 1]):
             local = sample_local[m]
             if count[local] == 0:
@@ -352,7 +376,6 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
                 prefetch(features, voxel * feature_stride)
                 prefetch(tsdf, voxel)
                 prefetch(weight, voxel)
-                prefetch(drift, voxel)
             count[local] += 1
             sum_tsdf[local] += sample_tsdf_m[sample_step[m]]
             p = sample_pixel[m]
@@ -373,20 +396,22 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
             mean_tsdf = sum_tsdf[local] * inv_count
             old_tsdf = load_f32(tsdf, voxel)
             store_f32(tsdf, voxel, keep * old_tsdf + add * mean_tsdf)
-            new_tsdf = load_f32(tsdf, voxel)  # as stored: drift and the sign test see what readers will
+            new_tsdf = load_f32(tsdf, voxel)  # as stored: the change and the sign test see what readers will
             new_weight = min(old_weight + np.float32(1.0), w_max)
             weight[voxel] = _F16_OF_COUNT[int(new_weight)]
             change = max(change, TANH_OF_COUNT[int(new_weight)] - TANH_OF_COUNT[int(old_weight)])
-            change = max(change, abs(new_tsdf - old_tsdf))
             if old_weight == 0.0 or (new_tsdf < 0.0) != (old_tsdf < 0.0):
-                change = np.inf  # the voxel may join the observed or the surface set: always re-evaluate
-            drift[voxel] = add_drift(drift[voxel], change)
+                renewed |= REACH_OF_VOXEL[local]  # the voxel may join the observed or the surface set
+            elif change > 0.0 or new_tsdf != old_tsdf:
+                changed |= REACH_OF_VOXEL[local]
             if tsdf_base.shape[0]:
                 base_weight = f16_to_f32(weight_base[voxel])
                 base_add = np.float32(1.0) / (base_weight + np.float32(1.0))
                 store_f32(tsdf_base, voxel,
                           (np.float32(1.0) - base_add) * load_f32(tsdf_base, voxel) + base_add * mean_tsdf)
                 weight_base[voxel] = _F16_OF_COUNT[int(min(base_weight + np.float32(1.0), w_max))]
+        reach[b, 0] = changed
+        reach[b, 1] = renewed
     return updated
 
 
@@ -400,14 +425,15 @@ _UPDATE_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="senfunet-
 def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample_touched: np.ndarray,
                   sample_tsdf_m: np.ndarray, pixel_index: np.ndarray, pixel_features: np.ndarray,
                   touched_slots: np.ndarray, tsdf: np.ndarray, weight: np.ndarray, features: np.ndarray,
-                  tsdf_base: np.ndarray, weight_base: np.ndarray, drift: np.ndarray, w_max: float, *,
+                  tsdf_base: np.ndarray, weight_base: np.ndarray, reach: np.ndarray, w_max: float, *,
                   touched_map: np.ndarray | None = None) -> int:
     """Per voxel: the mean of this frame's samples (TSDF value and the pixel's features), then the
     running averages of the sensor's TSDF, weight and features and of the TSDF Fusion baseline
     (skipped when tsdf_base is empty).
-    drift[voxel] accumulates the largest change of a weighting-net input (features, tanh(weight))
-    or of the TSDF; it becomes inf when the voxel is first observed or its TSDF changes sign.
-    Drift is in 8-bit codes (`grid.add_drift`), weights float16 bit patterns (int16), TSDFs float16 bits or float32
+    reach (n_touched x 2 int32, written): per touched block, the blocks whose alpha its changes can
+    move (REACH_OF_VOXEL bits): [0] of voxels whose weighting-net inputs (features, tanh(weight),
+    TSDF) changed, [1] of voxels first observed or whose TSDF changed sign.
+    Weights are float16 bit patterns (int16), TSDFs float16 bits or float32
     (`grid.load_f32`), features float16 bits or packed int8 (`grid.load_feature`); pixel_features:
     (H*W) x C float32; touched_map: as `drop_sparse_new_blocks` returns it (None: none).
     Returns the number of voxels updated.
@@ -420,15 +446,15 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
                                                 sample_touched, _NO_MAP if touched_map is None else touched_map,
                                                 pixel_index)
 
-    def blocks(block_start: np.ndarray, block_slots: np.ndarray) -> int:
+    def blocks(block_start: np.ndarray, block_slots: np.ndarray, block_reach: np.ndarray) -> int:
         return _update_blocks(block_start, local, pixel, step, sample_tsdf_m, pixel_features, block_slots, tsdf,
-                              weight, features, tsdf_base, weight_base, drift, w_max)
+                              weight, features, tsdf_base, weight_base, block_reach, w_max)
 
     if start[-1] < max(SPLIT_MIN_SAMPLES, 1):
-        return blocks(start, touched_slots)
+        return blocks(start, touched_slots, reach)
     middle = int(np.searchsorted(start, start[-1] // 2))
-    second = _UPDATE_WORKER.submit(blocks, start[middle:], touched_slots[middle:])
-    return blocks(start[:middle + 1], touched_slots) + second.result()
+    second = _UPDATE_WORKER.submit(blocks, start[middle:], touched_slots[middle:], reach[middle:])
+    return blocks(start[:middle + 1], touched_slots, reach) + second.result()
 
 
 @dataclass
@@ -503,22 +529,23 @@ def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_
 
 
 def update_frame_voxels(grid: BlockGrid, located: LocatedSamples, pixel_features: np.ndarray, *,
-                        sample_tsdf_m: np.ndarray, channels: tuple[str, str, str], drift: str = "drift",
-                        w_max: float) -> int:
+                        sample_tsdf_m: np.ndarray, channels: tuple[str, str, str],
+                        w_max: float) -> tuple[int, np.ndarray]:
     """Running averages of one sensor's TSDF, weight and features (and of the TSDF Fusion baseline
-    "tsdf_base"/"weight_base" when the grid has those channels) from the located samples; drift
-    as in `update_voxels`. pixel_features: (H*W) x C float32; sample_tsdf_m: S TSDF value of each
-    sample step (metres); channels: the sensor's (tsdf, weight, feature) pool names.
-    Returns the number of voxels updated."""
+    "tsdf_base"/"weight_base" when the grid has those channels) from the located samples.
+    pixel_features: (H*W) x C float32; sample_tsdf_m: S TSDF value of each sample step (metres);
+    channels: the sensor's (tsdf, weight, feature) pool names.
+    Returns the number of voxels updated and each touched block's reach (as in `update_voxels`)."""
     tsdf, weight, feature = (kernel_view(grid.pools[name]).reshape(-1) for name in channels)
     if "tsdf_base" in grid.pools:
         tsdf_base, weight_base = (kernel_view(grid.pools[name]).reshape(-1) for name in ("tsdf_base", "weight_base"))
     else:
         tsdf_base, weight_base = np.zeros(0, np.float32), np.zeros(0, np.int16)
-    return update_voxels(located.n_pixels, located.n_touched, located.sample_flat, located.sample_touched,
-                         sample_tsdf_m, located.pixel_index, pixel_features, located.touched_slots, tsdf, weight,
-                         feature, tsdf_base, weight_base, kernel_view(grid.pools[drift]).reshape(-1), w_max,
-                         touched_map=located.touched_map)
+    reach = np.zeros((located.n_touched, 2), np.int32)
+    updated = update_voxels(located.n_pixels, located.n_touched, located.sample_flat, located.sample_touched,
+                            sample_tsdf_m, located.pixel_index, pixel_features, located.touched_slots, tsdf, weight,
+                            feature, tsdf_base, weight_base, reach, w_max, touched_map=located.touched_map)
+    return updated, reach
 
 
 @dataclass
@@ -527,6 +554,7 @@ class FrameUpdate:
 
     voxels_updated: int
     touched_slots: np.ndarray  # int64 slots of the blocks the frame's samples touched
+    reach: np.ndarray  # per touched block, the blocks whose alpha its changes can move (`update_voxels`)
     waited_s: float = 0.0  # time spent waiting for pixel_features()
     dropped_samples: int = 0  # samples the allocation policy dropped (IntegratorConfig.min_new_block_samples)
     dropped_blocks: int = 0  # the new blocks they fell in, not allocated
@@ -534,7 +562,7 @@ class FrameUpdate:
 
 def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.ndarray | Callable[[], np.ndarray],
                     K: np.ndarray, T_world_camera: np.ndarray, depth_range_m: tuple[float, float],
-                    config: IntegratorConfig, channels: tuple[str, str, str], drift: str = "drift",
+                    config: IntegratorConfig, channels: tuple[str, str, str],
                     scratch: dict[str, np.ndarray] | None = None) -> FrameUpdate:
     """Integrate one frame into `grid` with the compiled kernels.
 
@@ -557,7 +585,7 @@ def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.nda
         pixel_features = pixel_features()
     waited_s = time.perf_counter() - waited_s
     features = np.ascontiguousarray(pixel_features.reshape(pixel_features.shape[0], -1).T, np.float32)  # HW x C
-    updated = update_frame_voxels(grid, located, features, sample_tsdf_m=-offsets_m, channels=channels, drift=drift,
-                                  w_max=config.w_max)
-    return FrameUpdate(int(updated), located.touched_slots[:located.n_touched].copy(), waited_s,
+    updated, reach = update_frame_voxels(grid, located, features, sample_tsdf_m=-offsets_m, channels=channels,
+                                         w_max=config.w_max)
+    return FrameUpdate(int(updated), located.touched_slots[:located.n_touched].copy(), reach, waited_s,
                        located.dropped_samples, located.dropped_blocks)

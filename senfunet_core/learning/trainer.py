@@ -61,8 +61,8 @@ class Trainer:
         for group in groups:
             group["lr"] = config.lr * group["lr_factor"]
         self.optimizer = torch.optim.Adam(groups, lr=config.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=0)
-        # the engine's grid layout: every channel (and the unused drift) in half precision
-        channels: dict[str, tuple[int, ...]] = {"tsdf_base": (), "weight_base": (), "drift": ()}
+        # the engine's grid layout: every channel in half precision
+        channels: dict[str, tuple[int, ...]] = {"tsdf_base": (), "weight_base": ()}
         for i in range(len(SENSORS)):
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
         dtypes = {name: torch.float16 for name in channels}
@@ -133,9 +133,10 @@ class Trainer:
         n_samples = n_pixels * len(self.offsets_m)
         features = np.ascontiguousarray(pixel_features.reshape(pixel_features.shape[0], -1).T, np.float32)
         views = [kernel_view(grid.pools[name]).reshape(-1) for name in
-                 (f"tsdf{s}", f"weight{s}", f"feat{s}", "tsdf_base", "weight_base", "drift")]
+                 (f"tsdf{s}", f"weight{s}", f"feat{s}", "tsdf_base", "weight_base")]
+        unused_reach = np.zeros((n_touched, 2), np.int32)
         update_voxels(n_pixels, n_touched, sample_flat, sample_touched, -self.offsets_m, pixel_index, features,
-                      touched_slots, views[0], views[1], views[2], views[3], views[4], views[5], cfg.w_max)
+                      touched_slots, views[0], views[1], views[2], views[3], views[4], unused_reach, cfg.w_max)
         touched = touched_slots[:n_touched]
         updated_flat, updated_voxels = _frame_voxels(sample_flat[:n_samples], sample_touched[:n_samples], touched,
                                                      grid.coords.numpy())

@@ -1,12 +1,11 @@
 """The engine's shortcuts against the straightforward computation.
 
-The straightforward computation is `EngineConfig(alpha_voxels="all", alpha_tolerance=0)`: the
-weighting net re-evaluated on every block within 2 voxels of any change (which equals the
-whole-grid evaluation, see test_engine.py). The shortcuts:
+The straightforward computation is `EngineConfig(alpha_voxels="all")`: the weighting net
+re-evaluated on every block within 2 voxels of any change (which equals the whole-grid
+evaluation, see test_engine.py). The shortcuts:
 - alpha_voxels="surface": only blocks holding corners of cells that can hold fused triangles ->
   identical fused mesh (vertices, faces, colours), stale alpha elsewhere;
-- alpha_tolerance > 0: alpha around a voxel is refreshed only once its inputs drifted more than the
-  tolerance -> a fused mesh close to the exact one, within the tolerance stated below.
+- bfloat16 arithmetic in the nets -> a fused mesh close to the exact one (`assert_close_to_exact`).
 """
 from __future__ import annotations
 
@@ -27,8 +26,6 @@ K = np.array([[60.0, 0, (SIZE - 1) / 2], [0, 60.0, (SIZE - 1) / 2], [0, 0, 1.0]]
 CENTRE = np.array([0.0, 0.0, 0.0])
 RADIUS = 0.3
 FLOOR_Z = -0.3
-# Tolerance of alpha_tolerance=TOL (see test_tolerance_keeps_the_mesh_close)
-TOL = 0.02
 
 
 def look_at(eye, target, up=(0, 0, 1)) -> np.ndarray:
@@ -98,7 +95,7 @@ def run(**overrides):
 
 @pytest.fixture(scope="module")
 def exact():
-    return run(alpha_voxels="all", alpha_tolerance=0.0)
+    return run(alpha_voxels="all")
 
 
 def sorted_mesh(mesh):
@@ -113,7 +110,7 @@ def sorted_mesh(mesh):
 
 @pytest.mark.parametrize("mode", ["surface", "surface_voxels"])
 def test_surface_mode_gives_the_exact_fused_mesh(exact, mode):
-    engine, shown = run(alpha_voxels=mode, alpha_tolerance=0.0)
+    engine, shown = run(alpha_voxels=mode)
     ref, ref_shown = exact
     a, b = sorted_mesh(engine.extract_mesh("fused")), sorted_mesh(ref.extract_mesh("fused"))
     assert len(b[2]) > 2000
@@ -150,12 +147,6 @@ def test_alpha_threads_evaluate_the_same_alpha():
     np.testing.assert_array_equal(a[0], b[0])
 
 
-def test_tolerance_keeps_the_mesh_close(exact):
-    """alpha_tolerance=TOL: the fused mesh stays close to the exact one (assert_close_to_exact)."""
-    engine, _ = run(alpha_voxels="surface", alpha_tolerance=TOL)
-    assert_close_to_exact(engine, exact[0])
-
-
 def assert_close_to_exact(engine, ref) -> None:
     """Every vertex of either fused mesh lies within 1 mm of the other's for >= 99% of them and
     within 1 voxel for all but 0.5%; the face counts differ by at most 1%."""
@@ -171,7 +162,7 @@ def assert_close_to_exact(engine, ref) -> None:
 
 def test_bfloat16_alpha_keeps_the_mesh_close(exact):
     """alpha_dtype="bfloat16" (the node's choice on CPUs with bfloat16 instructions): alpha within
-    0.02 of float32 and the fused mesh as close as the tolerance test demands."""
+    0.02 of float32 and the fused mesh close to the exact one."""
     engine, _ = run(alpha_voxels="surface", alpha_dtype="bfloat16")
     same_schedule, _ = run(alpha_voxels="surface")
     n = engine.grid.n_blocks
@@ -184,9 +175,8 @@ def test_bfloat16_alpha_keeps_the_mesh_close(exact):
 
 def test_bfloat16_features_keep_the_mesh_close(exact):
     """feature_dtype="bfloat16" (the node's choice on CPUs with bfloat16 instructions): the fused
-    features differ from float32's, but little, and the fused mesh is as close to the exact one as
-    the tolerance test demands."""
-    engine, _ = run(alpha_voxels="all", alpha_tolerance=0.0, feature_dtype="bfloat16")
+    features differ from float32's, but little, and the fused mesh is close to the exact one."""
+    engine, _ = run(alpha_voxels="all", feature_dtype="bfloat16")
     ref = exact[0]
     n = engine.grid.n_blocks
     assert ref.grid.n_blocks == n

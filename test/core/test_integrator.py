@@ -6,8 +6,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from senfunet_core.grid import (BLOCK, DRIFT_RESET, DRIFT_SATURATED, DRIFT_STEP, MAX_DRIFT_TOLERANCE, BlockGrid,
-                                add_drift, drift_value)
+from senfunet_core.grid import BLOCK, BlockGrid
 from senfunet_core.integrator import (IntegratorConfig, aggregate_pixel_values, frame_samples, integrate_frame,
                                       locate_frame_samples, valid_depth_mask)
 from senfunet_core.learning.training import keys_to_voxels
@@ -58,9 +57,8 @@ def reference(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> dict[t
 
 
 def compiled(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[BlockGrid, dict[tuple, tuple]]:
-    channels = {"tsdf_base": (), "weight_base": (), "drift": (), "tsdf0": (), "weight0": (), "feat0": (5,)}
+    channels = {"tsdf_base": (), "weight_base": (), "tsdf0": (), "weight0": (), "feat0": (5,)}
     dtypes = {name: torch.float16 for name in channels if name.startswith(("feat", "weight"))}
-    dtypes["drift"] = torch.uint8
     grid = BlockGrid(channels, initial_capacity=64, dtypes=dtypes)  # small: growth happens mid-frame
     for depth, features, T in frames:
         integrate_frame(grid, np.nan_to_num(depth), features, K, T, RANGE, CONFIG, ("tsdf0", "weight0", "feat0"))
@@ -100,8 +98,7 @@ def test_a_full_hash_table_grows_with_the_blocks_not_with_the_pools(monkeypatch)
     import senfunet_core.grid as grid_module
 
     monkeypatch.setattr(grid_module, "_INITIAL_TABLE", 16)  # full after 8 blocks, early in the frame
-    grid = BlockGrid({"tsdf0": (), "weight0": (), "feat0": (5,), "drift": ()}, initial_capacity=1 << 15,
-                     dtypes={"drift": torch.uint8})
+    grid = BlockGrid({"tsdf0": (), "weight0": (), "feat0": (5,)}, initial_capacity=1 << 15)
     depth, features = frame(0)
     integrate_frame(grid, np.nan_to_num(depth), features, K, pose(0.0, 0.0), RANGE, CONFIG,
                     ("tsdf0", "weight0", "feat0"))
@@ -111,32 +108,40 @@ def test_a_full_hash_table_grows_with_the_blocks_not_with_the_pools(monkeypatch)
             == np.arange(grid.n_blocks)).all()
 
 
-def test_drift_marks_new_voxels_and_accumulates_change():
+def expected_reach(voxels: np.ndarray) -> int:
+    """Bits of the neighbour blocks (code 9 (dx+1) + 3 (dy+1) + dz+1) with a voxel within 2 of one
+    of these local voxel indices, by distance: per axis, from the voxel to that block's 8 voxels."""
+    bits = 0
+    for local in voxels.tolist():
+        xyz = (local >> 6, (local >> 3) & 7, local & 7)
+        for code in range(27):
+            d = (code // 9 - 1, (code // 3) % 3 - 1, code % 3 - 1)
+            gap = [max(8 * di - c, c - (8 * di + 7), 0) for di, c in zip(d, xyz)]
+            if max(gap) <= 2:
+                bits |= 1 << code
+    return bits
+
+
+def test_reach_names_the_blocks_around_changed_and_new_voxels():
+    """Per touched block, integration reports the blocks within 2 voxels (the weighting net's reach)
+    of its voxels first observed or whose TSDF changed sign ([1]), and of the others it changed ([0])."""
     depth, features = frame(0)
     T = pose(0.0, 0.0)
-    grid, _ = compiled([(depth, features, T)])
-    drift = grid.pools["drift"][: grid.n_blocks]
-    seen = grid.pools["weight0"][: grid.n_blocks] > 0
-    assert bool((drift[seen] == DRIFT_RESET).all()) and bool((drift[~seen] == 0).all())  # first observations
-    grid.pools["drift"][: grid.n_blocks] = 0
-    integrate_frame(grid, depth, features * 0.5, K, T, RANGE, CONFIG, ("tsdf0", "weight0", "feat0"))
-    drift = grid.pools["drift"][: grid.n_blocks]
-    finite = (drift != DRIFT_RESET) & seen
-    assert int(finite.sum()) > 1000
-    # the features moved towards half their value: at least a step each, some by more than a tolerance
-    assert bool((drift[finite] > 0).all()) and bool((drift[finite] > 0.05 / DRIFT_STEP).any())
-
-
-def test_drift_codes_round_up_saturate_and_reset():
-    assert add_drift(np.uint8(0), 0.0) == 0
-    assert add_drift(np.uint8(0), 1e-9) == 1  # any change counts: a tolerance of 0 sees it
-    assert add_drift(np.uint8(3), 2.5 * DRIFT_STEP) == 6  # rounded up: never below the true drift
-    assert add_drift(np.uint8(250), 1.0) == DRIFT_SATURATED
-    assert add_drift(np.uint8(DRIFT_SATURATED), 1e-3) == DRIFT_SATURATED
-    assert add_drift(np.uint8(7), np.inf) == DRIFT_RESET and add_drift(np.uint8(7), np.nan) == DRIFT_RESET
-    assert add_drift(np.uint8(DRIFT_RESET), 0.0) == DRIFT_RESET
-    assert drift_value(np.uint8(6)) == np.float32(6 * DRIFT_STEP) and drift_value(np.uint8(DRIFT_RESET)) == np.inf
-    assert drift_value(np.uint8(DRIFT_SATURATED)) > MAX_DRIFT_TOLERANCE - 1e-9
+    grid = BlockGrid({"tsdf0": (), "weight0": (), "feat0": (5,)}, initial_capacity=1 << 12,
+                     dtypes={"weight0": torch.float16, "feat0": torch.float16})
+    checked = 0
+    for scale in (1.0, 0.5):  # the first frame observes every voxel anew; the second moves the features
+        before = {name: grid.pools[name].clone() for name in grid.pools}
+        update = integrate_frame(grid, depth, features * scale, K, T, RANGE, CONFIG, ("tsdf0", "weight0", "feat0"))
+        for slot, (changed, renewed) in zip(update.touched_slots.tolist(), update.reach.tolist()):
+            old_w, new_w = before["weight0"][slot].float(), grid.pools["weight0"][slot].float()
+            old_t, new_t = before["tsdf0"][slot], grid.pools["tsdf0"][slot]
+            new = ((old_w == 0) & (new_w > 0)) | ((old_w > 0) & ((old_t < 0) != (new_t < 0)))
+            moved = (old_w != new_w) | (old_t != new_t) | (before["feat0"][slot] != grid.pools["feat0"][slot]).any(-1)
+            assert renewed == expected_reach(np.flatnonzero(new.numpy()))
+            assert changed == expected_reach(np.flatnonzero((moved & ~new).numpy()))
+            checked += changed != 0
+    assert checked > 20  # the second frame changed voxels in many blocks
 
 
 def test_splitting_a_frame_between_two_threads_changes_no_bit(monkeypatch):
@@ -183,8 +188,8 @@ def test_allocation_policy_keeps_flying_pixels_out_of_new_blocks_and_counts_them
     dense = {block for block, n in counts.items() if n >= minimum}
     sparse = {block: n for block, n in counts.items() if n < minimum}
     assert len(dense) > 10 and len(sparse) > 20  # the frame has both, or the test proves nothing
-    channels = {"drift": (), "tsdf0": (), "weight0": (), "feat0": (5,)}
-    dtypes = {"drift": torch.uint8, "weight0": torch.float16, "feat0": torch.float16}
+    channels = {"tsdf0": (), "weight0": (), "feat0": (5,)}
+    dtypes = {"weight0": torch.float16, "feat0": torch.float16}
     every = BlockGrid(channels, initial_capacity=1 << 12, dtypes=dtypes)
     integrate_frame(every, depth, features, K, T, RANGE, CONFIG, ("tsdf0", "weight0", "feat0"))
     policy = replace(CONFIG, min_new_block_samples=minimum)

@@ -338,8 +338,10 @@ def test_integrate_ready_keeps_order_isolates_errors_and_flushes_before_a_time_j
         reference.integrate(f.sensor, f.depth_m, f.K, f.T_world_camera, f.rgb)
     n = engine.grid.n_blocks
     assert n == reference.grid.n_blocks > 0
-    for name in ("tsdf0", "weight0", "feat0", "tsdf1", "weight1", "feat1", "drift"):
+    for name in ("tsdf0", "weight0", "feat0", "tsdf1", "weight1", "feat1"):
         assert torch.equal(engine.grid.pools[name][:n], reference.grid.pools[name][:n]), name
+    for flags in ("reach_changed", "reach_renewed"):  # the changes waiting for the weighting net
+        assert np.array_equal(getattr(engine.store, flags)[:n], getattr(reference.store, flags)[:n]), flags
 
 
 def test_pose_of_another_frame_goes_through_the_sensor_extrinsic() -> None:
