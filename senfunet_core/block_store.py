@@ -92,6 +92,10 @@ class BlockStore:
                 setattr(self, name, np.concatenate([getattr(self, name),
                                                     np.full(grow, self._FILL.get(name, 0), dtype)]))
 
+    def nbytes(self) -> int:
+        """Bytes of the map in memory: the grid's (`BlockGrid.nbytes`) and the per-block flags."""
+        return self.grid.nbytes() + sum(getattr(self, name).nbytes for name in self._FLAGS)
+
     def views(self, *names: str) -> list[np.ndarray]:
         """Flat kernel views of pools (fetch them under the data lock: pools move when they grow)."""
         return [kernel_view(self.grid.pools[name]).reshape(-1) for name in names]

@@ -574,7 +574,7 @@ class SenFuNet:
         n = len(self.config.sensors)
         with self._updating():
             with self._data_lock:  # only the flags: integration waits for this lock
-                nbytes = self.grid.nbytes()
+                nbytes = self.store.nbytes()
                 meshed = self.grid.lookup_keys(torch.from_numpy(self._meshed)).numpy()
                 meshed = meshed[meshed >= 0]
                 evaluated = self.store.evaluated[meshed]
