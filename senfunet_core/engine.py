@@ -237,10 +237,10 @@ class SenFuNet:
             channels.update({f"tsdf{i}": (), f"weight{i}": (), f"feat{i}": (networks.N_FEATURES,)})
         # TSDFs and weights in half precision: weight counters stay exact up to 2048 (w_max); TSDF
         # values within the band keep a relative precision of 2^-11, far below the sensors' noise
-        # (kernels read them through grid.load_f32). The learned features lie in [-1, 1]: int8
-        # (steps of 1/127), the depth feature an 8-bit float, packed in one int8 pool (grid.FEATURE_SCALE,
-        # grid.encode_depth, read through grid.load_feature / decode_features). Alpha, a weighting in [0, 1],
-        # in 8 bits (grid.encode_alpha).
+        # (kernels read them through grid.load_f32). The learned features lie in [-1, 1]: 6 bits
+        # (steps of 1/31), the depth feature an 8-bit float, packed in one int8 pool (grid.FEATURE_SCALE,
+        # grid.encode_depth, read through grid.load_feature / decode_features). Alpha, a weighting
+        # in [0, 1], in 8 bits (grid.encode_alpha).
         dtypes = {name: torch.int8 if name.startswith("feat") else torch.float16 for name in channels}
         dtypes["alpha"] = torch.uint8
         # alpha unknown until evaluated: C12 averaged, the filter holds single-sensor voxels back (see fusion)

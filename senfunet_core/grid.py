@@ -367,11 +367,14 @@ def _store_f32(array, index, value):  # noqa: ANN001, ANN202 (numba overload)
     return store
 
 
-# -- feature channels: int8 learned features, 8-bit depth ------------------------------------------
-# A feature channel of dtype int8 packs a voxel's n features in n bytes: the first n - 1 (the
-# learned ones, L2-normalised per pixel, so in [-1, 1], and so are their running averages) as
-# round(FEATURE_SCALE * f), the last (the depth, metres) as an unsigned 8-bit float (`encode_depth`).
-FEATURE_SCALE = 127.0
+# -- feature channels: 6-bit learned features, 8-bit depth ---------------------------------------
+# A feature channel of dtype int8 packs a voxel's n features (n - 1 a multiple of 4) in 3 (n - 1) / 4 + 1
+# bytes: the learned ones (L2-normalised per pixel, so in [-1, 1], and so are their running
+# averages) as round(FEATURE_SCALE * f) in 6-bit two's complement, 4 to each 3 bytes (feature
+# k of a group in bits 6k..6k+5 of their little-endian 24-bit word), then the depth (metres) as
+# an unsigned 8-bit float (`encode_depth`).
+FEATURE_SCALE = 31.0
+_SIX_BITS = 63
 
 # The depth feature's code: 3 exponent bits, 5 mantissa bits. Codes 32..255 are 2^(e - 3) * (1 + m/32)
 # for code = 32 e + m, [0.25, 31.5] m in steps of 1/32 of an octave (a relative error of at most
@@ -398,42 +401,86 @@ def encode_depth(depth_m: float) -> np.int8:
 
 
 def feature_storage_shape(n_features: int, dtype: torch.dtype) -> tuple[int]:
-    """A voxel's row in a feature pool: n values (int8 packed, or float)."""
-    return (n_features,)
+    """A voxel's row in a feature pool: n float values, or 3 (n - 1) / 4 + 1 packed bytes (int8)."""
+    if dtype != torch.int8:
+        return (n_features,)
+    if (n_features - 1) % 4:
+        raise ValueError(f"packed feature pools hold 4, 8, ... learned features, not {n_features - 1}")
+    return (3 * (n_features - 1) // 4 + 1,)
 
 
 def decode_features(rows: torch.Tensor) -> torch.Tensor:
-    """Float32 features (..., n) of feature-pool rows (..., n packed int8, or n float values)."""
+    """Float32 features (..., n) of feature-pool rows (..., 3 (n - 1) / 4 + 1 packed int8, or n float values)."""
     if rows.dtype != torch.int8:
         return rows.float()
-    learned = rows[..., :-1].float() / FEATURE_SCALE
+    groups = rows[..., :-1].view(torch.uint8).to(torch.int32).unflatten(-1, (-1, 3))
+    words = groups[..., 0] | (groups[..., 1] << 8) | (groups[..., 2] << 16)
+    six = (words.unsqueeze(-1) >> torch.arange(0, 24, 6, dtype=torch.int32)) & _SIX_BITS
+    learned = (six - ((six >> 5) << 6)).flatten(-2).float() / FEATURE_SCALE  # two's complement
     depth = _DEPTH_OF_CODE_T[rows[..., -1:].view(torch.uint8).long()]
     return torch.cat([learned, depth], dim=-1)
 
 
 def encode_features(values: torch.Tensor) -> torch.Tensor:
-    """Packed int8 rows (..., n) of features (..., n): `decode_features`' inverse up to rounding
-    (to nearest, as the kernels' `store_feature`)."""
+    """Packed int8 rows of features (..., n): `decode_features`' inverse up to rounding (to
+    nearest, ties to even, as the kernels' `store_feature`)."""
     values = values.float()
-    learned = torch.round(values[..., :-1] * FEATURE_SCALE).clamp(-FEATURE_SCALE, FEATURE_SCALE).to(torch.int8)
+    learned = torch.round(values[..., :-1] * FEATURE_SCALE).clamp(-FEATURE_SCALE, FEATURE_SCALE).to(torch.int32)
+    six = (learned & _SIX_BITS).unflatten(-1, (-1, 4)) << torch.arange(0, 24, 6, dtype=torch.int32)
+    words = six.sum(dim=-1)
+    groups = torch.stack([words & 0xFF, (words >> 8) & 0xFF, words >> 16], dim=-1).flatten(-2)
     depth = values[..., -1:].clamp(0.0, DEPTH_MAX_M)
     mantissa, exponent = torch.frexp(depth)
     code = torch.where(depth < 0.25, torch.round(depth * 128.0), 32.0 * (exponent + 1) + torch.round(64.0 * mantissa))
-    return torch.cat([learned, code.to(torch.uint8).view(torch.int8)], dim=-1)
+    return torch.cat([groups.to(torch.uint8), code.to(torch.uint8)], dim=-1).view(torch.int8)
 
 
-def unpack_float16_depth_features(rows: torch.Tensor) -> torch.Tensor:
-    """Float32 features (..., n) of the packed rows maps were saved with before the depth took 8 bits:
-    (..., n + 1) int8, the depth as its float16 bits."""
-    learned = rows[..., :-2].float() / FEATURE_SCALE
-    depth = rows[..., -2:].contiguous().view(torch.int16).view(torch.float16).float()
-    return torch.cat([learned, depth], dim=-1)
+def decode_saved_features(rows: torch.Tensor, n_features: int) -> torch.Tensor:
+    """Float32 features (..., n) of a feature pool as any version saved it: float values; packed
+    with the learned features as int8 (steps of 1/127) and the depth as float16 bits (n + 1 bytes)
+    or as its 8-bit code (n bytes); or packed as now."""
+    if rows.dtype != torch.int8:
+        return rows.float()
+    if rows.shape[-1] in (n_features, n_features + 1):
+        learned = rows[..., :n_features - 1].float() / 127.0
+        if rows.shape[-1] == n_features:
+            depth = _DEPTH_OF_CODE_T[rows[..., -1:].view(torch.uint8).long()]
+        else:
+            depth = rows[..., -2:].contiguous().view(torch.int16).view(torch.float16).float()
+        return torch.cat([learned, depth], dim=-1)
+    return decode_features(rows)
 
 
-@numba.njit(cache=True, inline="always")
 def features_per_voxel(features: np.ndarray, n_voxels: int) -> int:
-    """n, the features per voxel of a flat feature-pool view of n_voxels voxels."""
-    return features.shape[0] // max(n_voxels, 1)
+    """n, the features per voxel of a flat feature-pool view of n_voxels voxels (numba too)."""
+    stride = features.shape[0] // max(n_voxels, 1)
+    return 4 * (stride - 1) // 3 + 1 if features.dtype == np.int8 else stride
+
+
+@overload(features_per_voxel, inline="always")
+def _features_per_voxel(features, n_voxels):  # noqa: ANN001, ANN202 (numba overload)
+    if isinstance(features, types.Array) and features.dtype == types.int8:
+        return lambda features, n_voxels: 4 * (features.shape[0] // max(n_voxels, 1) - 1) // 3 + 1
+    return lambda features, n_voxels: features.shape[0] // max(n_voxels, 1)
+
+
+@numba.njit(inline="always")
+def _packed_word(features: np.ndarray, at: int) -> np.int64:
+    """The 24-bit little-endian word of 4 packed 6-bit features at byte `at`."""
+    return ((np.int64(features[at]) & 0xFF) | ((np.int64(features[at + 1]) & 0xFF) << 8)
+            | ((np.int64(features[at + 2]) & 0xFF) << 16))
+
+
+@numba.njit(inline="always")
+def _store_word(features: np.ndarray, at: int, word: np.int64) -> None:
+    for i in range(3):
+        features[at + i] = np.int8((((word >> (8 * i)) & 0xFF) ^ 0x80) - 0x80)
+
+
+@numba.njit(inline="always")
+def _six_bit(word: np.int64, k: int) -> np.int64:
+    """Feature k (0..3) of a packed word, as the signed integer stored."""
+    return (((word >> (6 * k)) & _SIX_BITS) ^ 32) - 32  # sign-extended
 
 
 def load_feature(features: np.ndarray, n_features: int, voxel: int, c: int) -> np.float32:
@@ -441,10 +488,11 @@ def load_feature(features: np.ndarray, n_features: int, voxel: int, c: int) -> n
     int8 (see FEATURE_SCALE). Kernels compile this per dtype; this body is the reference."""
     if features.dtype != np.int8:
         return load_f32(features, voxel * n_features + c)
-    code = features[voxel * n_features + c]
+    stride = 3 * (n_features - 1) // 4 + 1
     if c < n_features - 1:
-        return np.float32(code / np.float32(FEATURE_SCALE))
-    return DEPTH_OF_CODE[int(code) & 0xFF]
+        word = _packed_word(features, voxel * stride + 3 * (c // 4))
+        return np.float32(_six_bit(word, c % 4) / np.float32(FEATURE_SCALE))
+    return DEPTH_OF_CODE[int(features[voxel * stride + stride - 1]) & 0xFF]
 
 
 def store_feature(features: np.ndarray, n_features: int, voxel: int, c: int, value: float) -> None:
@@ -452,10 +500,15 @@ def store_feature(features: np.ndarray, n_features: int, voxel: int, c: int, val
     if features.dtype != np.int8:
         store_f32(features, voxel * n_features + c, value)
         return
+    stride = 3 * (n_features - 1) // 4 + 1
     if c < n_features - 1:
-        features[voxel * n_features + c] = np.clip(np.rint(np.float32(value) * np.float32(FEATURE_SCALE)), -127, 127)
+        at = voxel * stride + 3 * (c // 4)
+        q = int(np.clip(np.rint(np.float32(value) * np.float32(FEATURE_SCALE)), -FEATURE_SCALE, FEATURE_SCALE))
+        shift = 6 * (c % 4)
+        word = (int(_packed_word(features, at)) & ~(_SIX_BITS << shift)) | ((q & _SIX_BITS) << shift)
+        _store_word(features, at, np.int64(word))
     else:
-        features[voxel * n_features + c] = encode_depth(value)
+        features[voxel * stride + stride - 1] = encode_depth(value)
 
 
 @overload(load_feature, inline="always")
@@ -464,10 +517,11 @@ def _load_feature(features, n_features, voxel, c):  # noqa: ANN001, ANN202 (numb
         return lambda features, n_features, voxel, c: load_f32(features, voxel * n_features + c)
 
     def load_packed(features, n_features, voxel, c):  # noqa: ANN001, ANN202
-        code = features[voxel * n_features + c]
+        stride = 3 * (n_features - 1) // 4 + 1
         if c < n_features - 1:
-            return np.float32(code) / np.float32(FEATURE_SCALE)
-        return DEPTH_OF_CODE[np.int64(code) & 0xFF]
+            word = _packed_word(features, voxel * stride + 3 * (c // 4))
+            return np.float32(_six_bit(word, c % 4)) / np.float32(FEATURE_SCALE)
+        return DEPTH_OF_CODE[np.int64(features[voxel * stride + stride - 1]) & 0xFF]
     return load_packed
 
 
@@ -477,11 +531,16 @@ def _store_feature(features, n_features, voxel, c, value):  # noqa: ANN001, ANN2
         return lambda features, n_features, voxel, c, value: store_f32(features, voxel * n_features + c, value)
 
     def store_packed(features, n_features, voxel, c, value):  # noqa: ANN001, ANN202
+        stride = 3 * (n_features - 1) // 4 + 1
         if c < n_features - 1:
+            at = voxel * stride + 3 * (c // 4)
             q = np.rint(np.float32(value) * np.float32(FEATURE_SCALE))
-            features[voxel * n_features + c] = np.int8(min(max(q, np.float32(-127.0)), np.float32(127.0)))
+            q = np.int64(min(max(q, np.float32(-FEATURE_SCALE)), np.float32(FEATURE_SCALE)))
+            shift = 6 * (c % 4)
+            word = (_packed_word(features, at) & ~(np.int64(_SIX_BITS) << shift)) | ((q & _SIX_BITS) << shift)
+            _store_word(features, at, word)
         else:
-            features[voxel * n_features + c] = encode_depth(value)
+            features[voxel * stride + stride - 1] = encode_depth(value)
     return store_packed
 
 
@@ -511,15 +570,20 @@ def _blend_features(features, n_features, voxel, keep, add, sums, inv_count):  #
         return blend
 
     def blend_packed(features, n_features, voxel, keep, add, sums, inv_count):  # noqa: ANN001, ANN202
-        base = voxel * n_features
+        stride = 3 * (n_features - 1) // 4 + 1
+        base = voxel * stride
         scale = np.float32(FEATURE_SCALE)
         change = np.float32(0.0)
-        for c in range(n_features - 1):  # in units of the stored integers: no division, no re-read
-            old = np.float32(features[base + c])
-            q = np.rint(keep * old + add * scale * (sums[c] * inv_count))
-            q = min(max(q, -scale), scale)
-            features[base + c] = np.int8(q)
-            change = max(change, abs(q - old) / scale)
+        for group in range(stride // 3):  # in units of the stored integers: no division, no re-read
+            word = _packed_word(features, base + 3 * group)
+            new_word = np.int64(0)
+            for k in range(4):
+                old = np.float32(_six_bit(word, k))
+                q = np.rint(keep * old + add * scale * (sums[4 * group + k] * inv_count))
+                q = min(max(q, -scale), scale)
+                new_word |= (np.int64(q) & _SIX_BITS) << (6 * k)
+                change = max(change, abs(q - old) / scale)
+            _store_word(features, base + 3 * group, new_word)
         c = n_features - 1
         old = load_feature(features, n_features, voxel, c)
         store_feature(features, n_features, voxel, c, keep * old + add * (sums[c] * inv_count))
@@ -781,10 +845,8 @@ class BlockGrid:
         slots = self.allocate_keys(block_keys(state["coords"]))
         for name, pool in self.pools.items():
             saved = state[f"pool.{name}"]
-            if pool.dtype == torch.int8 and saved.dtype != torch.int8:  # a map saved before features were packed
-                saved = encode_features(saved)
-            elif pool.dtype == torch.int8 and saved.shape[-1] == pool.shape[-1] + 1:  # ... before the depth took 8 bits
-                saved = encode_features(unpack_float16_depth_features(saved))
+            if pool.dtype == torch.int8 and saved.shape[-1] != pool.shape[-1]:  # saved by an earlier version
+                saved = encode_features(decode_saved_features(saved, self.channel_shapes[name][0]))
             pool[slots] = saved.to(pool.dtype)
 
     def nbytes(self) -> int:

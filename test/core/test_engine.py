@@ -18,7 +18,7 @@ from senfunet_core.engine import EngineConfig, SenFuNet
 from senfunet_core.errors import InputError
 from senfunet_core.fusion import fuse
 from senfunet_core.grid import (ALPHA_UNKNOWN, BLOCK, block_keys, decode_alpha, decode_features,
-                                encode_alpha, encode_features, unpack_float16_depth_features)
+                                decode_saved_features, encode_alpha, encode_features)
 from senfunet_core.mesher import Mesh, weld
 from senfunet_core.spill import spilled_rows
 
@@ -390,21 +390,21 @@ def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_eng
     assert grid.pools["alpha"].dtype == torch.uint8
     assert {pool.dtype for name, pool in grid.pools.items() if name not in features | {"alpha"}} == {torch.float16}
     # per voxel, 6 half-precision values (2 x (TSDF, weight), the baseline's TSDF and weight), alpha
-    # in a byte and 2 x 5 bytes of features (4 int8, the depth's 8-bit code); per block, its
+    # in a byte and 2 x 4 bytes of features (4 in 6 bits, the depth's 8-bit code); per block, its
     # coordinates, key and up to 4 hash-table entries
-    assert grid.bytes_per_block() == 512 * (2 * 6 + 1 + 2 * 5) + 3 * 8 + 8 + 4 * 16
+    assert grid.bytes_per_block() == 512 * (2 * 6 + 1 + 2 * 4) + 3 * 8 + 8 + 4 * 16
     path = tmp_path / "state.pt"
     sphere_engine.save(path)
     loaded = SenFuNet.load(path)
     assert loaded.grid.n_blocks == n
     for name, pool in grid.pools.items():  # bit for bit (alpha's NaN where never evaluated included)
         assert torch.equal(pool[:n].view(torch.int8), loaded.grid.pools[name][:n].view(torch.int8)), name
-    # a map file written when features were float16 (5 per voxel): loads, each feature rounded to int8
+    # a map file written when features were float16 (5 per voxel): loads, each feature rounded to 6 bits
     state = torch.load(path, weights_only=True)
     for name in sorted(features):
         half = decode_features(state["grid"][f"pool.{name}"]).half()
         assert half.shape == (n, 512, 5)
-        half[..., :4] = half[..., :4] + 0.003 * (half[..., :4] != 0)  # off the int8 steps
+        half[..., :4] = half[..., :4] + 0.01 * (half[..., :4] != 0)  # off the 6-bit steps
         state["grid"][f"pool.{name}"] = half
     old_features = tmp_path / "float16_features_state.pt"
     torch.save(state, old_features)
@@ -413,25 +413,29 @@ def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_eng
         got = decode_features(from_half.grid.pools[name][:n])
         want = state["grid"][f"pool.{name}"].float()
         assert torch.equal(got[..., 4], decode_features(encode_features(want))[..., 4]), name  # depth to its code
-        assert float((got[..., :4] - want[..., :4]).abs().max()) <= 0.5 / 127 + 1e-6, name
+        assert float((got[..., :4] - want[..., :4]).abs().max()) <= 0.5 / 31 + 1e-6, name
         assert not torch.equal(got[..., :4], want[..., :4])
-    # a map file written when the depth feature was packed as float16 bits (n + 1 bytes a voxel):
-    # loads with the learned features as they were and the depth rounded to its 8-bit code
-    state = torch.load(path, weights_only=True)
-    for name in sorted(features):
-        rows = state["grid"][f"pool.{name}"]
-        depth = decode_features(rows)[..., 4:] + 0.002 * (rows[..., 4:] != 0)  # off the 8-bit steps
-        state["grid"][f"pool.{name}"] = torch.cat([rows[..., :4], depth.half().view(torch.int8)], dim=-1)
-    old_packing = tmp_path / "float16_depth_state.pt"
-    torch.save(state, old_packing)
-    from_packed = SenFuNet.load(old_packing)
-    for name in sorted(features):
-        got = from_packed.grid.pools[name][:n]
-        assert torch.equal(got[..., :4], grid.pools[name][:n, :, :4]), name
-        want = unpack_float16_depth_features(state["grid"][f"pool.{name}"])[..., 4:]
-        want = torch.cat([torch.zeros(*want.shape[:-1], 4), want], dim=-1)
-        assert torch.equal(decode_features(got)[..., 4:], decode_features(encode_features(want))[..., 4:]), name
-        assert not torch.equal(decode_features(got)[..., 4:], want[..., 4:])
+    # map files written when the learned features were int8 (steps of 1/127) and the depth float16
+    # bits (n + 1 bytes a voxel) or its 8-bit code (n bytes): load with the same learned features
+    # (they came from 6-bit values) and the depth rounded to its code
+    for depth_bytes in (2, 1):
+        state = torch.load(path, weights_only=True)
+        for name in sorted(features):
+            values = decode_features(state["grid"][f"pool.{name}"])
+            learned = torch.round(values[..., :4] * 127).to(torch.int8)
+            depth = values[..., 4:] + 0.002 * (values[..., 4:] != 0)  # off the 8-bit steps
+            depth = depth.half().view(torch.int8) if depth_bytes == 2 else encode_features(
+                torch.cat([values[..., :4], depth], dim=-1))[..., -1:]
+            state["grid"][f"pool.{name}"] = torch.cat([learned, depth], dim=-1)
+        earlier = tmp_path / f"int8_features_state_{depth_bytes}.pt"
+        torch.save(state, earlier)
+        from_earlier = SenFuNet.load(earlier)
+        for name in sorted(features):
+            got = decode_features(from_earlier.grid.pools[name][:n])
+            assert torch.equal(got[..., :4], decode_features(grid.pools[name][:n])[..., :4]), name
+            saved = decode_saved_features(state["grid"][f"pool.{name}"], 5)
+            assert torch.equal(got[..., 4:], decode_features(encode_features(saved))[..., 4:]), name
+            assert depth_bytes == 1 or not torch.equal(got[..., 4:], saved[..., 4:])
     # a map file written when TSDFs, alpha and a per-voxel drift were float32: loads, TSDFs rounded
     # to float16, alpha to its 8-bit code, and the blocks where a voxel had drifted marked for the net
     state = torch.load(path, weights_only=True)
@@ -991,10 +995,12 @@ def test_idle_catch_up_yields_to_the_next_frame(alpha_threads):
 
 
 def with_float16_depth_packing(state: dict, grid) -> dict:
-    """A saved engine state as an earlier version wrote it: feature rows of n + 1 bytes (the depth
-    feature as float16 bits), in the grid and in the spill's blobs."""
+    """A saved engine state as an earlier version wrote it: feature rows of n + 1 bytes (learned
+    features int8 in steps of 1/127, the depth as float16 bits), in the grid and in the spill's blobs."""
     def repack(rows: torch.Tensor) -> torch.Tensor:
-        return torch.cat([rows[..., :-1], decode_features(rows)[..., -1:].half().view(torch.int8)], dim=-1)
+        values = decode_features(rows)
+        return torch.cat([torch.round(values[..., :-1] * 127).to(torch.int8),
+                          values[..., -1:].half().view(torch.int8)], dim=-1)
 
     names = list(grid.pools)
     for name in names:

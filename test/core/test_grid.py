@@ -166,24 +166,26 @@ def _store_load_features(values, packed):
 
 
 def test_packed_features_in_kernels_equal_encode_and_decode():
-    """The kernels' int8 feature storage (4 learned features in steps of 1/127, the depth as an 8-bit
-    code) matches the torch encoder and decoder bit for bit: ties to even, clamping, depths out of range."""
+    """The kernels' packed feature storage (4 learned features in 6 bits, steps of 1/31, in 3 bytes;
+    the depth as an 8-bit code) matches the torch encoder and decoder bit for bit: ties to even,
+    clamping, depths out of range."""
     rng = np.random.default_rng(3)
     learned = rng.uniform(-1.0, 1.0, (500, 4)).astype(np.float32)
-    learned[:20] = (np.arange(-10, 10)[:, None] + 0.5).astype(np.float32) / np.float32(127.0)  # ties
-    learned[20:25] = [[1.2, -1.3, 1.0, -1.0]] * 5  # beyond the range: clamped to +-127
+    learned[:20] = (np.arange(-10, 10)[:, None] + 0.5).astype(np.float32) / np.float32(31.0)  # ties
+    learned[20:25] = [[1.2, -1.3, 1.0, -1.0]] * 5  # beyond the range: clamped to +-31
     depth = rng.uniform(0.01, 12.0, (500, 1)).astype(np.float32)
     depth[25:28, 0] = [-2.5, 40.0, np.float32(G.DEPTH_OF_CODE[100] + G.DEPTH_OF_CODE[101]) / 2]  # clamped; a tie
     values = np.concatenate([learned, depth], axis=1)
-    packed = np.zeros(500 * 5, np.int8)
+    packed = np.zeros(500 * 4, np.int8)
     back = _store_load_features(values, packed)
     encoded = G.encode_features(torch.from_numpy(values))
-    assert encoded.dtype == torch.int8 and encoded.shape == (500, 5)
-    assert np.array_equal(packed.reshape(500, 5), encoded.numpy())
+    assert encoded.dtype == torch.int8 and encoded.shape == (500, 4)
+    assert np.array_equal(packed.reshape(500, 4), encoded.numpy())
     decoded = G.decode_features(encoded).numpy()
     assert np.array_equal(back, decoded)
     assert decoded[25:28, 4].tolist() == [0.0, G.DEPTH_MAX_M, G.DEPTH_OF_CODE[100]]  # tie to the even code
-    assert np.abs(decoded[25:, :4] - learned[25:]).max() <= 0.5 / 127 + 1e-7
+    assert np.abs(decoded[25:, :4] - learned[25:]).max() <= 0.5 / 31 + 1e-7
+    assert set(np.rint(decoded[:20, :4] * 31).astype(int).ravel()) <= set(range(-10, 11, 2))  # ties to even
     assert decoded[20:25, :4].tolist() == [[1.0, -1.0, 1.0, -1.0]] * 5
     # a float16 feature pool takes the same calls, one value per feature
     half = np.zeros(500 * 5, np.int16)
@@ -224,7 +226,7 @@ def test_blended_features_match_the_reference_average(storage):
     sums = (sums * count[:, None] / 3).astype(np.float32)
     weight = rng.integers(0, 40, n_voxels).astype(np.float32)
     keep, add = weight / (weight + 1), 1 / (weight + 1)
-    pool = np.zeros(n_voxels * n, np.int8 if storage == "packed int8" else np.int16)
+    pool = np.zeros(n_voxels * 4, np.int8) if storage == "packed int8" else np.zeros(n_voxels * n, np.int16)
     _store_load_features(start.astype(np.float32), pool)
     reference = pool.copy()
     old = np.array([[G.load_feature(reference, n, v, c) for c in range(n)] for v in range(n_voxels)], np.float32)
@@ -235,7 +237,7 @@ def test_blended_features_match_the_reference_average(storage):
     _blend_all(pool, n, keep, add, sums, (1 / count).astype(np.float32), changes)
     new = np.array([[G.load_feature(pool, n, v, c) for c in range(n)] for v in range(n_voxels)], np.float32)
     expected = np.array([[G.load_feature(reference, n, v, c) for c in range(n)] for v in range(n_voxels)], np.float32)
-    step = 1 / 127 if storage == "packed int8" else 0.0
+    step = 1 / 31 if storage == "packed int8" else 0.0
     # the packed path rounds once in integer units: at most one step apart where a value sits on a tie
     assert np.abs(new - expected).max() <= step + 1e-6
     assert (new == expected).mean() > 0.99
