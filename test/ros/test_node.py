@@ -66,9 +66,9 @@ class Running:
 
     def close(self) -> None:
         self.executor.shutdown()
+        self.thread.join(timeout=5)  # the spinning thread last touches the nodes' handles: then destroy them
         self.node.destroy_node()
         self.helper.destroy_node()
-        self.thread.join(timeout=5)
 
     def call(self, service: str, timeout_s: float = 120.0) -> Trigger.Response:
         client = self.helper.create_client(Trigger, f"{self.prefix}/{service}")
@@ -318,7 +318,7 @@ def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: P
 
     prefix = "e2e"
     run = Running("e2e", {**E2E_PARAMS, **topic_params(prefix)}, tmp_path)
-    child = None
+    child = late_node = None
     try:
         collector = MeshCollector(run.helper, f"{run.prefix}/mesh")
         clouds: list[PointCloud2] = []
@@ -429,13 +429,13 @@ def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: P
         assert response.success, response.message
         wait_for(lambda: not collector.keys() and not late.keys(), 30, "the mesh to be cleared")
         assert collector.delete_alls >= 1
-        run.executor.remove_node(late_node)
-        late_node.destroy_node()
     finally:
         if child is not None and child.is_alive():  # a failed handshake: do not leave it waiting
             child.terminate()
             child.join(timeout=10)
         run.close()
+        if late_node is not None:  # once the executor's thread is gone (it may be waiting on its handles)
+            late_node.destroy_node()
 
 
 PointField_FLOAT32 = 7
