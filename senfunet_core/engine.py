@@ -404,10 +404,12 @@ class SenFuNet:
         return BlockMeshes.concatenate([live, archived])
 
     @torch.inference_mode()
-    def extract_mesh(self, which: str = FUSED, filtered: bool = True) -> Mesh:
+    def extract_mesh(self, which: str = FUSED, filtered: bool = True, *, then_reset: bool = False) -> Mesh:
         """The whole mesh of `which`: "fused", a sensor name, or "tsdf_fusion" (the baseline). The
         fused mesh includes the archived meshes of blocks the map bound evicted (`archive`); the
-        others cover the blocks in memory."""
+        others cover the blocks in memory. `then_reset`: for a caller done with the map (replay's
+        last mesh), `reset` once every block is meshed, so that the map's memory is free before the
+        weld, extraction's peak."""
         self._check_which(which)
         with self._updating():
             if which == FUSED:
@@ -416,6 +418,8 @@ class SenFuNet:
                 release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise
             live_with_faces = []
             with self._data_lock:  # one consistent state of the whole map
+                if then_reset:  # the channels this mesh does not read go first (the mesh's peak comes on top)
+                    self.grid.release_channels(set(self.grid.pools) - set(self.mesher.channels(which)))
                 slots = np.arange(self.grid.n_blocks)
                 coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
                 # each batch goes into the weld's compact arrays at once (extraction's memory peak)
@@ -431,6 +435,8 @@ class SenFuNet:
                 if archived.n_faces:  # welded with the live mesh: colours instead of alpha
                     assert archived.colors is not None
                     welder.add_colored_m(archived.vertices, archived.faces, archived.colors)
+            if then_reset:
+                self.reset()
         self.mesher.release_buffers()
         release_free_memory()  # the batches' buffers
         return welder.mesh()

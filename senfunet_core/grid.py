@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import mmap
+from collections.abc import Iterable
 import platform
 
 import numba
@@ -775,6 +776,12 @@ class BlockGrid:
         assert self.spill is not None
         restored = self.spill.take(self.slot_keys[first:end], [pool[first:end].numpy() for pool in self.pools.values()])
         self._restored_slots.append(first + np.flatnonzero(restored))
+
+    def release_channels(self, names: Iterable[str]) -> None:
+        """Zero these channels in every block and give their memory back to the OS (for a map about
+        to be forgotten, whose last reader does not need them)."""
+        for name in names:
+            _release_rows(self.pools[name], self._memory[name], 0, len(self.pools[name]))
 
     def take_restored_slots(self) -> np.ndarray:
         """The slots of blocks taken back from the spill since the last call (before any removal)."""

@@ -150,18 +150,21 @@ class Pipeline:
             self.engine.reset()
             self.ingest.clear_frames()
 
-    def save_meshes(self, out_dir: str | Path, *, sensors: Iterable[str], tsdf_fusion: bool) -> dict[str, SavedMesh]:
-        """Fused (filtered), per-sensor and, if kept, TSDF Fusion meshes as PLY files (mode 0644)."""
+    def save_meshes(self, out_dir: str | Path, *, sensors: Iterable[str], tsdf_fusion: bool,
+                    then_reset: bool = False) -> dict[str, SavedMesh]:
+        """Fused (filtered), per-sensor and, if kept, TSDF Fusion meshes as PLY files (mode 0644).
+        `then_reset`: the map is forgotten as the last mesh is made (`SenFuNet.extract_mesh`)."""
         from senfunet_core.ply import write_ply
 
         out = Path(out_dir).expanduser()
         out.mkdir(parents=True, exist_ok=True)
-        which = ["fused", *sensors] + (["tsdf_fusion"] if tsdf_fusion else [])
+        which = [*sensors] + (["tsdf_fusion"] if tsdf_fusion else []) + ["fused"]
         meshes: dict[str, tuple[Any, float]] = {}
         with self.lock:
             for name in which:
                 t0 = time.perf_counter()
-                meshes[MESH_FILES.get(name, name)] = (self.engine.extract_mesh(name), time.perf_counter() - t0)
+                mesh = self.engine.extract_mesh(name, then_reset=then_reset and name == which[-1])
+                meshes[MESH_FILES.get(name, name)] = (mesh, time.perf_counter() - t0)
         saved = {}
         for stem, (mesh, seconds) in meshes.items():
             path = out / f"{stem}.ply"

@@ -297,11 +297,15 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
                             for s, c in counters.items())
         result.error = f"{bag}: no frame could be fused ({dropped}); see {out / 'stats.json'}"
     out.mkdir(parents=True, exist_ok=True)
+    # what needs the map is read before its last mesh: the map's memory goes as that mesh is made
+    engine_stats = pipeline.engine.stats()
+    gt_vertices = _observed_gt(pipeline.engine, gt_mesh) if n_integrated else None
     if n_integrated:
         torch.set_num_threads(max(1, int(threads)))
         try:
             t0 = time.perf_counter()
-            saved = pipeline.save_meshes(out, sensors=settings.sensor_names if compare else (), tsdf_fusion=compare)
+            saved = pipeline.save_meshes(out, sensors=settings.sensor_names if compare else (), tsdf_fusion=compare,
+                                         then_reset=True)
             t_saved = time.perf_counter() - t0
         finally:
             torch.set_num_threads(previous_threads)
@@ -309,10 +313,10 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
         result.files = {stem: s.path for stem, s in saved.items()}
         timings["extract_s"] = {stem: round(s.extract_s, 3) for stem, s in saved.items()}
         timings["write_s"] = round(t_saved - sum(s.extract_s for s in saved.values()), 3)
-    metrics, gt_info = _metrics(pipeline.engine, gt, gt_mesh, result.meshes, timings)
+    metrics, gt_info = _metrics(gt_vertices, gt, gt_mesh, result.meshes, timings)
     timings["total_s"] = round(time.perf_counter() - t_start, 3)
     result.stats = _stats(result, run, pipeline, settings, counters, params=params, threads=threads,
-                          gt_info=gt_info, metrics=metrics, timings=timings)
+                          gt_info=gt_info, metrics=metrics, timings=timings, engine_stats=engine_stats)
     (out / "stats.json").write_text(json.dumps(result.stats, indent=2, default=_json_default) + "\n")
     result.files["stats"] = out / "stats.json"
     return result
@@ -373,18 +377,24 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
     return run
 
 
-def _metrics(engine: Any, gt: str | Path | None, gt_mesh: Any, meshes: dict[str, Any],
+def _observed_gt(engine: Any, gt_mesh: Any) -> Any:
+    """As `senfunet evaluate` (the paper's protocol): the GT vertices cropped to the surface the
+    recording observed, the same crop for every mesh (None without a GT mesh)."""
+    if gt_mesh is None:
+        return None
+    from senfunet_core.learning.evaluation import observed_gt_vertices
+
+    return observed_gt_vertices(engine, gt_mesh.vertices)
+
+
+def _metrics(gt_vertices: Any, gt: str | Path | None, gt_mesh: Any, meshes: dict[str, Any],
              timings: dict[str, Any]) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
     """F-score, precision and recall of each mesh against the GT cropped to the observed surface."""
-    if gt_mesh is None or not meshes:
+    if gt_mesh is None or gt_vertices is None or not meshes:
         return None, None
-    from senfunet_core.learning.evaluation import observed_gt_vertices
     from senfunet_core.metrics import mesh_metrics
 
     t0 = time.perf_counter()
-    # As `senfunet evaluate` (the paper's protocol): the GT cropped to the surface the
-    # recording observed, the same crop for every mesh.
-    gt_vertices = observed_gt_vertices(engine, gt_mesh.vertices)
     gt_info = {"path": str(gt), "vertices": gt_mesh.n_vertices, "vertices_observed": int(len(gt_vertices)),
                "tau_m": 0.02}
     metrics = None
@@ -398,7 +408,7 @@ def _metrics(engine: Any, gt: str | Path | None, gt_mesh: Any, meshes: dict[str,
 def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Settings,
            counters: dict[str, dict[str, Any]], *, params: str | Path | None, threads: int,
            gt_info: dict[str, Any] | None, metrics: dict[str, Any] | None,
-           timings: dict[str, Any]) -> dict[str, Any]:
+           timings: dict[str, Any], engine_stats: dict[str, Any]) -> dict[str, Any]:
     sensors = {}
     for name, c in counters.items():
         sensors[name] = {
@@ -425,7 +435,7 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
         "ignored_topics": dict(sorted(router.ignored.items())),
         "time_jumps": pipeline.time_jumps,
         "engine_errors": pipeline.engine_errors,
-        "engine": pipeline.engine.stats(),
+        "engine": engine_stats,
         "meshes": {stem: {"file": str(result.files[stem]), "vertices": m.n_vertices, "faces": m.n_faces}
                    for stem, m in result.meshes.items()},
         "gt": gt_info,

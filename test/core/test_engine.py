@@ -377,6 +377,11 @@ def test_save_and_load_give_identical_meshes(sphere_engine, tmp_path):
     # a resumed session re-sends its whole mesh on the first update
     update = loaded.update()
     assert join_block_meshes(list(update.changed.values())).n_faces == sphere_engine.extract_mesh("fused").n_faces
+    # replay's last mesh frees the map before its weld: the same mesh, and an empty engine after it
+    last = loaded.extract_mesh("fused", then_reset=True)
+    np.testing.assert_array_equal(last.vertices, sphere_engine.extract_mesh("fused").vertices)
+    np.testing.assert_array_equal(last.faces, sphere_engine.extract_mesh("fused").faces)
+    assert loaded.grid.n_blocks == 0 and loaded.extract_mesh("fused").n_faces == 0
     with pytest.raises(InputError, match="cannot read"):
         SenFuNet.load(tmp_path / "missing.pt")
 
