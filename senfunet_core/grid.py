@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import math
 import mmap
-from collections.abc import Iterable
 import platform
+from collections.abc import Iterable
 
 import numba
 import numpy as np
