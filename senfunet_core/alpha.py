@@ -25,7 +25,7 @@ import numba
 import numpy as np
 import torch
 
-from .grid import f16_to_f32, features_per_voxel, load_f32, load_feature, store_f32
+from .grid import f16_to_f32, features_per_voxel, load_f32, load_features, store_f32
 from .integrator import TANH_OF_COUNT
 
 HALO = 2  # alpha depends on inputs within 2 voxels
@@ -84,6 +84,7 @@ def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarra
     with_tsdf = tsdf_1.shape[0] > 0
     first_tsdf = 2 * (n_features + 1)
     channels = first_tsdf + 2 * with_tsdf
+    values_1, values_2 = np.empty(n_features, np.float32), np.empty(n_features, np.float32)
     i = 0  # out[i:i + channels]: the inputs at window position (b, x, y, z)
     for b in range(neighbours.shape[0]):
         for x in range(WINDOW):
@@ -95,9 +96,11 @@ def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarra
                             store_f32(out, i + c, 0.0)
                         i += channels
                         continue
+                    load_features(features_1, n_features, v, values_1)
+                    load_features(features_2, n_features, v, values_2)
                     for c in range(n_features):
-                        store_f32(out, i + c, load_feature(features_1, n_features, v, c))
-                        store_f32(out, i + n_features + 1 + c, load_feature(features_2, n_features, v, c))
+                        store_f32(out, i + c, values_1[c])
+                        store_f32(out, i + n_features + 1 + c, values_2[c])
                     store_f32(out, i + n_features, TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))])
                     store_f32(out, i + first_tsdf - 1, TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))])
                     if with_tsdf:
@@ -222,9 +225,8 @@ def target_gathers(neighbours: np.ndarray, targets: np.ndarray, features_1: np.n
                     v = _neighbour_index(neighbours, b, x - HALO, y - HALO, z - HALO)
                     if v < 0:
                         continue
-                    for c in range(n_features):
-                        inputs[row, c] = load_feature(features_1, n_features, v, c)
-                        inputs[row, n_features + 1 + c] = load_feature(features_2, n_features, v, c)
+                    load_features(features_1, n_features, v, inputs[row, :n_features])
+                    load_features(features_2, n_features, v, inputs[row, n_features + 1:2 * n_features + 1])
                     inputs[row, n_features] = TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))]
                     inputs[row, first_tsdf - 1] = TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))]
                     if with_tsdf:

@@ -545,6 +545,32 @@ def _store_feature(features, n_features, voxel, c, value):  # noqa: ANN001, ANN2
     return store_packed
 
 
+def load_features(features: np.ndarray, n_features: int, voxel: int, values: np.ndarray) -> None:
+    """values[:n] = every feature of a voxel (`load_feature` for each; a packed row is read once).
+    Kernels compile this per dtype; this body is the reference."""
+    for c in range(n_features):
+        values[c] = load_feature(features, n_features, voxel, c)
+
+
+@overload(load_features, inline="always")
+def _load_features(features, n_features, voxel, values):  # noqa: ANN001, ANN202 (numba overload)
+    if not (isinstance(features, types.Array) and features.dtype == types.int8):
+        def load_each(features, n_features, voxel, values):  # noqa: ANN001, ANN202
+            for c in range(n_features):
+                values[c] = load_f32(features, voxel * n_features + c)
+        return load_each
+
+    def load_packed_row(features, n_features, voxel, values):  # noqa: ANN001, ANN202
+        stride = 3 * (n_features - 1) // 4 + 1
+        base = voxel * stride
+        for group in range(stride // 3):
+            word = _packed_word(features, base + 3 * group)
+            for k in range(4):
+                values[4 * group + k] = np.float32(_six_bit(word, k)) / np.float32(FEATURE_SCALE)
+        values[n_features - 1] = DEPTH_OF_CODE[np.int64(features[base + stride - 1]) & 0xFF]
+    return load_packed_row
+
+
 def blend_features(features: np.ndarray, n_features: int, voxel: int, keep: float | np.float32,
                    add: float | np.float32, sums: np.ndarray, inv_count: float | np.float32) -> float:
     """A voxel's features = keep * old + add * sums * inv_count (a running average), rounded to the

@@ -165,6 +165,14 @@ def _store_load_features(values, packed):
     return back
 
 
+@numba.njit
+def _load_rows(pool, n_voxels, n):
+    rows = np.empty((n_voxels, n), np.float32)
+    for v in range(n_voxels):
+        G.load_features(pool, n, v, rows[v])
+    return rows
+
+
 def test_packed_features_in_kernels_equal_encode_and_decode():
     """The kernels' packed feature storage (4 learned features in 6 bits, steps of 1/31, in 3 bytes;
     the depth as an 8-bit code) matches the torch encoder and decoder bit for bit: ties to even,
@@ -183,6 +191,7 @@ def test_packed_features_in_kernels_equal_encode_and_decode():
     assert np.array_equal(packed.reshape(500, 4), encoded.numpy())
     decoded = G.decode_features(encoded).numpy()
     assert np.array_equal(back, decoded)
+    assert np.array_equal(_load_rows(packed, 500, 5), decoded)  # a whole row at once reads the same
     assert decoded[25:28, 4].tolist() == [0.0, G.DEPTH_MAX_M, G.DEPTH_OF_CODE[100]]  # tie to the even code
     assert np.abs(decoded[25:, :4] - learned[25:]).max() <= 0.5 / 31 + 1e-7
     assert set(np.rint(decoded[:20, :4] * 31).astype(int).ravel()) <= set(range(-10, 11, 2))  # ties to even
@@ -191,6 +200,7 @@ def test_packed_features_in_kernels_equal_encode_and_decode():
     half = np.zeros(500 * 5, np.int16)
     back_half = _store_load_features(values, half)
     assert np.array_equal(back_half, values.astype(np.float16).astype(np.float32))
+    assert np.array_equal(_load_rows(half, 500, 5), back_half)
 
 
 def test_depth_code_rounds_to_the_nearest_representable_depth():
