@@ -5,9 +5,9 @@ blocks within 2 voxels of its changed voxels (`BlockStore.reach_changed`, `reach
 `schedule` turns those into stale blocks (`alpha.reach_levels`); `order` lists the stale blocks
 (`EngineConfig.alpha_order`); `evaluate` runs the net on a batch of them where alpha matters
 (`EngineConfig.alpha_voxels`, see `alpha`); `write` stores the results; `refresh` does all of it
-within a budget, on `alpha_threads` threads when it may. The engine decides when (budgets, eviction points) and holds
-its locks as the threading model in `engine` says: the scheduler takes the data lock it is given
-only around its reads of the reach bits and its writes.
+within a budget, on `alpha_threads` threads when it may. The engine decides when (budgets,
+eviction points) and holds its locks as the threading model in `engine` says: the scheduler takes
+the data lock it is given only around its reads of the reach bits and its writes.
 """
 from __future__ import annotations
 
@@ -128,7 +128,7 @@ class AlphaScheduler:
         those whose last change is oldest first (blocks the sensors still see wait until they settle:
         each is judged about once, and the longest wait is the shortest). Among blocks reached by the
         same schedule, never evaluated ones first, then those with newly observed or sign-changed
-        voxels, then drifted ones."""
+        voxels, then changed ones."""
         store = self.store
         with self._data_lock:
             stale = np.flatnonzero(store.stale[: store.n_blocks])

@@ -38,7 +38,7 @@ class BlockStore:
     - reach_changed, reach_renewed: since then, the blocks within 2 voxels of its voxels whose
       weighting-net inputs changed, and of those first observed or whose TSDF changed sign
       (bits of neighbour codes, integrator.REACH_OF_VOXEL);
-    - stale: alpha to re-evaluate: 0 no, 1 inputs drifted, 2 new or sign-changed voxels, 3 never evaluated;
+    - stale: alpha to re-evaluate: 0 no, 1 inputs changed, 2 new or sign-changed voxels, 3 never evaluated;
     - evaluated: alpha evaluated at least once;
     - no_targets: when last checked, the block held no voxel alpha matters for;
     - last_reached: the last alpha schedule that made it stale (the newest are served first);

@@ -166,4 +166,3 @@ def spilled_rows(state: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     rows = [np.frombuffer(decompressor.decompress(blobs[end - length:end].tobytes()), np.uint8)
             for end, length in zip(ends.tolist(), np.asarray(state["lengths"]).tolist())]
     return np.asarray(state["keys"], np.int64), np.stack(rows) if rows else np.zeros((0, 0), np.uint8)
-
