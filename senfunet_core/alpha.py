@@ -27,8 +27,9 @@ import torch
 
 from .grid import f16_to_f32, features_per_voxel, load_f32, load_features, store_f32
 from .integrator import TANH_OF_COUNT
+from .networks import WEIGHTING_HALO
 
-HALO = 2  # alpha depends on inputs within 2 voxels
+HALO = WEIGHTING_HALO  # alpha depends on inputs within 2 voxels (integrator.REACH_OF_VOXEL reads the same)
 WINDOW = 8 + 2 * HALO  # input window per block: 12^3
 
 
