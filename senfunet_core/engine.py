@@ -627,18 +627,9 @@ class SenFuNet:
         self._cleared = False
 
     def _pixel_features(self, s: int, depth_m: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:
-        """5 x H x W features of one frame (in the feature worker thread)."""
+        """(H*W) x 5 features of one frame's pixels (in the feature worker thread)."""
         start = time.perf_counter()
-        net = self.feature_nets[s]
-        depth = torch.from_numpy(depth_m).to(self.device)
-        rgb01 = None
-        if net.uses_rgb:
-            if rgb is None:
-                rgb01 = torch.zeros((1, 3, *depth.shape), device=self.device)
-            else:
-                rgb01 = torch.from_numpy(rgb).to(self.device).permute(2, 0, 1).unsqueeze(0).float() / 255.0
-        with torch.inference_mode():
-            features = net(depth.view(1, 1, *depth.shape), rgb01)[0].cpu().numpy()
+        features = networks.pixel_feature_rows(self.feature_nets[s], depth_m, rgb)
         self.times.add(feature_net=time.perf_counter() - start)
         return features
 

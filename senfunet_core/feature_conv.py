@@ -4,30 +4,50 @@ oneDNN is built for many channels; with the feature nets' 4 it spends most of a 
 time on layout and dispatch, and torch's tanh (or sigmoid) is another pass over the image per
 layer. Here each output row is one pass per input channel and pair of output channels with the
 taps as scalars, which the compiler vectorises over the row, and the tanh is applied to the row
-while it is in cache, from an exp written in plain arithmetic (a libm exp per value would not
-vectorise). Float32; the sums
-run in another order than oneDNN's and the tanh is within a few 1e-7 of torch's, so the features
-equal torch's within 1e-5 (test_networks).
+while it is in cache, from a float32 exp written in plain arithmetic (a libm exp per value would
+not vectorise). The last pass normalises each pixel's features and writes them, with the depth,
+as the pixel rows integration reads (`feature_net_rows`). Float32; the sums run in another order
+than oneDNN's and the tanh is within 1e-7 of the exact one, so the features equal torch's within
+1e-5 (test_networks).
 """
 from __future__ import annotations
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
 _NO_RESIDUAL = np.zeros((0, 0, 0), np.float32)
 
 
+@intrinsic
+def _f32_of_bits(typingctx, bits):  # noqa: ANN001 (numba intrinsic)
+    """The float32 whose bits are the low 32 of the integer `bits`."""
+    if not isinstance(bits, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):  # noqa: ANN001
+        word = args[0] if args[0].type.width == 32 else builder.trunc(args[0], ir.IntType(32))
+        return builder.bitcast(word, ir.FloatType())
+    return types.float32(bits), codegen
+
+
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _tanh(z: float) -> np.float32:
-    """tanh(z) = (e - 1) / (e + 1), e = exp(2 z); exp(y) as exp(y / 32) ** 32 with a degree-9 Taylor
-    polynomial on |y / 32| <= 0.5625, in float64 (the squarings would multiply float32's rounding)."""
-    u = min(max(np.float64(z), -9.0), 9.0) * (2.0 / 32.0)  # tanh(9) is 1 in float32
-    p = u * (1.0 / 362880.0) + 1.0 / 40320.0
-    for c in (1.0 / 5040.0, 1.0 / 720.0, 1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0):
-        p = p * u + c
-    for _ in range(5):
-        p = p * p
-    return np.float32((p - 1.0) / (p + 1.0))
+    """tanh(z) = sign(z) (1 - e) / (1 + e), e = exp(-2 |z|) in float32: -2 |z| = n ln2 + r with |r| <=
+    ln2 / 2 (ln2 in two parts, so n ln2 is exact to float32), exp(r) by its degree-7 Taylor polynomial
+    (error below 1e-8), 2^n from its exponent bits. Absolute error below 1e-7."""
+    a = min(abs(np.float32(z)), np.float32(9.0))  # tanh(9) is 1 in float32
+    y = np.float32(-2.0) * a
+    n = np.rint(y * np.float32(1.4426950408889634))  # 1 / ln 2
+    r = (y - n * np.float32(0.693145751953125)) - n * np.float32(1.4286067653e-06)
+    p = np.float32(1.0 / 5040.0)
+    for c in (1.0 / 720.0, 1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0):
+        p = p * r + np.float32(c)
+    e = p * _f32_of_bits((np.int64(n) + 127) << 23)
+    t = (np.float32(1.0) - e) / (np.float32(1.0) + e)
+    return t if z >= 0 else -t
 
 
 # error_model numpy: no zero-division check per value (it would stop the vectorisation; e + 1 > 0 anyway)
@@ -87,16 +107,35 @@ def conv3x3_tanh(x_padded: np.ndarray, weight: np.ndarray, bias: np.ndarray, res
                     out[x + 1] = _tanh(a[x])
 
 
-def feature_net_forward(convs: list[tuple[np.ndarray, np.ndarray]], x: np.ndarray) -> np.ndarray:
-    """The residual conv-tanh stack of a FeatureNet on one image: x (Cin, H, W) float32 ->
-    (C, H, W) before normalisation. convs: each conv's (weight, bias) as float32 arrays, in order
-    (conv_a, conv_b of block 1, ...)."""
-    c_in, h, w = x.shape
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
+def _normalised_rows(features_padded: np.ndarray, depth_m: np.ndarray, rows: np.ndarray) -> None:
+    """rows[v * W + u] = (features / their L2 norm (at least 1e-8), depth) of pixel (v, u):
+    features_padded (C, H+2, W+2), depth_m (H, W) -> rows (H*W, C+1), as FeatureNet.forward's
+    normalisation and concatenation, laid out per pixel."""
+    n_channels, h, w = features_padded.shape[0], depth_m.shape[0], depth_m.shape[1]
+    norm = np.empty(w, np.float32)
+    for y in range(h):
+        norm[:] = 0.0
+        for c in range(n_channels):
+            f = features_padded[c, y + 1]
+            for x in range(w):
+                norm[x] += f[x + 1] * f[x + 1]
+        for x in range(w):
+            norm[x] = np.float32(1.0) / max(np.sqrt(norm[x]), np.float32(1e-8))
+        for c in range(n_channels):
+            f = features_padded[c, y + 1]
+            for x in range(w):
+                rows[y * w + x, c] = f[x + 1] * norm[x]
+        for x in range(w):
+            rows[y * w + x, n_channels] = depth_m[y, x]
+
+
+def _conv_stack(convs: list[tuple[np.ndarray, np.ndarray]], padded_in: np.ndarray) -> np.ndarray:
+    """The residual conv-tanh stack of a FeatureNet on one image: padded_in (Cin, H+2, W+2) float32
+    with a zero border -> (C, H+2, W+2) before normalisation, with a zero border."""
     n_channels = convs[0][0].shape[0]
-    padded_in = np.zeros((c_in, h + 2, w + 2), np.float32)
-    padded_in[:, 1:-1, 1:-1] = x
     # three padded buffers in turn: a block's input (the previous block's output), its middle, its output
-    buffers = [np.zeros((n_channels, h + 2, w + 2), np.float32) for _ in range(3)]
+    buffers = [np.zeros((n_channels, *padded_in.shape[1:]), np.float32) for _ in range(3)]
     current = padded_in
     for i in range(0, len(convs), 2):
         middle, out = [b for b in buffers if b is not current][:2]
@@ -104,4 +143,29 @@ def feature_net_forward(convs: list[tuple[np.ndarray, np.ndarray]], x: np.ndarra
         # each block's output is added to the next block's output
         conv3x3_tanh(middle, *convs[i + 1], _NO_RESIDUAL if current is padded_in else current, out)
         current = out
-    return np.ascontiguousarray(current[:, 1:-1, 1:-1])
+    return current
+
+
+def feature_net_forward(convs: list[tuple[np.ndarray, np.ndarray]], x: np.ndarray) -> np.ndarray:
+    """The residual conv-tanh stack of a FeatureNet on one image: x (Cin, H, W) float32 ->
+    (C, H, W) before normalisation. convs: each conv's (weight, bias) as float32 arrays, in order
+    (conv_a, conv_b of block 1, ...)."""
+    padded_in = np.zeros((x.shape[0], x.shape[1] + 2, x.shape[2] + 2), np.float32)
+    padded_in[:, 1:-1, 1:-1] = x
+    return np.ascontiguousarray(_conv_stack(convs, padded_in)[:, 1:-1, 1:-1])
+
+
+def feature_net_rows(convs: list[tuple[np.ndarray, np.ndarray]], depth_m: np.ndarray,
+                     rgb: np.ndarray | None = None) -> np.ndarray:
+    """A FeatureNet's output on one frame as pixel rows: depth_m (H, W) float32 and, for a net that
+    takes colour (convs[0] with 4 input channels), rgb (H, W, 3) uint8 or None (black) -> (H*W, C+1)
+    float32, each pixel's normalised features and its depth (pixel v * W + u)."""
+    h, w = depth_m.shape
+    padded_in = np.zeros((convs[0][0].shape[1], h + 2, w + 2), np.float32)
+    padded_in[0, 1:-1, 1:-1] = depth_m
+    if padded_in.shape[0] > 1 and rgb is not None:  # colour in 0..1, divided in float32 as torch divides
+        np.divide(rgb.transpose(2, 0, 1), np.float32(255.0), out=padded_in[1:, 1:-1, 1:-1])
+    stack = _conv_stack(convs, padded_in)
+    rows = np.empty((h * w, stack.shape[0] + 1), np.float32)
+    _normalised_rows(stack, depth_m, rows)
+    return rows

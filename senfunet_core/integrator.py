@@ -347,11 +347,12 @@ def _group_by_block(n_pixels: int, n_samples: int, n_touched: int, sample_flat: 
 
 
 @numba.njit(cache=True, nogil=True)
-def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np.ndarray, sample_step: np.ndarray,
-                   sample_tsdf_m: np.ndarray, pixel_features: np.ndarray, touched_slots: np.ndarray, tsdf: np.ndarray,
-                   weight: np.ndarray, features: np.ndarray, tsdf_base: np.ndarray, weight_base: np.ndarray,
-                   reach: np.ndarray, w_max: float) -> int:
-    """update_voxels' per-block work (blocks are independent of each other)."""
+def _update_blocks(order: np.ndarray, start: np.ndarray, sample_local: np.ndarray, sample_pixel: np.ndarray,
+                   sample_step: np.ndarray, sample_tsdf_m: np.ndarray, pixel_features: np.ndarray,
+                   touched_slots: np.ndarray, tsdf: np.ndarray, weight: np.ndarray, features: np.ndarray,
+                   tsdf_base: np.ndarray, weight_base: np.ndarray, reach: np.ndarray, w_max: float) -> int:
+    """update_voxels' per-block work on the touched blocks `order` names, in that order (blocks are
+    independent of each other)."""
     n_channels = pixel_features.shape[1]
     feature_stride = features.shape[0] // max(weight.shape[0], 1)  # a voxel's feature-pool entries
     updated = 0
@@ -359,7 +360,7 @@ def _update_blocks(start: np.ndarray, sample_local: np.ndarray, sample_pixel: np
     block_voxels = np.empty(512, np.int64)  # per block: its voxels with samples, as first met
     sum_tsdf = np.empty(512, np.float32)
     sum_features = np.empty((512, n_channels), np.float32)
-    for b in range(start.shape[0] - 1):
+    for b in order:
         base_index = touched_slots[b] * 512
         n_voxels = 0
         changed = np.int32(0)  # the block's reach bits (REACH_OF_VOXEL) of voxels whose inputs changed
@@ -446,15 +447,18 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
                                                 sample_touched, _NO_MAP if touched_map is None else touched_map,
                                                 pixel_index)
 
-    def blocks(block_start: np.ndarray, block_slots: np.ndarray, block_reach: np.ndarray) -> int:
-        return _update_blocks(block_start, local, pixel, step, sample_tsdf_m, pixel_features, block_slots, tsdf,
-                              weight, features, tsdf_base, weight_base, block_reach, w_max)
+    # blocks in slot order, which is pool-memory order: the scattered rows come in ascending addresses
+    order = np.argsort(touched_slots[:start.shape[0] - 1], kind="stable")
+
+    def blocks(block_order: np.ndarray) -> int:
+        return _update_blocks(block_order, start, local, pixel, step, sample_tsdf_m, pixel_features, touched_slots,
+                              tsdf, weight, features, tsdf_base, weight_base, reach, w_max)
 
     if start[-1] < max(SPLIT_MIN_SAMPLES, 1):
-        return blocks(start, touched_slots, reach)
-    middle = int(np.searchsorted(start, start[-1] // 2))
-    second = _UPDATE_WORKER.submit(blocks, start[middle:], touched_slots[middle:], reach[middle:])
-    return blocks(start[:middle + 1], touched_slots, reach) + second.result()
+        return blocks(order)
+    middle = int(np.searchsorted(np.cumsum(np.diff(start)[order]), start[-1] // 2))
+    second = _UPDATE_WORKER.submit(blocks, order[middle:])
+    return blocks(order[:middle]) + second.result()
 
 
 @dataclass
@@ -567,8 +571,9 @@ def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.nda
     """Integrate one frame into `grid` with the compiled kernels.
 
     depth_m: H x W float32 (invalid pixels anything outside depth_range_m, NaN, inf);
-    pixel_features: C x H x W float32, or a callable returning them, called once the samples are
-    located (so a feature net running in another thread overlaps that first kernel);
+    pixel_features: (H*W) x C float32 (pixel v * W + u's features in row v * W + u) or C x H x W, or
+    a callable returning them, called once the samples are located (so a feature net running in
+    another thread overlaps that first kernel);
     channels: the sensor's (tsdf, weight, feature) pool names;
     the TSDF Fusion baseline goes to "tsdf_base"/"weight_base" when the grid has those channels.
     Raises InputError (grid untouched but for empty blocks that may have been allocated) when
@@ -584,7 +589,9 @@ def integrate_frame(grid: BlockGrid, depth_m: np.ndarray, pixel_features: np.nda
     if callable(pixel_features):
         pixel_features = pixel_features()
     waited_s = time.perf_counter() - waited_s
-    features = np.ascontiguousarray(pixel_features.reshape(pixel_features.shape[0], -1).T, np.float32)  # HW x C
+    features = (pixel_features if pixel_features.ndim == 2  # HW x C
+                else pixel_features.reshape(pixel_features.shape[0], -1).T)
+    features = np.ascontiguousarray(features, np.float32)
     updated, reach = update_frame_voxels(grid, located, features, sample_tsdf_m=-offsets_m, channels=channels,
                                          w_max=config.w_max)
     return FrameUpdate(int(updated), located.touched_slots[:located.n_touched].copy(), reach, waited_s,

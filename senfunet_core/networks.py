@@ -16,12 +16,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import cast
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from .errors import InputError
-from .feature_conv import feature_net_forward
+from .feature_conv import feature_net_forward, feature_net_rows
 
 N_FEATURE_CHANNELS = 4  # learned channels; the depth is appended to make n = 5
 N_FEATURES = N_FEATURE_CHANNELS + 1
@@ -99,14 +100,18 @@ class FeatureNet(nn.Module):
         x = x / torch.sqrt((x * x).sum(dim=1, keepdim=True)).clamp(min=1e-8)
         return torch.cat([x, depth_m], dim=1)
 
+    def conv_arrays(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each convolution's (weight, bias) as float32 arrays, in order (`feature_conv`'s kernels)."""
+        return [(conv.weight.detach().float().numpy(), cast(torch.Tensor, conv.bias).detach().float().numpy())
+                for conv in self._convs()]
+
     def _convs(self) -> list[nn.Conv2d]:
         return [cast(nn.Conv2d, conv) for block in self.blocks for conv in cast(nn.ModuleList, block)]
 
     def _conv_stack_kernel(self, x: torch.Tensor) -> torch.Tensor:
         """The residual conv-tanh stack in float32 inference on the CPU: `feature_conv`'s kernel, image
         by image."""
-        convs = [(conv.weight.detach().float().numpy(), cast(torch.Tensor, conv.bias).detach().float().numpy())
-                 for conv in self._convs()]
+        convs = self.conv_arrays()
         return torch.stack([torch.from_numpy(feature_net_forward(convs, image.float().contiguous().numpy()))
                             for image in x])
 
@@ -127,6 +132,25 @@ class FeatureNet(nn.Module):
                 x = x + previous
             previous = x
         return x.to(torch.float32).contiguous()
+
+
+def pixel_feature_rows(net: nn.Module, depth_m: np.ndarray, rgb: np.ndarray | None = None) -> np.ndarray:
+    """A feature net's inference on one frame: depth_m (H, W) float32 metres (invalid pixels 0), rgb
+    (H, W, 3) uint8 or None (black where the net takes colour) -> (H*W, 5) float32, pixel v * W + u's
+    row of its output. For a FeatureNet on the CPU in float32 the kernel of `feature_conv` writes the
+    rows directly; any other module with FeatureNet's forward (say an ablation's) runs that."""
+    device = next(iter(net.parameters()), torch.empty(0)).device
+    if isinstance(net, FeatureNet) and device.type == "cpu" and net.compute_dtype == torch.float32:
+        return feature_net_rows(net.conv_arrays(), depth_m.astype(np.float32, copy=False),
+                                rgb if net.uses_rgb else None)
+    depth = torch.from_numpy(depth_m).float().to(device)[None, None]
+    rgb01 = None
+    if net.uses_rgb:
+        rgb01 = (torch.zeros((1, 3, *depth_m.shape), device=device) if rgb is None
+                 else torch.from_numpy(rgb).to(device).permute(2, 0, 1)[None].float() / 255.0)
+    with torch.inference_mode():
+        out = net(depth, rgb01)[0]
+    return np.ascontiguousarray(out.reshape(out.shape[0], -1).T.cpu().numpy(), np.float32)
 
 
 def _fused_conv_relu(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:

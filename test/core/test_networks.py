@@ -77,6 +77,41 @@ def test_feature_net_inference_equals_its_training_forward(uses_rgb: bool, monke
     torch.testing.assert_close(fast, reference, rtol=0, atol=1e-5)
 
 
+@pytest.mark.parametrize("uses_rgb", [False, True])
+def test_pixel_feature_rows_are_the_training_forward_per_pixel(uses_rgb: bool) -> None:
+    """The engine's per-frame features (`pixel_feature_rows`: the kernel writes normalised rows and
+    the depth) equal the autograd forward's output laid out one row per pixel, colour from uint8
+    included; a module that is not a FeatureNet (an ablation's) runs its own forward."""
+    from senfunet_core import networks
+
+    feature_nets, weighting_net = networks.make_networks(
+        (False, True), tsdf_input=networks.weights_tsdf_input(networks.DEFAULT_WEIGHTS))
+    networks.load_weights(networks.DEFAULT_WEIGHTS, feature_nets, weighting_net)
+    net = feature_nets[int(uses_rgb)]
+    rng = np.random.default_rng(3)
+    depth = (rng.random((48, 40)) * 3).astype(np.float32)
+    depth[:5] = 0.0
+    rgb = rng.integers(0, 256, (48, 40, 3), dtype=np.uint8)
+    with torch.enable_grad():
+        reference = net(torch.from_numpy(depth)[None, None],
+                        torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255.0 if uses_rgb else None).detach()
+    want = reference[0].reshape(5, -1).T.numpy()
+    rows = networks.pixel_feature_rows(net, depth, rgb)
+    assert rows.shape == (48 * 40, 5) and rows.dtype == np.float32
+    np.testing.assert_allclose(rows, want, rtol=0, atol=1e-5)
+    assert np.array_equal(rows[:, 4], depth.ravel())
+
+    class Wrapped(torch.nn.Module):  # FeatureNet's forward, but not a FeatureNet
+        def __init__(self) -> None:
+            super().__init__()
+            self.inner, self.uses_rgb = net, net.uses_rgb
+
+        def forward(self, depth_m: torch.Tensor, rgb01: torch.Tensor | None = None) -> torch.Tensor:
+            return self.inner(depth_m, rgb01)
+
+    np.testing.assert_allclose(networks.pixel_feature_rows(Wrapped(), depth, rgb), want, rtol=0, atol=1e-5)
+
+
 @pytest.mark.parametrize("n_out", [1, 3, 4])
 def test_feature_conv_kernel_equals_torch_for_any_number_of_output_channels(n_out: int) -> None:
     """The kernel takes output channels in pairs: an odd last one runs alone."""
