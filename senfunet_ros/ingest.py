@@ -71,13 +71,14 @@ DROP_REASONS: tuple[str, ...] = (
     "pose_timeout",  # no pose after the frame arrived within pose_max_wait_s of stream time
     "pose_gap",  # the poses around the frame are further than pose_tolerance_s from it
     "queue_full",  # the frame queue overflowed; the oldest frame goes
-    "behind",  # the consumer fell behind: the frame was more than max_lag_s older than its sensor's newest
+    "behind",  # more than max_lag_s older than its sensor's newest (the consumer fell behind), no room to set it aside
     "out_of_order",  # depth stamp older than the previous one of the same sensor
     "duplicate",  # depth stamp equal to the previous one of the same sensor
     "bad_stamp",  # stamp 0, or far from its stream's timeline (past or future): the timeline does not move
     "time_jump",  # frames flushed, and candidate messages dropped, because time restarted
     "engine_error",  # the engine rejected the frame (reported by the caller)
-    "shutdown",  # taken for integration when the process stopped (reported by the caller)
+    "shutdown",  # taken for integration when the process stopped (reported by the caller), or set aside then
+    "map_reset",  # waiting or set aside when the map was reset or replaced (it belonged to the old map)
 )
 
 
@@ -97,6 +98,9 @@ class IngestConfig:
     restart_confirm_msgs: int = 5  # a new timeline is confirmed after this many messages on each stream
     restart_confirm_s: float = 0.5  # ... spanning at least this much of the new timeline
     max_lag_s: float = 0.0  # a ready frame this far behind its sensor's newest depth stamp is skipped; 0 = never
+    # ... unless it fits in this many bytes of frames set aside: those are handed out when no newer frame
+    # is ready (a pause, the stream's end), so a consumer behind for a while loses nothing; 0 = skip at once
+    set_aside_bytes: int = 0
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
     # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link); absent = identity
     T_body_camera: dict[str, np.ndarray] = field(default_factory=dict)
@@ -108,8 +112,8 @@ class IngestConfig:
     def __post_init__(self) -> None:
         if not self.sensors or len(set(self.sensors)) != len(self.sensors):
             raise ValueError(f"sensors must be distinct names, got {self.sensors}")
-        if self.queue_size < 1 or self.pose_buffer_size < 2 or self.max_lag_s < 0:
-            raise ValueError("queue_size must be >= 1, pose_buffer_size >= 2 and max_lag_s >= 0")
+        if self.queue_size < 1 or self.pose_buffer_size < 2 or self.max_lag_s < 0 or self.set_aside_bytes < 0:
+            raise ValueError("queue_size must be >= 1, pose_buffer_size >= 2, max_lag_s >= 0 and set_aside_bytes >= 0")
         if min(self.working_size) < 0:
             raise ValueError(f"working_size must be (width, height) >= 0, got {self.working_size}")
 
@@ -125,6 +129,7 @@ class Frame:
     K: np.ndarray  # 3x3 float64 for this depth resolution
     T_world_camera: np.ndarray  # 4x4 float64
     arrival_s: float = 0.0  # time.monotonic() when its depth image arrived (for latency statistics)
+    set_aside: bool = False  # set aside while the consumer was behind (Ingest.pop_ready), so handed out late
 
 
 @dataclass(frozen=True)
@@ -144,6 +149,7 @@ class SensorCounters:
     color_received: int = 0
     pose_received: int = 0
     time_jumps: int = 0  # time jumps first seen on this sensor's streams
+    set_aside: int = 0  # frames set aside because the consumer fell behind (integrated later, or dropped)
     dropped: dict[str, int] = field(default_factory=lambda: {reason: 0 for reason in DROP_REASONS})
     errors: dict[str, str] = field(default_factory=dict)  # drop reason -> what the last such message had wrong
 
@@ -154,6 +160,7 @@ class SensorCounters:
             "color_received": self.color_received,
             "pose_received": self.pose_received,
             "time_jumps": self.time_jumps,
+            "set_aside": self.set_aside,
             "dropped": dict(self.dropped),
             "errors": dict(self.errors),
         }
@@ -175,6 +182,7 @@ class _SensorState:
         self.counters = SensorCounters()
         self.camera_info: tuple[np.ndarray, tuple[int, int]] | None = None
         self.queue: deque[_Pending] = deque()
+        self.set_aside: deque[Frame] = deque()  # posed frames the consumer fell behind on, oldest first
         self.awaiting_info: deque[tuple[Any, int, float]] = deque()  # (depth msg, stamp_ns, arrival_s)
         self.colors: deque[tuple[int, np.ndarray]] = deque(maxlen=max(4, config.queue_size))
         self.pose_stamps: list[int] = []  # sorted
@@ -213,6 +221,7 @@ class Ingest:
         self._lock = threading.Lock()
         self._sensors = {name: _SensorState(config) for name in config.sensors}
         self._jumps: list[TimeJump] = []
+        self._set_aside_bytes = 0  # of the frames set aside, all sensors
         self._episode_open = False  # off-timeline stamps are being collected as a possible restart
 
     # -- inputs ---------------------------------------------------------------------------
@@ -449,10 +458,13 @@ class Ingest:
 
     # -- outputs --------------------------------------------------------------------------
 
-    def pop_ready(self, max_frames: int | None = None) -> list[Frame | TimeJump]:
+    def pop_ready(self, max_frames: int | None = None, *, set_aside: bool = True) -> list[Frame | TimeJump]:
         """Time jumps seen since the last call, then the frames that can be posed, in stamp order:
         all of them, or the `max_frames` oldest (the rest stay queued, where a full queue drops the
-        oldest: a consumer that falls behind sees bounded latency, not a growing backlog).
+        oldest: a consumer that falls behind sees bounded latency, not a growing backlog). Frames
+        the consumer fell behind on (more than max_lag_s) are set aside while set_aside_bytes has
+        room, and handed out, oldest first, when no other frame is ready (unless `set_aside` is
+        False); beyond that room they are dropped as "behind".
 
         Frames still waiting for a pose, a colour image or a camera_info stay queued; frames that
         waited too long are dropped and counted.
@@ -462,6 +474,8 @@ class Ingest:
             frames: list[Frame] = []
             for name, state in self._sensors.items():
                 frames.extend(self._pop_sensor(name, state))
+            if not frames and set_aside:
+                frames = self._take_set_aside(1 if max_frames is None else max_frames)
             order = {name: i for i, name in enumerate(self.config.sensors)}
             frames.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
             if max_frames is not None and len(frames) > max_frames:
@@ -488,11 +502,12 @@ class Ingest:
             t = pending.stamp_ns
             if pending.T is not None:  # posed before, put back by pop_ready(max_frames)
                 state.queue.popleft()
+                frame = Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s)
                 # the consumer fell behind: keep latency bounded
                 if lag_ns and newest_ns is not None and newest_ns - t > lag_ns:
-                    state.counters.dropped["behind"] += 1
+                    self._set_aside(state, frame)
                 else:
-                    out.append(Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s))
+                    out.append(frame)
                 continue
             waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
             pose = self._tf_pose if cfg.tf is not None else self._topic_pose
@@ -507,6 +522,41 @@ class Ingest:
             state.queue.popleft()
             out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
         return out
+
+    def _set_aside(self, state: _SensorState, frame: Frame) -> None:
+        """Keep a frame the consumer fell behind on for later, if set_aside_bytes has room; else drop
+        it as "behind". Lock held."""
+        size = _frame_bytes(frame)
+        if self._set_aside_bytes + size > self.config.set_aside_bytes:
+            state.counters.dropped["behind"] += 1
+            return
+        frame.set_aside = True
+        state.set_aside.append(frame)
+        state.counters.set_aside += 1
+        self._set_aside_bytes += size
+
+    def _take_set_aside(self, n: int) -> list[Frame]:
+        """The n oldest frames set aside, all sensors. Lock held."""
+        out: list[Frame] = []
+        while len(out) < n:
+            waiting = [state for state in self._sensors.values() if state.set_aside]
+            if not waiting:
+                break
+            state = min(waiting, key=lambda st: st.set_aside[0].stamp_ns)
+            frame = state.set_aside.popleft()
+            self._set_aside_bytes -= _frame_bytes(frame)
+            out.append(frame)
+        return out
+
+    def _forget_set_aside(self, reason: str) -> int:
+        """Drop every frame set aside, counted as `reason`. Lock held."""
+        n = 0
+        for state in self._sensors.values():
+            state.counters.dropped[reason] += len(state.set_aside)
+            n += len(state.set_aside)
+            state.set_aside.clear()
+        self._set_aside_bytes = 0
+        return n
 
     @staticmethod
     def _color_ready(state: _SensorState, t: int, waited_too_long: bool) -> bool:
@@ -585,23 +635,26 @@ class Ingest:
             self._state(sensor).counters.dropped[reason] += 1
 
     def counters(self) -> dict[str, dict[str, Any]]:
-        """A snapshot: sensor -> SensorCounters.as_dict() plus `queue_depth`."""
+        """A snapshot: sensor -> SensorCounters.as_dict() plus `queue_depth` (frames waiting, set
+        aside included) and `set_aside_now`."""
         with self._lock:
             return {
-                name: {**state.counters.as_dict(), "queue_depth": state.waiting()}
+                name: {**state.counters.as_dict(), "queue_depth": state.waiting() + len(state.set_aside),
+                       "set_aside_now": len(state.set_aside)}
                 for name, state in self._sensors.items()
             }
 
     def queue_depths(self) -> dict[str, int]:
-        """Frames waiting per sensor: for a pose, a colour image, the consumer or a camera_info."""
+        """Frames waiting per sensor: for a pose, a colour image, the consumer or a camera_info, or set
+        aside."""
         with self._lock:
-            return {name: state.waiting() for name, state in self._sensors.items()}
+            return {name: state.waiting() + len(state.set_aside) for name, state in self._sensors.items()}
 
     def discard_waiting(self, reason: str) -> int:
-        """Drop every frame still waiting (queued or before its camera_info), counted as `reason`;
-        returns how many."""
+        """Drop every frame still waiting (queued, before its camera_info or set aside), counted as
+        `reason`; returns how many."""
         with self._lock:
-            n = 0
+            n = self._forget_set_aside(reason)
             for state in self._sensors.values():
                 waiting = state.waiting()
                 state.counters.dropped[reason] += waiting
@@ -611,12 +664,16 @@ class Ingest:
             return n
 
     def clear_frames(self) -> None:
-        """Forget queued frames and colour images (a map reset); poses and camera_info stay."""
+        """Forget waiting frames (counted as "map_reset": they belong to the map that was reset or
+        replaced) and colour images; poses and camera_info stay."""
+        self.discard_waiting("map_reset")
         with self._lock:
             for state in self._sensors.values():
-                state.queue.clear()
-                state.awaiting_info.clear()
                 state.colors.clear()
+
+
+def _frame_bytes(frame: Frame) -> int:
+    return frame.depth_m.nbytes + (0 if frame.rgb is None else frame.rgb.nbytes)
 
 
 def integrate_ready(engine: Any, items: Iterable[Frame | TimeJump], on_time_jump: Callable[[TimeJump], None],

@@ -99,14 +99,16 @@ DROP_HINTS: dict[str, str] = {
     "pose_gap": "the poses around the image's stamp are more than pose_tolerance_s from it; publish poses more "
                 "often or raise pose_tolerance_s",
     "queue_full": "more than queue_size images waited for their poses; the oldest went",
-    "behind": "integration cannot keep up with the sensors; images more than max_lag_s behind the newest are "
-              "skipped (a smaller working_width or a lower sensor rate helps)",
+    "behind": "integration cannot keep up with the sensors, and the images it set aside (max_lag_s behind the "
+              "newest) fill behind_buffer_mb: the next ones are skipped (a smaller working_width, a lower sensor "
+              "rate or a larger behind_buffer_mb helps)",
     "out_of_order": "a depth stamp on {s.depth_topic} went back in time",
     "duplicate": "a depth stamp on {s.depth_topic} came twice",
     "bad_stamp": "a stamp far (time_jump_s) from its stream's timeline, or 0; check the driver's clock",
     "time_jump": "time restarted (a bag looping?); the queued images were flushed",
     "engine_error": "the engine rejected the frame (the warning before says why)",
-    "shutdown": "the node stopped while the frame was being integrated",
+    "shutdown": "the node stopped while the frame was being integrated, or had set it aside",
+    "map_reset": "the map was reset or replaced while the image waited or was set aside",
 }
 
 
@@ -129,31 +131,36 @@ class _Timing:
 
 class LatencyStats:
     """Frame-to-mesh latency (arrival of a depth image -> publication of the first mesh update
-    that began after it was integrated) and the interval between mesh updates, in seconds."""
+    that began after it was integrated) and the interval between mesh updates, in seconds. Frames
+    that were set aside while integration was behind (Ingest, behind_buffer_mb) are kept apart: they
+    come late by design, and the live view's latency is that of the others."""
 
     def __init__(self, history: int = 1000, frame_history: int = 10_000) -> None:
         self._lock = threading.Lock()
-        self._arrivals: list[float] = []  # frames integrated since the last take()
+        self._arrivals: list[tuple[float, bool]] = []  # frames integrated since the last take(): (arrival, set aside)
         self.updates: deque[tuple[float, float, float, int]] = deque(maxlen=history)  # (time, max, mean, frames)
         self.frames_s: deque[float] = deque(maxlen=frame_history)  # each published frame's latency
+        self.set_aside_s: deque[float] = deque(maxlen=frame_history)  # ... of frames that had been set aside
 
-    def integrated(self, arrival_s: float) -> None:
+    def integrated(self, arrival_s: float, *, set_aside: bool = False) -> None:
         with self._lock:
             if len(self._arrivals) < 100_000:
-                self._arrivals.append(arrival_s)
+                self._arrivals.append((arrival_s, set_aside))
 
     def pending(self) -> bool:
         """Frames integrated since the last take()."""
         with self._lock:
             return bool(self._arrivals)
 
-    def take(self) -> list[float]:
+    def take(self) -> list[tuple[float, bool]]:
         with self._lock:
             taken, self._arrivals = self._arrivals, []
         return taken
 
-    def published(self, arrivals: list[float]) -> None:
+    def published(self, taken: list[tuple[float, bool]]) -> None:
         now = time.monotonic()
+        arrivals = [arrival for arrival, set_aside in taken if not set_aside]
+        self.set_aside_s.extend(now - arrival for arrival, set_aside in taken if set_aside)
         if arrivals:
             self.updates.append((now, now - min(arrivals), now - sum(arrivals) / len(arrivals), len(arrivals)))
             self.frames_s.extend(now - arrival for arrival in arrivals)
@@ -238,7 +245,7 @@ class FusionNode(Node):
         self.camera_colors = ColorGrid(2 * s.voxel_size_m)  # fed only with mesh_colors: camera
         self._tf_subscriptions: list[Any] = []
         tf = self._make_tf() if PoseType(s.pose_type) is PoseType.TF else None  # before the heavy engine
-        ingest = Ingest(P.ingest_config(self.settings, max_lag_s=s.max_lag_s, tf=tf))
+        ingest = Ingest(P.ingest_config(self.settings, **P.live_lag(s), tf=tf))
         self.pipeline = Pipeline(self._make_engine(), ingest, on_time_jump=s.on_time_jump, log=self._log,
                                  on_integrated=self._integrated)
         self.ingest = self.pipeline.ingest
@@ -320,7 +327,7 @@ class FusionNode(Node):
         """After the executor stopped: integrate the frames that are ready, count the ones still
         waiting (for a pose, a colour image, a camera_info) as dropped at shutdown. Returns the counts."""
         self.pipeline.stopping = True
-        integrated = self.pipeline.drain(self.ingest.pop_ready())
+        integrated = self.pipeline.drain(self.ingest.pop_ready(set_aside=False))
         waiting = self.ingest.discard_waiting("shutdown")
         return {"integrated": integrated, "discarded": waiting, "interrupted": self.pipeline.frames_unfinished}
 
@@ -428,6 +435,10 @@ class FusionNode(Node):
                     why = now["errors"].get(reason) or DROP_HINTS[reason].format(s=topics[sensor])
                     self._warn((sensor, reason), f"{sensor}: dropped {new} message(s): {reason}: {why} "
                                f"({count} so far; see ~/status)")
+            if now["set_aside"] > self._last_counters.get(sensor, {}).get("set_aside", 0):
+                self._warn((sensor, "set_aside"), f"{sensor}: integration is behind the sensors: images more than "
+                           f"max_lag_s behind the newest are set aside ({now['set_aside_now']} now, "
+                           f"{now['set_aside']} so far) and integrated when no newer image waits")
         self._last_counters = counters
 
     # -- parameters at run time ------------------------------------------------------------------
@@ -455,7 +466,7 @@ class FusionNode(Node):
         tf = self.ingest.config.tf
         if hasattr(tf, "max_gap_ns"):  # our own TF buffer interpolates within pose_tolerance_s
             tf.max_gap_ns = int(new.pose_tolerance_s * 1e9)
-        self.ingest.config = P.ingest_config(new, max_lag_s=new.max_lag_s, tf=tf)
+        self.ingest.config = P.ingest_config(new, **P.live_lag(new), tf=tf)
         self.pipeline.on_time_jump = TimeJumpAction.parse(new.on_time_jump)
         self.health.window_s, self.health.stale_after_s = new.diagnostics_window_s, new.stale_after_s
         self._apply_engine_settings(new)
@@ -504,7 +515,7 @@ class FusionNode(Node):
 
     def _integrated(self, frame: Frame, seconds: float) -> None:
         self.timings["integrate"].add(seconds)
-        self.latency.integrated(frame.arrival_s)
+        self.latency.integrated(frame.arrival_s, set_aside=frame.set_aside)
         if frame.rgb is not None and self.settings.mesh_colors == "camera":
             from senfunet_core.colors import unproject
 

@@ -70,7 +70,11 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("queue_size", 30, "frames per sensor waiting for their pose; the oldest is dropped beyond this",
           lo=1, hi=100000),
     Param("max_lag_s", 0.25, "when integration falls behind, frames more than this (sensor time) older than their "
-          "sensor's newest are skipped, which bounds the latency; 0 = never skip", lo=0.0, hi=3600.0, runtime=True),
+          "sensor's newest are set aside (see behind_buffer_mb), which bounds the latency; 0 = never", lo=0.0,
+          hi=3600.0, runtime=True),
+    Param("behind_buffer_mb", 256.0, "frames set aside by max_lag_s are kept, up to this much memory, and integrated "
+          "when no newer frame waits (the sensors pause or stop), so the map loses nothing to a busy spell; beyond "
+          "it they are skipped (dropped as behind); 0 = skip them at once", lo=0.0, hi=1e6, runtime=True),
     Param("pose_buffer_size", 2000, "poses kept per sensor for interpolation", lo=2, hi=10_000_000),
     Param("pose_tolerance_s", 0.1, "max time between a depth stamp and the poses interpolated around it", lo=0.0,
           hi=60.0, lo_open=True, runtime=True),
@@ -316,10 +320,15 @@ def declare(node: Any) -> Settings:
     return Settings.from_values(values)
 
 
+def live_lag(settings: Settings) -> dict[str, Any]:
+    """The live node's IngestConfig fields for lag: max_lag_s and the set-aside memory (behind_buffer_mb)."""
+    return {"max_lag_s": settings.max_lag_s, "set_aside_bytes": int(settings.behind_buffer_mb * 2**20)}
+
+
 def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.ingest.IngestConfig
     """Ingest configured by the node's parameters (the node and replay both use this); `overrides`
     replace fields. Frames are never skipped for lag here (offline readers take them all); the live
-    node passes max_lag_s from its parameter."""
+    node passes max_lag_s and set_aside_bytes (`live_lag`) from its parameters."""
     import dataclasses
 
     from senfunet_ros.ingest import IngestConfig

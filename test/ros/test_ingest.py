@@ -300,6 +300,46 @@ def test_consumer_behind_skips_old_frames_and_pop_limit_keeps_the_rest() -> None
     assert len(frames(unlimited.pop_ready())) == 10
 
 
+def test_frames_behind_are_set_aside_and_handed_out_when_nothing_newer_waits() -> None:
+    """With room to set frames aside (set_aside_bytes), frames the consumer fell behind on are not
+    lost: live frames come first, the set-aside ones (oldest first, posed as when they were ready)
+    when no other frame is ready; past the room they are dropped as 'behind'; a map reset forgets
+    them, counted, and so does a stop (pop_ready(set_aside=False), then discard_waiting)."""
+    def feed(ingest: Ingest, start_ms: int = 0) -> None:
+        for t in range(start_ms, start_ms + 1000, 100):  # 10 frames over 0.9 s
+            assert ingest.add_depth("tof", depth_msg(t * MS)) is None
+        for t in range(start_ms, start_ms + 1050, 50):
+            ingest.add_pose("tof", pose_msg(t * MS, x=t / 1000))
+
+    frame_bytes = 8 * 10 * 4
+    ingest = make(max_lag_s=0.25, set_aside_bytes=4 * frame_bytes)  # room for 4 of the 6 behind
+    feed(ingest)
+    (first,) = frames(ingest.pop_ready(max_frames=1))
+    (second,) = frames(ingest.pop_ready(max_frames=1))
+    assert (first.stamp_ns, second.stamp_ns) == (0, 700 * MS)
+    c = ingest.counters()["tof"]
+    assert (c["set_aside"], c["set_aside_now"], c["dropped"]["behind"]) == (4, 4, 2)
+    assert ingest.queue_depths()["tof"] == 2 + 4  # 800 and 900 ms ready, 4 set aside
+    live = [f.stamp_ns for f in frames(ingest.pop_ready(max_frames=1)) + frames(ingest.pop_ready(max_frames=1))]
+    assert live == [800 * MS, 900 * MS]  # what is newest goes first
+    later = [frames(ingest.pop_ready(max_frames=1)) for _ in range(5)]
+    assert [[f.stamp_ns for f in batch] for batch in later] == [[100 * MS], [200 * MS], [300 * MS], [400 * MS], []]
+    np.testing.assert_allclose(later[2][0].T_world_camera[:3, 3], [0.3, 0, 0])
+    assert ingest.counters()["tof"]["set_aside_now"] == 0 and ingest.queue_depths()["tof"] == 0
+
+    feed(ingest, start_ms=1000)  # behind again, with room for all four again
+    frames(ingest.pop_ready(max_frames=1)), frames(ingest.pop_ready(max_frames=1))
+    assert ingest.counters()["tof"]["set_aside_now"] == 4
+    ingest.clear_frames()  # ~/reset: they belonged to the old map
+    c = ingest.counters()["tof"]
+    assert c["set_aside_now"] == 0 and c["dropped"]["map_reset"] == 4 + 2 and ingest.queue_depths()["tof"] == 0
+
+    feed(ingest, start_ms=2000)
+    frames(ingest.pop_ready(max_frames=1)), frames(ingest.pop_ready(max_frames=1))
+    assert len(frames(ingest.pop_ready(set_aside=False))) == 2  # a stop integrates what is ready, not what waits
+    assert ingest.discard_waiting("shutdown") == 4 and ingest.counters()["tof"]["dropped"]["shutdown"] == 4
+
+
 def test_integrate_ready_keeps_order_isolates_errors_and_flushes_before_a_time_jump() -> None:
     from senfunet_core.engine import EngineConfig, SenFuNet
     from senfunet_core.errors import InputError

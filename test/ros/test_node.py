@@ -691,7 +691,8 @@ def test_every_drop_reason_has_a_hint_naming_what_to_check() -> None:
 def test_latency_is_counted_per_frame_from_its_arrival_to_the_update_that_publishes_it(monkeypatch) -> None:
     """The node's frame-to-mesh latency: each integrated frame counts once, from its arrival to the
     publication of the first update begun after it was integrated; the median is over frames (an
-    update holding many frames weighs more than one holding few)."""
+    update holding many frames weighs more than one holding few); frames that had been set aside
+    while integration was behind are kept apart."""
     import senfunet_ros.node as node_module
     from senfunet_ros.node import LatencyStats
 
@@ -704,10 +705,12 @@ def test_latency_is_counted_per_frame_from_its_arrival_to_the_update_that_publis
         latency.integrated(arrival)
     contained = latency.take()
     latency.integrated(0.9)  # integrated while the update runs: the next update's
+    latency.integrated(0.05, set_aside=True)
     clock.now_s = 1.0
     latency.published(contained)
     latency.published(latency.take())
     assert np.allclose(list(latency.frames_s), [0.9, 0.8, 0.7, 0.1])
+    assert np.allclose(list(latency.set_aside_s), [0.95])
     summary = latency.summary()
     assert summary["latency_median_s"] == pytest.approx(0.75) and summary["latency_max_s"] == pytest.approx(0.9)
 

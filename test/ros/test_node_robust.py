@@ -118,6 +118,39 @@ def test_malformed_burst_keeps_the_map(ros, tmp_path: Path) -> None:
         run.close()
 
 
+@pytest.mark.parametrize("buffer_mb", [256.0, 0.0])
+def test_frames_behind_are_set_aside_and_integrated_once_nothing_newer_waits(ros, tmp_path: Path,
+                                                                            buffer_mb: float) -> None:
+    """A burst the node cannot integrate within max_lag_s: with behind_buffer_mb the frames it fell
+    behind on are set aside and integrated once no newer frame waits, so every frame reaches the map;
+    with 0 they are skipped, counted as behind."""
+    prefix = f"aside{int(buffer_mb)}"
+    run = Running(prefix, {**topic_params(prefix), **SMALL, "max_lag_s": 0.01, "behind_buffer_mb": buffer_mb},
+                  tmp_path)
+    try:
+        messages = scene_messages()
+        for sensor, stream, msg in messages:  # all at once, through the node's own subscription path
+            run.node.pipeline.dispatch(sensor, stream, msg)
+        expected = sum(1 for _, stream, _ in messages if stream == "depth")
+
+        def settled() -> bool:
+            return all(c["integrated"] + sum(c["dropped"].values()) >= c["received"]
+                       for c in run.node.ingest.counters().values())
+
+        wait_for(settled, 120, "every frame to be integrated or dropped")
+        counters = run.node.ingest.counters().values()
+        integrated = sum(c["integrated"] for c in counters)
+        set_aside = sum(c["set_aside"] for c in counters)
+        behind = sum(c["dropped"]["behind"] for c in counters)
+        if buffer_mb:
+            assert set_aside > 0 and behind == 0 and integrated == expected
+        else:
+            assert set_aside == 0 and behind > 0 and integrated + behind == expected
+        assert all(c["set_aside_now"] == 0 for c in counters)
+    finally:
+        run.close()
+
+
 def _set(run: Running, **values: Any) -> list[Any]:
     """SetParameters through the node's parameter service, as `ros2 param set` does."""
     client = run.helper.create_client(SetParameters, f"{run.prefix}/set_parameters")
