@@ -98,8 +98,8 @@ class IngestConfig:
     restart_confirm_msgs: int = 5  # a new timeline is confirmed after this many messages on each stream
     restart_confirm_s: float = 0.5  # ... spanning at least this much of the new timeline
     max_lag_s: float = 0.0  # a ready frame this far behind its sensor's newest depth stamp is skipped; 0 = never
-    # ... unless it fits in this many bytes of frames set aside: those are handed out when no newer frame
-    # is ready (a pause, the stream's end), so a consumer behind for a while loses nothing; 0 = skip at once
+    # ... unless it fits in this many bytes of frames set aside: those are handed out when the sensors
+    # pause or stop (see pop_ready), so a consumer behind for a while loses nothing; 0 = skip at once
     set_aside_bytes: int = 0
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
     # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link); absent = identity
@@ -222,6 +222,7 @@ class Ingest:
         self._sensors = {name: _SensorState(config) for name in config.sensors}
         self._jumps: list[TimeJump] = []
         self._set_aside_bytes = 0  # of the frames set aside, all sensors
+        self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
         self._episode_open = False  # off-timeline stamps are being collected as a possible restart
 
     # -- inputs ---------------------------------------------------------------------------
@@ -338,6 +339,7 @@ class Ingest:
         with self._lock:
             state = self._state(sensor)
             state.counters.received += 1
+            self._last_depth_arrival_s = time.monotonic()
             reason = self._check_time(state, sensor, "depth", stamp_ns)
             if reason is not None:
                 state.counters.dropped[reason] += 1
@@ -463,8 +465,10 @@ class Ingest:
         all of them, or the `max_frames` oldest (the rest stay queued, where a full queue drops the
         oldest: a consumer that falls behind sees bounded latency, not a growing backlog). Frames
         the consumer fell behind on (more than max_lag_s) are set aside while set_aside_bytes has
-        room, and handed out, oldest first, when no other frame is ready (unless `set_aside` is
-        False); beyond that room they are dropped as "behind".
+        room, and handed out, oldest first, once no other frame is ready and no depth image arrived
+        for max_lag_s (wall time: the sensors paused or stopped; while they stream, a set-aside
+        frame would only push a newer one behind) unless `set_aside` is False; beyond that room
+        they are dropped as "behind".
 
         Frames still waiting for a pose, a colour image or a camera_info stay queued; frames that
         waited too long are dropped and counted.
@@ -474,7 +478,8 @@ class Ingest:
             frames: list[Frame] = []
             for name, state in self._sensors.items():
                 frames.extend(self._pop_sensor(name, state))
-            if not frames and set_aside:
+            quiet = time.monotonic() - self._last_depth_arrival_s >= self.config.max_lag_s
+            if not frames and set_aside and quiet:
                 frames = self._take_set_aside(1 if max_frames is None else max_frames)
             order = {name: i for i, name in enumerate(self.config.sensors)}
             frames.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import math
 
+import time
+
 import numpy as np
 import torch
 import pytest
@@ -303,8 +305,9 @@ def test_consumer_behind_skips_old_frames_and_pop_limit_keeps_the_rest() -> None
 def test_frames_behind_are_set_aside_and_handed_out_when_nothing_newer_waits() -> None:
     """With room to set frames aside (set_aside_bytes), frames the consumer fell behind on are not
     lost: live frames come first, the set-aside ones (oldest first, posed as when they were ready)
-    when no other frame is ready; past the room they are dropped as 'behind'; a map reset forgets
-    them, counted, and so does a stop (pop_ready(set_aside=False), then discard_waiting)."""
+    once no other frame is ready and no depth image came for max_lag_s (the sensors paused); past
+    the room they are dropped as 'behind'; a map reset forgets them, counted, and so does a stop
+    (pop_ready(set_aside=False), then discard_waiting)."""
     def feed(ingest: Ingest, start_ms: int = 0) -> None:
         for t in range(start_ms, start_ms + 1000, 100):  # 10 frames over 0.9 s
             assert ingest.add_depth("tof", depth_msg(t * MS)) is None
@@ -322,6 +325,8 @@ def test_frames_behind_are_set_aside_and_handed_out_when_nothing_newer_waits() -
     assert ingest.queue_depths()["tof"] == 2 + 4  # 800 and 900 ms ready, 4 set aside
     live = [f.stamp_ns for f in frames(ingest.pop_ready(max_frames=1)) + frames(ingest.pop_ready(max_frames=1))]
     assert live == [800 * MS, 900 * MS]  # what is newest goes first
+    assert frames(ingest.pop_ready(max_frames=1)) == []  # images came just now: the sensors may go on
+    time.sleep(0.3)  # no image for max_lag_s
     later = [frames(ingest.pop_ready(max_frames=1)) for _ in range(5)]
     assert [[f.stamp_ns for f in batch] for batch in later] == [[100 * MS], [200 * MS], [300 * MS], [400 * MS], []]
     np.testing.assert_allclose(later[2][0].T_world_camera[:3, 3], [0.3, 0, 0])
