@@ -438,7 +438,7 @@ class FusionNode(Node):
             if now["set_aside"] > self._last_counters.get(sensor, {}).get("set_aside", 0):
                 self._warn((sensor, "set_aside"), f"{sensor}: integration is behind the sensors: images more than "
                            f"max_lag_s behind the newest are set aside ({now['set_aside_now']} now, "
-                           f"{now['set_aside']} so far) and integrated when no newer image waits")
+                           f"{now['set_aside']} so far) and integrated once the sensors pause")
         self._last_counters = counters
 
     # -- parameters at run time ------------------------------------------------------------------

@@ -73,8 +73,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "sensor's newest are set aside (see behind_buffer_mb), which bounds the latency; 0 = never", lo=0.0,
           hi=3600.0, runtime=True),
     Param("behind_buffer_mb", 256.0, "frames set aside by max_lag_s are kept, up to this much memory, and integrated "
-          "when no newer frame waits (the sensors pause or stop), so the map loses nothing to a busy spell; beyond "
-          "it they are skipped (dropped as behind); 0 = skip them at once", lo=0.0, hi=1e6, runtime=True),
+          "once no image came for max_lag_s (the sensors pause or stop), so the map loses nothing to a busy spell; "
+          "beyond it they are skipped (dropped as behind); 0 = skip them at once", lo=0.0, hi=1e6, runtime=True),
     Param("pose_buffer_size", 2000, "poses kept per sensor for interpolation", lo=2, hi=10_000_000),
     Param("pose_tolerance_s", 0.1, "max time between a depth stamp and the poses interpolated around it", lo=0.0,
           hi=60.0, lo_open=True, runtime=True),
