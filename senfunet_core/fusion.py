@@ -100,8 +100,8 @@ def _fill_mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, t
                                     observed_row[z] = seen_1
                                     alpha_row[z] = 0.0
                                 continue
-                            # every value computed and the results selected (no branches): this
-                            # loop is a third faster than one that branches per voxel
+                            # every value computed and the results selected: no branch per voxel
+                            # for the CPU to mispredict
                             for z in range(8 * bz, 8 + bz):
                                 v = row + z
                                 seen_1, seen_2 = weight_1[v] > 0, weight_2[v] > 0

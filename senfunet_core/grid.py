@@ -431,9 +431,9 @@ def encode_depth(depth_m: float) -> np.int8:
 
 @numba.njit(inline="always")
 def _depth_code(depth_m: float) -> np.int64:
-    """`encode_depth` as an integer 0..255, from the float's bits (a libm frexp per voxel costs as
-    much as the rest of a feature row's update): d = 2^e (1 + m / 2^23) is code 32 (e + 3) + m / 2^18
-    rounded, which carries into the next octave."""
+    """`encode_depth` as an integer 0..255, from the float's bits (no libm frexp call per voxel in
+    the integration kernel): d = 2^e (1 + m / 2^23) is code 32 (e + 3) + m / 2^18 rounded, which
+    carries into the next octave."""
     d = min(max(np.float32(depth_m), np.float32(0.0)), np.float32(DEPTH_MAX_M))
     if d < np.float32(0.25):
         return np.int64(np.rint(d * np.float32(128.0)))
