@@ -110,12 +110,24 @@ def run_node_case(args: argparse.Namespace) -> dict:
             conversion_s += time.perf_counter() - t
             peak_queue = max(peak_queue, sum(ingest.queue_depths().values()))
 
+    stream_end = time.monotonic()  # the last message handed over
+
     def settled() -> bool:
         c = ingest.counters()
         return all(v["integrated"] + sum(v["dropped"].values()) >= v["received"] for v in c.values())
 
-    deadline = time.monotonic() + 600
-    while not settled() and time.monotonic() < deadline:
+    def five_seconds_after() -> tuple[int, dict, int, np.ndarray | None]:
+        """5 s after the stream: the process's peak RSS so far (before the snapshot below, which is this
+        benchmark's, not the node's), the map's stats, the blocks still to judge and, to compare with
+        replay, the whole map's mesh as ~/mesh gives it to a subscriber then (alpha as the net left it)."""
+        return (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, engine.stats(),
+                engine.counters.get("alpha_backlog_blocks", 0),
+                engine.block_meshes().vertices.copy() if compare_with_replay(args) else None)
+
+    after = None
+    while not settled() and time.monotonic() < stream_end + 600:
+        if after is None and time.monotonic() >= stream_end + 5.0:  # set-aside frames still being integrated
+            after = five_seconds_after()
         time.sleep(0.01)
     integrated_at = time.monotonic()
     cpu_s = time.process_time() - cpu_start  # every thread of the process: the node's and the feeder's
@@ -135,11 +147,11 @@ def run_node_case(args: argparse.Namespace) -> dict:
     stats = engine.stats()
     total = dict(engine.total_s)  # stage times of the stream (before the catch-up below)
     timings = {name: t.total_s for name, t in node.timings.items()}
-    alpha_counters = dict(engine.counters)  # the weighting net's work at the stream's end
-    time.sleep(5.0)  # the node's timers run on: its weighting net catches up once no frame comes
-    after = engine.stats()
-    # the whole map's mesh as ~/mesh gives it to a subscriber now (alpha as the net left it)
-    live_vertices = engine.block_meshes().vertices.copy() if compare_with_replay(args) else None
+    alpha_counters = dict(engine.counters)  # the weighting net's work when the last frame was integrated
+    if after is None:  # the node's timers run on: its weighting net catches up once no frame comes
+        time.sleep(max(0.0, stream_end + 5.0 - time.monotonic()))
+        after = five_seconds_after()
+    peak_rss, after_stats, after_backlog, live_vertices = after
     result = {
         "case": args.case, "mode": args.mode, "bag_seconds": bag_s, "wall_seconds": wall_s,
         "frames_sent": frames_sent, "frames_integrated": frames, "dropped": dropped,
@@ -168,13 +180,13 @@ def run_node_case(args: argparse.Namespace) -> dict:
         "meshed_alpha_current": stats["meshed_blocks_alpha_current"],
         "unjudged_over_3s": stats["meshed_blocks_unjudged_over_3s"],
         "oldest_unjudged_s": stats["oldest_unjudged_change_s"],
-        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "peak_rss_bytes": peak_rss,  # until 5 s after the stream
         "blocks": stats["blocks"], "observed_voxels": stats["observed_voxels"],
         "evicted_blocks": stats["evicted_blocks"], "archived_blocks": stats["archived_blocks"],
         "spilled_blocks": stats["spilled_blocks"], "restored_blocks": stats["restored_blocks"],
-        "after_5s_meshed": after["meshed_blocks"], "after_5s_current": after["meshed_blocks_alpha_current"],
-        "after_5s_unjudged_over_3s": after["meshed_blocks_unjudged_over_3s"],
-        "after_5s_backlog_blocks": engine.counters.get("alpha_backlog_blocks", 0),
+        "after_5s_meshed": after_stats["meshed_blocks"], "after_5s_current": after_stats["meshed_blocks_alpha_current"],
+        "after_5s_unjudged_over_3s": after_stats["meshed_blocks_unjudged_over_3s"],
+        "after_5s_backlog_blocks": after_backlog,
         "bytes_per_observed_voxel": stats["bytes_per_observed_voxel"],
     }
     rclpy.try_shutdown()  # ends the executor's spin
@@ -304,17 +316,17 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
         else f"{r['latency_set_aside_s']['median']:.2f} / {r['latency_set_aside_s']['max']:.2f}")
     row("peak frames queued", lambda r: str(r["peak_queue_frames"]))
     row("alpha: blocks evaluated / left for later", lambda r: f"{r['alpha_blocks']} / {r['alpha_backlog_blocks']}")
-    row("meshed blocks at the end: alpha evaluated / up to date", lambda r: f"{r['meshed_blocks']}: "
-        f"{100 * r['meshed_alpha_evaluated'] / max(r['meshed_blocks'], 1):.0f}% / "
+    row("meshed blocks when the last frame was integrated: alpha evaluated / up to date",
+        lambda r: f"{r['meshed_blocks']}: {100 * r['meshed_alpha_evaluated'] / max(r['meshed_blocks'], 1):.0f}% / "
         f"{100 * r['meshed_alpha_current'] / max(r['meshed_blocks'], 1):.0f}%")
-    row("meshed blocks at the end: alpha waiting more than 3 s after a change; the oldest wait (s)",
+    row("... alpha waiting more than 3 s after a change; the oldest wait (s)",
         lambda r: f"{100 * r['unjudged_over_3s'] / max(r['meshed_blocks'], 1):.0f}%; {r['oldest_unjudged_s']:.1f}")
     row("5 s after the stream: meshed blocks with alpha up to date; waiting more than 3 s; blocks still to judge",
         lambda r: f"{r['after_5s_meshed']}: {100 * r['after_5s_current'] / max(r['after_5s_meshed'], 1):.0f}%; "
         f"{100 * r['after_5s_unjudged_over_3s'] / max(r['after_5s_meshed'], 1):.0f}%; {r['after_5s_backlog_blocks']}")
     row("5 s after the stream: the live mesh (as ~/mesh gives it) against replay's mesh.ply, F at 2 cm",
         lambda r: f"{r['live_vs_replay_f']:.1f}" if "live_vs_replay_f" in r else "-")
-    row("peak RSS (GB)", lambda r: f"{r['peak_rss_bytes'] / 1e9:.2f}")
+    row("peak RSS until 5 s after the stream (GB)", lambda r: f"{r['peak_rss_bytes'] / 1e9:.2f}")
     row("blocks / observed voxels", lambda r: f"{r['blocks']} / {r['observed_voxels']}")
     row("blocks evicted / meshes archived / on disk at the end / restored from disk",
         lambda r: f"{r['evicted_blocks']} / {r['archived_blocks']} / {r['spilled_blocks']} / {r['restored_blocks']}")
@@ -353,8 +365,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
             f"({100 * share:.0f}%; {100 * r['frames_integrated'] / max(r['frames_sent'], 1):.0f}% with the frames "
             f"set aside); "
             f"every meshed block judged within 3 s of its last change: "
-            f"{'met' if r['unjudged_over_3s'] == 0 else 'NOT met'} ({r['unjudged_over_3s']} blocks waited longer at "
-            f"the end of the stream); latency median <= 1.5 s: "
+            f"{'met' if r['unjudged_over_3s'] == 0 else 'NOT met'} ({r['unjudged_over_3s']} blocks waited longer when "
+            f"the last frame was integrated); latency median (frames not set aside) <= 1.5 s: "
             f"{'met' if r['latency_s']['median'] <= 1.5 else 'NOT met'} "
             f"({r['latency_s']['median']:.2f} s); mesh refresh >= 1 Hz: {'met' if rate_hz >= 1.0 else 'NOT met'} "
             f"({rate_hz:.2f} Hz, median interval)"
