@@ -615,6 +615,24 @@ def _load_features(features, n_features, voxel, values):  # noqa: ANN001, ANN202
     return load_packed_row
 
 
+@numba.njit(inline="always")
+def _blend_six_bits(word: np.int64, sums: np.ndarray, first: int, keep: float, add: float,
+                    inv_count: float) -> tuple[np.int64, np.float32]:
+    """The running average of 4 packed 6-bit features (bits 0..23 of word) with the sums
+    sums[first:first + 4], worked in units of the stored integers (no division, no re-read): the new
+    24-bit word and the largest change, in those units."""
+    scale = np.float32(FEATURE_SCALE)
+    new_word = np.int64(0)
+    steps = np.float32(0.0)
+    for k in range(4):
+        old = np.float32(_six_bit(word, k))
+        q = np.rint(keep * old + add * scale * (sums[first + k] * inv_count))
+        q = min(max(q, -scale), scale)
+        new_word |= (np.int64(q) & _SIX_BITS) << (6 * k)
+        steps = max(steps, abs(q - old))
+    return new_word, steps
+
+
 def blend_features(features: np.ndarray, n_features: int, voxel: int, keep: float | np.float32,
                    add: float | np.float32, sums: np.ndarray, inv_count: float | np.float32) -> float:
     """A voxel's features = keep * old + add * sums * inv_count (a running average), rounded to the
@@ -643,35 +661,23 @@ def _blend_features(features, n_features, voxel, keep, add, sums, inv_count):  #
     def blend_packed(features, n_features, voxel, keep, add, sums, inv_count):  # noqa: ANN001, ANN202
         stride = 3 * (n_features - 1) // 4 + 1
         base = voxel * stride
-        scale = np.float32(FEATURE_SCALE)
-        change = np.float32(0.0)
         if stride == 4:  # 4 learned features and the depth (the engine's): the row as one word
             row = _load_row32(features, base)
-            new_row = np.int64(0)
-            for k in range(4):
-                old = np.float32(_six_bit(row, k))
-                q = np.rint(keep * old + add * scale * (sums[k] * inv_count))
-                q = min(max(q, -scale), scale)
-                new_row |= (np.int64(q) & _SIX_BITS) << (6 * k)
-                change = max(change, abs(q - old))
+            new_row, steps = _blend_six_bits(row, sums, 0, keep, add, inv_count)
             old_depth = DEPTH_OF_CODE[row >> 24]
             code = _depth_code(keep * old_depth + add * (sums[4] * inv_count))
             _store_row32(features, base, new_row | (code << 24))
-            return max(change / scale, abs(DEPTH_OF_CODE[code] - old_depth))
-        for group in range(stride // 3):  # in units of the stored integers: no division, no re-read
-            word = _packed_word(features, base + 3 * group)
-            new_word = np.int64(0)
-            for k in range(4):
-                old = np.float32(_six_bit(word, k))
-                q = np.rint(keep * old + add * scale * (sums[4 * group + k] * inv_count))
-                q = min(max(q, -scale), scale)
-                new_word |= (np.int64(q) & _SIX_BITS) << (6 * k)
-                change = max(change, abs(q - old) / scale)
+            return max(steps / np.float32(FEATURE_SCALE), abs(DEPTH_OF_CODE[code] - old_depth))
+        steps = np.float32(0.0)
+        for group in range(stride // 3):
+            new_word, group_steps = _blend_six_bits(_packed_word(features, base + 3 * group), sums, 4 * group, keep,
+                                                    add, inv_count)
             _store_word(features, base + 3 * group, new_word)
+            steps = max(steps, group_steps)
         c = n_features - 1
         old = load_feature(features, n_features, voxel, c)
         store_feature(features, n_features, voxel, c, keep * old + add * (sums[c] * inv_count))
-        return max(change, abs(load_feature(features, n_features, voxel, c) - old))
+        return max(steps / np.float32(FEATURE_SCALE), abs(load_feature(features, n_features, voxel, c) - old))
     return blend_packed
 
 
