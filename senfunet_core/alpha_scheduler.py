@@ -74,7 +74,7 @@ class AlphaScheduler:
         self.batch_blocks = batch_blocks
         self.alpha_order = alpha_order
         self.threads = threads
-        self._executor: ThreadPoolExecutor | None = None  # threads > 1: evaluates batches side by side
+        self._executor: ThreadPoolExecutor | None = None  # threads > 1: `workers`
         self._scratch = ThreadScratch()  # per evaluating thread: its input windows' buffer
         self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
         self.flops = 0  # weighting-net FLOPs written so far (for the benchmark's fraction of peak)
@@ -230,7 +230,7 @@ class AlphaScheduler:
                     order, _ = eviction.follow(order)
             while len(order) and len(evaluating) < ahead:
                 batch, order = order[:self.batch_blocks], order[self.batch_blocks:]
-                evaluating.append(self._pool().submit(self.evaluate, batch) if ahead > 1
+                evaluating.append(self.workers().submit(self.evaluate, batch) if ahead > 1
                                   else _done(self.evaluate(batch)))
             if not evaluating:
                 continue
@@ -258,8 +258,10 @@ class AlphaScheduler:
             tsdf = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
         return (*self.store.views("feat0", "weight0", "feat1", "weight1"), *tsdf, self.tsdf_scale)
 
-    def _pool(self) -> ThreadPoolExecutor:
-        """The threads that evaluate batches side by side (created on first use)."""
+    def workers(self) -> ThreadPoolExecutor:
+        """The `threads` alpha threads that evaluate batches side by side (created on first use, by
+        the thread that first needs them: they share its priority). The engine also meshes an idle
+        update's batches on them."""
         if self._executor is None:
             self._executor = ThreadPoolExecutor(self.threads, thread_name_prefix="senfunet-alpha")
         return self._executor

@@ -24,9 +24,11 @@ Threading model (the one place it is described):
   runs the 2D nets; with `alpha_threads` > 1, that many alpha threads (per engine, owned by its
   `AlphaScheduler`) evaluate the weighting net's batches for an update that has no time budget (or
   an idle catch-up, `refresh_alpha(until_frame=True)`), while the updating thread waits for them in
-  order and writes their results. Several threads may integrate, and several may update: the locks
-  serialise them. The engine's parts (`AlphaScheduler`, `BlockMesher`, `MapBound`) start no thread
-  of their own besides those alpha threads, and take only the data lock they are given.
+  order and writes their results; they also mesh the batches of an `update(mesh_threads=...)` (no
+  frame waiting), reading the grid as the updating thread does. Several threads may integrate, and
+  several may update: the locks serialise them. The engine's parts (`AlphaScheduler`,
+  `BlockMesher`, `MapBound`) start no thread of their own besides those alpha threads, and take only
+  the data lock they are given.
 - The update lock (`_updating`) serialises updates, extractions, saves and evictions; it owns the
   alpha scheduler's order, the map bound (its archive) and the set of meshed blocks.
 - The data lock guards the grid's contents and the per-block flags: integration holds it while its
@@ -70,6 +72,7 @@ from .mesher import BlockMeshes, Mesh, StreamingWeld
 from .spill import BlockSpill, spilled_rows
 from .stage_times import StageTimes
 
+_MIN_THREAD_BLOCKS = 256  # blocks per meshing thread, at least: fewer cost more to hand over than they save
 log = logging.getLogger("senfunet.engine")
 
 # One thread runs the feature nets (of every engine in the process), so that a frame's feature net
@@ -337,14 +340,17 @@ class SenFuNet:
         return update.voxels_updated
 
     @torch.inference_mode()
-    def update(self, alpha_budget_s: float | None = None) -> MeshUpdate:
+    def update(self, alpha_budget_s: float | None = None, *, mesh_threads: int = 1) -> MeshUpdate:
         """Alpha, fusion and meshing over the blocks changed since the last update.
 
         alpha_budget_s: at most about this long re-evaluating alpha; the blocks left over keep their
         previous alpha until a later update, in `alpha_order` (where it was never
         evaluated, the mesh shows what both sensors saw, averaged: see fusion). None: all of them
         (exact, deterministic). The live node passes 0 and calls `refresh_alpha` after publishing: new
-        geometry is shown sooner, and its alpha comes with the next update."""
+        geometry is shown sooner, and its alpha comes with the next update.
+        mesh_threads: mesh on up to this many of the alpha threads at once (at most `alpha_threads`),
+        for a caller that knows no frame waits for the cores (the live node, whenever none is queued:
+        once its sensors pause, the blocks of the frames it set aside are meshed sooner)."""
         with self._updating():
             t0 = time.perf_counter()
             self._evict()
@@ -360,7 +366,7 @@ class SenFuNet:
             self.counters["mesh_blocks_last"] = len(slots)
             result = MeshUpdate(cleared=self._cleared)
             self._cleared = False
-            live = self._block_meshes(slots, coords)
+            live = self._block_meshes(slots, coords, threads=min(mesh_threads, self.config.alpha_threads))
             live_keys, changed_keys = (block_keys(torch.from_numpy(c)).numpy() for c in (live.keys, coords))
             if len(self.archive):
                 self.archive.replace({tuple(k) for k in live.keys.tolist()})
@@ -684,11 +690,13 @@ class SenFuNet:
             self._notify_eviction_waiters()
         return eviction
 
-    def _block_meshes(self, slots: np.ndarray, coords: np.ndarray) -> BlockMeshes:
-        """Fused, filtered meshes of the given blocks (coords: their block keys), batch by batch,
-        evicting between batches when integration outgrew the bound; blocks without triangles, or
-        evicted meanwhile, are left out."""
-        parts, evicted = [], []
+    def _block_meshes(self, slots: np.ndarray, coords: np.ndarray, *, threads: int = 1) -> BlockMeshes:
+        """Fused, filtered meshes of the given blocks (coords: their block keys), batch by batch
+        (`threads` > 1: that many at once, in equal shares on the alpha threads), evicting between
+        batches when integration outgrew the bound; blocks without triangles, or evicted meanwhile,
+        are left out."""
+        parts: list[BlockMeshes] = []
+        evicted: list[np.ndarray] = []
         size = self.config.mesh_batch_blocks
         while len(slots):
             if self.bound.over_hard_bound():
@@ -697,8 +705,14 @@ class SenFuNet:
                 slots, kept = eviction.follow(slots)
                 coords = coords[kept]
                 evicted.append(eviction.dropped_keys)
-            (batch, slots), (batch_coords, coords) = (slots[:size], slots[size:]), (coords[:size], coords[size:])
-            parts.append(self.mesher.block_meshes(batch, batch_coords))
+            n = min(len(slots), size * threads)
+            (batch, slots), (batch_coords, coords) = (slots[:n], slots[n:]), (coords[:n], coords[n:])
+            if threads > 1 and n >= 2 * _MIN_THREAD_BLOCKS:  # equal shares: the round ends with its last share
+                step = -(-n // min(threads, n // _MIN_THREAD_BLOCKS))
+                parts += self.alpha.workers().map(self.mesher.block_meshes, *(
+                    [array[i:i + step] for i in range(0, n, step)] for array in (batch, batch_coords)))
+            else:
+                parts.append(self.mesher.block_meshes(batch, batch_coords))
         meshes = BlockMeshes.concatenate(parts)
         if evicted:  # blocks meshed in an earlier batch may be gone: they must not be shown
             gone = np.isin(block_keys(torch.from_numpy(meshes.keys)).numpy(), np.concatenate(evicted))

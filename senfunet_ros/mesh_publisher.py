@@ -1,10 +1,11 @@
 """~/mesh and ~/weights: the node's mesh timer work, from `engine.update()` to the readers.
 
 One `publish` at a time (`lock`, shared with the map services that replace or empty the map):
-update the engine's meshes, encode and publish the changed blocks (or the whole map for a
-subscriber that just joined) and, when due, the weight cloud; then give the weighting net its
-turn. The node calls `publish` from its mesh thread, at a lower priority than integration's (see
-`node.lower_thread_priority`); the engine is thread-safe: integration goes on meanwhile.
+update the engine's meshes (on every core when no frame waits), encode and publish the changed
+blocks (or the whole map for a subscriber that just joined) and, when due, the weight cloud; then
+give the weighting net its turn. The node calls `publish` from its mesh thread, at a lower
+priority than integration's (see `node.lower_thread_priority`); the engine is thread-safe:
+integration goes on meanwhile.
 """
 from __future__ import annotations
 
@@ -87,7 +88,11 @@ class MeshPublisher:
                 weights = now >= self._next_weights_s
             weights = weights and self.weights_pub.get_subscription_count() > 0
             contained = self._latency.take()  # frames integrated before this update began
-            update = engine.update(alpha_budget_s=0.0)
+            # no frame waiting (the sensors paused, or integration keeps up): mesh on every core; a
+            # frame coming meanwhile still goes first (the mesh thread's lower priority, which its
+            # helper threads share)
+            update = engine.update(alpha_budget_s=0.0,
+                                   mesh_threads=1 if self._frame_waiting() else engine.config.alpha_threads)
             stamp_ns = self.pipeline.latest_stamp_ns
             t_update = time.perf_counter()
             self._timings["update"].add(t_update - start)

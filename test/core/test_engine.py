@@ -224,6 +224,36 @@ def test_incremental_block_meshes_equal_whole_mesh():
     np.testing.assert_allclose(np.unique(joined.vertices, axis=0), np.unique(whole.vertices, axis=0), atol=1e-5)
 
 
+def test_an_update_meshed_on_several_threads_equals_one_meshed_on_one(monkeypatch):
+    """update(mesh_threads=2): the changed blocks' meshes in shares on the alpha threads, the same
+    meshes in the same order as one thread's batches."""
+    import threading
+
+    import senfunet_core.engine as engine_module
+
+    monkeypatch.setattr(engine_module, "_MIN_THREAD_BLOCKS", 16)
+    one, several = engine_for_tests(), engine_for_tests(alpha_threads=2, mesh_batch_blocks=64)
+    meshing_threads: set[str] = set()
+    block_meshes = several.mesher.block_meshes
+
+    def recorded(*args, **kwargs):
+        meshing_threads.add(threading.current_thread().name)
+        return block_meshes(*args, **kwargs)
+
+    several.mesher.block_meshes = recorded
+    for T in SPHERE_VIEWS[:3]:
+        depth = render_sphere(SPHERE_C, SPHERE_R, SPHERE_K, T)
+        for engine in (one, several):
+            engine.integrate("tof", depth, SPHERE_K, T)
+            engine.integrate("stereo", depth + 0.004, SPHERE_K, T)
+        expected, got = one.update(), several.update(mesh_threads=2)
+        assert len(expected.meshes) > 64
+        for name in ("keys", "vertices", "faces", "colors", "vertex_offsets", "face_offsets"):
+            np.testing.assert_array_equal(getattr(got.meshes, name), getattr(expected.meshes, name))
+        assert got.removed == expected.removed
+    assert {"senfunet-alpha_0", "senfunet-alpha_1"} <= meshing_threads  # (a round's rest: the updating thread)
+
+
 def join_block_meshes(pieces: list[Mesh]) -> Mesh:
     """Per-block meshes (as the node publishes them) welded into one."""
     offsets = np.cumsum([0] + [m.n_vertices for m in pieces])
