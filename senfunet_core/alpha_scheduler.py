@@ -200,10 +200,11 @@ class AlphaScheduler:
                 eviction_due: Callable[[], bool], evict: Callable[[], Eviction | None]) -> Refresh:
         """Re-evaluate alpha on the stale blocks in `order`, batch by batch; each batch first drops
         the blocks that hold no voxel alpha matters for (checked then, not when scheduling, so that
-        a budget also bounds the checking). With a budget (seconds), stop after the batch that
-        exhausts it, and with `until_frame` once it says a frame was integrated: the rest stays
-        stale for later. Without a budget or with `until_frame` (no frame is coming), `threads`
-        batches are evaluated at once (each single-threaded, so alpha does not depend on how many).
+        a budget also bounds the checking). With a budget (seconds), no batch is started that
+        would end past it (judged by the last batch's time; the first always runs), and with
+        `until_frame` none once it says a frame was integrated: the rest stays stale for later.
+        Without a budget or with `until_frame` (no frame is coming), `threads` batches are
+        evaluated at once (each single-threaded, so alpha does not depend on how many).
         Between batches, where no evaluated batch waits to be written, it calls `evict` when
         `eviction_due` (integration outgrew the map bound) and follows the blocks that moved."""
         self.schedule()
@@ -215,14 +216,15 @@ class AlphaScheduler:
         # Results are written whenever the data lock is free, not waited for batch by batch: time
         # spent waiting for integration's kernels would come out of the net's budget.
         results: list[AlphaBatch] = []
-        evaluating: collections.deque[Future[AlphaBatch]] = collections.deque()
+        evaluating: collections.deque[tuple[Future[AlphaBatch], float]] = collections.deque()  # with its start
         left = order[:0]
+        batch_s = 0.0  # the last batch's time: one that would end past the budget is not started
         while len(order) or evaluating:
-            if len(order) and ((budget_s is not None and time.perf_counter() - start > budget_s)
+            if len(order) and ((budget_s is not None and time.perf_counter() - start + batch_s > budget_s)
                                or (until_frame is not None and until_frame())):
                 order, left = order[:0], order  # evaluate no more; the batches under way are written
             if eviction_due():
-                results += [future.result() for future in evaluating]  # read before slots move
+                results += [future.result() for future, _ in evaluating]  # read before slots move
                 evaluating.clear()
                 self.write(results, wait=True)
                 eviction = evict()
@@ -230,11 +232,14 @@ class AlphaScheduler:
                     order, _ = eviction.follow(order)
             while len(order) and len(evaluating) < ahead:
                 batch, order = order[:self.batch_blocks], order[self.batch_blocks:]
-                evaluating.append(self.workers().submit(self.evaluate, batch) if ahead > 1
-                                  else _done(self.evaluate(batch)))
+                started = time.perf_counter()
+                evaluating.append((self.workers().submit(self.evaluate, batch) if ahead > 1
+                                   else _done(self.evaluate(batch)), started))
             if not evaluating:
                 continue
-            results.append(evaluating.popleft().result())
+            future, started = evaluating.popleft()
+            results.append(future.result())
+            batch_s = time.perf_counter() - started
             done += int(results[-1].holds.sum())
             voxels += len(results[-1].voxels)
             self.write(results, wait=False)

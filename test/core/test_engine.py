@@ -807,7 +807,7 @@ def _two_spheres_one_scheduled_before(engine: SenFuNet) -> int:
 
 def _judge_two_batches(engine: SenFuNet, monkeypatch) -> np.ndarray:
     """refresh_alpha with a budget that runs exactly two batches (on a fake clock, each batch takes
-    0.3 s of it, the budget is 0.45 s); returns the slots judged so far."""
+    0.3 s of it, the budget is 0.65 s: a third would end past it); returns the slots judged so far."""
     import senfunet_core.alpha_scheduler as scheduler_module
 
     clock = VirtualClock()
@@ -819,7 +819,8 @@ def _judge_two_batches(engine: SenFuNet, monkeypatch) -> np.ndarray:
         return infer(*args, **kwargs)
 
     engine.weighting_net.infer = slow_infer
-    engine.refresh_alpha(0.45)
+    engine.refresh_alpha(0.65)
+    assert clock.now_s == pytest.approx(0.6)
     return np.flatnonzero(engine.store.evaluated[: engine.grid.n_blocks])
 
 
@@ -927,7 +928,7 @@ def test_the_scheduler_keeps_no_state_per_schedule(monkeypatch):
 def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(monkeypatch):
     """Integration holding the data lock does not stall the weighting net: the batches evaluated
     meanwhile are written once the lock is free. The budget runs on a fake clock (each batch takes
-    0.125 s of it: a budget of 0.3 s runs exactly three); the lock is held from the first batch
+    0.125 s of it: a budget of 0.4 s runs exactly three); the lock is held from the first batch
     until the third has run, so an engine that waited for the lock per batch would reach the
     second batch only after the holder gave up (and fail the checks below)."""
     import threading
@@ -966,7 +967,7 @@ def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(mo
     holder = threading.Thread(target=hold_the_lock)
     holder.start()
     engine.weighting_net.infer = batch_while_the_lock_is_held
-    engine.refresh_alpha(0.3)
+    engine.refresh_alpha(0.4)
     holder.join(timeout=30)
     assert len(batches) == 3
     assert all(held for held, _ in batches)  # the net went on while integration held the lock
