@@ -528,6 +528,11 @@ def _six_bit(word: np.int64, k: int) -> np.int64:
     return (((word >> (6 * k)) & _SIX_BITS) ^ 32) - 32  # sign-extended
 
 
+# a 6-bit code's feature value (code / FEATURE_SCALE, sign-extended), looked up: kernels that read
+# every feature of many voxels (the weighting net's windows) would otherwise divide for each
+_FEATURE_OF_CODE = (((np.arange(64) ^ 32) - 32).astype(np.float32) / np.float32(FEATURE_SCALE)).astype(np.float32)
+
+
 def load_feature(features: np.ndarray, n_features: int, voxel: int, c: int) -> np.float32:
     """Feature c of a voxel from a flat feature-pool view: float32, float16 bits (int16) or packed
     int8 (see FEATURE_SCALE). Kernels compile this per dtype; this body is the reference."""
@@ -565,7 +570,7 @@ def _load_feature(features, n_features, voxel, c):  # noqa: ANN001, ANN202 (numb
         stride = 3 * (n_features - 1) // 4 + 1
         if c < n_features - 1:
             word = _packed_word(features, voxel * stride + 3 * (c // 4))
-            return np.float32(_six_bit(word, c % 4)) / np.float32(FEATURE_SCALE)
+            return _FEATURE_OF_CODE[(word >> (6 * (c % 4))) & _SIX_BITS]
         return DEPTH_OF_CODE[np.int64(features[voxel * stride + stride - 1]) & 0xFF]
     return load_packed
 
@@ -610,7 +615,7 @@ def _load_features(features, n_features, voxel, values):  # noqa: ANN001, ANN202
         for group in range(stride // 3):
             word = _packed_word(features, base + 3 * group)
             for k in range(4):
-                values[4 * group + k] = np.float32(_six_bit(word, k)) / np.float32(FEATURE_SCALE)
+                values[4 * group + k] = _FEATURE_OF_CODE[(word >> (6 * k)) & _SIX_BITS]
         values[n_features - 1] = DEPTH_OF_CODE[np.int64(features[base + stride - 1]) & 0xFF]
     return load_packed_row
 
