@@ -170,10 +170,8 @@ def run_node_case(args: argparse.Namespace) -> dict:
         },
         "mesh_updates": len(updates),
         "update_interval_s": {"median": float(np.median(intervals)), "max": float(np.max(intervals))},
-        "latency_s": {"median": float(np.median(latencies)) if latencies else float("nan"),
-                      "max": float(np.max(latencies)) if latencies else float("nan")},
-        "latency_set_aside_s": {"median": float(np.median(late)) if late else float("nan"),
-                                "max": float(np.max(late)) if late else float("nan")},
+        "latency_s": median_max(latencies),
+        "latency_set_aside_s": median_max(late),
         "alpha_blocks": alpha_counters["alpha_blocks"],
         "alpha_backlog_blocks": alpha_counters.get("alpha_backlog_blocks", 0),
         "meshed_blocks": stats["meshed_blocks"], "meshed_alpha_evaluated": stats["meshed_blocks_alpha_evaluated"],
@@ -194,9 +192,16 @@ def run_node_case(args: argparse.Namespace) -> dict:
     node.destroy_node()
     if live_vertices is not None:
         del node, engine, ingest  # the node's map is freed before replay builds its own
-        result["live_vs_replay_f"], result["live_vs_replay_p"], result["live_vs_replay_r"] = live_vs_replay_f(
+        result["live_vs_replay_f"], result["live_vs_replay_p"], result["live_vs_replay_r"] = live_vs_replay_scores(
             args, live_vertices)
     return result
+
+
+def median_max(values: list[float]) -> dict[str, float]:
+    """Median and maximum (NaN for none)."""
+    if not values:
+        return {"median": float("nan"), "max": float("nan")}
+    return {"median": float(np.median(values)), "max": float(np.max(values))}
 
 
 def compare_with_replay(args: argparse.Namespace) -> bool:
@@ -204,7 +209,7 @@ def compare_with_replay(args: argparse.Namespace) -> bool:
     return args.mode == "realtime" and args.replay_check and args.max_seconds <= 0
 
 
-def live_vs_replay_f(args: argparse.Namespace, live_vertices: np.ndarray) -> tuple[float, float, float]:
+def live_vs_replay_scores(args: argparse.Namespace, live_vertices: np.ndarray) -> tuple[float, float, float]:
     """F-score, precision and recall (2 cm) of the live mesh's vertices against `senfunet replay`'s
     mesh.ply of the same bag, default parameters (F: test_play's measure of live equals replay)."""
     import tempfile
