@@ -89,36 +89,36 @@ class AlphaScheduler:
             if len(changed) == 0:
                 return
             store.alpha_pending[changed] = False
-            changed_s, store.first_change_s = store.first_change_s, float("nan")
+            touched_s = store.touched_s[changed]
             reach = reach_levels(store.reach_changed[changed], store.reach_renewed[changed])  # B x 27
             store.reach_changed[changed] = 0
             store.reach_renewed[changed] = 0
         around = store.neighbours(changed)
-        reached = (around >= 0) & (reach > 0)
-        targets, target_levels = around[reached], reach[reached]
+        sources, codes = np.nonzero((around >= 0) & (reach > 0))
+        targets, target_levels = around[sources, codes], reach[sources, codes]
         level_of = np.zeros(int(targets.max(initial=-1)) + 1, np.int8)
         for level in range(1, int(target_levels.max(initial=0)) + 1):  # ascending: a block's highest level wins
             level_of[targets[target_levels == level]] = level
         candidates = np.flatnonzero(level_of)
         levels = level_of[candidates]
+        last_change_s = np.full(len(level_of), -np.inf)
+        np.maximum.at(last_change_s, targets, touched_s[sources])  # the latest frame that reached each
         with self._data_lock:
             self.schedules += 1
             # alpha NaN there: first, unless the block held nothing to evaluate when last checked
             levels[~store.evaluated[candidates] & ~store.no_targets[candidates]] = 3
             store.last_reached[candidates] = self.schedules
-            store.stale_since_s[candidates] = changed_s
+            store.last_change_s[candidates] = last_change_s[candidates]
             store.stale[candidates] = np.maximum(store.stale[candidates], levels)
 
     def waiting_s(self, slots: np.ndarray, now_s: float) -> np.ndarray:
-        """How long alpha has waited on these blocks (whose alpha is not up to date): since the
-        oldest integration of the schedule that last made them stale, or, not scheduled yet, since
-        the oldest integration not scheduled yet (an upper bound: a later frame may have been the
-        one that changed them). Call with the data lock held."""
+        """How long alpha has waited on these blocks (whose alpha is not up to date) since their
+        last change: the latest frame that reached them in the schedule that last made them stale,
+        or, integrated into since the last schedule, the latest frame that did (a neighbour's change
+        not scheduled yet is not known yet). Call with the data lock held."""
         store = self.store
-        waiting = now_s - store.stale_since_s[slots]
         pending = store.alpha_pending[slots]
-        waiting[pending] = np.fmax(waiting[pending], now_s - store.first_change_s)
-        return waiting
+        return now_s - np.fmax(store.last_change_s[slots], np.where(pending, store.touched_s[slots], np.nan))
 
     def order(self) -> np.ndarray:
         """The stale blocks in the order they are judged (`alpha_order`): "latest", those the latest
@@ -270,6 +270,12 @@ class AlphaScheduler:
         if self._executor is None:
             self._executor = ThreadPoolExecutor(self.threads, thread_name_prefix="senfunet-alpha")
         return self._executor
+
+    def stop_workers(self) -> None:
+        """End the alpha threads (the next use starts them again, from the thread that needs them)."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
 
     def _flops(self, *, layer_1_positions: int, voxels: int, inputs: int) -> int:
         """Multiply-adds of the weighting net (x2 = FLOPs)."""

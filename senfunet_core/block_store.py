@@ -42,17 +42,17 @@ class BlockStore:
     - evaluated: alpha evaluated at least once;
     - no_targets: when last checked, the block held no voxel alpha matters for;
     - last_reached: the last alpha schedule that made it stale (the newest are served first);
-    - stale_since_s: when the oldest integration of that schedule happened (monotonic seconds; NaN:
-      never made stale), so that the scheduler knows how long alpha has waited there;
+    - touched_s: when integration last wrote its voxels (monotonic seconds; NaN: never);
+    - last_change_s: the latest of those integrations, among the ones that schedule took, whose
+      changes reach it (NaN: never made stale), so that the scheduler knows how long alpha has
+      waited there since the block's last change;
     - mesh_pending: TSDF or alpha changed since it was meshed;
-    - meshed: its fused mesh had triangles when last meshed.
-    And `first_change_s`: when the oldest integration not scheduled yet happened (monotonic seconds;
-    NaN when every integration was scheduled), so that the scheduler knows how long alpha waits."""
+    - meshed: its fused mesh had triangles when last meshed."""
 
     _FLAGS = {"alpha_pending": bool, "reach_changed": np.int32, "reach_renewed": np.int32, "stale": np.int8,
-              "evaluated": bool, "no_targets": bool, "last_reached": np.int64, "stale_since_s": np.float64,
-              "mesh_pending": bool, "meshed": bool}
-    _FILL = {"stale_since_s": np.nan}  # the others start at 0 (False)
+              "evaluated": bool, "no_targets": bool, "last_reached": np.int64, "touched_s": np.float64,
+              "last_change_s": np.float64, "mesh_pending": bool, "meshed": bool}
+    _FILL = {"touched_s": np.nan, "last_change_s": np.nan}  # the others start at 0 (False)
 
     alpha_pending: np.ndarray
     reach_changed: np.ndarray
@@ -61,7 +61,8 @@ class BlockStore:
     evaluated: np.ndarray
     no_targets: np.ndarray
     last_reached: np.ndarray
-    stale_since_s: np.ndarray
+    touched_s: np.ndarray
+    last_change_s: np.ndarray
     mesh_pending: np.ndarray
     meshed: np.ndarray
 
@@ -79,7 +80,6 @@ class BlockStore:
         self.clear_flags()
 
     def clear_flags(self) -> None:
-        self.first_change_s = float("nan")
         for name, dtype in self._FLAGS.items():
             setattr(self, name, np.zeros(0, dtype))
         self.grow_flags()

@@ -327,8 +327,7 @@ class SenFuNet:
             self.store.reach_renewed[update.touched_slots] |= update.reach[:, 1]
             # blocks back from the spill: alpha around them was judged without them
             self.store.reach_renewed[self.grid.take_restored_slots()] = REACH_ALL
-            if np.isnan(self.store.first_change_s):
-                self.store.first_change_s = time.monotonic()
+            self.store.touched_s[update.touched_slots] = time.monotonic()
             self.store.mesh_pending[update.touched_slots] = True  # the TSDF changed here, whatever alpha does
             self.frames_integrated[cfg.sensors[s]] += 1
             self.counters["sparse_dropped_samples"] += update.dropped_samples
@@ -501,6 +500,9 @@ class SenFuNet:
         self.grid.warm_up()
         self.reset()
         self._cleared = False
+        # the alpha threads the update started share the warming thread's priority: the first real
+        # update starts them again from its own thread (the live node's mesh thread, of lower priority)
+        self.alpha.stop_workers()
 
     def networks_changed(self) -> None:
         """The networks' weights were changed in place: the next update re-evaluates alpha everywhere."""
@@ -581,15 +583,17 @@ class SenFuNet:
         return engine
 
     def stats(self) -> dict:
-        """Map size and memory, and how much of the meshed surface has its alpha: evaluated at least
-        once (else its mesh averages the sensors, see fusion), and up to date (not stale)."""
+        """Map size and memory, and how much of the meshed surface has its alpha: judged at least
+        once (evaluated, or found to hold no voxel alpha matters for; else its mesh averages the
+        sensors, see fusion), and up to date (not stale)."""
         n = len(self.config.sensors)
         with self._updating():
             with self._data_lock:  # only the flags: integration waits for this lock
                 nbytes = self.store.nbytes()
                 meshed = self.grid.lookup_keys(torch.from_numpy(self._meshed)).numpy()
                 meshed = meshed[meshed >= 0]
-                evaluated = self.store.evaluated[meshed]
+                # judged: alpha evaluated, or the block found to hold no voxel it matters for
+                evaluated = self.store.evaluated[meshed] | self.store.no_targets[meshed]
                 current = evaluated & (self.store.stale[meshed] == 0) & ~self.store.alpha_pending[meshed]
                 waiting_s = self.alpha.waiting_s(meshed[~current], time.monotonic())
                 spill = self.grid.spill

@@ -891,6 +891,34 @@ def test_stats_say_how_long_the_meshed_surface_waits_for_the_weighting_net(monke
     assert stats["meshed_blocks_unjudged_over_3s"] == 0 and stats["oldest_unjudged_change_s"] == 0.0
 
 
+def test_the_wait_counts_from_the_last_frame_that_changed_a_block(monkeypatch):
+    """"Within 3 s of its last change": of the frames one schedule takes, the latest that reached a
+    block is its last change, not the oldest (a view seen for the whole mesh period would otherwise
+    count as waiting since the period began)."""
+    import senfunet_core.engine as engine_module
+
+    clock = VirtualClock()
+    monkeypatch.setattr(engine_module, "time", clock)
+    engine = engine_for_tests()
+    K, T = SPHERE_K, SPHERE_VIEWS[0]
+    depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+    engine.integrate("tof", depth, K, T)
+    engine.integrate("stereo", depth, K, T)
+    engine.update(alpha_budget_s=0)  # meshed, not judged
+    clock.now_s = 0.9
+    engine.integrate("stereo", depth, K, T)  # the same view again: the same blocks change
+    clock.now_s = 2.0
+    assert engine.stats()["oldest_unjudged_change_s"] == pytest.approx(1.1)  # not scheduled yet
+    engine.alpha.schedule()
+    clock.now_s = 3.5
+    stats = engine.stats()
+    assert stats["meshed_blocks"] > 0 and stats["meshed_blocks_alpha_current"] == 0
+    assert stats["oldest_unjudged_change_s"] == pytest.approx(2.6)  # since 0.9 s, not since 0 s
+    assert stats["meshed_blocks_unjudged_over_3s"] == 0
+    clock.now_s = 4.0
+    assert engine.stats()["meshed_blocks_unjudged_over_3s"] == stats["meshed_blocks"]
+
+
 def test_the_scheduler_keeps_no_state_per_schedule(monkeypatch):
     """How long alpha waits is kept per block (the map's size), not per schedule: a node that
     schedules once a second for a week would otherwise hold, and copy on every status, a value per
@@ -1238,3 +1266,31 @@ def test_mesh_windows_written_to_reused_buffers_equal_fresh_ones(sphere_engine):
         for got, want in zip(reused, fresh):
             np.testing.assert_array_equal(got, want)
         assert fresh[1].any() and not fresh[1].all()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
+def test_the_alpha_threads_share_the_priority_of_the_thread_that_updates():
+    """The alpha threads are started by the thread that first needs them after warm_up (not by the
+    one that warmed the engine up), so the live node's idle mesh updates and catch-up, which run on
+    them, stay at its mesh thread's low priority: a frame that comes meanwhile goes first."""
+    import os
+    import threading
+
+    engine = engine_for_tests(alpha_threads=2)
+    engine.warm_up()  # from this thread, at its priority
+    K, T = SPHERE_K, SPHERE_VIEWS[0]
+    depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+    engine.integrate("tof", depth, K, T)
+    engine.integrate("stereo", depth, K, T)
+    here = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    def lowered_update() -> None:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), min(here + 3, 19))
+        engine.update(mesh_threads=2)  # no budget: the batches run on the alpha threads
+
+    worker = threading.Thread(target=lowered_update)
+    worker.start()
+    worker.join()
+    alpha_threads = [t for t in threading.enumerate() if t.name.startswith("senfunet-alpha")]
+    assert alpha_threads
+    assert {os.getpriority(os.PRIO_PROCESS, t.native_id) for t in alpha_threads} == {min(here + 3, 19)}
