@@ -37,7 +37,7 @@ class AlphaBatch:
     slots: np.ndarray  # B blocks checked
     holds: np.ndarray  # B bool: holds voxels alpha matters for (see EngineConfig.alpha_voxels)
     voxels: np.ndarray  # N flat voxel indices evaluated (slot * 512 + local)
-    alpha: np.ndarray  # N float32
+    alpha: np.ndarray  # N values as the alpha pool stores them (8-bit codes, or float32)
     flops: int = 0  # the net's FLOPs for it (for the benchmark's fraction of peak)
 
 
@@ -155,7 +155,7 @@ class AlphaScheduler:
             inputs, gather_1, gather_2, voxels = target_gathers(neighbours[holds], targets[holds], *self.inputs())
             alpha = evaluate_gathers(self.net, inputs, gather_1, gather_2, dtype=self.dtype)
             flops = self._flops(layer_1_positions=len(gather_1), voxels=len(voxels), inputs=27 * inputs.shape[1])
-            return AlphaBatch(slots, holds, voxels, alpha, flops)
+            return AlphaBatch(slots, holds, voxels, self._as_stored(alpha), flops)
         slots_holding = slots[holds]
         if self.device.type == "cpu":  # the inputs written in the net's dtype, to this thread's buffer
             bfloat16 = self.dtype == torch.bfloat16
@@ -172,7 +172,12 @@ class AlphaScheduler:
         voxels = (slots_holding[:, None] * BLOCK**3 + np.arange(BLOCK**3)).reshape(-1)
         flops = self._flops(layer_1_positions=len(slots_holding) * (WINDOW - 2) ** 3, voxels=len(voxels),
                             inputs=27 * windows.shape[-1])
-        return AlphaBatch(slots, holds, voxels, alpha, flops)
+        return AlphaBatch(slots, holds, voxels, self._as_stored(alpha), flops)
+
+    def _as_stored(self, alpha: np.ndarray) -> np.ndarray:
+        """Alpha as the pool stores it: encoded here, by the evaluating thread, not by `write`
+        under the data lock that integration waits for."""
+        return encode_alpha(alpha) if self.store.grid.pools["alpha"].dtype == torch.uint8 else alpha
 
     def write(self, results: list[AlphaBatch], *, wait: bool) -> None:
         """Write evaluated batches (and empty `results`), if the data lock is free or `wait`. Where
@@ -184,8 +189,7 @@ class AlphaScheduler:
         try:
             for batch in results:
                 pool = store.grid.pools["alpha"]
-                pool.numpy().reshape(-1)[batch.voxels] = (encode_alpha(batch.alpha) if pool.dtype == torch.uint8
-                                                          else batch.alpha)
+                pool.numpy().reshape(-1)[batch.voxels] = batch.alpha
                 evaluated = batch.slots[batch.holds]
                 store.stale[batch.slots] = 0
                 store.no_targets[batch.slots] = ~batch.holds
