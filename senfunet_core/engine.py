@@ -64,7 +64,7 @@ from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
 from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, encode_alpha, keys_to_coords
-from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, integrate_frame, valid_depth_mask
+from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
 from .mesh_archive import MeshArchive
@@ -302,11 +302,10 @@ class SenFuNet:
         s = self._sensor_index(sensor)
         check_frame(depth_m, K, T_world_camera, rgb)
         cfg = self.config
-        depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        valid = valid_depth_mask(torch.from_numpy(depth), cfg.border_px, cfg.depth_min_m[s], cfg.depth_max_m[s])
-        if not bool(valid.any()):
+        depth, deepest_m = clean_depth(depth_m, cfg.border_px, cfg.depth_min_m[s], cfg.depth_max_m[s])
+        if deepest_m < 0:  # no valid pixel
             return PreparedFrame(s, depth, K, T_world_camera, None, time.perf_counter() - t0)
-        check_key_range(depth[valid.numpy()].max(), K, T_world_camera, depth.shape, cfg.band_m)
+        check_key_range(deepest_m, K, T_world_camera, depth.shape, cfg.band_m)
         features = _FEATURE_WORKER.submit(self._pixel_features, s, depth, rgb)
         return PreparedFrame(s, depth, K, T_world_camera, features, time.perf_counter() - t0)
 

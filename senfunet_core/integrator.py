@@ -11,6 +11,7 @@ metres; `K` is the pinhole matrix of the depth image; depth is z-depth in metres
 """
 from __future__ import annotations
 
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -103,6 +104,26 @@ def valid_depth_mask(depth_m: torch.Tensor, border_px: int, min_m: float, max_m:
         valid[:, :border_px] = False
         valid[:, -border_px:] = False
     return valid
+
+
+@numba.njit(cache=True, nogil=True)
+def clean_depth(depth_m: np.ndarray, border_px: int, min_m: float, max_m: float) -> tuple[np.ndarray, np.float32]:
+    """One pass over a frame's depth: a float32 copy with NaN and inf set to 0, and the largest
+    depth of the pixels `valid_depth_mask` keeps (-1 when it keeps none)."""
+    h, w = depth_m.shape
+    clean = np.empty((h, w), np.float32)
+    lo, hi = np.float32(min_m), np.float32(max_m)  # compared in float32, as the mask compares them
+    deepest = np.float32(-1.0)
+    for y in range(h):
+        inner_row = border_px <= y < h - border_px
+        for x in range(w):
+            d = np.float32(depth_m[y, x])
+            if not np.isfinite(d):
+                d = np.float32(0.0)
+            clean[y, x] = d
+            if inner_row and border_px <= x < w - border_px and d > 0 and lo <= d <= hi and d > deepest:
+                deepest = d
+    return clean, deepest
 
 
 def unproject(depth_m: torch.Tensor, valid: torch.Tensor, K: torch.Tensor, T_world_camera: torch.Tensor
@@ -418,9 +439,30 @@ def _update_blocks(order: np.ndarray, start: np.ndarray, sample_local: np.ndarra
 
 _NO_MAP = np.zeros(0, np.int32)
 
-# update_voxels hands the second half of a frame's blocks to this worker from this many samples on
+# update_voxels shares a frame's blocks with this worker from this many samples on
 SPLIT_MIN_SAMPLES = 50_000
+SPLIT_CHUNKS = 8  # shares of about equal samples, taken from both ends of the block order
 _UPDATE_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="senfunet-update")
+
+
+class _Chunks:
+    """The chunks of one frame's blocks, taken by two threads from either end under a lock (each
+    chunk's kernel runs without the GIL): a worker that waits for a core leaves its chunks to the
+    integrating thread instead of making it wait."""
+
+    def __init__(self, n: int) -> None:
+        self._lock = threading.Lock()
+        self._front, self._back = 0, n - 1
+
+    def take(self, *, from_front: bool) -> int | None:
+        with self._lock:
+            if self._front > self._back:
+                return None
+            if from_front:
+                self._front += 1
+                return self._front - 1
+            self._back -= 1
+            return self._back + 1
 
 
 def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample_touched: np.ndarray,
@@ -439,10 +481,11 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
     (H*W) x C float32; touched_map: as `drop_sparse_new_blocks` returns it (None: none).
     Returns the number of voxels updated.
 
-    Blocks are independent: a frame of at least SPLIT_MIN_SAMPLES samples has the second half of
-    its blocks updated by a worker thread meanwhile (bit-identical to one pass; below that, handing
-    over costs more than it saves). This is the integration thread's longest step, and it waits on
-    memory more than it computes. The flat form: call it through `update_frame_voxels`."""
+    Blocks are independent: a frame of at least SPLIT_MIN_SAMPLES samples is cut into SPLIT_CHUNKS
+    chunks of blocks, which this thread takes from the front and a worker thread from the back
+    until none is left (bit-identical to one pass; below that, handing over costs more than it
+    saves). This is the integration thread's longest step, and it waits on memory more than it
+    computes. The flat form: call it through `update_frame_voxels`."""
     start, local, pixel, step = _group_by_block(n_pixels, sample_tsdf_m.shape[0], n_touched, sample_flat,
                                                 sample_touched, _NO_MAP if touched_map is None else touched_map,
                                                 pixel_index)
@@ -456,9 +499,18 @@ def update_voxels(n_pixels: int, n_touched: int, sample_flat: np.ndarray, sample
 
     if start[-1] < max(SPLIT_MIN_SAMPLES, 1):
         return blocks(order)
-    middle = int(np.searchsorted(np.cumsum(np.diff(start)[order]), start[-1] // 2))
-    second = _UPDATE_WORKER.submit(blocks, order[middle:])
-    return blocks(order[:middle]) + second.result()
+    bounds = np.searchsorted(np.cumsum(np.diff(start)[order]), start[-1] * np.arange(1, SPLIT_CHUNKS) // SPLIT_CHUNKS)
+    chunks = np.split(order, bounds)
+    shared = _Chunks(len(chunks))
+
+    def take_all(*, from_front: bool) -> int:
+        updated = 0
+        while (i := shared.take(from_front=from_front)) is not None:
+            updated += blocks(chunks[i])
+        return updated
+
+    worker = _UPDATE_WORKER.submit(take_all, from_front=False)
+    return take_all(from_front=True) + worker.result()
 
 
 @dataclass

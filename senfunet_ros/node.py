@@ -649,11 +649,11 @@ def prepare_process() -> None:
     passive_openmp_threads()
 
 
-# How much lower the mesh thread's priority is than the other threads' (a nice value, Linux): the
-# lowest, so that integration, whose frames cannot wait, never shares a core it needs (at a nice of
-# 5 the mesh thread still takes a quarter of one; bench/realtime.py measures the frames integrated on
-# arrival); the mesh updates and the weighting net run on what integration leaves
-MESH_THREAD_NICE = 19
+# How much lower the mesh thread's priority is than the other threads' (a nice value, Linux): where
+# both want a core, integration gets about three quarters of it and the mesh updates and the
+# weighting net the rest (the lowest priority, 19, starves the net while frames come:
+# bench/realtime.py measures both sides, frames integrated on arrival and the net's waits)
+MESH_THREAD_NICE = 5
 
 
 def lower_thread_priority(nice: int) -> bool:

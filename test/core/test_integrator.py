@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from senfunet_core.grid import BLOCK, BlockGrid
@@ -142,6 +143,27 @@ def test_reach_names_the_blocks_around_changed_and_new_voxels():
             assert changed == expected_reach(np.flatnonzero((moved & ~new).numpy()))
             checked += changed != 0
     assert checked > 20  # the second frame changed voxels in many blocks
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_clean_depth_equals_the_reference_mask(dtype):
+    """prepare's one pass: the depth with NaN and inf at 0, and the deepest pixel the reference mask
+    (`valid_depth_mask`) keeps, on frames with invalid values, values at the range's ends and a border."""
+    from senfunet_core.integrator import clean_depth
+
+    rng = np.random.default_rng(3)
+    for trial in range(20):
+        depth = rng.uniform(-1.0, 8.0, (24, 31)).astype(dtype)
+        depth[rng.random(depth.shape) < 0.1] = np.nan
+        depth[rng.random(depth.shape) < 0.05] = np.inf
+        depth[rng.random(depth.shape) < 0.05] = RANGE[1]
+        if trial % 5 == 0:  # nothing valid
+            depth[:] = RANGE[1] + 1.0
+        clean, deepest = clean_depth(depth, CONFIG.border_px, *RANGE)
+        want = torch.nan_to_num(torch.from_numpy(depth.astype(np.float32)), nan=0.0, posinf=0.0, neginf=0.0)
+        valid = valid_depth_mask(want, CONFIG.border_px, *RANGE)
+        np.testing.assert_array_equal(clean, want.numpy())
+        assert deepest == (float(want[valid].max()) if bool(valid.any()) else -1.0)
 
 
 def test_splitting_a_frame_between_two_threads_changes_no_bit(monkeypatch):
