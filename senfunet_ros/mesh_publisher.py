@@ -137,7 +137,9 @@ class MeshPublisher:
             # what is left of this mesh period (less a margin for the updates' jitter): the next update
             # is not to wait for the net
             left_s = (1.0 - MESH_PERIOD_MARGIN) * mesh_period_s(s.mesh_rate_hz) - (t_alpha - start)
-            self.weighting_net_turn(idle=not contained and self._no_frame_waiting(), period_left_s=left_s)
+            # idle when no frame came while this update ran: the frames it holds may have been the
+            # stream's last, and the net's catch-up (which stops at the next frame) should not wait a period
+            self.weighting_net_turn(idle=self._no_frame_waiting(), period_left_s=left_s)
             self._timings["alpha"].add(time.perf_counter() - t_alpha)
 
     def _no_frame_waiting(self) -> bool:
@@ -150,7 +152,7 @@ class MeshPublisher:
         While frames come: alpha_budget_s (0: no limit), but no longer than what is left of the mesh
         period, so that the mesh refresh keeps its rate; and at least a quarter of alpha_budget_s,
         so that on a map whose updates take the whole period the net still judges while the sensors
-        stream. Idle (no frame integrated since the last update and none queued: the sensors paused
+        stream. Idle (no frame integrated while the update ran and none queued: the sensors paused
         or stopped): the net catches up on all it has not judged yet, so the mesh soon equals what
         an offline replay makes, in slices of a mesh period on every core, and stops as soon as a
         frame is integrated (an unlimited catch-up would hold the mesh updates for as long as the

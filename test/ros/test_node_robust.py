@@ -355,9 +355,12 @@ def test_bad_extrinsic_refuses_to_start(ros, tmp_path: Path) -> None:
 
 
 def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_path: Path) -> None:
-    """While frames come, the net gets alpha_budget_s after each mesh update; when none came since
-    the last update and none is queued, it catches up in slices of the mesh period until nothing is
-    left, and stops once a frame comes."""
+    """While frames come (one integrated while the update ran, or one waiting), the net gets
+    alpha_budget_s after each mesh update; when none came while the update ran and none waits (the
+    update's frames may have been the stream's last), it catches up in slices of the mesh period
+    until nothing is left, and stops once a frame comes."""
+    import copy
+
     mesh_rate_hz = 500.0  # slices of 2 ms: about one batch of blocks each
     run = Running("catchup", {**topic_params("catchup"), **SMALL, "voxel_size_m": 0.03, "band_m": 0.3,
                               "mesh_rate_hz": mesh_rate_hz, "alpha_budget_s": 0.001}, tmp_path)
@@ -390,16 +393,22 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
 
         engine.refresh_alpha = recording_refresh
         slices = run.node.settings
-
-        def running_budget_period() -> None:  # a 2 ms mesh period leaves no time for the running budget
-            run.node.settings = P.Settings.from_values({**slices.values, "mesh_rate_hz": 1.0})
-
-        running_budget_period()
-        run.node.publish_mesh()  # frames were integrated since the last update: the running budget
+        # a frame that waits: the other sensor's last, stamped a second past the last pose, waits for one
+        stamp = [msg for sensor, stream, msg in messages if (sensor, stream) == ("stereo", "depth")][-1].header.stamp
+        for sensor, stream, msg in messages:
+            if sensor != "stereo" or stream == "pose" or msg.header.stamp != stamp:
+                continue
+            later = copy.deepcopy(msg)
+            later.header.stamp.sec += 1
+            run.node.pipeline.dispatch(sensor, stream, later)
+        assert sum(run.node.ingest.queue_depths().values()) == 1
+        run.node.settings = P.Settings.from_values({**slices.values, "mesh_rate_hz": 1.0})  # room for the budget
+        run.node.publish_mesh()  # a frame waits: the running budget
         run.node.settings = slices
         assert budgets == [0.001]
         backlog = engine.counters["alpha_backlog_blocks"]
         assert backlog > 0
+        assert run.node.ingest.discard_waiting("pose_timeout") == 1  # its pose will not come
         budgets.clear()
         arrive.extend(held_back)
         run.node.publish_mesh()  # idle, but a frame comes during the first slice
@@ -407,12 +416,7 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
         assert 0 < engine.counters["alpha_backlog_blocks"] < backlog  # stopped with work left
         wait_for(settled, 60, "the last frame to be integrated")
         budgets.clear()
-        running_budget_period()
-        run.node.publish_mesh()  # the frame came since the last update: the running budget again
-        run.node.settings = slices
-        assert budgets == [0.001]
-        budgets.clear()
-        run.node.publish_mesh()  # idle: slices until the net has judged everything
+        run.node.publish_mesh()  # that frame in this update, none since: slices until all is judged
         assert budgets and set(budgets) == {1.0 / mesh_rate_hz}  # as many slices as it takes
         assert engine.counters["alpha_backlog_blocks"] == 0
         run.node.publish_mesh()  # the update that shows the judged blocks
