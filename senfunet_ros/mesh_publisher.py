@@ -61,7 +61,6 @@ class MeshPublisher:
         self._latency = latency
         self._camera_colors = camera_colors
         self._frame_waiting = frame_waiting
-        self._context = node.context
         self.lock = threading.Lock()  # one publication at a time (timer vs. reset and load_map services)
         self.mesh_pub = node.create_publisher(MarkerArray, "~/mesh", MESH_QOS)
         self.weights_pub = node.create_publisher(PointCloud2, "~/weights", CLOUD_QOS)
@@ -153,24 +152,19 @@ class MeshPublisher:
         period, so that the mesh refresh keeps its rate; and at least a quarter of alpha_budget_s,
         so that on a map whose updates take the whole period the net still judges while the sensors
         stream. Idle (no frame integrated while the update ran and none queued: the sensors paused
-        or stopped): the net catches up on all it has not judged yet, so the mesh soon equals what
-        an offline replay makes, in slices of a mesh period on every core, and stops as soon as a
-        frame is integrated (an unlimited catch-up would hold the mesh updates for as long as the
-        whole backlog takes; a frame queued but not yet integrated is not idleness)."""
+        or stopped): the net catches up on what it has not judged yet, on every core, for the rest
+        of the mesh period (at least alpha_budget_s), and stops as soon as a frame is integrated; the
+        next update publishes what it judged and gives it the next slice, so the mesh keeps its
+        refresh rate and soon equals what an offline replay makes (a frame queued but not yet
+        integrated is not idleness)."""
         s = self._settings()
         engine = self.pipeline.engine
         if not s.alpha_budget_s:
             engine.refresh_alpha(None)
-            return
-        if not idle:
+        elif idle:
+            engine.refresh_alpha(max(period_left_s, s.alpha_budget_s), until_frame=True)
+        else:
             engine.refresh_alpha(min(s.alpha_budget_s, max(period_left_s, MIN_TURN_SHARE * s.alpha_budget_s)))
-            return
-        slice_s = max(s.alpha_budget_s, 1.0 / s.mesh_rate_hz)
-        while True:  # on every core, and stopping as soon as a frame is integrated
-            engine.refresh_alpha(slice_s, until_frame=True)
-            if not engine.counters.get("alpha_backlog_blocks", 0) or not self._no_frame_waiting() \
-                    or not self._context.ok():
-                return
 
     def display(self, meshes: Any) -> Any:
         """The display mesh of a batch of block meshes (parameter mesh_display_cell_m)."""
