@@ -131,6 +131,12 @@ def run_node_case(args: argparse.Namespace) -> dict:
         time.sleep(0.01)
     integrated_at = time.monotonic()
     cpu_s = time.process_time() - cpu_start  # every thread of the process: the node's and the feeder's
+    # the map's state when the last frame was integrated, as ~/status has it (stats waits for an update
+    # or a turn of the net under way), and the stage times until then
+    stats = engine.stats()
+    total = dict(engine.total_s)
+    timings = {name: t.total_s for name, t in node.timings.items()}
+    alpha_counters = dict(engine.counters)
     node.publish_mesh(weights=False)  # the update that holds the last frames (realtime: as the timer would)
     wall_s = integrated_at - start
     counters = ingest.counters()
@@ -144,10 +150,6 @@ def run_node_case(args: argparse.Namespace) -> dict:
     intervals = np.diff([u[0] for u in updates]) if len(updates) > 1 else np.array([np.nan])
     latencies = list(node.latency.frames_s)  # per frame: its arrival -> the update that published it
     late = list(node.latency.set_aside_s)  # ... of the frames set aside while integration was behind
-    stats = engine.stats()
-    total = dict(engine.total_s)  # stage times of the stream (before the catch-up below)
-    timings = {name: t.total_s for name, t in node.timings.items()}
-    alpha_counters = dict(engine.counters)  # the weighting net's work when the last frame was integrated
     if after is None:  # the node's timers run on: its weighting net catches up once no frame comes
         time.sleep(max(0.0, stream_end + 5.0 - time.monotonic()))
         after = five_seconds_after()
@@ -289,12 +291,13 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
              f"{default['alpha_budget_s']:g} s per update (within the mesh period, at least a quarter of it), "
              f"alpha on surface blocks, frames more than {default['max_lag_s']:g} s behind set aside (up to "
              f"{default['behind_buffer_mb']:g} MB, integrated once no image came for that long), mesh updates on "
-             f"both cores when no frame waits, map bound {bound}, malloc arenas capped at 2, allocations from 4 MB "
-             "mapped), "
+             f"both cores when no frame waits, the net's catch-up for the rest of each mesh period after an update "
+             f"no frame came during, map bound {bound}, malloc arenas capped at 2, allocations from 4 MB mapped), "
              "spun by a MultiThreadedExecutor in "
              "the benchmark process; bag messages deserialised with rclpy and handed to its Ingest as its "
              "subscriptions do. `throughput`: as fast as the node takes them; `realtime`: at their recorded "
-             "times. Stage times are summed over the run and divided by the frames integrated; they are wall "
+             "times. Stage times are summed until the last frame was integrated and divided by the frames "
+             "integrated; they are wall "
              "times, so threads waiting for a core count too. The process CPU time (user + system, every thread, "
              "the feeder's deserialisation included) from the first message until every frame was integrated or "
              "dropped, divided by the frames integrated, is what the node's work costs the cores.", ""]
