@@ -861,19 +861,25 @@ def test_longest_waiting_judges_the_blocks_with_a_mesh_first(monkeypatch):
     assert len(evaluated) == 32 and meshed[evaluated].all()
 
 
-def test_stats_say_how_long_the_meshed_surface_waits_for_the_weighting_net(monkeypatch):
-    """The live goal "every meshed block judged within 3 s of its last change" is measured by
-    stats(): meshed blocks whose alpha is not up to date, and how long since the change they wait
-    for (on a fake clock: from the frame, whether the change was scheduled yet or not)."""
+def sphere_view_on_a_fake_clock(monkeypatch) -> tuple[SenFuNet, VirtualClock, np.ndarray]:
+    """An engine whose clock the test sets (at 0 s), with one view of the sphere from both sensors;
+    returns it, the clock and the view's depth (SPHERE_K, SPHERE_VIEWS[0])."""
     import senfunet_core.engine as engine_module
 
     clock = VirtualClock()
     monkeypatch.setattr(engine_module, "time", clock)
     engine = engine_for_tests()
-    K, T = SPHERE_K, SPHERE_VIEWS[0]
-    depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
-    engine.integrate("tof", depth, K, T)
-    engine.integrate("stereo", depth, K, T)
+    depth = render_sphere(SPHERE_C, SPHERE_R, SPHERE_K, SPHERE_VIEWS[0])
+    engine.integrate("tof", depth, SPHERE_K, SPHERE_VIEWS[0])
+    engine.integrate("stereo", depth, SPHERE_K, SPHERE_VIEWS[0])
+    return engine, clock, depth
+
+
+def test_stats_say_how_long_the_meshed_surface_waits_for_the_weighting_net(monkeypatch):
+    """The live goal "every meshed block judged within 3 s of its last change" is measured by
+    stats(): meshed blocks whose alpha is not up to date, and how long since the change they wait
+    for (on a fake clock: from the frame, whether the change was scheduled yet or not)."""
+    engine, clock, depth = sphere_view_on_a_fake_clock(monkeypatch)
     clock.now_s = 1.0
     engine.update(alpha_budget_s=0)  # meshed, not judged, the change not even scheduled
     clock.now_s = 2.5
@@ -895,18 +901,10 @@ def test_the_wait_counts_from_the_last_frame_that_changed_a_block(monkeypatch):
     """"Within 3 s of its last change": of the frames one schedule takes, the latest that reached a
     block is its last change, not the oldest (a view seen for the whole mesh period would otherwise
     count as waiting since the period began)."""
-    import senfunet_core.engine as engine_module
-
-    clock = VirtualClock()
-    monkeypatch.setattr(engine_module, "time", clock)
-    engine = engine_for_tests()
-    K, T = SPHERE_K, SPHERE_VIEWS[0]
-    depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
-    engine.integrate("tof", depth, K, T)
-    engine.integrate("stereo", depth, K, T)
+    engine, clock, depth = sphere_view_on_a_fake_clock(monkeypatch)
     engine.update(alpha_budget_s=0)  # meshed, not judged
     clock.now_s = 0.9
-    engine.integrate("stereo", depth, K, T)  # the same view again: the same blocks change
+    engine.integrate("stereo", depth, SPHERE_K, SPHERE_VIEWS[0])  # the same view again: the same blocks change
     clock.now_s = 2.0
     assert engine.stats()["oldest_unjudged_change_s"] == pytest.approx(1.1)  # not scheduled yet
     engine.alpha.schedule()
