@@ -25,7 +25,8 @@ import numba
 import numpy as np
 import torch
 
-from .grid import f16_to_f32, features_per_voxel, load_f32, load_features, store_f32
+from .grid import (as_stored, copy_features, f16_to_f32, feature_code_tables, features_per_voxel, load_f32,
+                   load_features, store_f32)
 from .integrator import TANH_OF_COUNT
 from .networks import WEIGHTING_HALO
 
@@ -72,42 +73,51 @@ def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: 
     shape = (neighbours.shape[0], WINDOW, WINDOW, WINDOW, window_channels(features_1, weight_1, tsdf_1))
     size = int(np.prod(shape))
     out = np.empty(size, np.float32) if out is None else out[:size]
-    _fill_windows(out, neighbours, features_1, weight_1, features_2, weight_2, tsdf_1, tsdf_2, tsdf_scale)
+    _fill_windows(out, neighbours, features_1, weight_1, features_2, weight_2, tsdf_1, tsdf_2, tsdf_scale,
+                  *_WINDOW_TABLES[out.dtype.type])
     return out.reshape(shape)
+
+
+# the values the windows take from lookups, as each buffer dtype stores them: a packed feature
+# code's, a depth code's, tanh of a weight count (bfloat16 bits: no rounding per value)
+_WINDOW_TABLES = {dtype: (*feature_code_tables(dtype), as_stored(TANH_OF_COUNT, dtype))
+                  for dtype in (np.float32, np.uint16)}
 
 
 @numba.njit(cache=True, nogil=True)
 def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray,
                   features_2: np.ndarray, weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray,
-                  tsdf_scale: float) -> None:
-    """`weighting_windows`' kernel: every entry of out written (out may hold an earlier batch)."""
+                  tsdf_scale: float, feature_of_code: np.ndarray, depth_of_code: np.ndarray,
+                  tanh_of_count: np.ndarray) -> None:
+    """`weighting_windows`' kernel: every entry of out written (out may hold an earlier batch). Each
+    window row along z is three runs of consecutive voxels (local z -2..-1 in the block below, 0..7,
+    8..9 in the block above): one neighbour lookup per run."""
     n_features = features_per_voxel(features_1, weight_1.shape[0])
     with_tsdf = tsdf_1.shape[0] > 0
     first_tsdf = 2 * (n_features + 1)
     channels = first_tsdf + 2 * with_tsdf
-    values_1, values_2 = np.empty(n_features, np.float32), np.empty(n_features, np.float32)
-    i = 0  # out[i:i + channels]: the inputs at window position (b, x, y, z)
+    i = 0  # out[i:i + channels]: the inputs at the next window position (b, x, y, z)
     for b in range(neighbours.shape[0]):
-        for x in range(WINDOW):
-            for y in range(WINDOW):
-                for z in range(WINDOW):
-                    v = _neighbour_index(neighbours, b, x - HALO, y - HALO, z - HALO)
-                    if v < 0:
-                        for c in range(channels):
-                            store_f32(out, i + c, 0.0)
-                        i += channels
+        for x in range(8 - HALO, 8 + 8 + HALO):  # local + 8, so that shifts and masks find the block
+            for y in range(8 - HALO, 8 + 8 + HALO):
+                for run in range(3):
+                    first_z, length = (8 - HALO, HALO) if run == 0 else ((0, 8) if run == 1 else (0, HALO))
+                    slot = neighbours[b, (x >> 3) * 9 + (y >> 3) * 3 + run]
+                    if slot < 0:
+                        out[i:i + length * channels] = 0
+                        i += length * channels
                         continue
-                    load_features(features_1, n_features, v, values_1)
-                    load_features(features_2, n_features, v, values_2)
-                    for c in range(n_features):
-                        store_f32(out, i + c, values_1[c])
-                        store_f32(out, i + n_features + 1 + c, values_2[c])
-                    store_f32(out, i + n_features, TANH_OF_COUNT[int(f16_to_f32(weight_1[v]))])
-                    store_f32(out, i + first_tsdf - 1, TANH_OF_COUNT[int(f16_to_f32(weight_2[v]))])
-                    if with_tsdf:
-                        store_f32(out, i + first_tsdf, load_f32(tsdf_1, v) * tsdf_scale)
-                        store_f32(out, i + first_tsdf + 1, load_f32(tsdf_2, v) * tsdf_scale)
-                    i += channels
+                    first = slot * 512 + (x & 7) * 64 + (y & 7) * 8 + first_z
+                    for v in range(first, first + length):
+                        copy_features(features_1, n_features, v, out, i, feature_of_code, depth_of_code)
+                        copy_features(features_2, n_features, v, out, i + n_features + 1, feature_of_code,
+                                      depth_of_code)
+                        out[i + n_features] = tanh_of_count[int(f16_to_f32(weight_1[v]))]
+                        out[i + first_tsdf - 1] = tanh_of_count[int(f16_to_f32(weight_2[v]))]
+                        if with_tsdf:
+                            store_f32(out, i + first_tsdf, load_f32(tsdf_1, v) * tsdf_scale)
+                            store_f32(out, i + first_tsdf + 1, load_f32(tsdf_2, v) * tsdf_scale)
+                        i += channels
 
 
 # -- voxel-granular evaluation ("surface_voxels" mode) ------------------------------------------------
@@ -124,46 +134,79 @@ def surface_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.nda
     corners are observed (by any sensor) and whose sensor TSDFs include values <= 0 and >= 0: the
     only cells that can hold fused triangles, so the only voxels whose alpha the fused mesh, its
     filter and its colours read. Weights: float16 bits (int16)."""
-    n_blocks = neighbours.shape[0]
-    out = np.zeros((n_blocks, 512), np.bool_)
-    lo = np.empty((10, 10, 10), np.float32)
-    hi = np.empty((10, 10, 10), np.float32)
-    seen = np.empty((10, 10, 10), np.bool_)
-    for b in range(n_blocks):
-        any_low, any_high = False, False
-        for x in range(10):  # the 10^3 window (local -1..8): observed by any sensor, min and max TSDF
-            for y in range(10):
-                for z in range(10):
-                    v = _neighbour_index(neighbours, b, x - 1, y - 1, z - 1)
-                    low, high, observed = np.float32(np.inf), np.float32(-np.inf), False
-                    if v >= 0:
-                        if f16_to_f32(weight_1[v]) > 0:
-                            value = load_f32(tsdf_1, v)
-                            low, high, observed = min(low, value), max(high, value), True
-                        if f16_to_f32(weight_2[v]) > 0:
-                            value = load_f32(tsdf_2, v)
-                            low, high, observed = min(low, value), max(high, value), True
-                    lo[x, y, z], hi[x, y, z], seen[x, y, z] = low, high, observed
-                    any_low = any_low or bool(low <= 0.0)
-                    any_high = any_high or bool(high >= 0.0)
-        if not (any_low and any_high):  # no sign change near the block (most blocks)
-            continue
-        for x in range(9):  # cells with lower corner at window x, y, z (local x - 1 ...)
-            for y in range(9):
-                for z in range(9):
-                    cell_lo, cell_hi, cell_seen = np.float32(np.inf), np.float32(-np.inf), True
-                    for corner in range(8):
-                        cx, cy, cz = x + (corner >> 2), y + ((corner >> 1) & 1), z + (corner & 1)
-                        cell_seen &= seen[cx, cy, cz]
-                        cell_lo = min(cell_lo, lo[cx, cy, cz])
-                        cell_hi = max(cell_hi, hi[cx, cy, cz])
-                    if not (cell_seen and cell_lo <= 0.0 and cell_hi >= 0.0):
-                        continue
-                    for corner in range(8):
-                        lx, ly, lz = x - 1 + (corner >> 2), y - 1 + ((corner >> 1) & 1), z - 1 + (corner & 1)
-                        if 0 <= lx < 8 and 0 <= ly < 8 and 0 <= lz < 8:
-                            out[b, lx * 64 + ly * 8 + lz] = True
+    out = np.zeros((neighbours.shape[0], 512), np.bool_)
+    scratch = _target_window()
+    for b in range(neighbours.shape[0]):
+        _block_targets(neighbours, b, tsdf_1, weight_1, tsdf_2, weight_2, scratch, out[b], False)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def holds_surface_targets(neighbours: np.ndarray, tsdf_1: np.ndarray, weight_1: np.ndarray, tsdf_2: np.ndarray,
+                          weight_2: np.ndarray) -> np.ndarray:
+    """B bools: whether each block holds any of `surface_targets` (each block's check ends at its
+    first target: what evaluating whole blocks needs)."""
+    holds = np.zeros(neighbours.shape[0], np.bool_)
+    scratch = _target_window()
+    row = np.zeros(512, np.bool_)
+    for b in range(neighbours.shape[0]):
+        holds[b] = _block_targets(neighbours, b, tsdf_1, weight_1, tsdf_2, weight_2, scratch, row, True)
+    return holds
+
+
+@numba.njit(inline="always")
+def _target_window() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_block_targets`' scratch: per position of the 10^3 window, the lowest and highest sensor
+    TSDF and whether any sensor observed it."""
+    return (np.empty((10, 10, 10), np.float32), np.empty((10, 10, 10), np.float32),
+            np.empty((10, 10, 10), np.bool_))
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_targets(neighbours: np.ndarray, b: int, tsdf_1: np.ndarray, weight_1: np.ndarray, tsdf_2: np.ndarray,
+                   weight_2: np.ndarray, scratch: tuple[np.ndarray, np.ndarray, np.ndarray], out: np.ndarray,
+                   first_only: bool) -> bool:
+    """`surface_targets` of block b into out (512 bools, set where a target); whether it holds any.
+    first_only: stop at the first target found (out then holds only some)."""
+    lo, hi, seen = scratch
+    any_low, any_high = False, False
+    for x in range(10):  # the 10^3 window (local -1..8): observed by any sensor, min and max TSDF
+        for y in range(10):
+            for z in range(10):
+                v = _neighbour_index(neighbours, b, x - 1, y - 1, z - 1)
+                low, high, observed = np.float32(np.inf), np.float32(-np.inf), False
+                if v >= 0:
+                    if f16_to_f32(weight_1[v]) > 0:
+                        value = load_f32(tsdf_1, v)
+                        low, high, observed = min(low, value), max(high, value), True
+                    if f16_to_f32(weight_2[v]) > 0:
+                        value = load_f32(tsdf_2, v)
+                        low, high, observed = min(low, value), max(high, value), True
+                lo[x, y, z], hi[x, y, z], seen[x, y, z] = low, high, observed
+                any_low = any_low or bool(low <= 0.0)
+                any_high = any_high or bool(high >= 0.0)
+    if not (any_low and any_high):  # no sign change near the block (most blocks)
+        return False
+    found = False
+    for x in range(9):  # cells with lower corner at window x, y, z (local x - 1 ...)
+        for y in range(9):
+            for z in range(9):
+                cell_lo, cell_hi, cell_seen = np.float32(np.inf), np.float32(-np.inf), True
+                for corner in range(8):
+                    cx, cy, cz = x + (corner >> 2), y + ((corner >> 1) & 1), z + (corner & 1)
+                    cell_seen &= seen[cx, cy, cz]
+                    cell_lo = min(cell_lo, lo[cx, cy, cz])
+                    cell_hi = max(cell_hi, hi[cx, cy, cz])
+                if not (cell_seen and cell_lo <= 0.0 and cell_hi >= 0.0):
+                    continue
+                for corner in range(8):
+                    lx, ly, lz = x - 1 + (corner >> 2), y - 1 + ((corner >> 1) & 1), z - 1 + (corner & 1)
+                    if 0 <= lx < 8 and 0 <= ly < 8 and 0 <= lz < 8:
+                        out[lx * 64 + ly * 8 + lz] = True
+                        found = True
+                if found and first_only:
+                    return True
+    return found
 
 
 @numba.njit(cache=True, nogil=True)

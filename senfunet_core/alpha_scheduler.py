@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .alpha import WINDOW, evaluate_gathers, reach_levels, surface_targets, target_gathers, weighting_windows
+from .alpha import (WINDOW, evaluate_gathers, holds_surface_targets, reach_levels, surface_targets, target_gathers,
+                    weighting_windows)
 from .block_store import BlockStore, Eviction
 from .grid import BLOCK, encode_alpha
 from .scratch import ThreadScratch
@@ -62,7 +63,8 @@ class AlphaScheduler:
 
     def __init__(self, store: BlockStore, net: Any, data_lock: threading.RLock, *, alpha_voxels: str,
                  alpha_dtype: str, tsdf_input: bool, band_m: float,
-                 device: torch.device, batch_blocks: int, threads: int, alpha_order: str) -> None:
+                 device: torch.device, batch_blocks: int, threads: int, alpha_order: str,
+                 worker_setup: Callable[[], object] | None = None) -> None:
         self.store = store
         self.net = net
         self._data_lock = data_lock
@@ -75,6 +77,7 @@ class AlphaScheduler:
         self.alpha_order = alpha_order
         self.threads = threads
         self._executor: ThreadPoolExecutor | None = None  # threads > 1: `workers`
+        self.worker_setup = worker_setup  # run by each alpha thread as it starts (SenFuNet's worker_setup)
         self._scratch = ThreadScratch()  # per evaluating thread: its input windows' buffer
         self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
         self.flops = 0  # weighting-net FLOPs written so far (for the benchmark's fraction of peak)
@@ -146,9 +149,13 @@ class AlphaScheduler:
         nothing, so several threads may evaluate batches at once."""
         neighbours = self.store.neighbours(slots)
         holds = np.ones(len(slots), bool)
-        if self.alpha_voxels != "all":
-            targets = surface_targets(neighbours, *self.store.views("tsdf0", "weight0", "tsdf1", "weight1"))
+        sensor_tsdfs = self.store.views("tsdf0", "weight0", "tsdf1", "weight1")
+        if self.alpha_voxels == "surface_voxels":
+            targets = surface_targets(neighbours, *sensor_tsdfs)
             holds = targets.any(axis=1)
+        elif self.alpha_voxels == "surface":  # whole blocks: whether each holds a target is enough
+            holds = holds_surface_targets(neighbours, *sensor_tsdfs)
+        if self.alpha_voxels != "all":
             if not holds.any():
                 return AlphaBatch(slots, holds, np.zeros(0, np.int64), np.zeros(0, np.float32))
         if self.alpha_voxels == "surface_voxels":
@@ -269,10 +276,11 @@ class AlphaScheduler:
 
     def workers(self) -> ThreadPoolExecutor:
         """The `threads` alpha threads that evaluate batches side by side (created on first use, by
-        the thread that first needs them: they share its priority). The engine also meshes an idle
-        update's batches on them."""
+        the thread that first needs them: they share its priority, then run `worker_setup`). The
+        engine also meshes an idle update's batches on them."""
         if self._executor is None:
-            self._executor = ThreadPoolExecutor(self.threads, thread_name_prefix="senfunet-alpha")
+            self._executor = ThreadPoolExecutor(self.threads, thread_name_prefix="senfunet-alpha",
+                                                initializer=self.worker_setup)
         return self._executor
 
     def stop_workers(self) -> None:

@@ -620,6 +620,51 @@ def _load_features(features, n_features, voxel, values):  # noqa: ANN001, ANN202
     return load_packed_row
 
 
+def copy_features(features: np.ndarray, n_features: int, voxel: int, out: np.ndarray, at: int,
+                  feature_of_code: np.ndarray, depth_of_code: np.ndarray) -> None:
+    """out[at:at + n] = every feature of a voxel, as out stores values (`store_f32`). Packed rows
+    are decoded by lookup in feature_of_code (64 6-bit codes) and depth_of_code (256), tables of
+    their values as out stores them (`feature_code_tables`): no conversion per value. Kernels
+    compile this per dtype; this body is the reference."""
+    values = np.empty(n_features, np.float32)
+    load_features(features, n_features, voxel, values)
+    for c in range(n_features):
+        store_f32(out, at + c, values[c])
+
+
+def feature_code_tables(dtype: np.dtype | type) -> tuple[np.ndarray, np.ndarray]:
+    """`copy_features`' tables for an out of this dtype: float32 values, or bfloat16 bits (uint16)."""
+    return as_stored(_FEATURE_OF_CODE, dtype), as_stored(DEPTH_OF_CODE, dtype)
+
+
+def as_stored(values: np.ndarray, dtype: np.dtype | type) -> np.ndarray:
+    """float32 values as an array of this dtype stores them (`store_f32`): float32, or bfloat16
+    bits (uint16, rounded to nearest even)."""
+    if np.dtype(dtype) == np.uint16:
+        bits = torch.from_numpy(np.asarray(values, np.float32)).to(torch.bfloat16).view(torch.int16)
+        return bits.numpy().view(np.uint16)
+    return np.asarray(values, np.float32)
+
+
+@overload(copy_features, inline="always")
+def _copy_features(features, n_features, voxel, out, at, feature_of_code, depth_of_code):  # noqa: ANN001, ANN202
+    if not (isinstance(features, types.Array) and features.dtype == types.int8):
+        def copy_each(features, n_features, voxel, out, at, feature_of_code, depth_of_code):  # noqa: ANN001, ANN202
+            for c in range(n_features):
+                store_f32(out, at + c, load_f32(features, voxel * n_features + c))
+        return copy_each
+
+    def copy_packed_row(features, n_features, voxel, out, at, feature_of_code, depth_of_code):  # noqa: ANN001, ANN202
+        stride = 3 * (n_features - 1) // 4 + 1
+        base = voxel * stride
+        for group in range(stride // 3):
+            word = _packed_word(features, base + 3 * group)
+            for k in range(4):
+                out[at + 4 * group + k] = feature_of_code[(word >> (6 * k)) & _SIX_BITS]
+        out[at + n_features - 1] = depth_of_code[np.int64(features[base + stride - 1]) & 0xFF]
+    return copy_packed_row
+
+
 @numba.njit(inline="always")
 def _blend_six_bits(word: np.int64, sums: np.ndarray, first: int, keep: float, add: float,
                     inv_count: float) -> tuple[np.int64, np.float32]:

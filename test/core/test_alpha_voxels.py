@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from senfunet_core.alpha import evaluate_gathers, surface_targets, target_gathers, weighting_windows
+from senfunet_core.alpha import (evaluate_gathers, holds_surface_targets, surface_targets, target_gathers,
+                                 weighting_windows)
 from senfunet_core.engine import EngineConfig, SenFuNet
-from senfunet_core.grid import neighbour_table
+from senfunet_core.grid import decode_features, neighbour_table
 from test_equivalence import K, frames
 
 
@@ -58,6 +59,10 @@ def test_surface_targets_are_the_corners_of_cells_that_can_hold_triangles():
     for b, c in enumerate(coords - lo_block):
         region = tuple(slice(8 * a, 8 * a + 8) for a in c)
         np.testing.assert_array_equal(targets[b].reshape(8, 8, 8), expected[region])
+    # the whole-block check (which stops at a block's first target) agrees on which blocks hold any
+    holds = holds_surface_targets(nb, *views)
+    assert 0 < holds.sum() < len(holds)
+    np.testing.assert_array_equal(holds, targets.any(axis=1))
 
 
 def test_voxel_evaluation_equals_the_block_evaluation_at_the_targets():
@@ -94,3 +99,11 @@ def test_windows_written_to_a_reused_buffer_as_bfloat16_equal_torch_rounding_of_
         got = weighting_windows(nb, *engine.alpha.inputs(), out=buffer)
         np.testing.assert_array_equal(got, want)
         assert np.shares_memory(got, buffer)
+    # packed features (looked up in tables) and the same features stored unpacked, as float32 values
+    features_1, weight_1, features_2, weight_2, *rest = engine.alpha.inputs()
+    n_voxels = grid.n_blocks * 512  # the blocks in use (the pools hold more)
+    unpacked = [decode_features(torch.from_numpy(f).reshape(len(weight_1), -1)[:n_voxels]).numpy().reshape(-1)
+                for f in (features_1, features_2)]
+    weight_1, weight_2 = weight_1[:n_voxels], weight_2[:n_voxels]
+    assert features_1.dtype == np.int8
+    np.testing.assert_array_equal(weighting_windows(nb, unpacked[0], weight_1, unpacked[1], weight_2, *rest), expected)
