@@ -26,7 +26,9 @@ Threading model (the one place it is described):
   an idle catch-up, `refresh_alpha(until_frame=True)`), while the updating thread waits for them in
   order and writes their results; they also mesh the batches of an `update(mesh_threads=...)` (no
   frame waiting), reading the grid as the updating thread does. Several threads may integrate, and
-  several may update: the locks serialise them. The engine's parts (`AlphaScheduler`,
+  several may update: the locks serialise them. The alpha threads start at the priority of the
+  thread that first needs them and then run the constructor's `worker_setup` (the live node's
+  lowers them to its mesh thread's). The engine's parts (`AlphaScheduler`,
   `BlockMesher`, `MapBound`) start no thread of their own besides those alpha threads, and take only
   the data lock they are given.
 - The update lock (`_updating`) serialises updates, extractions, saves and evictions; it owns the
@@ -51,7 +53,7 @@ import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -208,7 +210,10 @@ class SenFuNet:
     _cleared: bool  # reset since the last mesh update (set by _reset_state, which __init__ calls)
     _meshed: np.ndarray  # sorted block keys of the blocks with a live mesh (set by _reset_state)
 
-    def __init__(self, config: EngineConfig = EngineConfig(), weights: str | Path | None = "default") -> None:
+    def __init__(self, config: EngineConfig = EngineConfig(), weights: str | Path | None = "default", *,
+                 worker_setup: Callable[[], object] | None = None) -> None:
+        """worker_setup: run by each of the engine's alpha threads as it starts (the live node lowers
+        their priority to its mesh thread's, whichever thread first needs them)."""
         config.validate()
         self.config = config
         self.device = networks.choose_device(config.device, cpu_fallback=False).device
@@ -269,7 +274,7 @@ class SenFuNet:
                                     alpha_dtype=config.alpha_dtype,
                                     tsdf_input=config.weighting_tsdf_input, band_m=config.band_m, device=self.device,
                                     batch_blocks=config.alpha_batch_blocks, threads=config.alpha_threads,
-                                    alpha_order=config.alpha_order)
+                                    alpha_order=config.alpha_order, worker_setup=worker_setup)
         self.mesher = BlockMesher(self.store, sensors=config.sensors, voxel_size_m=config.voxel_size_m,
                                   mesh_batch_blocks=config.mesh_batch_blocks, times=self.times)
         self.bound = MapBound(self.store, self.alpha, self.mesher, self._data_lock, max_blocks=self.max_blocks,
@@ -541,8 +546,10 @@ class SenFuNet:
         tmp.replace(path)
 
     @classmethod
-    def load(cls, path: str | Path, device: str | None = None) -> SenFuNet:
-        """An engine with the state `save` wrote; the next update re-sends the whole mesh."""
+    def load(cls, path: str | Path, device: str | None = None, *,
+             worker_setup: Callable[[], object] | None = None) -> SenFuNet:
+        """An engine with the state `save` wrote; the next update re-sends the whole mesh.
+        worker_setup: as for the constructor."""
         path = Path(path)
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
@@ -558,7 +565,7 @@ class SenFuNet:
         config = EngineConfig(**config_values)
         if device is not None:
             config = replace(config, device=device)
-        engine = cls(config, weights=None)
+        engine = cls(config, weights=None, worker_setup=worker_setup)
         for net, net_state in zip(engine.feature_nets, state["feature_nets"]):
             net.load_state_dict(net_state)
         engine.weighting_net.load_state_dict(state["weighting_net"])

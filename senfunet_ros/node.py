@@ -24,6 +24,7 @@ Topics (see ../shared/DESIGN.md, the interface contract):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import gc
 import logging
 import sys
@@ -388,7 +389,10 @@ class FusionNode(Node):
         weights = P.engine_weights(self.settings)
         if weights is None:
             self.get_logger().warning("parameter weights = 'none': the networks are untrained")
-        engine = SenFuNet(P.engine_config(self.settings), weights=weights)
+        # the alpha threads run the idle mesh updates and the net's turns: at the mesh thread's priority,
+        # whichever thread starts them (a ~/save_mesh call before the first update does)
+        engine = SenFuNet(P.engine_config(self.settings), weights=weights,
+                          worker_setup=functools.partial(lower_thread_priority, MESH_THREAD_NICE))
         start = time.monotonic()
         engine.warm_up()  # compile the kernels now, not in the first frame's integration
         conv.marker_array_cdr({}, (), stamp_ns=0, frame_id="")
@@ -657,17 +661,19 @@ MESH_THREAD_NICE = 5
 
 
 def lower_thread_priority(nice: int) -> bool:
-    """Lower the calling thread's scheduling priority by `nice` (Linux keeps a nice value per thread,
-    and the threads it starts inherit it: the weighting net's threads that the mesh thread starts
-    run at its priority). Not undone: raising a priority back needs privileges. False where it
-    cannot be done (nothing changes)."""
+    """Lower the calling thread's scheduling priority to `nice` below the main thread's (Linux keeps
+    a nice value per thread, and the threads it starts inherit it); a thread already that low is
+    left as it is, so threads the mesh thread starts can call it too. Not undone: raising a
+    priority back needs privileges. False where it cannot be done (nothing changes)."""
     import os
 
     if not sys.platform.startswith("linux"):  # elsewhere PRIO_PROCESS would take the whole process
         return False
     try:
         thread = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, thread, os.getpriority(os.PRIO_PROCESS, thread) + nice)
+        target = min(os.getpriority(os.PRIO_PROCESS, os.getpid()) + nice, 19)  # the main thread's id is the pid
+        if os.getpriority(os.PRIO_PROCESS, thread) < target:
+            os.setpriority(os.PRIO_PROCESS, thread, target)
         return True
     except (AttributeError, OSError):
         return False

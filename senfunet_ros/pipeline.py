@@ -189,7 +189,8 @@ class Pipeline:
         path = Path(path).expanduser()
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such map file; set parameter map_file or call ~/save_map first")
-        engine = SenFuNet.load(path, device=device)
+        # its alpha threads start as the old engine's did (the node's: at its mesh thread's priority)
+        engine = SenFuNet.load(path, device=device, worker_setup=self.engine.alpha.worker_setup)
         with self.lock:
             self.engine = engine
             self.ingest.clear_frames()
