@@ -12,6 +12,7 @@ the data lock it is given only around its reads of the reach bits and its writes
 from __future__ import annotations
 
 import collections
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -29,6 +30,8 @@ from .grid import BLOCK, encode_alpha
 from .scratch import ThreadScratch
 
 __all__ = ["AlphaBatch", "AlphaScheduler", "Refresh"]
+
+log = logging.getLogger("senfunet.engine")
 
 
 @dataclass
@@ -280,8 +283,18 @@ class AlphaScheduler:
         engine also meshes an idle update's batches on them."""
         if self._executor is None:
             self._executor = ThreadPoolExecutor(self.threads, thread_name_prefix="senfunet-alpha",
-                                                initializer=self.worker_setup)
+                                                initializer=self._set_up_worker)
         return self._executor
+
+    def _set_up_worker(self) -> None:
+        """`worker_setup` in a new alpha thread; its failure is logged, not raised (a thread pool
+        whose initializer raises refuses all later work)."""
+        if self.worker_setup is None:
+            return
+        try:
+            self.worker_setup()
+        except Exception as err:  # noqa: BLE001 (any failure: the thread runs as it was started)
+            log.warning("alpha thread set-up failed (the thread runs as started): %r", err)
 
     def stop_workers(self) -> None:
         """End the alpha threads (the next use starts them again, from the thread that needs them)."""

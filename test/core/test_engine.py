@@ -95,9 +95,9 @@ def constant_alpha(engine: SenFuNet, alpha: float) -> None:
         engine.weighting_net.conv3.bias.fill_(math.log(alpha / (1 - alpha)))
 
 
-def engine_for_tests(**overrides) -> SenFuNet:
+def engine_for_tests(worker_setup=None, **overrides) -> SenFuNet:
     config = replace(EngineConfig(sensor_uses_rgb=(False, False), depth_min_m=(0.05, 0.05)), **overrides)
-    return SenFuNet(config, weights=None)
+    return SenFuNet(config, weights=None, worker_setup=worker_setup)
 
 
 SPHERE_C, SPHERE_R = np.array([0.0, 0.0, 0.0]), 0.3
@@ -1264,6 +1264,28 @@ def test_mesh_windows_written_to_reused_buffers_equal_fresh_ones(sphere_engine):
         for got, want in zip(reused, fresh):
             np.testing.assert_array_equal(got, want)
         assert fresh[1].any() and not fresh[1].all()
+
+
+def test_each_alpha_thread_runs_the_worker_setup_and_a_failing_one_leaves_the_threads_working(caplog):
+    import threading
+
+    set_up: list[int] = []
+
+    def setup() -> None:
+        set_up.append(threading.get_native_id())
+        raise OSError("no permission")
+
+    engine = engine_for_tests(alpha_threads=2, worker_setup=setup)
+    K, T = SPHERE_K, SPHERE_VIEWS[0]
+    depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+    engine.integrate("tof", depth, K, T)
+    engine.integrate("stereo", depth, K, T)
+    with caplog.at_level("WARNING", logger="senfunet.engine"):
+        engine.update(mesh_threads=2)  # no budget: the batches run on the alpha threads
+    alpha_threads = {t.native_id for t in engine.alpha.workers()._threads}
+    assert alpha_threads and set(set_up) == alpha_threads
+    assert engine.stats()["meshed_blocks_alpha_current"] == engine.stats()["meshed_blocks"] > 0
+    assert "alpha thread set-up failed" in caplog.text and "no permission" in caplog.text
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
