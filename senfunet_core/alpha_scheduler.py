@@ -287,8 +287,11 @@ class AlphaScheduler:
         return self._executor
 
     def _set_up_worker(self) -> None:
-        """`worker_setup` in a new alpha thread; its failure is logged, not raised (a thread pool
-        whose initializer raises refuses all later work)."""
+        """A new alpha thread: torch on one thread in it (the batches side by side use the cores; a
+        thread's OpenMP team is its own, two threads each on every core would oversubscribe them),
+        then `worker_setup`, whose failure is logged, not raised (a thread pool whose initializer
+        raises refuses all later work)."""
+        torch.set_num_threads(1)
         if self.worker_setup is None:
             return
         try:

@@ -1266,13 +1266,15 @@ def test_mesh_windows_written_to_reused_buffers_equal_fresh_ones(sphere_engine):
         assert fresh[1].any() and not fresh[1].all()
 
 
-def test_each_alpha_thread_runs_the_worker_setup_and_a_failing_one_leaves_the_threads_working(caplog):
+def test_each_alpha_thread_runs_torch_on_one_thread_and_the_worker_setup_and_a_failing_one_leaves_it_working(caplog):
     import threading
 
     set_up: list[int] = []
+    torch_threads: list[int] = []
 
     def setup() -> None:
         set_up.append(threading.get_native_id())
+        torch_threads.append(torch.get_num_threads())
         raise OSError("no permission")
 
     engine = engine_for_tests(alpha_threads=2, worker_setup=setup)
@@ -1284,6 +1286,7 @@ def test_each_alpha_thread_runs_the_worker_setup_and_a_failing_one_leaves_the_th
         engine.update(mesh_threads=2)  # no budget: the batches run on the alpha threads
     alpha_threads = {t.native_id for t in engine.alpha.workers()._threads}
     assert alpha_threads and set(set_up) == alpha_threads
+    assert set(torch_threads) == {1}  # each batch on one core: the threads side by side use the others
     assert engine.stats()["meshed_blocks_alpha_current"] == engine.stats()["meshed_blocks"] > 0
     assert "alpha thread set-up failed" in caplog.text and "no permission" in caplog.text
 
