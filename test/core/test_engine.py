@@ -1277,13 +1277,17 @@ def test_each_alpha_thread_runs_torch_on_one_thread_and_the_worker_setup_and_a_f
         torch_threads.append(torch.get_num_threads())
         raise OSError("no permission")
 
-    engine = engine_for_tests(alpha_threads=2, worker_setup=setup)
-    K, T = SPHERE_K, SPHERE_VIEWS[0]
-    depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
-    engine.integrate("tof", depth, K, T)
-    engine.integrate("stereo", depth, K, T)
-    with caplog.at_level("WARNING", logger="senfunet.engine"):
-        engine.update(mesh_threads=2)  # no budget: the batches run on the alpha threads
+    before = torch.get_num_threads()
+    try:  # torch on two threads where the engine runs: new threads would start with two as well
+        engine = engine_for_tests(alpha_threads=2, torch_threads=2, worker_setup=setup)
+        K, T = SPHERE_K, SPHERE_VIEWS[0]
+        depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+        engine.integrate("tof", depth, K, T)
+        engine.integrate("stereo", depth, K, T)
+        with caplog.at_level("WARNING", logger="senfunet.engine"):
+            engine.update(mesh_threads=2)  # no budget: the batches run on the alpha threads
+    finally:
+        torch.set_num_threads(before)
     alpha_threads = {t.native_id for t in engine.alpha.workers()._threads}
     assert alpha_threads and set(set_up) == alpha_threads
     assert set(torch_threads) == {1}  # each batch on one core: the threads side by side use the others
