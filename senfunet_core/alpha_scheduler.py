@@ -216,49 +216,64 @@ class AlphaScheduler:
         the blocks that hold no voxel alpha matters for (checked then, not when scheduling, so that
         a budget also bounds the checking). With a budget (seconds), no batch is started that
         would end past it (judged by the last batch's time; the first always runs), and with
-        `until_frame` none once it says a frame was integrated: the rest stays stale for later.
-        Without a budget or with `until_frame` (no frame is coming), `threads` batches are
-        evaluated at once (each single-threaded, so alpha does not depend on how many).
-        Between batches, where no evaluated batch waits to be written, it calls `evict` when
-        `eviction_due` (integration outgrew the map bound) and follows the blocks that moved."""
+        `until_frame` none once it says a frame was integrated (batches queued but not started are
+        withdrawn): the rest stays stale for later. Without a budget or with `until_frame` (no
+        frame is coming), `threads` batches are evaluated at once (each single-threaded, so alpha
+        does not depend on how many), with as many more queued, so that a thread that finishes
+        takes the next at once. Between batches, where no evaluated batch waits to be written, it
+        calls `evict` when `eviction_due` (integration outgrew the map bound) and follows the
+        blocks that moved."""
         self.schedule()
         order = self.order()
         start = time.perf_counter()
-        done = voxels = 0
+        done = voxels = left = 0
         # batches evaluated at once: one while frames come (integration needs the other core)
-        ahead = self.threads if budget_s is None or until_frame is not None else 1
+        threads = self.threads if budget_s is None or until_frame is not None else 1
+        in_flight = 2 * threads if threads > 1 else 1
         # Results are written whenever the data lock is free, not waited for batch by batch: time
         # spent waiting for integration's kernels would come out of the net's budget.
         results: list[AlphaBatch] = []
-        evaluating: collections.deque[tuple[Future[AlphaBatch], float]] = collections.deque()  # with its start
-        left = order[:0]
+        evaluating: collections.deque[tuple[Future[tuple[AlphaBatch, float]], int]] = collections.deque()  # blocks
         batch_s = 0.0  # the last batch's time: one that would end past the budget is not started
         while len(order) or evaluating:
-            if len(order) and ((budget_s is not None and time.perf_counter() - start + batch_s > budget_s)
-                               or (until_frame is not None and until_frame())):
-                order, left = order[:0], order  # evaluate no more; the batches under way are written
+            if len(order) and until_frame is not None and until_frame():
+                left += len(order)  # evaluate no more; the batches under way are written
+                order = order[:0]
+                for queued in [entry for entry in evaluating if entry[0].cancel()]:
+                    evaluating.remove(queued)
+                    left += queued[1]
             if eviction_due():
-                results += [future.result() for future, _ in evaluating]  # read before slots move
+                results += [future.result()[0] for future, _ in evaluating]  # read before slots move
                 evaluating.clear()
                 self.write(results, wait=True)
                 eviction = evict()
                 if eviction is not None:
                     order, _ = eviction.follow(order)
-            while len(order) and len(evaluating) < ahead:
+            # none queued before a batch's time is known (the budget could not be judged for it)
+            while len(order) and len(evaluating) < (in_flight if batch_s else threads):
+                # a new batch starts once the batches ahead of it on its thread have ended
+                if budget_s is not None and (time.perf_counter() - start
+                                             + batch_s * (len(evaluating) // threads + 1) > budget_s):
+                    left += len(order)
+                    order = order[:0]
+                    break
                 batch, order = order[:self.batch_blocks], order[self.batch_blocks:]
-                started = time.perf_counter()
-                evaluating.append((self.workers().submit(self.evaluate, batch) if ahead > 1
-                                   else _done(self.evaluate(batch)), started))
+                evaluating.append((self.workers().submit(self._timed_evaluate, batch) if threads > 1
+                                   else _done(self._timed_evaluate(batch)), len(batch)))
             if not evaluating:
                 continue
-            future, started = evaluating.popleft()
-            results.append(future.result())
-            batch_s = time.perf_counter() - started
-            done += int(results[-1].holds.sum())
-            voxels += len(results[-1].voxels)
+            result, batch_s = evaluating.popleft()[0].result()
+            results.append(result)
+            done += int(result.holds.sum())
+            voxels += len(result.voxels)
             self.write(results, wait=False)
         self.write(results, wait=True)
-        return Refresh(done, voxels, len(left))
+        return Refresh(done, voxels, left)
+
+    def _timed_evaluate(self, slots: np.ndarray) -> tuple[AlphaBatch, float]:
+        """`evaluate` and the seconds it took."""
+        started = time.perf_counter()
+        return self.evaluate(slots), time.perf_counter() - started
 
     def windows(self, neighbours: np.ndarray) -> np.ndarray:
         """The weighting net's B x 12^3 x C input windows of these blocks (alpha.weighting_windows)."""

@@ -1028,11 +1028,12 @@ def test_the_default_map_bound_follows_the_machines_memory():
         EngineConfig(max_blocks=-2).validate()
 
 
-@pytest.mark.parametrize("alpha_threads", [1, 2])
-def test_idle_catch_up_yields_to_the_next_frame(alpha_threads):
+@pytest.mark.parametrize("alpha_threads,frame_in_batch", [(1, 0), (2, 0), (2, 2)])
+def test_idle_catch_up_yields_to_the_next_frame(alpha_threads, frame_in_batch):
     """refresh_alpha(None, until_frame=True), the node's catch-up when the sensors pause, stops
-    after the batches under way once a frame is integrated (here: during its first batch); the rest
-    stays stale for the next update, and a plain refresh finishes it."""
+    after the batches under way once a frame is integrated (during its first batch, or its third,
+    when batches wait queued behind those under way: they are withdrawn); the rest stays stale for
+    the next update, counted as its backlog, and a plain refresh finishes it."""
     engine = engine_for_tests(alpha_batch_blocks=2, alpha_threads=alpha_threads)
     K = SPHERE_K
     for T in SPHERE_VIEWS[:3]:
@@ -1042,18 +1043,58 @@ def test_idle_catch_up_yields_to_the_next_frame(alpha_threads):
     batches = []
 
     def evaluate_while_a_frame_arrives(slots):
-        if not batches:
+        if len(batches) == frame_in_batch:
             engine.integrate("stereo", frame, K, SPHERE_VIEWS[3])
         batches.append(len(slots))
         return evaluate(slots)
 
     engine.alpha.evaluate = evaluate_while_a_frame_arrives
     engine.refresh_alpha(None, until_frame=True)
-    assert 1 <= len(batches) <= alpha_threads + 1
+    assert frame_in_batch + 1 <= len(batches) <= frame_in_batch + 2 * alpha_threads
     assert engine.counters["alpha_backlog_blocks"] > 10
+    # the backlog is what is still stale (the new frame's changes are scheduled by the next refresh)
+    assert engine.counters["alpha_backlog_blocks"] == np.count_nonzero(engine.store.stale[: engine.grid.n_blocks])
     engine.refresh_alpha(None)
     assert engine.counters["alpha_backlog_blocks"] == 0
     assert len(batches) > 10
+
+
+def test_catch_up_withdraws_the_batches_queued_when_a_frame_comes():
+    """With two alpha threads, batches wait queued behind the two under way (a thread that finishes
+    takes the next at once); when a frame comes, those not started are withdrawn and stay stale,
+    counted in the backlog."""
+    import threading
+
+    engine = engine_for_tests(alpha_batch_blocks=2, alpha_threads=2)
+    K = SPHERE_K
+    for T in SPHERE_VIEWS[:3]:
+        engine.integrate("tof", render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
+    evaluate = engine.alpha.evaluate
+    release = threading.Event()
+    started: list[int] = []
+
+    def evaluate_held(slots):  # the first two batches at once, the next two held until the frame came
+        started.append(len(started))
+        if len(started) > 2:
+            release.wait(10)
+        return evaluate(slots)
+
+    asked = []
+
+    def until_frame() -> bool:  # asked before the first batch and after each: the frame comes after the second
+        asked.append(True)
+        if len(asked) < 3:
+            return False
+        threading.Timer(0.3, release.set).start()  # after the queued batch was withdrawn
+        return True
+
+    engine.alpha.evaluate = evaluate_held
+    refresh = engine.alpha.refresh(None, until_frame=until_frame, eviction_due=lambda: False, evict=lambda: None)
+    # batches 0 and 1, then 2, 3 and 4 queued: the two threads take 2 and 3 as they come free (unless the
+    # frame came first), and 4, behind them, is withdrawn
+    assert 2 <= len(started) <= 4
+    stale = np.count_nonzero(engine.alpha.store.stale[: engine.grid.n_blocks])
+    assert refresh.backlog == stale > 2
 
 
 def with_float16_depth_packing(state: dict, grid) -> dict:
