@@ -132,16 +132,21 @@ class AlphaScheduler:
         the map being scanned); "longest_waiting", blocks with a mesh first (what a subscriber sees;
         the others' turn comes when those are judged, or when the sensors pause), and among them
         those whose last change is oldest first (blocks the sensors still see wait until they settle:
-        each is judged about once, and the longest wait is the shortest). Among blocks reached by the
-        same schedule, never evaluated ones first, then those with newly observed or sign-changed
-        voxels, then changed ones."""
+        each is judged about once, and the longest wait is the shortest); then the blocks without a
+        mesh, never evaluated ones first (surface one sensor alone saw shows only once judged), then
+        those with newly observed or sign-changed voxels, then changed ones, each oldest first. Among
+        meshed blocks reached by the same schedule (and in "latest"), the same three levels."""
         store = self.store
         with self._data_lock:
             stale = np.flatnonzero(store.stale[: store.n_blocks])
             reached = store.last_reached[stale]
+            levels = store.stale[stale].astype(np.int64)
             if self.alpha_order == "latest":
-                return stale[np.lexsort((-store.stale[stale], -reached))]
-            return stale[np.lexsort((-store.stale[stale], reached, ~store.meshed[stale]))]
+                return stale[np.lexsort((-levels, -reached))]
+            meshed = store.meshed[stale]
+            # without a mesh, the level first: only the net can show the surface one sensor alone saw
+            # in a never judged block (the outlier filter holds it back until it is judged)
+            return stale[np.lexsort((np.where(meshed, -levels, reached), np.where(meshed, reached, -levels), ~meshed))]
 
     @torch.inference_mode()  # grad mode is per thread, and evaluating threads may be new
     def evaluate(self, slots: np.ndarray) -> AlphaBatch:

@@ -861,6 +861,36 @@ def test_longest_waiting_judges_the_blocks_with_a_mesh_first(monkeypatch):
     assert len(evaluated) == 32 and meshed[evaluated].all()
 
 
+def test_longest_waiting_judges_never_judged_blocks_without_a_mesh_before_judged_ones(monkeypatch):
+    """Without a mesh, a block the net never judged may hold surface that one sensor alone saw (the
+    filter holds it back until the net judges it), one judged before and changed since rarely does:
+    a sphere seen by one sensor and judged, then seen again, waits behind a second one-sensor sphere
+    seen later and never judged."""
+    engine = engine_for_tests(alpha_batch_blocks=16)
+    K = SPHERE_K
+
+    def one_sensor_view(centre, view):
+        T = look_at(centre + 0.9 * (view[:3, 3] - SPHERE_C), centre)
+        engine.integrate("tof", render_sphere(centre, SPHERE_R, K, T), K, T)
+
+    judged_sphere, new_sphere = SPHERE_C + [3.0, 0.0, 0.0], SPHERE_C + [-3.0, 0.0, 0.0]
+    one_sensor_view(judged_sphere, SPHERE_VIEWS[0])
+    engine.refresh_alpha(None)  # judged
+    n_judged = engine.grid.n_blocks
+    one_sensor_view(judged_sphere, SPHERE_VIEWS[0])  # seen again: its inputs changed
+    engine.refresh_alpha(0.0)  # scheduled first
+    assert engine.grid.n_blocks == n_judged
+    one_sensor_view(new_sphere, SPHERE_VIEWS[0])
+    engine.update(alpha_budget_s=0)
+    assert not engine.store.meshed[: engine.grid.n_blocks].any()
+    engine.alpha.schedule()  # the new sphere's blocks stale too (the refresh below would do it first)
+    stale_before = engine.store.stale[: engine.grid.n_blocks].copy()
+    assert (stale_before[:n_judged] > 0).sum() > 32 and (stale_before[n_judged:] == 3).sum() > 32
+    _judge_two_batches(engine, monkeypatch)
+    judged = np.flatnonzero((stale_before > 0) & (engine.store.stale[: engine.grid.n_blocks] == 0))
+    assert len(judged) == 32 and judged.min() >= n_judged
+
+
 def sphere_view_on_a_fake_clock(monkeypatch) -> tuple[SenFuNet, VirtualClock, np.ndarray]:
     """An engine whose clock the test sets (at 0 s), with one view of the sphere from both sensors;
     returns it, the clock and the view's depth (SPHERE_K, SPHERE_VIEWS[0])."""
