@@ -100,7 +100,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "0 = no limit", lo=0.0, hi=600.0, runtime=True),
     Param("alpha_order", "longest_waiting", "which blocks a short alpha budget judges first: longest_waiting (blocks "
           "with a mesh first, and among them those whose last change is oldest; blocks still in view wait until they "
-          "settle) | latest (those the latest frames reached)", choices=("longest_waiting", "latest")),
+          "settle; then the others, never judged ones first) | latest (those the latest frames reached)",
+          choices=("longest_waiting", "latest")),
     Param("mesh_display_cell_m", 0.03, "~/mesh shows a display mesh whose vertices are merged on a grid of this "
           "size (per block; the map and ~/save_mesh keep full resolution): a snapshot of a room stays a few tens of "
           "MB for subscribers over Wi-Fi; 0 (or not above voxel_size_m) = full resolution",
