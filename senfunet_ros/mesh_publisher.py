@@ -3,8 +3,9 @@
 One `publish` at a time (`lock`, shared with the map services that replace or empty the map):
 update the engine's meshes (on every core when no frame waits), encode and publish the changed
 blocks (or the whole map for a subscriber that just joined) and, when due, the weight cloud; then
-give the weighting net its turn. The node calls `publish` from its mesh thread, at a lower
-priority than integration's (see `node.lower_thread_priority`); the engine is thread-safe:
+give the weighting net its turn (when no frame waits, on a thread of its own while the update is
+encoded). The node calls `publish` from its mesh thread, at a lower priority than integration's
+(see `node.lower_thread_priority`; the turn thread is set to it too); the engine is thread-safe:
 integration goes on meanwhile.
 """
 from __future__ import annotations
@@ -13,6 +14,8 @@ import dataclasses
 import threading
 import time
 from collections.abc import Callable
+from concurrent import futures
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -54,7 +57,8 @@ class MeshPublisher:
     """
 
     def __init__(self, node: Node, pipeline: Pipeline, settings: Callable[[], P.Settings], *, timings: dict[str, Any],
-                 latency: Any, camera_colors: Any, frame_waiting: Callable[[], bool]) -> None:
+                 latency: Any, camera_colors: Any, frame_waiting: Callable[[], bool],
+                 thread_setup: Callable[[], object] | None = None) -> None:
         self.pipeline = pipeline
         self._settings = settings
         self._timings = timings
@@ -66,6 +70,8 @@ class MeshPublisher:
         self.weights_pub = node.create_publisher(PointCloud2, "~/weights", CLOUD_QOS)
         self._subscribers = 0  # mesh readers at the last publication: one more gets the whole map
         self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
+        # an idle turn of the net runs on this thread while `publish`'s thread encodes and publishes
+        self._turns = ThreadPoolExecutor(1, thread_name_prefix="senfunet-net-turn", initializer=thread_setup)
 
     def resend_all(self) -> None:
         """The next publication sends the whole map (a loaded map replaced what readers hold)."""
@@ -77,7 +83,9 @@ class MeshPublisher:
         somebody listens; then the weighting net's turn (engine.refresh_alpha, within
         alpha_budget_s), after publishing: a frame's geometry is shown one alpha phase sooner
         (the net's budget no longer sits between integration and the mesh subscribers), and the
-        alpha it changed comes with the next update."""
+        alpha it changed comes with the next update. When idle (`weighting_net_turn`), the turn
+        starts once the update is meshed, on the turn thread, while this thread encodes and
+        publishes (on one core: the turn gets the other), and ends before this call returns."""
         s = self._settings()
         with self.lock:
             engine = self.pipeline.engine  # under the lock: ~/load_map replaces it under the same lock
@@ -114,32 +122,49 @@ class MeshPublisher:
                 messages = conv.marker_array_messages(self.display(update.meshes), update.removed, stamp_ns=stamp_ns,
                                                       frame_id=frame_id, delete_all_first=update.cleared)
             self._subscribers = subscribers
-            publish_s = 0.0  # the rest, from t_cloud on, is encoding (the parts are encoded as they are taken)
-            if cloud is not None:
-                cloud_data = conv.point_cloud2_cdr(cloud.positions_m, cloud.alpha, cloud.weights,
-                                                   s.sensor_names, stamp_ns=stamp_ns, frame_id=frame_id)
-                t_encoded = time.perf_counter()
-                publish_serialized(self.weights_pub, np.frombuffer(cloud_data, np.uint8))
-                publish_s += time.perf_counter() - t_encoded
-            ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
-            for i, data in enumerate(messages or ()):
-                t_encoded = time.perf_counter()
-                if i:  # the history holds 2: let readers take the previous part before it can be overwritten
-                    self._wait_mesh_acked(ack_deadline)
-                publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
-                publish_s += time.perf_counter() - t_encoded
-            if messages is not None or cloud is not None:
-                self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
-                self._timings["publish"].add(publish_s)
-            self._latency.published(contained)
-            t_alpha = time.perf_counter()
-            # what is left of this mesh period (less a margin for the updates' jitter): the next update
-            # is not to wait for the net
-            left_s = (1.0 - MESH_PERIOD_MARGIN) * mesh_period_s(s.mesh_rate_hz) - (t_alpha - start)
+            # the net's turn ends with this mesh period (less a margin for the updates' jitter): the next
+            # update is not to wait for it
+            period_s = (1.0 - MESH_PERIOD_MARGIN) * mesh_period_s(s.mesh_rate_hz)
             # idle when no frame came while this update ran: the frames it holds may have been the
-            # stream's last, and the net's catch-up (which stops at the next frame) should not wait a period
-            self.weighting_net_turn(idle=self._no_frame_waiting(), period_left_s=left_s)
+            # stream's last, and the net's catch-up (which stops at the next frame) should not wait a
+            # period; it starts now, on the cores the encoding leaves (one), and this thread joins it
+            # once the update is published (so a frame's geometry is not held back by the net's turn)
+            idle = self._no_frame_waiting()
+            t_alpha = time.perf_counter()
+            turn = (self._turns.submit(self.weighting_net_turn, idle=True, period_left_s=period_s - (t_alpha - start))
+                    if idle else None)
+            try:
+                publish_s = 0.0  # the rest, from t_cloud on, is encoding (the parts are encoded as they are taken)
+                if cloud is not None:
+                    cloud_data = conv.point_cloud2_cdr(cloud.positions_m, cloud.alpha, cloud.weights,
+                                                       s.sensor_names, stamp_ns=stamp_ns, frame_id=frame_id)
+                    t_encoded = time.perf_counter()
+                    publish_serialized(self.weights_pub, np.frombuffer(cloud_data, np.uint8))
+                    publish_s += time.perf_counter() - t_encoded
+                ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
+                for i, data in enumerate(messages or ()):
+                    t_encoded = time.perf_counter()
+                    if i:  # the history holds 2: let readers take the previous part before it can be overwritten
+                        self._wait_mesh_acked(ack_deadline)
+                    publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
+                    publish_s += time.perf_counter() - t_encoded
+                if messages is not None or cloud is not None:
+                    self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
+                    self._timings["publish"].add(publish_s)
+                self._latency.published(contained)
+            finally:  # the turn ends before the next publication, even if this one failed
+                if turn is not None:
+                    futures.wait([turn])
+            if turn is not None:
+                turn.result()
+            else:  # frames come: the net's turn after publishing, on this thread (integration needs the other core)
+                t_alpha = time.perf_counter()
+                self.weighting_net_turn(idle=False, period_left_s=period_s - (t_alpha - start))
             self._timings["alpha"].add(time.perf_counter() - t_alpha)
+
+    def close(self) -> None:
+        """End the net's turn thread (after the last `publish`)."""
+        self._turns.shutdown(wait=True)
 
     def _no_frame_waiting(self) -> bool:
         """No frame queued in Ingest and none integrated since the last mesh update began."""

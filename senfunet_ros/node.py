@@ -279,7 +279,8 @@ class FusionNode(Node):
         # 5. publishers
         self.mesh_publisher = MeshPublisher(self, self.pipeline, lambda: self.settings, timings=self.timings,
                                             latency=self.latency, camera_colors=self.camera_colors,
-                                            frame_waiting=lambda: any(self.ingest.queue_depths().values()))
+                                            frame_waiting=lambda: any(self.ingest.queue_depths().values()),
+                                            thread_setup=functools.partial(lower_thread_priority, MESH_THREAD_NICE))
         self.status_pub = self.create_publisher(DiagnosticArray, "~/status", _STATUS_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", _STATUS_QOS)
         # 6. services
@@ -607,6 +608,7 @@ class FusionNode(Node):
     def destroy_node(self) -> None:
         self._mesh_timer.cancel()
         self._mesh_worker.shutdown(wait=True)  # the update under way finishes while its publishers exist
+        self.mesh_publisher.close()
         logging.getLogger("senfunet").removeHandler(self._engine_log)
         super().destroy_node()
 

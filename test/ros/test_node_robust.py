@@ -3,6 +3,7 @@ map save/load, file modes. Real rclpy nodes on a private ROS_DOMAIN_ID (see conf
 from __future__ import annotations
 
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -385,8 +386,11 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
         refresh = engine.refresh_alpha
         arrive: list[Any] = []  # messages to hand over during the next refresh
 
+        turn_threads: list[int] = []
+
         def recording_refresh(budget_s: float | None = None, *, until_frame: bool = False) -> None:
             turns.append((budget_s, until_frame))
+            turn_threads.append(threading.get_ident())
             refresh(budget_s, until_frame=until_frame)
             for sensor, stream, msg in arrive:
                 run.node.pipeline.dispatch(sensor, stream, msg)
@@ -406,7 +410,7 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
         run.node.settings = P.Settings.from_values({**slices.values, "mesh_rate_hz": 1.0})  # room for the budget
         run.node.publish_mesh()  # a frame waits: the running budget
         run.node.settings = slices
-        assert turns == [(0.001, False)]
+        assert turns == [(0.001, False)] and turn_threads == [threading.get_ident()]  # after publishing
         backlog = engine.counters["alpha_backlog_blocks"]
         assert backlog > 0
         assert run.node.ingest.discard_waiting("pose_timeout") == 1  # its pose will not come
@@ -423,6 +427,8 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
             if not engine.counters["alpha_backlog_blocks"]:
                 break
         assert engine.counters["alpha_backlog_blocks"] == 0 and len(turns) > 1
+        # idle: on the turn thread, while this one encoded and published the update
+        assert threading.get_ident() not in turn_threads[1:]
         run.node.publish_mesh()  # the update that shows the judged blocks
         stats = engine.stats()
         assert stats["meshed_blocks_alpha_current"] == stats["meshed_blocks"] > 0
