@@ -157,13 +157,13 @@ class AlphaScheduler:
         nothing, so several threads may evaluate batches at once."""
         neighbours = self.store.neighbours(slots)
         holds = np.ones(len(slots), bool)
-        sensor_tsdfs = self.store.views("tsdf0", "weight0", "tsdf1", "weight1")
-        if self.alpha_voxels == "surface_voxels":
-            targets = surface_targets(neighbours, *sensor_tsdfs)
-            holds = targets.any(axis=1)
-        elif self.alpha_voxels == "surface":  # whole blocks: whether each holds a target is enough
-            holds = holds_surface_targets(neighbours, *sensor_tsdfs)
         if self.alpha_voxels != "all":
+            sensor_tsdfs = self.store.views("tsdf0", "weight0", "tsdf1", "weight1")
+            if self.alpha_voxels == "surface_voxels":
+                targets = surface_targets(neighbours, *sensor_tsdfs)
+                holds = targets.any(axis=1)
+            else:  # whole blocks: whether each holds a target is enough
+                holds = holds_surface_targets(neighbours, *sensor_tsdfs)
             if not holds.any():
                 return AlphaBatch(slots, holds, np.zeros(0, np.int64), np.zeros(0, np.float32))
         if self.alpha_voxels == "surface_voxels":
