@@ -24,7 +24,6 @@ Topics (see ../shared/DESIGN.md, the interface contract):
 from __future__ import annotations
 
 import dataclasses
-import functools
 import gc
 import logging
 import sys
@@ -269,8 +268,7 @@ class FusionNode(Node):
         # the mesh timer's work runs on a thread of its own at a lower priority than integration's
         # (`lower_thread_priority`): where the cores cannot do both at once, frames come first, and
         # the mesh and the weighting net take the time left
-        self._mesh_worker = ThreadPoolExecutor(1, thread_name_prefix="senfunet-mesh", initializer=lower_thread_priority,
-                                               initargs=(MESH_THREAD_NICE,))
+        self._mesh_worker = ThreadPoolExecutor(1, thread_name_prefix="senfunet-mesh", initializer=at_mesh_priority)
         self._mesh_lock = threading.Lock()  # guards the two flags below (timer thread vs. mesh thread)
         self._mesh_running = False  # an update is under way on the mesh thread
         self._mesh_due = False  # a tick came meanwhile: the next update starts as soon as that one ends
@@ -280,7 +278,7 @@ class FusionNode(Node):
         self.mesh_publisher = MeshPublisher(self, self.pipeline, lambda: self.settings, timings=self.timings,
                                             latency=self.latency, camera_colors=self.camera_colors,
                                             frame_waiting=lambda: any(self.ingest.queue_depths().values()),
-                                            thread_setup=functools.partial(lower_thread_priority, MESH_THREAD_NICE))
+                                            thread_setup=at_mesh_priority)
         self.status_pub = self.create_publisher(DiagnosticArray, "~/status", _STATUS_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", _STATUS_QOS)
         # 6. services
@@ -393,7 +391,7 @@ class FusionNode(Node):
         # the alpha threads run the idle mesh updates and the net's turns: at the mesh thread's priority,
         # whichever thread starts them (a ~/save_mesh call before the first update does)
         engine = SenFuNet(P.engine_config(self.settings), weights=weights,
-                          worker_setup=functools.partial(lower_thread_priority, MESH_THREAD_NICE))
+                          worker_setup=at_mesh_priority)
         start = time.monotonic()
         engine.warm_up()  # compile the kernels now, not in the first frame's integration
         conv.marker_array_cdr({}, (), stamp_ns=0, frame_id="")
@@ -679,6 +677,12 @@ def lower_thread_priority(nice: int) -> bool:
         return True
     except (AttributeError, OSError):
         return False
+
+
+def at_mesh_priority() -> bool:
+    """`lower_thread_priority(MESH_THREAD_NICE)`: what every thread of the mesh side runs as it starts
+    (the mesh thread, the net's turn thread, the engine's alpha threads)."""
+    return lower_thread_priority(MESH_THREAD_NICE)
 
 
 def passive_openmp_threads() -> bool:
