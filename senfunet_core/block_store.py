@@ -101,9 +101,11 @@ class BlockStore:
         return [kernel_view(self.grid.pools[name]).reshape(-1) for name in names]
 
     def neighbours(self, slots: np.ndarray) -> np.ndarray:
-        """B x 27 slots of the blocks around these (grid.neighbour_table)."""
-        grid = self.grid
-        return neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
+        """B x 27 slots of the blocks around these (grid.neighbour_table). Safe without the data lock
+        (alpha threads, meshing): the hash table is taken as one pair, which a growing grid replaces
+        whole; blocks added meanwhile may be missing (they are marked, and read by the next update)."""
+        table_keys, table_slots = self.grid.hash_table
+        return neighbour_table(table_keys, table_slots, self.grid.slot_keys, slots)
 
     def observed_voxels(self, weight_channels: list[str]) -> int:
         """Voxels with a positive weight in any of these channels (one or two), counted in place:

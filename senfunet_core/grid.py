@@ -819,11 +819,20 @@ def _release_rows(pool: torch.Tensor, memory: mmap.mmap, start: int, stop: int) 
     memory.madvise(mmap.MADV_DONTNEED, first, last - first)
 
 
+def _hash_table(slot_keys: np.ndarray, n_blocks: int, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """A new hash table of `size` entries (keys, slots) holding blocks 0..n_blocks-1."""
+    table_keys, table_slots = np.full(size, EMPTY_KEY, np.int64), np.full(size, -1, np.int64)
+    _rehash(slot_keys, n_blocks, table_keys, table_slots)
+    return table_keys, table_slots
+
+
 class BlockGrid:
     """Blocks and their channels. Slots are never freed except by `clear`.
 
     Not thread-safe by itself: the engine serialises writers (allocation, integration) against
-    readers that hold on to pool views.
+    readers that hold on to pool views. A reader without the writers' lock (the engine's alpha
+    threads and meshing) takes the hash table as one `hash_table` pair: a table that grows or is
+    rebuilt is replaced by a complete new one, never filled in place while readers may probe it.
     """
 
     def __init__(self, channels: dict[str, tuple[int, ...]], device: torch.device | str = "cpu",
@@ -852,8 +861,7 @@ class BlockGrid:
         self._restored_slots = []
         self.slot_keys = np.full(cap, EMPTY_KEY, np.int64)
         self.coords = _zeros((cap, 3), torch.int64)[0]
-        self.table_keys = np.full(_INITIAL_TABLE, EMPTY_KEY, np.int64)
-        self.table_slots = np.full(_INITIAL_TABLE, -1, np.int64)
+        self.hash_table = _hash_table(self.slot_keys, 0, _INITIAL_TABLE)
         self.pools: dict[str, torch.Tensor] = {}
         self._memory: dict[str, mmap.mmap] = {}  # each pool's mapping (to give memory back)
         for name, shape in self.channel_shapes.items():
@@ -863,6 +871,16 @@ class BlockGrid:
             self.pools[name], self._memory[name] = _zeros((cap, BLOCK_VOXELS, *shape), dtype)
 
     # -- lookup and allocation ------------------------------------------------------------
+    @property
+    def table_keys(self) -> np.ndarray:
+        """The hash table's keys (EMPTY_KEY: free entry), for kernels run under the writers' lock."""
+        return self.hash_table[0]
+
+    @property
+    def table_slots(self) -> np.ndarray:
+        """The hash table's slots (entry by entry with `table_keys`), under the writers' lock."""
+        return self.hash_table[1]
+
     def lookup_keys(self, keys: torch.Tensor) -> torch.Tensor:
         """Slots of the given block keys, -1 where the block does not exist."""
         out = np.empty(keys.numel(), np.int64)
@@ -946,9 +964,7 @@ class BlockGrid:
             size = len(self.table_keys)
             while n_blocks > _MAX_LOAD * size:
                 size *= 2
-            self.table_keys = np.full(size, EMPTY_KEY, np.int64)
-            self.table_slots = np.full(size, -1, np.int64)
-            _rehash(self.slot_keys, self.n_blocks, self.table_keys, self.table_slots)
+            self.hash_table = _hash_table(self.slot_keys, self.n_blocks, size)
 
     def remove_blocks(self, victims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Drop these blocks. Slots stay 0..n_blocks-1: survivors in the last slots move into the
@@ -968,9 +984,7 @@ class BlockGrid:
         self.slot_keys[holes] = self.slot_keys[movers]
         self.slot_keys[n_new:n_old] = EMPTY_KEY
         self.n_blocks = n_new
-        self.table_keys.fill(EMPTY_KEY)
-        self.table_slots.fill(-1)
-        _rehash(self.slot_keys, self.n_blocks, self.table_keys, self.table_slots)
+        self.hash_table = _hash_table(self.slot_keys, self.n_blocks, len(self.table_keys))
         return movers, holes
 
     # -- geometry ------------------------------------------------------------------------------

@@ -26,3 +26,41 @@ def test_observed_voxels_counts_voxels_any_sensor_weighted(dtype: torch.dtype):
     assert 0 < only_first < both < n * 512
     assert store.observed_voxels(["weight0", "weight1"]) == both
     assert store.observed_voxels(["weight0"]) == only_first
+
+
+def test_neighbours_taken_without_the_lock_while_the_grid_grows_find_every_block():
+    """Alpha threads and meshing look up neighbours without the data lock while integration adds
+    blocks: each growth of the hash table must hand them a complete table (a table filled in place
+    showed them existing blocks as absent, and keys of one table with slots of the other)."""
+    import threading
+
+    grid = BlockGrid({"a": ()}, initial_capacity=16)
+    store = BlockStore(grid)
+    cube = torch.stack(torch.meshgrid(*[torch.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    slots = grid.allocate_keys(block_keys(cube)).numpy()
+    inner = slots[((cube >= 1) & (cube <= 2)).all(dim=1).numpy()]  # all 27 neighbours in the cube
+    expected = store.neighbours(inner)
+    assert (expected >= 0).all()
+    rng = np.random.default_rng(2)
+    far = torch.unique(block_keys(torch.from_numpy(rng.integers(100, 3000, (300_000, 3)))))  # no neighbours of it
+    wrong: list[np.ndarray] = []
+    reads = [0]
+    done = threading.Event()
+
+    def read() -> None:
+        while not done.is_set():
+            got = store.neighbours(inner)
+            reads[0] += 1
+            if not np.array_equal(got, expected):
+                wrong.append(got)
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    try:
+        for start in range(0, len(far), 5000):  # the table doubles several times meanwhile
+            grid.allocate_keys(far[start:start + 5000])
+    finally:
+        done.set()
+        reader.join()
+    assert grid.n_blocks == len(cube) + len(far) and len(grid.table_keys) >= 2 * grid.n_blocks and reads[0] > 100
+    assert not wrong
