@@ -101,11 +101,16 @@ class BlockStore:
         return [kernel_view(self.grid.pools[name]).reshape(-1) for name in names]
 
     def neighbours(self, slots: np.ndarray) -> np.ndarray:
-        """B x 27 slots of the blocks around these (grid.neighbour_table). Safe without the data lock
-        (alpha threads, meshing): the hash table is taken as one pair, which a growing grid replaces
-        whole; blocks added meanwhile may be missing (they are marked, and read by the next update)."""
+        """B x 27 slots of the blocks around these (grid.neighbour_table), committed blocks only. Safe
+        without the data lock (alpha threads, meshing): the hash table is taken as one pair, which a
+        growing grid replaces whole, and the blocks a frame is still allocating (past n_blocks, read
+        first: the allocation policy may yet drop them or move them to other slots) count as absent,
+        as do blocks added meanwhile (they are marked, and read by the next update)."""
+        n_blocks = self.grid.n_blocks
         table_keys, table_slots = self.grid.hash_table
-        return neighbour_table(table_keys, table_slots, self.grid.slot_keys, slots)
+        table = neighbour_table(table_keys, table_slots, self.grid.slot_keys, slots)
+        table[table >= n_blocks] = -1
+        return table
 
     def observed_voxels(self, weight_channels: list[str]) -> int:
         """Voxels with a positive weight in any of these channels (one or two), counted in place:

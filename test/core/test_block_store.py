@@ -64,3 +64,22 @@ def test_neighbours_taken_without_the_lock_while_the_grid_grows_find_every_block
         reader.join()
     assert grid.n_blocks == len(cube) + len(far) and len(grid.table_keys) >= 2 * grid.n_blocks and reads[0] > 100
     assert not wrong
+
+
+def test_blocks_a_frame_is_still_allocating_are_absent_for_neighbours():
+    """Integration adds a frame's new blocks to the hash table before the allocation policy may drop
+    them or move them to other slots, and commits them after: until then a reader without the lock
+    must not take their slots (it would read another block's voxels there, as current)."""
+    from senfunet_core import grid as grid_module
+
+    grid = BlockGrid({"a": ()}, initial_capacity=64)
+    store = BlockStore(grid)
+    centre = grid.allocate_keys(block_keys(torch.tensor([[5, 5, 5]]))).numpy()
+    new_key = block_keys(torch.tensor([[6, 5, 5]])).numpy()
+    state = np.array([grid.n_blocks, grid.max_blocks_before_rehash()], np.int64)
+    added = np.empty(1, np.int64)
+    assert grid_module._add_many(grid.table_keys, grid.table_slots, new_key, state, grid.slot_keys, added) == 1
+    code = 9 * 2 + 3 * 1 + 1  # +x
+    assert store.neighbours(centre)[0, code] == -1  # added, not committed
+    grid.commit_new_blocks(int(state[0]))
+    assert store.neighbours(centre)[0, code] == added[0] == 1
