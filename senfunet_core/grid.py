@@ -945,8 +945,11 @@ class BlockGrid:
         slots, self._restored_slots = self._restored_slots, []
         return np.concatenate(slots) if slots else np.zeros(0, np.int64)
 
-    def reserve(self, n_blocks: int) -> None:
-        """Room for n_blocks: pools, slot arrays and a hash table below its load limit."""
+    def reserve(self, n_blocks: int, *, added: int = 0) -> None:
+        """Room for n_blocks: pools, slot arrays and a hash table below its load limit. `added`: blocks
+        a kernel added (`hash_find_or_add`) after the committed ones and not committed yet; they keep
+        their slots and keys (their rows hold nothing before the commit)."""
+        n_keys = self.n_blocks + added
         if n_blocks > self.capacity:
             cap = max(n_blocks, int(self.growth * self.capacity) + 1)
             for name, pool in self.pools.items():
@@ -957,14 +960,14 @@ class BlockGrid:
             coords[: self.n_blocks] = self.coords[: self.n_blocks]
             self.coords = coords
             slot_keys = np.full(cap, EMPTY_KEY, np.int64)
-            slot_keys[: self.n_blocks] = self.slot_keys[: self.n_blocks]
+            slot_keys[:n_keys] = self.slot_keys[:n_keys]
             self.slot_keys = slot_keys
             self.capacity = cap
         if n_blocks > self.max_blocks_before_rehash():
             size = len(self.table_keys)
             while n_blocks > _MAX_LOAD * size:
                 size *= 2
-            self.hash_table = _hash_table(self.slot_keys, self.n_blocks, size)
+            self.hash_table = _hash_table(self.slot_keys, n_keys, size)
 
     def remove_blocks(self, victims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Drop these blocks. Slots stay 0..n_blocks-1: survivors in the last slots move into the

@@ -555,30 +555,32 @@ def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_
     T64 = np.ascontiguousarray(T_world_camera, np.float64)
     offsets = np.ascontiguousarray(offsets_m, np.float64)
     n_before = grid.n_blocks
+    n_blocks = n_before  # and the blocks this frame added so far (slots n_before..), committed at the end
     while True:
         slot_to_touched = scratch_array(scratch, "slot_to_touched", grid.capacity, np.int32)
         slot_to_touched.fill(-1)
         touched_slots = scratch_array(scratch, "touched_slots", grid.capacity, np.int64)
-        state = np.array([grid.n_blocks, min(grid.max_blocks_before_rehash(), grid.capacity)], np.int64)
+        state = np.array([n_blocks, min(grid.max_blocks_before_rehash(), grid.capacity)], np.int64)
         n_pixels, n_touched, ok = locate_samples(
             depth, depth_range_m[0], depth_range_m[1], border_px, K64, T64, offsets, voxel_size_m,
             grid.table_keys, grid.table_slots, state, grid.slot_keys, slot_to_touched, touched_slots, sample_flat,
             sample_touched, pixel_index)
+        n_blocks = int(state[0])
         if ok:
             break
-        grid.commit_new_blocks(int(state[0]))  # the blocks added so far survive the growth
-        if state[0] < state[1]:  # not full: a sample left the key range
+        if n_blocks < state[1]:  # not full: a sample left the key range
+            grid.commit_new_blocks(n_blocks)  # the table holds the blocks added so far: they stay (empty)
             raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
-        grid.reserve(grid.n_blocks + 1024)
-    n_blocks, dropped_samples, dropped_blocks, touched_map = int(state[0]), 0, 0, None
+        # grown with the blocks added so far still uncommitted: readers without the lock do not see
+        # them, the allocation policy below judges them all, and spilled ones stay on disk until then
+        grid.reserve(n_blocks + 1024, added=n_blocks - n_before)
+    dropped_samples, dropped_blocks, touched_map = 0, 0, None
     if min_new_block_samples > 1 and n_blocks > n_before:
         n_blocks, n_touched, dropped_samples, dropped_blocks, touched_map = drop_sparse_new_blocks(
             n_before, n_blocks, min_new_block_samples, n_pixels * len(offsets_m), n_touched, touched_slots,
             slot_to_touched, sample_touched, grid.table_keys, grid.table_slots, grid.slot_keys,
             grid.on_disk(grid.slot_keys[n_before:n_blocks]))
         touched_map = touched_map if len(touched_map) else None
-        # blocks a grown grid committed before the policy ran: re-committed in their new slots
-        grid.n_blocks = min(grid.n_blocks, n_before)
     grid.commit_new_blocks(int(n_blocks))
     return LocatedSamples(int(n_pixels), int(n_touched), sample_flat, sample_touched, pixel_index, touched_slots,
                           int(dropped_samples), int(dropped_blocks), touched_map)

@@ -256,3 +256,51 @@ def test_a_frame_outside_the_key_range_is_refused_from_its_first_sample():
                              offsets_m=CONFIG.sample_offsets().numpy().astype(np.float64) * CONFIG.step_m,
                              voxel_size_m=CONFIG.voxel_size_m)
     assert grid.n_blocks == 0
+
+
+def test_spilled_blocks_seen_by_a_frame_that_outgrows_the_grid_come_back_with_their_voxels():
+    """A frame that fills the grid mid-frame grows it with the blocks it added still uncommitted: the
+    allocation policy then judges them all, spilled blocks among them still on disk (kept, and given
+    their voxels back at the commit). The same frames on a grid large enough not to grow give the
+    same blocks and voxels (committing mid-frame lost sparsely seen spilled blocks and gave moved
+    ones another block's rows)."""
+    from senfunet_core.block_store import BlockStore
+    from senfunet_core.spill import BlockSpill
+
+    size = 160
+    intrinsics = np.array([[80.0, 0, (size - 1) / 2], [0, 80.0, (size - 1) / 2], [0, 0, 1.0]])
+    v, u = np.mgrid[0:size, 0:size].astype(np.float32)
+    wall = (1.0 + 0.002 * u + 0.03 * np.sin(v / 7.0)).astype(np.float32)
+    top = np.where(v < 40, wall, 0.0).astype(np.float32)  # the first frame: the top rows
+    second = wall.copy()  # the whole wall, with flying pixels, the top rows seen sparsely
+    rng = np.random.default_rng(1)
+    flying = rng.random((size, size)) < 0.03
+    second[flying] -= rng.uniform(0.1, 0.3, int(flying.sum())).astype(np.float32)
+    second[4:40:3, :] = 0.0
+    features = np.ones((size * size, 5), np.float32)
+    policy = replace(CONFIG, min_new_block_samples=16)
+    channels = ("tsdf0", "weight0", "feat0")
+
+    def run(capacity: int) -> tuple[dict[int, np.ndarray], int]:
+        grid = BlockGrid({"tsdf0": (), "weight0": (), "feat0": (5,)}, initial_capacity=capacity,
+                         dtypes={"weight0": torch.float16, "feat0": torch.float16})
+        grid.spill = BlockSpill()
+        store = BlockStore(grid)
+        integrate_frame(grid, top, features, intrinsics, np.eye(4), RANGE, policy, channels)
+        store.grow_flags()
+        store.remove(np.arange(grid.n_blocks))  # every block to the spill
+        if capacity > 1 << 12:
+            grid.reserve(1 << 14)  # room for the second frame: no growth during it
+        capacity_before = grid.capacity
+        update = integrate_frame(grid, second, features, intrinsics, np.eye(4), RANGE, policy, channels)
+        assert update.dropped_blocks > 100 and len(grid.spill) == 0
+        grew = grid.capacity > capacity_before
+        return {int(k): grid.pools["weight0"][s].numpy().copy()
+                for s, k in enumerate(grid.slot_keys[: grid.n_blocks])}, grew
+
+    without_growth, grew = run(1 << 16)
+    assert not grew
+    with_growth, grew = run(64)
+    assert grew
+    assert with_growth.keys() == without_growth.keys()
+    assert all(np.array_equal(with_growth[k], without_growth[k]) for k in without_growth)
