@@ -38,8 +38,9 @@ Threading model (the one place it is described):
   its alpha threads, which write nothing) reads input windows without it (and `stats` counts
   voxels without it): a block integrated meanwhile is marked again and re-read by the next update,
   and pools that grow meanwhile stay valid for whoever still holds the old ones, as does the hash
-  table, which a growing grid replaces by a complete new one (`BlockGrid.hash_table`). Evictions
-  wait for the batches being evaluated.
+  table, which a growing grid replaces by a complete new one (`BlockGrid.hash_table`); the blocks
+  a frame is still allocating (the allocation policy may drop or move them) count as absent there
+  (`BlockStore.neighbours`). Evictions wait for the batches being evaluated.
 - Lock order: update lock, then data lock. Integration never takes the update lock while holding
   the data lock; past the map's hard bound it releases the data lock, takes the eviction condition,
   and either evicts itself (the update lock free: tried without blocking) or waits on the condition,
