@@ -348,11 +348,12 @@ def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.
         restart_confirm_s=s.restart_confirm_s,
         pose_parser=PoseType(s.pose_type).parse,
         T_body_camera=sensor_extrinsics(s),
+        fixed_frame=s.fixed_frame,  # where TF lookups go, the node's own TF lookup (tf=) too
     )
     if PoseType(s.pose_type) is PoseType.TF and "tf" not in overrides:  # replay: /tf and /tf_static from the bag
         from senfunet_ros.tf import TfBuffer
 
-        config = dataclasses.replace(config, tf=TfBuffer(max_gap_s=s.pose_tolerance_s), fixed_frame=s.fixed_frame)
+        config = dataclasses.replace(config, tf=TfBuffer(max_gap_s=s.pose_tolerance_s))
     return dataclasses.replace(config, **overrides)
 
 

@@ -148,3 +148,16 @@ def test_live_node_says_at_start_when_tf_is_unavailable(ros_domain_id: int) -> N
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert "cannot start" in proc.stdout and "tf2_ros" in proc.stdout and "Traceback" not in proc.stderr
+
+
+def test_the_live_node_looks_poses_up_in_its_fixed_frame() -> None:
+    """The node hands Ingest a TF lookup of its own (tf2's buffer): the lookups still go to the
+    fixed_frame parameter, as replay's do, not to the default 'map' (a robot whose fixed frame is
+    'odom' got no pose at all)."""
+    from senfunet_ros import params as P
+
+    values = {name: default for name, (default, _) in P.expanded_defaults().items()}
+    values.update(pose_type="tf", fixed_frame="odom")
+    settings = P.Settings.from_values(values)
+    live = P.ingest_config(settings, **P.live_lag(settings), tf=TfBuffer())  # as the node builds it
+    assert live.fixed_frame == "odom" and P.ingest_config(settings).fixed_frame == "odom"
