@@ -302,22 +302,12 @@ class AlphaScheduler:
         the thread that first needs them: they share its priority, then run `worker_setup`). The
         engine also meshes an idle update's batches on them."""
         if self._executor is None:
+            # the initializer refers to the set-up alone: a pool thread keeps it while it lives, and
+            # through this scheduler it would keep the map, so that a dropped engine (~/load_map)
+            # never went, nor its threads
             self._executor = ThreadPoolExecutor(self.threads, thread_name_prefix="senfunet-alpha",
-                                                initializer=self._set_up_worker)
+                                                initializer=_set_up_alpha_thread, initargs=(self.worker_setup,))
         return self._executor
-
-    def _set_up_worker(self) -> None:
-        """A new alpha thread: torch on one thread in it (the batches side by side use the cores; a
-        thread's OpenMP team is its own, two threads each on every core would oversubscribe them),
-        then `worker_setup`, whose failure is logged, not raised (a thread pool whose initializer
-        raises refuses all later work)."""
-        torch.set_num_threads(1)
-        if self.worker_setup is None:
-            return
-        try:
-            self.worker_setup()
-        except Exception as err:  # noqa: BLE001 (any failure: the thread runs as it was started)
-            log.warning("alpha thread set-up failed (the thread runs as started): %r", err)
 
     def stop_workers(self) -> None:
         """End the alpha threads (the next use starts them again, from the thread that needs them)."""
@@ -329,3 +319,17 @@ class AlphaScheduler:
         """Multiply-adds of the weighting net (x2 = FLOPs)."""
         hidden_1, hidden_2 = self.net.conv1.out_channels, self.net.conv2.out_channels
         return 2 * (layer_1_positions * inputs * hidden_1 + voxels * (27 * hidden_1 * hidden_2 + hidden_2))
+
+
+def _set_up_alpha_thread(worker_setup: Callable[[], object] | None) -> None:
+    """A new alpha thread: torch on one thread in it (the batches side by side use the cores; a
+    thread's OpenMP team is its own, two threads each on every core would oversubscribe them), then
+    `worker_setup`, whose failure is logged, not raised (a thread pool whose initializer raises
+    refuses all later work)."""
+    torch.set_num_threads(1)
+    if worker_setup is None:
+        return
+    try:
+        worker_setup()
+    except Exception as err:  # noqa: BLE001 (any failure: the thread runs as it was started)
+        log.warning("alpha thread set-up failed (the thread runs as started): %r", err)

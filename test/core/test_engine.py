@@ -1269,23 +1269,33 @@ def test_stats_counts_the_voxels_without_holding_the_data_lock():
 
 def test_an_engine_is_freed_without_the_cycle_collector():
     """The node freezes what exists when it starts spinning (node.spin: gc.freeze), so an engine
-    replaced by ~/load_map must go by reference counting alone: no part of it may refer back to it."""
+    replaced by ~/load_map must go by reference counting alone: no part of it may refer back to it,
+    and its alpha threads (started by an update without a budget) must neither keep its map nor
+    outlive it."""
     import gc
+    import threading
     import weakref
 
-    engine = engine_for_tests(max_blocks=100)  # a map bound: its parts (archive, spill) too
+    before = set(threading.enumerate())
+    engine = engine_for_tests(max_blocks=100, alpha_threads=2)  # a map bound: its parts (archive, spill) too
     integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]])
     engine.update()
     engine.extract_mesh()
-    gone = weakref.ref(engine)
+    alpha_threads = [t for t in set(threading.enumerate()) - before if t.name.startswith("senfunet-alpha")]
+    assert engine.alpha._executor is not None and alpha_threads
+    gone, grid_gone = weakref.ref(engine), weakref.ref(engine.grid)
     enabled = gc.isenabled()
     gc.disable()
     try:
         del engine
-        assert gone() is None, "a reference cycle keeps the engine (and its grid) alive"
+        assert gone() is None, "a reference cycle keeps the engine alive"
+        assert grid_gone() is None, "something keeps the engine's grid alive"
     finally:
         if enabled:
             gc.enable()
+    for thread in alpha_threads:  # a freed pool's idle threads are woken to end
+        thread.join(timeout=10)
+    assert not any(t.is_alive() for t in alpha_threads)
 
 
 def _kernel_signatures() -> dict[str, int]:
