@@ -100,6 +100,9 @@ class MeshPublisher:
             # helper threads share)
             update = engine.update(alpha_budget_s=0.0,
                                    mesh_threads=1 if self._frame_waiting() else engine.config.alpha_threads)
+            # the update took the engine's changes: until they are published, a failure (encoding, a
+            # refused publication) makes the next publication send the whole map
+            known_subscribers, self._subscribers = self._subscribers, 0
             stamp_ns = self.pipeline.latest_stamp_ns
             t_update = time.perf_counter()
             self._timings["update"].add(t_update - start)
@@ -114,14 +117,13 @@ class MeshPublisher:
             frame_id = s.fixed_frame
             subscribers = self.mesh_pub.get_subscription_count()
             messages = None
-            if subscribers > self._subscribers:
+            if subscribers > known_subscribers:
                 # Someone new joined: transient local only holds the last few messages, so send it all.
                 messages = conv.marker_array_messages(self.display(engine.block_meshes()), (),
                                                       stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
             elif update.cleared or len(update.meshes) or update.removed:
                 messages = conv.marker_array_messages(self.display(update.meshes), update.removed, stamp_ns=stamp_ns,
                                                       frame_id=frame_id, delete_all_first=update.cleared)
-            self._subscribers = subscribers
             # the net's turn ends with this mesh period (less a margin for the updates' jitter): the next
             # update is not to wait for it
             period_s = (1.0 - MESH_PERIOD_MARGIN) * mesh_period_s(s.mesh_rate_hz)
@@ -152,6 +154,7 @@ class MeshPublisher:
                     self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
                     self._timings["publish"].add(publish_s)
                 self._latency.published(contained)
+                self._subscribers = subscribers
             finally:  # the turn ends before the next publication, even if this one failed
                 if turn is not None:
                     futures.wait([turn])

@@ -17,7 +17,7 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-from test_node import BASE_S, Running, _pose_msg, _stamp, topic_params, wait_for
+from test_node import BASE_S, MeshCollector, Running, _marker_keys, _pose_msg, _stamp, topic_params, wait_for
 
 from senfunet_ros import params as P
 
@@ -433,5 +433,40 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
         run.node.publish_mesh()  # the update that shows the judged blocks
         stats = engine.stats()
         assert stats["meshed_blocks_alpha_current"] == stats["meshed_blocks"] > 0
+    finally:
+        run.close()
+
+
+def test_a_failed_publication_is_made_good_by_the_next(ros, tmp_path: Path, monkeypatch) -> None:
+    """A mesh update takes the engine's changes; when publishing it fails (here ~/mesh refuses one
+    message), the next publication sends the whole map, so a subscriber misses nothing for good."""
+    from senfunet_ros import mesh_publisher
+
+    run = Running("pubfail", {**topic_params("pubfail"), **SMALL, "mesh_rate_hz": 0.05}, tmp_path)
+    try:
+        collector = MeshCollector(run.helper, f"{run.prefix}/mesh")
+        wait_for(lambda: run.node.mesh_publisher.mesh_pub.get_subscription_count() > 0, 10, "the subscriber")
+        messages = scene_messages()
+        half = len(messages) // 2
+        fuse_in_process(run, messages[:half])
+        run.node.publish_mesh()
+        wait_for(lambda: collector.keys() and collector.keys() == _marker_keys(run.node), 30, "the first mesh")
+        fuse_in_process(run, messages)  # the second half (the first again: stamps behind, dropped)
+        run.node.engine.refresh_alpha(None)  # all judged: no later update re-meshes anything by itself
+        publish = mesh_publisher.publish_serialized
+        refused = []
+
+        def refuse_once(publisher: Any, data: Any) -> None:
+            if publisher is run.node.mesh_publisher.mesh_pub and not refused:
+                refused.append(True)
+                raise RuntimeError("publication refused (test)")
+            publish(publisher, data)
+
+        monkeypatch.setattr(mesh_publisher, "publish_serialized", refuse_once)
+        with pytest.raises(RuntimeError, match="refused"):
+            run.node.publish_mesh()  # the second half's blocks: taken from the engine, not delivered
+        assert refused and collector.keys() != _marker_keys(run.node)
+        run.node.publish_mesh()  # nothing new in the engine: the whole map again
+        wait_for(lambda: collector.keys() == _marker_keys(run.node), 30, "the map the failed update held")
     finally:
         run.close()
