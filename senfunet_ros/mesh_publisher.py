@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 from rclpy.duration import Duration
+from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo, UnsupportedEventTypeError
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
@@ -66,16 +67,27 @@ class MeshPublisher:
         self._camera_colors = camera_colors
         self._frame_waiting = frame_waiting
         self.lock = threading.Lock()  # one publication at a time (timer vs. reset and load_map services)
-        self.mesh_pub = node.create_publisher(MarkerArray, "~/mesh", MESH_QOS)
+        self._matched = 0  # mesh readers matched so far (written by the matched event's callback only)
+        try:
+            self.mesh_pub = node.create_publisher(MarkerArray, "~/mesh", MESH_QOS,
+                                                  event_callbacks=PublisherEventCallbacks(matched=self._on_matched))
+        except UnsupportedEventTypeError:  # an RMW without the event: the reader count alone tells
+            self.mesh_pub = node.create_publisher(MarkerArray, "~/mesh", MESH_QOS)
         self.weights_pub = node.create_publisher(PointCloud2, "~/weights", CLOUD_QOS)
-        self._subscribers = 0  # mesh readers at the last publication: one more gets the whole map
+        # the mesh readers (how many, and how many matched so far) the last publication reached: one
+        # more, or one that replaced another between two publications (RViz re-subscribing), gets
+        # the whole map
+        self._served = (0, 0)
         self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
         # an idle turn of the net runs on this thread while `publish`'s thread encodes and publishes
         self._turns = ThreadPoolExecutor(1, thread_name_prefix="senfunet-net-turn", initializer=thread_setup)
 
     def resend_all(self) -> None:
         """The next publication sends the whole map (a loaded map replaced what readers hold)."""
-        self._subscribers = 0
+        self._served = (0, 0)
+
+    def _on_matched(self, info: QoSPublisherMatchedInfo) -> None:
+        self._matched = info.total_count
 
     def publish(self, weights: bool | None = None) -> None:
         """engine.update() -> ~/mesh (changed blocks, or a full snapshot for new subscribers), and
@@ -102,7 +114,7 @@ class MeshPublisher:
                                    mesh_threads=1 if self._frame_waiting() else engine.config.alpha_threads)
             # the update took the engine's changes: until they are published, a failure (encoding, a
             # refused publication) makes the next publication send the whole map
-            known_subscribers, self._subscribers = self._subscribers, 0
+            served, self._served = self._served, (0, 0)
             stamp_ns = self.pipeline.latest_stamp_ns
             t_update = time.perf_counter()
             self._timings["update"].add(t_update - start)
@@ -115,9 +127,9 @@ class MeshPublisher:
                 self._timings["weights"].add(time.perf_counter() - t_update)
             t_cloud = time.perf_counter()
             frame_id = s.fixed_frame
-            subscribers = self.mesh_pub.get_subscription_count()
+            readers = (self.mesh_pub.get_subscription_count(), self._matched)
             messages = None
-            if subscribers > known_subscribers:
+            if readers[0] > served[0] or readers[1] > served[1]:
                 # Someone new joined: transient local only holds the last few messages, so send it all.
                 messages = conv.marker_array_messages(self.display(engine.block_meshes()), (),
                                                       stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
@@ -154,7 +166,7 @@ class MeshPublisher:
                     self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
                     self._timings["publish"].add(publish_s)
                 self._latency.published(contained)
-                self._subscribers = subscribers
+                self._served = readers
             finally:  # the turn ends before the next publication, even if this one failed
                 if turn is not None:
                     futures.wait([turn])

@@ -470,3 +470,55 @@ def test_a_failed_publication_is_made_good_by_the_next(ros, tmp_path: Path, monk
         wait_for(lambda: collector.keys() == _marker_keys(run.node), 30, "the map the failed update held")
     finally:
         run.close()
+
+
+def test_a_reader_that_replaces_another_between_two_publications_gets_the_whole_map(ros, tmp_path: Path) -> None:
+    """RViz re-subscribing: one mesh reader leaves and another joins between two publications, so the
+    reader count is the same; the newcomer, whose transient-local history holds only the last two
+    updates, still gets the whole map with the next publication (the publisher's matched event)."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    from senfunet_ros.ingest import Frame
+
+    rng = np.random.default_rng(0)
+    K = np.array([[50.0, 0, 32.0], [0, 50.0, 24.0], [0, 0, 1.0]])
+
+    def frames(first: int, end: int) -> list[Frame]:  # 2 m apart: each pair of frames meshes blocks of its own
+        out = []
+        for i in range(first, end):
+            T = np.eye(4)
+            T[0, 3] = 2.0 * i
+            for n, sensor in enumerate(("tof", "stereo")):
+                depth = (1.2 + 0.05 * rng.random((48, 64))).astype(np.float32)
+                out.append(Frame(sensor, BASE_S * 10**9 + (2 * i + n) * 50_000_000, depth, None, K, T))
+        return out
+
+    run = Running("churn", {**topic_params("churn"), **SMALL, "mesh_rate_hz": 0.05}, tmp_path)
+    topic = f"{run.prefix}/mesh"
+    first_node = Node("first_reader")
+    first_executor = SingleThreadedExecutor()
+    first_executor.add_node(first_node)
+    spinning = threading.Thread(target=first_executor.spin, daemon=True)
+    spinning.start()
+    try:
+        first = MeshCollector(first_node, topic)
+        wait_for(lambda: run.node.mesh_publisher.mesh_pub.get_subscription_count() == 1, 10, "the first reader")
+        for part in range(3):  # a snapshot, then two updates: the history holds those two
+            run.node.pipeline.drain(frames(2 * part, 2 * part + 2))
+            run.node.engine.refresh_alpha(None)
+            run.node.publish_mesh()
+            wait_for(lambda: first.keys() and first.keys() == _marker_keys(run.node), 30, f"update {part}")
+        first_executor.shutdown()
+        spinning.join(timeout=10)
+        first_node.destroy_node()
+        wait_for(lambda: run.node.mesh_publisher.mesh_pub.get_subscription_count() == 0, 10, "the first to leave")
+        second = MeshCollector(run.helper, topic)
+        wait_for(lambda: second.messages >= 2, 10, "the history")
+        assert second.keys() and second.keys() < _marker_keys(run.node)  # the first update's blocks are not in it
+        run.node.publish_mesh()  # nothing new in the engine
+        wait_for(lambda: second.keys() == _marker_keys(run.node), 30, "the whole map")
+    finally:
+        if spinning.is_alive():
+            first_executor.shutdown()
+            spinning.join(timeout=10)
+        run.close()
