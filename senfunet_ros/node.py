@@ -631,8 +631,18 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
             raise
         # SIGINT/SIGTERM shut the context down while the executor was building its wait set: a stop
     finally:
-        executor.shutdown()
+        stop_executor(executor)
         gc.unfreeze()
+
+
+def stop_executor(executor: MultiThreadedExecutor) -> None:
+    """Stop an executor and wait for the callbacks it is still running (then its nodes may go):
+    rclpy 7.1's `shutdown` returns at once (its wait tests the flag it has just set), and a callback
+    still running when its node is destroyed fails on the node's handles, or its work is cut off."""
+    executor.shutdown()
+    pool = getattr(executor, "_executor", None)  # MultiThreadedExecutor's worker threads (no public handle)
+    if isinstance(pool, ThreadPoolExecutor):
+        pool.shutdown(wait=True)
 
 
 # Python hands the GIL to a waiting thread only every switch interval (default 5 ms). Each

@@ -23,7 +23,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from senfunet_ros import params as P
-from senfunet_ros.node import FusionNode
+from senfunet_ros.node import FusionNode, stop_executor
 
 ROOT = Path(__file__).resolve().parents[2]
 BASE_S = 1000  # added to simulator stamps (which start below 0 for poses)
@@ -65,7 +65,7 @@ class Running:
         self.prefix = f"/{namespace}/senfunet"
 
     def close(self) -> None:
-        self.executor.shutdown()
+        stop_executor(self.executor)  # the callbacks under way end first
         self.thread.join(timeout=5)  # the spinning thread last touches the nodes' handles: then destroy them
         self.node.destroy_node()
         self.helper.destroy_node()
@@ -742,3 +742,29 @@ def test_the_weighting_net_turn_leaves_the_mesh_period_to_the_next_update(ros, t
         assert budgets[4:] == [None]
     finally:
         run.close()
+
+
+def test_stop_executor_waits_for_the_callbacks_under_way(ros) -> None:
+    """Nodes are destroyed after their executor stopped: `stop_executor` returns only once the
+    callbacks it was running have ended (rclpy's own shutdown returned while they ran on)."""
+    node = Node("stop_executor_test")
+    started, ended = threading.Event(), threading.Event()
+
+    def slow() -> None:
+        started.set()
+        time.sleep(1.0)
+        ended.set()
+
+    node.create_timer(0.01, slow)
+    executor = MultiThreadedExecutor(num_threads=2)
+    executor.add_node(node)
+    spinning = threading.Thread(target=executor.spin, daemon=True)
+    spinning.start()
+    try:
+        assert started.wait(10)
+        stop_executor(executor)
+        assert ended.is_set()
+        spinning.join(timeout=10)
+        assert not spinning.is_alive()
+    finally:
+        node.destroy_node()
