@@ -49,6 +49,27 @@ def topic_params(prefix: str, sensors: tuple[str, ...] = ("tof", "stereo")) -> d
     return out
 
 
+class SpinThread:
+    """An executor spun in a thread until `stop`, which returns once no callback runs any more (then
+    the executor's nodes may go). It spins once at a time: rclpy's shutdown, called from another
+    thread while the executor spins, takes the guard condition from under the executor's wait."""
+
+    def __init__(self, executor: Any) -> None:
+        self.executor = executor
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set():
+            self.executor.spin_once(timeout_sec=0.1)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.thread.join(timeout=10)  # no more callbacks handed out
+        stop_executor(self.executor)  # and those under way ended
+
+
 class Running:
     """A FusionNode and a helper node spun by one MultiThreadedExecutor in a thread."""
 
@@ -60,13 +81,12 @@ class Running:
         self.executor = MultiThreadedExecutor(num_threads=6)
         self.executor.add_node(self.node)
         self.executor.add_node(self.helper)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinning = SpinThread(self.executor)
+        self.thread = self.spinning.thread
         self.prefix = f"/{namespace}/senfunet"
 
     def close(self) -> None:
-        stop_executor(self.executor)  # the callbacks under way end first
-        self.thread.join(timeout=5)  # the spinning thread last touches the nodes' handles: then destroy them
+        self.spinning.stop()
         self.node.destroy_node()
         self.helper.destroy_node()
 
@@ -758,13 +778,10 @@ def test_stop_executor_waits_for_the_callbacks_under_way(ros) -> None:
     node.create_timer(0.01, slow)
     executor = MultiThreadedExecutor(num_threads=2)
     executor.add_node(node)
-    spinning = threading.Thread(target=executor.spin, daemon=True)
-    spinning.start()
+    spinning = SpinThread(executor)
     try:
         assert started.wait(10)
-        stop_executor(executor)
-        assert ended.is_set()
-        spinning.join(timeout=10)
-        assert not spinning.is_alive()
+        spinning.stop()
+        assert ended.is_set() and not spinning.thread.is_alive()
     finally:
         node.destroy_node()

@@ -17,7 +17,8 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-from test_node import BASE_S, MeshCollector, Running, _marker_keys, _pose_msg, _stamp, topic_params, wait_for
+from test_node import (BASE_S, MeshCollector, Running, SpinThread, _marker_keys, _pose_msg, _stamp, topic_params,
+                       wait_for)
 
 from senfunet_ros import params as P
 
@@ -498,8 +499,7 @@ def test_a_reader_that_replaces_another_between_two_publications_gets_the_whole_
     first_node = Node("first_reader")
     first_executor = SingleThreadedExecutor()
     first_executor.add_node(first_node)
-    spinning = threading.Thread(target=first_executor.spin, daemon=True)
-    spinning.start()
+    spinning = SpinThread(first_executor)
     try:
         first = MeshCollector(first_node, topic)
         wait_for(lambda: run.node.mesh_publisher.mesh_pub.get_subscription_count() == 1, 10, "the first reader")
@@ -508,8 +508,7 @@ def test_a_reader_that_replaces_another_between_two_publications_gets_the_whole_
             run.node.engine.refresh_alpha(None)
             run.node.publish_mesh()
             wait_for(lambda: first.keys() and first.keys() == _marker_keys(run.node), 30, f"update {part}")
-        first_executor.shutdown()
-        spinning.join(timeout=10)
+        spinning.stop()
         first_node.destroy_node()
         wait_for(lambda: run.node.mesh_publisher.mesh_pub.get_subscription_count() == 0, 10, "the first to leave")
         second = MeshCollector(run.helper, topic)
@@ -518,7 +517,6 @@ def test_a_reader_that_replaces_another_between_two_publications_gets_the_whole_
         run.node.publish_mesh()  # nothing new in the engine
         wait_for(lambda: second.keys() == _marker_keys(run.node), 30, "the whole map")
     finally:
-        if spinning.is_alive():
-            first_executor.shutdown()
-            spinning.join(timeout=10)
+        if spinning.thread.is_alive():
+            spinning.stop()
         run.close()
