@@ -903,10 +903,9 @@ class BlockGrid:
         return torch.from_numpy(out)
 
     def warm_up(self) -> None:
-        """Compile (or load from numba's cache) the table kernels integration does not call: the
-        lookups and the rehash of a growing table (both on nothing here)."""
+        """Compile (or load from numba's cache) the table kernel integration does not call: the
+        lookups (on nothing here; the rehash a growing table runs already ran when the table was made)."""
         _find_many(self.table_keys, self.table_slots, np.zeros(0, np.int64), np.zeros(0, np.int64))
-        _rehash(self.slot_keys, 0, self.table_keys, self.table_slots)
 
     def max_blocks_before_rehash(self) -> int:
         return int(_MAX_LOAD * len(self.table_keys))
