@@ -59,13 +59,15 @@ class MeshPublisher:
 
     def __init__(self, node: Node, pipeline: Pipeline, settings: Callable[[], P.Settings], *, timings: dict[str, Any],
                  latency: Any, camera_colors: Any, frame_waiting: Callable[[], bool],
-                 thread_setup: Callable[[], object] | None = None) -> None:
+                 warn: Callable[[tuple[str, ...], str], None], thread_setup: Callable[[], object] | None = None
+                 ) -> None:
         self.pipeline = pipeline
         self._settings = settings
         self._timings = timings
         self._latency = latency
         self._camera_colors = camera_colors
         self._frame_waiting = frame_waiting
+        self._warn = warn
         self.lock = threading.Lock()  # one publication at a time (timer vs. reset and load_map services)
         self._matched = 0  # mesh readers matched so far (written by the matched event's callback only)
         try:
@@ -107,6 +109,7 @@ class MeshPublisher:
                 weights = now >= self._next_weights_s
             weights = weights and self.weights_pub.get_subscription_count() > 0
             contained = self._latency.take()  # frames integrated before this update began
+            stamp_ns = self.pipeline.latest_stamp_ns  # of them: a frame integrated during the update may be missing
             # no frame waiting (the sensors paused, or integration keeps up): mesh on every core; a
             # frame coming meanwhile still goes first (the mesh thread's lower priority, which its
             # helper threads share)
@@ -115,7 +118,6 @@ class MeshPublisher:
             # the update took the engine's changes: until they are published, a failure (encoding, a
             # refused publication) makes the next publication send the whole map
             served, self._served = self._served, (0, 0)
-            stamp_ns = self.pipeline.latest_stamp_ns
             t_update = time.perf_counter()
             self._timings["update"].add(t_update - start)
             cloud = None
@@ -156,17 +158,24 @@ class MeshPublisher:
                     publish_serialized(self.weights_pub, np.frombuffer(cloud_data, np.uint8))
                     publish_s += time.perf_counter() - t_encoded
                 ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
+                unacknowledged = 0  # parts published while a reader had not taken the one before
                 for i, data in enumerate(messages or ()):
                     t_encoded = time.perf_counter()
-                    if i:  # the history holds 2: let readers take the previous part before it can be overwritten
-                        self._wait_mesh_acked(ack_deadline)
+                    # the history holds 2: let readers take the previous part before it can be overwritten
+                    if i and not self._wait_mesh_acked(ack_deadline):
+                        unacknowledged += 1
                     publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
                     publish_s += time.perf_counter() - t_encoded
                 if messages is not None or cloud is not None:
                     self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
                     self._timings["publish"].add(publish_s)
                 self._latency.published(contained)
-                self._served = readers
+                if unacknowledged:  # a slow reader may have lost parts: it gets the whole map next time
+                    self._warn(("mesh_readers_behind",), f"a ~/mesh reader did not take the parts of a mesh update "
+                               f"within {_PARTS_ACK_TIMEOUT_S:g} s ({unacknowledged} part(s) published without "
+                               "waiting for it; it may have missed some): the next update sends the whole map")
+                else:
+                    self._served = readers
             finally:  # the turn ends before the next publication, even if this one failed
                 if turn is not None:
                     futures.wait([turn])
@@ -224,10 +233,13 @@ class MeshPublisher:
             meshes = dataclasses.replace(meshes, colors=colors)
         return meshes
 
-    def _wait_mesh_acked(self, deadline: float) -> None:
-        """Until every reader acknowledged ~/mesh's samples, or time.monotonic() reaches deadline.
-        Polled with short sleeps, so the node's other threads run meanwhile: rclpy's
-        Publisher.wait_for_all_acked holds the GIL for as long as it blocks (its binding does not
-        release it), which would stop integration and the subscriptions."""
-        while not self.mesh_pub.wait_for_all_acked(_NO_WAIT) and time.monotonic() < deadline:
+    def _wait_mesh_acked(self, deadline: float) -> bool:
+        """Until every reader acknowledged ~/mesh's samples (True), or time.monotonic() reaches
+        deadline (False). Polled with short sleeps, so the node's other threads run meanwhile:
+        rclpy's Publisher.wait_for_all_acked holds the GIL for as long as it blocks (its binding does
+        not release it), which would stop integration and the subscriptions."""
+        while not self.mesh_pub.wait_for_all_acked(_NO_WAIT):
+            if time.monotonic() >= deadline:
+                return False
             time.sleep(0.002)
+        return True

@@ -278,7 +278,7 @@ class FusionNode(Node):
         self.mesh_publisher = MeshPublisher(self, self.pipeline, lambda: self.settings, timings=self.timings,
                                             latency=self.latency, camera_colors=self.camera_colors,
                                             frame_waiting=lambda: any(self.ingest.queue_depths().values()),
-                                            thread_setup=at_mesh_priority)
+                                            warn=self._warn, thread_setup=at_mesh_priority)
         self.status_pub = self.create_publisher(DiagnosticArray, "~/status", _STATUS_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", _STATUS_QOS)
         # 6. services
@@ -323,13 +323,29 @@ class FusionNode(Node):
     def _stopping(self) -> None:
         self.pipeline.stopping = True
 
-    def finish(self) -> dict[str, int]:
+    def finish(self, abandon: threading.Event | None = None) -> dict[str, int]:
         """After the executor stopped: integrate the frames that are ready, count the ones still
-        waiting (for a pose, a colour image, a camera_info) as dropped at shutdown. Returns the counts."""
+        waiting (for a pose, a colour image, a camera_info) as dropped at shutdown. `abandon` set
+        (a second Ctrl-C): the ready frames not started yet are dropped too, once the frame under
+        way is integrated. Returns the counts."""
         self.pipeline.stopping = True
-        integrated = self.pipeline.drain(self.ingest.pop_ready(set_aside=False))
+        ready = self.ingest.pop_ready(set_aside=False)
+        left: list[Frame | TimeJump] = []
+
+        def until_abandoned() -> Iterator[Frame | TimeJump]:
+            for i, item in enumerate(ready):
+                if abandon is not None and abandon.is_set():
+                    left.extend(ready[i:])
+                    return
+                yield item
+
+        integrated = self.pipeline.drain(until_abandoned())
+        for item in left:
+            if isinstance(item, Frame):
+                self.ingest.mark_dropped(item.sensor, "shutdown")
         waiting = self.ingest.discard_waiting("shutdown")
-        return {"integrated": integrated, "discarded": waiting, "interrupted": self.pipeline.frames_unfinished}
+        return {"integrated": integrated, "discarded": waiting + sum(isinstance(item, Frame) for item in left),
+                "interrupted": self.pipeline.frames_unfinished}
 
     def _log_parameters(self) -> None:
         lines = [f"  {name}: {value!r}" for name, value in self.settings.values.items()]
@@ -599,9 +615,13 @@ class FusionNode(Node):
         self.mesh_publisher.resend_all()
 
     def _map_reset(self) -> None:
-        """~/reset emptied the map: subscribers get a DELETEALL right away."""
+        """~/reset emptied the map: subscribers get a DELETEALL right away (if that publication
+        fails, the reset still stands: the next one sends the whole, empty map)."""
         self.camera_colors.clear()
-        self.publish_mesh()
+        try:
+            self.publish_mesh()
+        except Exception as err:
+            self._warn(("mesh_update",), f"mesh update after ~/reset failed: {err!r}; the next one clears the mesh")
 
     def destroy_node(self) -> None:
         self._mesh_timer.cancel()
@@ -636,13 +656,15 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
 
 
 def stop_executor(executor: MultiThreadedExecutor) -> None:
-    """Stop an executor and wait for the callbacks it is still running (then its nodes may go):
-    rclpy 7.1's `shutdown` returns at once (its wait tests the flag it has just set), and a callback
-    still running when its node is destroyed fails on the node's handles, or its work is cut off."""
-    executor.shutdown()
+    """Once its spin ended, stop an executor, first waiting for the callbacks it handed out (then
+    its nodes may go): rclpy 7.1's `shutdown` returns at once (its wait tests the flag it has just
+    set), and a callback still running when its node is destroyed fails on the node's handles, or
+    its work is cut off. They end before `shutdown`, which destroys the guard condition that each
+    of them triggers as it ends (else an InvalidHandle in a task nobody reads)."""
     pool = getattr(executor, "_executor", None)  # MultiThreadedExecutor's worker threads (no public handle)
     if isinstance(pool, ThreadPoolExecutor):
         pool.shutdown(wait=True)
+    executor.shutdown()
 
 
 # Python hands the GIL to a waiting thread only every switch interval (default 5 ms). Each
@@ -752,22 +774,54 @@ def main(args: list[str] | None = None) -> int:
         return 2
     finally:
         if node is not None:
-            try:
-                done = node.finish()
-                print(f"senfunet: stopped; at the stop {done['integrated']} ready frame(s) integrated, "
-                      f"{done['discarded']} still waiting and {done['interrupted']} being integrated were dropped "
-                      "(counted as shutdown)", flush=True)
-            except Exception as err:
-                print(f"senfunet: finishing the queued frames failed: {err}", flush=True)
-            if node.settings.save_on_shutdown:
-                try:
-                    paths = node.map_services.save_meshes()
-                    print("senfunet: saved " + ", ".join(str(p) for p in paths), flush=True)
-                except Exception as err:
-                    print(f"senfunet: saving on shutdown failed: {err}", flush=True)
-            node.destroy_node()
+            stop_node(node)
         rclpy.try_shutdown()
     return 0
+
+
+def stop_node(node: FusionNode) -> None:
+    """What `main` does once the executor stopped: integrate the ready frames (`finish`), save the
+    meshes (parameter save_on_shutdown), destroy the node. Ctrl-C meanwhile (someone in a hurry)
+    shortens it without losing the map: while frames are integrated, the ones not started yet are
+    dropped; while saving, the saving stops (each file is written whole or not at all, see
+    `write_ply`); the node is destroyed either way."""
+    import signal
+
+    abandon = threading.Event()
+    saving = False
+
+    def interrupted(signum: int, frame: Any) -> None:
+        if saving:
+            raise KeyboardInterrupt
+        abandon.set()
+        print("senfunet: interrupted again: the frames not integrated yet are dropped", flush=True)
+
+    try:
+        previous = signal.signal(signal.SIGINT, interrupted)
+    except ValueError:  # not the main thread: signals go to the main thread's handlers
+        previous = None
+    try:
+        try:
+            done = node.finish(abandon)
+            print(f"senfunet: stopped; at the stop {done['integrated']} ready frame(s) integrated, "
+                  f"{done['discarded']} still waiting and {done['interrupted']} being integrated were dropped "
+                  "(counted as shutdown)", flush=True)
+        except Exception as err:
+            print(f"senfunet: finishing the queued frames failed: {err}", flush=True)
+        if node.settings.save_on_shutdown:
+            saving = True
+            try:
+                paths = node.map_services.save_meshes()
+                print("senfunet: saved " + ", ".join(str(p) for p in paths), flush=True)
+            except KeyboardInterrupt:
+                print("senfunet: interrupted again: saving on shutdown stopped (files already written stay, "
+                      "the one being written was not replaced)", flush=True)
+            except Exception as err:
+                print(f"senfunet: saving on shutdown failed: {err}", flush=True)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+        node.destroy_node()
 
 
 if __name__ == "__main__":

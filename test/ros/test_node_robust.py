@@ -473,6 +473,107 @@ def test_a_failed_publication_is_made_good_by_the_next(ros, tmp_path: Path, monk
         run.close()
 
 
+def test_ctrl_c_during_the_stop_drops_the_queued_frames_and_the_saving_not_the_node(ros, tmp_path: Path,
+                                                                                   monkeypatch, capsys) -> None:
+    """A second Ctrl-C while `stop_node` integrates the ready frames drops the ones not started yet;
+    one while it saves stops the saving; the node is destroyed all the same, nothing escapes."""
+    import signal
+
+    from rclpy._rclpy_pybind11 import InvalidHandle
+
+    from senfunet_ros.node import stop_node
+
+    run = Running("stopnode", {**topic_params("stopnode"), **SMALL, "save_on_shutdown": True}, tmp_path)
+    try:
+        messages = scene_messages()
+        fuse_in_process(run, messages[: len(messages) // 2])
+        run.spinning.stop()  # as the first Ctrl-C stops the executor
+        for sensor, stream, msg in messages[len(messages) // 2:]:  # frames ready, not integrated
+            run.node.pipeline.dispatch(sensor, stream, msg)
+        integrated = sum(c["integrated"] for c in run.node.ingest.counters().values())
+        drain, save = run.node.pipeline.drain, run.node.map_services.save_meshes
+
+        def interrupted(action: Any) -> Any:
+            def call(*args: Any) -> Any:
+                signal.raise_signal(signal.SIGINT)
+                return action(*args)
+            return call
+
+        monkeypatch.setattr(run.node.pipeline, "drain", interrupted(drain))
+        monkeypatch.setattr(run.node.map_services, "save_meshes", interrupted(save))
+        stop_node(run.node)
+        out = capsys.readouterr().out
+        assert "frames not integrated yet are dropped" in out and "saving on shutdown stopped" in out
+        counters = run.node.ingest.counters().values()
+        assert sum(c["integrated"] for c in counters) == integrated
+        assert sum(c["dropped"]["shutdown"] for c in counters) >= 2
+        assert not list((tmp_path / "out").glob("*.ply*"))
+        with pytest.raises(InvalidHandle):  # destroyed
+            run.node.create_publisher(Image, "after_destroy", 1)
+    finally:
+        run.helper.destroy_node()
+
+
+_READER = """
+import sys
+import rclpy
+import rclpy.executors
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from visualization_msgs.msg import MarkerArray
+rclpy.init()
+node = rclpy.create_node("stopped_reader")
+qos = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+node.create_subscription(MarkerArray, sys.argv[1], lambda msg: None, qos)
+print("ready", flush=True)
+try:
+    rclpy.spin(node)
+except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+    pass
+"""
+
+
+def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: Path, monkeypatch) -> None:
+    """A mesh reader that does not acknowledge the parts of an update within the wait (here a
+    reader process stopped with SIGSTOP) makes the rest come faster than the history keeps them:
+    the next publication, with nothing new in the engine, sends the whole map."""
+    import functools
+    import signal
+    import subprocess
+    import sys
+
+    from senfunet_ros import mesh_publisher
+
+    # parts of ~4 KB: every update of this scene is several
+    monkeypatch.setattr(mesh_publisher.conv, "marker_array_messages",
+                        functools.partial(mesh_publisher.conv.marker_array_messages, max_bytes=4096))
+    run = Running("slowreader", {**topic_params("slowreader"), **SMALL, "mesh_rate_hz": 0.05}, tmp_path)
+    reader = subprocess.Popen([sys.executable, "-c", _READER, f"{run.prefix}/mesh"], stdout=subprocess.PIPE, text=True,
+                              stderr=subprocess.DEVNULL)
+    try:
+        assert reader.stdout is not None and reader.stdout.readline().strip() == "ready"
+        collector = MeshCollector(run.helper, f"{run.prefix}/mesh")
+        wait_for(lambda: run.node.mesh_publisher.mesh_pub.get_subscription_count() == 2, 20, "both readers")
+        messages = scene_messages()
+        fuse_in_process(run, messages[: len(messages) // 2])
+        run.node.publish_mesh()
+        wait_for(lambda: collector.keys() and collector.keys() == _marker_keys(run.node), 30, "the first mesh")
+        reader.send_signal(signal.SIGSTOP)
+        fuse_in_process(run, messages)
+        run.node.engine.refresh_alpha(None)  # all judged: no later update re-meshes anything by itself
+        run.node.publish_mesh()  # parts the stopped reader does not acknowledge: after the wait, they
+        #   come faster than the history of 2 keeps them, for every reader
+        reader.send_signal(signal.SIGCONT)  # the reader catches up
+        whole_maps = collector.delete_alls
+        run.node.publish_mesh()  # nothing new in the engine
+        wait_for(lambda: collector.delete_alls > whole_maps, 10, "the whole map again")
+        wait_for(lambda: collector.keys() == _marker_keys(run.node), 30, "all of the whole map")
+    finally:
+        reader.send_signal(signal.SIGCONT)
+        reader.send_signal(signal.SIGINT)
+        reader.wait(10)
+        run.close()
+
+
 def test_a_reader_that_replaces_another_between_two_publications_gets_the_whole_map(ros, tmp_path: Path) -> None:
     """RViz re-subscribing: one mesh reader leaves and another joins between two publications, so the
     reader count is the same; the newcomer, whose transient-local history holds only the last two
