@@ -24,6 +24,7 @@ class MapServices:
     map_loaded: Callable[[], None]  # the node's state derived from the old map, redone (under mesh_lock)
     map_reset: Callable[[], None]  # after ~/reset: the same, and subscribers told at once
     logger: Any  # the node's logger
+    configure_engine: Callable[[Any], None] | None = None  # the node's run-time settings, on a loaded engine
 
     def save_meshes(self, output_dir: str | Path | None = None) -> list[Path]:
         """Fused (filtered), per-sensor and TSDF Fusion meshes as PLY files; returns their paths."""
@@ -63,7 +64,8 @@ class MapServices:
     def _load_map(self) -> str:
         path = self.map_path()
         with self.mesh_lock:
-            engine = self.pipeline.load_map(path, device=P.engine_config(self.settings()).device)
+            engine = self.pipeline.load_map(path, device=P.engine_config(self.settings()).device,
+                                            configure=self.configure_engine)
             self.map_loaded()
         return f"loaded {path}: {sum(engine.frames_integrated.values())} frames, {engine.grid.n_blocks} blocks"
 

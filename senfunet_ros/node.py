@@ -283,7 +283,8 @@ class FusionNode(Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", _STATUS_QOS)
         # 6. services
         self.map_services = MapServices(self.pipeline, lambda: self.settings, self.mesh_publisher.lock,
-                                        self._map_loaded, self._map_reset, self.get_logger())
+                                        self._map_loaded, self._map_reset, self.get_logger(),
+                                        configure_engine=self._apply_engine_settings)
         services_group = MutuallyExclusiveCallbackGroup()
         for name, handler in (("save_mesh", self.map_services.save_mesh), ("save_map", self.map_services.save_map),
                               ("load_map", self.map_services.load_map), ("reset", self.map_services.reset)):
@@ -488,13 +489,16 @@ class FusionNode(Node):
         self.ingest.config = P.ingest_config(new, **P.live_lag(new), tf=tf)
         self.pipeline.on_time_jump = TimeJumpAction.parse(new.on_time_jump)
         self.health.window_s, self.health.stale_after_s = new.diagnostics_window_s, new.stale_after_s
-        self._apply_engine_settings(new)
+        self._apply_engine_settings()
         changed = sorted(name for name in values if values[name] != old.values[name])
         self.get_logger().info("parameters changed: " + ", ".join(f"{n} = {values[n]!r}" for n in changed))
 
-    def _apply_engine_settings(self, settings: P.Settings) -> None:
-        """The engine's run-time settings (depth limits) from the parameters."""
-        engine = self.engine
+    def _apply_engine_settings(self, engine: Any = None) -> None:
+        """The engine's (default: the node's) run-time settings (depth limits) from the parameters as
+        they are now. A parameter change racing ~/load_map leaves the loaded engine with the new
+        values: the load applies them to the loaded engine before and after it replaces the old."""
+        engine = self.engine if engine is None else engine
+        settings = self.settings
         engine.config = dataclasses.replace(engine.config,
                                             depth_min_m=tuple(sensor.depth_min_m for sensor in settings.sensors),
                                             depth_max_m=tuple(sensor.depth_max_m for sensor in settings.sensors))
@@ -611,7 +615,7 @@ class FusionNode(Node):
         """~/load_map replaced the engine (under the mesh lock): what the node derived from the old
         map goes, and subscribers get the loaded map whole."""
         self.camera_colors.clear()  # a map file holds no camera colours
-        self._apply_engine_settings(self.settings)
+        self._apply_engine_settings()
         self.mesh_publisher.resend_all()
 
     def _map_reset(self) -> None:

@@ -181,9 +181,12 @@ class Pipeline:
         os.chmod(path, FILE_MODE)
         return path
 
-    def load_map(self, path: str | Path, *, device: str | None = None) -> Any:
+    def load_map(self, path: str | Path, *, device: str | None = None,
+                 configure: Callable[[Any], None] | None = None) -> Any:
         """Replace the engine by the one saved in `path` (InputError if it is not a saved map); the
-        queued frames go (they belong to the old map's timeline). Returns the new engine."""
+        queued frames go (they belong to the old map's timeline). `configure` gets the new engine
+        before it replaces the old (the caller's run-time settings: no frame is integrated with the
+        file's). Returns the new engine."""
         from senfunet_core.engine import SenFuNet
 
         path = Path(path).expanduser()
@@ -191,6 +194,8 @@ class Pipeline:
             raise FileNotFoundError(f"{path}: no such map file; set parameter map_file or call ~/save_map first")
         # its alpha threads start as the old engine's did (the node's: at its mesh thread's priority)
         engine = SenFuNet.load(path, device=device, worker_setup=self.engine.alpha.worker_setup)
+        if configure is not None:
+            configure(engine)
         with self.lock:
             self.engine = engine
             self.ingest.clear_frames()

@@ -265,8 +265,11 @@ def test_save_map_load_map_round_trip_and_file_modes(ros, tmp_path: Path) -> Non
         assert (tmp_path / "out" / "mesh.ply").stat().st_mode & 0o777 == 0o644
         assert run.call("reset").success
         assert run.node.engine.extract_mesh("fused").n_faces == 0
+        (res,) = _set(run, **{"tof.depth_max_m": 2.5})  # the map file holds the old limit
+        assert res.successful
         r = run.call("load_map")
         assert r.success and str(path) in r.message, r.message
+        assert run.node.engine.config.depth_max_m[0] == 2.5  # the parameters hold for the loaded map
         after = run.node.engine.extract_mesh("fused")
         assert after.n_faces == before.n_faces and np.array_equal(after.vertices, before.vertices)
         (res,) = _set(run, map_file=str(tmp_path / "missing.pt"))
