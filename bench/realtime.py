@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import resource
@@ -120,9 +121,14 @@ def run_node_case(args: argparse.Namespace) -> dict:
         """5 s after the stream: the process's peak RSS so far (before the snapshot below, which is this
         benchmark's, not the node's), the map's stats, the blocks still to judge and, to compare with
         replay, the whole map's mesh as ~/mesh gives it to a subscriber then (alpha as the net left it)."""
+        live = None
+        if compare_with_replay(args):
+            store = engine.store
+            n = store.n_blocks  # read without the lock: a frame set aside may still be integrated
+            live = LiveMap(engine.block_meshes().vertices.copy(), engine.config.voxel_size_m,
+                           store.grid.coords[:n].numpy().copy(), store.evaluated[:n].copy(), store.meshed[:n].copy())
         return (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, engine.stats(),
-                engine.counters.get("alpha_backlog_blocks", 0),
-                engine.block_meshes().vertices.copy() if compare_with_replay(args) else None)
+                engine.counters.get("alpha_backlog_blocks", 0), live)
 
     after = None
     while not settled() and time.monotonic() < stream_end + 600:
@@ -158,7 +164,7 @@ def run_node_case(args: argparse.Namespace) -> dict:
     if after is None:  # the node's timers run on: its weighting net catches up once no frame comes
         time.sleep(max(0.0, stream_end + 5.0 - time.monotonic()))
         after = five_seconds_after()
-    peak_rss, after_stats, after_backlog, live_vertices = after
+    peak_rss, after_stats, after_backlog, live_map = after
     result = {
         "case": args.case, "mode": args.mode, "bag_seconds": bag_s, "wall_seconds": wall_s,
         "frames_sent": frames_sent, "frames_integrated": frames, "dropped": dropped,
@@ -197,10 +203,9 @@ def run_node_case(args: argparse.Namespace) -> dict:
     rclpy.try_shutdown()  # ends the executor's spin
     spinner.join(timeout=10)
     node.destroy_node()
-    if live_vertices is not None:
+    if live_map is not None:
         del node, engine, ingest  # the node's map is freed before replay builds its own
-        result["live_vs_replay_f"], result["live_vs_replay_p"], result["live_vs_replay_r"] = live_vs_replay_scores(
-            args, live_vertices)
+        result.update(live_vs_replay_scores(args, live_map))
     return result
 
 
@@ -216,10 +221,41 @@ def compare_with_replay(args: argparse.Namespace) -> bool:
     return args.mode == "realtime" and args.replay_check and args.max_seconds <= 0
 
 
-def live_vs_replay_scores(args: argparse.Namespace, live_vertices: np.ndarray) -> tuple[float, float, float]:
+@dataclasses.dataclass
+class LiveMap:
+    """The live mesh 5 s after the stream, and the state of the map's blocks then."""
+
+    vertices: np.ndarray  # as ~/mesh gives it
+    voxel_size_m: float
+    coords: np.ndarray  # B x 3 block coordinates
+    evaluated: np.ndarray  # B bool: judged by the weighting net at least once
+    meshed: np.ndarray  # B bool: its fused mesh had triangles when last meshed
+
+    def block_states(self, points: np.ndarray) -> np.ndarray:
+        """Per point: 0 its block was never judged and shows no mesh, 1 never judged and meshed,
+        2 judged, 3 no block holds it."""
+        import torch
+
+        from senfunet_core.grid import BLOCK, block_keys
+
+        keys = block_keys(torch.from_numpy(self.coords)).numpy()
+        order = np.argsort(keys)
+        wanted = block_keys(torch.from_numpy(np.floor(points / (self.voxel_size_m * BLOCK)).astype(np.int64))).numpy()
+        at = np.minimum(np.searchsorted(keys[order], wanted), max(len(keys) - 1, 0))
+        found = keys[order][at] == wanted if len(keys) else np.zeros(len(points), bool)
+        slot = order[at]
+        state = np.where(self.evaluated[slot], 2, np.where(self.meshed[slot], 1, 0))
+        return np.where(found, state, 3)
+
+
+def live_vs_replay_scores(args: argparse.Namespace, live: LiveMap) -> dict[str, float]:
     """F-score, precision and recall (2 cm) of the live mesh's vertices against `senfunet replay`'s
-    mesh.ply of the same bag, default parameters (F: test_play's measure of live equals replay)."""
+    mesh.ply of the same bag, default parameters (F: test_play's measure of live equals replay), and
+    where replay's surface that the live mesh lacks lies: the share of those vertices by the state
+    of their block in the live map (`LiveMap.block_states`)."""
     import tempfile
+
+    from scipy.spatial import cKDTree
 
     from senfunet_core.metrics import mesh_metrics
     from senfunet_ros.replay import replay_bag
@@ -228,8 +264,16 @@ def live_vs_replay_scores(args: argparse.Namespace, live_vertices: np.ndarray) -
         replayed = replay_bag(bag_path(args, args.case), out, progress=False)
     if not replayed.ok:
         raise RuntimeError(f"replay of the {args.case} bag failed: {replayed.error}")
-    scores = mesh_metrics(live_vertices, replayed.meshes["mesh"].vertices, tau_m=0.02)
-    return scores["F"], scores["P"], scores["R"]
+    replay_vertices = replayed.meshes["mesh"].vertices
+    scores = mesh_metrics(live.vertices, replay_vertices, tau_m=0.02)
+    lacks = np.ones(len(replay_vertices), bool)
+    if len(live.vertices):
+        lacks = ~np.isfinite(cKDTree(live.vertices).query(replay_vertices, distance_upper_bound=0.02)[0])
+    lacking = live.block_states(replay_vertices[lacks])
+    shares = np.bincount(lacking, minlength=4) / max(len(lacking), 1)
+    return {"live_vs_replay_f": scores["F"], "live_vs_replay_p": scores["P"], "live_vs_replay_r": scores["R"],
+            "lacking_unjudged_unmeshed": shares[0], "lacking_unjudged_meshed": shares[1],
+            "lacking_judged": shares[2], "lacking_no_block": shares[3]}
 
 
 def run_open3d(args: argparse.Namespace) -> dict | str:
@@ -345,6 +389,11 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
         "(precision / recall: replay's surface the live mesh lacks)",
         lambda r: f"{r['live_vs_replay_f']:.1f} ({r['live_vs_replay_p']:.1f} / {r['live_vs_replay_r']:.1f})"
         if "live_vs_replay_f" in r else "-")
+    row("... where replay's surface the live mesh lacks lies: blocks never judged without a mesh (surface one "
+        "sensor alone saw, shown once judged) / never judged with a mesh / judged / not in the map",
+        lambda r: " / ".join(f"{100 * r[key]:.0f}%" for key in ("lacking_unjudged_unmeshed", "lacking_unjudged_meshed",
+                                                                 "lacking_judged", "lacking_no_block"))
+        if "lacking_judged" in r else "-")
     row("peak RSS until 5 s after the stream (GB)", lambda r: f"{r['peak_rss_bytes'] / 1e9:.2f}")
     row("blocks / observed voxels", lambda r: f"{r['blocks']} / {r['observed_voxels']}")
     row("blocks evicted / meshes archived / on disk at the end / restored from disk",
