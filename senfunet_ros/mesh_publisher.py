@@ -80,6 +80,10 @@ class MeshPublisher:
         # more, or one that replaced another between two publications (RViz re-subscribing), gets
         # the whole map
         self._served = (0, 0)
+        # an update's parts went out while a reader had not taken the ones before (they may have
+        # been lost, for it and for readers that could not keep up with the rest): once every reader
+        # has taken what was published, the next publication sends the whole map
+        self._parts_unacknowledged = False
         self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
         # an idle turn of the net runs on this thread while `publish`'s thread encodes and publishes
         self._turns = ThreadPoolExecutor(1, thread_name_prefix="senfunet-net-turn", initializer=thread_setup)
@@ -131,8 +135,9 @@ class MeshPublisher:
             frame_id = s.fixed_frame
             readers = (self.mesh_pub.get_subscription_count(), self._matched)
             messages = None
-            if readers[0] > served[0] or readers[1] > served[1]:
-                # Someone new joined: transient local only holds the last few messages, so send it all.
+            caught_up = self._parts_unacknowledged and self.mesh_pub.wait_for_all_acked(_NO_WAIT)
+            if readers[0] > served[0] or readers[1] > served[1] or caught_up:
+                # Someone new joined (or caught up): transient local only holds the last few messages, so send it all.
                 messages = conv.marker_array_messages(self.display(engine.block_meshes()), (),
                                                       stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
             elif update.cleared or len(update.meshes) or update.removed:
@@ -170,12 +175,13 @@ class MeshPublisher:
                     self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
                     self._timings["publish"].add(publish_s)
                 self._latency.published(contained)
-                if unacknowledged:  # a slow reader may have lost parts: it gets the whole map next time
+                if unacknowledged:
                     self._warn(("mesh_readers_behind",), f"a ~/mesh reader did not take the parts of a mesh update "
                                f"within {_PARTS_ACK_TIMEOUT_S:g} s ({unacknowledged} part(s) published without "
-                               "waiting for it; it may have missed some): the next update sends the whole map")
-                else:
-                    self._served = readers
+                               "waiting for it; readers may have missed some): the whole map is sent again once "
+                               "every reader has caught up")
+                self._parts_unacknowledged = bool(unacknowledged) or (self._parts_unacknowledged and not caught_up)
+                self._served = readers
             finally:  # the turn ends before the next publication, even if this one failed
                 if turn is not None:
                     futures.wait([turn])

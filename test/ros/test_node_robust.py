@@ -538,11 +538,14 @@ except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
 def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: Path, monkeypatch) -> None:
     """A mesh reader that does not acknowledge the parts of an update within the wait (here a
     reader process stopped with SIGSTOP) makes the rest come faster than the history keeps them:
-    the next publication, with nothing new in the engine, sends the whole map."""
+    once every reader has caught up, the next publication, with nothing new in the engine, sends
+    the whole map (not while one is still behind: a stuck reader would make every update whole)."""
     import functools
     import signal
     import subprocess
     import sys
+
+    from rclpy.duration import Duration
 
     from senfunet_ros import mesh_publisher
 
@@ -565,9 +568,13 @@ def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: 
         run.node.engine.refresh_alpha(None)  # all judged: no later update re-meshes anything by itself
         run.node.publish_mesh()  # parts the stopped reader does not acknowledge: after the wait, they
         #   come faster than the history of 2 keeps them, for every reader
-        reader.send_signal(signal.SIGCONT)  # the reader catches up
         whole_maps = collector.delete_alls
-        run.node.publish_mesh()  # nothing new in the engine
+        run.node.publish_mesh()  # nothing new in the engine, and a reader still behind: no message
+        reader.send_signal(signal.SIGCONT)
+        wait_for(lambda: run.node.mesh_publisher.mesh_pub.wait_for_all_acked(Duration(seconds=0)), 10,
+                 "the reader to catch up")
+        assert collector.delete_alls == whole_maps
+        run.node.publish_mesh()  # nothing new in the engine, every reader caught up
         wait_for(lambda: collector.delete_alls > whole_maps, 10, "the whole map again")
         wait_for(lambda: collector.keys() == _marker_keys(run.node), 30, "all of the whole map")
     finally:
