@@ -389,8 +389,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
         "(precision / recall: replay's surface the live mesh lacks)",
         lambda r: f"{r['live_vs_replay_f']:.1f} ({r['live_vs_replay_p']:.1f} / {r['live_vs_replay_r']:.1f})"
         if "live_vs_replay_f" in r else "-")
-    row("... where replay's surface the live mesh lacks lies: blocks never judged without a mesh (surface one "
-        "sensor alone saw, shown once judged) / never judged with a mesh / judged / not in the map",
+    row("... where replay's surface the live mesh lacks lies: blocks never judged without a mesh (mostly surface "
+        "one sensor alone saw: shown once judged) / never judged with a mesh / judged / not in the map",
         lambda r: " / ".join(f"{100 * r[key]:.0f}%" for key in ("lacking_unjudged_unmeshed", "lacking_unjudged_meshed",
                                                                  "lacking_judged", "lacking_no_block"))
         if "lacking_judged" in r else "-")
