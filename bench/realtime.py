@@ -117,18 +117,19 @@ def run_node_case(args: argparse.Namespace) -> dict:
         c = ingest.counters()
         return all(v["integrated"] + sum(v["dropped"].values()) >= v["received"] for v in c.values())
 
-    def five_seconds_after() -> tuple[int, dict, int, np.ndarray | None]:
+    def five_seconds_after() -> tuple[int, dict, int, LiveMap | None]:
         """5 s after the stream: the process's peak RSS so far (before the snapshot below, which is this
         benchmark's, not the node's), the map's stats, the blocks still to judge and, to compare with
-        replay, the whole map's mesh as ~/mesh gives it to a subscriber then (alpha as the net left it)."""
+        replay, the whole map's mesh as ~/mesh gives it to a subscriber then (alpha as the net left it) and
+        the state of its blocks."""
+        peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # before the snapshot's arrays
         live = None
         if compare_with_replay(args):
             store = engine.store
             n = store.n_blocks  # read without the lock: a frame set aside may still be integrated
             live = LiveMap(engine.block_meshes().vertices.copy(), engine.config.voxel_size_m,
                            store.grid.coords[:n].numpy().copy(), store.evaluated[:n].copy(), store.meshed[:n].copy())
-        return (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, engine.stats(),
-                engine.counters.get("alpha_backlog_blocks", 0), live)
+        return peak_rss, engine.stats(), engine.counters.get("alpha_backlog_blocks", 0), live
 
     after = None
     while not settled() and time.monotonic() < stream_end + 600:
