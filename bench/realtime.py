@@ -239,12 +239,13 @@ class LiveMap:
 
         from senfunet_core.grid import BLOCK, block_keys
 
+        if len(self.coords) == 0:
+            return np.full(len(points), 3)
         keys = block_keys(torch.from_numpy(self.coords)).numpy()
         order = np.argsort(keys)
         wanted = block_keys(torch.from_numpy(np.floor(points / (self.voxel_size_m * BLOCK)).astype(np.int64))).numpy()
-        at = np.minimum(np.searchsorted(keys[order], wanted), max(len(keys) - 1, 0))
-        found = keys[order][at] == wanted if len(keys) else np.zeros(len(points), bool)
-        slot = order[at]
+        slot = order[np.minimum(np.searchsorted(keys[order], wanted), len(keys) - 1)]
+        found = keys[slot] == wanted
         state = np.where(self.evaluated[slot], 2, np.where(self.meshed[slot], 1, 0))
         return np.where(found, state, 3)
 

@@ -23,8 +23,8 @@ class MapServices:
     mesh_lock: threading.Lock  # held while ~/load_map replaces the engine: no mesh update meanwhile
     map_loaded: Callable[[], None]  # the node's state derived from the old map, redone (under mesh_lock)
     map_reset: Callable[[], None]  # after ~/reset: the same, and subscribers told at once
+    configure_engine: Callable[[Any], None]  # the node's run-time settings, on a loaded engine before it serves
     logger: Any  # the node's logger
-    configure_engine: Callable[[Any], None] | None = None  # the node's run-time settings, on a loaded engine
 
     def save_meshes(self, output_dir: str | Path | None = None) -> list[Path]:
         """Fused (filtered), per-sensor and TSDF Fusion meshes as PLY files; returns their paths."""

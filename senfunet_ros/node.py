@@ -283,8 +283,8 @@ class FusionNode(Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", _STATUS_QOS)
         # 6. services
         self.map_services = MapServices(self.pipeline, lambda: self.settings, self.mesh_publisher.lock,
-                                        self._map_loaded, self._map_reset, self.get_logger(),
-                                        configure_engine=self._apply_engine_settings)
+                                        self._map_loaded, self._map_reset, self._apply_engine_settings,
+                                        self.get_logger())
         services_group = MutuallyExclusiveCallbackGroup()
         for name, handler in (("save_mesh", self.map_services.save_mesh), ("save_map", self.map_services.save_map),
                               ("load_map", self.map_services.load_map), ("reset", self.map_services.reset)):
