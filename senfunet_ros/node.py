@@ -247,7 +247,7 @@ class FusionNode(Node):
         tf = self._make_tf() if PoseType(s.pose_type) is PoseType.TF else None  # before the heavy engine
         ingest = Ingest(P.ingest_config(self.settings, **P.live_lag(s), tf=tf))
         self.pipeline = Pipeline(self._make_engine(), ingest, on_time_jump=s.on_time_jump, log=self._log,
-                                 on_integrated=self._integrated)
+                                 on_integrated=self._integrated, on_new_map=self.camera_colors.clear)
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.counters()
         # 3. subscriptions: they only enqueue; the status reports their health
@@ -614,14 +614,12 @@ class FusionNode(Node):
     def _map_loaded(self) -> None:
         """~/load_map replaced the engine (under the mesh lock): what the node derived from the old
         map goes, and subscribers get the loaded map whole."""
-        self.camera_colors.clear()  # a map file holds no camera colours
         self._apply_engine_settings()
         self.mesh_publisher.resend_all()
 
     def _map_reset(self) -> None:
         """~/reset emptied the map: subscribers get a DELETEALL right away (if that publication
         fails, the reset still stands: the next one sends the whole, empty map)."""
-        self.camera_colors.clear()
         try:
             self.publish_mesh()
         except Exception as err:

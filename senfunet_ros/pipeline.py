@@ -67,12 +67,16 @@ class Pipeline:
     """Messages -> Ingest -> engine, with one policy for time jumps, failures and files."""
 
     def __init__(self, engine: Any, ingest: Ingest, *, on_time_jump: str = "keep", log: Log | None = None,
-                 on_integrated: Callable[[Frame, float], None] | None = None) -> None:
+                 on_integrated: Callable[[Frame, float], None] | None = None,
+                 on_new_map: Callable[[], None] | None = None) -> None:
         self.engine = engine
         self.ingest = ingest
         self.on_time_jump = TimeJumpAction.parse(on_time_jump)
         self._log = log or (lambda level, text: None)
         self._on_integrated = on_integrated
+        # called under the lock whenever the map is emptied or replaced, so that what the caller
+        # derives from integrated frames (camera colours) never outlives the map nor misses a frame
+        self._on_new_map = on_new_map or (lambda: None)
         self.lock = threading.RLock()  # held while the engine is fed, reset, replaced or saved
         self.latest_stamp_ns = 0  # latest integrated sensor time: the stamp of every output
         self.frames_integrated = 0
@@ -120,6 +124,7 @@ class Pipeline:
                   f"{'reset' if reset else 'kept'} (parameter on_time_jump)")
         if reset:
             self.engine.reset()
+            self._on_new_map()
         self.latest_stamp_ns = jump.to_ns
 
     def _frame_done(self, frame: Frame, error: Exception | None, seconds: float) -> None:
@@ -149,6 +154,7 @@ class Pipeline:
         with self.lock:
             self.engine.reset()
             self.ingest.clear_frames()
+            self._on_new_map()
 
     def save_meshes(self, out_dir: str | Path, *, sensors: Iterable[str], tsdf_fusion: bool,
                     then_reset: bool = False) -> dict[str, SavedMesh]:
@@ -165,6 +171,8 @@ class Pipeline:
                 t0 = time.perf_counter()
                 mesh = self.engine.extract_mesh(name, then_reset=then_reset and name == which[-1])
                 meshes[MESH_FILES.get(name, name)] = (mesh, time.perf_counter() - t0)
+            if then_reset:
+                self._on_new_map()
         saved = {}
         for stem, (mesh, seconds) in meshes.items():
             path = out / f"{stem}.ply"
@@ -199,4 +207,5 @@ class Pipeline:
         with self.lock:
             self.engine = engine
             self.ingest.clear_frames()
+            self._on_new_map()
         return engine

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import threading
 
 import time
 
@@ -400,3 +401,34 @@ def test_pose_of_another_frame_goes_through_the_sensor_extrinsic() -> None:
     T_world_body = np.eye(4)
     T_world_body[0, 3] = 1.0
     assert np.allclose(frame.T_world_camera, T_world_body @ T_body_camera)
+
+
+def test_pipeline_tells_its_owner_under_its_lock_each_time_the_map_is_emptied_or_replaced(tmp_path) -> None:
+    """What the node derives from integrated frames (camera colours) is cleared with the map, under
+    the lock frames are integrated under: no frame lands between the two."""
+    from senfunet_core.engine import EngineConfig, SenFuNet
+    from senfunet_ros.pipeline import Pipeline
+
+    calls: list[bool] = []
+
+    def on_new_map() -> None:  # True: another thread cannot take the pipeline's lock now
+        held: list[bool] = []
+        probe = threading.Thread(target=lambda: held.append(not pipeline.lock.acquire(blocking=False)))
+        probe.start()
+        probe.join()
+        calls.append(held[0])
+
+    pipeline = Pipeline(SenFuNet(EngineConfig(), weights=None), make(), on_time_jump="keep", on_new_map=on_new_map)
+    pipeline.drain([TimeJump("tof", "depth", 5 * 10**8, 0)])
+    assert calls == []  # on_time_jump "keep": the map stays
+    pipeline.on_time_jump = pipeline.on_time_jump.parse("reset")
+    pipeline.drain([TimeJump("tof", "depth", 5 * 10**8, 0)])
+    assert calls == [True]
+    pipeline.reset()
+    assert calls == [True] * 2
+    pipeline.load_map(pipeline.save_map(tmp_path / "map.pt"))
+    assert calls == [True] * 3
+    pipeline.save_meshes(tmp_path, sensors=(), tsdf_fusion=False)
+    assert calls == [True] * 3  # saving alone keeps the map
+    pipeline.save_meshes(tmp_path, sensors=(), tsdf_fusion=False, then_reset=True)
+    assert calls == [True] * 4
