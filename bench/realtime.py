@@ -330,6 +330,7 @@ def run_open3d(args: argparse.Namespace) -> dict | str:
 
 
 def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str:
+    from senfunet_ros.mesh_publisher import MIN_TURN_S
     from senfunet_ros.params import GLOBAL_PARAMS
 
     cases = list(results)
@@ -339,7 +340,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
              "The real `FusionNode` with its default parameters (config/default.yaml: mesh updates at "
              f"{default['mesh_rate_hz']:g} Hz (scheduled 5% more often), weighting-net budget "
-             f"{default['alpha_budget_s']:g} s per update (within the mesh period, at least a quarter of it), "
+             f"{default['alpha_budget_s']:g} s per update (within the mesh period, at least "
+             f"{MIN_TURN_S:g} s), "
              f"alpha on surface blocks, frames more than {default['max_lag_s']:g} s behind set aside (up to "
              f"{default['behind_buffer_mb']:g} MB, integrated once no image came for that long), mesh updates on "
              f"both cores when no frame waits, the net's catch-up for the rest of each mesh period after an update "

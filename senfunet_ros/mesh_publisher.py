@@ -41,7 +41,9 @@ _NO_WAIT = Duration(seconds=0)
 _PARTS_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the later parts of one update at most this, in all
 MESH_PERIOD_MARGIN = 0.05  # the mesh timer runs this much faster than mesh_rate_hz, and the weighting net's turn
 #   ends this much before its period: the refresh holds the rate asked for despite the updates' jitter
-MIN_TURN_SHARE = 0.25  # of alpha_budget_s: the net's turn while frames come, however long the update took
+# the net's turn while frames come, however long the update took (if alpha_budget_s allows): short, since
+# an update that took the whole period already delays the next
+MIN_TURN_S = 0.05
 
 
 def mesh_period_s(mesh_rate_hz: float) -> float:
@@ -204,9 +206,9 @@ class MeshPublisher:
         """The weighting net's turn after a mesh update.
 
         While frames come: alpha_budget_s (0: no limit), but no longer than what is left of the mesh
-        period, so that the mesh refresh keeps its rate; and at least a quarter of alpha_budget_s,
-        so that on a map whose updates take the whole period the net still judges while the sensors
-        stream. Idle (no frame integrated while the update ran and none queued: the sensors paused
+        period, so that the mesh refresh keeps its rate; and at least MIN_TURN_S (or the budget, if
+        less), so that on a map whose updates take the whole period the net still judges while the
+        sensors stream. Idle (no frame integrated while the update ran and none queued: the sensors paused
         or stopped): the net catches up on what it has not judged yet, on every core, for the rest
         of the mesh period (at least alpha_budget_s), and stops as soon as a frame is integrated; the
         next update publishes what it judged and gives it the next slice, so the mesh keeps its
@@ -219,7 +221,7 @@ class MeshPublisher:
         elif idle:
             engine.refresh_alpha(max(period_left_s, s.alpha_budget_s), until_frame=True)
         else:
-            engine.refresh_alpha(min(s.alpha_budget_s, max(period_left_s, MIN_TURN_SHARE * s.alpha_budget_s)))
+            engine.refresh_alpha(min(s.alpha_budget_s, max(period_left_s, MIN_TURN_S)))
 
     def display(self, meshes: Any) -> Any:
         """The display mesh of a batch of block meshes (parameter mesh_display_cell_m)."""

@@ -24,6 +24,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from senfunet_ros import params as P
 from senfunet_ros.node import FusionNode, stop_executor
+from senfunet_ros.mesh_publisher import MIN_TURN_S
 
 ROOT = Path(__file__).resolve().parents[2]
 BASE_S = 1000  # added to simulator stamps (which start below 0 for poses)
@@ -747,19 +748,21 @@ def test_latency_is_counted_per_frame_from_its_arrival_to_the_update_that_publis
 
 def test_the_weighting_net_turn_leaves_the_mesh_period_to_the_next_update(ros, tmp_path: Path) -> None:
     """While frames come, the weighting net gets alpha_budget_s after a mesh update, but no more
-    than what is left of the mesh period, so that the mesh refresh rate holds, and no less than a
-    quarter of alpha_budget_s, so that it never stops while the sensors stream; with budget 0 (no
-    limit) it judges everything."""
+    than what is left of the mesh period, so that the mesh refresh rate holds, and no less than
+    MIN_TURN_S (or the budget, if less), so that it never stops while the sensors stream; with budget
+    0 (no limit) it judges everything."""
     run = Running("turn", {**topic_params("turn"), "alpha_budget_s": 0.3, "mesh_rate_hz": 1.0}, tmp_path)
     try:
         budgets: list[float | None] = []
         run.node.engine.refresh_alpha = lambda budget_s=None, until_frame=False: budgets.append(budget_s)
         for left_s in (0.9, 0.1, 0.0, -0.2):
             run.node.mesh_publisher.weighting_net_turn(idle=False, period_left_s=left_s)
-        assert budgets == pytest.approx([0.3, 0.1, 0.075, 0.075])
+        assert budgets == pytest.approx([0.3, 0.1, MIN_TURN_S, MIN_TURN_S])
+        run.node.set_parameters([Parameter("alpha_budget_s", value=0.01)])  # below MIN_TURN_S: the budget
+        run.node.mesh_publisher.weighting_net_turn(idle=False, period_left_s=-0.2)
         run.node.set_parameters([Parameter("alpha_budget_s", value=0.0)])
         run.node.mesh_publisher.weighting_net_turn(idle=False, period_left_s=-0.2)
-        assert budgets[4:] == [None]
+        assert budgets[4:] == [0.01, None]
     finally:
         run.close()
 
