@@ -61,6 +61,9 @@ _COMPRESSED_DEPTH_HEADER = np.dtype([("format", "<i4"), ("depth_a", "<f4"), ("de
 def _decode(data: np.ndarray, flags: int, what: str) -> np.ndarray:
     import cv2
 
+    # OpenCV would print its own lines for every malformed image, unthrottled, to stderr; the
+    # caller's error says the same, counted and rate-limited (the node's log, ~/status)
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
         image = cv2.imdecode(data, flags) if data.size else None
     except cv2.error as err:

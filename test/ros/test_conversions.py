@@ -234,3 +234,15 @@ def test_point_cloud2_round_trip() -> None:
     assert empty.width == 0 and len(empty.data) == 0
     with pytest.raises(ValueError, match="weight column"):
         conv.point_cloud2_cdr(pos, alpha, weights[:, :1], ["tof", "stereo"], stamp_ns=0, frame_id="map")
+
+
+def test_a_malformed_compressed_image_raises_without_opencv_printing(capfd: pytest.CaptureFixture) -> None:
+    """OpenCV's own lines for a broken image would reach stderr unthrottled, once per message; the
+    error raised here is what the node counts and logs, rate-limited."""
+    from sensor_msgs.msg import CompressedImage
+
+    msg = CompressedImage(format="16UC1; compressedDepth png")
+    msg.data = b"\x00" * 12 + b"\x89PNG\r\n\x1a\n" + bytes(range(200))  # a png signature, then garbage
+    with pytest.raises(ValueError, match="not a readable png"):
+        conv.depth_from_image(msg)
+    assert capfd.readouterr().err == ""
