@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .alpha import (WINDOW, evaluate_gathers, holds_surface_targets, reach_levels, surface_targets, target_gathers,
-                    weighting_windows)
+from .alpha import (WINDOW, evaluate_gathers, holds_surface_targets, near_surface_voxels, reach_levels, surface_targets,
+                    target_gathers, weighting_windows)
 from .block_store import BlockStore, Eviction
 from .grid import BLOCK, encode_alpha
 from .scratch import ThreadScratch
@@ -65,7 +65,7 @@ class AlphaScheduler:
     """The weighting net's work over a `BlockStore` (see the module docstring)."""
 
     def __init__(self, store: BlockStore, net: Any, data_lock: threading.RLock, *, alpha_voxels: str,
-                 alpha_dtype: str, tsdf_input: bool, band_m: float,
+                 alpha_dtype: str, tsdf_input: bool, band_m: float, voxel_size_m: float,
                  device: torch.device, batch_blocks: int, threads: int, alpha_order: str,
                  worker_setup: Callable[[], object] | None = None) -> None:
         self.store = store
@@ -75,6 +75,7 @@ class AlphaScheduler:
         self.dtype = torch.bfloat16 if alpha_dtype == "bfloat16" else torch.float32
         self.tsdf_input = tsdf_input
         self.tsdf_scale = 2.0 / band_m
+        self.voxel_size_m = voxel_size_m
         self.device = device
         self.batch_blocks = batch_blocks
         self.alpha_order = alpha_order
@@ -116,6 +117,7 @@ class AlphaScheduler:
             store.last_reached[candidates] = self.schedules
             store.last_change_s[candidates] = last_change_s[candidates]
             store.stale[candidates] = np.maximum(store.stale[candidates], levels)
+            store.surface_voxels[candidates] = -1
 
     def waiting_s(self, slots: np.ndarray, now_s: float) -> np.ndarray:
         """How long alpha has waited on these blocks (whose alpha is not up to date) since their
@@ -126,16 +128,22 @@ class AlphaScheduler:
         pending = store.alpha_pending[slots]
         return now_s - np.fmax(store.last_change_s[slots], np.where(pending, store.touched_s[slots], np.nan))
 
-    def order(self) -> np.ndarray:
+    def order(self, *, idle: bool = False) -> np.ndarray:
         """The stale blocks in the order they are judged (`alpha_order`): "latest", those the latest
         frames reached first (a budget that cannot keep up, as on a large room, goes to the part of
         the map being scanned); "longest_waiting", blocks with a mesh first (what a subscriber sees;
         the others' turn comes when those are judged, or when the sensors pause), and among them
         those whose last change is oldest first (blocks the sensors still see wait until they settle:
         each is judged about once, and the longest wait is the shortest); then the blocks without a
-        mesh, never evaluated ones first (surface one sensor alone saw shows only once judged), then
-        those with newly observed or sign-changed voxels, then changed ones, each oldest first. Among
-        meshed blocks reached by the same schedule (and in "latest"), the same three levels."""
+        mesh, never evaluated ones first, then those with newly observed or sign-changed voxels, then
+        changed ones, each oldest first. Among meshed blocks reached by the same schedule (and in
+        "latest"), the same three levels.
+
+        `idle` (the sensors paused: the net catches up), "longest_waiting": among the blocks without
+        a mesh, the never evaluated ones near a sensor's surface go first, those with the most such
+        voxels first (`alpha.near_surface_voxels`, counted then: too costly while frames come). The
+        outlier filter holds back the surface one sensor alone saw until the net judged it, so these
+        blocks hold the surface the mesh lacks, the most of it first."""
         store = self.store
         with self._data_lock:
             stale = np.flatnonzero(store.stale[: store.n_blocks])
@@ -144,9 +152,24 @@ class AlphaScheduler:
             if self.alpha_order == "latest":
                 return stale[np.lexsort((-levels, -reached))]
             meshed = store.meshed[stale]
-            # without a mesh, the level first: only the net can show the surface one sensor alone saw
-            # in a never judged block (the outlier filter holds it back until it is judged)
-            return stale[np.lexsort((np.where(meshed, -levels, reached), np.where(meshed, reached, -levels), ~meshed))]
+            never_judged = ~meshed & (levels == 3)  # without a mesh
+            uncounted = stale[never_judged & (store.surface_voxels[stale] < 0)] if idle else stale[:0]
+            sensor_tsdfs = store.views("tsdf0", "weight0", "tsdf1", "weight1")
+        surface = np.zeros(len(stale), np.int64)
+        if idle:
+            # counted without the lock, as `evaluate` reads the grid, on the evaluating threads: a block
+            # integrated into meanwhile is counted again once a schedule made it stale again
+            def count(part: np.ndarray) -> np.ndarray:
+                return near_surface_voxels(part, *sensor_tsdfs, self.voxel_size_m)
+
+            counts = (list(self.workers().map(count, np.array_split(uncounted, self.threads))) if self.threads > 1
+                      else [count(uncounted)])
+            with self._data_lock:
+                store.surface_voxels[uncounted] = np.concatenate(counts)
+                surface[never_judged] = store.surface_voxels[stale[never_judged]]
+        group = np.where(meshed, 0, np.where(surface > 0, 1, 2))  # meshed, surface held back, the rest
+        return stale[np.lexsort((np.where(meshed, -levels, reached), np.where(meshed, reached, -levels), -surface,
+                                 group))]
 
     @torch.inference_mode()  # grad mode is per thread, and evaluating threads may be new
     def evaluate(self, slots: np.ndarray) -> AlphaBatch:
@@ -229,7 +252,7 @@ class AlphaScheduler:
         calls `evict` when `eviction_due` (integration outgrew the map bound) and follows the
         blocks that moved."""
         self.schedule()
-        order = self.order()
+        order = self.order(idle=until_frame is not None)
         start = time.perf_counter()
         done = voxels = left = 0
         # batches evaluated at once: one while frames come (integration needs the other core)

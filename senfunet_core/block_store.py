@@ -47,12 +47,14 @@ class BlockStore:
       changes reach it (NaN: never made stale), so that the scheduler knows how long alpha has
       waited there since the block's last change;
     - mesh_pending: TSDF or alpha changed since it was meshed;
-    - meshed: its fused mesh had triangles when last meshed."""
+    - meshed: its fused mesh had triangles when last meshed;
+    - surface_voxels: its voxels near a sensor's surface when last counted (`alpha.near_surface_voxels`),
+      -1 when made stale since: how much surface judging it may show, where it has no mesh."""
 
     _FLAGS = {"alpha_pending": bool, "reach_changed": np.int32, "reach_renewed": np.int32, "stale": np.int8,
               "evaluated": bool, "no_targets": bool, "last_reached": np.int64, "touched_s": np.float64,
-              "last_change_s": np.float64, "mesh_pending": bool, "meshed": bool}
-    _FILL = {"touched_s": np.nan, "last_change_s": np.nan}  # the others start at 0 (False)
+              "last_change_s": np.float64, "mesh_pending": bool, "meshed": bool, "surface_voxels": np.int16}
+    _FILL = {"touched_s": np.nan, "last_change_s": np.nan, "surface_voxels": -1}  # the others start at 0 (False)
 
     alpha_pending: np.ndarray
     reach_changed: np.ndarray
@@ -65,6 +67,7 @@ class BlockStore:
     last_change_s: np.ndarray
     mesh_pending: np.ndarray
     meshed: np.ndarray
+    surface_voxels: np.ndarray
 
     def __init__(self, grid: BlockGrid) -> None:
         self.grid = grid

@@ -274,7 +274,8 @@ class SenFuNet:
         self.total_s = self.times.total_s  # stage -> seconds summed over all runs
         self.alpha = AlphaScheduler(self.store, self.weighting_net, self._data_lock, alpha_voxels=config.alpha_voxels,
                                     alpha_dtype=config.alpha_dtype,
-                                    tsdf_input=config.weighting_tsdf_input, band_m=config.band_m, device=self.device,
+                                    tsdf_input=config.weighting_tsdf_input, band_m=config.band_m,
+                                    voxel_size_m=config.voxel_size_m, device=self.device,
                                     batch_blocks=config.alpha_batch_blocks, threads=config.alpha_threads,
                                     alpha_order=config.alpha_order, worker_setup=worker_setup)
         self.mesher = BlockMesher(self.store, sensors=config.sensors, voxel_size_m=config.voxel_size_m,

@@ -100,7 +100,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "0 = no limit", lo=0.0, hi=600.0, runtime=True),
     Param("alpha_order", "longest_waiting", "which blocks a short alpha budget judges first: longest_waiting (blocks "
           "with a mesh first, and among them those whose last change is oldest; blocks still in view wait until they "
-          "settle; then the others, never judged ones first) | latest (those the latest frames reached)",
+          "settle; then the others, never judged ones first, and when the sensors pause, those with the most voxels "
+          "near a sensor's surface first) | latest (those the latest frames reached)",
           choices=("longest_waiting", "latest")),
     Param("mesh_display_cell_m", 0.03, "~/mesh shows a display mesh whose vertices are merged on a grid of this "
           "size (per block; the map and ~/save_mesh keep full resolution): a snapshot of a room stays a few tens of "

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from senfunet_core.alpha import surface_targets
+from senfunet_core.alpha import near_surface_voxels, surface_targets
 
 
 def _random_neighbourhood(rng: np.random.Generator) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -64,3 +64,24 @@ def test_surface_targets_match_a_dense_reference() -> None:
         np.testing.assert_array_equal(surface_targets(neighbours, *pools)[0].reshape(8, 8, 8), expected)
         outcomes.append(expected.any())
     assert 20 < sum(outcomes) < 180  # blocks with and without targets were exercised
+
+
+def test_near_surface_voxels_match_a_numpy_count() -> None:
+    """Per block, the voxels a sensor observed within the limit of its surface, with the TSDF pools
+    as float32 and as float16 bits."""
+    rng = np.random.default_rng(8)
+    counts = []
+    for _ in range(20):
+        neighbours, pools = _random_neighbourhood(rng)
+        slots = rng.permutation(neighbours[neighbours >= 0])
+        tsdf_1, weight_1, tsdf_2, weight_2 = pools
+        near = np.zeros(len(tsdf_1), bool)
+        for tsdf, weight in ((tsdf_1, weight_1), (tsdf_2, weight_2)):
+            near |= (weight.view(np.float16) > 0) & (np.abs(tsdf) < 0.01)
+        expected = near.reshape(-1, 512)[slots].sum(axis=1)
+        np.testing.assert_array_equal(near_surface_voxels(slots, *pools, 0.01), expected)
+        half_1, half_2 = (tsdf.astype(np.float16).view(np.int16) for tsdf in (tsdf_1, tsdf_2))
+        half_counts = near_surface_voxels(slots, half_1, weight_1, half_2, weight_2, 0.01)
+        np.testing.assert_allclose(half_counts, expected, atol=4)
+        counts += expected.tolist()
+    assert 0 < min(counts) and max(counts) < 512  # blocks with partly observed surface

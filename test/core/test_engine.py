@@ -14,6 +14,7 @@ import zstandard
 from scipy.spatial import cKDTree
 
 from senfunet_core import networks
+from senfunet_core.alpha import near_surface_voxels
 from senfunet_core.engine import EngineConfig, SenFuNet
 from senfunet_core.errors import InputError
 from senfunet_core.fusion import fuse
@@ -791,7 +792,8 @@ def test_integration_past_the_hard_bound_during_an_update_is_served_between_batc
 
 def _two_spheres_one_scheduled_before(engine: SenFuNet) -> int:
     """A far sphere integrated and scheduled (refresh_alpha(0): nothing evaluated), then a near one
-    integrated: returns the slot count after the far sphere (the near sphere's blocks come after)."""
+    integrated, and both meshed (alpha not evaluated): returns the slot count after the far sphere
+    (the near sphere's blocks come after)."""
     K = SPHERE_K
     far = SPHERE_C + [3.0, 0.0, 0.0]
     far_view = look_at(far + 0.9 * (SPHERE_VIEWS[0][:3, 3] - SPHERE_C), far)
@@ -802,12 +804,14 @@ def _two_spheres_one_scheduled_before(engine: SenFuNet) -> int:
         if centre is far:
             engine.refresh_alpha(0.0)
             n_far = engine.grid.n_blocks
+    engine.update(alpha_budget_s=0)
     return n_far
 
 
-def _judge_two_batches(engine: SenFuNet, monkeypatch) -> np.ndarray:
+def _judge_two_batches(engine: SenFuNet, monkeypatch, *, idle: bool = False) -> np.ndarray:
     """refresh_alpha with a budget that runs exactly two batches (on a fake clock, each batch takes
-    0.3 s of it, the budget is 0.65 s: a third would end past it); returns the slots judged so far."""
+    0.3 s of it, the budget is 0.65 s: a third would end past it), as an idle catch-up (until a frame
+    comes) if `idle`; returns the slots judged so far."""
     import senfunet_core.alpha_scheduler as scheduler_module
 
     clock = VirtualClock()
@@ -819,7 +823,7 @@ def _judge_two_batches(engine: SenFuNet, monkeypatch) -> np.ndarray:
         return infer(*args, **kwargs)
 
     engine.weighting_net.infer = slow_infer
-    engine.refresh_alpha(0.65)
+    engine.refresh_alpha(0.65, until_frame=idle)
     assert clock.now_s == pytest.approx(0.6)
     return np.flatnonzero(engine.store.evaluated[: engine.grid.n_blocks])
 
@@ -839,11 +843,12 @@ def test_a_budget_serves_the_blocks_its_order_puts_first(monkeypatch, alpha_orde
         assert evaluated.max() < n_far  # the far sphere's, waiting since the first schedule
 
 
-def test_longest_waiting_judges_the_blocks_with_a_mesh_first(monkeypatch):
+@pytest.mark.parametrize("idle", [False, True])
+def test_longest_waiting_judges_the_blocks_with_a_mesh_first(monkeypatch, idle):
     """A far sphere seen by one sensor (no mesh while its alpha is unknown: the filter holds
     single-sensor voxels back) has waited longer than a near sphere both sensors saw, which has a
-    mesh; a short budget still judges the near sphere's meshed blocks first: they are what a
-    subscriber sees."""
+    mesh; a short budget still judges the near sphere's meshed blocks first, while frames come and
+    once they pause: they are what a subscriber sees (a stale alpha shows a stale surface)."""
     engine = engine_for_tests(alpha_batch_blocks=16)
     K = SPHERE_K
     far = SPHERE_C + [3.0, 0.0, 0.0]
@@ -857,7 +862,7 @@ def test_longest_waiting_judges_the_blocks_with_a_mesh_first(monkeypatch):
     engine.update(alpha_budget_s=0)  # meshed, not judged
     meshed = engine.store.meshed[: engine.grid.n_blocks]
     assert not meshed[:n_far].any() and meshed[n_far:].sum() > 32
-    evaluated = _judge_two_batches(engine, monkeypatch)
+    evaluated = _judge_two_batches(engine, monkeypatch, idle=idle)
     assert len(evaluated) == 32 and meshed[evaluated].all()
 
 
@@ -889,6 +894,30 @@ def test_longest_waiting_judges_never_judged_blocks_without_a_mesh_before_judged
     _judge_two_batches(engine, monkeypatch)
     judged = np.flatnonzero((stale_before > 0) & (engine.store.stale[: engine.grid.n_blocks] == 0))
     assert len(judged) == 32 and judged.min() >= n_judged
+
+
+def test_the_idle_catch_up_judges_never_judged_blocks_without_a_mesh_with_the_most_surface_first(monkeypatch):
+    """Once the sensors pause, among blocks without a mesh, those the net never judged with the most
+    voxels near a sensor's surface go first, however long the others waited: the filter holds back
+    the surface one sensor alone saw until the net judges it. Two one-sensor spheres, the second
+    seen after the first was scheduled."""
+    engine = engine_for_tests(alpha_batch_blocks=16)
+    K = SPHERE_K
+    spheres = (SPHERE_C + [3.0, 0.0, 0.0], SPHERE_C + [-3.0, 0.0, 0.0])
+    for centre in spheres:
+        T = look_at(centre + 0.9 * (SPHERE_VIEWS[0][:3, 3] - SPHERE_C), centre)
+        engine.integrate("tof", render_sphere(centre, SPHERE_R, K, T), K, T)
+        if centre is spheres[0]:
+            engine.refresh_alpha(0.0)  # scheduled first: waiting longer
+            n_first = engine.grid.n_blocks
+    engine.update(alpha_budget_s=0)
+    n = engine.grid.n_blocks
+    assert not engine.store.meshed[:n].any() and n - n_first > 32
+    judged = _judge_two_batches(engine, monkeypatch, idle=True)
+    views = engine.store.views("tsdf0", "weight0", "tsdf1", "weight1")
+    near = near_surface_voxels(np.arange(n), *views, engine.config.voxel_size_m)
+    assert len(judged) == 32 and judged.max() >= n_first  # not simply the longest waiting
+    assert near[judged].min() >= np.delete(near, judged).max()
 
 
 def sphere_view_on_a_fake_clock(monkeypatch) -> tuple[SenFuNet, VirtualClock, np.ndarray]:
