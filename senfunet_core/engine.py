@@ -99,7 +99,10 @@ class EngineConfig:
     w_max: float = 500.0  # weight counter clip
     border_px: int = 10  # masked image border
     device: str = "cpu"  # where the networks run: "cpu" or "cuda" (the grids stay in CPU memory)
-    alpha_batch_blocks: int = 128  # blocks per weighting-net batch (memory vs. how long readers hold the grid)
+    alpha_batch_blocks: int = 64  # blocks per weighting-net batch (memory vs. how long readers hold the grid); at
+    #                               64, a bfloat16 batch's first-layer output (64 x 10^3 x 32 x 2 bytes) stays under
+    #                               the node's 4 MB mmap threshold (node.limit_malloc): reused from the heap, not
+    #                               mapped and faulted in anew for each batch
     mesh_batch_blocks: int = 2048  # blocks per marching-cubes call
     seed: int = 0  # initialisation of untrained networks
     torch_threads: int = 1  # torch intra-op threads the engine sets (0: leave torch's setting); 1 fits 2 shared cores
