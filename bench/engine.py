@@ -99,12 +99,15 @@ def main() -> None:
 
     frames, source = load_frames(Path(args.bag), args.frames, args.seed)
     try:
+        from senfunet_ros.node import limit_malloc
         from senfunet_ros.replay import engine_config, engine_weights, load_settings
 
         settings = load_settings(None)
         base, weights = engine_config(settings), engine_weights(settings)
+        malloc = ("glibc malloc as the node sets it (`node.limit_malloc`: large arrays mapped, arenas capped)"
+                  if limit_malloc() else "glibc malloc unchanged")
     except Exception:  # the ROS layer is optional here
-        base, weights = EngineConfig(), "default"
+        base, weights, malloc = EngineConfig(), "default", "glibc malloc unchanged"
     # G on as many threads as the peak is measured with (the node's config evaluates idle catch-ups on every core)
     base = replace(base, alpha_threads=args.threads)
     configs = {
@@ -119,7 +122,7 @@ def main() -> None:
     peaks = {dtype: peak_flop_per_s(dtype, args.threads) for dtype in ("float32", "bfloat16")}
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
              f"Frames: the first {len(frames)} depth frames (256x256, both sensors, arrival order) of {source}; "
-             f"update() every {args.update_every} frames; torch threads {args.threads}; medians over frames "
+             f"update() every {args.update_every} frames; torch threads {args.threads}; {malloc}; medians over frames "
              "(first frame of each sensor excluded).", "",
              "| | " + " | ".join(results) + " |", "|---" * (len(results) + 1) + "|"]
 
