@@ -25,7 +25,8 @@ Threading model (the one place it is described):
   `AlphaScheduler`) evaluate the weighting net's batches for an update that has no time budget (or
   an idle catch-up, `refresh_alpha(until_frame=True)`), while the updating thread waits for them in
   order and writes their results; they also mesh the batches of an `update(mesh_threads=...)` (no
-  frame waiting), reading the grid as the updating thread does. Several threads may integrate, and
+  frame waiting) and, in an idle catch-up, count the voxels near a surface that order it
+  (`AlphaScheduler.order`), reading the grid as the updating thread does. Several threads may integrate, and
   several may update: the locks serialise them. The alpha threads start at the priority of the
   thread that first needs them and then run the constructor's `worker_setup` (the live node's
   lowers them to its mesh thread's). The engine's parts (`AlphaScheduler`,
