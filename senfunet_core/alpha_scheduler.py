@@ -323,7 +323,8 @@ class AlphaScheduler:
     def workers(self) -> ThreadPoolExecutor:
         """The `threads` alpha threads that evaluate batches side by side (created on first use, by
         the thread that first needs them: they share its priority, then run `worker_setup`). The
-        engine also meshes an idle update's batches on them."""
+        engine also meshes an idle update's batches on them, and `order` counts an idle catch-up's
+        near-surface voxels there."""
         if self._executor is None:
             # the initializer refers to the set-up alone: a pool thread keeps it while it lives, and
             # through this scheduler it would keep the map, so that a dropped engine (~/load_map)
