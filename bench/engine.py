@@ -142,6 +142,13 @@ def main() -> None:
     row("meshing per block (ms)", lambda r: f"{r['mesh_ms_per_block']:.3f} ({r['mesh_blocks']} blocks)")
     row("blocks / observed voxels", lambda r: f"{r['blocks']} / {r['observed']}")
     row("bytes per observed voxel", lambda r: f"{r['bytes_per_observed_voxel']:.0f}")
+    # the CPU's peak: its fastest arithmetic here (bfloat16 where it has bfloat16 units, else float32)
+    peak_dtype = max(peaks, key=peaks.__getitem__)
+    node = results[next(name for name in results if name.startswith("node"))]
+    fraction = node["alpha_flop_per_s"] / peaks[peak_dtype]
+    lines += ["", "Goal of issue 13 (G at half of the CPU's peak or more, the node's configuration against the CPU's "
+              f"fastest arithmetic, {peak_dtype} here; the node computes G in {base.alpha_dtype}): "
+              f"{'met' if fraction >= 0.5 else 'NOT met'} ({fraction:.2f})"]
     text = "\n".join(lines)
     print(text)
     if args.write:

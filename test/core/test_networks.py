@@ -74,7 +74,9 @@ def test_feature_net_inference_equals_its_training_forward(uses_rgb: bool, monke
     assert images == [(4 if uses_rgb else 1, 48, 40)] * 2  # the kernel ran, once per image
     assert fast.shape == reference.shape == (2, 5, 48, 40)
     assert not torch.equal(fast, torch.zeros_like(fast))
-    torch.testing.assert_close(fast, reference, rtol=0, atol=1e-5)
+    # float32 summed in another order than oneDNN's (with FMA or not, as the CPU has it); the per-pixel
+    # normalisation magnifies that rounding where a pixel's features are small
+    torch.testing.assert_close(fast, reference, rtol=0, atol=1e-4)
 
 
 @pytest.mark.parametrize("uses_rgb", [False, True])
