@@ -6,6 +6,7 @@ another machine can differ from the committed one in its last bits (and a depth 
 there may round to the next millimetre). Anything larger is a change of the simulator."""
 from __future__ import annotations
 
+import array
 import os
 import re
 import subprocess
@@ -76,8 +77,13 @@ def _difference(a: BagMessage, b: BagMessage) -> str | None:
             off = np.abs(pixels_a - pixels_b) if len(pixels_a) == len(pixels_b) else np.full(1, np.inf)
             if off.max() > step or np.mean(off > 0) > share:
                 return f"{name}: {np.count_nonzero(off)} pixels differ, by up to {off.max():g}"
-        elif isinstance(value_a, np.ndarray) or isinstance(value_b, np.ndarray):
-            if not np.array_equal(np.asarray(value_a), np.asarray(value_b)):
+        elif isinstance(value_a, (np.ndarray, array.array, list, tuple)):  # message arrays and sequences
+            values_a, values_b = np.asarray(value_a), np.asarray(value_b)
+            if values_a.dtype.kind == "f" and values_a.shape == values_b.shape:
+                close = np.allclose(values_a, values_b, rtol=_FLOAT_TOLERANCE, atol=_FLOAT_TOLERANCE)
+            else:
+                close = np.array_equal(values_a, values_b)
+            if not close:
                 return f"{name}: the arrays differ"
         elif value_a != value_b:
             return f"{name}: {value_a!r} != {value_b!r}"
