@@ -293,10 +293,11 @@ class _Demo:
         import numpy as np
         import rclpy
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-        from visualization_msgs.msg import Marker, MarkerArray
+        from visualization_msgs.msg import MarkerArray
 
         from senfunet_core.mesher import Mesh
         from senfunet_core.ply import write_ply
+        from senfunet_ros.conversions import MARKER_DELETE, MARKER_DELETEALL, marker_array_from_cdr
 
         _say("waiting for the weighting net to judge every block...")
         caught_up = 0
@@ -311,18 +312,18 @@ class _Demo:
         markers: dict[tuple[str, int], np.ndarray] = {}
         last_message = [time.monotonic()]
 
-        def on_mesh(msg: MarkerArray) -> None:
+        def on_mesh(data: bytes) -> None:  # raw: rclpy's deserialisation takes seconds for a room's mesh
             last_message[0] = time.monotonic()
-            for m in msg.markers:
-                if m.action == Marker.DELETEALL:
+            for m in marker_array_from_cdr(data):
+                if m.action == MARKER_DELETEALL:
                     markers.clear()
-                elif m.action == Marker.DELETE:
+                elif m.action == MARKER_DELETE:
                     markers.pop((m.ns, m.id), None)
                 else:
-                    markers[(m.ns, m.id)] = np.array([(p.x, p.y, p.z) for p in m.points], np.float32).reshape(-1, 3)
+                    markers[(m.ns, m.id)] = m.points_m.astype(np.float32)
 
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        subscription = node.create_subscription(MarkerArray, f"/{NODE}/mesh", on_mesh, qos)
+        subscription = node.create_subscription(MarkerArray, f"/{NODE}/mesh", on_mesh, qos, raw=True)
         while not markers or time.monotonic() - last_message[0] < 3.0:  # the snapshot comes in parts
             tick_clock()
             rclpy.spin_once(node, timeout_sec=0.05)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numba
@@ -21,10 +22,12 @@ __all__ = [
     "MARKER_DELETEALL",
     "MARKER_TRIANGLE_LIST",
     "MESH_MESSAGE_MAX_BYTES",
+    "DecodedMarker",
     "block_marker_id",
     "block_marker_ids",
     "delete_all_marker_array_cdr",
     "marker_array_cdr",
+    "marker_array_from_cdr",
     "marker_array_messages",
     "point_cloud2_cdr",
 ]
@@ -78,6 +81,92 @@ class _CdrWriter:
 
     def getvalue(self) -> bytes:
         return b"".join(self._chunks)
+
+
+class _CdrReader:
+    """Reads CDR primitives (either byte order, from the encapsulation header); alignment is
+    relative to the payload after the 4-byte header. Arrays of numbers come as numpy views."""
+
+    def __init__(self, data: bytes | bytearray | memoryview | np.ndarray) -> None:
+        self._data = memoryview(data.view(np.uint8).reshape(-1).data if isinstance(data, np.ndarray) else data).cast("B")
+        if len(self._data) < 4 or self._data[0] != 0 or self._data[1] not in (0, 1):
+            raise ValueError("not a plain CDR message (expected the encapsulation 00 00 or 00 01)")
+        self._order = "<" if self._data[1] == 1 else ">"
+        self._offset = 4
+
+    def _take(self, size: int, align: int) -> int:
+        start = self._offset + (-(self._offset - 4) % align)
+        if start + size > len(self._data):
+            raise ValueError(f"CDR message truncated: {start + size} bytes needed, {len(self._data)} given")
+        self._offset = start + size
+        return start
+
+    def scalars(self, fmt: str) -> tuple[Any, ...]:
+        """Consecutive scalars of one size (struct format characters, e.g. "iI" or "7d")."""
+        size = struct.calcsize("<" + fmt)
+        return struct.unpack_from(self._order + fmt, self._data, self._take(size, struct.calcsize("<" + fmt[-1])))
+
+    def string(self) -> str:
+        (length,) = self.scalars("I")
+        return bytes(self._data[self._take(length, 1): self._offset]).rstrip(b"\x00").decode("utf-8", "replace")
+
+    def array(self, dtype: str, count: int, align: int) -> np.ndarray:
+        """count values of dtype (a numpy code without byte order, e.g. "f8")."""
+        item = np.dtype(dtype).itemsize
+        start = self._take(count * item, align)
+        return np.frombuffer(self._data, np.dtype(self._order + dtype), count, start)
+
+    def sequence(self, dtype: str, width: int = 1) -> np.ndarray:
+        """A sequence of structs of `width` numbers of one dtype, as an (N, width) array."""
+        (count,) = self.scalars("I")
+        return self.array(dtype, count * width, np.dtype(dtype).itemsize).reshape(count, width)
+
+    def header(self) -> None:
+        self.scalars("iI")
+        self.string()
+
+
+@dataclass(frozen=True)
+class DecodedMarker:
+    """What a mesh reader needs of one visualization_msgs/Marker."""
+
+    ns: str
+    id: int
+    type: int
+    action: int
+    points_m: np.ndarray  # (N, 3) float64: geometry_msgs/Point, the triangle corners of a TRIANGLE_LIST
+    colors: np.ndarray  # (N, 4) float32 RGBA, or (0, 4)
+
+
+def marker_array_from_cdr(data: bytes | bytearray | memoryview | np.ndarray) -> list[DecodedMarker]:
+    """A visualization_msgs/MarkerArray (ROS 2 Jazzy's Marker) from its CDR bytes, as a raw
+    subscription (`create_subscription(..., raw=True)`) gets them: rclpy's own deserialisation makes
+    a Python object per point, seconds for a room's mesh. Raises ValueError on a malformed message."""
+    reader = _CdrReader(data)
+    (count,) = reader.scalars("I")
+    markers = []
+    for _ in range(count):
+        reader.header()
+        ns = reader.string()
+        marker_id, marker_type, action = reader.scalars("iii")
+        reader.scalars("10d")  # pose, scale
+        reader.scalars("4f")  # color
+        reader.scalars("iI")  # lifetime
+        reader.scalars("B")  # frame_locked
+        points = reader.sequence("f8", 3)
+        colors = reader.sequence("f4", 4)
+        reader.string()  # texture_resource
+        reader.header()  # texture: sensor_msgs/CompressedImage
+        reader.string()
+        reader.sequence("u1")
+        reader.sequence("f4", 2)  # uv_coordinates
+        reader.string()  # text
+        reader.string()  # mesh_resource
+        reader.string()  # mesh_file: filename, data
+        reader.sequence("u1")
+        reader.scalars("B")  # mesh_use_embedded_materials
+        markers.append(DecodedMarker(ns, marker_id, marker_type, action, points, colors))
+    return markers
 
 
 def block_marker_id(key: Sequence[int]) -> tuple[str, int]:

@@ -215,6 +215,48 @@ def test_marker_delete_all_and_empty_block() -> None:
     assert msg.markers[1].id == conv.block_marker_id((1, 1, 1))[1]
 
 
+def test_marker_array_decoder_reads_what_rclpy_writes() -> None:
+    """marker_array_from_cdr against rclpy's own deserialisation: markers of another writer (every
+    optional field filled, odd string lengths: padding) and our encoder's; a cut message is an error."""
+    from geometry_msgs.msg import Point
+    from std_msgs.msg import ColorRGBA
+    from visualization_msgs.msg import UVCoordinate
+
+    from rclpy.serialization import serialize_message
+
+    rng = np.random.default_rng(5)
+    msg = MarkerArray()
+    for i in range(3):
+        m = Marker(ns="n" * (i + 1), id=-7 + i, type=Marker.TRIANGLE_LIST, action=Marker.ADD, text="hi" * i,
+                   texture_resource="tex" * i, mesh_resource="m" * i, frame_locked=bool(i % 2),
+                   mesh_use_embedded_materials=True)
+        m.header.frame_id = "odom" * i
+        m.texture.format = "png" * i
+        m.texture.data = list(range(i * 5))
+        m.uv_coordinates = [UVCoordinate(u=0.5, v=0.25)] * i
+        m.mesh_file.filename = "f" * (i + 2)
+        m.mesh_file.data = list(range(i))
+        m.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in rng.normal(size=(3 * i + 3, 3))]
+        m.colors = [ColorRGBA(r=float(r), g=float(g), b=float(b), a=float(a))
+                    for r, g, b, a in rng.random((len(m.points) if i != 1 else 0, 4))]
+        msg.markers.append(m)
+    ours = conv.marker_array_cdr({(0, 1, 2): _mesh(0), (3, 3, 3): Mesh.empty()}, [], stamp_ns=5, frame_id="map",
+                                 delete_all_first=True)
+    for data in (serialize_message(msg), ours):
+        reference = deserialize_message(data, MarkerArray).markers
+        decoded = conv.marker_array_from_cdr(data)
+        assert len(decoded) == len(reference) > 0
+        for ref, dec in zip(reference, decoded):
+            assert (dec.ns, dec.id, dec.type, dec.action) == (ref.ns, ref.id, ref.type, ref.action)
+            np.testing.assert_array_equal(dec.points_m, np.array([[p.x, p.y, p.z] for p in ref.points]).reshape(-1, 3))
+            np.testing.assert_array_equal(dec.colors, np.array([[c.r, c.g, c.b, c.a] for c in ref.colors],
+                                                               np.float32).reshape(-1, 4))
+        with pytest.raises(ValueError, match="truncated"):
+            conv.marker_array_from_cdr(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="CDR"):
+        conv.marker_array_from_cdr(b"\x01\x02")
+
+
 def test_point_cloud2_round_trip() -> None:
     rng = np.random.default_rng(3)
     pos = rng.random((7, 3), dtype=np.float32)

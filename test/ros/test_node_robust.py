@@ -453,6 +453,8 @@ def test_a_failed_publication_is_made_good_by_the_next(ros, tmp_path: Path, monk
         messages = scene_messages()
         half = len(messages) // 2
         fuse_in_process(run, messages[:half])
+        run.node.engine.refresh_alpha(None)  # all judged: the first update holds the whole map (else the rest
+        #   the net judges after it waits for the mesh timer)
         run.node.publish_mesh()
         wait_for(lambda: collector.keys() and collector.keys() == _marker_keys(run.node), 30, "the first mesh")
         fuse_in_process(run, messages)  # the second half (the first again: stamps behind, dropped)
@@ -549,9 +551,6 @@ def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: 
 
     from senfunet_ros import mesh_publisher
 
-    # parts of ~4 KB: every update of this scene is several
-    monkeypatch.setattr(mesh_publisher.conv, "marker_array_messages",
-                        functools.partial(mesh_publisher.conv.marker_array_messages, max_bytes=4096))
     run = Running("slowreader", {**topic_params("slowreader"), **SMALL, "mesh_rate_hz": 0.05}, tmp_path)
     reader = subprocess.Popen([sys.executable, "-c", _READER, f"{run.prefix}/mesh"], stdout=subprocess.PIPE, text=True,
                               stderr=subprocess.DEVNULL)
@@ -561,8 +560,13 @@ def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: 
         wait_for(lambda: run.node.mesh_publisher.mesh_pub.get_subscription_count() == 2, 20, "both readers")
         messages = scene_messages()
         fuse_in_process(run, messages[: len(messages) // 2])
+        run.node.engine.refresh_alpha(None)  # all judged: the first update holds the whole map
         run.node.publish_mesh()
         wait_for(lambda: collector.keys() and collector.keys() == _marker_keys(run.node), 30, "the first mesh")
+        # from now on parts of ~4 KB: every update of this scene is several (the first mesh came whole:
+        #   its many parts would wait for acknowledgements longer than the node waits)
+        monkeypatch.setattr(mesh_publisher.conv, "marker_array_messages",
+                            functools.partial(mesh_publisher.conv.marker_array_messages, max_bytes=4096))
         reader.send_signal(signal.SIGSTOP)
         fuse_in_process(run, messages)
         run.node.engine.refresh_alpha(None)  # all judged: no later update re-meshes anything by itself
