@@ -98,6 +98,11 @@ def exact():
     return run(alpha_voxels="all")
 
 
+@pytest.fixture(scope="module")
+def surface():
+    return run(alpha_voxels="surface")
+
+
 def sorted_mesh(mesh):
     """Vertices (with colours) and faces in a canonical order, to compare meshes exactly."""
     order = np.lexsort(mesh.vertices.T[::-1])
@@ -109,8 +114,8 @@ def sorted_mesh(mesh):
 
 
 @pytest.mark.parametrize("mode", ["surface", "surface_voxels"])
-def test_surface_mode_gives_the_exact_fused_mesh(exact, mode):
-    engine, shown = run(alpha_voxels=mode)
+def test_surface_mode_gives_the_exact_fused_mesh(exact, surface, mode):
+    engine, shown = surface if mode == "surface" else run(alpha_voxels=mode)
     ref, ref_shown = exact
     a, b = sorted_mesh(engine.extract_mesh("fused")), sorted_mesh(ref.extract_mesh("fused"))
     assert len(b[2]) > 2000
@@ -160,11 +165,11 @@ def assert_close_to_exact(engine, ref) -> None:
     assert abs(mesh.n_faces - ref_mesh.n_faces) <= 0.01 * ref_mesh.n_faces
 
 
-def test_bfloat16_alpha_keeps_the_mesh_close(exact):
+def test_bfloat16_alpha_keeps_the_mesh_close(exact, surface):
     """alpha_dtype="bfloat16" (the node's choice on CPUs with bfloat16 instructions): alpha within
     0.02 of float32 and the fused mesh close to the exact one."""
     engine, _ = run(alpha_voxels="surface", alpha_dtype="bfloat16")
-    same_schedule, _ = run(alpha_voxels="surface")
+    same_schedule = surface[0]
     n = engine.grid.n_blocks
     alpha, same_alpha = (decode_alpha(e.grid.pools["alpha"][:n]) for e in (engine, same_schedule))
     evaluated = torch.isfinite(alpha)  # surface mode: blocks that can hold triangles

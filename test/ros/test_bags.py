@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from replays import replay_commands
+
 from senfunet_ros.bagio import BagBrokenError, BagError, copy_bag, open_bag, write_sequence_bag
 
 REPO = Path(__file__).resolve().parents[2]
@@ -49,9 +51,7 @@ def tiny_params(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _replay(bag: Path | str, out: Path, params: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "replay", str(bag), "--out", str(out),
-                           "--params", str(params), "--no-progress", "--compare"],
-                          capture_output=True, text=True, timeout=300)
+    return replay_commands((bag, out, params), compare=True, timeout_s=300)[0]
 
 
 def _one_line_error(proc: subprocess.CompletedProcess) -> str:

@@ -2,11 +2,11 @@
 like its raw twin."""
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
+
+from replays import replay_commands
 
 from senfunet_ros.bagio import open_bag, write_sequence_bag
 
@@ -48,12 +48,6 @@ def _compressed_copy(src: Path, dst: Path) -> None:
             writer.write(conns[topic], msg.log_time_ns, data)
 
 
-def _replay(bag: Path, out: Path, params: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "replay", str(bag), "--out", str(out),
-                           "--params", str(params), "--no-progress", "--compare"], capture_output=True, text=True,
-                          timeout=600)
-
-
 def test_compressed_bag_replays_like_the_raw_one(tmp_path: Path) -> None:
     import json
 
@@ -67,8 +61,8 @@ def test_compressed_bag_replays_like_the_raw_one(tmp_path: Path) -> None:
     _compressed_copy(raw_bag, compressed)
     (tmp_path / "raw.yaml").write_text(PARAMS)
     (tmp_path / "c.yaml").write_text(PARAMS + COMPRESSED_TOPICS)
-    ref = _replay(raw_bag, tmp_path / "ref", tmp_path / "raw.yaml")
-    got = _replay(compressed, tmp_path / "got", tmp_path / "c.yaml")
+    ref, got = replay_commands((raw_bag, tmp_path / "ref", tmp_path / "raw.yaml"),
+                               (compressed, tmp_path / "got", tmp_path / "c.yaml"), compare=True)
     assert ref.returncode == 0 and got.returncode == 0, ref.stderr + got.stderr
     stats = json.loads((tmp_path / "got" / "stats.json").read_text())
     assert stats["topics"]["/tof/depth/compressedDepth"]["type"] == "sensor_msgs/msg/CompressedImage"

@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from replays import replay_commands
+
 from senfunet_ros.bagio import open_bag, write_sequence_bag
 from senfunet_ros.geometry import invert_transform, quat_from_matrix
 from senfunet_ros.tf import TfBuffer, TfError, TfWait
@@ -95,11 +97,6 @@ def _tf_only_copy(src: Path, dst: Path) -> None:
             writer.write(conns[topic], msg.log_time_ns, data)
 
 
-def _replay(bag: Path, out: Path, params: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "replay", str(bag), "--out", str(out),
-                           "--params", str(params), "--no-progress"], capture_output=True, text=True, timeout=600)
-
-
 def test_tf_only_bag_replays_to_the_pose_topic_mesh(tmp_path: Path) -> None:
     from senfunet_core.learning import simulator as sim
     from senfunet_core.ply import read_ply
@@ -115,8 +112,10 @@ def test_tf_only_bag_replays_to_the_pose_topic_mesh(tmp_path: Path) -> None:
     params.write_text(PARAMS)
     tf_params = tmp_path / "tf.yaml"
     tf_params.write_text(PARAMS + "    pose_type: tf\n")
-    ref = _replay(poses_bag, tmp_path / "ref", params)
-    got = _replay(tf_bag, tmp_path / "got", tf_params)
+    # the third: without the mounts the bag cannot be posed
+    broken_params = _write(tmp_path / "b.yaml", PARAMS + "    pose_type: tf\n    fixed_frame: world\n")
+    ref, got, broken = replay_commands((poses_bag, tmp_path / "ref", params), (tf_bag, tmp_path / "got", tf_params),
+                                (tf_bag, tmp_path / "broken", broken_params))
     assert ref.returncode == 0, ref.stderr
     assert got.returncode == 0, got.stderr
     assert ref.stdout.splitlines()[:2] == got.stdout.splitlines()[:2]  # the same frames fused
@@ -129,8 +128,6 @@ def test_tf_only_bag_replays_to_the_pose_topic_mesh(tmp_path: Path) -> None:
     distance, _ = cKDTree(a.vertices).query(b.vertices)
     assert np.quantile(distance, 0.99) < 0.002  # metres, at 4 cm voxels
     # without the mounts the bag cannot be posed: every frame is dropped, and replay says so
-    broken = _replay(tf_bag, tmp_path / "broken", _write(tmp_path / "b.yaml", PARAMS + "    pose_type: tf\n"
-                                                                               "    fixed_frame: world\n"))
     assert broken.returncode == 2 and "no frame could be fused" in broken.stderr
 
 

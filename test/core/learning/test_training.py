@@ -309,7 +309,13 @@ def test_training_notes_say_what_ran(tmp_path):
     assert "50 frames, 40 of them with a chunk" in text and "trained: they differ" in text
 
 
-def test_run_from_a_checkpoint_keeps_it_unless_the_online_frames_beat_its_validation(tmp_path):
+@pytest.fixture(scope="module")
+def sim_cache(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """One simulation cache for the tiny training runs (the same two rooms, simulated once)."""
+    return str(tmp_path_factory.mktemp("sim_cache"))
+
+
+def test_run_from_a_checkpoint_keeps_it_unless_the_online_frames_beat_its_validation(tmp_path, sim_cache):
     """--init-weights: frame 0 is the starting checkpoint's own validation record; online frames that
     do not beat it leave its networks in the output, and the output records every validation."""
     from senfunet_core import networks
@@ -320,7 +326,7 @@ def test_run_from_a_checkpoint_keeps_it_unless_the_online_frames_beat_its_valida
                           {"val_F": 99.0, "val_margin": 50.0, "config": {"val_scenes": [7]}})
     cfg = tr.TrainConfig(seed=0, train_scenes=(5,), val_scenes=(7,), duration_s=0.3, val_duration_s=0.3,
                          val_frame_stride=2, chunk_size=16, min_update_voxels=200, steps=4, val_every=0,
-                         accumulate_frames=2, init_weights=str(start), threads=1, cache_dir=str(tmp_path / "cache"),
+                         accumulate_frames=2, init_weights=str(start), threads=1, cache_dir=sim_cache,
                          feature_lr_factor=1000.0)
     out = tmp_path / "out.pt"
     summary = tr.train(cfg, out, log=lambda *_: None, progress=False)
@@ -334,7 +340,7 @@ def test_run_from_a_checkpoint_keeps_it_unless_the_online_frames_beat_its_valida
 
 
 @pytest.mark.slow  # simulates a training and a validation room, integrates and validates them
-def test_train_command_overrides_seed_and_block_steps(tmp_path):
+def test_train_command_overrides_seed_and_block_steps(tmp_path, sim_cache):
     """`senfunet train --seed N --block-steps M --steps 0`: a block phase of M steps with that seed, recorded
     in the weights file, the config file untouched (a tiny run)."""
     import yaml
@@ -345,7 +351,7 @@ def test_train_command_overrides_seed_and_block_steps(tmp_path):
     values = {"seed": 0, "init_seed": 0, "train_scenes": [5], "val_scenes": [7], "duration_s": 0.3,
               "val_duration_s": 0.3, "val_frame_stride": 2, "weighting_tsdf_input": True, "block_steps": 50,
               "block_batch": 4, "block_scene_blocks": 20, "block_lr": 1e-3, "lambda1": 0.1, "lambda2": 0.08,
-              "threads": 1, "cache_dir": str(tmp_path / "cache")}
+              "threads": 1, "cache_dir": sim_cache}
     config.write_text(yaml.safe_dump(values))
     out = tmp_path / "seed3.pt"
     argv = ["train", "--config", str(config), "--seed", "3", "--block-steps", "3", "--steps", "0", "--out", str(out),
@@ -410,7 +416,7 @@ def test_feature_pretraining_learns_the_pixel_labels():
 
 
 @pytest.mark.slow  # simulates a training and a validation room, integrates and validates them
-def test_train_command_pretrains_the_feature_nets(tmp_path):
+def test_train_command_pretrains_the_feature_nets(tmp_path, sim_cache):
     """`senfunet train --feature-pretrain-steps N`: the feature nets learn per pixel before the block phase,
     the weights file keeps them and records it, and the generated Training section says so (a tiny run)."""
     import yaml
@@ -424,7 +430,7 @@ def test_train_command_pretrains_the_feature_nets(tmp_path):
               "val_duration_s": 0.3, "val_frame_stride": 2, "weighting_tsdf_input": True, "block_steps": 2,
               "block_batch": 4, "block_scene_blocks": 20, "block_lr": 1e-3, "lambda1": 0.1, "lambda2": 0.08,
               "feature_pretrain_batch": 2, "feature_pretrain_crop_px": 48, "threads": 1,
-              "cache_dir": str(tmp_path / "cache")}
+              "cache_dir": sim_cache}
     config.write_text(yaml.safe_dump(values))
     out = tmp_path / "pre.pt"
     argv = ["train", "--config", str(config), "--feature-pretrain-steps", "4", "--steps", "0", "--out", str(out),
