@@ -88,7 +88,8 @@ class _CdrReader:
     relative to the payload after the 4-byte header. Arrays of numbers come as numpy views."""
 
     def __init__(self, data: bytes | bytearray | memoryview | np.ndarray) -> None:
-        self._data = memoryview(data.view(np.uint8).reshape(-1).data if isinstance(data, np.ndarray) else data).cast("B")
+        buffer = data.view(np.uint8).reshape(-1).data if isinstance(data, np.ndarray) else data
+        self._data = memoryview(buffer).cast("B")
         if len(self._data) < 4 or self._data[0] != 0 or self._data[1] not in (0, 1):
             raise ValueError("not a plain CDR message (expected the encapsulation 00 00 or 00 01)")
         self._order = "<" if self._data[1] == 1 else ">"
@@ -110,18 +111,16 @@ class _CdrReader:
         (length,) = self.scalars("I")
         return bytes(self._data[self._take(length, 1): self._offset]).rstrip(b"\x00").decode("utf-8", "replace")
 
-    def array(self, dtype: str, count: int, align: int) -> np.ndarray:
-        """count values of dtype (a numpy code without byte order, e.g. "f8")."""
-        item = np.dtype(dtype).itemsize
-        start = self._take(count * item, align)
-        return np.frombuffer(self._data, np.dtype(self._order + dtype), count, start)
-
     def sequence(self, dtype: str, width: int = 1) -> np.ndarray:
-        """A sequence of structs of `width` numbers of one dtype, as an (N, width) array."""
+        """A sequence of structs of `width` numbers of one dtype (a numpy code without byte order,
+        e.g. "f8"), as an (N, width) view of the message."""
         (count,) = self.scalars("I")
-        return self.array(dtype, count * width, np.dtype(dtype).itemsize).reshape(count, width)
+        item = np.dtype(dtype).itemsize
+        start = self._take(count * width * item, item)
+        return np.frombuffer(self._data, np.dtype(self._order + dtype), count * width, start).reshape(count, width)
 
-    def header(self) -> None:
+    def skip_header(self) -> None:
+        """std_msgs/Header: stamp and frame_id."""
         self.scalars("iI")
         self.string()
 
@@ -146,7 +145,7 @@ def marker_array_from_cdr(data: bytes | bytearray | memoryview | np.ndarray) -> 
     (count,) = reader.scalars("I")
     markers = []
     for _ in range(count):
-        reader.header()
+        reader.skip_header()
         ns = reader.string()
         marker_id, marker_type, action = reader.scalars("iii")
         reader.scalars("10d")  # pose, scale
@@ -156,7 +155,7 @@ def marker_array_from_cdr(data: bytes | bytearray | memoryview | np.ndarray) -> 
         points = reader.sequence("f8", 3)
         colors = reader.sequence("f4", 4)
         reader.string()  # texture_resource
-        reader.header()  # texture: sensor_msgs/CompressedImage
+        reader.skip_header()  # texture: sensor_msgs/CompressedImage
         reader.string()
         reader.sequence("u1")
         reader.sequence("f4", 2)  # uv_coordinates
