@@ -51,7 +51,24 @@ def tiny_params(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _replay(bag: Path | str, out: Path, params: Path) -> subprocess.CompletedProcess:
-    return replay_commands((bag, out, params), compare=True, timeout_s=300)[0]
+    """`senfunet replay BAG --out OUT --params PARAMS --compare` in this process (`cli.main`, what the
+    command runs), its output captured; test_missing_path runs the command itself."""
+    import contextlib
+    import io
+    import signal
+
+    from senfunet_ros import cli
+
+    argv = ["replay", str(bag), "--out", str(out), "--params", str(params), "--no-progress", "--compare"]
+    stdout, stderr = io.StringIO(), io.StringIO()
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}  # the command sets its own
+    try:
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            code = cli.main(argv)
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    return subprocess.CompletedProcess(argv, code, stdout.getvalue(), stderr.getvalue())
 
 
 def _one_line_error(proc: subprocess.CompletedProcess) -> str:
@@ -168,7 +185,9 @@ def test_write_sequence_bag_round_trip(tmp_path: Path):
 
 
 def test_missing_path(tmp_path: Path, tiny_params: Path):
-    line = _one_line_error(_replay(tmp_path / "nope", tmp_path / "out", tiny_params))
+    """The command itself (a process): one line, no traceback, exit code 2."""
+    line = _one_line_error(replay_commands((tmp_path / "nope", tmp_path / "out", tiny_params), compare=True,
+                                           timeout_s=300)[0])
     assert "nope: no such bag" in line
 
 
