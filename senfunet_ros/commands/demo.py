@@ -314,7 +314,12 @@ class _Demo:
 
         def on_mesh(data: bytes) -> None:  # raw: rclpy's deserialisation takes seconds for a room's mesh
             last_message[0] = time.monotonic()
-            for m in marker_array_from_cdr(data):
+            try:
+                decoded = marker_array_from_cdr(data)
+            except ValueError as err:  # another writer's broken message: the rest of the mesh still counts
+                _say(f"skipped a ~/mesh message that does not decode ({err})")
+                return
+            for m in decoded:
                 if m.action == MARKER_DELETEALL:
                     markers.clear()
                 elif m.action == MARKER_DELETE:
