@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from replays import replay_commands
+from replays import replay_commands, replay_in_process
 
 from senfunet_ros.bagio import BagBrokenError, BagError, copy_bag, open_bag, write_sequence_bag
 
@@ -51,24 +51,8 @@ def tiny_params(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _replay(bag: Path | str, out: Path, params: Path) -> subprocess.CompletedProcess:
-    """`senfunet replay BAG --out OUT --params PARAMS --compare` in this process (`cli.main`, what the
-    command runs), its output captured; test_missing_path runs the command itself."""
-    import contextlib
-    import io
-    import signal
-
-    from senfunet_ros import cli
-
-    argv = ["replay", str(bag), "--out", str(out), "--params", str(params), "--no-progress", "--compare"]
-    stdout, stderr = io.StringIO(), io.StringIO()
-    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}  # the command sets its own
-    try:
-        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-            code = cli.main(argv)
-    finally:
-        for sig, handler in handlers.items():
-            signal.signal(sig, handler)
-    return subprocess.CompletedProcess(argv, code, stdout.getvalue(), stderr.getvalue())
+    """The replay command in this process; test_missing_path runs it as a process."""
+    return replay_in_process(bag, out, params, compare=True)
 
 
 def _one_line_error(proc: subprocess.CompletedProcess) -> str:
