@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Creates ./.venv with the pinned dependencies and this package (idempotent).
+# Creates ./.venv with the pinned dependencies and this package, and compiles the numba kernels
+# (idempotent).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -12,4 +13,6 @@ if [ ! -f "$stamp" ] || [ requirements.txt -nt "$stamp" ] || [ setup.py -nt "$st
   .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps -e .
   touch "$stamp"
 fi
+# numba's kernels compiled now, not in the first frames of a node or the first test
+.venv/bin/python scripts/compile_kernels.py
 echo "senfunet: environment ready in $(pwd)/.venv"
