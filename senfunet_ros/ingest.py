@@ -20,16 +20,12 @@ Counters per sensor: `received` (depth images), `integrated` (reported back by t
 `mark_integrated`), `dropped[reason]` (messages of any stream discarded, by reason; see
 `DROP_REASONS`).
 
-Time: each stream keeps a timeline (its newest accepted stamp). A stamp more than `time_jump_s`
-behind its stream's timeline, or ahead of the newest stamp of all streams, is dropped as
-`bad_stamp` and does not move any timeline (a glitching driver, one bad message, an unset stamp
-0). Such stamps are remembered as candidates of a new timeline: once every stream that
-spoke since the first candidate has continued on it for `restart_confirm_msgs` messages,
-spanning `restart_confirm_s`, with no message on the old timeline meanwhile, time has restarted
-(a bag looping, a robot restarting its clock): all queues and pose buffers are flushed, the
-streams move to the new timeline and, if it went back, a `TimeJump` item is reported ahead of
-the frames that follow, so the caller can reset its map or keep it. `restart()` confirms one
-from outside (the /clock jumping back under use_sim_time).
+Time: each stream keeps a timeline (`timeline.Timelines`): a stamp off its stream's timeline is
+dropped as `bad_stamp`; depth stamps that do not move forward as `duplicate` or `out_of_order`.
+When time restarts (a bag looping, a robot restarting its clock) all queues and pose buffers are
+flushed and, if it went back, a `TimeJump` item is reported ahead of the frames that follow, so
+the caller can reset its map or keep it. `restart()` says so from outside (the /clock jumping back
+under use_sim_time).
 
 Typical use::
 
@@ -58,6 +54,7 @@ import numpy as np
 
 from senfunet_ros import conversions as conv
 from senfunet_ros.geometry import interpolate_pose
+from senfunet_ros.timeline import Restart, Timelines
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "integrate_ready"]
 
@@ -187,17 +184,7 @@ class _SensorState:
         self.colors: deque[tuple[int, np.ndarray]] = deque(maxlen=max(4, config.queue_size))
         self.pose_stamps: list[int] = []  # sorted
         self.poses: list[np.ndarray] = []  # 4x4, parallel to pose_stamps
-        self.last_ns: dict[str, int | None] = {"depth": None, "color": None, "pose": None}
         self.color_seen = False
-        # a new timeline in the making: per stream, its consistent off-timeline stamps, whether the
-        # stream spoke since the first of them, and how many bad_stamp drops they were
-        self.candidates: dict[str, list[int]] = {"depth": [], "color": [], "pose": []}
-        self.spoke: dict[str, bool] = {"depth": False, "color": False, "pose": False}
-
-    def stream_now_ns(self) -> int | None:
-        """The sensor's stream time: the newest stamp seen on any of its streams."""
-        stamps = [s for s in self.last_ns.values() if s is not None]
-        return max(stamps) if stamps else None
 
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
@@ -209,7 +196,6 @@ class _SensorState:
         self.colors.clear()
         self.pose_stamps.clear()
         self.poses.clear()
-        self.last_ns = {"depth": None, "color": None, "pose": None}
         return n
 
 
@@ -220,10 +206,12 @@ class Ingest:
         self.config = config
         self._lock = threading.Lock()
         self._sensors = {name: _SensorState(config) for name in config.sensors}
+        self._timelines = Timelines(config.sensors, time_jump_s=config.time_jump_s,
+                                    restart_confirm_msgs=config.restart_confirm_msgs,
+                                    restart_confirm_s=config.restart_confirm_s)
         self._jumps: list[TimeJump] = []
         self._set_aside_bytes = 0  # of the frames set aside, all sensors
         self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
-        self._episode_open = False  # off-timeline stamps are being collected as a possible restart
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -233,89 +221,36 @@ class Ingest:
         except KeyError:
             raise ValueError(f"unknown sensor '{sensor}'; configured sensors are {list(self._sensors)}") from None
 
-    def _now_ns(self) -> int | None:
-        """The newest accepted stamp of any stream. Lock held."""
-        stamps = [t for state in self._sensors.values() if (t := state.stream_now_ns()) is not None]
-        return max(stamps) if stamps else None
-
     def _check_time(self, state: _SensorState, sensor: str, stream: str, stamp_ns: int) -> str | None:
-        """Where a stamp stands against its stream's timeline. Returns a drop reason or None (accepted,
-        the timeline moved). Lock held."""
-        far_ns = int(self.config.time_jump_s * 1e9)
-        last, now = state.last_ns[stream], self._now_ns()
-        behind = last is not None and stamp_ns < last - far_ns
-        ahead = now is not None and stamp_ns > now + far_ns
-        if last is None and now is not None and stamp_ns < now - far_ns:
-            behind = True  # a stream's first message far behind the others
-        if behind or ahead:
-            ref = last if behind and last is not None else now
-            assert ref is not None  # behind or ahead needs a timeline to be off
-            state.counters.errors["bad_stamp"] = (
-                f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is {abs(stamp_ns - ref) * 1e-9:.3f} s "
-                f"{'behind' if behind else 'ahead of'} the stream's timeline; check the driver's clock (a restart "
-                f"is recognised once every stream continues on the new timeline)")
-            self._candidate(state, sensor, stream, stamp_ns, far_ns)
-            return "bad_stamp"
-        if self._episode_open:  # the old timeline is alive: what was building up is not a restart
-            self._close_episode()
-        if stream == "depth" and last is not None:
-            if stamp_ns == last:
-                return "duplicate"
-            if stamp_ns < last:
-                return "out_of_order"
-        state.last_ns[stream] = stamp_ns if last is None else max(last, stamp_ns)
-        return None
+        """Where a stamp stands against its stream's timeline (`Timelines.check`): a drop reason, or
+        None (accepted, the timeline moved). A restart it confirmed flushes everything. Lock held."""
+        verdict = self._timelines.check(sensor, stream, stamp_ns)
+        if verdict.error:
+            state.counters.errors[verdict.reason or ""] = verdict.error
+        if verdict.restart is not None:
+            self._restarted(sensor, stream, verdict.restart)
+        return verdict.reason
 
-    def _candidate(self, state: _SensorState, sensor: str, stream: str, stamp_ns: int, far_ns: int) -> None:
-        """Remember an off-timeline stamp; confirm the new timeline when every stream is on it. Lock held."""
-        self._episode_open = True
-        state.spoke[stream] = True
-        candidates = state.candidates[stream]
-        if candidates and 0 <= stamp_ns - candidates[-1] <= far_ns:
-            if stamp_ns > candidates[-1]:
-                candidates.append(stamp_ns)
-        else:
-            state.candidates[stream] = [stamp_ns]  # not consistent with what came before: start over
-        streams = [(other, name) for other in self._sensors.values() for name, spoke in other.spoke.items() if spoke]
-        lists = [other.candidates[name] for other, name in streams]
-        if any(len(c) < self.config.restart_confirm_msgs for c in lists):
-            return
-        firsts, lasts = [c[0] for c in lists], [c[-1] for c in lists]
-        if max(lasts) - min(firsts) < self.config.restart_confirm_s * 1e9 or max(lasts) - min(lasts) > far_ns:
-            return
-        self._restart(sensor, stream, min(firsts), {(id(o), n): c[-1] for (o, n), c in zip(streams, lists)},
-                      dropped={(id(o), n): len(c) for (o, n), c in zip(streams, lists)})
-
-    def _restart(self, sensor: str, stream: str, to_ns: int, timelines: dict[tuple[int, str], int],
-                 dropped: dict[tuple[int, str], int]) -> None:
-        """Move to a new timeline: flush everything; a TimeJump if it went back. Lock held."""
-        now = self._now_ns()
-        if now is not None and to_ns < now:
-            self._jumps.append(TimeJump(sensor, stream, now, to_ns))
+    def _restarted(self, sensor: str, stream: str, restart: Restart) -> None:
+        """Time restarted: flush everything; a TimeJump if it went back. Lock held."""
+        if restart.went_back:
+            assert restart.from_ns is not None
+            self._jumps.append(TimeJump(sensor, stream, restart.from_ns, restart.to_ns))
             self._sensors[sensor].counters.time_jumps += 1
         if self.config.tf is not None and hasattr(self.config.tf, "clear"):
             self.config.tf.clear()
         for state in self._sensors.values():
             state.counters.dropped["time_jump"] += state.flush()
-            for name in state.last_ns:
-                n = dropped.get((id(state), name), 0)  # the candidates: bad_stamp until now, in fact a restart
-                state.counters.dropped["bad_stamp"] -= n
-                state.counters.dropped["time_jump"] += n
-                state.last_ns[name] = timelines.get((id(state), name))
-        self._close_episode()
-
-    def _close_episode(self) -> None:
-        for state in self._sensors.values():
-            for name in state.candidates:
-                state.candidates[name], state.spoke[name] = [], False
-        self._episode_open = False
+        for (name, _), n in restart.candidates.items():  # bad_stamp until now, in fact the restart
+            counters = self._sensors[name].counters
+            counters.dropped["bad_stamp"] -= n
+            counters.dropped["time_jump"] += n
 
     def restart(self, to_ns: int | None = None) -> None:
         """Time restarted, known from outside (the /clock went back): flush everything, forget the
         timelines (the next messages start new ones) and report a TimeJump."""
         with self._lock:
-            sensor = self.config.sensors[0]
-            self._restart(sensor, "clock", to_ns if to_ns is not None else 0, {}, {})
+            self._restarted(self.config.sensors[0], "clock", self._timelines.restart(to_ns if to_ns is not None else 0))
 
     def add_camera_info(self, sensor: str, msg: Any) -> str | None:
         """Cache K and the image size, and queue the depth images that waited for it. Returns the
@@ -495,10 +430,10 @@ class Ingest:
         cfg = self.config
         max_wait_ns = int(cfg.pose_max_wait_s * 1e9)
         color_tolerance_ns = int(cfg.color_tolerance_s * 1e9)
-        now_ns = state.stream_now_ns()
+        now_ns = self._timelines.sensor_now_ns(name)
         out: list[Frame] = []
         lag_ns = int(cfg.max_lag_s * 1e9)
-        newest_ns = state.last_ns["depth"]
+        newest_ns = self._timelines.last_ns(name, "depth")
         while state.awaiting_info and now_ns is not None and now_ns - state.awaiting_info[0][1] > max_wait_ns:
             state.awaiting_info.popleft()
             state.counters.dropped["no_camera_info"] += 1
@@ -521,7 +456,7 @@ class Ingest:
                 if state.queue and state.queue[0] is pending:
                     break  # not yet: later frames are newer, they wait too
                 continue  # dropped and counted
-            if not self._color_ready(state, t, waited_too_long):
+            if not self._color_ready(state, self._timelines.last_ns(name, "color"), t, waited_too_long):
                 break
             rgb = self._match_color(state, t, color_tolerance_ns, pending.depth_m.shape)
             state.queue.popleft()
@@ -564,11 +499,10 @@ class Ingest:
         return n
 
     @staticmethod
-    def _color_ready(state: _SensorState, t: int, waited_too_long: bool) -> bool:
+    def _color_ready(state: _SensorState, last_color: int | None, t: int, waited_too_long: bool) -> bool:
         """Colour is published next to depth: give it the chance to arrive unless waiting longer would
-        exceed the limit (then the frame goes without colour)."""
+        exceed the limit (then the frame goes without colour). last_color: the colour stream's newest stamp."""
         if state.color_seen and not waited_too_long:
-            last_color = state.last_ns["color"]
             return last_color is not None and last_color >= t  # else the colour stream has not reached t yet
         return True
 

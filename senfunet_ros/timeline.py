@@ -1,0 +1,137 @@
+"""Stream timelines: which message stamps are on time, and when time has restarted.
+
+Each stream (a sensor's depth, colour or pose messages) keeps a timeline: its newest accepted
+stamp. A stamp more than `time_jump_s` behind its stream's timeline, or ahead of the newest stamp
+of all streams, is off it (a glitching driver, one bad message, an unset stamp 0): rejected as
+`bad_stamp`, it moves no timeline. Such stamps are remembered as candidates of a new timeline:
+once every stream that spoke since the first candidate has continued on it for
+`restart_confirm_msgs` messages, spanning `restart_confirm_s`, with no message on the old timeline
+meanwhile, time has restarted (a bag looping, a robot restarting its clock) and the streams move
+to the new timeline. Decisions depend on stamps and their order alone, never on the wall clock.
+
+`Timelines` is not thread-safe: its owner (`ingest.Ingest`) calls it under its lock.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+__all__ = ["STREAMS", "Restart", "Timelines", "Verdict"]
+
+STREAMS: tuple[str, ...] = ("depth", "color", "pose")
+
+
+@dataclass(frozen=True)
+class Restart:
+    """Time restarted at `to_ns`; the newest stamp before was `from_ns` (None: no stamp yet)."""
+
+    to_ns: int
+    from_ns: int | None
+    # (sensor, stream) -> how many of its messages, rejected as bad_stamp, were the new timeline's start
+    candidates: dict[tuple[str, str], int] = field(default_factory=dict)
+
+    @property
+    def went_back(self) -> bool:
+        return self.from_ns is not None and self.to_ns < self.from_ns
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What a stamp is: on time (reason None), or rejected with `reason` ("bad_stamp", "duplicate",
+    "out_of_order"; `error` says what was wrong with a bad stamp). A rejected stamp can also have
+    confirmed a restart, which the timelines already moved to."""
+
+    reason: str | None = None
+    error: str = ""
+    restart: Restart | None = None
+
+
+class Timelines:
+    """The newest accepted stamp per sensor and stream, and the candidates of a new timeline."""
+
+    def __init__(self, sensors: tuple[str, ...], *, time_jump_s: float, restart_confirm_msgs: int,
+                 restart_confirm_s: float) -> None:
+        self._far_ns = int(time_jump_s * 1e9)
+        self._confirm_msgs = restart_confirm_msgs
+        self._confirm_ns = restart_confirm_s * 1e9
+        self._last_ns: dict[tuple[str, str], int | None] = {(s, stream): None for s in sensors for stream in STREAMS}
+        # a new timeline in the making: per stream, its consistent off-timeline stamps, and whether the
+        # stream spoke since the first of them
+        self._candidates: dict[tuple[str, str], list[int]] = {key: [] for key in self._last_ns}
+        self._spoke: dict[tuple[str, str], bool] = {key: False for key in self._last_ns}
+        self._episode_open = False  # off-timeline stamps are being collected as a possible restart
+
+    def last_ns(self, sensor: str, stream: str) -> int | None:
+        """The stream's newest accepted stamp."""
+        return self._last_ns[(sensor, stream)]
+
+    def sensor_now_ns(self, sensor: str) -> int | None:
+        """The sensor's stream time: the newest stamp accepted on any of its streams."""
+        stamps = [t for (s, _), t in self._last_ns.items() if s == sensor and t is not None]
+        return max(stamps) if stamps else None
+
+    def now_ns(self) -> int | None:
+        """The newest accepted stamp of any stream."""
+        stamps = [t for t in self._last_ns.values() if t is not None]
+        return max(stamps) if stamps else None
+
+    def check(self, sensor: str, stream: str, stamp_ns: int) -> Verdict:
+        """Where a stamp stands against its stream's timeline; the timeline moves when it is on time.
+        Depth stamps must also move forward (`duplicate`, `out_of_order`)."""
+        key = (sensor, stream)
+        last, now = self._last_ns[key], self.now_ns()
+        behind = last is not None and stamp_ns < last - self._far_ns
+        ahead = now is not None and stamp_ns > now + self._far_ns
+        if last is None and now is not None and stamp_ns < now - self._far_ns:
+            behind = True  # a stream's first message far behind the others
+        if behind or ahead:
+            ref = last if behind and last is not None else now
+            assert ref is not None  # behind or ahead needs a timeline to be off
+            error = (f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is {abs(stamp_ns - ref) * 1e-9:.3f} s "
+                     f"{'behind' if behind else 'ahead of'} the stream's timeline; check the driver's clock (a restart "
+                     f"is recognised once every stream continues on the new timeline)")
+            return Verdict("bad_stamp", error, self._candidate(key, stamp_ns))
+        if self._episode_open:  # the old timeline is alive: what was building up is not a restart
+            self._close_episode()
+        if stream == "depth" and last is not None:
+            if stamp_ns == last:
+                return Verdict("duplicate")
+            if stamp_ns < last:
+                return Verdict("out_of_order")
+        self._last_ns[key] = stamp_ns if last is None else max(last, stamp_ns)
+        return Verdict()
+
+    def restart(self, to_ns: int) -> Restart:
+        """Time restarted, known from outside (the /clock went back): every timeline is forgotten (the
+        next messages start new ones)."""
+        return self._move({}, Restart(to_ns, self.now_ns()))
+
+    def _candidate(self, key: tuple[str, str], stamp_ns: int) -> Restart | None:
+        """Remember an off-timeline stamp; move to the new timeline when every stream is on it."""
+        self._episode_open = True
+        self._spoke[key] = True
+        candidates = self._candidates[key]
+        if candidates and 0 <= stamp_ns - candidates[-1] <= self._far_ns:
+            if stamp_ns > candidates[-1]:
+                candidates.append(stamp_ns)
+        else:
+            self._candidates[key] = [stamp_ns]  # not consistent with what came before: start over
+        lists = {k: self._candidates[k] for k, spoke in self._spoke.items() if spoke}
+        if any(len(c) < self._confirm_msgs for c in lists.values()):
+            return None
+        firsts, lasts = [c[0] for c in lists.values()], [c[-1] for c in lists.values()]
+        if max(lasts) - min(firsts) < self._confirm_ns or max(lasts) - min(lasts) > self._far_ns:
+            return None
+        restart = Restart(min(firsts), self.now_ns(), {k: len(c) for k, c in lists.items()})
+        return self._move({k: c[-1] for k, c in lists.items()}, restart)
+
+    def _move(self, timelines: dict[tuple[str, str], int], restart: Restart) -> Restart:
+        """Every stream onto the new timeline (its newest candidate, or none yet)."""
+        for key in self._last_ns:
+            self._last_ns[key] = timelines.get(key)
+        self._close_episode()
+        return restart
+
+    def _close_episode(self) -> None:
+        for key in self._candidates:
+            self._candidates[key], self._spoke[key] = [], False
+        self._episode_open = False
