@@ -68,6 +68,7 @@ from .alpha_scheduler import AlphaScheduler
 from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
+from .files import atomic_file
 from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, encode_alpha, keys_to_coords
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
@@ -546,11 +547,8 @@ class SenFuNet:
                 }
                 if self.grid.spill is not None:
                     state["spill"] = {k: torch.from_numpy(v) for k, v in self.grid.spill.state_dict().items()}
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(state, tmp)
-        tmp.replace(path)
+        with atomic_file(path) as file:
+            torch.save(state, file)
 
     @classmethod
     def load(cls, path: str | Path, device: str | None = None, *,

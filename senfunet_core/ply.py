@@ -8,13 +8,13 @@ properties and elements, ASCII or big-endian files). Only triangle faces are sup
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
+from .files import atomic_file
 from .mesher import Mesh
 
 # PLY scalar type names (old and new spellings) -> numpy type codes without byte order.
@@ -77,24 +77,13 @@ def write_ply(path: str | os.PathLike, mesh: Mesh) -> None:
         rec["idx"] = faces[start:stop]
         return rec
 
-    directory = path.parent if str(path.parent) else Path(".")
-    # Temp file in the target directory so os.replace is a same-filesystem atomic rename.
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            # in chunks: records (and float64 colours) of a whole large mesh at once would be a
-            # replay's memory peak
-            for rows, n in ((vertex_rows, n_v), (face_rows, n_f)):
-                for start in range(0, n, _CHUNK_ROWS):
-                    rows(start, min(start + _CHUNK_ROWS, n)).tofile(f)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with atomic_file(path) as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        # in chunks: records (and float64 colours) of a whole large mesh at once would be a
+        # replay's memory peak
+        for rows, n in ((vertex_rows, n_v), (face_rows, n_f)):
+            for start in range(0, n, _CHUNK_ROWS):
+                rows(start, min(start + _CHUNK_ROWS, n)).tofile(f)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -203,7 +203,7 @@ class Ingest:
     """Per-sensor queues, caches and counters; thread-safe (callbacks add, a timer pops)."""
 
     def __init__(self, config: IngestConfig) -> None:
-        self.config = config
+        self._config = config
         self._lock = threading.Lock()
         self._sensors = {name: _SensorState(config) for name in config.sensors}
         self._timelines = Timelines(config.sensors, time_jump_s=config.time_jump_s,
@@ -212,6 +212,20 @@ class Ingest:
         self._jumps: list[TimeJump] = []
         self._set_aside_bytes = 0  # of the frames set aside, all sensors
         self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
+
+    @property
+    def config(self) -> IngestConfig:
+        return self._config
+
+    @config.setter
+    def config(self, config: IngestConfig) -> None:
+        """New settings (the node's parameters changed) for the same sensors."""
+        if config.sensors != self._config.sensors:
+            raise ValueError(f"sensors {config.sensors} differ from {self._config.sensors}: make a new Ingest")
+        with self._lock:
+            self._config = config
+            self._timelines.configure(time_jump_s=config.time_jump_s, restart_confirm_msgs=config.restart_confirm_msgs,
+                                      restart_confirm_s=config.restart_confirm_s)
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -567,11 +581,15 @@ class Ingest:
         with self._lock:
             self._state(sensor).counters.integrated += 1
 
-    def mark_dropped(self, sensor: str, reason: str) -> None:
+    def mark_dropped(self, sensor: str, reason: str, error: str = "") -> None:
+        """The caller dropped one of the sensor's frames; `error` says what was wrong with it."""
         if reason not in DROP_REASONS:
             raise ValueError(f"unknown drop reason '{reason}'; use one of {DROP_REASONS}")
         with self._lock:
-            self._state(sensor).counters.dropped[reason] += 1
+            counters = self._state(sensor).counters
+            counters.dropped[reason] += 1
+            if error:
+                counters.errors[reason] = error
 
     def counters(self) -> dict[str, dict[str, Any]]:
         """A snapshot: sensor -> SensorCounters.as_dict() plus `queue_depth` (frames waiting, set

@@ -91,7 +91,8 @@ class MeshPublisher:
         self._turns = ThreadPoolExecutor(1, thread_name_prefix="senfunet-net-turn", initializer=thread_setup)
 
     def resend_all(self) -> None:
-        """The next publication sends the whole map (a loaded map replaced what readers hold)."""
+        """The next publication sends the whole map (a loaded map replaced what readers hold, or they
+        are to be shown otherwise). Mesh lock held."""
         self._served = (0, 0)
 
     def _on_matched(self, info: QoSPublisherMatchedInfo) -> None:

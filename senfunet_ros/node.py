@@ -106,7 +106,7 @@ DROP_HINTS: dict[str, str] = {
     "duplicate": "a depth stamp on {s.depth_topic} came twice",
     "bad_stamp": "a stamp far (time_jump_s) from its stream's timeline, or 0; check the driver's clock",
     "time_jump": "time restarted (a bag looping?); the queued images were flushed",
-    "engine_error": "the engine rejected the frame (the warning before says why)",
+    "engine_error": "the engine rejected the frame",
     "shutdown": "the node stopped while the frame was being integrated, or had set it aside",
     "map_reset": "the map was reset or replaced while the image waited or was set aside",
 }
@@ -476,6 +476,12 @@ class FusionNode(Node):
         values, self._validated = self._validated, None
         if values is None:
             return
+        try:
+            self._apply_values(values)
+        except Exception as err:  # a post-set callback that raises takes the executor down
+            self.get_logger().error(f"parameters accepted but not all applied ({err!r}); set them again")
+
+    def _apply_values(self, values: dict[str, Any]) -> None:
         old, new = self.settings, P.Settings.from_values(values)
         self.settings = new
         for name, timer, period_s in (("integrate_rate_hz", self._integrate_timer, 1.0 / new.integrate_rate_hz),
@@ -490,6 +496,9 @@ class FusionNode(Node):
         self.pipeline.on_time_jump = TimeJumpAction.parse(new.on_time_jump)
         self.health.window_s, self.health.stale_after_s = new.diagnostics_window_s, new.stale_after_s
         self._apply_engine_settings()
+        if new.mesh_colors != old.mesh_colors or new.mesh_display_cell_m != old.mesh_display_cell_m:
+            with self.mesh_publisher.lock:  # readers get the whole map as it is now shown
+                self.mesh_publisher.resend_all()
         changed = sorted(name for name in values if values[name] != old.values[name])
         self.get_logger().info("parameters changed: " + ", ".join(f"{n} = {values[n]!r}" for n in changed))
 

@@ -49,7 +49,8 @@ class Param:
 
 
 def _rate(name: str, default: float, help_text: str) -> Param:
-    return Param(name, default, help_text, lo=0.0, hi=1000.0, lo_open=True, runtime=True)
+    # at least once in 1000 s: a timer's period must fit its nanosecond counter
+    return Param(name, default, help_text, lo=0.001, hi=1000.0, runtime=True)
 
 
 GLOBAL_PARAMS: tuple[Param, ...] = (

@@ -141,11 +141,10 @@ class Pipeline:
             self.ingest.mark_dropped(frame.sensor, "shutdown")
             return
         self.frames_failed += 1  # InputError or worse: this frame is lost, the map is not
-        self.ingest.mark_dropped(frame.sensor, "engine_error")
-        text = f"{frame.sensor} at {frame.stamp_ns * 1e-9:.3f} s: {error}"
+        # counted and described: the node warns of new drops once per cause and period, not per frame
+        self.ingest.mark_dropped(frame.sensor, "engine_error", f"frame at {frame.stamp_ns * 1e-9:.3f} s: {error}")
         if len(self.engine_errors) < 10:
-            self.engine_errors.append(text)
-        self._log("warning", f"{frame.sensor}: frame at {frame.stamp_ns * 1e-9:.3f} s rejected by the engine: {error}")
+            self.engine_errors.append(f"{frame.sensor} at {frame.stamp_ns * 1e-9:.3f} s: {error}")
 
     # -- map and files ---------------------------------------------------------------------------
 

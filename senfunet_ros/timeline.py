@@ -50,15 +50,20 @@ class Timelines:
 
     def __init__(self, sensors: tuple[str, ...], *, time_jump_s: float, restart_confirm_msgs: int,
                  restart_confirm_s: float) -> None:
-        self._far_ns = int(time_jump_s * 1e9)
-        self._confirm_msgs = restart_confirm_msgs
-        self._confirm_ns = restart_confirm_s * 1e9
+        self.configure(time_jump_s=time_jump_s, restart_confirm_msgs=restart_confirm_msgs,
+                       restart_confirm_s=restart_confirm_s)
         self._last_ns: dict[tuple[str, str], int | None] = {(s, stream): None for s in sensors for stream in STREAMS}
         # a new timeline in the making: per stream, its consistent off-timeline stamps, and whether the
         # stream spoke since the first of them
         self._candidates: dict[tuple[str, str], list[int]] = {key: [] for key in self._last_ns}
         self._spoke: dict[tuple[str, str], bool] = {key: False for key in self._last_ns}
         self._episode_open = False  # off-timeline stamps are being collected as a possible restart
+
+    def configure(self, *, time_jump_s: float, restart_confirm_msgs: int, restart_confirm_s: float) -> None:
+        """The limits (see the module's docstring); the timelines stay."""
+        self._far_ns = int(time_jump_s * 1e9)
+        self._confirm_msgs = restart_confirm_msgs
+        self._confirm_ns = restart_confirm_s * 1e9
 
     def last_ns(self, sensor: str, stream: str) -> int | None:
         """The stream's newest accepted stamp."""

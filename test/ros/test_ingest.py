@@ -1,6 +1,8 @@
 """senfunet_ros.ingest: messages in, posed frames out, every drop counted; no node, no clock."""
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import threading
 
@@ -207,6 +209,17 @@ def test_a_stray_stamp_is_dropped_and_does_not_move_the_timeline(stray_s: float)
     c = ingest.counters()["tof"]
     assert c["dropped"]["bad_stamp"] == 3 and c["time_jumps"] == 0 and c["dropped"]["time_jump"] == 0
     assert "stamp" in c["errors"]["bad_stamp"]
+
+
+def test_new_settings_reach_the_timelines() -> None:
+    """A new config (the node's parameters changed at run time) changes how far is off the timeline."""
+    ingest = make(time_jump_s=1.0)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    assert ingest.add_depth("tof", depth_msg(8000 * MS)) == "bad_stamp"  # 3 s on: off the timeline
+    ingest.config = dataclasses.replace(ingest.config, time_jump_s=10.0)
+    assert ingest.add_depth("tof", depth_msg(8000 * MS)) is None  # a pause of 3 s now
+    with pytest.raises(ValueError, match="sensors"):
+        ingest.config = dataclasses.replace(ingest.config, sensors=("tof",))
 
 
 def test_a_burst_of_consistent_stray_stamps_on_one_stream_is_not_a_restart() -> None:
@@ -432,3 +445,22 @@ def test_pipeline_tells_its_owner_under_its_lock_each_time_the_map_is_emptied_or
     assert calls == [True] * 3  # saving alone keeps the map
     pipeline.save_meshes(tmp_path, sensors=(), tsdf_fusion=False, then_reset=True)
     assert calls == [True] * 4
+
+
+def test_pipeline_counts_rejected_frames_with_the_reason_and_logs_none_of_them_itself() -> None:
+    """The engine's rejections are drops with their reason (the node warns once per cause and
+    period, from the counters), not one log line per frame."""
+    from senfunet_core.engine import EngineConfig, SenFuNet
+    from senfunet_ros.pipeline import Pipeline
+
+    logged: list[str] = []
+    pipeline = Pipeline(SenFuNet(EngineConfig(), weights=None), make(), log=lambda level, text: logged.append(text))
+    K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+    far = np.eye(4)
+    far[0, 3] = 1e5  # 100 km from the origin: beyond the grid's key range
+    rejected = [Frame("tof", i * 10**8, np.ones((48, 64), np.float32), None, K, far) for i in range(3)]
+    assert pipeline.drain(rejected) == 0
+    counters = pipeline.ingest.counters()["tof"]
+    assert counters["dropped"]["engine_error"] == 3 and pipeline.frames_failed == 3
+    assert counters["errors"]["engine_error"].startswith("frame at 0.200 s: ")
+    assert logged == []

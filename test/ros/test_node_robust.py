@@ -180,6 +180,8 @@ def test_parameters_typed_ranged_read_only_and_applied(ros, tmp_path: Path) -> N
         assert not r.successful and "mesh_rate_hz" in r.reason
         (r,) = _set(run, mesh_rate_hz="fast")
         assert not r.successful
+        (r,) = _set(run, status_rate_hz=1e-12)  # a period beyond a timer's nanosecond counter
+        assert not r.successful and "status_rate_hz" in r.reason
         (r,) = _set(run, voxel_size_m=0.02)  # the map's grid cannot change under it
         assert not r.successful and "read-only" in r.reason
         (r,) = _set(run, **{"tof.depth_max_m": 0.05})  # below depth_min_m: an empty range
@@ -309,13 +311,19 @@ def test_compressed_inputs_are_decoded(ros, tmp_path: Path) -> None:
 def test_mesh_coloured_by_camera_colour(ros, tmp_path: Path) -> None:
     run = Running("colours", {**topic_params("colours"), **SMALL, "mesh_colors": "camera"}, tmp_path)
     try:
+        reader = MeshCollector(run.helper, f"{run.prefix}/mesh")
+        wait_for(lambda: run.node.mesh_publisher.mesh_pub.get_subscription_count() == 1, 10, "the reader")
         fuse_in_process(run, scene_messages())
         run.node.publish_mesh()  # every integrated block meshed
+        wait_for(lambda: reader.keys() and reader.keys() == _marker_keys(run.node), 30, "the mesh")
         meshes = run.node.engine.block_meshes()
         assert len(meshes.faces) > 100
         camera = run.node.mesh_publisher.display(meshes)
         (r,) = _set(run, mesh_colors="weighting")
         assert r.successful
+        received = reader.messages
+        run.node.publish_mesh()  # nothing new in the engine: the reader gets the whole map in its new colours
+        wait_for(lambda: reader.messages > received, 10, "the map in its new colours")
         weighting = run.node.mesh_publisher.display(meshes)
         assert len(run.node.camera_colors) > 100  # the stereo colour images were averaged in
         seen = ~np.isnan(run.node.camera_colors.lookup(meshes.vertices)[:, 0])  # where the stereo camera saw
