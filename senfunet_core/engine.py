@@ -203,6 +203,12 @@ class PreparedFrame:
     features: Future | None  # of the 5 x H x W pixel features; None when no pixel is valid
     checks_s: float  # time `prepare` took (counted as integration)
 
+    @property
+    def empty(self) -> bool:
+        """No pixel is valid (within the sensor's depth range, inside the image border): integrating
+        it changes nothing."""
+        return self.features is None
+
 
 @dataclass
 class WeightCloud:

@@ -56,7 +56,8 @@ from senfunet_ros import conversions as conv
 from senfunet_ros.geometry import interpolate_pose
 from senfunet_ros.timeline import Restart, Timelines
 
-__all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "integrate_ready"]
+__all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "NoDepthInRange",
+           "integrate_ready"]
 
 DROP_REASONS: tuple[str, ...] = (
     "no_camera_info",  # no camera_info of its sensor arrived within pose_max_wait_s of the depth image
@@ -64,6 +65,7 @@ DROP_REASONS: tuple[str, ...] = (
     "bad_encoding",  # depth or colour encoding unsupported, or the image is malformed
     "size_mismatch",  # depth size differs from its camera_info size
     "all_invalid",  # no valid depth pixel at all
+    "out_of_range",  # no depth pixel within the sensor's depth range inside the image border (reported by the caller)
     "bad_pose",  # pose message with NaN/inf or a non-unit quaternion
     "pose_timeout",  # no pose after the frame arrived within pose_max_wait_s of stream time
     "pose_gap",  # the poses around the frame are further than pose_tolerance_s from it
@@ -633,6 +635,11 @@ def _frame_bytes(frame: Frame) -> int:
     return frame.depth_m.nbytes + (0 if frame.rgb is None else frame.rgb.nbytes)
 
 
+class NoDepthInRange(ValueError):
+    """A frame with no depth pixel the engine keeps: none within its sensor's depth range inside the
+    image border. Nothing was integrated."""
+
+
 def integrate_ready(engine: Any, items: Iterable[Frame | TimeJump], on_time_jump: Callable[[TimeJump], None],
                     on_frame: Callable[[Frame, Exception | None, float], None]) -> None:
     """Hand ready items to the engine in order, one frame ahead: each frame is prepared (checked, its
@@ -640,7 +647,8 @@ def integrate_ready(engine: Any, items: Iterable[Frame | TimeJump], on_time_jump
     the integration kernels do. A time jump is handled once every frame before it is integrated.
 
     on_frame(frame, error, seconds) follows each frame: error is None once it is integrated, or what
-    the engine raised (the frame is lost, the map is not); seconds is the engine time it took."""
+    the engine raised (the frame is lost, the map is not), or NoDepthInRange (nothing to integrate);
+    seconds is the engine time it took."""
     ahead: tuple[Frame, Any, float] | None = None
 
     def finish() -> None:
@@ -649,7 +657,12 @@ def integrate_ready(engine: Any, items: Iterable[Frame | TimeJump], on_time_jump
             return
         (frame, prepared, seconds), ahead = ahead, None
         error = prepared if isinstance(prepared, Exception) else None
-        if error is None:
+        if error is None and prepared.empty:
+            deepest = float(np.max(frame.depth_m, where=np.isfinite(frame.depth_m), initial=0.0))
+            error = NoDepthInRange(f"no depth pixel within the sensor's depth_min_m..depth_max_m inside the image "
+                                   f"border (the deepest is {deepest:.3f} m" + (": millimetres in a 32FC1 image?)"
+                                                                                 if deepest > 100 else ")"))
+        elif error is None:
             start = time.perf_counter()
             try:
                 engine.integrate_prepared(prepared)

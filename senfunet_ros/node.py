@@ -93,6 +93,7 @@ DROP_HINTS: dict[str, str] = {
     "bad_encoding": "publish depth on {s.depth_topic} as 32FC1 (metres) or 16UC1 (millimetres)",
     "size_mismatch": "the depth images on {s.depth_topic} differ in size from the CameraInfo on {s.camera_info_topic}",
     "all_invalid": "every pixel of the depth image was 0, negative, NaN or inf",
+    "out_of_range": "no depth pixel lay within {s.depth_min_m}..{s.depth_max_m} m inside the image border",
     "bad_pose": "a pose on {s.pose_topic} had NaN/inf or a quaternion of length other than 1",
     "pose_timeout": "no pose on {s.pose_topic} at or after the image's stamp within pose_max_wait_s; check that "
                     "poses arrive and are stamped on the depth images' clock",

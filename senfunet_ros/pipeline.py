@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from senfunet_ros.ingest import Frame, Ingest, TimeJump, integrate_ready
+from senfunet_ros.ingest import Frame, Ingest, NoDepthInRange, TimeJump, integrate_ready
 
 __all__ = ["FILE_MODE", "MESH_FILES", "Pipeline", "SavedMesh", "Stream", "TimeJumpAction"]
 
@@ -139,6 +139,9 @@ class Pipeline:
         if self.stopping and isinstance(error, RuntimeError):  # the worker pools went away under it
             self.frames_unfinished += 1
             self.ingest.mark_dropped(frame.sensor, "shutdown")
+            return
+        if isinstance(error, NoDepthInRange):  # nothing to integrate: a drop, not a failure
+            self.ingest.mark_dropped(frame.sensor, "out_of_range", f"frame at {frame.stamp_ns * 1e-9:.3f} s: {error}")
             return
         self.frames_failed += 1  # InputError or worse: this frame is lost, the map is not
         # counted and described: the node warns of new drops once per cause and period, not per frame

@@ -447,9 +447,10 @@ def test_pipeline_tells_its_owner_under_its_lock_each_time_the_map_is_emptied_or
     assert calls == [True] * 4
 
 
-def test_pipeline_counts_rejected_frames_with_the_reason_and_logs_none_of_them_itself() -> None:
-    """The engine's rejections are drops with their reason (the node warns once per cause and
-    period, from the counters), not one log line per frame."""
+def test_pipeline_counts_rejected_and_empty_frames_with_the_reason_and_logs_none_of_them_itself() -> None:
+    """The engine's rejections and frames with nothing to integrate are drops with their reason
+    (the node warns once per cause and period, from the counters), not integrated frames nor one
+    log line per frame."""
     from senfunet_core.engine import EngineConfig, SenFuNet
     from senfunet_ros.pipeline import Pipeline
 
@@ -463,4 +464,11 @@ def test_pipeline_counts_rejected_frames_with_the_reason_and_logs_none_of_them_i
     counters = pipeline.ingest.counters()["tof"]
     assert counters["dropped"]["engine_error"] == 3 and pipeline.frames_failed == 3
     assert counters["errors"]["engine_error"].startswith("frame at 0.200 s: ")
+    # depth in millimetres in a 32FC1 image: every pixel beyond depth_max_m, nothing to integrate
+    millimetres = [Frame("tof", (5 + i) * 10**8, np.full((48, 64), 1500.0, np.float32), None, K, np.eye(4))
+                   for i in range(2)]
+    assert pipeline.drain(millimetres) == 0
+    counters = pipeline.ingest.counters()["tof"]
+    assert counters["dropped"]["out_of_range"] == 2 and counters["integrated"] == 0 and pipeline.frames_failed == 3
+    assert "1500.000 m: millimetres" in counters["errors"]["out_of_range"]
     assert logged == []
