@@ -599,6 +599,16 @@ class SenFuNet:
         engine.store.mesh_pending[: engine.grid.n_blocks] = True
         return engine
 
+    def try_stats(self) -> dict | None:
+        """`stats()`, or None at once while an update, extraction or save holds the map (a status
+        publisher keeps what it had rather than wait)."""
+        if not self._update_lock.acquire(blocking=False):
+            return None
+        try:
+            return self.stats()
+        finally:
+            self._update_lock.release()
+
     def stats(self) -> dict:
         """Map size and memory, and how much of the meshed surface has its alpha: judged at least
         once (evaluated, or found to hold no voxel alpha matters for; else its mesh averages the

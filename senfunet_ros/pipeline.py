@@ -13,6 +13,8 @@ run on one thread at a time (the node's integration timer and its services share
 """
 from __future__ import annotations
 
+import contextlib
+
 import enum
 import os
 import threading
@@ -77,7 +79,7 @@ class Pipeline:
         # called under the lock whenever the map is emptied or replaced, so that what the caller
         # derives from integrated frames (camera colours) never outlives the map nor misses a frame
         self._on_new_map = on_new_map or (lambda: None)
-        self.lock = threading.RLock()  # held while the engine is fed, reset, replaced or saved
+        self.lock = threading.RLock()  # held while the engine is fed, reset or replaced (not while saving)
         self.latest_stamp_ns = 0  # latest integrated sensor time: the stamp of every output
         self.frames_integrated = 0
         self.frames_failed = 0  # the engine rejected them (the map is untouched)
@@ -168,10 +170,13 @@ class Pipeline:
         out.mkdir(parents=True, exist_ok=True)
         which = [*sensors] + (["tsdf_fusion"] if tsdf_fusion else []) + ["fused"]
         meshes: dict[str, tuple[Any, float]] = {}
-        with self.lock:
+        # the engine is thread-safe: frames keep being integrated while the meshes are made (holding the
+        # lock would stop draining the queues, which then overflow); only a reset excludes them
+        with self.lock if then_reset else contextlib.nullcontext():
+            engine = self.engine
             for name in which:
                 t0 = time.perf_counter()
-                mesh = self.engine.extract_mesh(name, then_reset=then_reset and name == which[-1])
+                mesh = engine.extract_mesh(name, then_reset=then_reset and name == which[-1])
                 meshes[MESH_FILES.get(name, name)] = (mesh, time.perf_counter() - t0)
             if then_reset:
                 self._on_new_map()
@@ -186,8 +191,7 @@ class Pipeline:
     def save_map(self, path: str | Path) -> Path:
         """The whole engine state (grids, networks, config) in one file, mode 0644."""
         path = Path(path).expanduser()
-        with self.lock:
-            self.engine.save(path)
+        self.engine.save(path)  # thread-safe, as frames keep being integrated (see save_meshes)
         os.chmod(path, FILE_MODE)
         return path
 

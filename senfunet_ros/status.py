@@ -111,7 +111,9 @@ class StatusReport:
         now = time.monotonic()
         if now - self._engine_stats_at[0] >= ENGINE_STATS_PERIOD_S:
             try:
-                self._engine_stats_at = (now, dict(self.pipeline.engine.stats()))
+                stats = self.pipeline.engine.try_stats()
+                if stats is not None:  # else a save or extraction holds the map: the last ones, tried again next time
+                    self._engine_stats_at = (now, stats)
             except Exception as err:  # statistics never stop the status
                 self._warn(("engine_stats",), f"engine statistics failed: {err!r}")
                 self._engine_stats_at = (now, self._engine_stats_at[1])

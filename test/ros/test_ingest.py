@@ -472,3 +472,40 @@ def test_pipeline_counts_rejected_and_empty_frames_with_the_reason_and_logs_none
     assert counters["dropped"]["out_of_range"] == 2 and counters["integrated"] == 0 and pipeline.frames_failed == 3
     assert "1500.000 m: millimetres" in counters["errors"]["out_of_range"]
     assert logged == []
+
+
+def test_frames_are_integrated_and_stats_answered_while_meshes_are_saved(tmp_path, monkeypatch) -> None:
+    """~/save_mesh during a stream: the pipeline keeps integrating (its queues would overflow
+    otherwise), and the status gets the last statistics at once rather than wait for the save."""
+    from senfunet_core.engine import EngineConfig, SenFuNet
+    from senfunet_ros.pipeline import Pipeline
+
+    engine = SenFuNet(EngineConfig(), weights=None)
+    pipeline = Pipeline(engine, make())
+    saving, release = threading.Event(), threading.Event()
+    extract_mesh = engine.extract_mesh
+
+    def held_extraction(*args, **kwargs):  # the save holds the map while this waits
+        with engine._update_lock:
+            saving.set()
+            release.wait(30)
+        return extract_mesh(*args, **kwargs)
+
+    monkeypatch.setattr(engine, "extract_mesh", held_extraction)
+    saver = threading.Thread(target=pipeline.save_meshes, args=(tmp_path,),
+                             kwargs={"sensors": (), "tsdf_fusion": False})
+    saver.start()
+    try:
+        assert saving.wait(30)
+        K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+        frame = Frame("tof", 10**8, np.full((48, 64), 1.0, np.float32), None, K, np.eye(4))
+        drained: list[int] = []
+        feeder = threading.Thread(target=lambda: drained.append(pipeline.drain([frame])), daemon=True)
+        feeder.start()
+        feeder.join(30)
+        assert drained == [1]  # integrated during the save
+        assert engine.try_stats() is None  # the map is held: no waiting
+    finally:
+        release.set()
+        saver.join(60)
+    assert (tmp_path / "mesh.ply").is_file() and engine.try_stats()["frames_integrated"]["tof"] == 1
