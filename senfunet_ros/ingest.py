@@ -366,19 +366,30 @@ class Ingest:
 
     def add_tf(self, msg: Any, *, static: bool) -> str | None:
         """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).
-        Returns the drop reason (bad_pose for NaN or a non-unit quaternion), or None."""
+        Returns the drop reason (bad_pose for NaN or a non-unit quaternion; bad_stamp for a dynamic
+        transform more than time_jump_s ahead of the streams' newest stamp, which is left out), or
+        None. Counted on the first sensor (a transform serves them all)."""
         if self.config.tf is None or not hasattr(self.config.tf, "add_message"):
             return None
+        with self._lock:
+            now_ns = self._timelines.now_ns()
+        latest_ns = None if now_ns is None else now_ns + int(self.config.time_jump_s * 1e9)
+        reason, error = None, ""
         try:
-            self.config.tf.add_message(msg, static=static)
+            left_out = self.config.tf.add_message(msg, static=static, latest_ns=latest_ns)
+            if left_out:
+                assert now_ns is not None
+                reason, error = "bad_stamp", (
+                    f"tf: a transform stamped {left_out[0] * 1e-9:.3f} s, {(left_out[0] - now_ns) * 1e-9:.3f} s ahead "
+                    "of the streams' newest stamp, was left out; check the clock of its publisher")
         except (ValueError, AttributeError) as err:
+            reason, error = "bad_pose", f"tf: {err}"
+        if reason is not None:
             with self._lock:
-                for state in self._sensors.values():
-                    state.counters.dropped["bad_pose"] += 1
-                    state.counters.errors["bad_pose"] = f"tf: {err}"
-                    break
-            return "bad_pose"
-        return None
+                counters = self._sensors[self.config.sensors[0]].counters
+                counters.dropped[reason] += 1
+                counters.errors[reason] = error
+        return reason
 
     def add_pose(self, sensor: str, msg: Any) -> str | None:
         """Add one pose message (PoseStamped, Odometry or TransformStamped). Returns the drop reason."""

@@ -48,16 +48,21 @@ class TfBuffer:
         self._links: dict[str, _Link] = {}  # child frame -> link to its parent
         self._lock = threading.Lock()
 
-    def add_message(self, msg: Any, *, static: bool) -> int:
-        """Every transform of a tf2_msgs/TFMessage (duck-typed); returns how many were added.
-        ValueError naming the frames for a transform with NaN or a non-unit quaternion."""
-        n = 0
+    def add_message(self, msg: Any, *, static: bool, latest_ns: int | None = None) -> list[int]:
+        """Every transform of a tf2_msgs/TFMessage (duck-typed), but dynamic ones stamped after
+        `latest_ns`: a stamp far in the future would stay its link's newest, and every lookup until
+        then would find a gap. Returns the stamps left out. ValueError naming the frames for a
+        transform with NaN or a non-unit quaternion."""
+        left_out = []
         for tf in msg.transforms:
             T = transform_from_msg(tf.transform.translation, tf.transform.rotation,
                                    f"transform {tf.header.frame_id} -> {tf.child_frame_id}")
-            self.add(tf.header.frame_id, tf.child_frame_id, stamp_to_ns(tf.header.stamp), T, static=static)
-            n += 1
-        return n
+            stamp_ns = stamp_to_ns(tf.header.stamp)
+            if not static and latest_ns is not None and stamp_ns > latest_ns:
+                left_out.append(stamp_ns)
+                continue
+            self.add(tf.header.frame_id, tf.child_frame_id, stamp_ns, T, static=static)
+        return left_out
 
     def add(self, parent: str, child: str, stamp_ns: int, T_parent_child: np.ndarray, *, static: bool) -> None:
         parent, child = parent.lstrip("/"), child.lstrip("/")

@@ -158,3 +158,40 @@ def test_the_live_node_looks_poses_up_in_its_fixed_frame() -> None:
     settings = P.Settings.from_values(values)
     live = P.ingest_config(settings, **P.live_lag(settings), tf=TfBuffer())  # as the node builds it
     assert live.fixed_frame == "odom" and P.ingest_config(settings).fixed_frame == "odom"
+
+
+def test_a_transform_stamped_far_ahead_is_left_out_and_does_not_cut_its_link() -> None:
+    """One /tf transform from a publisher with a wrong clock: left out as bad_stamp, so that the
+    frames after the link's last good transform wait for the next one instead of finding a gap."""
+    from types import SimpleNamespace
+
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+
+    def tf_msg(t_ns: int, x: float) -> SimpleNamespace:
+        sec, nanosec = divmod(t_ns, 1_000_000_000)
+        return SimpleNamespace(transforms=[SimpleNamespace(
+            header=SimpleNamespace(frame_id="map", stamp=SimpleNamespace(sec=sec, nanosec=nanosec)),
+            child_frame_id="cam", transform=SimpleNamespace(translation=SimpleNamespace(x=x, y=0.0, z=0.0),
+                                                            rotation=SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0)))])
+
+    def depth(t_ns: int):
+        msg = depth_msg(t_ns)
+        msg.header.frame_id = "cam"
+        return msg
+
+    MS = 1_000_000
+    ingest = Ingest(IngestConfig(sensors=("tof", "stereo"), tf=TfBuffer(max_gap_s=0.1), fixed_frame="map"))
+    ingest.add_camera_info("tof", info_msg())
+    assert ingest.add_tf(tf_msg(10_000 * MS, 0.0), static=False) is None
+    assert ingest.add_depth("tof", depth(10_000 * MS)) is None
+    assert ingest.add_tf(tf_msg(1_010_000 * MS, 5.0), static=False) == "bad_stamp"  # 1000 s ahead
+    assert ingest.add_depth("tof", depth(10_080 * MS)) is None
+    assert [f.stamp_ns for f in ingest.pop_ready()] == [10_000 * MS]  # the second waits for its transform
+    assert ingest.add_tf(tf_msg(10_100 * MS, 1.0), static=False) is None
+    (frame,) = ingest.pop_ready()
+    assert frame.stamp_ns == 10_080 * MS and frame.T_world_camera[0, 3] == pytest.approx(0.8)
+    counters = ingest.counters()["tof"]
+    assert counters["dropped"]["bad_stamp"] == 1 and "ahead" in counters["errors"]["bad_stamp"]
+    assert counters["dropped"]["pose_gap"] == 0
