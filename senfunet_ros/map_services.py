@@ -12,8 +12,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from senfunet_core.errors import InputError
 from senfunet_ros import params as P
 from senfunet_ros.pipeline import Pipeline
+
+
+# what the node's parameters fix and a map must share: its sensors and what their grids mean
+_MAP_FIELDS = ("sensors", "sensor_uses_rgb", "voxel_size_m", "band_m")
+
+
+def _plain(value: Any) -> Any:
+    return tuple(value) if isinstance(value, (list, tuple)) else value
 
 
 @dataclass
@@ -63,9 +72,18 @@ class MapServices:
 
     def _load_map(self) -> str:
         path = self.map_path()
+        want = P.engine_config(self.settings())
+
+        def check_and_configure(engine: Any) -> None:  # before the loaded engine replaces the node's
+            differ = [f"{name} {_plain(getattr(engine.config, name))} (the node's {_plain(getattr(want, name))})"
+                      for name in _MAP_FIELDS if _plain(getattr(engine.config, name)) != _plain(getattr(want, name))]
+            if differ:
+                raise InputError(f"{path} was made with other settings: {', '.join(differ)}; start the node with "
+                                 "the map's parameters to load it")
+            self.configure_engine(engine)
+
         with self.mesh_lock:
-            engine = self.pipeline.load_map(path, device=P.engine_config(self.settings()).device,
-                                            configure=self.configure_engine)
+            engine = self.pipeline.load_map(path, device=want.device, configure=check_and_configure)
             self.map_loaded()
         return f"loaded {path}: {sum(engine.frames_integrated.values())} frames, {engine.grid.n_blocks} blocks"
 

@@ -274,6 +274,14 @@ def test_save_map_load_map_round_trip_and_file_modes(ros, tmp_path: Path) -> Non
         assert run.node.engine.config.depth_max_m[0] == 2.5  # the parameters hold for the loaded map
         after = run.node.engine.extract_mesh("fused")
         assert after.n_faces == before.n_faces and np.array_equal(after.vertices, before.vertices)
+        from senfunet_core.engine import EngineConfig, SenFuNet
+
+        SenFuNet(EngineConfig(voxel_size_m=0.01, band_m=0.04), weights=None).save(tmp_path / "other.pt")
+        (res,) = _set(run, map_file=str(tmp_path / "other.pt"))  # a map of another grid
+        assert res.successful
+        r = run.call("load_map")
+        assert not r.success and "voxel_size_m 0.01 (the node's 0.04)" in r.message, r.message
+        assert run.node.engine.extract_mesh("fused").n_faces == before.n_faces  # the map stays
         (res,) = _set(run, map_file=str(tmp_path / "missing.pt"))
         assert res.successful
         r = run.call("load_map")
