@@ -149,6 +149,8 @@ class SensorCounters:
     pose_received: int = 0
     time_jumps: int = 0  # time jumps first seen on this sensor's streams
     set_aside: int = 0  # frames set aside because the consumer fell behind (integrated later, or dropped)
+    # frames handed out without colour although the sensor's colour stream spoke: none within color_tolerance_s
+    without_color: int = 0
     dropped: dict[str, int] = field(default_factory=lambda: {reason: 0 for reason in DROP_REASONS})
     errors: dict[str, str] = field(default_factory=dict)  # drop reason -> what the last such message had wrong
 
@@ -160,6 +162,7 @@ class SensorCounters:
             "pose_received": self.pose_received,
             "time_jumps": self.time_jumps,
             "set_aside": self.set_aside,
+            "without_color": self.without_color,
             "dropped": dict(self.dropped),
             "errors": dict(self.errors),
         }
@@ -486,6 +489,8 @@ class Ingest:
             if not self._color_ready(state, self._timelines.last_ns(name, "color"), t, waited_too_long):
                 break
             rgb = self._match_color(state, t, color_tolerance_ns, pending.depth_m.shape)
+            if rgb is None and state.color_seen:
+                state.counters.without_color += 1
             state.queue.popleft()
             out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
         return out

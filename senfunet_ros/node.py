@@ -456,6 +456,12 @@ class FusionNode(Node):
                     why = now["errors"].get(reason) or DROP_HINTS[reason].format(s=topics[sensor])
                     self._warn((sensor, reason), f"{sensor}: dropped {new} message(s): {reason}: {why} "
                                f"({count} so far; see ~/status)")
+            new_without_color = now["without_color"] - self._last_counters.get(sensor, {}).get("without_color", 0)
+            if new_without_color > 0:
+                self._warn((sensor, "without_color"), f"{sensor}: {new_without_color} frame(s) integrated without "
+                           f"colour: no colour image within color_tolerance_s ({self.settings.color_tolerance_s:g} s) "
+                           f"of their depth stamps, though colour arrives on {topics[sensor].color_topic}; check "
+                           f"the stamps or raise color_tolerance_s ({now['without_color']} so far; see ~/status)")
             if now["set_aside"] > self._last_counters.get(sensor, {}).get("set_aside", 0):
                 self._warn((sensor, "set_aside"), f"{sensor}: integration is behind the sensors: images more than "
                            f"max_lag_s behind the newest are set aside ({now['set_aside_now']} now, "

@@ -259,6 +259,12 @@ def test_colour_matched_by_nearest_stamp_and_resized() -> None:
     assert frame.rgb is not None and np.all(frame.rgb == 2)  # 3 ms beats 10 ms
     assert frame.depth_m.shape == (4, 5) and frame.rgb.shape == (4, 5, 3)  # aspect ratio kept
     assert frame.K[0, 0] == pytest.approx(5.0)
+    assert ingest.counters()["stereo"]["without_color"] == 0
+    ingest.add_pose("stereo", pose_msg(140 * MS))
+    ingest.add_depth("stereo", depth_msg(150 * MS))
+    ingest.add_color("stereo", color_msg(190 * MS, value=3))  # 40 ms off: beyond color_tolerance_s
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.rgb is None and ingest.counters()["stereo"]["without_color"] == 1  # counted, not silent
 
 
 def test_frames_in_stamp_order_and_deterministic() -> None:
