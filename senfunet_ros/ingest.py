@@ -251,25 +251,27 @@ class Ingest:
         return verdict.reason
 
     def _restarted(self, sensor: str, stream: str, restart: Restart) -> None:
-        """Time restarted: flush everything; a TimeJump if it went back. Lock held."""
+        """Time restarted. Back: flush everything and report a TimeJump. Ahead (every stream resumed
+        after a pause longer than time_jump_s): what waits is older and stays. Lock held."""
         if restart.went_back:
             assert restart.from_ns is not None
             self._jumps.append(TimeJump(sensor, stream, restart.from_ns, restart.to_ns))
             self._sensors[sensor].counters.time_jumps += 1
-        if self.config.tf is not None and hasattr(self.config.tf, "clear"):
-            self.config.tf.clear()
-        for state in self._sensors.values():
-            state.counters.dropped["time_jump"] += state.flush()
+            if self.config.tf is not None and hasattr(self.config.tf, "clear"):
+                self.config.tf.clear()
+            for state in self._sensors.values():
+                state.counters.dropped["time_jump"] += state.flush()
         for (name, _), n in restart.candidates.items():  # bad_stamp until now, in fact the restart
             counters = self._sensors[name].counters
             counters.dropped["bad_stamp"] -= n
             counters.dropped["time_jump"] += n
 
     def restart(self, to_ns: int | None = None) -> None:
-        """Time restarted, known from outside (the /clock went back): flush everything, forget the
-        timelines (the next messages start new ones) and report a TimeJump."""
+        """Time restarted, known from outside (the /clock went back to `to_ns`): flush everything, start
+        the timelines again from `to_ns` (old messages still in flight are off them) and report a
+        TimeJump."""
         with self._lock:
-            self._restarted(self.config.sensors[0], "clock", self._timelines.restart(to_ns if to_ns is not None else 0))
+            self._restarted(self.config.sensors[0], "clock", self._timelines.restart(to_ns))
 
     def add_camera_info(self, sensor: str, msg: Any) -> str | None:
         """Cache K and the image size, and queue the depth images that waited for it. Returns the

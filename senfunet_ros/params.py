@@ -276,6 +276,10 @@ def check(values: dict[str, Any]) -> None:
         from senfunet_ros.geometry import transform_from_tq
 
         transform_from_tq(extrinsic[:3], extrinsic[3:], f"parameter '{sensor}.T_body_camera'")
+    if values["time_jump_s"] < values["pose_max_wait_s"]:
+        raise ValueError(f"time_jump_s ({values['time_jump_s']} s) must be at least pose_max_wait_s "
+                         f"({values['pose_max_wait_s']} s): poses that lag the images by up to pose_max_wait_s would "
+                         "be off the images' timeline and dropped as bad_stamp")
 
 
 def validate(current: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:

@@ -58,6 +58,8 @@ class Timelines:
         self._candidates: dict[tuple[str, str], list[int]] = {key: [] for key in self._last_ns}
         self._spoke: dict[tuple[str, str], bool] = {key: False for key in self._last_ns}
         self._episode_open = False  # off-timeline stamps are being collected as a possible restart
+        # where time restarted, known from outside (the /clock): the timeline until a stream has one
+        self._anchor_ns: int | None = None
 
     def configure(self, *, time_jump_s: float, restart_confirm_msgs: int, restart_confirm_s: float) -> None:
         """The limits (see the module's docstring); the timelines stay."""
@@ -75,8 +77,8 @@ class Timelines:
         return max(stamps) if stamps else None
 
     def now_ns(self) -> int | None:
-        """The newest accepted stamp of any stream."""
-        stamps = [t for t in self._last_ns.values() if t is not None]
+        """The newest accepted stamp of any stream, or where time restarted (`restart`)."""
+        stamps = [t for t in (*self._last_ns.values(), self._anchor_ns) if t is not None]
         return max(stamps) if stamps else None
 
     def check(self, sensor: str, stream: str, stamp_ns: int) -> Verdict:
@@ -105,10 +107,13 @@ class Timelines:
         self._last_ns[key] = stamp_ns if last is None else max(last, stamp_ns)
         return Verdict()
 
-    def restart(self, to_ns: int) -> Restart:
-        """Time restarted, known from outside (the /clock went back): every timeline is forgotten (the
-        next messages start new ones)."""
-        return self._move({}, Restart(to_ns, self.now_ns()))
+    def restart(self, to_ns: int | None) -> Restart:
+        """Time restarted at `to_ns` (None: unknown), known from outside (the /clock went back): every
+        timeline is forgotten and the streams start again from `to_ns`, so that messages of the old
+        time still in flight are off it."""
+        restart = self._move({}, Restart(to_ns if to_ns is not None else 0, self.now_ns()))
+        self._anchor_ns = to_ns
+        return restart
 
     def _candidate(self, key: tuple[str, str], stamp_ns: int) -> Restart | None:
         """Remember an off-timeline stamp; move to the new timeline when every stream is on it."""
@@ -133,6 +138,7 @@ class Timelines:
         """Every stream onto the new timeline (its newest candidate, or none yet)."""
         for key in self._last_ns:
             self._last_ns[key] = timelines.get(key)
+        self._anchor_ns = None
         self._close_episode()
         return restart
 

@@ -515,3 +515,27 @@ def test_frames_are_integrated_and_stats_answered_while_meshes_are_saved(tmp_pat
         release.set()
         saver.join(60)
     assert (tmp_path / "mesh.ply").is_file() and engine.try_stats()["frames_integrated"]["tof"] == 1
+
+
+def test_a_pause_of_every_stream_keeps_what_waits_and_old_messages_in_flight_after_a_clock_restart_are_off() -> None:
+    """Every stream resuming after a pause longer than time_jump_s is a restart ahead: nothing queued
+    is flushed. After the /clock went back, a message of the old time still in flight does not start
+    the new timeline."""
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    ingest.add_depth("tof", depth_msg(5050 * MS))  # waits for a pose after it
+    for i in range(3):  # all streams resume 5 s later (the pose stream is the one that spoke)
+        ingest.add_pose("tof", pose_msg(10_000 * MS + i * 10 * MS))
+        ingest.add_depth("tof", depth_msg(10_005 * MS + i * 10 * MS))
+    items = ingest.pop_ready()
+    assert not any(isinstance(i, TimeJump) for i in items)
+    counters = ingest.counters()["tof"]
+    assert counters["dropped"]["time_jump"] >= 2 and counters["dropped"]["bad_stamp"] == 0
+    # the frame queued before the pause was not flushed: no pose came within pose_max_wait_s of it
+    assert counters["dropped"]["pose_timeout"] == 1
+    ingest.restart(to_ns=0)  # the /clock went back to 0
+    assert ingest.add_pose("tof", pose_msg(10_040 * MS)) == "bad_stamp"  # in flight from before
+    assert ingest.add_pose("tof", pose_msg(5 * MS)) is None
+    assert ingest.add_depth("tof", depth_msg(10 * MS)) is None
+    ingest.add_pose("tof", pose_msg(15 * MS))
+    assert [f.stamp_ns for f in frames(ingest.pop_ready())] == [10 * MS]

@@ -182,6 +182,8 @@ def test_parameters_typed_ranged_read_only_and_applied(ros, tmp_path: Path) -> N
         assert not r.successful
         (r,) = _set(run, status_rate_hz=1e-12)  # a period beyond a timer's nanosecond counter
         assert not r.successful and "status_rate_hz" in r.reason
+        (r,) = _set(run, pose_max_wait_s=3.0)  # poses lagging 3 s would be off the images' timeline (1 s)
+        assert not r.successful and "time_jump_s" in r.reason
         (r,) = _set(run, voxel_size_m=0.02)  # the map's grid cannot change under it
         assert not r.successful and "read-only" in r.reason
         (r,) = _set(run, **{"tof.depth_max_m": 0.05})  # below depth_min_m: an empty range
