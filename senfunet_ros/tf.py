@@ -2,7 +2,8 @@
 
 Used by replay (bags carry /tf and /tf_static) and by the live node when tf2_ros cannot be
 imported but tf2_msgs can. The tree is the usual one: each child frame has one parent; dynamic
-links are interpolated at the stamp (lerp + slerp), static ones hold at any time.
+links are interpolated at the stamp (lerp + slerp) between transforms at most `max_gap_s`, or 2.5 of
+the link's typical intervals (a slowly published link), apart; static ones hold at any time.
 
 Convention: `lookup(target, source, stamp_ns)` returns the 4x4 transform taking points in
 `source` to `target` (`T_target_source`; with target = fixed frame and source = the camera's
@@ -29,6 +30,16 @@ class TfError(ValueError):
 
 class TfWait(TfError):
     """Not yet: a link has no transform at or after the stamp (it may still come)."""
+
+
+# a link's transforms may be this many of its typical intervals apart around a lookup
+_GAP_INTERVALS = 2.5
+
+
+def _typical_interval_ns(stamps: list[int], i: int) -> float:
+    """The median interval of the (up to) 16 transforms of a link before index i: its rate there."""
+    recent = stamps[max(0, i - 16):i]
+    return float(np.median(np.diff(recent))) if len(recent) >= 3 else 0.0
 
 
 class _Link:
@@ -98,9 +109,12 @@ class TfBuffer:
             raise TfWait(f"no transform {link.parent} -> {child} at or after {stamp_ns * 1e-9:.3f} s yet")
         if stamps[i] == stamp_ns:
             return link.transforms[i]
-        if i == 0 or stamp_ns - stamps[i - 1] > self.max_gap_ns or stamps[i] - stamp_ns > self.max_gap_ns:
+        # a link published slowly (a localisation's map -> odom at 1 Hz) is interpolated over its own
+        # interval: a gap is a missing transform, measured against the link's rate
+        max_gap_ns = max(self.max_gap_ns, _GAP_INTERVALS * _typical_interval_ns(stamps, i))
+        if i == 0 or stamp_ns - stamps[i - 1] > max_gap_ns or stamps[i] - stamp_ns > max_gap_ns:
             raise TfError(f"the transforms {link.parent} -> {child} around {stamp_ns * 1e-9:.3f} s are more than "
-                          f"{self.max_gap_ns * 1e-9:g} s from it; publish them more often or raise pose_tolerance_s")
+                          f"{max_gap_ns * 1e-9:g} s from it; publish them more often or raise pose_tolerance_s")
         s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
         return interpolate_pose(link.transforms[i - 1], link.transforms[i], s)
 

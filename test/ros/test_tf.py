@@ -47,6 +47,23 @@ def test_buffer_chains_interpolates_waits_and_refuses_gaps() -> None:
         tf.lookup("map", "other_cam", 10 * S)
 
 
+def test_a_slow_link_is_interpolated_over_its_interval_and_a_hole_in_a_fast_one_refused() -> None:
+    """A localisation's map -> odom at 1 Hz under odom -> base_link at 20 Hz (a robot's usual tree):
+    lookups between two map -> odom transforms interpolate, as tf2 does; a hole of 0.5 s in the 20 Hz
+    link is a gap."""
+    tf = TfBuffer(max_gap_s=0.1)
+    S = 1_000_000_000
+    for k in range(6):  # map -> odom drifts 1 cm per second
+        tf.add("map", "odom", k * S, _rot_z(0.0, (0.01 * k, 0, 0)), static=False)
+    for k in range(101):
+        if not 40 <= k < 50:  # odom -> base_link at 20 Hz, none from 2.0 s to 2.5 s
+            tf.add("odom", "base_link", k * S // 20, _rot_z(0.0, (0.1 * k / 20, 0, 0)), static=False)
+    T = tf.lookup("map", "base_link", 3 * S + S // 2)
+    assert T[0, 3] == pytest.approx(0.035 + 0.35)
+    with pytest.raises(TfError, match="odom -> base_link"):
+        tf.lookup("map", "base_link", 2 * S + S // 4)
+
+
 def _tf_only_copy(src: Path, dst: Path) -> None:
     """The recording with its pose topics replaced by /tf (map -> odom static, odom -> base_link
     moving, from each sensor's poses) and /tf_static (the camera mounts on base_link)."""
