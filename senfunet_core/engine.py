@@ -566,6 +566,10 @@ class SenFuNet:
             state = torch.load(path, map_location="cpu", weights_only=True)
             if state.get("format") != "senfunet-engine-1":
                 raise InputError(f"{path} is not a SenFuNet engine state")
+            missing = [key for key in ("config", "grid", "feature_nets", "weighting_net", "frames_integrated")
+                       if key not in state]
+            if missing:
+                raise InputError(f"{path} is an incomplete engine state (no {', '.join(missing)}); save the map again")
         except InputError:
             raise
         except Exception as err:

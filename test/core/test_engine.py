@@ -415,6 +415,10 @@ def test_save_and_load_give_identical_meshes(sphere_engine, tmp_path):
     assert loaded.grid.n_blocks == 0 and loaded.extract_mesh("fused").n_faces == 0
     with pytest.raises(InputError, match="cannot read"):
         SenFuNet.load(tmp_path / "missing.pt")
+    partial = {k: v for k, v in torch.load(path, weights_only=True).items() if k != "feature_nets"}
+    torch.save(partial, tmp_path / "partial.pt")
+    with pytest.raises(InputError, match="incomplete engine state .no feature_nets"):
+        SenFuNet.load(tmp_path / "partial.pt")
 
 
 def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_engine, tmp_path):
