@@ -2,10 +2,11 @@
 step. Without it the first run of each command compiles them: the node's start-up, the first
 replay and the first test session each pay for it.
 
-Runs the engine's warm-up as the node and replay configure it, with a map bound of a few blocks so
-that eviction and the spill run too (else they compile at a live node's first eviction); then the
-mesh decimation, the renderer and the ~/mesh wire codec, all on tiny inputs. Kernels the cache
-already holds load in a fraction of a second, so running it again costs little.
+Runs the engine's warm-up as the node and replay configure it (and with the weighting net's other
+evaluation scheme), with a map bound of a few blocks so that eviction and the spill run too (else
+they compile at a live node's first eviction); then the mesh decimation, the renderer and the
+~/mesh wire codec, all on tiny inputs. Kernels the cache already holds load in a fraction of a
+second, so running it again costs little.
 """
 from __future__ import annotations
 
@@ -24,9 +25,10 @@ def main() -> None:
     from senfunet_ros.params import Settings, engine_config, engine_weights, expanded_defaults
 
     settings = Settings.from_values({name: default for name, (default, _) in expanded_defaults().items()})
-    engine = SenFuNet(engine_config(settings, alpha_dtype="float32", feature_dtype="float32", max_blocks=4),
-                      weights=engine_weights(settings))
-    engine.warm_up()
+    for alpha_voxels in ("surface", "surface_voxels"):  # the node's choice, and the engine's other one
+        engine = SenFuNet(engine_config(settings, alpha_dtype="float32", feature_dtype="float32", max_blocks=4,
+                                        alpha_voxels=alpha_voxels), weights=engine_weights(settings))
+        engine.warm_up()
     decimate.warm_up()
     triangle = Mesh(np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], np.float32), np.array([[0, 1, 2]], np.int32),
                     np.full((3, 3), 0.5, np.float32))

@@ -151,6 +151,8 @@ class SensorCounters:
     set_aside: int = 0  # frames set aside because the consumer fell behind (integrated later, or dropped)
     # frames handed out without colour although the sensor's colour stream spoke: none within color_tolerance_s
     without_color: int = 0
+    # the latest camera_info has non-zero distortion coefficients: the node takes the images as rectified
+    distorted: bool = False
     dropped: dict[str, int] = field(default_factory=lambda: {reason: 0 for reason in DROP_REASONS})
     errors: dict[str, str] = field(default_factory=dict)  # drop reason -> what the last such message had wrong
 
@@ -163,6 +165,7 @@ class SensorCounters:
             "time_jumps": self.time_jumps,
             "set_aside": self.set_aside,
             "without_color": self.without_color,
+            "distorted": self.distorted,
             "dropped": dict(self.dropped),
             "errors": dict(self.errors),
         }
@@ -280,6 +283,7 @@ class Ingest:
             state = self._state(sensor)
             try:
                 state.camera_info = conv.intrinsics_from_camera_info(msg)
+                state.counters.distorted = bool(np.any(np.asarray(getattr(msg, "d", ()), np.float64) != 0))
             except (ValueError, AttributeError) as err:
                 state.counters.dropped["bad_camera_info"] += 1
                 state.counters.errors["bad_camera_info"] = str(err)

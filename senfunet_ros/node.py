@@ -457,6 +457,10 @@ class FusionNode(Node):
                     why = now["errors"].get(reason) or DROP_HINTS[reason].format(s=topics[sensor])
                     self._warn((sensor, reason), f"{sensor}: dropped {new} message(s): {reason}: {why} "
                                f"({count} so far; see ~/status)")
+            if now["distorted"] and not self._last_counters.get(sensor, {}).get("distorted", False):
+                self._warn((sensor, "distorted"), f"{sensor}: the camera_info on {topics[sensor].camera_info_topic} "
+                           "has non-zero distortion coefficients, which the node does not apply: it takes the depth "
+                           "images as rectified (pinhole K); subscribe to the driver's rectified depth topic")
             new_without_color = now["without_color"] - self._last_counters.get(sensor, {}).get("without_color", 0)
             if new_without_color > 0:
                 self._warn((sensor, "without_color"), f"{sensor}: {new_without_color} frame(s) integrated without "

@@ -63,7 +63,7 @@ class StatusReport:
             report = reports[sensor]
             values = [KeyValue(key=k, value=str(c[k])) for k in
                       ("received", "integrated", "queue_depth", "set_aside", "set_aside_now", "color_received",
-                       "pose_received", "time_jumps", "without_color")]
+                       "pose_received", "time_jumps", "without_color", "distorted")]
             for stream, r in report.streams.items():
                 values += [KeyValue(key=f"rate_hz.{stream}", value=f"{r.rate_hz:.2f}"),
                            KeyValue(key=f"silent_s.{stream}", value=f"{r.silent_s:.1f}")]

@@ -247,6 +247,21 @@ def test_restart_from_outside_the_streams() -> None:
     assert ingest.counters()["tof"]["dropped"]["time_jump"] == 1
 
 
+def test_a_camera_info_with_distortion_is_noted() -> None:
+    """The node takes images as rectified: a camera_info with distortion coefficients is noted (and
+    warned about by the node), one without clears it."""
+    ingest = make()
+    assert ingest.counters()["tof"]["distorted"] is False
+    distorted = info_msg()
+    distorted.distortion_model, distorted.d = "plumb_bob", [0.1, -0.05, 0.0, 0.0, 0.0]
+    assert ingest.add_camera_info("tof", distorted) is None
+    assert ingest.counters()["tof"]["distorted"] is True and ingest.counters()["stereo"]["distorted"] is False
+    rectified = info_msg()
+    rectified.d = [0.0] * 5
+    ingest.add_camera_info("tof", rectified)
+    assert ingest.counters()["tof"]["distorted"] is False
+
+
 def test_colour_matched_by_nearest_stamp_and_resized() -> None:
     ingest = make(color_tolerance_s=0.02, working_size=(5, 0))
     ingest.add_pose("stereo", pose_msg(0))
