@@ -245,10 +245,10 @@ class Ingest:
 
     def _check_time(self, state: _SensorState, sensor: str, stream: str, stamp_ns: int) -> str | None:
         """Where a stamp stands against its stream's timeline (`Timelines.check`): a drop reason, or
-        None (accepted, the timeline moved). A restart it confirmed flushes everything. Lock held."""
+        None (accepted, the timeline moved). A restart it confirmed is carried out. Lock held."""
         verdict = self._timelines.check(sensor, stream, stamp_ns)
-        if verdict.error:
-            state.counters.errors[verdict.reason or ""] = verdict.error
+        if verdict.reason is not None and verdict.error:
+            state.counters.errors[verdict.reason] = verdict.error
         if verdict.restart is not None:
             self._restarted(sensor, stream, verdict.restart)
         return verdict.reason

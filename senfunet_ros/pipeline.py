@@ -9,12 +9,13 @@ timers vs. a bag read in a loop).
 
 No rclpy here: messages are duck-typed, logging goes through the `log(level, text)` callback.
 Threading: `dispatch` may run on several threads (Ingest locks); `drain`, `reset`, `load_map`
-run on one thread at a time (the node's integration timer and its services share a lock).
+run on one thread at a time (the node's integration timer and its services share a lock);
+`save_meshes` and `save_map` run beside them (the engine is thread-safe), so that frames keep
+being integrated while a large map is saved.
 """
 from __future__ import annotations
 
 import contextlib
-
 import enum
 import os
 import threading
