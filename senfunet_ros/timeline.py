@@ -7,7 +7,10 @@ of all streams, is off it (a glitching driver, one bad message, an unset stamp 0
 once every stream that spoke since the first candidate has continued on it for
 `restart_confirm_msgs` messages, spanning `restart_confirm_s`, with no message on the old timeline
 meanwhile, time has restarted (a bag looping, a robot restarting its clock) and the streams move
-to the new timeline. Decisions depend on stamps and their order alone, never on the wall clock.
+to the new timeline: back (the caller flushes what waits) or ahead (every stream resumed after a
+pause). A restart known from outside (`restart`: the /clock went back) starts every timeline again
+from its time, so that old messages still in flight are off it. Decisions depend on stamps and
+their order alone, never on the wall clock.
 
 `Timelines` is not thread-safe: its owner (`ingest.Ingest`) calls it under its lock.
 """
