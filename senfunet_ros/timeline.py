@@ -60,7 +60,6 @@ class Timelines:
         # stream spoke since the first of them
         self._candidates: dict[tuple[str, str], list[int]] = {key: [] for key in self._last_ns}
         self._spoke: dict[tuple[str, str], bool] = {key: False for key in self._last_ns}
-        self._episode_open = False  # off-timeline stamps are being collected as a possible restart
         # where time restarted, known from outside (the /clock): the timeline until a stream has one
         self._anchor_ns: int | None = None
 
@@ -100,7 +99,7 @@ class Timelines:
                      f"{'behind' if behind else 'ahead of'} the stream's timeline; check the driver's clock (a restart "
                      f"is recognised once every stream continues on the new timeline)")
             return Verdict("bad_stamp", error, self._candidate(key, stamp_ns))
-        if self._episode_open:  # the old timeline is alive: what was building up is not a restart
+        if any(self._spoke.values()):  # the old timeline is alive: what was building up is not a restart
             self._close_episode()
         if stream == "depth" and last is not None:
             if stamp_ns == last:
@@ -120,7 +119,6 @@ class Timelines:
 
     def _candidate(self, key: tuple[str, str], stamp_ns: int) -> Restart | None:
         """Remember an off-timeline stamp; move to the new timeline when every stream is on it."""
-        self._episode_open = True
         self._spoke[key] = True
         candidates = self._candidates[key]
         if candidates and 0 <= stamp_ns - candidates[-1] <= self._far_ns:
@@ -148,4 +146,3 @@ class Timelines:
     def _close_episode(self) -> None:
         for key in self._candidates:
             self._candidates[key], self._spoke[key] = [], False
-        self._episode_open = False
