@@ -82,6 +82,7 @@ class MeshPublisher:
         # more, or one that replaced another between two publications (RViz re-subscribing), gets
         # the whole map
         self._served = (0, 0)
+        self._resend = threading.Event()  # the next publication sends the whole map (`resend_all`)
         # an update's parts went out while a reader had not taken the ones before (they may have
         # been lost, for it and for readers that could not keep up with the rest): once every reader
         # has taken what was published, the next publication sends the whole map
@@ -92,8 +93,8 @@ class MeshPublisher:
 
     def resend_all(self) -> None:
         """The next publication sends the whole map (a loaded map replaced what readers hold, or they
-        are to be shown otherwise). Mesh lock held."""
-        self._served = (0, 0)
+        are to be shown otherwise). From any thread, without waiting for a publication."""
+        self._resend.set()
 
     def _on_matched(self, info: QoSPublisherMatchedInfo) -> None:
         self._matched = info.total_count
@@ -125,6 +126,9 @@ class MeshPublisher:
             # the update took the engine's changes: until they are published, a failure (encoding, a
             # refused publication) makes the next publication send the whole map
             served, self._served = self._served, (0, 0)
+            if self._resend.is_set():  # cleared before the map is read: a later request gets the next one
+                self._resend.clear()
+                served = (0, 0)
             t_update = time.perf_counter()
             self._timings["update"].add(t_update - start)
             cloud = None

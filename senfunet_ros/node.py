@@ -509,8 +509,7 @@ class FusionNode(Node):
         self.health.window_s, self.health.stale_after_s = new.diagnostics_window_s, new.stale_after_s
         self._apply_engine_settings()
         if new.mesh_colors != old.mesh_colors or new.mesh_display_cell_m != old.mesh_display_cell_m:
-            with self.mesh_publisher.lock:  # readers get the whole map as it is now shown
-                self.mesh_publisher.resend_all()
+            self.mesh_publisher.resend_all()  # readers get the whole map as it is now shown
         changed = sorted(name for name in values if values[name] != old.values[name])
         self.get_logger().info("parameters changed: " + ", ".join(f"{n} = {values[n]!r}" for n in changed))
 
