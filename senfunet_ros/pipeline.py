@@ -143,14 +143,15 @@ class Pipeline:
             self.frames_unfinished += 1
             self.ingest.mark_dropped(frame.sensor, "shutdown")
             return
+        # counted and described: the node warns of new drops once per cause and period, not per frame
+        what = f"frame at {frame.stamp_ns * 1e-9:.3f} s: {error}"
         if isinstance(error, NoDepthInRange):  # nothing to integrate: a drop, not a failure
-            self.ingest.mark_dropped(frame.sensor, "out_of_range", f"frame at {frame.stamp_ns * 1e-9:.3f} s: {error}")
+            self.ingest.mark_dropped(frame.sensor, "out_of_range", what)
             return
         self.frames_failed += 1  # InputError or worse: this frame is lost, the map is not
-        # counted and described: the node warns of new drops once per cause and period, not per frame
-        self.ingest.mark_dropped(frame.sensor, "engine_error", f"frame at {frame.stamp_ns * 1e-9:.3f} s: {error}")
+        self.ingest.mark_dropped(frame.sensor, "engine_error", what)
         if len(self.engine_errors) < 10:
-            self.engine_errors.append(f"{frame.sensor} at {frame.stamp_ns * 1e-9:.3f} s: {error}")
+            self.engine_errors.append(f"{frame.sensor} {what}")
 
     # -- map and files ---------------------------------------------------------------------------
 
