@@ -5,7 +5,7 @@ replay and the first test session each pay for it.
 Runs the engine's warm-up as the node and replay configure it (and with the weighting net's other
 evaluation scheme), with a map bound of a few blocks so that eviction and the spill run too (else
 they compile at a live node's first eviction); then the mesh decimation, the renderer and the
-~/mesh wire codec, all on tiny inputs. Kernels the cache already holds load in a fraction of a
+~/mesh wire codec and the rvl depth codec, all on tiny inputs. Kernels the cache already holds load in a fraction of a
 second, so running it again costs little.
 """
 from __future__ import annotations
@@ -21,6 +21,7 @@ def main() -> None:
     from senfunet_core.engine import SenFuNet
     from senfunet_core.mesher import Mesh
     from senfunet_core.render import default_camera, rasterize
+    from senfunet_ros.conversions.rvl import rvl_decode
     from senfunet_ros.conversions.wire import marker_array_cdr, marker_array_from_cdr
     from senfunet_ros.params import Settings, engine_config, engine_weights, expanded_defaults
 
@@ -33,6 +34,7 @@ def main() -> None:
     triangle = Mesh(np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], np.float32), np.array([[0, 1, 2]], np.int32),
                     np.full((3, 3), 0.5, np.float32))
     rasterize(triangle, default_camera([triangle], 4 / 3), 32, 24)
+    rvl_decode(np.array([1, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0x20, 0x01], np.uint8))  # one pixel of depth 1
     marker_array_from_cdr(marker_array_cdr({(0, 0, 0): triangle}, (), stamp_ns=0, frame_id="map"))
     print(f"senfunet: numba kernels compiled (or loaded from the cache) in {time.monotonic() - start:.1f} s")
 

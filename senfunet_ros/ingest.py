@@ -74,7 +74,7 @@ DROP_REASONS: tuple[str, ...] = (
     "out_of_order",  # depth stamp older than the previous one of the same sensor
     "duplicate",  # depth stamp equal to the previous one of the same sensor
     "bad_stamp",  # stamp 0, or far from its stream's timeline (past or future): the timeline does not move
-    "time_jump",  # frames flushed, and candidate messages dropped, because time restarted
+    "time_jump",  # frames flushed because time went back, and a new timeline's first messages not held
     "engine_error",  # the engine rejected the frame (reported by the caller)
     "shutdown",  # taken for integration when the process stopped (reported by the caller), or set aside then
     "map_reset",  # waiting or set aside when the map was reset or replaced (it belonged to the old map)
@@ -214,9 +214,7 @@ class Ingest:
         self._config = config
         self._lock = threading.Lock()
         self._sensors = {name: _SensorState(config) for name in config.sensors}
-        self._timelines = Timelines(config.sensors, time_jump_s=config.time_jump_s,
-                                    restart_confirm_msgs=config.restart_confirm_msgs,
-                                    restart_confirm_s=config.restart_confirm_s)
+        self._timelines = Timelines(config.sensors, **_timeline_limits(config))
         self._jumps: list[TimeJump] = []
         self._set_aside_bytes = 0  # of the frames set aside, all sensors
         self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
@@ -232,8 +230,7 @@ class Ingest:
             raise ValueError(f"sensors {config.sensors} differ from {self._config.sensors}: make a new Ingest")
         with self._lock:
             self._config = config
-            self._timelines.configure(time_jump_s=config.time_jump_s, restart_confirm_msgs=config.restart_confirm_msgs,
-                                      restart_confirm_s=config.restart_confirm_s)
+            self._timelines.configure(**_timeline_limits(config))
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -243,10 +240,11 @@ class Ingest:
         except KeyError:
             raise ValueError(f"unknown sensor '{sensor}'; configured sensors are {list(self._sensors)}") from None
 
-    def _check_time(self, state: _SensorState, sensor: str, stream: str, stamp_ns: int) -> str | None:
+    def _check_time(self, state: _SensorState, sensor: str, stream: str, stamp_ns: int, message: Any) -> str | None:
         """Where a stamp stands against its stream's timeline (`Timelines.check`): a drop reason, or
-        None (accepted, the timeline moved). A restart it confirmed is carried out. Lock held."""
-        verdict = self._timelines.check(sensor, stream, stamp_ns)
+        None (accepted, the timeline moved). A restart it confirmed is carried out. `message` is what
+        `_accept` takes for the stream, should the stamp turn out to start a new timeline. Lock held."""
+        verdict = self._timelines.check(sensor, stream, stamp_ns, message)
         if verdict.reason is not None and verdict.error:
             state.counters.errors[verdict.reason] = verdict.error
         if verdict.restart is not None:
@@ -255,7 +253,8 @@ class Ingest:
 
     def _restarted(self, sensor: str, stream: str, restart: Restart) -> None:
         """Time restarted. Back: flush everything and report a TimeJump. Ahead (every stream resumed
-        after a pause longer than time_jump_s): what waits is older and stays. Lock held."""
+        after a pause longer than time_jump_s): what waits is older and stays. Then the new timeline's
+        first messages, dropped as bad_stamp until now, are taken. Lock held."""
         if restart.went_back:
             assert restart.from_ns is not None
             self._jumps.append(TimeJump(sensor, stream, restart.from_ns, restart.to_ns))
@@ -264,10 +263,52 @@ class Ingest:
                 self.config.tf.clear()
             for state in self._sensors.values():
                 state.counters.dropped["time_jump"] += state.flush()
-        for (name, _), n in restart.candidates.items():  # bad_stamp until now, in fact the restart
+        for (name, _), n in restart.lost.items():  # bad_stamp until now, in fact lost to the restart
             counters = self._sensors[name].counters
             counters.dropped["bad_stamp"] -= n
             counters.dropped["time_jump"] += n
+        for held in restart.held:
+            state = self._sensors[held.sensor]
+            state.counters.dropped["bad_stamp"] -= 1
+            reason = self._accept(state, held.stream, held.stamp_ns, held.message)
+            if reason is not None:
+                state.counters.dropped[reason] += 1
+        for state in self._sensors.values():
+            if state.counters.dropped["bad_stamp"] == 0:
+                state.counters.errors.pop("bad_stamp", None)  # every one of them was the restart
+
+    def _accept(self, state: _SensorState, stream: str, stamp_ns: int, message: Any) -> str | None:
+        """Take a message whose stamp is on time: a depth image (with its arrival time) is queued, a
+        colour image buffered, a pose (4x4) stored. Returns the drop reason or None. Lock held."""
+        if stream == "depth":
+            msg, arrival_s = message
+            if state.camera_info is not None:
+                return self._enqueue(state, msg, stamp_ns, arrival_s)
+            if len(state.awaiting_info) >= self.config.queue_size:
+                state.awaiting_info.popleft()
+                state.counters.dropped["no_camera_info"] += 1
+            state.awaiting_info.append((msg, stamp_ns, arrival_s))
+            return None
+        if stream == "color":
+            try:
+                rgb = conv.rgb_from_image(message)
+            except ValueError as err:
+                state.counters.errors["bad_encoding"] = f"colour: {err}"
+                return "bad_encoding"
+            state.color_seen = True
+            state.colors.append((stamp_ns, rgb))
+            return None
+        i = bisect.bisect_left(state.pose_stamps, stamp_ns)
+        if i < len(state.pose_stamps) and state.pose_stamps[i] == stamp_ns:
+            state.poses[i] = message  # a republished pose: the newest wins
+        else:
+            state.pose_stamps.insert(i, stamp_ns)
+            state.poses.insert(i, message)
+        excess = len(state.pose_stamps) - self.config.pose_buffer_size
+        if excess > 0:
+            del state.pose_stamps[:excess]
+            del state.poses[:excess]
+        return None
 
     def restart(self, to_ns: int | None = None) -> None:
         """Time restarted, known from outside (the /clock went back to `to_ns`): flush everything, start
@@ -300,17 +341,13 @@ class Ingest:
             state = self._state(sensor)
             state.counters.received += 1
             self._last_depth_arrival_s = time.monotonic()
-            reason = self._check_time(state, sensor, "depth", stamp_ns)
-            if reason is not None:
-                state.counters.dropped[reason] += 1
-                return reason
-            if state.camera_info is None:
-                if len(state.awaiting_info) >= self.config.queue_size:
-                    state.awaiting_info.popleft()
-                    state.counters.dropped["no_camera_info"] += 1
-                state.awaiting_info.append((msg, stamp_ns, time.monotonic()))
-                return None
-            return self._enqueue(state, msg, stamp_ns, time.monotonic())
+            message = (msg, self._last_depth_arrival_s)
+            reason = self._check_time(state, sensor, "depth", stamp_ns, message)
+            if reason is None:
+                reason = self._accept(state, "depth", stamp_ns, message)
+                return reason  # counted by _enqueue
+            state.counters.dropped[reason] += 1
+            return reason
 
     def _enqueue(self, state: _SensorState, msg: Any, stamp_ns: int, arrival_s: float) -> str | None:
         """Decode and check a depth image and queue it. Returns the drop reason or None. Lock held."""
@@ -359,19 +396,12 @@ class Ingest:
         with self._lock:
             state = self._state(sensor)
             state.counters.color_received += 1
-            reason = self._check_time(state, sensor, "color", stamp_ns)
+            reason = self._check_time(state, sensor, "color", stamp_ns, msg)
+            if reason is None:
+                reason = self._accept(state, "color", stamp_ns, msg)
             if reason is not None:
                 state.counters.dropped[reason] += 1
-                return reason
-            try:
-                rgb = conv.rgb_from_image(msg)
-            except ValueError as err:
-                state.counters.dropped["bad_encoding"] += 1
-                state.counters.errors["bad_encoding"] = f"colour: {err}"
-                return "bad_encoding"
-            state.color_seen = True
-            state.colors.append((stamp_ns, rgb))
-            return None
+            return reason
 
     def add_tf(self, msg: Any, *, static: bool) -> str | None:
         """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).
@@ -413,21 +443,11 @@ class Ingest:
                 state.counters.dropped["bad_pose"] += 1
                 state.counters.errors["bad_pose"] = str(err)
                 return "bad_pose"
-            reason = self._check_time(state, sensor, "pose", stamp_ns)
-            if reason is not None:
-                state.counters.dropped[reason] += 1
-                return reason
-            i = bisect.bisect_left(state.pose_stamps, stamp_ns)
-            if i < len(state.pose_stamps) and state.pose_stamps[i] == stamp_ns:
-                state.poses[i] = T  # a republished pose: the newest wins
-            else:
-                state.pose_stamps.insert(i, stamp_ns)
-                state.poses.insert(i, T)
-            excess = len(state.pose_stamps) - self.config.pose_buffer_size
-            if excess > 0:
-                del state.pose_stamps[:excess]
-                del state.poses[:excess]
-            return None
+            reason = self._check_time(state, sensor, "pose", stamp_ns, T)
+            if reason is None:
+                return self._accept(state, "pose", stamp_ns, T)
+            state.counters.dropped[reason] += 1
+            return reason
 
     # -- outputs --------------------------------------------------------------------------
 
@@ -651,6 +671,13 @@ class Ingest:
         with self._lock:
             for state in self._sensors.values():
                 state.colors.clear()
+
+
+def _timeline_limits(config: IngestConfig) -> dict[str, Any]:
+    """Timelines' limits from the settings: it holds at most what the queues would."""
+    hold_msgs = {"depth": config.queue_size, "color": max(4, config.queue_size), "pose": config.pose_buffer_size}
+    return {"time_jump_s": config.time_jump_s, "restart_confirm_msgs": config.restart_confirm_msgs,
+            "restart_confirm_s": config.restart_confirm_s, "hold_msgs": hold_msgs}
 
 
 def _frame_bytes(frame: Frame) -> int:

@@ -106,8 +106,8 @@ DROP_HINTS: dict[str, str] = {
     "out_of_order": "a depth stamp on {s.depth_topic} went back in time",
     "duplicate": "a depth stamp on {s.depth_topic} came twice",
     "bad_stamp": "a stamp far (time_jump_s) from its stream's timeline, or 0; check the driver's clock",
-    "time_jump": "time restarted (a bag looping?; the queued images were flushed) or every stream resumed after a "
-                 "pause longer than time_jump_s: the messages that showed it went",
+    "time_jump": "time restarted (a bag looping?): the queued images were flushed, and messages that showed it "
+                 "beyond a queue's worth went",
     "engine_error": "the engine rejected the frame",
     "shutdown": "the node stopped while the frame was being integrated, or had set it aside",
     "map_reset": "the map was reset or replaced while the image waited or was set aside",

@@ -8,19 +8,34 @@ once every stream that spoke since the first candidate has continued on it for
 `restart_confirm_msgs` messages, spanning `restart_confirm_s`, with no message on the old timeline
 meanwhile, time has restarted (a bag looping, a robot restarting its clock) and the streams move
 to the new timeline: back (the caller flushes what waits) or ahead (every stream resumed after a
-pause). A restart known from outside (`restart`: the /clock went back) starts every timeline again
-from its time, so that old messages still in flight are off it. Decisions depend on stamps and
-their order alone, never on the wall clock.
+pause). The candidates' messages, held meanwhile (the newest `hold_msgs` per stream), are handed
+back with the restart, so the new timeline loses none of its start. A restart known from outside
+(`restart`: the /clock went back) starts every timeline again from its time, so that old messages
+still in flight are off it. Decisions depend on stamps and their order alone, never on the wall
+clock.
 
 `Timelines` is not thread-safe: its owner (`ingest.Ingest`) calls it under its lock.
 """
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
-__all__ = ["STREAMS", "Restart", "Timelines", "Verdict"]
+__all__ = ["STREAMS", "Held", "Restart", "Timelines", "Verdict"]
 
 STREAMS: tuple[str, ...] = ("depth", "color", "pose")
+
+
+@dataclass(frozen=True)
+class Held:
+    """A message rejected as bad_stamp while it was a candidate of a new timeline: what `check` got."""
+
+    sensor: str
+    stream: str
+    stamp_ns: int
+    message: Any
 
 
 @dataclass(frozen=True)
@@ -29,8 +44,12 @@ class Restart:
 
     to_ns: int
     from_ns: int | None
-    # (sensor, stream) -> how many of its messages, rejected as bad_stamp, were the new timeline's start
-    candidates: dict[tuple[str, str], int] = field(default_factory=dict)
+    # the new timeline's earlier messages, rejected as bad_stamp until now, in stamp order: the caller
+    # takes them as on time
+    held: tuple[Held, ...] = ()
+    # (sensor, stream) -> how many more of its messages, rejected as bad_stamp, were the new timeline's
+    # start but were not held (past hold_msgs): lost to the restart
+    lost: dict[tuple[str, str], int] = field(default_factory=dict)
 
     @property
     def went_back(self) -> bool:
@@ -41,7 +60,8 @@ class Restart:
 class Verdict:
     """What a stamp is: on time (reason None), or rejected with `reason` ("bad_stamp", "duplicate",
     "out_of_order"; `error` says what was wrong with a bad stamp). A rejected stamp can also have
-    confirmed a restart, which the timelines already moved to."""
+    confirmed a restart, which the timelines already moved to; the message that confirmed it is on
+    time (reason None) when it is the newest of its stream."""
 
     reason: str | None = None
     error: str = ""
@@ -52,22 +72,26 @@ class Timelines:
     """The newest accepted stamp per sensor and stream, and the candidates of a new timeline."""
 
     def __init__(self, sensors: tuple[str, ...], *, time_jump_s: float, restart_confirm_msgs: int,
-                 restart_confirm_s: float) -> None:
-        self.configure(time_jump_s=time_jump_s, restart_confirm_msgs=restart_confirm_msgs,
-                       restart_confirm_s=restart_confirm_s)
+                 restart_confirm_s: float, hold_msgs: Mapping[str, int]) -> None:
         self._last_ns: dict[tuple[str, str], int | None] = {(s, stream): None for s in sensors for stream in STREAMS}
-        # a new timeline in the making: per stream, its consistent off-timeline stamps, and whether the
-        # stream spoke since the first of them
+        # a new timeline in the making: per stream, its consistent off-timeline stamps, the newest of
+        # their messages, and whether the stream spoke since the first of them
         self._candidates: dict[tuple[str, str], list[int]] = {key: [] for key in self._last_ns}
+        self._held: dict[tuple[str, str], deque[Held]] = {key: deque() for key in self._last_ns}
+        self.configure(time_jump_s=time_jump_s, restart_confirm_msgs=restart_confirm_msgs,
+                       restart_confirm_s=restart_confirm_s, hold_msgs=hold_msgs)
         self._spoke: dict[tuple[str, str], bool] = {key: False for key in self._last_ns}
         # where time restarted, known from outside (the /clock): the timeline until a stream has one
         self._anchor_ns: int | None = None
 
-    def configure(self, *, time_jump_s: float, restart_confirm_msgs: int, restart_confirm_s: float) -> None:
-        """The limits (see the module's docstring); the timelines stay."""
+    def configure(self, *, time_jump_s: float, restart_confirm_msgs: int, restart_confirm_s: float,
+                  hold_msgs: Mapping[str, int]) -> None:
+        """The limits (see the module's docstring; `hold_msgs` per stream kind); the timelines stay."""
         self._far_ns = int(time_jump_s * 1e9)
         self._confirm_msgs = restart_confirm_msgs
         self._confirm_ns = restart_confirm_s * 1e9
+        for key, held in self._held.items():
+            self._held[key] = deque(held, maxlen=max(1, hold_msgs[key[1]]))
 
     def last_ns(self, sensor: str, stream: str) -> int | None:
         """The stream's newest accepted stamp."""
@@ -83,9 +107,10 @@ class Timelines:
         stamps = [t for t in (*self._last_ns.values(), self._anchor_ns) if t is not None]
         return max(stamps) if stamps else None
 
-    def check(self, sensor: str, stream: str, stamp_ns: int) -> Verdict:
+    def check(self, sensor: str, stream: str, stamp_ns: int, message: Any = None) -> Verdict:
         """Where a stamp stands against its stream's timeline; the timeline moves when it is on time.
-        Depth stamps must also move forward (`duplicate`, `out_of_order`)."""
+        Depth stamps must also move forward (`duplicate`, `out_of_order`). `message` is held while
+        the stamp is a candidate of a new timeline (see `Restart.held`)."""
         key = (sensor, stream)
         last, now = self._last_ns[key], self.now_ns()
         behind = last is not None and stamp_ns < last - self._far_ns
@@ -98,7 +123,10 @@ class Timelines:
             error = (f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is {abs(stamp_ns - ref) * 1e-9:.3f} s "
                      f"{'behind' if behind else 'ahead of'} the stream's timeline; check the driver's clock (a restart "
                      f"is recognised once every stream continues on the new timeline)")
-            return Verdict("bad_stamp", error, self._candidate(key, stamp_ns))
+            restart, newest = self._candidate(Held(sensor, stream, stamp_ns, message))
+            if restart is not None and newest:
+                return Verdict(restart=restart)  # the newest message of the new timeline: on time
+            return Verdict("bad_stamp", error, restart)
         if any(self._spoke.values()):  # the old timeline is alive: what was building up is not a restart
             self._close_episode()
         if stream == "depth" and last is not None:
@@ -117,23 +145,34 @@ class Timelines:
         self._anchor_ns = to_ns
         return restart
 
-    def _candidate(self, key: tuple[str, str], stamp_ns: int) -> Restart | None:
-        """Remember an off-timeline stamp; move to the new timeline when every stream is on it."""
+    def _candidate(self, message: Held) -> tuple[Restart | None, bool]:
+        """Remember an off-timeline stamp; move to the new timeline when every stream is on it.
+        Returns the restart (or None) and whether the message is its stream's newest candidate."""
+        key, stamp_ns = (message.sensor, message.stream), message.stamp_ns
         self._spoke[key] = True
         candidates = self._candidates[key]
+        newest = not candidates or stamp_ns > candidates[-1]
         if candidates and 0 <= stamp_ns - candidates[-1] <= self._far_ns:
-            if stamp_ns > candidates[-1]:
+            if newest:
                 candidates.append(stamp_ns)
-        else:
-            self._candidates[key] = [stamp_ns]  # not consistent with what came before: start over
+                self._held[key].append(message)
+        else:  # not consistent with what came before: start over
+            newest = True
+            self._candidates[key] = [stamp_ns]
+            self._held[key].clear()
+            self._held[key].append(message)
         lists = {k: self._candidates[k] for k, spoke in self._spoke.items() if spoke}
         if any(len(c) < self._confirm_msgs for c in lists.values()):
-            return None
+            return None, newest
         firsts, lasts = [c[0] for c in lists.values()], [c[-1] for c in lists.values()]
         if max(lasts) - min(firsts) < self._confirm_ns or max(lasts) - min(lasts) > self._far_ns:
-            return None
-        restart = Restart(min(firsts), self.now_ns(), {k: len(c) for k, c in lists.items()})
-        return self._move({k: c[-1] for k, c in lists.items()}, restart)
+            return None, newest
+        if newest:
+            self._held[key].pop()  # the message being checked: its caller takes it
+        lost = {k: len(c) - len(self._held[k]) - (k == key and newest) for k, c in lists.items()}
+        held = sorted((m for k in lists for m in self._held[k]), key=lambda m: m.stamp_ns)
+        restart = Restart(min(firsts), self.now_ns(), tuple(held), {k: n for k, n in lost.items() if n})
+        return self._move({k: c[-1] for k, c in lists.items()}, restart), newest
 
     def _move(self, timelines: dict[tuple[str, str], int], restart: Restart) -> Restart:
         """Every stream onto the new timeline (its newest candidate, or none yet)."""
@@ -146,3 +185,4 @@ class Timelines:
     def _close_episode(self) -> None:
         for key in self._candidates:
             self._candidates[key], self._spoke[key] = [], False
+            self._held[key].clear()

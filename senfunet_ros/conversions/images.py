@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from senfunet_ros.conversions.rvl import rvl_decode
+
 __all__ = [
     "depth_from_image",
     "intrinsics_from_camera_info",
@@ -73,34 +75,49 @@ def _decode(data: np.ndarray, flags: int, what: str) -> np.ndarray:
     return image
 
 
+def _compressed_depth_codec(fmt: str) -> str:
+    """'png' or 'rvl' from a compressedDepth format such as '16UC1; compressedDepth rvl' (plain
+    'compressedDepth' is png, as older publishers write it)."""
+    if "compressedDepth" not in fmt:
+        raise ValueError(f"compressed depth format '{fmt}' is not compressedDepth; publish depth through "
+                         "image_transport's compressedDepth (png or rvl)")
+    codec = fmt.split("compressedDepth", 1)[1].strip() or "png"
+    if codec not in ("png", "rvl"):
+        raise ValueError(f"compressedDepth codec '{codec}' (format '{fmt}') is not supported; "
+                         "publish compressedDepth png or rvl")
+    return codec
+
+
 def depth_from_compressed(msg: Any) -> np.ndarray:
     """sensor_msgs/CompressedImage as image_transport's compressedDepth writes it -> depth_m float32
-    (H, W): format '16UC1; compressedDepth png' (millimetres) or '32FC1; compressedDepth png'
+    (H, W): format '16UC1; compressedDepth png|rvl' (millimetres) or '32FC1; compressedDepth png|rvl'
     (inverse depth quantised with the header's parameters)."""
     import cv2
 
     fmt = str(msg.format)
     data = np.frombuffer(bytes(msg.data), np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8)
-    if "compressedDepth" not in fmt:
-        raise ValueError(f"compressed depth format '{fmt}' is not compressedDepth; publish depth through "
-                         "image_transport's compressedDepth (png)")
+    codec = _compressed_depth_codec(fmt)
     encoding = fmt.split(";")[0].strip()
+    if encoding not in ("16UC1", "mono16", "32FC1"):
+        raise ValueError(f"compressedDepth encoding '{encoding}' is not supported; publish 16UC1 or 32FC1")
     if data.size < _COMPRESSED_DEPTH_HEADER.itemsize:
         raise ValueError(f"compressedDepth message has {data.size} B, less than its 12-byte header")
     header = data[:_COMPRESSED_DEPTH_HEADER.itemsize].view(_COMPRESSED_DEPTH_HEADER)[0]
-    raw = _decode(data[_COMPRESSED_DEPTH_HEADER.itemsize:], cv2.IMREAD_UNCHANGED, "compressedDepth payload")
-    if raw.dtype != np.uint16 or raw.ndim != 2:
-        raise ValueError(f"compressedDepth payload is {raw.dtype} with {raw.ndim} dims; "
-                         "expected a 16-bit single-channel png")
-    if encoding in ("16UC1", "mono16"):
-        depth_m = raw.astype(np.float32) * np.float32(1e-3)
-    elif encoding == "32FC1":
+    payload = data[_COMPRESSED_DEPTH_HEADER.itemsize:]
+    if codec == "rvl":
+        raw = rvl_decode(payload)
+    else:
+        raw = _decode(payload, cv2.IMREAD_UNCHANGED, "compressedDepth payload")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise ValueError(f"compressedDepth payload is {raw.dtype} with {raw.ndim} dims; "
+                             "expected a 16-bit single-channel png")
+    if encoding == "32FC1":
         a, b = float(header["depth_a"]), float(header["depth_b"])
         with np.errstate(divide="ignore", invalid="ignore"):
             depth_m = (a / (raw.astype(np.float32) - b)).astype(np.float32)
         depth_m[raw == 0] = 0.0
     else:
-        raise ValueError(f"compressedDepth encoding '{encoding}' is not supported; publish 16UC1 or 32FC1")
+        depth_m = raw.astype(np.float32) * np.float32(1e-3)
     depth_m[~np.isfinite(depth_m) | (depth_m <= 0.0)] = 0.0
     return depth_m
 

@@ -1,5 +1,5 @@
-"""A bag with image_transport's compressed topics (compressedDepth png 16-bit, jpeg colour) replays
-like its raw twin."""
+"""A bag with image_transport's compressed topics (compressedDepth png and rvl 16-bit, jpeg colour)
+replays like its raw twin."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from replays import replay_commands
+from rvl_encoder import rvl_payload
 
 from senfunet_ros.bagio import open_bag, write_sequence_bag
 
@@ -16,8 +17,9 @@ COMPRESSED_TOPICS = ("    tof:\n      depth_topic: /tof/depth/compressedDepth\n"
 
 
 def _compressed_copy(src: Path, dst: Path) -> None:
-    """/tof/depth (16UC1) -> /tof/depth/compressedDepth, /stereo/color (rgb8) -> /stereo/color/compressed
-    (jpeg), written the way image_transport's plugins do; everything else as it is."""
+    """/tof/depth (16UC1) -> /tof/depth/compressedDepth (png and rvl in turn), /stereo/color (rgb8) ->
+    /stereo/color/compressed (jpeg), written the way image_transport's plugins do; everything else
+    as it is."""
     import cv2
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
@@ -26,6 +28,7 @@ def _compressed_copy(src: Path, dst: Path) -> None:
     CompressedImage = store.types["sensor_msgs/msg/CompressedImage"]
     with open_bag(src) as reader, Writer(dst, version=9) as writer:
         conns = {}
+        depth_images = 0
         for msg in reader.messages():
             topic, msgtype, data = msg.topic, msg.msgtype, msg.data
             if topic in ("/tof/depth", "/stereo/color"):
@@ -34,9 +37,11 @@ def _compressed_copy(src: Path, dst: Path) -> None:
                 if topic == "/tof/depth":
                     assert image.encoding == "16UC1"
                     raw = pixels.view("<u2").reshape(image.height, image.width)
-                    _, png = cv2.imencode(".png", raw)
-                    payload = np.concatenate([np.zeros(12, np.uint8), png.reshape(-1)])  # ConfigHeader, then png
-                    fmt, topic = "16UC1; compressedDepth png", "/tof/depth/compressedDepth"
+                    codec = ("png", "rvl")[depth_images % 2]
+                    depth_images += 1
+                    encoded = rvl_payload(raw) if codec == "rvl" else cv2.imencode(".png", raw)[1].tobytes()
+                    payload = np.frombuffer(bytes(12) + encoded, np.uint8)  # ConfigHeader, then the image
+                    fmt, topic = f"16UC1; compressedDepth {codec}", "/tof/depth/compressedDepth"
                 else:
                     rgb = pixels.reshape(image.height, image.width, 3)
                     _, jpg = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
@@ -69,7 +74,7 @@ def test_compressed_bag_replays_like_the_raw_one(tmp_path: Path) -> None:
     assert stats["topics"]["/stereo/color/compressed"]["undecodable"] == 0
     assert ref.stdout.splitlines()[:2] == got.stdout.splitlines()[:2]  # every frame fused in both
     assert all(c["dropped_total"] == 0 for c in stats["sensors"].values())
-    # ToF depth is lossless (png of the same millimetres): its mesh is the same bytes
+    # ToF depth is lossless (png or rvl of the same millimetres): its mesh is the same bytes
     assert (tmp_path / "ref" / "tof.ply").read_bytes() == (tmp_path / "got" / "tof.ply").read_bytes()
     a, b = read_ply(tmp_path / "ref" / "mesh.ply"), read_ply(tmp_path / "got" / "mesh.ply")
     assert a.n_faces > 100 and abs(a.n_faces - b.n_faces) <= 0.05 * a.n_faces  # jpeg colour: stereo features move

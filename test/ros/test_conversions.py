@@ -288,3 +288,53 @@ def test_a_malformed_compressed_image_raises_without_opencv_printing(capfd: pyte
     with pytest.raises(ValueError, match="not a readable png"):
         conv.depth_from_image(msg)
     assert capfd.readouterr().err == ""
+
+
+def _compressed_depth(fmt: str, payload: bytes, depth_a: float = 0.0, depth_b: float = 0.0) -> object:
+    from sensor_msgs.msg import CompressedImage
+
+    msg = CompressedImage(format=fmt)
+    msg.data = np.array([0], "<i4").tobytes() + np.array([depth_a, depth_b], "<f4").tobytes() + payload
+    return msg
+
+
+def test_compressed_depth_rvl_16uc1_and_32fc1() -> None:
+    from rvl_encoder import rvl_payload
+
+    rng = np.random.default_rng(5)
+    mm = rng.integers(300, 5000, (37, 53)).astype(np.uint16)
+    mm[rng.random(mm.shape) < 0.3] = 0  # holes: runs of zeros between runs of depth
+    mm[:3] = 0  # a long run at the start
+    mm[10, 20:] = 65535  # a jump across the whole 16-bit range, both ways (wraps in 16 bits)
+    mm[-1, -5:] = 0  # the image ends in zeros
+    got = conv.depth_from_image(_compressed_depth("16UC1; compressedDepth rvl", rvl_payload(mm)))
+    np.testing.assert_array_equal(got, mm.astype(np.float32) * np.float32(1e-3))
+    # 32FC1: quantised inverse depth, depth = a / (q - b), as for png
+    a, b = 100.0, -20.0
+    got = conv.depth_from_image(_compressed_depth("32FC1; compressedDepth rvl", rvl_payload(mm), a, b))
+    want = np.where(mm > 0, np.float32(a) / (mm.astype(np.float32) - np.float32(b)), 0).astype(np.float32)
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    assert (got[mm == 0] == 0).all()
+
+
+def test_malformed_rvl_depth_raises_saying_what_is_wrong() -> None:
+    from rvl_encoder import rvl_payload
+
+    mm = np.arange(1, 401, dtype=np.uint16).reshape(20, 20)
+    good = rvl_payload(mm)
+    with pytest.raises(ValueError, match="truncated"):
+        conv.depth_from_image(_compressed_depth("16UC1; compressedDepth rvl", good[: len(good) // 2]))
+    too_wide = np.array([1 << 20, 1 << 20], "<u4").tobytes() + good[8:]
+    with pytest.raises(ValueError, match="corrupt"):
+        conv.depth_from_image(_compressed_depth("16UC1; compressedDepth rvl", too_wide))
+    smaller = np.array([10, 10], "<u4").tobytes() + good[8:]  # the runs overrun a 10x10 image
+    with pytest.raises(ValueError, match="overruns"):
+        conv.depth_from_image(_compressed_depth("16UC1; compressedDepth rvl", smaller))
+    endless = good[:8] + b"\xff" * 64  # every nibble says "more digits follow"
+    with pytest.raises(ValueError, match="too many digits"):
+        conv.depth_from_image(_compressed_depth("16UC1; compressedDepth rvl", endless))
+    with pytest.raises(ValueError, match="codec 'zstd'"):
+        conv.depth_from_image(_compressed_depth("16UC1; compressedDepth zstd", good))
+    # older publishers write plain 'compressedDepth': png
+    with pytest.raises(ValueError, match="not a readable png"):
+        conv.depth_from_image(_compressed_depth("16UC1; compressedDepth", good))

@@ -174,8 +174,8 @@ def test_time_jump_flushes_and_is_reported_first() -> None:
     ingest.add_pose("tof", pose_msg(5000 * MS))
     ingest.add_depth("tof", depth_msg(5100 * MS))
     ingest.add_depth("stereo", depth_msg(5050 * MS))
-    # the bag restarted: every stream continues on the new timeline; the first messages are
-    # dropped until that is confirmed (three per stream, spanning 20 ms)
+    # the bag restarted: every stream continues on the new timeline; its first messages are held
+    # until that is confirmed (three per stream, spanning 20 ms), then taken
     for t in (10, 20, 30, 40, 50):
         ingest.add_pose("tof", pose_msg(t * MS))
         ingest.add_depth("tof", depth_msg(t * MS + 5 * MS))
@@ -183,12 +183,26 @@ def test_time_jump_flushes_and_is_reported_first() -> None:
     ingest.add_pose("tof", pose_msg(60 * MS))
     items = ingest.pop_ready()
     assert isinstance(items[0], TimeJump) and items[0].from_ns == 5100 * MS and items[0].to_ns == 10 * MS
-    assert [f.stamp_ns for f in frames(items) if f.sensor == "tof"] == [45 * MS, 55 * MS]
+    assert [f.stamp_ns for f in frames(items) if f.sensor == "tof"] == [15 * MS, 25 * MS, 35 * MS, 45 * MS, 55 * MS]
     c = ingest.counters()
     assert c["tof"]["time_jumps"] + c["stereo"]["time_jumps"] == 1  # counted on the stream that confirmed it
-    assert c["tof"]["dropped"]["bad_stamp"] == 0  # the candidates count as the restart, not as bad stamps
-    assert c["tof"]["dropped"]["time_jump"] >= 1 + 3 and c["stereo"]["dropped"]["time_jump"] >= 1 + 3
+    assert c["tof"]["dropped"]["bad_stamp"] == 0 and c["stereo"]["dropped"]["bad_stamp"] == 0
+    assert c["tof"]["dropped"]["time_jump"] == 1 and c["stereo"]["dropped"]["time_jump"] == 1  # flushed
     assert ingest.pop_ready() == []  # reported once
+
+
+def test_a_restart_holds_as_many_messages_as_a_queue_and_counts_the_rest_as_lost() -> None:
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=4, restart_confirm_s=0.02, queue_size=2)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    ingest.add_depth("tof", depth_msg(5100 * MS))
+    for t in (10, 20, 30, 40):  # four depth images confirm the restart: the first two are not held
+        ingest.add_pose("tof", pose_msg(t * MS))
+        ingest.add_depth("tof", depth_msg(t * MS + 5 * MS))
+    ingest.add_pose("tof", pose_msg(50 * MS))
+    items = ingest.pop_ready()
+    assert isinstance(items[0], TimeJump) and [f.stamp_ns for f in frames(items)] == [35 * MS, 45 * MS]
+    c = ingest.counters()["tof"]
+    assert c["dropped"]["bad_stamp"] == 0 and c["dropped"]["time_jump"] == 1 + 2  # the frame flushed, two lost
 
 
 @pytest.mark.parametrize("stray_s", [0.0, 2**31 - 1, 3.0, 9.0])
@@ -544,10 +558,12 @@ def test_a_pause_of_every_stream_keeps_what_waits_and_old_messages_in_flight_aft
         ingest.add_depth("tof", depth_msg(10_005 * MS + i * 10 * MS))
     items = ingest.pop_ready()
     assert not any(isinstance(i, TimeJump) for i in items)
+    # the messages that confirmed the pause were held and taken: the last frame waits for a pose after it
+    assert [f.stamp_ns for f in frames(items)] == [10_005 * MS, 10_015 * MS]
     counters = ingest.counters()["tof"]
-    assert counters["dropped"]["time_jump"] >= 2 and counters["dropped"]["bad_stamp"] == 0
-    # the frame queued before the pause was not flushed: no pose came within pose_max_wait_s of it
-    assert counters["dropped"]["pose_timeout"] == 1
+    assert counters["dropped"]["time_jump"] == 0 and counters["dropped"]["bad_stamp"] == 0
+    # the frame queued before the pause was not flushed: the poses around it are 5 s apart
+    assert counters["dropped"]["pose_gap"] == 1 and "bad_stamp" not in counters["errors"]
     ingest.restart(to_ns=0)  # the /clock went back to 0
     assert ingest.add_pose("tof", pose_msg(10_040 * MS)) == "bad_stamp"  # in flight from before
     assert ingest.add_pose("tof", pose_msg(5 * MS)) is None
