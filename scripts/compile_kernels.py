@@ -10,6 +10,7 @@ second, so running it again costs little.
 """
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -25,6 +26,7 @@ def main() -> None:
     from senfunet_ros.conversions.wire import marker_array_cdr, marker_array_from_cdr
     from senfunet_ros.params import Settings, engine_config, engine_weights, expanded_defaults
 
+    logging.getLogger("senfunet").setLevel(logging.ERROR)  # the tiny bound's thrash warning is on purpose here
     settings = Settings.from_values({name: default for name, (default, _) in expanded_defaults().items()})
     for alpha_voxels in ("surface", "surface_voxels"):  # the node's choice, and the engine's other one
         engine = SenFuNet(engine_config(settings, alpha_dtype="float32", feature_dtype="float32", max_blocks=4,

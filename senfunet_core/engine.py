@@ -345,12 +345,14 @@ class SenFuNet:
             self.store.reach_renewed[update.touched_slots] |= update.reach[:, 1]
             # blocks back from the spill: alpha around them was judged without them
             self.store.reach_renewed[self.grid.take_restored_slots()] = REACH_ALL
-            self.store.touched_s[update.touched_slots] = time.monotonic()
+            touched_s = time.monotonic()
+            self.store.touched_s[update.touched_slots] = touched_s
             self.store.mesh_pending[update.touched_slots] = True  # the TSDF changed here, whatever alpha does
             self.frames_integrated[cfg.sensors[s]] += 1
             self.counters["sparse_dropped_samples"] += update.dropped_samples
             self.counters["sparse_dropped_blocks"] += update.dropped_blocks
-            self.bound.camera_m = np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy()
+            self.bound.frame_integrated(camera_m=np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy(),
+                                        touched_s=touched_s, n_touched=len(update.touched_slots))
         self.times.add(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
         if self.bound.over_hard_bound():
             self._wait_for_eviction()
@@ -636,6 +638,7 @@ class SenFuNet:
                 "bytes_per_observed_voxel": nbytes / max(observed, 1),
                 "frames_integrated": dict(self.frames_integrated),
                 "max_blocks": self.max_blocks, "evicted_blocks": self.bound.evicted_blocks,
+                "evicted_in_view_blocks": self.bound.evicted_in_view,
                 "sparse_dropped_samples": self.counters["sparse_dropped_samples"],
                 "sparse_dropped_blocks": self.counters["sparse_dropped_blocks"],
                 "occupancy": observed / max(self.grid.n_blocks * 512, 1),

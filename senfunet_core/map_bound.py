@@ -64,14 +64,25 @@ class MapBound:
         self.archive = MeshArchive()  # final meshes of evicted blocks
         self.newly_archived: list[BlockMeshes] = []  # archived since the last update took them
         self.camera_m = np.zeros(3)  # the last integrated frame's camera centre: what is near it stays
+        self._frame_s = np.nan  # when the last frame touched its blocks (their store.touched_s)
+        self._frame_blocks = 0  # how many blocks it touched
         self.evicted_blocks = 0
         self.evictions = 0
+        self.evicted_in_view = 0  # evicted blocks that the sensors' latest frames had reached
 
     def clear(self) -> None:
         """Forget the archive and the camera (the map was reset)."""
         self.archive.clear()
         self.newly_archived = []
         self.camera_m = np.zeros(3)
+        self._frame_s, self._frame_blocks = np.nan, 0
+
+    def frame_integrated(self, *, camera_m: np.ndarray, touched_s: float, n_touched: int) -> None:
+        """A frame was integrated (data lock held): the blocks near its camera stay. Its blocks are
+        stamped `touched_s` in the store: should the bound evict one of them, it is smaller than a
+        frame's view and thrashes."""
+        self.camera_m = camera_m
+        self._frame_s, self._frame_blocks = touched_s, n_touched
 
     def over_hard_bound(self) -> bool:
         """Integration outgrew the bound by HARD_BOUND: an eviction is due before it goes on."""
@@ -93,6 +104,7 @@ class MapBound:
         t0 = time.perf_counter()
         with self._data_lock:
             victims = store.farthest(self.camera_m, keep=int(0.9 * self.max_blocks), voxel_size_m=self.voxel_size_m)
+            in_view = int((store.touched_s[victims] >= self._frame_s).sum())
             victim_coords = store.grid.coords[victims].numpy()  # copies (fancy index)
             around_victims = store.neighbours(victims)
             read = around_victims[:, MESH_READ_CODES]  # the blocks the victims' cells read
@@ -123,6 +135,14 @@ class MapBound:
             eviction = store.remove(victims)
         self.evicted_blocks += len(victim_coords)
         self.evictions += 1
+        if in_view:
+            if not self.evicted_in_view:
+                log.warning("map bound: max_blocks %d is smaller than what a frame sees: %d of the %d blocks "
+                            "evicted were reached by the latest frame (which touched %d blocks), so they come back "
+                            "from disk at once and the map thrashes; raise max_map_blocks well above that (-1 follows "
+                            "this machine's memory). Counted as evicted_in_view_blocks; warned once.",
+                            self.max_blocks, in_view, len(victim_coords), self._frame_blocks)
+            self.evicted_in_view += in_view
         spill = store.grid.spill
         log.info("map bound: evicted %d blocks farthest from the camera (max_blocks %d; %d evicted so far, their "
                  "final meshes kept: %d archived blocks; their voxels on disk until seen again: %d blocks, %.0f MB) "

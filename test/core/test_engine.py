@@ -1,6 +1,7 @@
 """The engine against analytic geometry: TSDF values, fusion, filter, incremental alpha, meshes, state."""
 from __future__ import annotations
 
+import logging
 import math
 import subprocess
 import sys
@@ -722,6 +723,28 @@ def test_integration_keeps_the_map_bound_between_updates():
     assert engine.counters["evicted_blocks"] > 0 and engine.grid.n_blocks <= 1.25 * 60
     update = engine.update()
     assert engine.grid.n_blocks <= 60 and isinstance(update.removed, list)
+
+
+def test_a_bound_smaller_than_a_frames_view_is_warned_about_once_and_counted(caplog):
+    """Evicting blocks the latest frame reached means they come back at once (the map thrashes):
+    warned once, counted; a bound the camera moved away from evicts only what it left behind."""
+    caplog.set_level(logging.WARNING, logger="senfunet.engine")
+    near, far = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]], far_views(2)
+    thrashing = engine_for_tests(max_blocks=60)  # a view of the sphere reaches about 110 blocks
+    for views in (near, far):
+        integrate_views(thrashing, views)
+        thrashing.update()
+    warnings = [r.getMessage() for r in caplog.records if "smaller than what a frame sees" in r.getMessage()]
+    assert len(warnings) == 1 and "max_blocks 60" in warnings[0] and "max_map_blocks" in warnings[0]
+    assert 0 < thrashing.stats()["evicted_in_view_blocks"] <= thrashing.stats()["evicted_blocks"]
+    caplog.clear()
+    moving_on = engine_for_tests(max_blocks=165)  # both spheres: about 280 blocks
+    for views in (near, far):
+        integrate_views(moving_on, views)
+        moving_on.update()
+    stats = moving_on.stats()
+    assert stats["evicted_blocks"] > 50 and stats["evicted_in_view_blocks"] == 0
+    assert not any("smaller than what a frame sees" in r.getMessage() for r in caplog.records)
 
 
 def test_integration_past_the_hard_bound_during_an_update_is_served_between_batches():
