@@ -42,7 +42,6 @@ or, with each next frame's feature net overlapping the current frame's integrati
 """
 from __future__ import annotations
 
-import bisect
 import threading
 import time
 from collections import deque
@@ -53,7 +52,7 @@ from collections.abc import Callable, Iterable
 import numpy as np
 
 from senfunet_ros import conversions as conv
-from senfunet_ros.geometry import interpolate_pose
+from senfunet_ros.matching import ColorBuffer, PoseBuffer
 from senfunet_ros.timeline import Restart, Timelines
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "NoDepthInRange",
@@ -187,12 +186,9 @@ class _SensorState:
         self.counters = SensorCounters()
         self.camera_info: tuple[np.ndarray, tuple[int, int]] | None = None
         self.queue: deque[_Pending] = deque()
-        self.set_aside: deque[Frame] = deque()  # posed frames the consumer fell behind on, oldest first
         self.awaiting_info: deque[tuple[Any, int, float]] = deque()  # (depth msg, stamp_ns, arrival_s)
-        self.colors: deque[tuple[int, np.ndarray]] = deque(maxlen=max(4, config.queue_size))
-        self.pose_stamps: list[int] = []  # sorted
-        self.poses: list[np.ndarray] = []  # 4x4, parallel to pose_stamps
-        self.color_seen = False
+        self.colors = ColorBuffer(max(4, config.queue_size))
+        self.poses = PoseBuffer()
 
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
@@ -202,7 +198,6 @@ class _SensorState:
         self.queue.clear()
         self.awaiting_info.clear()
         self.colors.clear()
-        self.pose_stamps.clear()
         self.poses.clear()
         return n
 
@@ -216,7 +211,7 @@ class Ingest:
         self._sensors = {name: _SensorState(config) for name in config.sensors}
         self._timelines = Timelines(config.sensors, **_timeline_limits(config))
         self._jumps: list[TimeJump] = []
-        self._set_aside_bytes = 0  # of the frames set aside, all sensors
+        self._set_aside = SetAside(config.sensors)
         self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
 
     @property
@@ -295,19 +290,9 @@ class Ingest:
             except ValueError as err:
                 state.counters.errors["bad_encoding"] = f"colour: {err}"
                 return "bad_encoding"
-            state.color_seen = True
-            state.colors.append((stamp_ns, rgb))
+            state.colors.add(stamp_ns, rgb)
             return None
-        i = bisect.bisect_left(state.pose_stamps, stamp_ns)
-        if i < len(state.pose_stamps) and state.pose_stamps[i] == stamp_ns:
-            state.poses[i] = message  # a republished pose: the newest wins
-        else:
-            state.pose_stamps.insert(i, stamp_ns)
-            state.poses.insert(i, message)
-        excess = len(state.pose_stamps) - self.config.pose_buffer_size
-        if excess > 0:
-            del state.pose_stamps[:excess]
-            del state.poses[:excess]
+        state.poses.add(stamp_ns, message, keep=self.config.pose_buffer_size)
         return None
 
     def restart(self, to_ns: int | None = None) -> None:
@@ -351,44 +336,20 @@ class Ingest:
 
     def _enqueue(self, state: _SensorState, msg: Any, stamp_ns: int, arrival_s: float) -> str | None:
         """Decode and check a depth image and queue it. Returns the drop reason or None. Lock held."""
-        reason, pending = self._decode_depth(state, msg, stamp_ns, arrival_s)
-        if reason is not None:
+        assert state.camera_info is not None  # depth waits in awaiting_info until it comes
+        pending = _decode_depth(msg, stamp_ns, arrival_s, camera_info=state.camera_info,
+                                working_size=self.config.working_size)
+        if not isinstance(pending, _Pending):
+            reason, error = pending
             state.counters.dropped[reason] += 1
+            if error:
+                state.counters.errors[reason] = error
             return reason
         if len(state.queue) >= self.config.queue_size:
             state.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
             state.counters.dropped["queue_full"] += 1
         state.queue.append(pending)
         return None
-
-    def _decode_depth(self, state: _SensorState, msg: Any, stamp_ns: int, arrival_s: float) -> tuple[str | None, Any]:
-        assert state.camera_info is not None  # depth waits in awaiting_info until it comes
-        K, info_size = state.camera_info
-        try:
-            depth_m = conv.depth_from_image(msg)
-        except ValueError as err:
-            state.counters.errors["bad_encoding"] = f"depth: {err}"
-            return "bad_encoding", None
-        height, width = depth_m.shape
-        if (width, height) != info_size:
-            state.counters.errors["size_mismatch"] = (f"depth image {width}x{height}, camera_info {info_size[0]}x"
-                                                      f"{info_size[1]}; publish the camera_info of this image")
-            return "size_mismatch", None
-        if not np.any(depth_m > 0.0):
-            return "all_invalid", None
-        target = self._working_size((width, height))
-        if target != (width, height):
-            depth_m = conv.resize_depth(depth_m, target)
-            K = conv.scale_intrinsics(K, (width, height), target)
-        return None, _Pending(stamp_ns, depth_m, K, arrival_s, frame_id=str(getattr(msg.header, "frame_id", "")))
-
-    def _working_size(self, native: tuple[int, int]) -> tuple[int, int]:
-        width, height = self.config.working_size
-        if width and not height:
-            height = max(1, round(native[1] * width / native[0]))
-        elif height and not width:
-            width = max(1, round(native[0] * height / native[1]))
-        return (width or native[0], height or native[1])
 
     def add_color(self, sensor: str, msg: Any) -> str | None:
         """Buffer one colour image for matching. Returns the drop reason, or None."""
@@ -471,7 +432,7 @@ class Ingest:
                 frames.extend(self._pop_sensor(name, state))
             quiet = time.monotonic() - self._last_depth_arrival_s >= self.config.max_lag_s
             if not frames and set_aside and quiet:
-                frames = self._take_set_aside(1 if max_frames is None else max_frames)
+                frames = self._set_aside.take_oldest(1 if max_frames is None else max_frames)
             order = {name: i for i, name in enumerate(self.config.sensors)}
             frames.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
             if max_frames is not None and len(frames) > max_frames:
@@ -486,6 +447,7 @@ class Ingest:
         cfg = self.config
         max_wait_ns = int(cfg.pose_max_wait_s * 1e9)
         color_tolerance_ns = int(cfg.color_tolerance_s * 1e9)
+        pose_tolerance_ns = int(cfg.pose_tolerance_s * 1e9)
         now_ns = self._timelines.sensor_now_ns(name)
         out: list[Frame] = []
         lag_ns = int(cfg.max_lag_s * 1e9)
@@ -501,123 +463,35 @@ class Ingest:
                 frame = Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s)
                 # the consumer fell behind: keep latency bounded
                 if lag_ns and newest_ns is not None and newest_ns - t > lag_ns:
-                    self._set_aside(state, frame)
+                    if self._set_aside.put(frame, budget_bytes=cfg.set_aside_bytes):
+                        state.counters.set_aside += 1
+                    else:  # no room
+                        state.counters.dropped["behind"] += 1
                 else:
                     out.append(frame)
                 continue
             waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
-            pose = self._tf_pose if cfg.tf is not None else self._topic_pose
-            T = pose(state, pending, waited_too_long)
+            if cfg.tf is not None:
+                T, reason, error = _tf_pose(cfg.tf, cfg.fixed_frame, pending, waited_too_long)
+            else:
+                T, reason = state.poses.at(t, tolerance_ns=pose_tolerance_ns, waited_too_long=waited_too_long)
+                error = ""
             if T is None:
-                if state.queue and state.queue[0] is pending:
+                if reason is None:
                     break  # not yet: later frames are newer, they wait too
-                continue  # dropped and counted
-            if not self._color_ready(state, self._timelines.last_ns(name, "color"), t, waited_too_long):
+                state.queue.popleft()
+                state.counters.dropped[reason] += 1
+                if error:
+                    state.counters.errors[reason] = error
+                continue
+            if not state.colors.ready(t, self._timelines.last_ns(name, "color"), waited_too_long):
                 break
-            rgb = self._match_color(state, t, color_tolerance_ns, pending.depth_m.shape)
-            if rgb is None and state.color_seen:
+            rgb = state.colors.match(t, tolerance_ns=color_tolerance_ns, shape=pending.depth_m.shape)
+            if rgb is None and state.colors.seen:
                 state.counters.without_color += 1
             state.queue.popleft()
             out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
         return out
-
-    def _set_aside(self, state: _SensorState, frame: Frame) -> None:
-        """Keep a frame the consumer fell behind on for later, if set_aside_bytes has room; else drop
-        it as "behind". Lock held."""
-        size = _frame_bytes(frame)
-        if self._set_aside_bytes + size > self.config.set_aside_bytes:
-            state.counters.dropped["behind"] += 1
-            return
-        frame.set_aside = True
-        state.set_aside.append(frame)
-        state.counters.set_aside += 1
-        self._set_aside_bytes += size
-
-    def _take_set_aside(self, n: int) -> list[Frame]:
-        """The n oldest frames set aside, all sensors. Lock held."""
-        out: list[Frame] = []
-        while len(out) < n:
-            waiting = [state for state in self._sensors.values() if state.set_aside]
-            if not waiting:
-                break
-            state = min(waiting, key=lambda st: st.set_aside[0].stamp_ns)
-            frame = state.set_aside.popleft()
-            self._set_aside_bytes -= _frame_bytes(frame)
-            out.append(frame)
-        return out
-
-    def _forget_set_aside(self, reason: str) -> int:
-        """Drop every frame set aside, counted as `reason`. Lock held."""
-        n = 0
-        for state in self._sensors.values():
-            state.counters.dropped[reason] += len(state.set_aside)
-            n += len(state.set_aside)
-            state.set_aside.clear()
-        self._set_aside_bytes = 0
-        return n
-
-    @staticmethod
-    def _color_ready(state: _SensorState, last_color: int | None, t: int, waited_too_long: bool) -> bool:
-        """Colour is published next to depth: give it the chance to arrive unless waiting longer would
-        exceed the limit (then the frame goes without colour). last_color: the colour stream's newest stamp."""
-        if state.color_seen and not waited_too_long:
-            return last_color is not None and last_color >= t  # else the colour stream has not reached t yet
-        return True
-
-    def _topic_pose(self, state: _SensorState, pending: _Pending, waited_too_long: bool) -> np.ndarray | None:
-        """T_world_camera of a queued frame interpolated from its sensor's pose stream; None when it
-        must wait (the frame stays first in the queue) or was dropped (popped and counted). Lock held."""
-        t, stamps = pending.stamp_ns, state.pose_stamps
-        tolerance_ns = int(self.config.pose_tolerance_s * 1e9)
-        i = bisect.bisect_left(stamps, t)
-        if i == len(stamps):  # no pose at or after the frame yet
-            if not waited_too_long:
-                return None
-            reason = "pose_timeout"
-        elif stamps[i] == t:
-            return state.poses[i]
-        elif i == 0 or t - stamps[i - 1] > tolerance_ns or stamps[i] - t > tolerance_ns:
-            reason = "pose_gap"
-        else:
-            s = (t - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
-            return interpolate_pose(state.poses[i - 1], state.poses[i], s)
-        state.queue.popleft()
-        state.counters.dropped[reason] += 1
-        return None
-
-    def _tf_pose(self, state: _SensorState, pending: _Pending, waited_too_long: bool) -> np.ndarray | None:
-        """T_world_camera of a queued frame from TF; None when it must wait (the frame stays first in
-        the queue) or was dropped (popped and counted). Lock held."""
-        from senfunet_ros.tf import TfWait
-
-        try:
-            return self.config.tf.lookup(self.config.fixed_frame, pending.frame_id, pending.stamp_ns)
-        except TfWait as err:
-            if not waited_too_long:
-                return None
-            reason, why = "pose_timeout", str(err)
-        except ValueError as err:  # TfError: a gap, or no frame_id
-            reason, why = "pose_gap", str(err)
-        state.queue.popleft()
-        state.counters.dropped[reason] += 1
-        state.counters.errors[reason] = f"tf: {why}"
-        return None
-
-    def _match_color(self, state: _SensorState, t: int, tolerance_ns: int, shape: tuple[int, ...]) -> np.ndarray | None:
-        best: tuple[int, np.ndarray] | None = None
-        for stamp, rgb in state.colors:
-            if abs(stamp - t) <= tolerance_ns and (best is None or abs(stamp - t) < abs(best[0] - t)):
-                best = (stamp, rgb)
-        # Colours older than this frame can never match a later one.
-        while state.colors and state.colors[0][0] < t - tolerance_ns:
-            state.colors.popleft()
-        if best is None:
-            return None
-        rgb = best[1]
-        height, width = shape
-        if rgb.shape[:2] != (height, width):
-            rgb = conv.resize_rgb(rgb, (width, height))
-        return rgb
 
     # -- bookkeeping ----------------------------------------------------------------------
 
@@ -640,8 +514,8 @@ class Ingest:
         aside included) and `set_aside_now`."""
         with self._lock:
             return {
-                name: {**state.counters.as_dict(), "queue_depth": state.waiting() + len(state.set_aside),
-                       "set_aside_now": len(state.set_aside)}
+                name: {**state.counters.as_dict(), "queue_depth": state.waiting() + self._set_aside.count(name),
+                       "set_aside_now": self._set_aside.count(name)}
                 for name, state in self._sensors.items()
             }
 
@@ -649,13 +523,16 @@ class Ingest:
         """Frames waiting per sensor: for a pose, a colour image, the consumer or a camera_info, or set
         aside."""
         with self._lock:
-            return {name: state.waiting() + len(state.set_aside) for name, state in self._sensors.items()}
+            return {name: state.waiting() + self._set_aside.count(name) for name, state in self._sensors.items()}
 
     def discard_waiting(self, reason: str) -> int:
         """Drop every frame still waiting (queued, before its camera_info or set aside), counted as
         `reason`; returns how many."""
         with self._lock:
-            n = self._forget_set_aside(reason)
+            n = 0
+            for name, count in self._set_aside.clear().items():
+                self._sensors[name].counters.dropped[reason] += count
+                n += count
             for state in self._sensors.values():
                 waiting = state.waiting()
                 state.counters.dropped[reason] += waiting
@@ -678,6 +555,89 @@ def _timeline_limits(config: IngestConfig) -> dict[str, Any]:
     hold_msgs = {"depth": config.queue_size, "color": max(4, config.queue_size), "pose": config.pose_buffer_size}
     return {"time_jump_s": config.time_jump_s, "restart_confirm_msgs": config.restart_confirm_msgs,
             "restart_confirm_s": config.restart_confirm_s, "hold_msgs": hold_msgs}
+
+
+def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tuple[np.ndarray, tuple[int, int]],
+                  working_size: tuple[int, int]) -> _Pending | tuple[str, str]:
+    """A depth image decoded, checked against its camera_info (K, (width, height)) and resized to the
+    working size (0 in either: keep the aspect ratio; both 0: native): a frame waiting for its
+    pose, or (drop reason, error)."""
+    K, info_size = camera_info
+    try:
+        depth_m = conv.depth_from_image(msg)
+    except ValueError as err:
+        return "bad_encoding", f"depth: {err}"
+    height, width = depth_m.shape
+    if (width, height) != info_size:
+        return "size_mismatch", (f"depth image {width}x{height}, camera_info {info_size[0]}x{info_size[1]}; "
+                                 "publish the camera_info of this image")
+    if not np.any(depth_m > 0.0):
+        return "all_invalid", ""
+    target_width, target_height = working_size
+    if target_width and not target_height:
+        target_height = max(1, round(height * target_width / width))
+    elif target_height and not target_width:
+        target_width = max(1, round(width * target_height / height))
+    target = (target_width or width, target_height or height)
+    if target != (width, height):
+        depth_m = conv.resize_depth(depth_m, target)
+        K = conv.scale_intrinsics(K, (width, height), target)
+    return _Pending(stamp_ns, depth_m, K, arrival_s, frame_id=str(getattr(msg.header, "frame_id", "")))
+
+
+def _tf_pose(tf: Any, fixed_frame: str, pending: _Pending, waited_too_long: bool
+             ) -> tuple[np.ndarray | None, str | None, str]:
+    """T_world_camera of a queued frame from TF, as `PoseBuffer.at` answers, with the reason's error."""
+    from senfunet_ros.tf import TfWait
+
+    try:
+        return tf.lookup(fixed_frame, pending.frame_id, pending.stamp_ns), None, ""
+    except TfWait as err:
+        return None, ("pose_timeout" if waited_too_long else None), f"tf: {err}"
+    except ValueError as err:  # TfError: a gap, or no frame_id
+        return None, "pose_gap", f"tf: {err}"
+
+
+class SetAside:
+    """Posed frames the consumer fell behind on, per sensor, oldest first, within a byte budget
+    for all sensors. Not thread-safe: Ingest calls it under its lock."""
+
+    def __init__(self, sensors: tuple[str, ...]) -> None:
+        self._frames: dict[str, deque[Frame]] = {name: deque() for name in sensors}
+        self._nbytes = 0
+
+    def put(self, frame: Frame, *, budget_bytes: int) -> bool:
+        """Keep a frame for later if the budget has room; False (not kept) if not."""
+        size = _frame_bytes(frame)
+        if self._nbytes + size > budget_bytes:
+            return False
+        frame.set_aside = True
+        self._frames[frame.sensor].append(frame)
+        self._nbytes += size
+        return True
+
+    def take_oldest(self, n: int) -> list[Frame]:
+        """The n oldest frames, all sensors."""
+        out: list[Frame] = []
+        while len(out) < n:
+            waiting = [frames for frames in self._frames.values() if frames]
+            if not waiting:
+                break
+            frame = min(waiting, key=lambda frames: frames[0].stamp_ns).popleft()
+            self._nbytes -= _frame_bytes(frame)
+            out.append(frame)
+        return out
+
+    def count(self, sensor: str) -> int:
+        return len(self._frames[sensor])
+
+    def clear(self) -> dict[str, int]:
+        """Forget every frame; returns how many per sensor."""
+        counts = {name: len(frames) for name, frames in self._frames.items()}
+        for frames in self._frames.values():
+            frames.clear()
+        self._nbytes = 0
+        return counts
 
 
 def _frame_bytes(frame: Frame) -> int:

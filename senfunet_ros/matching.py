@@ -1,0 +1,98 @@
+"""Matching a depth frame with its sensor's pose and colour: the buffers of pose and colour
+messages, each looked up at a depth stamp.
+
+Not thread-safe: their owner (`ingest.Ingest`) calls them under its lock.
+"""
+from __future__ import annotations
+
+import bisect
+from collections import deque
+
+import numpy as np
+
+from senfunet_ros import conversions as conv
+from senfunet_ros.geometry import interpolate_pose
+
+__all__ = ["ColorBuffer", "PoseBuffer"]
+
+
+class PoseBuffer:
+    """One sensor's stamped poses (T_world_camera), in stamp order."""
+
+    def __init__(self) -> None:
+        self._stamps: list[int] = []
+        self._poses: list[np.ndarray] = []
+
+    def add(self, stamp_ns: int, T: np.ndarray, *, keep: int) -> None:
+        """Insert a pose (a republished stamp: the newest wins), keeping the `keep` newest."""
+        i = bisect.bisect_left(self._stamps, stamp_ns)
+        if i < len(self._stamps) and self._stamps[i] == stamp_ns:
+            self._poses[i] = T
+        else:
+            self._stamps.insert(i, stamp_ns)
+            self._poses.insert(i, T)
+        excess = len(self._stamps) - keep
+        if excess > 0:
+            del self._stamps[:excess]
+            del self._poses[:excess]
+
+    def at(self, stamp_ns: int, *, tolerance_ns: int, waited_too_long: bool) -> tuple[np.ndarray | None, str | None]:
+        """The pose at a depth stamp, interpolated between the poses around it: (T, None); or
+        (None, None) when it must wait for a later pose; or (None, reason) when it has none:
+        "pose_timeout" (no later pose came in time), "pose_gap" (the poses around it are further
+        than tolerance_ns from it)."""
+        stamps = self._stamps
+        i = bisect.bisect_left(stamps, stamp_ns)
+        if i == len(stamps):  # no pose at or after the frame yet
+            return None, ("pose_timeout" if waited_too_long else None)
+        if stamps[i] == stamp_ns:
+            return self._poses[i], None
+        if i == 0 or stamp_ns - stamps[i - 1] > tolerance_ns or stamps[i] - stamp_ns > tolerance_ns:
+            return None, "pose_gap"
+        s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
+        return interpolate_pose(self._poses[i - 1], self._poses[i], s), None
+
+    def clear(self) -> None:
+        self._stamps.clear()
+        self._poses.clear()
+
+
+class ColorBuffer:
+    """One sensor's latest colour images (at most `size`), matched to depth by the nearest stamp."""
+
+    def __init__(self, size: int) -> None:
+        self._images: deque[tuple[int, np.ndarray]] = deque(maxlen=size)
+        self.seen = False  # whether the sensor ever sent colour: then depth waits for it
+
+    def add(self, stamp_ns: int, rgb: np.ndarray) -> None:
+        self.seen = True
+        self._images.append((stamp_ns, rgb))
+
+    def ready(self, stamp_ns: int, newest_ns: int | None, waited_too_long: bool) -> bool:
+        """Whether a depth frame can be matched now. Colour is published next to depth: give it the
+        chance to arrive (until the colour stream's newest stamp `newest_ns` reaches the frame)
+        unless waiting longer would exceed the limit (then the frame goes without colour)."""
+        if self.seen and not waited_too_long:
+            return newest_ns is not None and newest_ns >= stamp_ns
+        return True
+
+    def match(self, stamp_ns: int, *, tolerance_ns: int, shape: tuple[int, ...]) -> np.ndarray | None:
+        """The colour image nearest the depth stamp within tolerance_ns, resized to the depth's
+        (H, W) `shape`; None if there is none. Images too old for any later frame are forgotten."""
+        best: tuple[int, np.ndarray] | None = None
+        for stamp, rgb in self._images:
+            gap = abs(stamp - stamp_ns)
+            if gap <= tolerance_ns and (best is None or gap < abs(best[0] - stamp_ns)):
+                best = (stamp, rgb)
+        while self._images and self._images[0][0] < stamp_ns - tolerance_ns:
+            self._images.popleft()
+        if best is None:
+            return None
+        rgb = best[1]
+        height, width = shape
+        if rgb.shape[:2] != (height, width):
+            rgb = conv.resize_rgb(rgb, (width, height))
+        return rgb
+
+    def clear(self) -> None:
+        self._images.clear()
