@@ -53,6 +53,7 @@ import numpy as np
 
 from senfunet_ros import conversions as conv
 from senfunet_ros.matching import ColorBuffer, PoseBuffer
+from senfunet_ros.tf import TfAdded, TfWait
 from senfunet_ros.timeline import Restart, Timelines
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "NoDepthInRange",
@@ -366,30 +367,33 @@ class Ingest:
 
     def add_tf(self, msg: Any, *, static: bool) -> str | None:
         """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).
-        Returns the drop reason (bad_pose for NaN or a non-unit quaternion; bad_stamp for a dynamic
-        transform more than time_jump_s ahead of the streams' newest stamp, which is left out), or
-        None. Counted on the first sensor (a transform serves them all)."""
+        Returns the drop reason (bad_stamp for a dynamic transform more than time_jump_s ahead of
+        the streams' newest stamp, which is left out; bad_pose for a transform the buffer refused:
+        NaN, a non-unit quaternion, a cycle, a second parent), or None. Each transform left out is
+        counted, on the first sensor (a transform serves them all); the rest of the message is kept."""
         if self.config.tf is None or not hasattr(self.config.tf, "add_message"):
             return None
         with self._lock:
             now_ns = self._timelines.now_ns()
         latest_ns = None if now_ns is None else now_ns + int(self.config.time_jump_s * 1e9)
-        reason, error = None, ""
         try:
-            left_out = self.config.tf.add_message(msg, static=static, latest_ns=latest_ns)
-            if left_out:
-                assert now_ns is not None
-                reason, error = "bad_stamp", (
-                    f"tf: a transform stamped {left_out[0] * 1e-9:.3f} s, {(left_out[0] - now_ns) * 1e-9:.3f} s ahead "
-                    "of the streams' newest stamp, was left out; check the clock of its publisher")
-        except (ValueError, AttributeError) as err:
-            reason, error = "bad_pose", f"tf: {err}"
-        if reason is not None:
-            with self._lock:
-                counters = self._sensors[self.config.sensors[0]].counters
-                counters.dropped[reason] += 1
+            added = self.config.tf.add_message(msg, static=static, latest_ns=latest_ns)
+        except AttributeError as err:  # not a TFMessage
+            added = TfAdded(refused=[str(err)])
+        drops = []
+        if added.left_out:
+            assert now_ns is not None
+            drops.append(("bad_stamp", len(added.left_out), (
+                f"tf: a transform stamped {added.left_out[0] * 1e-9:.3f} s, {(added.left_out[0] - now_ns) * 1e-9:.3f} "
+                "s ahead of the streams' newest stamp, was left out; check the clock of its publisher")))
+        if added.refused:
+            drops.append(("bad_pose", len(added.refused), f"tf: {added.refused[0]}"))
+        with self._lock:
+            counters = self._sensors[self.config.sensors[0]].counters
+            for reason, count, error in drops:
+                counters.dropped[reason] += count
                 counters.errors[reason] = error
-        return reason
+        return drops[0][0] if drops else None
 
     def add_pose(self, sensor: str, msg: Any) -> str | None:
         """Add one pose message (PoseStamped, Odometry or TransformStamped). Returns the drop reason."""
@@ -588,8 +592,6 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
 def _tf_pose(tf: Any, fixed_frame: str, pending: _Pending, waited_too_long: bool
              ) -> tuple[np.ndarray | None, str | None, str]:
     """T_world_camera of a queued frame from TF, as `PoseBuffer.at` answers, with the reason's error."""
-    from senfunet_ros.tf import TfWait
-
     try:
         return tf.lookup(fixed_frame, pending.frame_id, pending.stamp_ns), None, ""
     except TfWait as err:

@@ -5,6 +5,13 @@ imported but tf2_msgs can. The tree is the usual one: each child frame has one p
 links are interpolated at the stamp (lerp + slerp) between transforms at most `max_gap_s`, or 2.5 of
 the link's typical intervals (a slowly published link), apart; static ones hold at any time.
 
+What breaks the tree is refused, transform by transform (the rest of its message is kept), with
+an error naming the frames: NaN or a non-unit quaternion, a frame as its own parent or ancestor
+(a cycle), and a second parent for a frame while its first is alive (two publishers of one
+frame; a dynamic link is taken over by another parent only after `REPARENT_AFTER_S` of silence, a
+static one only by another static transform). Of a static and a dynamic transform on the same
+link, the newest kind holds.
+
 Convention: `lookup(target, source, stamp_ns)` returns the 4x4 transform taking points in
 `source` to `target` (`T_target_source`; with target = fixed frame and source = the camera's
 optical frame, that is `T_world_camera`).
@@ -13,6 +20,7 @@ from __future__ import annotations
 
 import bisect
 import threading
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -21,7 +29,7 @@ from senfunet_ros.conversions.poses import transform_from_msg
 from senfunet_ros.conversions.stamps import stamp_to_ns
 from senfunet_ros.geometry import interpolate_pose, invert_transform
 
-__all__ = ["TfBuffer", "TfError", "TfWait"]
+__all__ = ["REPARENT_AFTER_S", "TfAdded", "TfBuffer", "TfError", "TfWait"]
 
 
 class TfError(ValueError):
@@ -34,12 +42,15 @@ class TfWait(TfError):
 
 # a link's transforms may be this many of its typical intervals apart around a lookup
 _GAP_INTERVALS = 2.5
+# a dynamic link silent this long (in stamps) may be taken over by another parent
+REPARENT_AFTER_S = 1.0
 
 
 def _typical_interval_ns(stamps: list[int], i: int) -> float:
-    """The median interval of the (up to) 16 transforms of a link before index i: its rate there."""
-    recent = stamps[max(0, i - 16):i]
-    return float(np.median(np.diff(recent))) if len(recent) >= 3 else 0.0
+    """The median interval of a link's (up to) 17 transforms up to index i, a lookup's right
+    neighbour: its rate there (from its first two transforms on)."""
+    recent = stamps[max(0, i - 16):i + 1]
+    return float(np.median(np.diff(recent))) if len(recent) >= 2 else 0.0
 
 
 class _Link:
@@ -48,6 +59,15 @@ class _Link:
         self.static: np.ndarray | None = None
         self.stamps: list[int] = []  # sorted
         self.transforms: list[np.ndarray] = []
+
+
+@dataclass(frozen=True)
+class TfAdded:
+    """What `TfBuffer.add_message` left out: dynamic stamps too far ahead, and the transforms it
+    refused, each with the reason."""
+
+    left_out: list[int] = field(default_factory=list)
+    refused: list[str] = field(default_factory=list)
 
 
 class TfBuffer:
@@ -59,31 +79,50 @@ class TfBuffer:
         self._links: dict[str, _Link] = {}  # child frame -> link to its parent
         self._lock = threading.Lock()
 
-    def add_message(self, msg: Any, *, static: bool, latest_ns: int | None = None) -> list[int]:
-        """Every transform of a tf2_msgs/TFMessage (duck-typed), but dynamic ones stamped after
-        `latest_ns`: a stamp far in the future would stay its link's newest, and every lookup until
-        then would find a gap. Returns the stamps left out. ValueError naming the frames for a
-        transform with NaN or a non-unit quaternion."""
-        left_out = []
+    def add_message(self, msg: Any, *, static: bool, latest_ns: int | None = None) -> TfAdded:
+        """Every transform of a tf2_msgs/TFMessage (duck-typed) that `add` takes, but dynamic ones
+        stamped after `latest_ns`: a stamp far in the future would stay its link's newest, and every
+        lookup until then would find a gap."""
+        added = TfAdded()
         for tf in msg.transforms:
-            T = transform_from_msg(tf.transform.translation, tf.transform.rotation,
-                                   f"transform {tf.header.frame_id} -> {tf.child_frame_id}")
-            stamp_ns = stamp_to_ns(tf.header.stamp)
-            if not static and latest_ns is not None and stamp_ns > latest_ns:
-                left_out.append(stamp_ns)
-                continue
-            self.add(tf.header.frame_id, tf.child_frame_id, stamp_ns, T, static=static)
-        return left_out
+            try:
+                what = f"transform {tf.header.frame_id} -> {tf.child_frame_id}"
+                T = transform_from_msg(tf.transform.translation, tf.transform.rotation, what)
+                stamp_ns = stamp_to_ns(tf.header.stamp)
+                if not static and latest_ns is not None and stamp_ns > latest_ns:
+                    added.left_out.append(stamp_ns)
+                    continue
+                self.add(tf.header.frame_id, tf.child_frame_id, stamp_ns, T, static=static)
+            except (ValueError, AttributeError, TypeError) as err:
+                added.refused.append(str(err))
+        return added
 
     def add(self, parent: str, child: str, stamp_ns: int, T_parent_child: np.ndarray, *, static: bool) -> None:
+        """One transform; ValueError naming the frames if it would break the tree (see the module)."""
         parent, child = parent.lstrip("/"), child.lstrip("/")
+        if not parent or not child:
+            raise ValueError(f"transform '{parent}' -> '{child}' has an empty frame id; name both frames")
         with self._lock:
+            if child in self._chain(parent):
+                relation = "parent" if parent == child else f"ancestor ({' -> '.join(self._chain(parent))})"
+                raise ValueError(f"transform {parent} -> {child} would make '{child}' its own {relation}; TF needs a "
+                                 "tree: fix the publisher of this transform")
             link = self._links.get(child)
-            if link is None or link.parent != parent:  # a new link, or the child moved to another parent
+            if link is not None and link.parent != parent:
+                alive = (link.static is not None and not static) or (
+                    not static and link.stamps and abs(stamp_ns - link.stamps[-1]) < REPARENT_AFTER_S * 1e9)
+                if alive:
+                    raise ValueError(f"frame '{child}' has two parents, '{link.parent}' and '{parent}'; TF needs a "
+                                     f"tree: make one publisher stop (the transforms from '{parent}' are left out)")
+                link = None  # the child moved to another parent
+            if link is None:
                 link = self._links[child] = _Link(parent)
-            if static:
+            if static:  # the newest kind holds
                 link.static = np.asarray(T_parent_child, np.float64)
+                link.stamps.clear()
+                link.transforms.clear()
                 return
+            link.static = None
             i = bisect.bisect_left(link.stamps, stamp_ns)
             if i < len(link.stamps) and link.stamps[i] == stamp_ns:
                 link.transforms[i] = T_parent_child

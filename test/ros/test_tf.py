@@ -212,3 +212,69 @@ def test_a_transform_stamped_far_ahead_is_left_out_and_does_not_cut_its_link() -
     counters = ingest.counters()["tof"]
     assert counters["dropped"]["bad_stamp"] == 1 and "ahead" in counters["errors"]["bad_stamp"]
     assert counters["dropped"]["pose_gap"] == 0
+
+
+def test_what_breaks_the_tree_is_refused_transform_by_transform_and_the_rest_kept() -> None:
+    """A NaN transform, a frame as its own parent or ancestor, and a second parent for a live frame
+    are refused with the frames named; the other transforms of their messages are kept. A frame
+    whose parent fell silent may move to another; of static and dynamic on one link, the newest holds."""
+    from types import SimpleNamespace
+
+    from test_ingest import info_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+
+    S = 1_000_000_000
+
+    def transform(parent: str, child: str, t_ns: int, x: float) -> SimpleNamespace:
+        sec, nanosec = divmod(t_ns, S)
+        return SimpleNamespace(header=SimpleNamespace(frame_id=parent, stamp=SimpleNamespace(sec=sec, nanosec=nanosec)),
+                               child_frame_id=child, transform=SimpleNamespace(
+                                   translation=SimpleNamespace(x=x, y=0.0, z=0.0),
+                                   rotation=SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0)))
+
+    tf = TfBuffer(max_gap_s=0.1)
+    ingest = Ingest(IngestConfig(sensors=("tof",), tf=tf, fixed_frame="map"))
+    ingest.add_camera_info("tof", info_msg())
+    mixed = [transform("base", "cam2", 0, 0.2), transform("odom", "x", 0, float("nan")),
+             transform("base", "cam3", 0, 0.3), transform("cam3", "cam3", 0, 0.0), transform("cam3", "base", 0, 0.0),
+             transform("map", "base", 0, 1.0)]
+    assert ingest.add_tf(SimpleNamespace(transforms=mixed), static=True) == "bad_pose"
+    counters = ingest.counters()["tof"]
+    assert counters["dropped"]["bad_pose"] == 3 and "odom -> x" in counters["errors"]["bad_pose"]
+    assert tf.lookup("map", "cam3", 5 * S)[0, 3] == pytest.approx(1.3)  # kept: after the NaN, before the cycle
+    assert tf.lookup("map", "cam2", 5 * S)[0, 3] == pytest.approx(1.2)
+    with pytest.raises(ValueError, match="own parent"):
+        tf.add("cam2", "cam2", 0, np.eye(4), static=True)
+    with pytest.raises(ValueError, match="own ancestor"):
+        tf.add("cam2", "map", 0, np.eye(4), static=True)
+    # two publishers of one frame: the second parent is refused while the first is alive
+    for k in range(10):
+        tf.add("map", "arm", k * S // 30, _rot_z(0.0, (0.5, 0, 0)), static=False)
+        with pytest.raises(ValueError, match="'arm' has two parents, 'map' and 'rig'"):
+            tf.add("rig", "arm", k * S // 30 + S // 60, np.eye(4), static=False)
+    assert tf.lookup("map", "arm", S // 4)[0, 3] == pytest.approx(0.5)
+    tf.add("rig", "arm", 3 * S, np.eye(4), static=False)  # its parent silent for 2.7 s: it moved
+    tf.add("map", "rig", 0, _rot_z(0.0, (0, 2, 0)), static=True)
+    assert tf.lookup("map", "arm", 3 * S)[1, 3] == pytest.approx(2.0)
+    # static, then dynamic on the same link: the dynamic transforms hold from then on, and back
+    tf.add("map", "mast", 0, _rot_z(0.0, (1, 0, 0)), static=True)
+    for k in range(3):
+        tf.add("map", "mast", 4 * S + k * S // 30, _rot_z(0.0, (2, 0, 0)), static=False)
+    assert tf.lookup("map", "mast", 4 * S + S // 60)[0, 3] == pytest.approx(2.0)
+    tf.add("map", "mast", 0, _rot_z(0.0, (3, 0, 0)), static=True)
+    assert tf.lookup("map", "mast", 9 * S)[0, 3] == pytest.approx(3.0)
+
+
+def test_a_slow_link_is_interpolated_from_its_second_transform() -> None:
+    """map -> odom at 1 Hz: a lookup between its first two transforms interpolates (the interval
+    of two transforms is the link's rate), before it waits for the second."""
+    tf = TfBuffer(max_gap_s=0.1)
+    S = 1_000_000_000
+    tf.add("map", "odom", 0, _rot_z(0.0, (0.0, 0, 0)), static=False)
+    for k in range(0, 60):
+        tf.add("odom", "base", k * S // 50, np.eye(4), static=False)
+    with pytest.raises(TfWait):
+        tf.lookup("map", "base", S // 2)
+    tf.add("map", "odom", S, _rot_z(0.0, (0.1, 0, 0)), static=False)
+    assert tf.lookup("map", "base", S // 2)[0, 3] == pytest.approx(0.05)
