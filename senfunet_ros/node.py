@@ -57,7 +57,7 @@ from senfunet_ros.ingest import Frame, Ingest, TimeJump
 from senfunet_ros.map_services import MapServices
 from senfunet_ros.mesh_publisher import MeshPublisher, mesh_period_s
 from senfunet_ros.pipeline import Pipeline, Stream, TimeJumpAction
-from senfunet_ros.status import StatusReport
+from senfunet_ros.status import StatusReport, counter_warnings
 
 __all__ = ["FusionNode", "main"]
 
@@ -83,36 +83,6 @@ _TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliabil
                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
-
-# What a drop usually means and what to check, for the reasons whose message gives no detail of
-# its own ({s}: the sensor's SensorSettings).
-DROP_HINTS: dict[str, str] = {
-    "no_camera_info": "no CameraInfo arrived on {s.camera_info_topic} within pose_max_wait_s of the image; check "
-                      "the topic (parameter {s.name}.camera_info_topic) and that its publisher sends more than once",
-    "bad_camera_info": "the CameraInfo on {s.camera_info_topic} has no usable K, width or height",
-    "bad_encoding": "publish depth on {s.depth_topic} as 32FC1 (metres) or 16UC1 (millimetres)",
-    "size_mismatch": "the depth images on {s.depth_topic} differ in size from the CameraInfo on {s.camera_info_topic}",
-    "all_invalid": "every pixel of the depth image was 0, negative, NaN or inf",
-    "out_of_range": "no depth pixel lay within {s.depth_min_m}..{s.depth_max_m} m inside the image border",
-    "bad_pose": "a pose on {s.pose_topic} had NaN/inf or a quaternion of length other than 1",
-    "pose_timeout": "no pose on {s.pose_topic} at or after the image's stamp within pose_max_wait_s; check that "
-                    "poses arrive and are stamped on the depth images' clock",
-    "pose_gap": "the poses around the image's stamp are more than pose_tolerance_s from it; publish poses more "
-                "often or raise pose_tolerance_s",
-    "queue_full": "more than queue_size images waited for their poses; the oldest went",
-    "behind": "integration cannot keep up with the sensors, and the images it set aside (max_lag_s behind the "
-              "newest) fill behind_buffer_mb: the next ones are skipped (a smaller working_width, a lower sensor "
-              "rate or a larger behind_buffer_mb helps)",
-    "out_of_order": "a depth stamp on {s.depth_topic} went back in time",
-    "duplicate": "a depth stamp on {s.depth_topic} came twice",
-    "bad_stamp": "a stamp far (time_jump_s) from its stream's timeline, or 0; check the driver's clock",
-    "time_jump": "time restarted (a bag looping?): the queued images were flushed, and messages that showed it "
-                 "beyond a queue's worth went",
-    "engine_error": "the engine rejected the frame",
-    "shutdown": "the node stopped while the frame was being integrated, or had set it aside",
-    "map_reset": "the map was reset or replaced while the image waited or was set aside",
-}
-
 
 class _Timing:
     """Last, exponentially averaged (milliseconds) and summed (seconds) duration of one stage."""
@@ -448,29 +418,8 @@ class FusionNode(Node):
 
     def _warn_new_drops(self) -> None:
         counters = self.ingest.counters()
-        topics = {sensor.name: sensor for sensor in self.settings.sensors}
-        for sensor, now in counters.items():
-            before = self._last_counters.get(sensor, {}).get("dropped", {})
-            for reason, count in now["dropped"].items():
-                new = count - before.get(reason, 0)
-                if new > 0:
-                    why = now["errors"].get(reason) or DROP_HINTS[reason].format(s=topics[sensor])
-                    self._warn((sensor, reason), f"{sensor}: dropped {new} message(s): {reason}: {why} "
-                               f"({count} so far; see ~/status)")
-            if now["distorted"] and not self._last_counters.get(sensor, {}).get("distorted", False):
-                self._warn((sensor, "distorted"), f"{sensor}: the camera_info on {topics[sensor].camera_info_topic} "
-                           "has non-zero distortion coefficients, which the node does not apply: it takes the depth "
-                           "images as rectified (pinhole K); subscribe to the driver's rectified depth topic")
-            new_without_color = now["without_color"] - self._last_counters.get(sensor, {}).get("without_color", 0)
-            if new_without_color > 0:
-                self._warn((sensor, "without_color"), f"{sensor}: {new_without_color} frame(s) integrated without "
-                           f"colour: no colour image within color_tolerance_s ({self.settings.color_tolerance_s:g} s) "
-                           f"of their depth stamps, though colour arrives on {topics[sensor].color_topic}; check "
-                           f"the stamps or raise color_tolerance_s ({now['without_color']} so far; see ~/status)")
-            if now["set_aside"] > self._last_counters.get(sensor, {}).get("set_aside", 0):
-                self._warn((sensor, "set_aside"), f"{sensor}: integration is behind the sensors: images more than "
-                           f"max_lag_s behind the newest are set aside ({now['set_aside_now']} now, "
-                           f"{now['set_aside']} so far) and integrated once the sensors pause")
+        for key, message in counter_warnings(self._last_counters, counters, self.settings):
+            self._warn(key, message)
         self._last_counters = counters
 
     # -- parameters at run time ------------------------------------------------------------------

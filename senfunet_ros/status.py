@@ -15,11 +15,78 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from senfunet_ros import conversions as conv
+from senfunet_ros import params as P
 from senfunet_ros.health import HealthMonitor
 from senfunet_ros.ingest import DROP_REASONS
 from senfunet_ros.pipeline import Pipeline
 
 ENGINE_STATS_PERIOD_S = 5.0  # engine.stats() takes the engine's locks and sums the grid: at most this often
+
+
+# What a drop usually means and what to check, for the reasons whose message gives no detail of
+# its own ({s}: the sensor's SensorSettings).
+DROP_HINTS: dict[str, str] = {
+    "no_camera_info": "no CameraInfo arrived on {s.camera_info_topic} within pose_max_wait_s of the image; check "
+                      "the topic (parameter {s.name}.camera_info_topic) and that its publisher sends more than once",
+    "bad_camera_info": "the CameraInfo on {s.camera_info_topic} has no usable K, width or height",
+    "bad_encoding": "publish depth on {s.depth_topic} as 32FC1 (metres) or 16UC1 (millimetres)",
+    "size_mismatch": "the depth images on {s.depth_topic} differ in size from the CameraInfo on {s.camera_info_topic}",
+    "all_invalid": "every pixel of the depth image was 0, negative, NaN or inf",
+    "out_of_range": "no depth pixel lay within {s.depth_min_m}..{s.depth_max_m} m inside the image border",
+    "bad_pose": "a pose on {s.pose_topic} had NaN/inf or a quaternion of length other than 1",
+    "pose_timeout": "no pose on {s.pose_topic} at or after the image's stamp within pose_max_wait_s; check that "
+                    "poses arrive and are stamped on the depth images' clock",
+    "pose_gap": "the poses around the image's stamp are more than pose_tolerance_s from it; publish poses more "
+                "often or raise pose_tolerance_s",
+    "queue_full": "more than queue_size images waited for their poses; the oldest went",
+    "behind": "integration cannot keep up with the sensors, and the images it set aside (max_lag_s behind the "
+              "newest) fill behind_buffer_mb: the next ones are skipped (a smaller working_width, a lower sensor "
+              "rate or a larger behind_buffer_mb helps)",
+    "out_of_order": "a depth stamp on {s.depth_topic} went back in time",
+    "duplicate": "a depth stamp on {s.depth_topic} came twice",
+    "bad_stamp": "a stamp far (time_jump_s) from its stream's timeline, or 0; check the driver's clock",
+    "time_jump": "time restarted (a bag looping?): the queued images were flushed, and messages that showed it "
+                 "beyond a queue's worth went",
+    "engine_error": "the engine rejected the frame",
+    "shutdown": "the node stopped while the frame was being integrated, or had set it aside",
+    "map_reset": "the map was reset or replaced while the image waited or was set aside",
+}
+
+
+def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str, Any]], settings: P.Settings
+                     ) -> list[tuple[tuple[str, ...], str]]:
+    """(key, message) of each warning that Ingest's counters `now` call for since `before`: new drops,
+    by reason (the error, else the reason's hint), a distorted camera_info, frames without colour
+    and frames set aside. The caller rate-limits them by key."""
+    out: list[tuple[tuple[str, ...], str]] = []
+    topics = {sensor.name: sensor for sensor in settings.sensors}
+    for sensor, counters in now.items():
+        last = before.get(sensor, {})
+        for reason, count in counters["dropped"].items():
+            new = count - last.get("dropped", {}).get(reason, 0)
+            if new > 0:
+                why = counters["errors"].get(reason) or DROP_HINTS[reason].format(s=topics[sensor])
+                out.append(((sensor, reason), f"{sensor}: dropped {new} message(s): {reason}: {why} "
+                                              f"({count} so far; see ~/status)"))
+        if counters["distorted"] and not last.get("distorted", False):
+            out.append(((sensor, "distorted"), f"{sensor}: the camera_info on {topics[sensor].camera_info_topic} has "
+                        "non-zero distortion coefficients, which the node does not apply: it takes the depth images "
+                        "as rectified (pinhole K); subscribe to the driver's rectified depth topic"))
+        new_without_color = counters["without_color"] - last.get("without_color", 0)
+        if new_without_color > 0:
+            undecodable = counters["errors"].get("bad_encoding", "")
+            why = (f"the colour images on {topics[sensor].color_topic} cannot be decoded ({undecodable})"
+                   if undecodable.startswith("colour:") else
+                   f"no colour image within color_tolerance_s ({settings.color_tolerance_s:g} s) of their depth "
+                   f"stamps, though colour arrives on {topics[sensor].color_topic}; check the stamps or raise "
+                   "color_tolerance_s")
+            out.append(((sensor, "without_color"), f"{sensor}: {new_without_color} frame(s) integrated without "
+                        f"colour: {why} ({counters['without_color']} so far; see ~/status)"))
+        if counters["set_aside"] > last.get("set_aside", 0):
+            out.append(((sensor, "set_aside"), f"{sensor}: integration is behind the sensors: images more than "
+                        f"max_lag_s behind the newest are set aside ({counters['set_aside_now']} now, "
+                        f"{counters['set_aside']} so far) and integrated once the sensors pause"))
+    return out
 
 
 def _short(value: Any) -> str:

@@ -709,7 +709,7 @@ def test_prepare_process_makes_openmp_threads_sleep_unless_the_user_chose(user_p
 
 def test_every_drop_reason_has_a_hint_naming_what_to_check() -> None:
     from senfunet_ros.ingest import DROP_REASONS
-    from senfunet_ros.node import DROP_HINTS
+    from senfunet_ros.status import DROP_HINTS
     from senfunet_ros.params import SensorSettings
 
     sensor = SensorSettings("tof", "/robot/tof/depth", "", "/robot/tof/info", "/robot/tof/pose", 0.1, 3.0)
@@ -717,6 +717,29 @@ def test_every_drop_reason_has_a_hint_naming_what_to_check() -> None:
     hints = {reason: hint.format(s=sensor) for reason, hint in DROP_HINTS.items()}
     assert "/robot/tof/info" in hints["no_camera_info"] and "tof.camera_info_topic" in hints["no_camera_info"]
     assert "/robot/tof/pose" in hints["pose_timeout"] and "/robot/tof/depth" in hints["out_of_order"]
+
+
+def test_counter_warnings_name_what_is_new_and_why_colour_is_missing() -> None:
+    """Frames integrated without colour: because the colour images cannot be decoded, or because
+    none came near their stamps; the warning says which (raising a tolerance cannot fix the first)."""
+    from senfunet_ros.ingest import Ingest, IngestConfig
+    from senfunet_ros.status import counter_warnings
+
+    settings = P.Settings.from_values({name: default for name, (default, _) in P.expanded_defaults().items()})
+    before = Ingest(IngestConfig(sensors=settings.sensor_names)).counters()
+    now = {name: {**c, "dropped": dict(c["dropped"]), "errors": dict(c["errors"])} for name, c in before.items()}
+    now["stereo"]["without_color"] = 3
+    warnings = dict(counter_warnings(before, now, settings))
+    assert list(warnings) == [("stereo", "without_color")]
+    assert "color_tolerance_s" in warnings[("stereo", "without_color")]
+    now["stereo"]["dropped"]["bad_encoding"] = 3
+    now["stereo"]["errors"]["bad_encoding"] = "colour: colour encoding 'yuv422' is not supported"
+    warnings = dict(counter_warnings(before, now, settings))
+    assert set(warnings) == {("stereo", "without_color"), ("stereo", "bad_encoding")}
+    without_color = warnings[("stereo", "without_color")]
+    assert "cannot be decoded" in without_color and "yuv422" in without_color
+    assert "color_tolerance_s" not in without_color
+    assert counter_warnings(now, now, settings) == []  # nothing new
 
 
 def test_latency_is_counted_per_frame_from_its_arrival_to_the_update_that_publishes_it(monkeypatch) -> None:
