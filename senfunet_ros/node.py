@@ -208,6 +208,11 @@ class FusionNode(Node):
         # 1. parameters
         self.settings = P.declare(self)
         self._log_parameters()
+        # rclpy ignores parameters given for the node that it never declared: a misspelt name would
+        # silently leave its parameter at the default
+        for name in P.unknown_parameters(getattr(self, "_parameter_overrides", {}), self.settings.sensor_names):
+            self.get_logger().warning(f"parameter {name} is not one of this node's and is ignored; see "
+                                      "config/default.yaml for the names")
         # 2. engine and ingest (the engine is thread-safe: integration and mesh updates overlap)
         s = self.settings
         self.timings = {name: _Timing() for name in ("integrate", "update", "alpha", "weights", "encode", "publish")}

@@ -12,7 +12,7 @@ import math
 import os
 from dataclasses import dataclass
 from typing import Any
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 from senfunet_ros.conversions.poses import PoseType
 
@@ -181,6 +181,25 @@ def param_table(sensors: Sequence[str] | None = None) -> dict[str, Param]:
 def expanded_defaults(sensors: Sequence[str] | None = None) -> dict[str, tuple[Any, str]]:
     """Every parameter name -> (default, help), with per-sensor names expanded."""
     return {name: (p.default, p.help) for name, p in param_table(sensors).items()}
+
+
+# parameters every rclpy node has, or that ROS tools add: not the node's own, never unknown
+_ROS_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
+
+
+def unknown_parameters(names: Iterable[str], sensors: Sequence[str] | None = None) -> list[str]:
+    """The names that are not parameters of the node (with these sensors), each with the closest
+    parameter name when there is one: "voxel_sise_m (did you mean voxel_size_m?)"."""
+    import difflib
+
+    known = list(expanded_defaults(sensors))
+    out = []
+    for name in sorted(set(names) - set(known)):
+        if name.startswith(_ROS_PARAMETERS):
+            continue
+        close = difflib.get_close_matches(name, known, n=1)
+        out.append(f"{name} (did you mean {close[0]}?)" if close else name)
+    return out
 
 
 @dataclass(frozen=True)

@@ -59,8 +59,9 @@ def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _read_params_file(path: Path) -> dict[str, Any]:
-    """The `ros__parameters` of a ROS 2 parameter file (node `senfunet` or `/**`), flattened."""
+def _read_params_file(path: Path, *, node_sections_only: bool = False) -> dict[str, Any]:
+    """The `ros__parameters` of a ROS 2 parameter file (node `senfunet` or `/**`, else its only
+    section unless `node_sections_only`: ROS gives the node only its own), flattened."""
     import yaml
 
     try:
@@ -75,28 +76,32 @@ def _read_params_file(path: Path) -> dict[str, Any]:
         node = doc.get(key)
         if isinstance(node, dict) and isinstance(node.get("ros__parameters"), dict):
             return _flatten(node["ros__parameters"])
-    nodes = [v for v in doc.values() if isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict)]
-    if len(nodes) == 1:
-        return _flatten(nodes[0]["ros__parameters"])
-    raise ValueError(f"{path}: no '{P.NODE_NAME}: ros__parameters:' section")
+    nodes = {k: v for k, v in doc.items() if isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict)}
+    if len(nodes) == 1 and not node_sections_only:
+        return _flatten(next(iter(nodes.values()))["ros__parameters"])
+    raise ValueError(f"{path}: no '{P.NODE_NAME}: ros__parameters:' section" + (
+        f" (its sections {sorted(nodes)} are for other nodes: the node, named '{P.NODE_NAME}', would ignore them)"
+        if nodes else ""))
 
 
-def load_settings(params_file: str | Path | None = None, overrides: dict[str, Any] | None = None) -> P.Settings:
+def load_settings(params_file: str | Path | None = None, overrides: dict[str, Any] | None = None, *,
+                  node_sections_only: bool = False) -> P.Settings:
     """The node's parameters from a parameter file (or the defaults), checked like the node does.
 
-    Unknown names are refused (a typo would otherwise be ignored silently). ValueError on bad values.
+    Unknown names are refused (a typo would otherwise be ignored silently), and with
+    `node_sections_only` a file without a section for the node. ValueError on bad values.
     """
     given: dict[str, Any] = {}
     if params_file is not None:
-        given.update(_read_params_file(Path(params_file)))
+        given.update(_read_params_file(Path(params_file), node_sections_only=node_sections_only))
     given.update(overrides or {})
-    given.pop("use_sim_time", None)
     sensors = [str(s) for s in given.get("sensors", P.GLOBAL_PARAMS[0].default)]
     table = P.expanded_defaults(sensors)
-    unknown = sorted(set(given) - set(table))
+    unknown = P.unknown_parameters(given, sensors)
     if unknown:
         where = f" in {params_file}" if params_file else ""
-        raise ValueError(f"unknown parameter(s) {unknown}{where}; see config/default.yaml for the names")
+        raise ValueError(f"unknown parameter(s){where}: {', '.join(unknown)}; see config/default.yaml for the names")
+    given = {name: value for name, value in given.items() if name in table}
     values = {name: P.coerce(name, given.get(name, default), default) for name, (default, _) in table.items()}
     P.check(values)
     return P.Settings.from_values(values)

@@ -17,17 +17,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from senfunet_ros.node import main  # rclpy and torch load only when the node runs
-
     ros_args: list[str] = []
     if args.params:
         path = Path(args.params)
         if not path.is_file():
             print(f"senfunet node: parameter file {path} not found; pass e.g. --params config/default.yaml")
             return 2
+        if not any(arg.startswith("__node:=") for arg in args.ros_args or ()):  # else another node's section
+            from senfunet_ros.replay import load_settings
+
+            try:  # the node would take the file's section and ignore what it does not know: refuse it here
+                load_settings(path, node_sections_only=True)
+            except ValueError as err:
+                print(f"senfunet node: {err}")
+                return 2
         ros_args += ["--params-file", str(path)]
     if args.use_sim_time:
         ros_args += ["-p", "use_sim_time:=true"]
+    from senfunet_ros.node import main  # rclpy and torch load only when the node runs
+
     extra = [a for a in (args.ros_args or []) if a not in ("--", "--ros-args")]
     ros_args += extra
     return main(["senfunet", "--ros-args", *ros_args] if ros_args else ["senfunet"])

@@ -283,10 +283,11 @@ def stream_scene(prefix: str, speed: float, go: Any = None, taken: Any = None) -
 # tests
 
 
-def test_parameter_table_declared_and_default_yaml_matches(ros, tmp_path: Path) -> None:
+def test_parameter_table_declared_and_default_yaml_matches(ros, tmp_path: Path, capfd) -> None:
     expected = P.expanded_defaults()
-    run = Running("params", {}, tmp_path)
+    run = Running("params", {"voxel_sise_m": 0.05}, tmp_path)  # a typo: rclpy ignores it, the node says so
     try:
+        assert "parameter voxel_sise_m (did you mean voxel_size_m?) is not one of this node's" in capfd.readouterr().err
         for name, (_default, help_text) in expected.items():
             assert run.node.has_parameter(name), name
             descriptor = run.node.describe_parameter(name)

@@ -203,8 +203,17 @@ def test_settings_from_file_match_the_node_defaults(tmp_path: Path):
     assert settings.voxel_size_m == 2.0 and settings.sensors[0].depth_topic == "/cam/depth"
     typo = tmp_path / "typo.yaml"
     typo.write_text("senfunet:\n  ros__parameters:\n    voxel_sise_m: 0.02\n")
-    with pytest.raises(ValueError, match="unknown parameter.*voxel_sise_m"):
+    with pytest.raises(ValueError, match=r"unknown parameter.*voxel_sise_m \(did you mean voxel_size_m\?\)"):
         load_settings(typo)
+    other_node = tmp_path / "other.yaml"  # the live node, named senfunet, would get none of it
+    other_node.write_text("senfunet_node:\n  ros__parameters:\n    voxel_size_m: 0.05\n")
+    assert load_settings(other_node).voxel_size_m == 0.05  # replay takes a file's only section
+    with pytest.raises(ValueError, match="'senfunet_node'.* for other nodes"):
+        load_settings(other_node, node_sections_only=True)
+    for bad in (typo, other_node):  # `senfunet node` refuses them before it starts
+        proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "node", "--params", str(bad)],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2 and ("voxel_sise_m" in proc.stdout or "senfunet_node" in proc.stdout), proc.stdout
 
 
 def test_node_engine_config_runs_on_the_cpu_when_cuda_is_asked_for_and_absent(tmp_path: Path, monkeypatch):
