@@ -651,6 +651,21 @@ class NoDepthInRange(ValueError):
     image border. Nothing was integrated."""
 
 
+def _no_depth_in_range(depth_m: np.ndarray, border_px: int) -> NoDepthInRange:
+    """Why a frame had no depth the engine keeps: too small for the image border it leaves out, or
+    (with the deepest pixel inside that border) out of the sensor's range."""
+    height, width = depth_m.shape
+    if min(height, width) <= 2 * border_px:
+        return NoDepthInRange(f"the image ({width}x{height}) is not larger than twice the {border_px}-pixel border "
+                              "the engine leaves out, so none of it is used; publish larger images (or raise "
+                              "working_width)")
+    inner = depth_m[border_px:height - border_px, border_px:width - border_px]
+    deepest = float(np.max(inner, where=np.isfinite(inner), initial=0.0))
+    return NoDepthInRange(f"no depth pixel within the sensor's depth_min_m..depth_max_m inside the image border "
+                          f"(the deepest is {deepest:.3f} m" + (": millimetres in a 32FC1 image?)" if deepest > 100
+                                                                  else ")"))
+
+
 def integrate_ready(engine: Any, items: Iterable[Frame | TimeJump], on_time_jump: Callable[[TimeJump], None],
                     on_frame: Callable[[Frame, Exception | None, float], None]) -> None:
     """Hand ready items to the engine in order, one frame ahead: each frame is prepared (checked, its
@@ -669,10 +684,7 @@ def integrate_ready(engine: Any, items: Iterable[Frame | TimeJump], on_time_jump
         (frame, prepared, seconds), ahead = ahead, None
         error = prepared if isinstance(prepared, Exception) else None
         if error is None and prepared.empty:
-            deepest = float(np.max(frame.depth_m, where=np.isfinite(frame.depth_m), initial=0.0))
-            error = NoDepthInRange(f"no depth pixel within the sensor's depth_min_m..depth_max_m inside the image "
-                                   f"border (the deepest is {deepest:.3f} m" + (": millimetres in a 32FC1 image?)"
-                                                                                 if deepest > 100 else ")"))
+            error = _no_depth_in_range(frame.depth_m, int(engine.config.border_px))
         elif error is None:
             start = time.perf_counter()
             try:

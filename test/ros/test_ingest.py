@@ -506,6 +506,11 @@ def test_pipeline_counts_rejected_and_empty_frames_with_the_reason_and_logs_none
     counters = pipeline.ingest.counters()["tof"]
     assert counters["dropped"]["out_of_range"] == 2 and counters["integrated"] == 0 and pipeline.frames_failed == 3
     assert "1500.000 m: millimetres" in counters["errors"]["out_of_range"]
+    # a 20x20 image: all of it within the engine's 10-pixel border (the depth itself is in range)
+    assert pipeline.drain([Frame("tof", 9 * 10**8, np.ones((20, 20), np.float32), None, K, np.eye(4))]) == 0
+    counters = pipeline.ingest.counters()["tof"]
+    assert counters["dropped"]["out_of_range"] == 3 and "(20x20) is not larger than twice the 10-pixel border" in (
+        counters["errors"]["out_of_range"])
     assert logged == []
 
 
