@@ -408,9 +408,11 @@ def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: P
         assert m["F"] > 40.0, m
         print(f"\nstreamed mesh vs visible GT (tau 8 cm): {m}; counters: {run.node.ingest.counters()}")
 
-        # ~/weights: the contract's fields, and each voxel's own values. The stream is over, so the
-        # map stands still: a cloud published now holds, point for point, what the engine's own
-        # weight cloud holds (which only gains voxels as budgeted refreshes judge more of them).
+        # ~/weights: the contract's fields, and each voxel's own values. The stream is over, and the
+        # weighting net now judges what is still stale (else the mesh timer's budgeted refreshes, on
+        # a loaded machine, re-judge it between the cloud and the check): the map stands still, and
+        # a cloud published now holds, point for point, what the engine holds.
+        run.node.engine.refresh_alpha()
         sent = len(clouds)
         run.node.publish_mesh(weights=True)
         wait_for(lambda: len(clouds) > sent and clouds[-1].width > 0, 30, "a weights cloud of the map")
