@@ -4,8 +4,9 @@ One `publish` at a time (`lock`, shared with the map services that replace or em
 update the engine's meshes (on every core when no frame waits), encode and publish the changed
 blocks (or the whole map for a subscriber that just joined) and, when due, the weight cloud; then
 give the weighting net its turn (when no frame waits, on a thread of its own while the update is
-encoded). The node calls `publish` from its mesh thread, at a lower priority than integration's
-(see `node.lower_thread_priority`; the turn thread is set to it too); the engine is thread-safe:
+encoded). The node calls `publish` from its mesh thread (`MeshWorker`: the mesh timer's ticks run
+there, one update at a time), at a lower priority than integration's (see
+`node.lower_thread_priority`; the turn thread is set to it too); the engine is thread-safe:
 integration goes on meanwhile.
 """
 from __future__ import annotations
@@ -49,6 +50,48 @@ MIN_TURN_S = 0.05
 def mesh_period_s(mesh_rate_hz: float) -> float:
     """The mesh timer's period for parameter mesh_rate_hz (a little shorter: see MESH_PERIOD_MARGIN)."""
     return (1.0 - MESH_PERIOD_MARGIN) / mesh_rate_hz
+
+
+class MeshWorker:
+    """The mesh timer's work on a thread of its own. A tick while an update runs makes the next one
+    start as soon as that one ends (an update longer than the period is followed at once, not at
+    the tick after); ticks meanwhile coalesce into that one. The timer thread calls `tick`; `update`
+    runs on the worker thread only."""
+
+    def __init__(self, update: Callable[[], None], *, keep_going: Callable[[], bool],
+                 thread_setup: Callable[[], Any]) -> None:
+        self._update = update
+        self._keep_going = keep_going  # False: stop after the update under way (shutting down)
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="senfunet-mesh", initializer=thread_setup)
+        self._lock = threading.Lock()  # guards the two flags below (timer thread vs. worker thread)
+        self._running = False  # an update is under way on the worker thread
+        self._due = False  # a tick came meanwhile: the next update starts as soon as that one ends
+
+    def tick(self) -> None:
+        with self._lock:
+            if self._running:
+                self._due = True
+                return
+            self._running = True
+        try:
+            self._pool.submit(self._updates)
+        except RuntimeError:  # shut down under this last tick
+            with self._lock:
+                self._running = False
+
+    def _updates(self) -> None:
+        """Updates, as long as ticks came during the last one."""
+        while True:
+            self._update()
+            with self._lock:
+                if not self._due or not self._keep_going():
+                    self._running = False
+                    return
+                self._due = False
+
+    def shutdown(self) -> None:
+        """No update starts any more; the one under way finishes first."""
+        self._pool.shutdown(wait=True)
 
 
 class MeshPublisher:

@@ -55,9 +55,9 @@ from senfunet_ros.conversions import PoseType
 from senfunet_ros.health import HealthMonitor
 from senfunet_ros.ingest import Frame, Ingest, TimeJump
 from senfunet_ros.map_services import MapServices
-from senfunet_ros.mesh_publisher import MeshPublisher, mesh_period_s
+from senfunet_ros.mesh_publisher import MeshPublisher, MeshWorker, mesh_period_s
 from senfunet_ros.pipeline import Pipeline, Stream, TimeJumpAction
-from senfunet_ros.status import StatusReport, counter_warnings
+from senfunet_ros.status import StatusReport, ThrottledWarnings, counter_warnings
 
 __all__ = ["FusionNode", "main"]
 
@@ -203,11 +203,12 @@ class FusionNode(Node):
         engine_logger = logging.getLogger("senfunet")
         engine_logger.addHandler(self._engine_log)
         engine_logger.setLevel(min(engine_logger.getEffectiveLevel(), logging.INFO))
-        self._warned_at: dict[tuple[str, ...], float] = {}
-        self._warn_lock = threading.Lock()
+        self._warn = ThrottledWarnings(self.get_logger().warning, period_s=_WARN_PERIOD_S).warn
         # 1. parameters
         self.settings = P.declare(self)
-        self._log_parameters()
+        lines = [f"  {name}: {value!r}" for name, value in self.settings.values.items()]
+        lines.append(f"  use_sim_time: {self.get_parameter('use_sim_time').value!r}")
+        self.get_logger().info("parameters:\n" + "\n".join(lines))
         # rclpy ignores parameters given for the node that it never declared: a misspelt name would
         # silently leave its parameter at the default
         for name in P.unknown_parameters(getattr(self, "_parameter_overrides", {}), self.settings.sensor_names):
@@ -223,13 +224,15 @@ class FusionNode(Node):
         self._tf_subscriptions: list[Any] = []
         tf = self._make_tf() if PoseType(s.pose_type) is PoseType.TF else None  # before the heavy engine
         ingest = Ingest(P.ingest_config(self.settings, **P.live_lag(s), tf=tf))
-        self.pipeline = Pipeline(self._make_engine(), ingest, on_time_jump=s.on_time_jump, log=self._log,
+        logger = self.get_logger()
+        self.pipeline = Pipeline(make_engine(s, logger), ingest, on_time_jump=s.on_time_jump,
+                                 log=lambda level, text: getattr(logger, level)(text),
                                  on_integrated=self._integrated, on_new_map=self.camera_colors.clear)
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.counters()
         # 3. subscriptions: they only enqueue; the status reports their health
         self._subscribe()
-        topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in self._streams(sensor)}
+        topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in sensor_streams(sensor, s.pose_type)}
                   for sensor in s.sensors}
         self.status_report = StatusReport(self.pipeline, self.health, self.timings, self.latency, topics=topics,
                                           hardware_id=self.get_fully_qualified_name(), warn=self._warn,
@@ -240,15 +243,12 @@ class FusionNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._integrate_timer = self.create_timer(1.0 / s.integrate_rate_hz, self._integrate_tick, clock=steady,
                                                   callback_group=MutuallyExclusiveCallbackGroup())
-        self._mesh_timer = self.create_timer(mesh_period_s(s.mesh_rate_hz), self._mesh_tick, clock=steady,
-                                             callback_group=MutuallyExclusiveCallbackGroup())
         # the mesh timer's work runs on a thread of its own at a lower priority than integration's
         # (`lower_thread_priority`): where the cores cannot do both at once, frames come first, and
         # the mesh and the weighting net take the time left
-        self._mesh_worker = ThreadPoolExecutor(1, thread_name_prefix="senfunet-mesh", initializer=at_mesh_priority)
-        self._mesh_lock = threading.Lock()  # guards the two flags below (timer thread vs. mesh thread)
-        self._mesh_running = False  # an update is under way on the mesh thread
-        self._mesh_due = False  # a tick came meanwhile: the next update starts as soon as that one ends
+        self._mesh_worker = MeshWorker(self._mesh_update, keep_going=self.context.ok, thread_setup=at_mesh_priority)
+        self._mesh_timer = self.create_timer(mesh_period_s(s.mesh_rate_hz), self._mesh_worker.tick, clock=steady,
+                                             callback_group=MutuallyExclusiveCallbackGroup())
         self._status_timer = self.create_timer(1.0 / s.status_rate_hz, self._status_tick, clock=steady,
                                                callback_group=MutuallyExclusiveCallbackGroup())
         # 5. publishers
@@ -272,7 +272,7 @@ class FusionNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
         # Ctrl-C / SIGTERM shut the context down while timers may be mid-frame: say so to the pipeline,
         # so what the stop interrupts is counted as such, not as an engine error
-        self.context.on_shutdown(self._stopping)
+        self.context.on_shutdown(lambda: setattr(self.pipeline, "stopping", True))
         self.get_logger().info(
             f"fusing {list(s.sensor_names)} into '{s.fixed_frame}' with weights: {self.engine.weights_source}")
 
@@ -285,7 +285,7 @@ class FusionNode(Node):
         self._subscriptions_keep = []
         subscribed: dict[str, tuple[str, ...]] = {}
         for sensor in s.sensors:
-            streams = [entry for entry in self._streams(sensor) if entry[2]]  # a topic set
+            streams = [entry for entry in sensor_streams(sensor, s.pose_type) if entry[2]]  # a topic set
             subscribed[sensor.name] = tuple(stream.value for stream, *_ in streams)
             for stream, msg_type, topic, qos in streams:
                 self._subscriptions_keep.append(self.create_subscription(
@@ -296,10 +296,6 @@ class FusionNode(Node):
         if self.get_parameter("use_sim_time").value:
             self._subscriptions_keep.append(self.create_subscription(
                 RosClock, "/clock", self._on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup()))
-
-
-    def _stopping(self) -> None:
-        self.pipeline.stopping = True
 
     def finish(self, abandon: threading.Event | None = None) -> dict[str, int]:
         """After the executor stopped: integrate the frames that are ready, count the ones still
@@ -324,24 +320,6 @@ class FusionNode(Node):
         waiting = self.ingest.discard_waiting("shutdown")
         return {"integrated": integrated, "discarded": waiting + sum(isinstance(item, Frame) for item in left),
                 "interrupted": self.pipeline.frames_unfinished}
-
-    def _log_parameters(self) -> None:
-        lines = [f"  {name}: {value!r}" for name, value in self.settings.values.items()]
-        use_sim_time = self.get_parameter("use_sim_time").value
-        self.get_logger().info("parameters:\n" + "\n".join(lines + [f"  use_sim_time: {use_sim_time!r}"]))
-
-    def _streams(self, sensor: P.SensorSettings) -> list[tuple[Stream, type, str, QoSProfile]]:
-        """(stream, message type, topic, QoS) of a sensor's inputs; image_transport's compressed topic
-        names take sensor_msgs/CompressedImage."""
-        pose_type = PoseType(self.settings.pose_type)
-        depth_type = CompressedImage if sensor.depth_topic.endswith("/compressedDepth") else Image
-        color_type = CompressedImage if sensor.color_topic.endswith("/compressed") else Image
-        out = [(Stream.CAMERA_INFO, CameraInfo, sensor.camera_info_topic, _SENSOR_QOS),
-               (Stream.DEPTH, depth_type, sensor.depth_topic, _SENSOR_QOS),
-               (Stream.COLOR, color_type, sensor.color_topic, _SENSOR_QOS)]
-        if pose_type.msgtype is not None:  # not TF
-            out.append((Stream.POSE, message_class(pose_type.msgtype), sensor.pose_topic, _POSE_QOS))
-        return out
 
     def _make_tf(self) -> Any:
         """Poses from TF: tf2_ros's buffer and listener when a sourced ROS 2 install provides them, else
@@ -371,43 +349,7 @@ class FusionNode(Node):
                                   "node's own buffer (source a ROS 2 install to use tf2_ros)")
         return buffer
 
-    def _make_engine(self) -> Any:
-        # heavy (torch): imported when a node is made, not when this module is
-        from senfunet_core.engine import SenFuNet
-        from senfunet_core.networks import choose_device
-
-        fallback = choose_device(self.settings.device, cpu_fallback=True).fallback_reason
-        if fallback:
-            self.get_logger().warning(fallback)
-        weights = P.engine_weights(self.settings)
-        if weights is None:
-            self.get_logger().warning("parameter weights = 'none': the networks are untrained")
-        # the alpha threads run the idle mesh updates and the net's turns: at the mesh thread's priority,
-        # whichever thread starts them (a ~/save_mesh call before the first update does)
-        engine = SenFuNet(P.engine_config(self.settings), weights=weights,
-                          worker_setup=at_mesh_priority)
-        start = time.monotonic()
-        engine.warm_up()  # compile the kernels now, not in the first frame's integration
-        conv.marker_array_cdr({}, (), stamp_ns=0, frame_id="")
-        from senfunet_core import decimate
-
-        decimate.warm_up()
-        self.get_logger().info(f"engine kernels ready in {time.monotonic() - start:.1f} s")
-        return engine
-
     # -- warnings -------------------------------------------------------------------------------
-
-    def _warn(self, key: tuple[str, ...], message: str) -> None:
-        """At most one warning per key per _WARN_PERIOD_S (wall time: sim time may stand still)."""
-        now = time.monotonic()
-        with self._warn_lock:
-            if now - self._warned_at.get(key, -1e9) < _WARN_PERIOD_S:
-                return
-            self._warned_at[key] = now
-        self.get_logger().warning(message)
-
-    def _log(self, level: str, text: str) -> None:
-        getattr(self.get_logger(), level)(text)
 
     def _guard(self, sensor: str, stream: Stream) -> Callable[[Any], None]:
         """A subscription callback that enqueues and never raises."""
@@ -536,30 +478,6 @@ class FusionNode(Node):
     def frames_failed(self) -> int:
         return self.pipeline.frames_failed
 
-    def _mesh_tick(self) -> None:
-        """A mesh update on the mesh thread; if one is under way, the next starts as soon as it ends
-        (an update longer than the period is followed at once, not at the tick after)."""
-        with self._mesh_lock:
-            if self._mesh_running:
-                self._mesh_due = True
-                return
-            self._mesh_running = True
-        try:
-            self._mesh_worker.submit(self._mesh_updates)
-        except RuntimeError:  # destroy_node shut the mesh thread down under this last tick
-            with self._mesh_lock:
-                self._mesh_running = False
-
-    def _mesh_updates(self) -> None:
-        """Mesh updates on the mesh thread, as long as ticks came during the last one."""
-        while True:
-            self._mesh_update()
-            with self._mesh_lock:
-                if not self._mesh_due or not self.context.ok():
-                    self._mesh_running = False
-                    return
-                self._mesh_due = False
-
     def _mesh_update(self) -> None:
         try:
             self.publish_mesh()
@@ -601,10 +519,48 @@ class FusionNode(Node):
 
     def destroy_node(self) -> None:
         self._mesh_timer.cancel()
-        self._mesh_worker.shutdown(wait=True)  # the update under way finishes while its publishers exist
+        self._mesh_worker.shutdown()  # the update under way finishes while its publishers exist
         self.mesh_publisher.close()
         logging.getLogger("senfunet").removeHandler(self._engine_log)
         super().destroy_node()
+
+
+def sensor_streams(sensor: P.SensorSettings, pose_type: str) -> list[tuple[Stream, type, str, QoSProfile]]:
+    """(stream, message type, topic, QoS) of a sensor's inputs; image_transport's compressed topic
+    names take sensor_msgs/CompressedImage."""
+    depth_type = CompressedImage if sensor.depth_topic.endswith("/compressedDepth") else Image
+    color_type = CompressedImage if sensor.color_topic.endswith("/compressed") else Image
+    out = [(Stream.CAMERA_INFO, CameraInfo, sensor.camera_info_topic, _SENSOR_QOS),
+           (Stream.DEPTH, depth_type, sensor.depth_topic, _SENSOR_QOS),
+           (Stream.COLOR, color_type, sensor.color_topic, _SENSOR_QOS)]
+    msgtype = PoseType(pose_type).msgtype
+    if msgtype is not None:  # not TF
+        out.append((Stream.POSE, message_class(msgtype), sensor.pose_topic, _POSE_QOS))
+    return out
+
+
+def make_engine(settings: P.Settings, logger: Any) -> Any:
+    """The node's engine, its kernels compiled (or loaded from numba's cache) before the first frame."""
+    # heavy (torch): imported when a node is made, not when this module is
+    from senfunet_core import decimate
+    from senfunet_core.engine import SenFuNet
+    from senfunet_core.networks import choose_device
+
+    fallback = choose_device(settings.device, cpu_fallback=True).fallback_reason
+    if fallback:
+        logger.warning(fallback)
+    weights = P.engine_weights(settings)
+    if weights is None:
+        logger.warning("parameter weights = 'none': the networks are untrained")
+    # the alpha threads run the idle mesh updates and the net's turns: at the mesh thread's priority,
+    # whichever thread starts them (a ~/save_mesh call before the first update does)
+    engine = SenFuNet(P.engine_config(settings), weights=weights, worker_setup=at_mesh_priority)
+    start = time.monotonic()
+    engine.warm_up()  # compile the kernels now, not in the first frame's integration
+    conv.marker_array_cdr({}, (), stamp_ns=0, frame_id="")
+    decimate.warm_up()
+    logger.info(f"engine kernels ready in {time.monotonic() - start:.1f} s")
+    return engine
 
 
 def spin(node: FusionNode, num_threads: int = 6) -> None:

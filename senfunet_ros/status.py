@@ -8,6 +8,7 @@ named in the log once.
 """
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -87,6 +88,24 @@ def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str,
                         f"max_lag_s behind the newest are set aside ({counters['set_aside_now']} now, "
                         f"{counters['set_aside']} so far) and integrated once the sensors pause"))
     return out
+
+
+class ThrottledWarnings:
+    """At most one warning per key per `period_s` (wall time: sim time may stand still); thread-safe."""
+
+    def __init__(self, log: Callable[[str], Any], *, period_s: float) -> None:
+        self._log = log
+        self._period_s = period_s
+        self._warned_at: dict[tuple[str, ...], float] = {}
+        self._lock = threading.Lock()
+
+    def warn(self, key: tuple[str, ...], message: str) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._warned_at.get(key, -1e9) < self._period_s:
+                return
+            self._warned_at[key] = now
+        self._log(message)
 
 
 def _short(value: Any) -> str:
