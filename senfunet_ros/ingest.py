@@ -330,8 +330,7 @@ class Ingest:
             message = (msg, self._last_depth_arrival_s)
             reason = self._check_time(state, sensor, "depth", stamp_ns, message)
             if reason is None:
-                reason = self._accept(state, "depth", stamp_ns, message)
-                return reason  # counted by _enqueue
+                return self._accept(state, "depth", stamp_ns, message)  # which counts its drops
             state.counters.dropped[reason] += 1
             return reason
 
