@@ -22,11 +22,12 @@ sequentially up to the break.
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, NamedTuple
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator
 
 import numpy as np
 
@@ -74,10 +75,30 @@ class BagBrokenError(BagError):
 @dataclass(frozen=True)
 class TopicInfo:
     name: str
-    msgtype: str  # ROS 2 spelling, e.g. sensor_msgs/msg/Image
-    count: int  # messages recorded (from the bag's index; 0 if unknown)
+    msgtype: str  # ROS 2 spelling, e.g. sensor_msgs/msg/Image; the most recorded one if several
+    count: int  # messages recorded, every type (from the bag's index; 0 if unknown)
     msgdef: str = ""  # message definition text, if the bag stores it
     digest: str = ""  # RIHS01 type hash, if the bag stores it
+    types: dict[str, int] = field(default_factory=dict)  # every type recorded on the topic -> messages
+    latched: bool = False  # recorded with transient-local durability (e.g. /tf_static)
+
+
+def _topic_infos(connections: Iterable[tuple[str, str, int, str, str, bool]]) -> dict[str, TopicInfo]:
+    """TopicInfo per topic from its connections (topic, type, messages, definition, digest, latched):
+    a topic recorded twice sums its counts; one recorded with several types names the most recorded."""
+    grouped: dict[str, list[tuple[str, str, int, str, str, bool]]] = {}
+    for conn in connections:
+        grouped.setdefault(conn[0], []).append(conn)
+    infos = {}
+    for topic, conns in grouped.items():
+        types: dict[str, int] = {}
+        for _, msgtype, count, *_ in conns:
+            types[normalize_msgtype(msgtype)] = types.get(normalize_msgtype(msgtype), 0) + count
+        main = max(types, key=lambda t: types[t])
+        first = next(c for c in conns if normalize_msgtype(c[1]) == main)
+        infos[topic] = TopicInfo(topic, main, sum(types.values()), first[3], first[4], types,
+                                 any(c[5] for c in conns))
+    return infos
 
 
 class BagMessage(NamedTuple):
@@ -159,12 +180,9 @@ class _RosbagsSource(_Source):
         self.message_count = int(reader.message_count)
         self.start_ns = int(reader.start_time) if self.message_count else 0
         self.end_ns = int(reader.end_time) if self.message_count else 0
-        self.topics = {}
-        for conn in reader.connections:
-            old = self.topics.get(conn.topic)
-            count = int(conn.msgcount) + (old.count if old else 0)
-            self.topics[conn.topic] = TopicInfo(conn.topic, normalize_msgtype(conn.msgtype), count,
-                                                getattr(conn.msgdef, "data", "") or "", conn.digest or "")
+        self.topics = _topic_infos(
+            (conn.topic, conn.msgtype, int(conn.msgcount), getattr(conn.msgdef, "data", "") or "", conn.digest or "",
+             _latched(getattr(conn.ext, "offered_qos_profiles", ()))) for conn in reader.connections)
 
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
         conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
@@ -188,7 +206,8 @@ def _folder_storage(path: Path) -> str:
 
 
 class _McapStreamSource(_Source):
-    """Sequential reading of an .mcap file without a summary (recording killed, file truncated).
+    """Sequential reading of an .mcap file without a summary (recording killed, file truncated, or a
+    writer that writes none) or that rosbags refuses.
 
     A first pass finds the channels and counts messages up to the break; `messages` then yields
     them in file order and raises BagBrokenError where the file breaks.
@@ -213,11 +232,9 @@ class _McapStreamSource(_Source):
         except Exception as err:  # the break: remember it, messages() raises it in order
             self.break_error = _describe(err)
         self.message_count = sum(counts.values())
-        self.topics = {}
-        for cid, (topic, msgtype) in self._channels.items():
-            old = self.topics.get(topic)
-            self.topics[topic] = TopicInfo(topic, msgtype, counts.get(cid, 0) + (old.count if old else 0),
-                                           self._schema_text.get(cid, ""))
+        self.topics = _topic_infos((topic, msgtype, counts.get(cid, 0), self._schema_text.get(cid, ""), "",
+                                    _latched(self._qos.get(cid, "")))
+                                   for cid, (topic, msgtype) in self._channels.items())
 
     def _records(self) -> Iterator[Any]:
         from mcap.records import Channel, Schema
@@ -225,6 +242,7 @@ class _McapStreamSource(_Source):
 
         schemas: dict[int, tuple[str, str]] = {}
         self._schema_text: dict[int, str] = {}
+        self._qos: dict[int, str] = {}
         with self.path.open("rb") as stream:
             for record in StreamReader(stream, record_size_limit=2**31).records:
                 if isinstance(record, Schema):
@@ -233,6 +251,7 @@ class _McapStreamSource(_Source):
                     msgtype, text = schemas.get(record.schema_id, ("", ""))
                     self._channels[record.id] = (record.topic, normalize_msgtype(msgtype))
                     self._schema_text[record.id] = text
+                    self._qos[record.id] = str((record.metadata or {}).get("offered_qos_profiles", ""))
                 yield record
 
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
@@ -252,6 +271,15 @@ class _McapStreamSource(_Source):
             raise BagBrokenError(f"{self.path}: the file breaks after {read} messages ({self.break_error})", read)
 
 
+def _latched(offered_qos_profiles: Any) -> bool:
+    """Whether a recording's offered QoS (rosbags' Qos objects, or rosbag2's YAML text) was
+    transient-local: what a latched publisher such as tf2's static broadcaster offers."""
+    if isinstance(offered_qos_profiles, str):
+        return re.search(r"durability:\s*(1|transient_local)\b", offered_qos_profiles.lower()) is not None
+    return any(getattr(getattr(q, "durability", None), "name", "") == "TRANSIENT_LOCAL"
+               for q in offered_qos_profiles or ())
+
+
 def _describe(err: BaseException) -> str:
     if type(err).__name__ == "EndOfFile":  # mcap's reader says nothing more
         return "unexpected end of file"
@@ -260,18 +288,27 @@ def _describe(err: BaseException) -> str:
 
 
 def _mcap_is_unindexed(path: Path) -> bool:
-    """True if an .mcap file starts right but lacks its footer (a truncated recording)."""
+    """True if an .mcap file starts right but has no summary section to index it: it lacks its
+    footer (a truncated recording), or its footer points at no summary (a writer that writes none;
+    its messages need not be in time order, which only an index lets a reader sort)."""
+    magic = b"\x89MCAP0\r\n"
+    footer_size = 1 + 8 + 8 + 8 + 4  # opcode, record length, summary_start, summary_offset_start, crc
     try:
         with path.open("rb") as f:
             head = f.read(8)
             f.seek(0, 2)
             size = f.tell()
-            f.seek(max(0, size - 8))
+            f.seek(max(0, size - 8 - footer_size))
+            footer = f.read(footer_size)
             tail = f.read(8)
     except OSError:
         return False
-    magic = b"\x89MCAP0\r\n"
-    return head == magic and tail != magic
+    if head != magic:
+        return False
+    if tail != magic:
+        return True
+    summary_start = int.from_bytes(footer[9:17], "little")
+    return footer[:1] == b"\x02" and summary_start == 0
 
 
 class BagReader:
@@ -321,20 +358,30 @@ class BagReader:
             except BagError:
                 mcap_file = None
         if mcap_file is not None and _mcap_is_unindexed(mcap_file):
-            source = _McapStreamSource(mcap_file)
-            if not source.topics:
+            stream = _McapStreamSource(mcap_file)
+            if not stream.topics:
                 raise BagError(f"{mcap_file}: truncated before any topic was recorded; nothing to read")
-            return source
+            return stream
         try:
             return _RosbagsSource(path)
         except FileNotFoundError as err:
             raise BagError(f"{path}: {_describe(err)}") from None
-        except (ReaderError, sqlite3.Error, OSError, KeyError, ValueError, TypeError) as err:
+        except Exception as err:  # the storage libraries raise many kinds on what they cannot read
+            refusal = err
+        if mcap_file is not None:  # an MCAP rosbags refuses (e.g. its profile is not 'ros2'): read it as written
+            source: _McapStreamSource | None = None
+            try:
+                source = _McapStreamSource(mcap_file)
+            except Exception:  # noqa: BLE001 (then rosbags' refusal is the error)
+                pass
+            if source is not None and source.topics and source.break_error is None:
+                self.note = f"{mcap_file}: read in file order ({_describe(refusal)})"
+                return source
+        if isinstance(refusal, (ReaderError, sqlite3.Error, OSError, KeyError, ValueError, TypeError)):
             what = "an sqlite3 database" if path.suffix == ".db3" else "a readable bag"
-            raise BagError(f"{path}: not {what}: {_describe(err)}; "
+            raise BagError(f"{path}: not {what}: {_describe(refusal)}; "
                            "the file is damaged or not a rosbag2 recording") from None
-        except Exception as err:  # anything else the storage libraries raise on garbage
-            raise BagError(f"{path}: cannot read the bag: {_describe(err)}") from None
+        raise BagError(f"{path}: cannot read the bag: {_describe(refusal)}") from None
 
     def close(self) -> None:
         if self._source is not None:

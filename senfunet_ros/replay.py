@@ -135,6 +135,7 @@ class TopicRouter:
         self.bag_path = Path(bag_path)
         self.routes: dict[str, Route] = {}
         self.undecodable: dict[str, int] = {}
+        self.other_types: dict[str, dict[str, int]] = {}  # routed topic -> its other recorded types (left out)
         pose_type = PoseType(settings.pose_type)
         missing: list[str] = []
         # sensor, stream, topic, accepted types, required
@@ -156,7 +157,13 @@ class TopicRouter:
                 if required:
                     missing.append(topic)
                 continue
-            msgtype = normalize_msgtype(info.msgtype)
+            # a topic recorded with several types (two recordings merged): the most recorded type the
+            # node takes there; the others are left out, and said so
+            types = info.types or {normalize_msgtype(info.msgtype): info.count}
+            taken = sorted((t for t in types if t in expected), key=lambda t: -types[t])
+            msgtype = taken[0] if taken else normalize_msgtype(info.msgtype)
+            if len(types) > 1 and taken:
+                self.other_types[topic] = {t: n for t, n in types.items() if t != msgtype}
             if msgtype not in expected:
                 accepted = " or ".join(t for t in expected if t)
                 raise BagError(self._type_error(topic, msgtype, accepted, stream, settings))
@@ -196,7 +203,7 @@ class TopicRouter:
         from rclpy.serialization import deserialize_message
 
         route = self.routes.get(msg.topic)
-        if route is None:
+        if route is None or normalize_msgtype(msg.msgtype) != route.msgtype:  # unrouted, or another type
             return None
         try:
             if route.msg_class is None:
@@ -353,6 +360,10 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
         bag_info = {"path": str(bag), "storage": reader.storage, "messages": reader.message_count,
                     "duration_s": round(reader.duration_s, 6), "start_ns": reader.start_ns, "note": reader.note}
         run = _Run(bag_info, router, total=sum(reader.topics[t].count for t in router.topics))
+        for topic, others in router.other_types.items():
+            left_out = ", ".join(f"{n} {t}" for t, n in others.items())
+            log(f"topic {topic} was recorded with several types: its {router.routes[topic].msgtype} messages are "
+                f"fused, the others left out ({left_out})")
         t_loop = time.perf_counter()
         with tqdm(total=run.total, unit="msg", desc="replay", disable=not progress, dynamic_ncols=True,
                   mininterval=0.5) as bar:
@@ -379,6 +390,8 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                 run.interrupted = True
             pipeline.drain(ingest.pop_ready())
         run.read_s = time.perf_counter() - t_loop
+        for topic, n in router.undecodable.items():
+            log(f"{n} message(s) on {topic} could not be decoded as {router.routes[topic].msgtype} and were left out")
     return run
 
 
@@ -436,7 +449,8 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
         "torch_threads": int(threads),
         "sensors": sensors,
         "topics": {t: {"type": r.msgtype, "sensor": r.sensor, "stream": r.stream,
-                       "undecodable": router.undecodable.get(t, 0)} for t, r in sorted(router.routes.items())},
+                       "undecodable": router.undecodable.get(t, 0), "other_types": router.other_types.get(t, {})}
+                   for t, r in sorted(router.routes.items())},
         "ignored_topics": dict(sorted(router.ignored.items())),
         "time_jumps": pipeline.time_jumps,
         "engine_errors": pipeline.engine_errors,

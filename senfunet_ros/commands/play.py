@@ -67,10 +67,19 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
     node = None
     try:
         node = rclpy.create_node("senfunet_play", start_parameter_services=False)
-        # Reliable matches reliable and best-effort subscribers; volatile like a live driver.
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
-        publishers = {t: node.create_publisher(cls, t, qos) for t, cls in classes.items()}
+        # Reliable matches reliable and best-effort subscribers; volatile like a live driver, but
+        # transient-local where the recording's publisher was (a latched /tf_static: its subscribers
+        # ask for transient-local, which a volatile writer does not match)
+        topics = reader.topics
+        publishers = {t: node.create_publisher(cls, t, QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if topics[t].latched or t == "/tf_static"
+            else DurabilityPolicy.VOLATILE)) for t, cls in classes.items()}
+        for topic in classes:
+            if len(topics[topic].types) > 1:
+                others = ", ".join(f"{n} {t}" for t, n in topics[topic].types.items() if t != topics[topic].msgtype)
+                say(f"{topic} was recorded with several types: playing its {topics[topic].msgtype} messages, "
+                    f"leaving out {others}")
         clock_pub = None
         if not args.no_clock:
             from rosgraph_msgs.msg import Clock
@@ -93,7 +102,8 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
             f"at rate {args.rate:g}{' in a loop' if args.loop else ''}")
         total, passes, broken = 0, 0, None
         while True:
-            published, broken = _play_once(reader, publishers, publish_clock, rate=args.rate)
+            published, broken = _play_once(reader, publishers, publish_clock, rate=args.rate,
+                                           types={t: topics[t].msgtype for t in publishers})
             total += published
             passes += 1
             if broken or not args.loop:
@@ -163,10 +173,13 @@ def _wait_for_subscribers(publishers: dict, timeout_s: float, say) -> None:  # n
         time.sleep(_MATCH_SETTLE_S)  # the subscribers' side of discovery
 
 
-def _play_once(reader, publishers: dict, publish_clock, *, rate: float) -> tuple[int, str | None]:  # noqa: ANN001
-    """One pass through the bag at `rate`, ticking /clock while it waits: the messages published,
-    and where the bag broke (None if it did not). ExternalShutdownException when Ctrl-C or SIGTERM
-    shut rclpy down."""
+def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa: ANN001
+               types: dict[str, str]) -> tuple[int, str | None]:
+    """One pass through the bag at `rate`, ticking /clock while it waits: the messages published
+    (of each topic, those of its type in `types`), and where the bag broke (None if it did not).
+    ExternalShutdownException when Ctrl-C or SIGTERM shut rclpy down."""
+    from senfunet_ros.bagio import normalize_msgtype
+
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
@@ -178,6 +191,8 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float) -> tuple
     published = 0
     try:
         for msg in reader.messages(publishers.keys()):
+            if normalize_msgtype(msg.msgtype) != types[msg.topic]:
+                continue
             due = wall0 + (msg.log_time_ns - start_ns) * 1e-9 / rate
             while True:  # sleep until due, ticking /clock meanwhile
                 wait = due - time.monotonic()

@@ -135,6 +135,82 @@ def test_folder_without_metadata_reads_its_file(prefix: Path, tmp_path: Path):
     assert _digest(folder) == _digest(prefix)
 
 
+def _mcap_as_another_writer_writes_it(src: Path, dst: Path, *, extra: list[tuple[str, str, bytes]] = (),
+                                      profile: str = "ros2", indexed: bool = False) -> list[tuple[str, int, str]]:
+    """The bag rewritten with the mcap library (by default without a summary: no index), two
+    messages of different topics swapped out of time order, and `extra` (topic, type, data)
+    messages appended; returns what was written, as _digest gives it."""
+    from mcap.writer import IndexType, Writer
+
+    with open_bag(src) as reader:
+        topics, messages = reader.topics, list(reader.messages())
+    messages[10], messages[11] = messages[11], messages[10]
+    assert messages[10].topic != messages[11].topic and messages[10].log_time_ns > messages[11].log_time_ns
+    with dst.open("wb") as f:
+        writer = Writer(f) if indexed else Writer(f, index_types=IndexType.NONE, repeat_channels=False,
+                                                  repeat_schemas=False, use_statistics=False, use_summary_offsets=False)
+        writer.start(profile=profile, library="another writer")
+        channels: dict[tuple[str, str], int] = {}
+
+        def channel(topic: str, msgtype: str, msgdef: str) -> int:
+            if (topic, msgtype) not in channels:
+                schema = writer.register_schema(msgtype, "ros2msg", msgdef.encode())
+                channels[(topic, msgtype)] = writer.register_channel(topic, "cdr", schema)
+            return channels[(topic, msgtype)]
+
+        last_ns = messages[-1].log_time_ns
+        written = [(m.topic, m.msgtype, m.log_time_ns, m.data) for m in messages]
+        written += [(topic, msgtype, last_ns + i + 1, data) for i, (topic, msgtype, data) in enumerate(extra)]
+        for i, (topic, msgtype, log_ns, data) in enumerate(written):
+            writer.add_message(channel(topic, msgtype, topics[topic].msgdef if topic in topics and
+                                       msgtype == topics[topic].msgtype else "uint8 x"), log_ns, data, log_ns, i)
+        writer.finish()
+    return [(topic, log_ns, hashlib.sha1(data).hexdigest()) for topic, _, log_ns, data in written]
+
+
+def test_mcap_of_another_writer_without_an_index_or_profile_reads_in_file_order(prefix: Path, tmp_path: Path,
+                                                                                 tiny_params: Path):
+    """An MCAP without a summary whose messages are slightly out of time order (as the format
+    allows), or whose profile is not 'ros2', is read whole, in file order, not called damaged."""
+    unindexed = tmp_path / "unindexed.mcap"
+    written = _mcap_as_another_writer_writes_it(prefix, unindexed)
+    assert _digest(unindexed) == written
+    no_profile = tmp_path / "no_profile.mcap"
+    written = _mcap_as_another_writer_writes_it(prefix, no_profile, profile="", indexed=True)
+    with open_bag(no_profile) as reader:
+        assert reader.note and "file order" in reader.note
+    assert _digest(no_profile) == written
+    ref, got = _replay(prefix, tmp_path / "ref", tiny_params), _replay(unindexed, tmp_path / "got", tiny_params)
+    assert ref.returncode == 0 and got.returncode == 0, got.stderr
+    assert ref.stdout.splitlines()[:2] == got.stdout.splitlines()[:2]  # the same frames fused
+
+
+def test_a_topic_recorded_with_two_types_fuses_the_type_the_node_takes_and_says_so(prefix: Path, tmp_path: Path,
+                                                                                    tiny_params: Path):
+    """Two recordings merged: /tof/depth holds Image and a few CompressedImage messages (the minority
+    registered last). Each message is read as its own type: the Image frames are fused as without
+    them, the others left out and named."""
+    import json
+
+    from senfunet_ros.replay import TopicRouter, load_settings
+
+    compressed = "sensor_msgs/msg/CompressedImage"
+    mixed = tmp_path / "mixed.mcap"
+    _mcap_as_another_writer_writes_it(prefix, mixed, extra=[("/tof/depth", compressed, b"\x00\x01\x00\x00")] * 3)
+    with open_bag(mixed) as reader:
+        info = reader.topics["/tof/depth"]
+        assert info.msgtype == "sensor_msgs/msg/Image" and info.types[compressed] == 3 and info.count > 3
+        router = TopicRouter(load_settings(tiny_params), reader.topics, mixed)
+        assert router.other_types == {"/tof/depth": {compressed: 3}}
+        decoded = [router.decode(m) for m in reader.messages({"/tof/depth"})]
+    assert sum(d is None for d in decoded) == 3 and not router.undecodable
+    ref, got = _replay(prefix, tmp_path / "ref", tiny_params), _replay(mixed, tmp_path / "got", tiny_params)
+    assert got.returncode == 0 and ref.stdout.splitlines()[:2] == got.stdout.splitlines()[:2], got.stderr
+    assert f"left out (3 {compressed})" in got.stderr
+    stats = json.loads((tmp_path / "got" / "stats.json").read_text())
+    assert stats["topics"]["/tof/depth"]["other_types"] == {compressed: 3}
+
+
 def test_write_sequence_bag_round_trip(tmp_path: Path):
     from senfunet_core.learning import simulator as sim
     from senfunet_ros.replay import TopicRouter, ingest_config, load_settings
