@@ -573,6 +573,16 @@ def write_sequence_bag(seq: Sequence, path: str | Path, *, storage: str = "mcap"
     return path
 
 
+def latched_qos() -> list[Any]:
+    """The offered QoS of a latched publisher (reliable, transient-local, keep last 1), as rosbags
+    records it."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    never = QosTime(0, 0)
+    return [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, never, never,
+                QosLiveliness.AUTOMATIC, never, False)]
+
+
 def copy_bag(src: str | Path, dst: str | Path, *, storage: str = "mcap", compress: bool = True,
              topics: Collection[str] | None = None, stop_ns: int | None = None,
              max_messages: int | None = None) -> Path:
@@ -593,11 +603,13 @@ def copy_bag(src: str | Path, dst: str | Path, *, storage: str = "mcap", compres
                 conn = connections.get(msg.topic)
                 if conn is None:
                     info = infos[msg.topic]
+                    qos = latched_qos() if info.latched else ()
                     if info.msgdef and info.digest:
-                        conn = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef, rihs01=info.digest)
+                        conn = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef, rihs01=info.digest,
+                                                     offered_qos_profiles=qos)
                     else:
                         store = store or _typestore()
-                        conn = writer.add_connection(msg.topic, msg.msgtype, typestore=store)
+                        conn = writer.add_connection(msg.topic, msg.msgtype, typestore=store, offered_qos_profiles=qos)
                     connections[msg.topic] = conn
                 writer.write(conn, msg.log_time_ns, msg.data)
                 written += 1

@@ -27,10 +27,10 @@ def prefix(tmp_path_factory: pytest.TempPathFactory) -> Path:
 class _Listener:
     """A private rclpy context with reliable subscriptions to the bag's topics and /clock."""
 
-    def __init__(self, topics: dict[str, str]) -> None:
+    def __init__(self, topics: dict[str, str], latched: frozenset[str] = frozenset()) -> None:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         from rosgraph_msgs.msg import Clock
 
         from senfunet_ros.bagio import message_class
@@ -43,8 +43,11 @@ class _Listener:
         self.counts = {t: 0 for t in topics}
         self.clock_ns: list[int] = []
         qos = QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE)
+        latched_qos = QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)  # as tf2 subscribes /tf_static
         for topic, msgtype in topics.items():
-            self.node.create_subscription(message_class(msgtype), topic, self._counter(topic), qos)
+            self.node.create_subscription(message_class(msgtype), topic, self._counter(topic),
+                                          latched_qos if topic in latched else qos)
         self.node.create_subscription(Clock, "/clock", self._on_clock, QoSProfile(depth=500))
 
     def _counter(self, topic: str):  # noqa: ANN202
@@ -90,6 +93,37 @@ def test_play_publishes_every_message_with_clock(prefix: Path, ros_domain_id: in
     assert clock == sorted(clock) and start_ns <= clock[0] and clock[-1] <= end_ns
     assert clock[-1] - clock[0] > 0.9 * duration * 1e9  # recorded time, not wall time
     assert f"published {sum(counts.values())} messages" in stderr
+
+
+def test_play_offers_transient_local_where_the_recording_was_latched(prefix: Path, tmp_path: Path,
+                                                                    ros_domain_id: int):
+    """A topic recorded from a latched publisher (transient-local, as /tf_static is) reaches a
+    transient-local subscriber, which a volatile writer would not match."""
+    from rosbags.rosbag2 import Writer
+
+    from senfunet_ros.bagio import latched_qos
+
+    latched = tmp_path / "latched"
+    with open_bag(prefix) as reader, Writer(latched, version=9) as writer:
+        infos, conns = reader.topics, {}
+        for msg in reader.messages({"/tof/camera_info"}):
+            if msg.topic not in conns:
+                info = infos[msg.topic]
+                conns[msg.topic] = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef, rihs01=info.digest,
+                                                         offered_qos_profiles=latched_qos())
+            writer.write(conns[msg.topic], msg.log_time_ns, msg.data)
+    with open_bag(latched) as reader:
+        assert reader.topics["/tof/camera_info"].latched
+        counts = {t: i.count for t, i in reader.topics.items()}
+    listener = _Listener({"/tof/camera_info": "sensor_msgs/msg/CameraInfo"}, latched=frozenset({"/tof/camera_info"}))
+    try:
+        proc = _play(latched, "--rate", "4")
+        listener.spin_while(lambda: proc.poll() is None, timeout=60)
+        listener.spin_while(lambda: listener.counts != counts, timeout=5)
+        _, stderr = proc.communicate(timeout=10)
+    finally:
+        listener.close()
+    assert proc.returncode == 0 and listener.counts == counts and counts["/tof/camera_info"] > 0, stderr
 
 
 def test_play_loop_restarts_the_clock(prefix: Path, ros_domain_id: int):
