@@ -280,6 +280,44 @@ def _latched(offered_qos_profiles: Any) -> bool:
                for q in offered_qos_profiles or ())
 
 
+class _ChainSource(_Source):
+    """A split recording's files read one after the other (as rosbag2 reads them)."""
+
+    def __init__(self, sources: list[_Source]) -> None:
+        self._sources = sources
+        self.storage = sources[0].storage
+        self.message_count = sum(source.message_count for source in sources)
+        counted = [source for source in sources if source.message_count]
+        self.start_ns = min((source.start_ns for source in counted), default=0)
+        self.end_ns = max((source.end_ns for source in counted), default=0)
+        self.topics = _topic_infos((topic, msgtype, n, info.msgdef, info.digest, info.latched)
+                                   for source in sources for topic, info in source.topics.items()
+                                   for msgtype, n in (info.types or {info.msgtype: info.count}).items())
+
+    def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
+        for source in self._sources:
+            yield from source.messages(topics)
+
+    def close(self) -> None:
+        for source in self._sources:
+            source.close()
+
+
+def _split_mcap_files(folder: Path) -> list[Path]:
+    """The .mcap files of a rosbag2 folder in recording order: as metadata.yaml lists them, else by name."""
+    files = sorted(folder.glob("*.mcap"))
+    try:
+        from ruamel.yaml import YAML
+
+        meta = YAML(typ="safe").load((folder / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        listed = [folder / Path(name).name for name in meta.get("relative_file_paths") or []]
+        if listed and all(part.is_file() for part in listed):
+            return listed
+    except Exception:  # noqa: BLE001 (no or unreadable metadata: by name)
+        pass
+    return files
+
+
 def _describe(err: BaseException) -> str:
     if type(err).__name__ == "EndOfFile":  # mcap's reader says nothing more
         return "unexpected end of file"
@@ -332,7 +370,14 @@ class BagReader:
         if not path.exists():
             raise BagError(f"{path}: no such bag; pass a rosbag2 folder (with metadata.yaml) or a .mcap file")
         if path.is_dir():
-            if (path / "metadata.yaml").is_file():
+            parts = _split_mcap_files(path)
+            if len(parts) > 1 and (not (path / "metadata.yaml").is_file() or any(map(_mcap_is_unindexed, parts))):
+                # a split recording rosbags cannot take whole (no metadata.yaml, or a part cut short
+                # by a killed recorder): its files one after the other, each as it can be read
+                self._source = _ChainSource([self._open_rosbags(part) for part in parts])
+                names = ", ".join(part.name for part in parts)
+                self.note = f"{path}: reading its {len(parts)} files one after the other ({names})"
+            elif (path / "metadata.yaml").is_file():
                 self._source = self._open_rosbags(path)
             else:
                 storage = bag_storage_file(path) if any(path.glob("*.mcap")) or any(path.glob("*.db3")) else None

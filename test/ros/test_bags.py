@@ -211,6 +211,40 @@ def test_a_topic_recorded_with_two_types_fuses_the_type_the_node_takes_and_says_
     assert stats["topics"]["/tof/depth"]["other_types"] == {compressed: 3}
 
 
+def test_a_split_recording_without_metadata_or_with_a_part_cut_short_reads_file_after_file(prefix: Path,
+                                                                                         tmp_path: Path):
+    """A recording split in two .mcap files: read whole without metadata.yaml, and up to the break
+    when the recorder was killed while writing the second."""
+    from mcap.writer import Writer
+
+    with open_bag(prefix) as reader:
+        topics, messages = reader.topics, list(reader.messages())
+    folder = tmp_path / "split"
+    folder.mkdir()
+    halves = [messages[: len(messages) // 2], messages[len(messages) // 2:]]
+    for i, part in enumerate(halves):
+        with (folder / f"split_{i}.mcap").open("wb") as f:
+            writer = Writer(f)
+            writer.start(profile="ros2", library="a recorder")
+            channels = {t: writer.register_channel(t, "cdr", writer.register_schema(
+                info.msgtype, "ros2msg", info.msgdef.encode())) for t, info in topics.items()}
+            for j, m in enumerate(part):
+                writer.add_message(channels[m.topic], m.log_time_ns, m.data, m.log_time_ns, j)
+            writer.finish()
+    with open_bag(folder) as reader:
+        assert reader.note and "2 files one after the other" in reader.note
+        assert reader.message_count == len(messages) and reader.topics["/tof/depth"].count == topics["/tof/depth"].count
+    assert _digest(folder) == _digest(prefix)
+    second = folder / "split_1.mcap"
+    second.write_bytes(second.read_bytes()[: second.stat().st_size // 2])  # the recorder was killed
+    with open_bag(folder) as reader:
+        read = 0
+        with pytest.raises(BagBrokenError, match="split_1.mcap"):
+            for _ in reader.messages():
+                read += 1
+    assert len(halves[0]) < read < len(messages)
+
+
 def test_write_sequence_bag_round_trip(tmp_path: Path):
     from senfunet_core.learning import simulator as sim
     from senfunet_ros.replay import TopicRouter, ingest_config, load_settings
