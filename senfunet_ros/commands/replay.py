@@ -29,14 +29,17 @@ def _error(text: str) -> int:
     return 2
 
 
-# Set by Ctrl-C and SIGTERM. Their KeyboardInterrupt alone can be lost: raised in Python code that a
-# C extension calls (rclpy's deserialisation builds the message objects), it never reaches the loop.
+# Set by Ctrl-C and SIGTERM: the reading loop stops at its next message, and what was fused is saved.
+# Not a KeyboardInterrupt at once: raised wherever the main thread is, it could cut the engine's work
+# on a frame in half (and one raised in Python code that a C extension calls never reaches the loop).
 _STOP = threading.Event()
 
 
 def _interrupt(signum: int, frame: object) -> None:
+    if _STOP.is_set():  # the second one: stop now, whatever is under way
+        raise KeyboardInterrupt
     _STOP.set()
-    raise KeyboardInterrupt
+    print("senfunet replay: stopping; the meshes fused so far are being written (again to abort)", file=sys.stderr)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -74,20 +74,27 @@ def _play(bag: Path, *extra: str) -> subprocess.Popen:
                              *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def _play_to(listener: _Listener, bag: Path, counts: dict[str, int], *extra: str) -> tuple[int, str]:
+    """Play the bag to the listener until play ends and the listener has `counts` (or 5 s more);
+    closes the listener. Returns play's exit code and stderr."""
+    try:
+        proc = _play(bag, *extra)
+        listener.spin_while(lambda: proc.poll() is None, timeout=60)
+        listener.spin_while(lambda: listener.counts != counts, timeout=5)
+        _, stderr = proc.communicate(timeout=10)
+    finally:
+        listener.close()
+    return proc.returncode, stderr
+
+
 def test_play_publishes_every_message_with_clock(prefix: Path, ros_domain_id: int):
     with open_bag(prefix) as reader:
         topics = {t: i.msgtype for t, i in reader.topics.items()}
         counts = {t: i.count for t, i in reader.topics.items()}
         start_ns, end_ns, duration = reader.start_ns, reader.end_ns, reader.duration_s
     listener = _Listener(topics)
-    try:
-        proc = _play(prefix, "--rate", "2")
-        listener.spin_while(lambda: proc.poll() is None, timeout=60)
-        listener.spin_while(lambda: listener.counts != counts, timeout=5)
-        _, stderr = proc.communicate(timeout=10)
-    finally:
-        listener.close()
-    assert proc.returncode == 0, stderr
+    returncode, stderr = _play_to(listener, prefix, counts, "--rate", "2")
+    assert returncode == 0, stderr
     assert listener.counts == counts
     clock = listener.clock_ns
     assert clock == sorted(clock) and start_ns <= clock[0] and clock[-1] <= end_ns
@@ -116,14 +123,8 @@ def test_play_offers_transient_local_where_the_recording_was_latched(prefix: Pat
         assert reader.topics["/tof/camera_info"].latched
         counts = {t: i.count for t, i in reader.topics.items()}
     listener = _Listener({"/tof/camera_info": "sensor_msgs/msg/CameraInfo"}, latched=frozenset({"/tof/camera_info"}))
-    try:
-        proc = _play(latched, "--rate", "4")
-        listener.spin_while(lambda: proc.poll() is None, timeout=60)
-        listener.spin_while(lambda: listener.counts != counts, timeout=5)
-        _, stderr = proc.communicate(timeout=10)
-    finally:
-        listener.close()
-    assert proc.returncode == 0 and listener.counts == counts and counts["/tof/camera_info"] > 0, stderr
+    returncode, stderr = _play_to(listener, latched, counts, "--rate", "4")
+    assert returncode == 0 and listener.counts == counts and counts["/tof/camera_info"] > 0, stderr
 
 
 def test_play_loop_restarts_the_clock(prefix: Path, ros_domain_id: int):
