@@ -88,8 +88,8 @@ class _StopAfter(threading.Event):
 
 
 def test_replay_stops_on_its_stop_event_even_without_an_exception(tmp_path: Path) -> None:
-    """The signal handlers' KeyboardInterrupt can be lost inside rclpy's deserialisation; the stop
-    event they also set ends the reading all the same, and what was fused is written."""
+    """The signal handlers set the stop event: the reading ends at the next message, with no
+    exception, and what was fused is written."""
     from senfunet_ros.replay import replay_bag
 
     result = replay_bag(SAMPLE, tmp_path, progress=False, stop=_StopAfter(400))
@@ -110,7 +110,7 @@ def test_demo_ctrl_c_stops_node_and_play(tmp_path: Path, ros_domain_id: int) -> 
     proc.send_signal(signal.SIGINT)
     assert proc.wait(120) == 0, log.read_text()
     text = log.read_text()
-    assert "Traceback" not in text and "stopping" in text and "interrupted" in text
+    assert "Traceback" not in text and "interrupted" in text
     node_log = (tmp_path / "demo" / "node.log")
     if node_log.exists():
         assert "Traceback" not in node_log.read_text(errors="replace")
