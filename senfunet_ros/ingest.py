@@ -266,16 +266,15 @@ class Ingest:
         for held in restart.held:
             state = self._sensors[held.sensor]
             state.counters.dropped["bad_stamp"] -= 1
-            reason = self._accept(state, held.stream, held.stamp_ns, held.message)
-            if reason is not None:
-                state.counters.dropped[reason] += 1
+            self._accept(state, held.stream, held.stamp_ns, held.message)
         for state in self._sensors.values():
             if state.counters.dropped["bad_stamp"] == 0:
                 state.counters.errors.pop("bad_stamp", None)  # every one of them was the restart
 
     def _accept(self, state: _SensorState, stream: str, stamp_ns: int, message: Any) -> str | None:
         """Take a message whose stamp is on time: a depth image (with its arrival time) is queued, a
-        colour image buffered, a pose (4x4) stored. Returns the drop reason or None. Lock held."""
+        colour image buffered, a pose (4x4) stored. Returns the drop reason (counted) or None. Lock
+        held."""
         if stream == "depth":
             msg, arrival_s = message
             if state.camera_info is not None:
@@ -289,6 +288,7 @@ class Ingest:
             try:
                 rgb = conv.rgb_from_image(message)
             except ValueError as err:
+                state.counters.dropped["bad_encoding"] += 1
                 state.counters.errors["bad_encoding"] = f"colour: {err}"
                 return "bad_encoding"
             state.colors.add(stamp_ns, rgb)
@@ -330,7 +330,7 @@ class Ingest:
             message = (msg, self._last_depth_arrival_s)
             reason = self._check_time(state, sensor, "depth", stamp_ns, message)
             if reason is None:
-                return self._accept(state, "depth", stamp_ns, message)  # which counts its drops
+                return self._accept(state, "depth", stamp_ns, message)
             state.counters.dropped[reason] += 1
             return reason
 
@@ -359,9 +359,8 @@ class Ingest:
             state.counters.color_received += 1
             reason = self._check_time(state, sensor, "color", stamp_ns, msg)
             if reason is None:
-                reason = self._accept(state, "color", stamp_ns, msg)
-            if reason is not None:
-                state.counters.dropped[reason] += 1
+                return self._accept(state, "color", stamp_ns, msg)
+            state.counters.dropped[reason] += 1
             return reason
 
     def add_tf(self, msg: Any, *, static: bool) -> str | None:

@@ -205,6 +205,21 @@ def test_a_restart_holds_as_many_messages_as_a_queue_and_counts_the_rest_as_lost
     assert c["dropped"]["bad_stamp"] == 0 and c["dropped"]["time_jump"] == 1 + 2  # the frame flushed, two lost
 
 
+def test_a_held_message_that_turns_out_bad_is_counted_once() -> None:
+    """The new timeline's held messages are taken as any other: one that cannot be decoded is one
+    bad_encoding drop, counted where it is taken."""
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    ingest.add_depth("tof", depth_msg(5100 * MS))
+    for t in (10, 20, 30):
+        ingest.add_pose("tof", pose_msg(t * MS))
+        ingest.add_depth("tof", depth_msg(t * MS + 5 * MS, encoding="rgb8" if t == 10 else "32FC1"))
+        ingest.add_color("tof", color_msg(t * MS + 5 * MS) if t != 20 else depth_msg(t * MS + 5 * MS))
+    c = ingest.counters()["tof"]
+    assert c["time_jumps"] == 1 and c["dropped"]["bad_stamp"] == 0
+    assert c["dropped"]["bad_encoding"] == 2  # the rgb8 depth image and the 32FC1 "colour" image, once each
+
+
 @pytest.mark.parametrize("stray_s", [0.0, 2**31 - 1, 3.0, 9.0])
 def test_a_stray_stamp_is_dropped_and_does_not_move_the_timeline(stray_s: float) -> None:
     ingest = make(time_jump_s=1.0)
