@@ -4,9 +4,9 @@ replay and the first test session each pay for it.
 
 Runs the engine's warm-up as the node and replay configure it (and with the weighting net's other
 evaluation scheme), with a map bound of a few blocks so that eviction and the spill run too (else
-they compile at a live node's first eviction); then the mesh decimation, the renderer and the
-~/mesh wire codec and the rvl depth codec, all on tiny inputs. Kernels the cache already holds load in a fraction of a
-second, so running it again costs little.
+they compile at a live node's first eviction); then the mesh decimation, the renderer, the ~/mesh
+wire codec and the rvl depth codec, all on tiny inputs. Kernels the cache already holds load in a
+fraction of a second, so running it again costs little.
 """
 from __future__ import annotations
 

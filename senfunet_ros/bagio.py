@@ -93,7 +93,8 @@ def _topic_infos(connections: Iterable[tuple[str, str, int, str, str, bool]]) ->
     for topic, conns in grouped.items():
         types: dict[str, int] = {}
         for _, msgtype, count, *_ in conns:
-            types[normalize_msgtype(msgtype)] = types.get(normalize_msgtype(msgtype), 0) + count
+            name = normalize_msgtype(msgtype)
+            types[name] = types.get(name, 0) + count
         main = max(types, key=lambda t: types[t])
         first = next(c for c in conns if normalize_msgtype(c[1]) == main)
         infos[topic] = TopicInfo(topic, main, sum(types.values()), first[3], first[4], types,
@@ -292,7 +293,7 @@ class _ChainSource(_Source):
         self.end_ns = max((source.end_ns for source in counted), default=0)
         self.topics = _topic_infos((topic, msgtype, n, info.msgdef, info.digest, info.latched)
                                    for source in sources for topic, info in source.topics.items()
-                                   for msgtype, n in (info.types or {info.msgtype: info.count}).items())
+                                   for msgtype, n in info.types.items())
 
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
         for source in self._sources:
