@@ -2,11 +2,11 @@
 
 What each does with the pipeline, and the reply it sends: a handler never raises, a failure is
 its reply (and an error in the log) and leaves the map as it was. The node owns the transport;
-`MapServices` gets the parts it acts on and what the node must redo when the map is replaced.
+`MapServices` gets the parts it acts on: the pipeline, and the mesh publisher, whose subscribers are
+told when the map is replaced or reset.
 """
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +14,7 @@ from typing import Any
 
 from senfunet_core.errors import InputError
 from senfunet_ros import params as P
+from senfunet_ros.mesh_publisher import MeshPublisher
 from senfunet_ros.pipeline import Pipeline
 
 
@@ -29,10 +30,8 @@ def _plain(value: Any) -> Any:
 class MapServices:
     pipeline: Pipeline
     settings: Callable[[], P.Settings]  # the node's parameters now (they change at run time)
-    mesh_lock: threading.Lock  # held while ~/load_map replaces the engine: no mesh update meanwhile
-    map_loaded: Callable[[], None]  # the node's state derived from the old map, redone (under mesh_lock)
-    map_reset: Callable[[], None]  # after ~/reset: the same, and subscribers told at once
-    configure_engine: Callable[[Any], None]  # the node's run-time settings, on a loaded engine before it serves
+    # its lock is held while ~/load_map replaces the engine: no mesh update meanwhile
+    mesh_publisher: MeshPublisher
     logger: Any  # the node's logger
 
     def save_meshes(self, output_dir: str | Path | None = None) -> list[Path]:
@@ -62,9 +61,13 @@ class MapServices:
         return self._reply(response, self.reset_map, "reset failed: {err}", log="map reset by ~/reset")
 
     def reset_map(self) -> str:
-        """Forget the map and queued frames (then `map_reset`)."""
+        """Forget the map and queued frames; subscribers get a DELETEALL right away (if that publication
+        fails, the reset still stands: the next mesh update sends the whole, empty map)."""
         self.pipeline.reset()
-        self.map_reset()
+        try:
+            self.mesh_publisher.publish()
+        except Exception as err:
+            self.logger.warning(f"mesh update after ~/reset failed: {err!r}; the next one clears the mesh")
         return "map reset"
 
     def _save_mesh(self) -> str:
@@ -80,11 +83,13 @@ class MapServices:
             if differ:
                 raise InputError(f"{path} was made with other settings: {', '.join(differ)}; start the node with "
                                  "the map's parameters to load it")
-            self.configure_engine(engine)
+            P.configure_engine(engine, self.settings())
 
-        with self.mesh_lock:
+        with self.mesh_publisher.lock:
             engine = self.pipeline.load_map(path, device=want.device, configure=check_and_configure)
-            self.map_loaded()
+            # a parameter change racing the load reaches the loaded engine too; subscribers get it whole
+            P.configure_engine(engine, self.settings())
+            self.mesh_publisher.resend_all()
         return f"loaded {path}: {sum(engine.frames_integrated.values())} frames, {engine.grid.n_blocks} blocks"
 
     def _reply(self, response: Any, action: Callable[[], str], failure: str, log: str | None = None) -> Any:

@@ -56,12 +56,14 @@ class MeshWorker:
     """The mesh timer's work on a thread of its own. A tick while an update runs makes the next one
     start as soon as that one ends (an update longer than the period is followed at once, not at
     the tick after); ticks meanwhile coalesce into that one. The timer thread calls `tick`; `update`
-    runs on the worker thread only."""
+    runs on the worker thread only. An update that fails is warned about (`warn(key, message)`), unless
+    the node is shutting down, whose publishers may go away under it."""
 
     def __init__(self, update: Callable[[], None], *, keep_going: Callable[[], bool],
-                 thread_setup: Callable[[], Any]) -> None:
+                 thread_setup: Callable[[], Any], warn: Callable[[tuple[str, ...], str], None]) -> None:
         self._update = update
         self._keep_going = keep_going  # False: stop after the update under way (shutting down)
+        self._warn = warn
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="senfunet-mesh", initializer=thread_setup)
         self._lock = threading.Lock()  # guards the two flags below (timer thread vs. worker thread)
         self._running = False  # an update is under way on the worker thread
@@ -82,7 +84,11 @@ class MeshWorker:
     def _updates(self) -> None:
         """Updates, as long as ticks came during the last one."""
         while True:
-            self._update()
+            try:
+                self._update()
+            except Exception as err:
+                if self._keep_going():
+                    self._warn(("mesh_update",), f"mesh update failed: {err!r}")
             with self._lock:
                 if not self._due or not self._keep_going():
                     self._running = False

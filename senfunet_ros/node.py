@@ -23,7 +23,6 @@ Topics (see ../shared/DESIGN.md, the interface contract):
 """
 from __future__ import annotations
 
-import dataclasses
 import gc
 import logging
 import sys
@@ -194,6 +193,26 @@ class _EngineLogToRos(logging.Handler):
             self._ros_logger.info(text)
 
 
+class _ClockWatch:
+    """Under use_sim_time: /clock going back by more than time_jump_s is a restart (a bag looping),
+    confirmed at once. One subscription calls it, so its state has one writer."""
+
+    def __init__(self, ingest: Ingest, time_jump_s: Callable[[], float], logger: Any,
+                 warn: Callable[[tuple[str, ...], str], None]) -> None:
+        self._ingest, self._time_jump_s, self._logger, self._warn = ingest, time_jump_s, logger, warn
+        self._last_ns: int | None = None
+
+    def on_clock(self, msg: Any) -> None:
+        try:
+            now_ns = conv.stamp_to_ns(msg.clock)
+            last, self._last_ns = self._last_ns, now_ns
+            if last is not None and now_ns < last - int(self._time_jump_s() * 1e9):
+                self._logger.info(f"/clock went back from {last * 1e-9:.3f} s to {now_ns * 1e-9:.3f} s: time restarted")
+                self._ingest.restart(now_ns)
+        except Exception as err:
+            self._warn(("clock",), f"/clock message ignored: {err!r}")
+
+
 class FusionNode(Node):
     """SenFuNet as a ROS 2 node. See the module docstring for its interface."""
 
@@ -221,8 +240,8 @@ class FusionNode(Node):
         from senfunet_core.colors import ColorGrid
 
         self.camera_colors = ColorGrid(2 * s.voxel_size_m)  # fed only with mesh_colors: camera
-        self._tf_subscriptions: list[Any] = []
-        tf = self._make_tf() if PoseType(s.pose_type) is PoseType.TF else None  # before the heavy engine
+        # before the heavy engine: a pose_type tf that cannot work is refused at once
+        tf, self._tf_parts = make_tf(self, s, self._guard) if PoseType(s.pose_type) is PoseType.TF else (None, [])
         ingest = Ingest(P.ingest_config(self.settings, **P.live_lag(s), tf=tf))
         logger = self.get_logger()
         self.pipeline = Pipeline(make_engine(s, logger), ingest, on_time_jump=s.on_time_jump,
@@ -246,7 +265,8 @@ class FusionNode(Node):
         # the mesh timer's work runs on a thread of its own at a lower priority than integration's
         # (`lower_thread_priority`): where the cores cannot do both at once, frames come first, and
         # the mesh and the weighting net take the time left
-        self._mesh_worker = MeshWorker(self._mesh_update, keep_going=self.context.ok, thread_setup=at_mesh_priority)
+        self._mesh_worker = MeshWorker(lambda: self.publish_mesh(), keep_going=self.context.ok,
+                                       thread_setup=at_mesh_priority, warn=self._warn)
         self._mesh_timer = self.create_timer(mesh_period_s(s.mesh_rate_hz), self._mesh_worker.tick, clock=steady,
                                              callback_group=MutuallyExclusiveCallbackGroup())
         self._status_timer = self.create_timer(1.0 / s.status_rate_hz, self._status_tick, clock=steady,
@@ -259,9 +279,7 @@ class FusionNode(Node):
         self.status_pub = self.create_publisher(DiagnosticArray, "~/status", _STATUS_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", _STATUS_QOS)
         # 6. services
-        self.map_services = MapServices(self.pipeline, lambda: self.settings, self.mesh_publisher.lock,
-                                        self._map_loaded, self._map_reset, self._apply_engine_settings,
-                                        self.get_logger())
+        self.map_services = MapServices(self.pipeline, lambda: self.settings, self.mesh_publisher, self.get_logger())
         services_group = MutuallyExclusiveCallbackGroup()
         for name, handler in (("save_mesh", self.map_services.save_mesh), ("save_map", self.map_services.save_map),
                               ("load_map", self.map_services.load_map), ("reset", self.map_services.reset)):
@@ -292,10 +310,10 @@ class FusionNode(Node):
                     msg_type, topic, self._guard(sensor.name, stream), qos,
                     callback_group=MutuallyExclusiveCallbackGroup()))
         self.health = HealthMonitor(subscribed, window_s=s.diagnostics_window_s, stale_after_s=s.stale_after_s)
-        self._last_clock_ns: int | None = None
         if self.get_parameter("use_sim_time").value:
+            watch = _ClockWatch(self.ingest, lambda: self.settings.time_jump_s, self.get_logger(), self._warn)
             self._subscriptions_keep.append(self.create_subscription(
-                RosClock, "/clock", self._on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup()))
+                RosClock, "/clock", watch.on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup()))
 
     def finish(self, abandon: threading.Event | None = None) -> dict[str, int]:
         """After the executor stopped: integrate the frames that are ready, count the ones still
@@ -321,34 +339,6 @@ class FusionNode(Node):
         return {"integrated": integrated, "discarded": waiting + sum(isinstance(item, Frame) for item in left),
                 "interrupted": self.pipeline.frames_unfinished}
 
-    def _make_tf(self) -> Any:
-        """Poses from TF: tf2_ros's buffer and listener when a sourced ROS 2 install provides them, else
-        our own buffer fed by /tf and /tf_static when tf2_msgs can be imported; else a clear refusal."""
-        try:
-            import tf2_ros  # only in a sourced ROS 2 install
-        except ImportError:
-            tf2_ros = None
-        if tf2_ros is not None:
-            buffer = tf2_ros.Buffer()
-            self._tf_listener = tf2_ros.TransformListener(buffer, self)
-            self.get_logger().info("pose_type tf: poses from tf2_ros")
-            return _Tf2Lookup(buffer, tf2_ros)
-        try:
-            from tf2_msgs.msg import TFMessage  # no wheel on the index
-        except ImportError:
-            raise ValueError("pose_type tf needs tf2_ros, which cannot be imported here: source a ROS 2 install "
-                             "(e.g. . /opt/ros/jazzy/setup.bash) before starting the node, or give poses on pose "
-                             "topics (pose_type pose_stamped | odometry | transform_stamped)") from None
-        from senfunet_ros.tf import TfBuffer
-
-        buffer = TfBuffer(max_gap_s=self.settings.pose_tolerance_s)
-        for topic, stream, qos in (("/tf", Stream.TF, _TF_QOS), ("/tf_static", Stream.TF_STATIC, _TF_STATIC_QOS)):
-            self._tf_subscriptions.append(self.create_subscription(
-                TFMessage, topic, self._guard("", stream), qos, callback_group=MutuallyExclusiveCallbackGroup()))
-        self.get_logger().warning("pose_type tf: tf2_ros cannot be imported; reading /tf and /tf_static with the "
-                                  "node's own buffer (source a ROS 2 install to use tf2_ros)")
-        return buffer
-
     # -- warnings -------------------------------------------------------------------------------
 
     def _guard(self, sensor: str, stream: Stream) -> Callable[[Any], None]:
@@ -363,12 +353,6 @@ class FusionNode(Node):
 
         return callback
 
-    def _warn_new_drops(self) -> None:
-        counters = self.ingest.counters()
-        for key, message in counter_warnings(self._last_counters, counters, self.settings):
-            self._warn(key, message)
-        self._last_counters = counters
-
     # -- parameters at run time ------------------------------------------------------------------
 
     def _check_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
@@ -381,55 +365,31 @@ class FusionNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        """Validated values (`_check_parameters`) into every part they concern."""
         values, self._validated = self._validated, None
         if values is None:
             return
         try:
-            self._apply_values(values)
+            old, new = self.settings, P.Settings.from_values(values)
+            self.settings = new
+            for name, timer, period_s in (("integrate_rate_hz", self._integrate_timer, 1.0 / new.integrate_rate_hz),
+                                          ("mesh_rate_hz", self._mesh_timer, mesh_period_s(new.mesh_rate_hz)),
+                                          ("status_rate_hz", self._status_timer, 1.0 / new.status_rate_hz)):
+                if getattr(new, name) != getattr(old, name):
+                    timer.timer_period_ns = int(1e9 * period_s)
+            tf = self.ingest.config.tf
+            if hasattr(tf, "max_gap_ns"):  # our own TF buffer interpolates within pose_tolerance_s
+                tf.max_gap_ns = int(new.pose_tolerance_s * 1e9)
+            self.ingest.config = P.ingest_config(new, **P.live_lag(new), tf=tf)
+            self.pipeline.on_time_jump = TimeJumpAction.parse(new.on_time_jump)
+            self.health.window_s, self.health.stale_after_s = new.diagnostics_window_s, new.stale_after_s
+            P.configure_engine(self.engine, new)
+            if new.mesh_colors != old.mesh_colors or new.mesh_display_cell_m != old.mesh_display_cell_m:
+                self.mesh_publisher.resend_all()  # readers get the whole map as it is now shown
+            changed = sorted(name for name in values if values[name] != old.values[name])
+            self.get_logger().info("parameters changed: " + ", ".join(f"{n} = {values[n]!r}" for n in changed))
         except Exception as err:  # a post-set callback that raises takes the executor down
             self.get_logger().error(f"parameters accepted but not all applied ({err!r}); set them again")
-
-    def _apply_values(self, values: dict[str, Any]) -> None:
-        old, new = self.settings, P.Settings.from_values(values)
-        self.settings = new
-        for name, timer, period_s in (("integrate_rate_hz", self._integrate_timer, 1.0 / new.integrate_rate_hz),
-                                      ("mesh_rate_hz", self._mesh_timer, mesh_period_s(new.mesh_rate_hz)),
-                                      ("status_rate_hz", self._status_timer, 1.0 / new.status_rate_hz)):
-            if getattr(new, name) != getattr(old, name):
-                timer.timer_period_ns = int(1e9 * period_s)
-        tf = self.ingest.config.tf
-        if hasattr(tf, "max_gap_ns"):  # our own TF buffer interpolates within pose_tolerance_s
-            tf.max_gap_ns = int(new.pose_tolerance_s * 1e9)
-        self.ingest.config = P.ingest_config(new, **P.live_lag(new), tf=tf)
-        self.pipeline.on_time_jump = TimeJumpAction.parse(new.on_time_jump)
-        self.health.window_s, self.health.stale_after_s = new.diagnostics_window_s, new.stale_after_s
-        self._apply_engine_settings()
-        if new.mesh_colors != old.mesh_colors or new.mesh_display_cell_m != old.mesh_display_cell_m:
-            self.mesh_publisher.resend_all()  # readers get the whole map as it is now shown
-        changed = sorted(name for name in values if values[name] != old.values[name])
-        self.get_logger().info("parameters changed: " + ", ".join(f"{n} = {values[n]!r}" for n in changed))
-
-    def _apply_engine_settings(self, engine: Any = None) -> None:
-        """The engine's (default: the node's) run-time settings (depth limits) from the parameters as
-        they are now. A parameter change racing ~/load_map leaves the loaded engine with the new
-        values: the load applies them to the loaded engine before and after it replaces the old."""
-        engine = self.engine if engine is None else engine
-        settings = self.settings
-        engine.config = dataclasses.replace(engine.config,
-                                            depth_min_m=tuple(sensor.depth_min_m for sensor in settings.sensors),
-                                            depth_max_m=tuple(sensor.depth_max_m for sensor in settings.sensors))
-
-    def _on_clock(self, msg: Any) -> None:
-        """Under use_sim_time: /clock going back by more than time_jump_s is a restart (a bag looping)."""
-        try:
-            now_ns = conv.stamp_to_ns(msg.clock)
-            last, self._last_clock_ns = self._last_clock_ns, now_ns
-            if last is not None and now_ns < last - int(self.settings.time_jump_s * 1e9):
-                self.get_logger().info(f"/clock went back from {last * 1e-9:.3f} s to {now_ns * 1e-9:.3f} s: "
-                                       "time restarted")
-                self.ingest.restart(now_ns)
-        except Exception as err:
-            self._warn(("clock",), f"/clock message ignored: {err!r}")
 
     # -- timers ---------------------------------------------------------------------------------
 
@@ -448,7 +408,10 @@ class FusionNode(Node):
                     yield from items
 
             self.pipeline.drain(ready())
-            self._warn_new_drops()
+            counters = self.ingest.counters()
+            for key, message in counter_warnings(self._last_counters, counters, self.settings):
+                self._warn(key, message)
+            self._last_counters = counters
         except Exception as err:  # never let the timer die
             self._warn(("integrate_tick",), f"integration step failed: {err!r}")
 
@@ -466,26 +429,6 @@ class FusionNode(Node):
         """The engine (`~/load_map` replaces it)."""
         return self.pipeline.engine
 
-    @property
-    def latest_stamp_ns(self) -> int:
-        return self.pipeline.latest_stamp_ns
-
-    @property
-    def time_jumps(self) -> int:
-        return self.pipeline.time_jumps
-
-    @property
-    def frames_failed(self) -> int:
-        return self.pipeline.frames_failed
-
-    def _mesh_update(self) -> None:
-        try:
-            self.publish_mesh()
-        except Exception as err:
-            if not self.context.ok():  # shutting down: the publishers went away under this update
-                return
-            self._warn(("mesh_update",), f"mesh update failed: {err!r}")
-
     def publish_mesh(self, weights: bool | None = None) -> None:
         """What the mesh timer does, now (`MeshPublisher.publish`)."""
         self.mesh_publisher.publish(weights)
@@ -501,21 +444,6 @@ class FusionNode(Node):
     def status(self) -> DiagnosticArray:
         """~/status and /diagnostics now (`senfunet_ros.status.StatusReport`)."""
         return self.status_report.message(self.settings.fixed_frame)
-
-    # -- map services (senfunet_ros.map_services) ------------------------------------------------
-    def _map_loaded(self) -> None:
-        """~/load_map replaced the engine (under the mesh lock): what the node derived from the old
-        map goes, and subscribers get the loaded map whole."""
-        self._apply_engine_settings()
-        self.mesh_publisher.resend_all()
-
-    def _map_reset(self) -> None:
-        """~/reset emptied the map: subscribers get a DELETEALL right away (if that publication
-        fails, the reset still stands: the next one sends the whole, empty map)."""
-        try:
-            self.publish_mesh()
-        except Exception as err:
-            self._warn(("mesh_update",), f"mesh update after ~/reset failed: {err!r}; the next one clears the mesh")
 
     def destroy_node(self) -> None:
         self._mesh_timer.cancel()
@@ -537,6 +465,37 @@ def sensor_streams(sensor: P.SensorSettings, pose_type: str) -> list[tuple[Strea
     if msgtype is not None:  # not TF
         out.append((Stream.POSE, message_class(msgtype), sensor.pose_topic, _POSE_QOS))
     return out
+
+
+def make_tf(node: Node, settings: P.Settings, callback: Callable[[str, Stream], Callable[[Any], None]]
+            ) -> tuple[Any, list[Any]]:
+    """Poses from TF: tf2_ros's buffer and listener when a sourced ROS 2 install provides them, else
+    our own buffer fed by /tf and /tf_static (`callback(sensor "", stream)` subscribed to them) when
+    tf2_msgs can be imported; else a clear refusal. Returns the lookup and what must stay alive."""
+    try:
+        import tf2_ros  # only in a sourced ROS 2 install
+    except ImportError:
+        tf2_ros = None
+    if tf2_ros is not None:
+        buffer = tf2_ros.Buffer()
+        listener = tf2_ros.TransformListener(buffer, node)
+        node.get_logger().info("pose_type tf: poses from tf2_ros")
+        return _Tf2Lookup(buffer, tf2_ros), [listener]
+    try:
+        from tf2_msgs.msg import TFMessage  # no wheel on the index
+    except ImportError:
+        raise ValueError("pose_type tf needs tf2_ros, which cannot be imported here: source a ROS 2 install "
+                         "(e.g. . /opt/ros/jazzy/setup.bash) before starting the node, or give poses on pose "
+                         "topics (pose_type pose_stamped | odometry | transform_stamped)") from None
+    from senfunet_ros.tf import TfBuffer
+
+    subscriptions = [node.create_subscription(TFMessage, topic, callback("", stream), qos,
+                                              callback_group=MutuallyExclusiveCallbackGroup())
+                     for topic, stream, qos in (("/tf", Stream.TF, _TF_QOS),
+                                                ("/tf_static", Stream.TF_STATIC, _TF_STATIC_QOS))]
+    node.get_logger().warning("pose_type tf: tf2_ros cannot be imported; reading /tf and /tf_static with the "
+                              "node's own buffer (source a ROS 2 install to use tf2_ros)")
+    return TfBuffer(max_gap_s=settings.pose_tolerance_s), subscriptions
 
 
 def make_engine(settings: P.Settings, logger: Any) -> Any:

@@ -426,6 +426,15 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
     return dataclasses.replace(config, **overrides)
 
 
+def configure_engine(engine: Any, settings: Settings) -> None:
+    """The engine's run-time settings (its sensors' depth limits) from the parameters as they are now."""
+    import dataclasses
+
+    engine.config = dataclasses.replace(engine.config,
+                                        depth_min_m=tuple(sensor.depth_min_m for sensor in settings.sensors),
+                                        depth_max_m=tuple(sensor.depth_max_m for sensor in settings.sensors))
+
+
 def alpha_dtype(precision: str, device: str) -> str:
     """The engine's alpha_dtype (or feature_dtype) for parameter alpha_precision (feature_precision):
     'auto' picks bfloat16 on CPUs with native bfloat16 (oneDNN's check), float32 elsewhere (and on

@@ -579,7 +579,7 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
             send("tof", "pose", _pose(1 * S + k * S // 20))
             send("tof", "depth", _image(1 * S + k * S // 20 + 1, good))
         wait_for(lambda: ingest.counters()["tof"]["time_jumps"] >= 1, 10, "time jump")
-        wait_for(lambda: run.node.time_jumps >= 1, 10, "the node to handle the time jump")
+        wait_for(lambda: run.node.pipeline.time_jumps >= 1, 10, "the node to handle the time jump")
 
         # still alive: a good frame with poses around it is integrated
         send("tof", "pose", _pose(1 * S + S // 3))

@@ -110,7 +110,7 @@ def test_malformed_burst_keeps_the_map(ros, tmp_path: Path) -> None:
         time.sleep(2.0)  # integration and mesh timers run over it
         counters = run.node.ingest.counters()
         assert run.thread.is_alive()
-        assert run.node.time_jumps == 0 and all(c["time_jumps"] == 0 for c in counters.values())
+        assert run.node.pipeline.time_jumps == 0 and all(c["time_jumps"] == 0 for c in counters.values())
         assert sum(c["dropped"]["bad_stamp"] for c in counters.values()) > 0
         assert sum(c["dropped"]["bad_encoding"] + c["dropped"]["bad_pose"] for c in counters.values()) > 0
         after = run.node.engine.extract_mesh("fused").n_faces
@@ -365,7 +365,7 @@ def test_clock_going_back_restarts_time_at_once(ros, tmp_path: Path) -> None:
             msg.clock.sec = int(t_s + BASE_S)
             clock.publish(msg)
             time.sleep(0.2)
-        wait_for(lambda: run.node.time_jumps >= 1, 10, "the restart")
+        wait_for(lambda: run.node.pipeline.time_jumps >= 1, 10, "the restart")
         assert run.node.ingest.counters()["tof"]["dropped"]["bad_stamp"] == 0
     finally:
         pub_node.destroy_node()
