@@ -182,7 +182,10 @@ class _Pending:
     frame_id: str = ""  # the depth image's optical frame (pose_type tf looks it up)
 
 
-class _SensorState:
+class _SensorInput:
+    """One sensor's camera_info, frame queues, colour and pose buffers and counters: what its messages
+    do once their stamps are known to be on time. Not thread-safe: Ingest calls it under its lock."""
+
     def __init__(self, config: IngestConfig) -> None:
         self.counters = SensorCounters()
         self.camera_info: tuple[np.ndarray, tuple[int, int]] | None = None
@@ -194,13 +197,127 @@ class _SensorState:
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
 
+    def drop(self, reason: str, error: str = "", n: int = 1) -> str:
+        """Count n messages dropped for `reason` (with what the last one had wrong); returns the reason."""
+        self.counters.dropped[reason] += n
+        if error:
+            self.counters.errors[reason] = error
+        return reason
+
+    def discard(self, reason: str) -> int:
+        """Drop every frame waiting (counted as `reason`) and the colour images; poses and camera_info
+        stay. Returns how many frames."""
+        n = self.waiting()
+        self.drop(reason, n=n)
+        self.queue.clear()
+        self.awaiting_info.clear()
+        self.colors.clear()
+        return n
+
     def flush(self) -> int:
+        """Forget everything that belongs to a timeline (time went back): frames, colours, poses.
+        Returns how many frames (not counted)."""
         n = self.waiting()
         self.queue.clear()
         self.awaiting_info.clear()
         self.colors.clear()
         self.poses.clear()
         return n
+
+    def set_camera_info(self, msg: Any, config: IngestConfig) -> str | None:
+        """Cache K and the image size, and queue the depth images that waited for it. Returns the
+        drop reason, or None when it was cached."""
+        try:
+            self.camera_info = conv.intrinsics_from_camera_info(msg)
+            self.counters.distorted = bool(np.any(np.asarray(getattr(msg, "d", ()), np.float64) != 0))
+        except (ValueError, AttributeError) as err:
+            return self.drop("bad_camera_info", str(err))
+        while self.awaiting_info:
+            self._enqueue(*self.awaiting_info.popleft(), config)
+        return None
+
+    def accept(self, stream: str, stamp_ns: int, message: Any, config: IngestConfig) -> str | None:
+        """Take a message whose stamp is on time: a depth image ((msg, arrival time)) is queued, a
+        colour image buffered, a pose (4x4) stored. Returns the drop reason (counted) or None."""
+        if stream == "depth":
+            msg, arrival_s = message
+            if self.camera_info is not None:
+                return self._enqueue(msg, stamp_ns, arrival_s, config)
+            if len(self.awaiting_info) >= config.queue_size:
+                self.awaiting_info.popleft()
+                self.drop("no_camera_info")
+            self.awaiting_info.append((msg, stamp_ns, arrival_s))
+            return None
+        if stream == "color":
+            try:
+                rgb = conv.rgb_from_image(message)
+            except ValueError as err:
+                return self.drop("bad_encoding", f"colour: {err}")
+            self.colors.add(stamp_ns, rgb)
+            return None
+        self.poses.add(stamp_ns, message, keep=config.pose_buffer_size)
+        return None
+
+    def _enqueue(self, msg: Any, stamp_ns: int, arrival_s: float, config: IngestConfig) -> str | None:
+        """Decode and check a depth image and queue it. Returns the drop reason or None."""
+        assert self.camera_info is not None  # depth waits in awaiting_info until it comes
+        pending = _decode_depth(msg, stamp_ns, arrival_s, camera_info=self.camera_info,
+                                working_size=config.working_size)
+        if not isinstance(pending, _Pending):
+            return self.drop(*pending)
+        if len(self.queue) >= config.queue_size:
+            self.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
+            self.drop("queue_full")
+        self.queue.append(pending)
+        return None
+
+    def pop(self, name: str, config: IngestConfig, *, now_ns: int | None, newest_depth_ns: int | None,
+            last_color_ns: int | None, set_aside: SetAside) -> list[Frame]:
+        """The queued frames that can be posed (and coloured) now, oldest first; those that waited too
+        long for a pose or a camera_info are dropped, those the consumer fell behind on (more than
+        max_lag_s behind `newest_depth_ns`) set aside or dropped. `now_ns`: the sensor's stream time."""
+        max_wait_ns = int(config.pose_max_wait_s * 1e9)
+        lag_ns = int(config.max_lag_s * 1e9)
+        while self.awaiting_info and now_ns is not None and now_ns - self.awaiting_info[0][1] > max_wait_ns:
+            self.awaiting_info.popleft()
+            self.drop("no_camera_info")
+        out: list[Frame] = []
+        while self.queue:
+            pending = self.queue[0]
+            t = pending.stamp_ns
+            if pending.T is not None:  # posed before, put back by pop_ready(max_frames)
+                self.queue.popleft()
+                frame = Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s)
+                # the consumer fell behind: keep latency bounded
+                if lag_ns and newest_depth_ns is not None and newest_depth_ns - t > lag_ns:
+                    if set_aside.put(frame, budget_bytes=config.set_aside_bytes):
+                        self.counters.set_aside += 1
+                    else:  # no room
+                        self.drop("behind")
+                else:
+                    out.append(frame)
+                continue
+            waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
+            if config.tf is not None:
+                T, reason, error = _tf_pose(config.tf, config.fixed_frame, pending, waited_too_long)
+            else:
+                T, reason = self.poses.at(t, tolerance_ns=int(config.pose_tolerance_s * 1e9),
+                                          waited_too_long=waited_too_long)
+                error = ""
+            if T is None:
+                if reason is None:
+                    break  # not yet: later frames are newer, they wait too
+                self.queue.popleft()
+                self.drop(reason, error)
+                continue
+            if not self.colors.ready(t, last_color_ns, waited_too_long):
+                break
+            rgb = self.colors.match(t, tolerance_ns=int(config.color_tolerance_s * 1e9), shape=pending.depth_m.shape)
+            if rgb is None and self.colors.seen:
+                self.counters.without_color += 1
+            self.queue.popleft()
+            out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
+        return out
 
 
 class Ingest:
@@ -209,7 +326,7 @@ class Ingest:
     def __init__(self, config: IngestConfig) -> None:
         self._config = config
         self._lock = threading.Lock()
-        self._sensors = {name: _SensorState(config) for name in config.sensors}
+        self._sensors = {name: _SensorInput(config) for name in config.sensors}
         self._timelines = Timelines(config.sensors, **_timeline_limits(config))
         self._jumps: list[TimeJump] = []
         self._set_aside = SetAside(config.sensors)
@@ -230,22 +347,24 @@ class Ingest:
 
     # -- inputs ---------------------------------------------------------------------------
 
-    def _state(self, sensor: str) -> _SensorState:
+    def _state(self, sensor: str) -> _SensorInput:
         try:
             return self._sensors[sensor]
         except KeyError:
             raise ValueError(f"unknown sensor '{sensor}'; configured sensors are {list(self._sensors)}") from None
 
-    def _check_time(self, state: _SensorState, sensor: str, stream: str, stamp_ns: int, message: Any) -> str | None:
-        """Where a stamp stands against its stream's timeline (`Timelines.check`): a drop reason, or
-        None (accepted, the timeline moved). A restart it confirmed is carried out. `message` is what
-        `_accept` takes for the stream, should the stamp turn out to start a new timeline. Lock held."""
+    def _add(self, sensor: str, stream: str, stamp_ns: int, message: Any) -> str | None:
+        """A message of `stream` checked against its stream's timeline (`Timelines.check`), then taken
+        (`_SensorInput.accept`) or counted as dropped; returns the drop reason or None. A restart it
+        confirmed is carried out first. `message` is what `accept` takes for the stream, also should
+        the stamp turn out to start a new timeline (then it is held until that is confirmed). Lock held."""
+        state = self._sensors[sensor]
         verdict = self._timelines.check(sensor, stream, stamp_ns, message)
-        if verdict.reason is not None and verdict.error:
-            state.counters.errors[verdict.reason] = verdict.error
         if verdict.restart is not None:
             self._restarted(sensor, stream, verdict.restart)
-        return verdict.reason
+        if verdict.reason is not None:
+            return state.drop(verdict.reason, verdict.error)
+        return state.accept(stream, stamp_ns, message, self.config)
 
     def _restarted(self, sensor: str, stream: str, restart: Restart) -> None:
         """Time restarted. Back: flush everything and report a TimeJump. Ahead (every stream resumed
@@ -258,43 +377,17 @@ class Ingest:
             if self.config.tf is not None and hasattr(self.config.tf, "clear"):
                 self.config.tf.clear()
             for state in self._sensors.values():
-                state.counters.dropped["time_jump"] += state.flush()
+                state.drop("time_jump", n=state.flush())
         for (name, _), n in restart.lost.items():  # bad_stamp until now, in fact lost to the restart
-            counters = self._sensors[name].counters
-            counters.dropped["bad_stamp"] -= n
-            counters.dropped["time_jump"] += n
+            self._sensors[name].drop("bad_stamp", n=-n)
+            self._sensors[name].drop("time_jump", n=n)
         for held in restart.held:
             state = self._sensors[held.sensor]
-            state.counters.dropped["bad_stamp"] -= 1
-            self._accept(state, held.stream, held.stamp_ns, held.message)
+            state.drop("bad_stamp", n=-1)
+            state.accept(held.stream, held.stamp_ns, held.message, self.config)
         for state in self._sensors.values():
             if state.counters.dropped["bad_stamp"] == 0:
                 state.counters.errors.pop("bad_stamp", None)  # every one of them was the restart
-
-    def _accept(self, state: _SensorState, stream: str, stamp_ns: int, message: Any) -> str | None:
-        """Take a message whose stamp is on time: a depth image (with its arrival time) is queued, a
-        colour image buffered, a pose (4x4) stored. Returns the drop reason (counted) or None. Lock
-        held."""
-        if stream == "depth":
-            msg, arrival_s = message
-            if state.camera_info is not None:
-                return self._enqueue(state, msg, stamp_ns, arrival_s)
-            if len(state.awaiting_info) >= self.config.queue_size:
-                state.awaiting_info.popleft()
-                state.counters.dropped["no_camera_info"] += 1
-            state.awaiting_info.append((msg, stamp_ns, arrival_s))
-            return None
-        if stream == "color":
-            try:
-                rgb = conv.rgb_from_image(message)
-            except ValueError as err:
-                state.counters.dropped["bad_encoding"] += 1
-                state.counters.errors["bad_encoding"] = f"colour: {err}"
-                return "bad_encoding"
-            state.colors.add(stamp_ns, rgb)
-            return None
-        state.poses.add(stamp_ns, message, keep=self.config.pose_buffer_size)
-        return None
 
     def restart(self, to_ns: int | None = None) -> None:
         """Time restarted, known from outside (the /clock went back to `to_ns`): flush everything, start
@@ -307,17 +400,7 @@ class Ingest:
         """Cache K and the image size, and queue the depth images that waited for it. Returns the
         drop reason, or None when it was cached."""
         with self._lock:
-            state = self._state(sensor)
-            try:
-                state.camera_info = conv.intrinsics_from_camera_info(msg)
-                state.counters.distorted = bool(np.any(np.asarray(getattr(msg, "d", ()), np.float64) != 0))
-            except (ValueError, AttributeError) as err:
-                state.counters.dropped["bad_camera_info"] += 1
-                state.counters.errors["bad_camera_info"] = str(err)
-                return "bad_camera_info"
-            while state.awaiting_info:
-                self._enqueue(state, *state.awaiting_info.popleft())
-            return None
+            return self._state(sensor).set_camera_info(msg, self.config)
 
     def add_depth(self, sensor: str, msg: Any) -> str | None:
         """Queue one depth image. Returns the drop reason, or None when it was queued (or, before the
@@ -327,29 +410,7 @@ class Ingest:
             state = self._state(sensor)
             state.counters.received += 1
             self._last_depth_arrival_s = time.monotonic()
-            message = (msg, self._last_depth_arrival_s)
-            reason = self._check_time(state, sensor, "depth", stamp_ns, message)
-            if reason is None:
-                return self._accept(state, "depth", stamp_ns, message)
-            state.counters.dropped[reason] += 1
-            return reason
-
-    def _enqueue(self, state: _SensorState, msg: Any, stamp_ns: int, arrival_s: float) -> str | None:
-        """Decode and check a depth image and queue it. Returns the drop reason or None. Lock held."""
-        assert state.camera_info is not None  # depth waits in awaiting_info until it comes
-        pending = _decode_depth(msg, stamp_ns, arrival_s, camera_info=state.camera_info,
-                                working_size=self.config.working_size)
-        if not isinstance(pending, _Pending):
-            reason, error = pending
-            state.counters.dropped[reason] += 1
-            if error:
-                state.counters.errors[reason] = error
-            return reason
-        if len(state.queue) >= self.config.queue_size:
-            state.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
-            state.counters.dropped["queue_full"] += 1
-        state.queue.append(pending)
-        return None
+            return self._add(sensor, "depth", stamp_ns, (msg, self._last_depth_arrival_s))
 
     def add_color(self, sensor: str, msg: Any) -> str | None:
         """Buffer one colour image for matching. Returns the drop reason, or None."""
@@ -357,11 +418,7 @@ class Ingest:
         with self._lock:
             state = self._state(sensor)
             state.counters.color_received += 1
-            reason = self._check_time(state, sensor, "color", stamp_ns, msg)
-            if reason is None:
-                return self._accept(state, "color", stamp_ns, msg)
-            state.counters.dropped[reason] += 1
-            return reason
+            return self._add(sensor, "color", stamp_ns, msg)
 
     def add_tf(self, msg: Any, *, static: bool) -> str | None:
         """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).
@@ -387,10 +444,8 @@ class Ingest:
         if added.refused:
             drops.append(("bad_pose", len(added.refused), f"tf: {added.refused[0]}"))
         with self._lock:
-            counters = self._sensors[self.config.sensors[0]].counters
             for reason, count, error in drops:
-                counters.dropped[reason] += count
-                counters.errors[reason] = error
+                self._sensors[self.config.sensors[0]].drop(reason, error, n=count)
         return drops[0][0] if drops else None
 
     def add_pose(self, sensor: str, msg: Any) -> str | None:
@@ -403,14 +458,8 @@ class Ingest:
                 if sensor in self.config.T_body_camera:
                     T = T @ self.config.T_body_camera[sensor]  # T_world_body -> T_world_camera
             except (ValueError, AttributeError) as err:
-                state.counters.dropped["bad_pose"] += 1
-                state.counters.errors["bad_pose"] = str(err)
-                return "bad_pose"
-            reason = self._check_time(state, sensor, "pose", stamp_ns, T)
-            if reason is None:
-                return self._accept(state, "pose", stamp_ns, T)
-            state.counters.dropped[reason] += 1
-            return reason
+                return state.drop("bad_pose", str(err))
+            return self._add(sensor, "pose", stamp_ns, T)
 
     # -- outputs --------------------------------------------------------------------------
 
@@ -431,7 +480,10 @@ class Ingest:
             jumps, self._jumps = self._jumps, []
             frames: list[Frame] = []
             for name, state in self._sensors.items():
-                frames.extend(self._pop_sensor(name, state))
+                frames.extend(state.pop(name, self.config, now_ns=self._timelines.sensor_now_ns(name),
+                                        newest_depth_ns=self._timelines.last_ns(name, "depth"),
+                                        last_color_ns=self._timelines.last_ns(name, "color"),
+                                        set_aside=self._set_aside))
             quiet = time.monotonic() - self._last_depth_arrival_s >= self.config.max_lag_s
             if not frames and set_aside and quiet:
                 frames = self._set_aside.take_oldest(1 if max_frames is None else max_frames)
@@ -445,56 +497,6 @@ class Ingest:
                                  frame.T_world_camera))
         return [*jumps, *frames]
 
-    def _pop_sensor(self, name: str, state: _SensorState) -> list[Frame]:
-        cfg = self.config
-        max_wait_ns = int(cfg.pose_max_wait_s * 1e9)
-        color_tolerance_ns = int(cfg.color_tolerance_s * 1e9)
-        pose_tolerance_ns = int(cfg.pose_tolerance_s * 1e9)
-        now_ns = self._timelines.sensor_now_ns(name)
-        out: list[Frame] = []
-        lag_ns = int(cfg.max_lag_s * 1e9)
-        newest_ns = self._timelines.last_ns(name, "depth")
-        while state.awaiting_info and now_ns is not None and now_ns - state.awaiting_info[0][1] > max_wait_ns:
-            state.awaiting_info.popleft()
-            state.counters.dropped["no_camera_info"] += 1
-        while state.queue:
-            pending = state.queue[0]
-            t = pending.stamp_ns
-            if pending.T is not None:  # posed before, put back by pop_ready(max_frames)
-                state.queue.popleft()
-                frame = Frame(name, t, pending.depth_m, pending.rgb, pending.K, pending.T, pending.arrival_s)
-                # the consumer fell behind: keep latency bounded
-                if lag_ns and newest_ns is not None and newest_ns - t > lag_ns:
-                    if self._set_aside.put(frame, budget_bytes=cfg.set_aside_bytes):
-                        state.counters.set_aside += 1
-                    else:  # no room
-                        state.counters.dropped["behind"] += 1
-                else:
-                    out.append(frame)
-                continue
-            waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
-            if cfg.tf is not None:
-                T, reason, error = _tf_pose(cfg.tf, cfg.fixed_frame, pending, waited_too_long)
-            else:
-                T, reason = state.poses.at(t, tolerance_ns=pose_tolerance_ns, waited_too_long=waited_too_long)
-                error = ""
-            if T is None:
-                if reason is None:
-                    break  # not yet: later frames are newer, they wait too
-                state.queue.popleft()
-                state.counters.dropped[reason] += 1
-                if error:
-                    state.counters.errors[reason] = error
-                continue
-            if not state.colors.ready(t, self._timelines.last_ns(name, "color"), waited_too_long):
-                break
-            rgb = state.colors.match(t, tolerance_ns=color_tolerance_ns, shape=pending.depth_m.shape)
-            if rgb is None and state.colors.seen:
-                state.counters.without_color += 1
-            state.queue.popleft()
-            out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
-        return out
-
     # -- bookkeeping ----------------------------------------------------------------------
 
     def mark_integrated(self, sensor: str) -> None:
@@ -506,10 +508,7 @@ class Ingest:
         if reason not in DROP_REASONS:
             raise ValueError(f"unknown drop reason '{reason}'; use one of {DROP_REASONS}")
         with self._lock:
-            counters = self._state(sensor).counters
-            counters.dropped[reason] += 1
-            if error:
-                counters.errors[reason] = error
+            self._state(sensor).drop(reason, error)
 
     def counters(self) -> dict[str, dict[str, Any]]:
         """A snapshot: sensor -> SensorCounters.as_dict() plus `queue_depth` (frames waiting, set
@@ -529,27 +528,16 @@ class Ingest:
 
     def discard_waiting(self, reason: str) -> int:
         """Drop every frame still waiting (queued, before its camera_info or set aside), counted as
-        `reason`; returns how many."""
+        `reason` ("map_reset": they belong to the map that was reset or replaced), and the colour
+        images; poses and camera_info stay. Returns how many frames."""
         with self._lock:
             n = 0
             for name, count in self._set_aside.clear().items():
-                self._sensors[name].counters.dropped[reason] += count
                 n += count
+                self._sensors[name].drop(reason, n=count)
             for state in self._sensors.values():
-                waiting = state.waiting()
-                state.counters.dropped[reason] += waiting
-                state.queue.clear()
-                state.awaiting_info.clear()
-                n += waiting
+                n += state.discard(reason)
             return n
-
-    def clear_frames(self) -> None:
-        """Forget waiting frames (counted as "map_reset": they belong to the map that was reset or
-        replaced) and colour images; poses and camera_info stay."""
-        self.discard_waiting("map_reset")
-        with self._lock:
-            for state in self._sensors.values():
-                state.colors.clear()
 
 
 def _timeline_limits(config: IngestConfig) -> dict[str, Any]:

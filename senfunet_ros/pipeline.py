@@ -159,7 +159,7 @@ class Pipeline:
         """Forget the map and the queued frames (poses and camera_info stay)."""
         with self.lock:
             self.engine.reset()
-            self.ingest.clear_frames()
+            self.ingest.discard_waiting("map_reset")
             self._on_new_map()
 
     def save_meshes(self, out_dir: str | Path, *, sensors: Iterable[str], tsdf_fusion: bool,
@@ -214,6 +214,6 @@ class Pipeline:
             configure(engine)
         with self.lock:
             self.engine = engine
-            self.ingest.clear_frames()
+            self.ingest.discard_waiting("map_reset")
             self._on_new_map()
         return engine
