@@ -9,8 +9,9 @@ Per sensor:
 - `camera_info` is cached (the latest one wins);
 - depth images that arrive before their sensor's first camera_info wait for it (drivers publish the
   two on separate topics, so either may arrive first), at most `pose_max_wait_s` of stream time;
-- depth images are decoded on arrival, checked, resized to the working resolution and put in a
-  bounded queue (the oldest frame is dropped when it is full);
+- depth images are decoded on arrival (outside Ingest's lock, so that a large image holds up no
+  other stream nor the consumer), checked, resized to the working resolution and put in a bounded
+  queue (the oldest frame is dropped when it is full);
 - colour images wait in a short buffer and are matched to depth by the nearest stamp;
 - poses go to a sorted buffer; a frame leaves the queue once a pose at or after its stamp
   exists, with the pose interpolated at the depth stamp (lerp + slerp). A frame is dropped when
@@ -42,6 +43,7 @@ or, with each next frame's feature net overlapping the current frame's integrati
 """
 from __future__ import annotations
 
+import bisect
 import threading
 import time
 from collections import deque
@@ -193,6 +195,10 @@ class _SensorInput:
         self.awaiting_info: deque[tuple[Any, int, float]] = deque()  # (depth msg, stamp_ns, arrival_s)
         self.colors = ColorBuffer(max(4, config.queue_size))
         self.poses = PoseBuffer()
+        # how often the frames and colours were cleared, and why the last time: an image decoded outside
+        # Ingest's lock across a clear belonged to what was cleared
+        self.cleared = 0
+        self.cleared_by = ""
 
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
@@ -212,6 +218,7 @@ class _SensorInput:
         self.queue.clear()
         self.awaiting_info.clear()
         self.colors.clear()
+        self.cleared, self.cleared_by = self.cleared + 1, reason
         return n
 
     def flush(self) -> int:
@@ -222,6 +229,7 @@ class _SensorInput:
         self.awaiting_info.clear()
         self.colors.clear()
         self.poses.clear()
+        self.cleared, self.cleared_by = self.cleared + 1, "time_jump"
         return n
 
     def set_camera_info(self, msg: Any, config: IngestConfig) -> str | None:
@@ -233,7 +241,9 @@ class _SensorInput:
         except (ValueError, AttributeError) as err:
             return self.drop("bad_camera_info", str(err))
         while self.awaiting_info:
-            self._enqueue(*self.awaiting_info.popleft(), config)
+            msg, stamp_ns, arrival_s = self.awaiting_info.popleft()
+            self.enqueue(_decode_depth(msg, stamp_ns, arrival_s, camera_info=self.camera_info,
+                                       working_size=config.working_size), config, cleared=self.cleared)
         return None
 
     def accept(self, stream: str, stamp_ns: int, message: Any, config: IngestConfig) -> str | None:
@@ -242,33 +252,43 @@ class _SensorInput:
         if stream == "depth":
             msg, arrival_s = message
             if self.camera_info is not None:
-                return self._enqueue(msg, stamp_ns, arrival_s, config)
+                return self.enqueue(_decode_depth(msg, stamp_ns, arrival_s, camera_info=self.camera_info,
+                                                  working_size=config.working_size), config, cleared=self.cleared)
             if len(self.awaiting_info) >= config.queue_size:
                 self.awaiting_info.popleft()
                 self.drop("no_camera_info")
             self.awaiting_info.append((msg, stamp_ns, arrival_s))
             return None
         if stream == "color":
-            try:
-                rgb = conv.rgb_from_image(message)
-            except ValueError as err:
-                return self.drop("bad_encoding", f"colour: {err}")
-            self.colors.add(stamp_ns, rgb)
-            return None
+            return self.take_color(stamp_ns, _decode_color(message), cleared=self.cleared)
         self.poses.add(stamp_ns, message, keep=config.pose_buffer_size)
         return None
 
-    def _enqueue(self, msg: Any, stamp_ns: int, arrival_s: float, config: IngestConfig) -> str | None:
-        """Decode and check a depth image and queue it. Returns the drop reason or None."""
-        assert self.camera_info is not None  # depth waits in awaiting_info until it comes
-        pending = _decode_depth(msg, stamp_ns, arrival_s, camera_info=self.camera_info,
-                                working_size=config.working_size)
-        if not isinstance(pending, _Pending):
-            return self.drop(*pending)
+    def enqueue(self, decoded: _Pending | tuple[str, str], config: IngestConfig, *, cleared: int) -> str | None:
+        """Queue a decoded depth image (`_decode_depth`), in stamp order, unless its decoding failed or
+        the queue was cleared since `cleared` (then it belonged to what was cleared). Returns the drop
+        reason or None."""
+        if not isinstance(decoded, _Pending):
+            return self.drop(*decoded)
+        if cleared != self.cleared:
+            return self.drop(self.cleared_by)
         if len(self.queue) >= config.queue_size:
             self.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
             self.drop("queue_full")
-        self.queue.append(pending)
+        if self.queue and self.queue[-1].stamp_ns > decoded.stamp_ns:  # two threads added this sensor's depth
+            bisect.insort(self.queue, decoded, key=lambda pending: pending.stamp_ns)
+        else:
+            self.queue.append(decoded)
+        return None
+
+    def take_color(self, stamp_ns: int, decoded: np.ndarray | str, *, cleared: int) -> str | None:
+        """Buffer a decoded colour image (`_decode_color`: RGB, or what was wrong) for matching, unless
+        the colours were cleared since `cleared`. Returns the drop reason or None."""
+        if isinstance(decoded, str):
+            return self.drop("bad_encoding", f"colour: {decoded}")
+        if cleared != self.cleared:
+            return self.drop(self.cleared_by)
+        self.colors.add(stamp_ns, decoded)
         return None
 
     def pop(self, name: str, config: IngestConfig, *, now_ns: int | None, newest_depth_ns: int | None,
@@ -321,7 +341,9 @@ class _SensorInput:
 
 
 class Ingest:
-    """Per-sensor queues, caches and counters; thread-safe (callbacks add, a timer pops)."""
+    """Per-sensor queues, caches and counters; thread-safe (callbacks add, a timer pops). One lock
+    guards all of it; images are decoded with it released (`_SensorInput.cleared` says whether what
+    they were meant for was cleared meanwhile)."""
 
     def __init__(self, config: IngestConfig) -> None:
         self._config = config
@@ -353,18 +375,17 @@ class Ingest:
         except KeyError:
             raise ValueError(f"unknown sensor '{sensor}'; configured sensors are {list(self._sensors)}") from None
 
-    def _add(self, sensor: str, stream: str, stamp_ns: int, message: Any) -> str | None:
-        """A message of `stream` checked against its stream's timeline (`Timelines.check`), then taken
-        (`_SensorInput.accept`) or counted as dropped; returns the drop reason or None. A restart it
-        confirmed is carried out first. `message` is what `accept` takes for the stream, also should
-        the stamp turn out to start a new timeline (then it is held until that is confirmed). Lock held."""
-        state = self._sensors[sensor]
+    def _on_time(self, sensor: str, stream: str, stamp_ns: int, message: Any) -> str | None:
+        """Whether a message of `stream` is on its stream's timeline (`Timelines.check`): None, or the
+        drop reason (counted). A restart it confirmed is carried out first. `message` is what
+        `_SensorInput.accept` takes for the stream, should the stamp turn out to start a new timeline
+        (it is held until that is confirmed, then accepted). Lock held."""
         verdict = self._timelines.check(sensor, stream, stamp_ns, message)
         if verdict.restart is not None:
             self._restarted(sensor, stream, verdict.restart)
         if verdict.reason is not None:
-            return state.drop(verdict.reason, verdict.error)
-        return state.accept(stream, stamp_ns, message, self.config)
+            return self._sensors[sensor].drop(verdict.reason, verdict.error)
+        return None
 
     def _restarted(self, sensor: str, stream: str, restart: Restart) -> None:
         """Time restarted. Back: flush everything and report a TimeJump. Ahead (every stream resumed
@@ -409,8 +430,15 @@ class Ingest:
         with self._lock:
             state = self._state(sensor)
             state.counters.received += 1
-            self._last_depth_arrival_s = time.monotonic()
-            return self._add(sensor, "depth", stamp_ns, (msg, self._last_depth_arrival_s))
+            self._last_depth_arrival_s = arrival_s = time.monotonic()
+            reason = self._on_time(sensor, "depth", stamp_ns, (msg, arrival_s))
+            if reason is not None or state.camera_info is None:  # dropped, or waits for its camera_info
+                return reason or state.accept("depth", stamp_ns, (msg, arrival_s), self.config)
+            camera_info, working_size, cleared = state.camera_info, self.config.working_size, state.cleared
+        # decoded outside the lock: other streams' messages and the integration go on meanwhile
+        decoded = _decode_depth(msg, stamp_ns, arrival_s, camera_info=camera_info, working_size=working_size)
+        with self._lock:
+            return state.enqueue(decoded, self.config, cleared=cleared)
 
     def add_color(self, sensor: str, msg: Any) -> str | None:
         """Buffer one colour image for matching. Returns the drop reason, or None."""
@@ -418,7 +446,13 @@ class Ingest:
         with self._lock:
             state = self._state(sensor)
             state.counters.color_received += 1
-            return self._add(sensor, "color", stamp_ns, msg)
+            reason = self._on_time(sensor, "color", stamp_ns, msg)
+            if reason is not None:
+                return reason
+            cleared = state.cleared
+        decoded = _decode_color(msg)  # outside the lock, as depth
+        with self._lock:
+            return state.take_color(stamp_ns, decoded, cleared=cleared)
 
     def add_tf(self, msg: Any, *, static: bool) -> str | None:
         """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).
@@ -459,7 +493,7 @@ class Ingest:
                     T = T @ self.config.T_body_camera[sensor]  # T_world_body -> T_world_camera
             except (ValueError, AttributeError) as err:
                 return state.drop("bad_pose", str(err))
-            return self._add(sensor, "pose", stamp_ns, T)
+            return self._on_time(sensor, "pose", stamp_ns, T) or state.accept("pose", stamp_ns, T, self.config)
 
     # -- outputs --------------------------------------------------------------------------
 
@@ -573,6 +607,14 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
         depth_m = conv.resize_depth(depth_m, target)
         K = conv.scale_intrinsics(K, (width, height), target)
     return _Pending(stamp_ns, depth_m, K, arrival_s, frame_id=str(getattr(msg.header, "frame_id", "")))
+
+
+def _decode_color(msg: Any) -> np.ndarray | str:
+    """A colour image as HxWx3 RGB, or what was wrong with it."""
+    try:
+        return conv.rgb_from_image(msg)
+    except ValueError as err:
+        return str(err)
 
 
 def _tf_pose(tf: Any, fixed_frame: str, pending: _Pending, waited_too_long: bool

@@ -336,6 +336,85 @@ def test_frames_in_stamp_order_and_deterministic() -> None:
         assert stamps == sorted(stamps)
 
 
+@pytest.mark.parametrize("stream", ["depth", "color"])
+def test_images_are_decoded_outside_the_lock_and_one_decoded_across_a_reset_is_counted_with_it(
+        stream: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A large image takes long to decode: meanwhile the other streams' messages and the consumer are
+    served. An image whose decoding outlasts a ~/reset belonged to the old map and is counted with it."""
+    ingest = make()
+    decoding, release = threading.Event(), threading.Event()
+    name = "depth_from_image" if stream == "depth" else "rgb_from_image"
+    decode = getattr(conv, name)
+
+    def slow_decode(msg):  # noqa: ANN001, ANN202
+        if threading.current_thread() is not threading.main_thread():  # the tof image under test
+            decoding.set()
+            assert release.wait(10)
+        return decode(msg)
+
+    monkeypatch.setattr(conv, name, slow_decode)
+
+    def while_decoding(t_ms: int, during) -> str | None:  # noqa: ANN001
+        image = depth_msg(t_ms * MS) if stream == "depth" else color_msg(t_ms * MS)
+        result: list[str | None] = []
+        worker = threading.Thread(target=lambda: result.append(getattr(ingest, f"add_{stream}")("tof", image)))
+        decoding.clear()
+        release.clear()
+        worker.start()
+        assert decoding.wait(10)
+        during()
+        release.set()
+        worker.join(10)
+        return result[0]
+
+    def served() -> None:  # another stream, another sensor, the consumer, the counters
+        assert ingest.add_pose("tof", pose_msg(0)) is None and ingest.add_pose("tof", pose_msg(50 * MS)) is None
+        assert ingest.add_depth("stereo", depth_msg(20 * MS)) is None
+        assert frames(ingest.pop_ready()) == [] and ingest.counters()["stereo"]["queue_depth"] == 1
+
+    assert while_decoding(10, served) is None
+    if stream == "color":
+        assert ingest.add_depth("tof", depth_msg(10 * MS)) is None
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.stamp_ns == 10 * MS and (frame.rgb is None) == (stream == "depth")
+
+    def reset() -> None:
+        assert ingest.discard_waiting("map_reset") == 1  # the stereo frame; the tof image is on its way
+
+    assert while_decoding(30, reset) == "map_reset"
+    counters = ingest.counters()["tof"]
+    assert counters["dropped"]["map_reset"] == 1 and counters["queue_depth"] == 0
+    if stream == "color":  # the colour image decoded across the reset was not kept
+        assert ingest.add_depth("tof", depth_msg(30 * MS)) is None
+        (frame,) = frames(ingest.pop_ready())
+        assert frame.rgb is None
+
+
+def test_depth_of_one_sensor_added_by_two_threads_is_queued_in_stamp_order(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The older image's decoding ends after the newer one's: it still leaves the queue first."""
+    ingest = make()
+    decoding, release = threading.Event(), threading.Event()
+    decode = conv.depth_from_image
+
+    def slow_decode(msg):  # noqa: ANN001, ANN202
+        if threading.current_thread() is not threading.main_thread():
+            decoding.set()
+            assert release.wait(10)
+        return decode(msg)
+
+    monkeypatch.setattr(conv, "depth_from_image", slow_decode)
+    worker = threading.Thread(target=ingest.add_depth, args=("tof", depth_msg(10 * MS, value=1.0)))
+    worker.start()
+    assert decoding.wait(10)
+    assert ingest.add_depth("tof", depth_msg(20 * MS, value=2.0)) is None
+    release.set()
+    worker.join(10)
+    ingest.add_pose("tof", pose_msg(0))
+    ingest.add_pose("tof", pose_msg(15 * MS))  # the older frame can be posed, the newer one waits
+    assert [(f.stamp_ns, float(f.depth_m[0, 0])) for f in frames(ingest.pop_ready())] == [(10 * MS, 1.0)]
+    assert ingest.queue_depths()["tof"] == 1
+
+
 def test_unknown_sensor_is_a_value_error() -> None:
     with pytest.raises(ValueError, match="configured sensors"):
         make().add_depth("lidar", depth_msg(0))
