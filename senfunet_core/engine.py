@@ -20,7 +20,7 @@ over the whole grid there); then it re-meshes every block whose cells read a cha
 
 Threading model (the one place it is described):
 - Threads: an integrating thread calls `prepare`/`integrate`; an updating thread calls `update`,
-  `refresh_alpha`, the extractions, `save`, `reset`; one feature-net worker thread (module-wide)
+  `refresh_alpha`, the extractions, `map_file.save_map`, `reset`; one feature-net worker thread (module-wide)
   runs the 2D nets; with `alpha_threads` > 1, that many alpha threads (per engine, owned by its
   `AlphaScheduler`) evaluate the weighting net's batches for an update that has no time budget (or
   an idle catch-up, `refresh_alpha(until_frame=True)`), while the updating thread waits for them in
@@ -32,7 +32,7 @@ Threading model (the one place it is described):
   lowers them to its mesh thread's). The engine's parts (`AlphaScheduler`,
   `BlockMesher`, `MapBound`) start no thread of their own besides those alpha threads, and take only
   the data lock they are given.
-- The update lock (`_updating`) serialises updates, extractions, saves and evictions; it owns the
+- The update lock (`update_lock.UpdateLock`) serialises updates, extractions, saves and evictions; it owns the
   alpha scheduler's order, the map bound (its archive) and the set of meshed blocks.
 - The data lock guards the grid's contents and the per-block flags: integration holds it while its
   kernels run, an update while it takes the frames' changes, writes alpha or evicts. An update (or
@@ -43,22 +43,20 @@ Threading model (the one place it is described):
   a frame is still allocating (the allocation policy may drop or move them) count as absent there
   (`BlockStore.neighbours`). Evictions wait for the batches being evaluated.
 - Lock order: update lock, then data lock. Integration never takes the update lock while holding
-  the data lock; past the map's hard bound it releases the data lock, takes the eviction condition,
-  and either evicts itself (the update lock free: tried without blocking) or waits on the condition,
-  which every eviction and every release of the update lock notifies. Nobody takes the condition
-  while holding the data lock, so the waiter may evict under it. No thread polls.
+  the data lock; past the map's hard bound it releases the data lock and either evicts itself (the
+  update lock free: tried without blocking) or waits until woken by an eviction or a release of the
+  update lock (`UpdateLock.wait_for_eviction`). Nobody waits for that while holding the data lock,
+  so the waiter may evict under it. No thread polls.
 """
 from __future__ import annotations
 
-import contextlib
 import logging
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, fields, replace
-from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -68,15 +66,15 @@ from .alpha_scheduler import AlphaScheduler
 from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
-from .files import atomic_file
-from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, encode_alpha, keys_to_coords
+from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
 from .mesh_archive import MeshArchive
 from .mesher import BlockMeshes, Mesh, StreamingWeld
-from .spill import BlockSpill, spilled_rows
+from .spill import BlockSpill
 from .stage_times import StageTimes
+from .update_lock import UpdateLock
 
 _MIN_THREAD_BLOCKS = 256  # blocks per meshing thread, at least: fewer cost more to hand over than they save
 log = logging.getLogger("senfunet.engine")
@@ -84,6 +82,15 @@ log = logging.getLogger("senfunet.engine")
 # One thread runs the feature nets (of every engine in the process), so that a frame's feature net
 # overlaps the kernels of the frame before it (see `prepare`) and the kernel that locates its samples.
 _FEATURE_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="senfunet-features")
+
+
+def _pixel_features(net: torch.nn.Module, times: StageTimes, depth_m: np.ndarray, rgb: np.ndarray | None
+                    ) -> np.ndarray:
+    """(H*W) x 5 features of one frame's pixels (in the feature worker thread)."""
+    start = time.perf_counter()
+    features = networks.pixel_feature_rows(net, depth_m, rgb)
+    times.add(feature_net=time.perf_counter() - start)
+    return features
 
 
 @dataclass(frozen=True)
@@ -138,6 +145,19 @@ class EngineConfig:
     #   far more nearly empty blocks at no gain in F
     weighting_tsdf_input: bool = False  # the weighting net also reads the sensors' TSDFs (a departure from the
     #   paper, networks.WeightingNet); set from the weights file when it records it
+
+    def sensor_index(self, sensor: str) -> int:
+        try:
+            return self.sensors.index(sensor)
+        except ValueError:
+            raise InputError(f"unknown sensor '{sensor}'; configured sensors: {list(self.sensors)}") from None
+
+    def check_mesh_name(self, which: str) -> None:
+        """InputError unless `which` names a mesh this engine keeps: fused, a sensor's or the baseline."""
+        if which not in (FUSED, TSDF_FUSION, *self.sensors):
+            raise InputError(f"unknown mesh '{which}'; choose {FUSED}, {TSDF_FUSION} or one of {list(self.sensors)}")
+        if which == TSDF_FUSION and not self.tsdf_fusion:
+            raise InputError("this engine keeps no TSDF Fusion baseline; create it with EngineConfig(tsdf_fusion=True)")
 
     @property
     def integrator(self) -> IntegratorConfig:
@@ -220,8 +240,6 @@ class WeightCloud:
 class SenFuNet:
     """Learned two-sensor TSDF fusion on sparse voxel blocks, plus the plain TSDF Fusion baseline."""
 
-    _cleared: bool  # reset since the last mesh update (set by _reset_state, which __init__ calls)
-    _meshed: np.ndarray  # sorted block keys of the blocks with a live mesh (set by _reset_state)
 
     def __init__(self, config: EngineConfig = EngineConfig(), weights: str | Path | None = "default", *,
                  worker_setup: Callable[[], object] | None = None) -> None:
@@ -277,13 +295,13 @@ class SenFuNet:
         # Writers of the grid (integration, alpha) hold the data lock; the update's readers do not:
         # a block integrated while it is read is marked again and re-read by the next update, and
         # pools that grow meanwhile stay valid for whoever still holds the old ones.
-        self._data_lock = threading.RLock()
+        self.data_lock = threading.RLock()
         self._scratch: dict[str, np.ndarray] = {}  # integration's working arrays (used under the data lock)
-        self._update_lock = threading.RLock()  # one update or extraction at a time
+        self.update_lock = UpdateLock()  # one update, extraction, save or eviction at a time
         self.times = StageTimes()
         self.timings_s = self.times.last_s  # stage -> seconds of its last run
         self.total_s = self.times.total_s  # stage -> seconds summed over all runs
-        self.alpha = AlphaScheduler(self.store, self.weighting_net, self._data_lock, alpha_voxels=config.alpha_voxels,
+        self.alpha = AlphaScheduler(self.store, self.weighting_net, self.data_lock, alpha_voxels=config.alpha_voxels,
                                     alpha_dtype=config.alpha_dtype,
                                     tsdf_input=config.weighting_tsdf_input, band_m=config.band_m,
                                     voxel_size_m=config.voxel_size_m, device=self.device,
@@ -291,15 +309,14 @@ class SenFuNet:
                                     alpha_order=config.alpha_order, worker_setup=worker_setup)
         self.mesher = BlockMesher(self.store, sensors=config.sensors, voxel_size_m=config.voxel_size_m,
                                   mesh_batch_blocks=config.mesh_batch_blocks, times=self.times)
-        self.bound = MapBound(self.store, self.alpha, self.mesher, self._data_lock, max_blocks=self.max_blocks,
+        self.bound = MapBound(self.store, self.alpha, self.mesher, self.data_lock, max_blocks=self.max_blocks,
                               voxel_size_m=config.voxel_size_m, alpha_batch_blocks=config.alpha_batch_blocks)
         self.archive: MeshArchive = self.bound.archive  # final meshes of evicted blocks (owned by the update lock)
-        # integration past the hard bound waits on this until an eviction (or the running update) ends
-        self._eviction_done = threading.Condition()  # reentrant: an evicting waiter notifies
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0, "sparse_dropped_samples": 0,
                          "sparse_dropped_blocks": 0}
         self.frames_integrated = {name: 0 for name in config.sensors}
-        self._reset_state()
+        self._meshed = np.zeros(0, np.int64)  # sorted block keys of the blocks with a live mesh
+        self._cleared = False  # reset since the last mesh update
 
     # -- verbs ------------------------------------------------------------------------------------
     @torch.inference_mode()
@@ -318,14 +335,14 @@ class SenFuNet:
         net in the worker thread. A caller holding the next frame prepares it before integrating
         the current one, so that the feature net runs while the current frame's kernels do."""
         t0 = time.perf_counter()
-        s = self._sensor_index(sensor)
+        s = self.config.sensor_index(sensor)
         check_frame(depth_m, K, T_world_camera, rgb)
         cfg = self.config
         depth, deepest_m = clean_depth(depth_m, cfg.border_px, cfg.depth_min_m[s], cfg.depth_max_m[s])
         if deepest_m < 0:  # no valid pixel
             return PreparedFrame(s, depth, K, T_world_camera, None, time.perf_counter() - t0)
         check_key_range(deepest_m, K, T_world_camera, depth.shape, cfg.band_m)
-        features = _FEATURE_WORKER.submit(self._pixel_features, s, depth, rgb)
+        features = _FEATURE_WORKER.submit(_pixel_features, self.feature_nets[s], self.times, depth, rgb)
         return PreparedFrame(s, depth, K, T_world_camera, features, time.perf_counter() - t0)
 
     @torch.inference_mode()
@@ -335,7 +352,7 @@ class SenFuNet:
             return 0
         s, cfg = frame.sensor_index, self.config
         t0 = time.perf_counter()
-        with self._data_lock:
+        with self.data_lock:
             update = integrate_frame(self.grid, frame.depth_m, frame.features.result, frame.K, frame.T_world_camera,
                                      (cfg.depth_min_m[s], cfg.depth_max_m[s]), cfg.integrator,
                                      (f"tsdf{s}", f"weight{s}", f"feat{s}"), scratch=self._scratch)
@@ -354,8 +371,8 @@ class SenFuNet:
             self.bound.frame_integrated(camera_m=np.asarray(frame.T_world_camera, np.float64)[:3, 3].copy(),
                                         touched_s=touched_s, n_touched=len(update.touched_slots))
         self.times.add(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
-        if self.bound.over_hard_bound():
-            self._wait_for_eviction()
+        if self.bound.over_hard_bound():  # updates come too rarely to keep the bound
+            self.update_lock.wait_for_eviction(self.bound.over_hard_bound, self._evict)
         return update.voxels_updated
 
     @torch.inference_mode()
@@ -370,13 +387,13 @@ class SenFuNet:
         mesh_threads: mesh on up to this many of the alpha threads at once (at most `alpha_threads`),
         for a caller that knows no frame waits for the cores (the live node, whenever none is queued:
         once its sensors pause, the blocks of the frames it set aside are meshed sooner)."""
-        with self._updating():
+        with self.update_lock.held():
             t0 = time.perf_counter()
             self._evict()
             if alpha_budget_s != 0:
                 self._refresh_alpha(alpha_budget_s)
             t1 = time.perf_counter()
-            with self._data_lock:
+            with self.data_lock:
                 pending = np.flatnonzero(self.store.mesh_pending[: self.grid.n_blocks])
                 self.store.mesh_pending[pending] = False
                 slots = self.mesher.mesh_readers(pending)
@@ -399,7 +416,7 @@ class SenFuNet:
             result.removed = [key for key in map(tuple, vanished.tolist()) if key not in self.archive]
             self._meshed = np.union1d(np.setdiff1d(self._meshed, changed_keys), live_keys)
             self.counters["meshed_blocks"] = len(self._meshed)
-            with self._data_lock:  # for the weighting net's order (slots stay put while the update lock is held)
+            with self.data_lock:  # for the weighting net's order (slots stay put while the update lock is held)
                 self.store.meshed[slots] = has_faces
             self.times.add(alpha=t1 - t0, mesh=time.perf_counter() - t1)
             return result
@@ -410,7 +427,7 @@ class SenFuNet:
         it), and with `until_frame` only until a frame is integrated, on `alpha_threads` threads (an
         idle catch-up that yields to the sensors when they resume); the next update re-meshes the
         blocks whose alpha changed."""
-        with self._updating():
+        with self.update_lock.held():
             start = time.perf_counter()
             self._refresh_alpha(budget_s, until_frame=until_frame)
             self.times.add(alpha=time.perf_counter() - start)
@@ -420,8 +437,8 @@ class SenFuNet:
         """The fused (filtered) mesh of every block, as `update` sends it, with alpha as it is now
         (nothing re-evaluated), and the archived meshes of evicted blocks: a snapshot for a
         subscriber that joins late."""
-        with self._updating():
-            with self._data_lock:
+        with self.update_lock.held():
+            with self.data_lock:
                 slots = np.arange(self.grid.n_blocks)
                 coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
             live = self._block_meshes(slots, coords)
@@ -435,14 +452,14 @@ class SenFuNet:
         others cover the blocks in memory. `then_reset`: for a caller done with the map (replay's
         last mesh), `reset` once every block is meshed, so that the map's memory is free before the
         weld, extraction's peak."""
-        self._check_which(which)
-        with self._updating():
+        self.config.check_mesh_name(which)
+        with self.update_lock.held():
             if which == FUSED:
                 self._refresh_alpha()
                 self.alpha.release_buffers()
                 release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise
             live_with_faces = []
-            with self._data_lock:  # one consistent state of the whole map
+            with self.data_lock:  # one consistent state of the whole map
                 if then_reset:  # the channels this mesh does not read go first (the mesh's peak comes on top)
                     self.grid.release_channels(set(self.grid.pools) - set(self.mesher.channels(which)))
                 slots = np.arange(self.grid.n_blocks)
@@ -469,11 +486,11 @@ class SenFuNet:
     @torch.inference_mode()
     def voxel_values(self, which: str = FUSED, filtered: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Centres (N x 3, metres) and TSDF values (N) of the observed voxels of `which`."""
-        self._check_which(which)
-        with self._updating():
+        self.config.check_mesh_name(which)
+        with self.update_lock.held():
             if which == FUSED:
                 self._refresh_alpha()
-            with self._data_lock:
+            with self.data_lock:
                 slots = torch.arange(self.grid.n_blocks)
                 blocks = self.mesher.whole_blocks(slots, self.mesher.channels(which))
                 tsdf, observed = self.mesher.values(blocks, which, filtered)
@@ -486,10 +503,10 @@ class SenFuNet:
         weight counter. With max_abs_tsdf_m, only voxels whose unfiltered fused |TSDF| is at most
         that. Without refresh_alpha, alpha is as the last updates left it (voxels the net has not
         judged yet are left out)."""
-        with self._updating():
+        with self.update_lock.held():
             if refresh_alpha:
                 self._refresh_alpha()
-            with self._data_lock:
+            with self.data_lock:
                 slots = torch.arange(self.grid.n_blocks)
                 blocks = self.mesher.whole_blocks(slots, self.mesher.channels(FUSED))
                 centres = self.grid.voxel_centres(slots, self.config.voxel_size_m)
@@ -526,102 +543,28 @@ class SenFuNet:
 
     def networks_changed(self) -> None:
         """The networks' weights were changed in place: the next update re-evaluates alpha everywhere."""
-        with self._data_lock:
+        with self.data_lock:
             self.store.stale[: self.grid.n_blocks] = 2
 
     def reset(self) -> None:
         """Forget everything fused; the next update reports `cleared`."""
-        with self._updating(), self._data_lock:
+        with self.update_lock.held(), self.data_lock:
             self.store.clear()
             self.bound.clear()
             self.frames_integrated = {name: 0 for name in self.config.sensors}
-            self._reset_state()
+            self._meshed = np.zeros(0, np.int64)
             self._cleared = True
 
-    def save(self, path: str | Path) -> None:
-        """The whole engine state (config, grids, networks) in one file, written atomically."""
-        with self._updating():
-            self._refresh_alpha()
-            with self._data_lock:
-                state = {
-                    "format": "senfunet-engine-1",
-                    "config": asdict(self.config),
-                    "grid": self.grid.state_dict(),
-                    "feature_nets": [net.state_dict() for net in self.feature_nets],
-                    "weighting_net": self.weighting_net.state_dict(),
-                    "frames_integrated": dict(self.frames_integrated),
-                    "archive": {k: torch.from_numpy(np.ascontiguousarray(v))
-                                for k, v in self.archive.state_dict().items()},
-                }
-                if self.grid.spill is not None:
-                    state["spill"] = {k: torch.from_numpy(v) for k, v in self.grid.spill.state_dict().items()}
-        with atomic_file(path) as file:
-            torch.save(state, file)
-
-    @classmethod
-    def load(cls, path: str | Path, device: str | None = None, *,
-             worker_setup: Callable[[], object] | None = None) -> SenFuNet:
-        """An engine with the state `save` wrote; the next update re-sends the whole mesh.
-        worker_setup: as for the constructor."""
-        path = Path(path)
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-            if state.get("format") != "senfunet-engine-1":
-                raise InputError(f"{path} is not a SenFuNet engine state")
-            missing = [key for key in ("config", "grid", "feature_nets", "weighting_net", "frames_integrated")
-                       if key not in state]
-            if missing:
-                raise InputError(f"{path} is an incomplete engine state (no {', '.join(missing)}); save the map again")
-        except InputError:
-            raise
-        except Exception as err:
-            raise InputError(f"cannot read engine state {path}: {err}") from err
-        known = {f.name for f in fields(EngineConfig)}
-        config_values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
-                                         for k, v in state["config"].items() if k in known}
-        config = EngineConfig(**config_values)
-        if device is not None:
-            config = replace(config, device=device)
-        engine = cls(config, weights=None, worker_setup=worker_setup)
-        for net, net_state in zip(engine.feature_nets, state["feature_nets"]):
-            net.load_state_dict(net_state)
-        engine.weighting_net.load_state_dict(state["weighting_net"])
-        engine.weights_source = f"{path} (saved state)"
-        grid_state, spill_loads = _grid_state_for(engine.grid, path, state)
-        engine.grid.load_state_dict(grid_state)
-        drifted = np.flatnonzero(_drifted_blocks(grid_state))  # slots follow the saved order
-        engine.store.alpha_pending[drifted] = True
-        engine.store.reach_renewed[drifted] = REACH_ALL
-        if spill_loads:
-            if engine.grid.spill is None:
-                engine.grid.spill = BlockSpill()
-            engine.grid.spill.load_state_dict({k: v.numpy() for k, v in state["spill"].items()})
-        engine.frames_integrated.update(state["frames_integrated"])
-        if "archive" in state:
-            engine.archive.load_state_dict({k: v.numpy() for k, v in state["archive"].items()})
-            engine.bound.newly_archived = [engine.archive.meshes()]  # re-sent with the whole mesh
-        engine.store.grow_flags()
-        engine.store.evaluated[: engine.grid.n_blocks] = True  # alpha is part of the saved state
-        engine.store.mesh_pending[: engine.grid.n_blocks] = True
-        return engine
-
-    def try_stats(self) -> dict | None:
-        """`stats()`, or None at once while an update, extraction or save holds the map (a status
-        publisher keeps what it had rather than wait)."""
-        if not self._update_lock.acquire(blocking=False):
-            return None
-        try:
-            return self.stats()
-        finally:
-            self._update_lock.release()
-
-    def stats(self) -> dict:
+    def stats(self, *, wait: bool = True) -> dict | None:
         """Map size and memory, and how much of the meshed surface has its alpha: judged at least
         once (evaluated, or found to hold no voxel alpha matters for; else its mesh averages the
-        sensors, see fusion), and up to date (not stale)."""
+        sensors, see fusion), and up to date (not stale). wait=False: None at once while an update,
+        extraction or save holds the map (a status publisher keeps what it had rather than wait)."""
         n = len(self.config.sensors)
-        with self._updating():
-            with self._data_lock:  # only the flags: integration waits for this lock
+        with self.update_lock.held(wait=wait) as held:
+            if not held:
+                return None
+            with self.data_lock:  # only the flags: integration waits for this lock
                 nbytes = self.store.nbytes()
                 meshed = self.grid.lookup_keys(torch.from_numpy(self._meshed)).numpy()
                 meshed = meshed[meshed >= 0]
@@ -651,32 +594,6 @@ class SenFuNet:
                 "oldest_unjudged_change_s": float(np.nanmax(waiting_s, initial=0.0))}
 
     # -- internals -------------------------------------------------------------------------------
-    def _sensor_index(self, sensor: str) -> int:
-        try:
-            return self.config.sensors.index(sensor)
-        except ValueError:
-            raise InputError(f"unknown sensor '{sensor}'; configured sensors: {list(self.config.sensors)}") from None
-
-    def _check_which(self, which: str) -> None:
-        if which not in (FUSED, TSDF_FUSION, *self.config.sensors):
-            raise InputError(f"unknown mesh '{which}'; choose {FUSED}, {TSDF_FUSION} "
-                             f"or one of {list(self.config.sensors)}")
-        if which == TSDF_FUSION and not self.config.tsdf_fusion:
-            raise InputError("this engine keeps no TSDF Fusion baseline; create it with EngineConfig(tsdf_fusion=True)")
-
-    def _reset_state(self) -> None:
-        """The engine's own state beside the store (call with both locks held, or from __init__)."""
-        self.store.clear_flags()
-        self._meshed = np.zeros(0, np.int64)
-        self._cleared = False
-
-    def _pixel_features(self, s: int, depth_m: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:
-        """(H*W) x 5 features of one frame's pixels (in the feature worker thread)."""
-        start = time.perf_counter()
-        features = networks.pixel_feature_rows(self.feature_nets[s], depth_m, rgb)
-        self.times.add(feature_net=time.perf_counter() - start)
-        return features
-
     def _refresh_alpha(self, budget_s: float | None = None, *, until_frame: bool = False) -> None:
         """`AlphaScheduler.refresh` with this engine's eviction points; with `until_frame`, until a
         frame is integrated."""
@@ -689,34 +606,6 @@ class SenFuNet:
         self.counters["alpha_flops"] = self.alpha.flops
         self.counters["alpha_backlog_blocks"] = refresh.backlog
 
-    def _wait_for_eviction(self) -> None:
-        """Integration outgrew the hard bound (updates come too rarely to keep the bound): evict now
-        or, while an update runs, wait until it has evicted at its next safe point, between two
-        batches (not for the whole update, which can take a second). Whoever ends an eviction or an
-        update notifies `_eviction_done`; the waiter holds its lock from the failed try to the wait,
-        so no notification falls in between."""
-        with self._eviction_done:
-            while self.bound.over_hard_bound():
-                if self._update_lock.acquire(blocking=False):
-                    try:
-                        self._evict()
-                    finally:
-                        self._update_lock.release()
-                else:
-                    self._eviction_done.wait()
-
-    def _notify_eviction_waiters(self) -> None:
-        with self._eviction_done:
-            self._eviction_done.notify_all()
-
-    @contextlib.contextmanager
-    def _updating(self) -> Iterator[None]:
-        """Hold the update lock (one update, extraction or save at a time); on leaving, wake an
-        integration waiting for an eviction (it may now evict itself)."""
-        with self._update_lock:
-            yield
-        self._notify_eviction_waiters()
-
     def _evict(self) -> Eviction | None:
         """`MapBound.evict` (call with the update lock held); the evicted blocks are no longer shown
         as live meshes (the archive shows them), and an integration waiting for it goes on."""
@@ -725,7 +614,7 @@ class SenFuNet:
             self.counters["evicted_blocks"] = self.bound.evicted_blocks
             self.counters["evictions"] = self.bound.evictions
             self._meshed = np.setdiff1d(self._meshed, eviction.dropped_keys)
-            self._notify_eviction_waiters()
+            self.update_lock.evicted()
         return eviction
 
     def _block_meshes(self, slots: np.ndarray, coords: np.ndarray, *, threads: int = 1) -> BlockMeshes:
@@ -756,42 +645,3 @@ class SenFuNet:
             gone = np.isin(block_keys(torch.from_numpy(meshes.keys)).numpy(), np.concatenate(evicted))
             meshes = meshes.select(np.flatnonzero(~gone))
         return meshes
-
-
-def _grid_state_for(grid: BlockGrid, path: Path, state: dict) -> tuple[dict, bool]:
-    """The grid state of a saved map in this version's layout, and whether its spill can be loaded
-    as it is. Maps saved by earlier versions hold alpha as float16 values (converted here) and a
-    per-voxel drift channel (`_drifted_blocks`); other feature packings convert in `BlockGrid.load_state_dict`.
-    A spill written with another row layout cannot be read block by block later: its blocks come back
-    into memory here, converted with the others (the map bound evicts them again)."""
-    grid_state = dict(state["grid"])
-    saved = {name[len("pool."):]: pool for name, pool in grid_state.items() if name.startswith("pool.")}
-    saved_layout = [(name, int(np.prod(pool.shape[1:])) * pool.element_size()) for name, pool in saved.items()]
-    layout = [(name, pool[0].numel() * pool.element_size()) for name, pool in grid.pools.items()]
-    spill = {k: v.numpy() for k, v in state["spill"].items()} if "spill" in state else None
-    spill_loads = spill is not None and len(spill["keys"]) > 0 and saved_layout == layout
-    if spill is not None and len(spill["keys"]) and not spill_loads:
-        keys, rows = spilled_rows(spill)
-        sizes = [size for _, size in saved_layout]
-        if rows.shape[1] != sum(sizes):
-            raise InputError(f"{path}: its spilled blocks hold {rows.shape[1]} bytes each where its channels "
-                             f"need {sum(sizes)}: the file is damaged; replay the recording to rebuild the map")
-        columns = np.split(rows, np.cumsum(sizes)[:-1], axis=1)
-        for (name, pool), column in zip(saved.items(), columns):
-            back = torch.from_numpy(column.copy()).view(pool.dtype).reshape(len(keys), *pool.shape[1:])
-            grid_state[f"pool.{name}"] = torch.cat([pool, back])
-        grid_state["coords"] = torch.cat([grid_state["coords"], keys_to_coords(torch.from_numpy(keys))])
-        log.info("%s: %d blocks it had spilled to disk were saved in an earlier layout: loaded into memory "
-                 "(past the map bound they go back to disk at the next update)", path, len(keys))
-    if grid_state["pool.alpha"].dtype != torch.uint8:
-        grid_state["pool.alpha"] = torch.from_numpy(encode_alpha(grid_state["pool.alpha"].float().numpy()))
-    return grid_state, spill_loads
-
-
-def _drifted_blocks(grid_state: dict) -> np.ndarray:
-    """Which blocks of a saved grid state (from a version that kept a per-voxel drift channel) had
-    inputs that changed since alpha was last scheduled there (bool per block; none without it)."""
-    drift = grid_state.get("pool.drift")
-    if drift is None:
-        return np.zeros(len(grid_state["coords"]), bool)
-    return (drift.reshape(len(drift), -1) != 0).any(dim=1).numpy()

@@ -193,7 +193,9 @@ class Pipeline:
     def save_map(self, path: str | Path) -> Path:
         """The whole engine state (grids, networks, config) in one file, mode 0644."""
         path = Path(path).expanduser()
-        self.engine.save(path)  # thread-safe, as frames keep being integrated (see save_meshes)
+        from senfunet_core.map_file import save_map
+
+        save_map(self.engine, path)  # thread-safe, as frames keep being integrated (see save_meshes)
         os.chmod(path, FILE_MODE)
         return path
 
@@ -203,13 +205,13 @@ class Pipeline:
         queued frames go (they belong to the old map's timeline). `configure` gets the new engine
         before it replaces the old (the caller's run-time settings: no frame is integrated with the
         file's). Returns the new engine."""
-        from senfunet_core.engine import SenFuNet
+        from senfunet_core.map_file import load_map
 
         path = Path(path).expanduser()
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such map file; set parameter map_file or call ~/save_map first")
         # its alpha threads start as the old engine's did (the node's: at its mesh thread's priority)
-        engine = SenFuNet.load(path, device=device, worker_setup=self.engine.alpha.worker_setup)
+        engine = load_map(path, device=device, worker_setup=self.engine.alpha.worker_setup)
         if configure is not None:
             configure(engine)
         with self.lock:

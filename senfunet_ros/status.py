@@ -197,7 +197,7 @@ class StatusReport:
         now = time.monotonic()
         if now - self._engine_stats_at[0] >= ENGINE_STATS_PERIOD_S:
             try:
-                stats = self.pipeline.engine.try_stats()
+                stats = self.pipeline.engine.stats(wait=False)
                 if stats is not None:  # else a save or extraction holds the map: the last ones, tried again next time
                     self._engine_stats_at = (now, stats)
             except Exception as err:  # statistics never stop the status

@@ -22,6 +22,7 @@ from senfunet_core.fusion import fuse
 from senfunet_core.grid import (ALPHA_UNKNOWN, BLOCK, block_keys, decode_alpha, decode_features,
                                 decode_saved_features, encode_alpha, encode_features)
 from senfunet_core.mesher import Mesh, weld
+from senfunet_core.map_file import load_map, save_map
 from senfunet_core.spill import spilled_rows
 
 VOXEL = 0.01
@@ -400,8 +401,8 @@ def test_running_average_and_weight_clip():
 
 def test_save_and_load_give_identical_meshes(sphere_engine, tmp_path):
     path = tmp_path / "state.pt"
-    sphere_engine.save(path)
-    loaded = SenFuNet.load(path)
+    save_map(sphere_engine, path)
+    loaded = load_map(path)
     for which in ("fused", "tof", "tsdf_fusion"):
         a, b = sphere_engine.extract_mesh(which), loaded.extract_mesh(which)
         np.testing.assert_array_equal(a.vertices, b.vertices)
@@ -415,11 +416,11 @@ def test_save_and_load_give_identical_meshes(sphere_engine, tmp_path):
     np.testing.assert_array_equal(last.faces, sphere_engine.extract_mesh("fused").faces)
     assert loaded.grid.n_blocks == 0 and loaded.extract_mesh("fused").n_faces == 0
     with pytest.raises(InputError, match="cannot read"):
-        SenFuNet.load(tmp_path / "missing.pt")
+        load_map(tmp_path / "missing.pt")
     partial = {k: v for k, v in torch.load(path, weights_only=True).items() if k != "feature_nets"}
     torch.save(partial, tmp_path / "partial.pt")
     with pytest.raises(InputError, match="incomplete engine state .no feature_nets"):
-        SenFuNet.load(tmp_path / "partial.pt")
+        load_map(tmp_path / "partial.pt")
 
 
 def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_engine, tmp_path):
@@ -435,8 +436,8 @@ def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_eng
     # coordinates, key and up to 4 hash-table entries
     assert grid.bytes_per_block() == 512 * (2 * 6 + 1 + 2 * 4) + 3 * 8 + 8 + 4 * 16
     path = tmp_path / "state.pt"
-    sphere_engine.save(path)
-    loaded = SenFuNet.load(path)
+    save_map(sphere_engine, path)
+    loaded = load_map(path)
     assert loaded.grid.n_blocks == n
     for name, pool in grid.pools.items():  # bit for bit (alpha's NaN where never evaluated included)
         assert torch.equal(pool[:n].view(torch.int8), loaded.grid.pools[name][:n].view(torch.int8)), name
@@ -449,7 +450,7 @@ def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_eng
         state["grid"][f"pool.{name}"] = half
     old_features = tmp_path / "float16_features_state.pt"
     torch.save(state, old_features)
-    from_half = SenFuNet.load(old_features)
+    from_half = load_map(old_features)
     for name in sorted(features):
         got = decode_features(from_half.grid.pools[name][:n])
         want = state["grid"][f"pool.{name}"].float()
@@ -470,7 +471,7 @@ def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_eng
             state["grid"][f"pool.{name}"] = torch.cat([learned, depth], dim=-1)
         earlier = tmp_path / f"int8_features_state_{depth_bytes}.pt"
         torch.save(state, earlier)
-        from_earlier = SenFuNet.load(earlier)
+        from_earlier = load_map(earlier)
         for name in sorted(features):
             got = decode_features(from_earlier.grid.pools[name][:n])
             assert torch.equal(got[..., :4], decode_features(grid.pools[name][:n])[..., :4]), name
@@ -492,7 +493,7 @@ def test_compact_channels_round_trip_and_float32_map_files_still_load(sphere_eng
     assert 0 < int(drifted.any(dim=1).sum()) < n
     old = tmp_path / "float32_state.pt"
     torch.save(state, old)
-    from_old = SenFuNet.load(old)
+    from_old = load_map(old)
     for name, values in wide.items():
         got = from_old.grid.pools[name][:n]
         if name == "alpha":
@@ -708,8 +709,8 @@ def test_max_blocks_evicts_the_blocks_farthest_from_the_camera_and_keeps_their_m
     gap, _ = cKDTree(centroids(kept_mesh)).query(centroids(full))  # and no seam along the eviction front
     assert float(gap.max()) < 1e-5
     assert bounded.stats()["archived_blocks"] == len(archived)
-    bounded.save(tmp_path / "map.pt")  # a saved map keeps the archive
-    loaded = SenFuNet.load(tmp_path / "map.pt")
+    save_map(bounded, tmp_path / "map.pt")  # a saved map keeps the archive
+    loaded = load_map(tmp_path / "map.pt")
     assert loaded.extract_mesh("fused").n_faces == kept_mesh.n_faces
     assert set(loaded.block_meshes().as_dict()) == set(bounded.block_meshes().as_dict())
 
@@ -1055,7 +1056,7 @@ def test_alpha_is_written_when_the_data_lock_is_free_not_waited_for_per_batch(mo
 
     def hold_the_lock() -> None:
         take.wait(timeout=30)
-        with engine._data_lock:
+        with engine.data_lock:
             holding.set()
             release.wait(timeout=10)  # only a failing engine lets this time out
             holding.clear()
@@ -1232,12 +1233,12 @@ def test_evicted_blocks_come_back_from_disk_when_seen_again(tmp_path, min_new_bl
     spilled = bounded.stats()["spilled_blocks"]
     assert spilled > 50
     path = tmp_path / "map.pt"
-    bounded.save(path)
+    save_map(bounded, path)
     earlier = tmp_path / "map_float16_depth.pt"  # as saved when the depth feature was float16 bits
     torch.save(with_float16_depth_packing(torch.load(path, weights_only=True), bounded.grid), earlier)
-    from_earlier = SenFuNet.load(earlier)  # its spilled blocks come back into memory, converted
+    from_earlier = load_map(earlier)  # its spilled blocks come back into memory, converted
     assert from_earlier.grid.n_blocks == bounded.grid.n_blocks + spilled and not len(from_earlier.grid.spill or [])
-    for engine in (bounded, SenFuNet.load(path), from_earlier):
+    for engine in (bounded, load_map(path), from_earlier):
         integrate(engine, back_views)  # ... and come back
         stats = engine.stats()
         assert stats["restored_blocks"] > (0.5 * spilled if engine is not from_earlier else -1)
@@ -1305,9 +1306,9 @@ def test_stats_counts_the_voxels_without_holding_the_data_lock():
 
     def observed_voxels(channels: list[str]) -> int:
         def try_lock() -> None:  # another thread, as the integrating one
-            got = engine._data_lock.acquire(timeout=2.0)
+            got = engine.data_lock.acquire(timeout=2.0)
             if got:
-                engine._data_lock.release()
+                engine.data_lock.release()
             lock_free_while_counting.append(got)
 
         other = threading.Thread(target=try_lock)

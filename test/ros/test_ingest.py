@@ -620,7 +620,7 @@ def test_frames_are_integrated_and_stats_answered_while_meshes_are_saved(tmp_pat
     extract_mesh = engine.extract_mesh
 
     def held_extraction(*args, **kwargs):  # the save holds the map while this waits
-        with engine._update_lock:
+        with engine.update_lock.held():
             saving.set()
             release.wait(30)
         return extract_mesh(*args, **kwargs)
@@ -638,11 +638,11 @@ def test_frames_are_integrated_and_stats_answered_while_meshes_are_saved(tmp_pat
         feeder.start()
         feeder.join(30)
         assert drained == [1]  # integrated during the save
-        assert engine.try_stats() is None  # the map is held: no waiting
+        assert engine.stats(wait=False) is None  # the map is held: no waiting
     finally:
         release.set()
         saver.join(60)
-    assert (tmp_path / "mesh.ply").is_file() and engine.try_stats()["frames_integrated"]["tof"] == 1
+    assert (tmp_path / "mesh.ply").is_file() and engine.stats(wait=False)["frames_integrated"]["tof"] == 1
 
 
 def test_a_pause_of_every_stream_keeps_what_waits_and_old_messages_in_flight_after_a_clock_restart_are_off() -> None:

@@ -277,8 +277,9 @@ def test_save_map_load_map_round_trip_and_file_modes(ros, tmp_path: Path) -> Non
         after = run.node.engine.extract_mesh("fused")
         assert after.n_faces == before.n_faces and np.array_equal(after.vertices, before.vertices)
         from senfunet_core.engine import EngineConfig, SenFuNet
+        from senfunet_core.map_file import save_map
 
-        SenFuNet(EngineConfig(voxel_size_m=0.01, band_m=0.04), weights=None).save(tmp_path / "other.pt")
+        save_map(SenFuNet(EngineConfig(voxel_size_m=0.01, band_m=0.04), weights=None), tmp_path / "other.pt")
         (res,) = _set(run, map_file=str(tmp_path / "other.pt"))  # a map of another grid
         assert res.successful
         r = run.call("load_map")

@@ -1,0 +1,136 @@
+"""A map on disk: the whole engine state (config, grids, networks, the archived meshes of evicted
+blocks and the blocks spilled to disk) in one file, written atomically, and read back, whatever
+earlier version of the format wrote it.
+
+    save_map(engine, "map.pt")
+    engine = load_map("map.pt")       # the next update re-sends the whole mesh
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import asdict, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .engine import EngineConfig, SenFuNet
+from .errors import InputError
+from .files import atomic_file
+from .grid import BlockGrid, encode_alpha, keys_to_coords
+from .integrator import REACH_ALL
+from .spill import BlockSpill, spilled_rows
+
+__all__ = ["save_map", "load_map"]
+
+log = logging.getLogger("senfunet.map_file")
+
+
+def save_map(engine: SenFuNet, path: str | Path) -> None:
+    """The whole engine state (config, grids, networks, archive, spill) in one file, written
+    atomically; thread-safe, as frames keep being integrated (alpha is brought up to date first)."""
+    with engine.update_lock.held():
+        engine.refresh_alpha()
+        with engine.data_lock:
+            state = {
+                "format": "senfunet-engine-1",
+                "config": asdict(engine.config),
+                "grid": engine.grid.state_dict(),
+                "feature_nets": [net.state_dict() for net in engine.feature_nets],
+                "weighting_net": engine.weighting_net.state_dict(),
+                "frames_integrated": dict(engine.frames_integrated),
+                "archive": {k: torch.from_numpy(np.ascontiguousarray(v))
+                            for k, v in engine.archive.state_dict().items()},
+            }
+            if engine.grid.spill is not None:
+                state["spill"] = {k: torch.from_numpy(v) for k, v in engine.grid.spill.state_dict().items()}
+    with atomic_file(path) as file:
+        torch.save(state, file)
+
+
+def load_map(path: str | Path, device: str | None = None, *,
+             worker_setup: Callable[[], object] | None = None) -> SenFuNet:
+    """An engine with the state `save_map` wrote; the next update re-sends the whole mesh.
+    worker_setup: as for `SenFuNet`."""
+    path = Path(path)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        if state.get("format") != "senfunet-engine-1":
+            raise InputError(f"{path} is not a SenFuNet engine state")
+        missing = [key for key in ("config", "grid", "feature_nets", "weighting_net", "frames_integrated")
+                   if key not in state]
+        if missing:
+            raise InputError(f"{path} is an incomplete engine state (no {', '.join(missing)}); save the map again")
+    except InputError:
+        raise
+    except Exception as err:
+        raise InputError(f"cannot read engine state {path}: {err}") from err
+    known = {f.name for f in fields(EngineConfig)}
+    config_values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
+                                     for k, v in state["config"].items() if k in known}
+    config = EngineConfig(**config_values)
+    if device is not None:
+        config = replace(config, device=device)
+    engine = SenFuNet(config, weights=None, worker_setup=worker_setup)
+    for net, net_state in zip(engine.feature_nets, state["feature_nets"]):
+        net.load_state_dict(net_state)
+    engine.weighting_net.load_state_dict(state["weighting_net"])
+    engine.weights_source = f"{path} (saved state)"
+    grid_state, spill_loads = _grid_state_for(engine.grid, path, state)
+    engine.grid.load_state_dict(grid_state)
+    drifted = np.flatnonzero(_drifted_blocks(grid_state))  # slots follow the saved order
+    engine.store.alpha_pending[drifted] = True
+    engine.store.reach_renewed[drifted] = REACH_ALL
+    if spill_loads:
+        if engine.grid.spill is None:
+            engine.grid.spill = BlockSpill()
+        engine.grid.spill.load_state_dict({k: v.numpy() for k, v in state["spill"].items()})
+    engine.frames_integrated.update(state["frames_integrated"])
+    if "archive" in state:
+        engine.archive.load_state_dict({k: v.numpy() for k, v in state["archive"].items()})
+        engine.bound.newly_archived = [engine.archive.meshes()]  # re-sent with the whole mesh
+    engine.store.grow_flags()
+    engine.store.evaluated[: engine.grid.n_blocks] = True  # alpha is part of the saved state
+    engine.store.mesh_pending[: engine.grid.n_blocks] = True
+    return engine
+
+
+def _grid_state_for(grid: BlockGrid, path: Path, state: dict) -> tuple[dict, bool]:
+    """The grid state of a saved map in this version's layout, and whether its spill can be loaded
+    as it is. Maps saved by earlier versions hold alpha as float16 values (converted here) and a
+    per-voxel drift channel (`_drifted_blocks`); other feature packings convert in `BlockGrid.load_state_dict`.
+    A spill written with another row layout cannot be read block by block later: its blocks come back
+    into memory here, converted with the others (the map bound evicts them again)."""
+    grid_state = dict(state["grid"])
+    saved = {name[len("pool."):]: pool for name, pool in grid_state.items() if name.startswith("pool.")}
+    saved_layout = [(name, int(np.prod(pool.shape[1:])) * pool.element_size()) for name, pool in saved.items()]
+    layout = [(name, pool[0].numel() * pool.element_size()) for name, pool in grid.pools.items()]
+    spill = {k: v.numpy() for k, v in state["spill"].items()} if "spill" in state else None
+    spill_loads = spill is not None and len(spill["keys"]) > 0 and saved_layout == layout
+    if spill is not None and len(spill["keys"]) and not spill_loads:
+        keys, rows = spilled_rows(spill)
+        sizes = [size for _, size in saved_layout]
+        if rows.shape[1] != sum(sizes):
+            raise InputError(f"{path}: its spilled blocks hold {rows.shape[1]} bytes each where its channels "
+                             f"need {sum(sizes)}: the file is damaged; replay the recording to rebuild the map")
+        columns = np.split(rows, np.cumsum(sizes)[:-1], axis=1)
+        for (name, pool), column in zip(saved.items(), columns):
+            back = torch.from_numpy(column.copy()).view(pool.dtype).reshape(len(keys), *pool.shape[1:])
+            grid_state[f"pool.{name}"] = torch.cat([pool, back])
+        grid_state["coords"] = torch.cat([grid_state["coords"], keys_to_coords(torch.from_numpy(keys))])
+        log.info("%s: %d blocks it had spilled to disk were saved in an earlier layout: loaded into memory "
+                 "(past the map bound they go back to disk at the next update)", path, len(keys))
+    if grid_state["pool.alpha"].dtype != torch.uint8:
+        grid_state["pool.alpha"] = torch.from_numpy(encode_alpha(grid_state["pool.alpha"].float().numpy()))
+    return grid_state, spill_loads
+
+
+def _drifted_blocks(grid_state: dict) -> np.ndarray:
+    """Which blocks of a saved grid state (from a version that kept a per-voxel drift channel) had
+    inputs that changed since alpha was last scheduled there (bool per block; none without it)."""
+    drift = grid_state.get("pool.drift")
+    if drift is None:
+        return np.zeros(len(grid_state["coords"]), bool)
+    return (drift.reshape(len(drift), -1) != 0).any(dim=1).numpy()
