@@ -172,7 +172,12 @@ def rgb_from_image(msg: Any) -> np.ndarray:
 
 
 def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
-    """sensor_msgs/CameraInfo -> (K 3x3 float64, (width, height))."""
+    """sensor_msgs/CameraInfo -> (K 3x3 float64, (width, height)) of the images it describes.
+
+    K, width and height are the calibrated (full, unbinned) camera's; a region of interest (`roi`,
+    in full-resolution pixels; all zero = the whole image) and binning (`binning_x`, `binning_y`;
+    0 = 1), as image_proc's crop/decimate sets them, make the published image smaller: the result is
+    the K and size of that image (a binned pixel's centre is the centre of the pixels it combines)."""
     k = np.asarray(msg.k, dtype=np.float64)
     if k.size != 9:
         raise ValueError(f"camera_info K has {k.size} entries, expected 9 (row-major 3x3)")
@@ -183,6 +188,24 @@ def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
         raise ValueError(f"camera_info K has no positive finite focal lengths (fx={K[0, 0]}, fy={K[1, 1]}); "
                          "calibrate the camera")
+    roi = getattr(msg, "roi", None)
+    x0, y0, roi_width, roi_height = (int(getattr(roi, name, 0)) for name in ("x_offset", "y_offset", "width",
+                                                                                "height"))
+    if roi_width == 0 and roi_height == 0:  # the whole image (from its offset, as image_geometry reads it)
+        roi_width, roi_height = width - x0, height - y0
+    if roi_width <= 0 or roi_height <= 0 or x0 + roi_width > width or y0 + roi_height > height:
+        raise ValueError(f"camera_info roi ({roi_width}x{roi_height} at {x0},{y0}) does not lie within the "
+                         f"calibrated {width}x{height} image; fix the driver's roi")
+    bin_x, bin_y = (max(1, int(getattr(msg, name, 0))) for name in ("binning_x", "binning_y"))
+    if (x0, y0, roi_width, roi_height, bin_x, bin_y) != (0, 0, width, height, 1, 1):
+        K[0, :2] /= bin_x
+        K[1, 1] /= bin_y
+        K[0, 2] = (K[0, 2] - x0 + 0.5) / bin_x - 0.5
+        K[1, 2] = (K[1, 2] - y0 + 0.5) / bin_y - 0.5
+        width, height = roi_width // bin_x, roi_height // bin_y
+        if width == 0 or height == 0:
+            raise ValueError(f"camera_info binning {bin_x}x{bin_y} leaves no pixel of its {roi_width}x{roi_height} "
+                             "roi; fix the driver's binning")
     return K, (width, height)
 
 

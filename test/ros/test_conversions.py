@@ -77,6 +77,29 @@ def test_camera_info() -> None:
         conv.intrinsics_from_camera_info(CameraInfo(width=640, height=480))  # all-zero K
 
 
+def test_camera_info_of_a_cropped_and_binned_image() -> None:
+    """K and size of the image a camera_info with roi and binning describes (image_proc's crop and
+    decimate keep the full camera's K and set those): a point lands on the pixel of the smaller
+    image that covers the full-resolution pixels it lands on."""
+    from sensor_msgs.msg import RegionOfInterest
+
+    full = CameraInfo(width=640, height=480, k=[500.0, 0, 319.5, 0, 510, 239.5, 0, 0, 1])
+    cropped = CameraInfo(width=640, height=480, k=list(full.k), binning_x=2, binning_y=4,
+                         roi=RegionOfInterest(x_offset=100, y_offset=40, width=400, height=320))
+    K_full, _ = conv.intrinsics_from_camera_info(full)
+    K, size = conv.intrinsics_from_camera_info(cropped)
+    assert size == (200, 80)
+    for p in ([0.3, -0.2, 1.5], [-0.1, 0.15, 0.8]):
+        u, v = (K_full @ np.array(p))[:2] / p[2]
+        u2, v2 = (K @ np.array(p))[:2] / p[2]
+        assert u2 == pytest.approx((u - 100 + 0.5) / 2 - 0.5) and v2 == pytest.approx((v - 40 + 0.5) / 4 - 0.5)
+    binned = CameraInfo(width=640, height=480, k=list(full.k), binning_x=2, binning_y=2)  # roi all zero: whole
+    assert conv.intrinsics_from_camera_info(binned)[1] == (320, 240)
+    with pytest.raises(ValueError, match="roi"):
+        conv.intrinsics_from_camera_info(CameraInfo(width=640, height=480, k=list(full.k), roi=RegionOfInterest(
+            x_offset=600, y_offset=0, width=100, height=100)))
+
+
 def test_resize_keeps_projection() -> None:
     K = np.array([[128.0, 0, 127.5], [0, 128.0, 127.5], [0, 0, 1]])
     K2 = conv.scale_intrinsics(K, (256, 256), (128, 64))

@@ -415,6 +415,20 @@ def test_depth_of_one_sensor_added_by_two_threads_is_queued_in_stamp_order(monke
     assert ingest.queue_depths()["tof"] == 1
 
 
+def test_depth_of_a_binned_camera_info_is_taken_at_its_size() -> None:
+    from sensor_msgs.msg import RegionOfInterest
+
+    ingest = Ingest(IngestConfig(sensors=("tof",)))
+    info = CameraInfo(width=20, height=16, k=[10.0, 0, 9.5, 0, 10.0, 7.5, 0, 0, 1], binning_x=2, binning_y=2,
+                      roi=RegionOfInterest(x_offset=0, y_offset=0, width=0, height=0))
+    assert ingest.add_camera_info("tof", info) is None
+    ingest.add_pose("tof", pose_msg(0))
+    assert ingest.add_depth("tof", depth_msg(10 * MS)) is None  # 10 x 8: the binned size
+    ingest.add_pose("tof", pose_msg(20 * MS))
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.K[0, 0] == 5.0 and frame.K[0, 2] == pytest.approx(4.5) and frame.depth_m.shape == (8, 10)
+
+
 def test_unknown_sensor_is_a_value_error() -> None:
     with pytest.raises(ValueError, match="configured sensors"):
         make().add_depth("lidar", depth_msg(0))
