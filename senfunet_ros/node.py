@@ -356,13 +356,25 @@ class FusionNode(Node):
     # -- parameters at run time ------------------------------------------------------------------
 
     def _check_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        changes = {p.name: p.value for p in parameters if p.name in self.settings.values}
+        ours = [p for p in parameters if p.name in self.settings.values]
+        unset = [p.name for p in ours if p.type_ is Parameter.Type.NOT_SET]
+        if unset:  # `ros2 param delete`: rclpy would undeclare it for good
+            return self._refuse(parameters, f"parameter '{unset[0]}' cannot be deleted (unset); set a value instead")
+        changes = {p.name: p.value for p in ours}
         try:
             self._validated = P.validate(self.settings.values, changes) if changes else None
         except ValueError as err:
-            self._validated = None
-            return SetParametersResult(successful=False, reason=str(err))
+            return self._refuse(parameters, str(err))
         return SetParametersResult(successful=True)
+
+    def _refuse(self, parameters: list[Parameter], reason: str) -> SetParametersResult:
+        """A refused change; the descriptors' types, which rclpy set from the refused values already
+        (dynamic typing), go back to the parameters' own."""
+        self._validated = None
+        for p in parameters:
+            if self.has_parameter(p.name):
+                self.describe_parameter(p.name).type = self.get_parameter(p.name).type_.value
+        return SetParametersResult(successful=False, reason=reason)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         """Validated values (`_check_parameters`) into every part they concern."""

@@ -654,3 +654,30 @@ def test_a_reader_that_replaces_another_between_two_publications_gets_the_whole_
         if spinning.thread.is_alive():
             spinning.stop()
         run.close()
+
+
+def _set_values(run: Running, **values: ParameterValue) -> list[Any]:
+    """SetParameters with ParameterValues as given (any type, PARAMETER_NOT_SET too)."""
+    client = run.helper.create_client(SetParameters, f"{run.prefix}/set_parameters")
+    assert client.wait_for_service(timeout_sec=10.0)
+    request = SetParameters.Request(parameters=[ParameterMsg(name=n, value=v) for n, v in values.items()])
+    future = client.call_async(request)
+    wait_for(future.done, 10, "set_parameters")
+    return future.result().results
+
+
+def test_a_client_cannot_delete_a_parameter(ros, tmp_path: Path) -> None:
+    """`ros2 param delete` sends PARAMETER_NOT_SET: accepted, rclpy would undeclare the parameter for good
+    (never settable again) while the node used the string 'None' (files written into ./None)."""
+    run = Running("params_del", {**topic_params("params_del"), **SMALL}, tmp_path)
+    try:
+        for name in ("output_dir", "save_on_shutdown", "mesh_rate_hz"):
+            (r,) = _set_values(run, **{name: ParameterValue(type=ParameterType.PARAMETER_NOT_SET)})
+            assert not r.successful and name in r.reason and "delete" in r.reason
+            assert run.node.has_parameter(name)
+            assert run.node.describe_parameter(name).type == run.node.get_parameter(name).type_.value
+        assert run.node.settings.output_dir == str(tmp_path / "out")
+        (r,) = _set(run, output_dir=str(tmp_path / "other"))
+        assert r.successful and run.node.settings.output_dir == str(tmp_path / "other")
+    finally:
+        run.close()
