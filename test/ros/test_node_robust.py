@@ -681,3 +681,27 @@ def test_a_client_cannot_delete_a_parameter(ros, tmp_path: Path) -> None:
         assert r.successful and run.node.settings.output_dir == str(tmp_path / "other")
     finally:
         run.close()
+
+
+def test_parameters_keep_their_declared_types(ros, tmp_path: Path) -> None:
+    """A value of another type is refused (a bool for a rate, a number for a path); an integer for a
+    float parameter is taken as a float and the parameter stays a double for typed clients."""
+    run = Running("params_type", {**topic_params("params_type"), **SMALL}, tmp_path)
+    double = ParameterType.PARAMETER_DOUBLE
+    try:
+        (r,) = _set_values(run, mesh_rate_hz=ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=True))
+        assert not r.successful and "mesh_rate_hz" in r.reason
+        (r,) = _set_values(run, output_dir=ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=5))
+        assert not r.successful and "output_dir" in r.reason
+        (r,) = _set_values(run, save_on_shutdown=ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=7))
+        assert not r.successful and "save_on_shutdown" in r.reason
+        (r,) = _set(run, mesh_rate_hz="fast")
+        assert not r.successful
+        assert run.node.describe_parameter("mesh_rate_hz").type == double
+        (r,) = _set(run, mesh_rate_hz=4)
+        assert r.successful, r.reason
+        assert run.node.settings.mesh_rate_hz == 4.0
+        assert run.node.get_parameter("mesh_rate_hz").type_.value == double
+        assert run.node.describe_parameter("mesh_rate_hz").type == double
+    finally:
+        run.close()
