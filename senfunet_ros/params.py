@@ -295,6 +295,10 @@ def check(values: dict[str, Any]) -> None:
         from senfunet_ros.geometry import transform_from_tq
 
         transform_from_tq(extrinsic[:3], extrinsic[3:], f"parameter '{sensor}.T_body_camera'")
+    map_file = values["map_file"]
+    if not map_file.strip() or map_file.endswith(("/", os.sep)):
+        raise ValueError(f"parameter 'map_file' = {map_file!r} names no file; give a file name such as map.pt "
+                         "(relative: in output_dir)")
     if values["time_jump_s"] < values["pose_max_wait_s"]:
         raise ValueError(f"time_jump_s ({values['time_jump_s']} s) must be at least pose_max_wait_s "
                          f"({values['pose_max_wait_s']} s): poses that lag the images by up to pose_max_wait_s would "

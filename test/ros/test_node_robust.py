@@ -705,3 +705,13 @@ def test_parameters_keep_their_declared_types(ros, tmp_path: Path) -> None:
         assert run.node.describe_parameter("mesh_rate_hz").type == double
     finally:
         run.close()
+
+
+@pytest.mark.parametrize("map_file", ["", "  ", "maps/", "/tmp/"])
+def test_a_map_file_that_names_no_file_is_refused(map_file: str) -> None:
+    """'' resolved to output_dir itself: ~/save_map wrote the map as a file where the mesh folder goes,
+    and every ~/save_mesh after it failed with 'File exists'; 'maps/' wrote a file named maps."""
+    values = {name: default for name, (default, _) in P.expanded_defaults().items()}
+    with pytest.raises(ValueError, match="map_file"):
+        P.validate(values, {"map_file": map_file})
+    assert P.validate(values, {"map_file": "maps/room.pt"})["map_file"] == "maps/room.pt"
