@@ -37,15 +37,17 @@ class MapServices:
     def save_meshes(self, output_dir: str | Path | None = None) -> list[Path]:
         """Fused (filtered), per-sensor and TSDF Fusion meshes as PLY files; returns their paths."""
         s = self.settings()
-        saved = self.pipeline.save_meshes(output_dir or s.output_dir, sensors=s.sensor_names,
+        # absolute: the replies name the files for clients in other processes (other working directories)
+        out = Path(output_dir or s.output_dir).expanduser().absolute()
+        saved = self.pipeline.save_meshes(out, sensors=s.sensor_names,
                                           tsdf_fusion=self.pipeline.engine.config.tsdf_fusion)
         return [saved_mesh.path for saved_mesh in saved.values()]
 
     def map_path(self) -> Path:
-        """Parameter map_file; a relative path is in output_dir."""
+        """Parameter map_file; a relative path is in output_dir (absolute, as the replies name it)."""
         s = self.settings()
         path = Path(s.map_file).expanduser()
-        return path if path.is_absolute() else Path(s.output_dir).expanduser() / path
+        return (path if path.is_absolute() else Path(s.output_dir).expanduser() / path).absolute()
 
     def save_mesh(self, request: Any, response: Any) -> Any:
         return self._reply(response, self._save_mesh, "saving failed: {err}; check parameter output_dir")

@@ -715,3 +715,21 @@ def test_a_map_file_that_names_no_file_is_refused(map_file: str) -> None:
     with pytest.raises(ValueError, match="map_file"):
         P.validate(values, {"map_file": map_file})
     assert P.validate(values, {"map_file": "maps/room.pt"})["map_file"] == "maps/room.pt"
+
+
+def test_service_replies_name_absolute_paths(ros, tmp_path: Path, monkeypatch) -> None:
+    """A client in another process (another working directory) must find the files a reply names:
+    with the default, relative output_dir they were named relative to the node's working directory."""
+    import re
+
+    monkeypatch.chdir(tmp_path)
+    run = Running("abs_paths", {**topic_params("abs_paths"), **SMALL, "output_dir": "rel out"}, tmp_path)
+    try:
+        for service in ("save_mesh", "save_map", "load_map"):
+            r = run.call(service)
+            assert r.success, r.message
+            paths = re.findall(r"(?:wrote |loaded |, )(.+?\.(?:ply|pt))", r.message)
+            assert paths and all(Path(p).is_absolute() and Path(p).is_file() for p in paths), r.message
+            assert all(Path(p).parent == tmp_path / "rel out" for p in paths), r.message
+    finally:
+        run.close()
