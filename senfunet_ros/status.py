@@ -113,6 +113,14 @@ def _short(value: Any) -> str:
     return f"{value:.4g}" if isinstance(value, float) else str(value)
 
 
+def _flat(prefix: str, stats: dict[str, Any]) -> list[tuple[str, str]]:
+    """(key, text) of statistics; a dict (per sensor) gives one key per entry, so every value parses."""
+    out: list[tuple[str, str]] = []
+    for key, value in stats.items():
+        out += _flat(f"{prefix}{key}.", value) if isinstance(value, dict) else [(f"{prefix}{key}", _short(value))]
+    return out
+
+
 class StatusReport:
     """Builds the node's DiagnosticArray from the pipeline and the node's monitors (shared, read
     here): `health`, `timings` (stage -> an object with last_ms, mean_ms) and `latency` (with
@@ -174,7 +182,7 @@ class StatusReport:
         values += [KeyValue(key=f"engine.counters.{k}", value=str(v)) for k, v in counters_engine.items()]
         values += [KeyValue(key=f"engine.{k}_ms", value=f"{v * 1e3:.1f}")
                    for k, v in dict(getattr(engine, "timings_s", {})).items()]
-        values += [KeyValue(key=f"engine.stats.{k}", value=_short(v)) for k, v in self._engine_stats().items()]
+        values += [KeyValue(key=k, value=v) for k, v in _flat("engine.stats.", self._engine_stats())]
         msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name="senfunet: pipeline",
                                            message=f"{counters_engine.get('meshed_blocks', 0)} mesh blocks",
                                            hardware_id=self.hardware_id, values=values))

@@ -733,3 +733,24 @@ def test_service_replies_name_absolute_paths(ros, tmp_path: Path, monkeypatch) -
             assert all(Path(p).parent == tmp_path / "rel out" for p in paths), r.message
     finally:
         run.close()
+
+
+def test_diagnostics_values_of_engine_statistics_are_plain_numbers() -> None:
+    """A per-sensor engine statistic went out as a Python dict repr ("{'tof': 56, 'stereo': 74}"), which
+    no diagnostics reader parses; each sensor's number is a value of its own."""
+    from types import SimpleNamespace
+
+    from senfunet_ros.health import HealthMonitor
+    from senfunet_ros.node import LatencyStats
+    from senfunet_ros.status import StatusReport
+
+    engine = SimpleNamespace(counters={}, timings_s={},
+                             try_stats=lambda: {"frames_integrated": {"tof": 56, "stereo": 74}, "blocks": 5})
+    pipeline = SimpleNamespace(latest_stamp_ns=0, ingest=SimpleNamespace(counters=lambda: {}), time_jumps=0,
+                               frames_failed=0, frames_unfinished=0, engine=engine)
+    report = StatusReport(pipeline, HealthMonitor({}, window_s=1.0, stale_after_s=1.0), {}, LatencyStats(), topics={},
+                          hardware_id="/senfunet", warn=lambda key, text: None, logger=None)
+    (status,) = report.message("map").status
+    values = {kv.key: kv.value for kv in status.values}
+    assert values["engine.stats.frames_integrated.tof"] == "56" and values["engine.stats.blocks"] == "5"
+    assert "engine.stats.frames_integrated" not in values
