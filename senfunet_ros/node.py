@@ -286,7 +286,8 @@ class FusionNode(Node):
             self.create_service(Trigger, f"~/{name}", handler, callback_group=services_group)
         # 7. run-time parameter changes: checked first (a bad value is refused with the reason), then applied
         self._validated: dict[str, Any] | None = None
-        self.add_pre_set_parameters_callback(self._as_declared_types)
+        self.add_pre_set_parameters_callback(
+            lambda parameters: P.as_declared_types(parameters, P.param_table(self.settings.sensor_names)))
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         # Ctrl-C / SIGTERM shut the context down while timers may be mid-frame: say so to the pipeline,
@@ -358,35 +359,16 @@ class FusionNode(Node):
 
     def _check_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         ours = [p for p in parameters if p.name in self.settings.values]
-        unset = [p.name for p in ours if p.type_ is Parameter.Type.NOT_SET]
-        if unset:  # `ros2 param delete`: rclpy would undeclare it for good
-            return self._refuse(parameters, f"parameter '{unset[0]}' cannot be deleted (unset); set a value instead")
-        table = P.param_table(self.settings.sensor_names)
-        for p in ours:
-            declared = Parameter.Type.from_parameter_value(table[p.name].default)
-            if p.type_ is not declared:
-                return self._refuse(parameters, f"parameter '{p.name}' is a {declared.name.lower()}, "
-                                    f"not a {p.type_.name.lower()}")
-        changes = {p.name: p.value for p in ours}
-        try:
-            self._validated = P.validate(self.settings.values, changes) if changes else None
-        except ValueError as err:
-            return self._refuse(parameters, str(err))
-        return SetParametersResult(successful=True)
-
-    def _as_declared_types(self, parameters: list[Parameter]) -> list[Parameter]:
-        """An integer for a float parameter (`mesh_rate_hz: 4`) as a float, so that the parameter stays
-        a double for typed clients (rclpy's dynamic typing would make it an integer parameter)."""
-        table = P.param_table(self.settings.sensor_names)
-        return [Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
-                if p.type_ is Parameter.Type.INTEGER and p.name in table and isinstance(table[p.name].default, float)
-                else p for p in parameters]
-
-    def _refuse(self, parameters: list[Parameter], reason: str) -> SetParametersResult:
-        """A refused change; the descriptors' types, which rclpy set from the refused values already
-        (dynamic typing), go back to the parameters' own."""
+        reason = P.type_error(ours, P.param_table(self.settings.sensor_names))
+        if reason is None:
+            try:
+                changes = {p.name: p.value for p in ours}
+                self._validated = P.validate(self.settings.values, changes) if changes else None
+                return SetParametersResult(successful=True)
+            except ValueError as err:
+                reason = str(err)
         self._validated = None
-        for p in parameters:
+        for p in parameters:  # rclpy set the descriptors' types from the refused values already (dynamic typing)
             if self.has_parameter(p.name):
                 self.describe_parameter(p.name).type = self.get_parameter(p.name).type_.value
         return SetParametersResult(successful=False, reason=reason)

@@ -322,6 +322,39 @@ def validate(current: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]
     return values
 
 
+def as_declared_types(parameters: list[Any], table: dict[str, Param]) -> list[Any]:
+    """rclpy Parameters set at run time, with integers given for float parameters (`mesh_rate_hz: 4`,
+    `[0, 0, 0, 0, 0, 0, 1]`) as floats: rclpy's dynamic typing would otherwise make the parameter an
+    integer one for typed clients from then on."""
+    from rclpy.parameter import Parameter
+
+    out = []
+    for p in parameters:
+        default = table[p.name].default if p.name in table else None
+        if p.type_ is Parameter.Type.INTEGER and isinstance(default, float):
+            p = Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+        elif (p.type_ is Parameter.Type.INTEGER_ARRAY and isinstance(default, list) and default
+              and isinstance(default[0], float)):
+            p = Parameter(p.name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in p.value])
+        out.append(p)
+    return out
+
+
+def type_error(parameters: list[Any], table: dict[str, Param]) -> str | None:
+    """Why a run-time change of these rclpy Parameters (the node's own) is refused for its types: one
+    is unset (`ros2 param delete`: rclpy would undeclare it for good), or of another type than its
+    declared one (a bool for a rate); None when every type is right."""
+    from rclpy.parameter import Parameter
+
+    for p in parameters:
+        if p.type_ is Parameter.Type.NOT_SET:
+            return f"parameter '{p.name}' cannot be deleted (unset); set a value instead"
+        declared = Parameter.Type.from_parameter_value(table[p.name].default)
+        if p.type_ is not declared:
+            return f"parameter '{p.name}' is a {declared.name.lower()}, not a {p.type_.name.lower()}"
+    return None
+
+
 def declare(node: Any) -> Settings:
     """Declare every parameter on an rclpy node and read them back. Descriptors carry the help,
     the range, the choices and read_only for what cannot change at run time."""

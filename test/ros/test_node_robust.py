@@ -705,6 +705,11 @@ def test_parameters_keep_their_declared_types(ros, tmp_path: Path) -> None:
         assert run.node.describe_parameter("mesh_rate_hz").type == double
     finally:
         run.close()
+    from rclpy.parameter import Parameter
+
+    table = P.param_table(("tof", "stereo"))  # an integer list for a float list is taken as floats too
+    (extrinsic,) = P.as_declared_types([Parameter("tof.T_body_camera", value=[0, 0, 0, 0, 0, 0, 1])], table)
+    assert extrinsic.type_ is Parameter.Type.DOUBLE_ARRAY and P.type_error([extrinsic], table) is None
 
 
 @pytest.mark.parametrize("map_file", ["", "  ", "maps/", "/tmp/"])
@@ -745,7 +750,7 @@ def test_diagnostics_values_of_engine_statistics_are_plain_numbers() -> None:
     from senfunet_ros.status import StatusReport
 
     engine = SimpleNamespace(counters={}, timings_s={},
-                             try_stats=lambda: {"frames_integrated": {"tof": 56, "stereo": 74}, "blocks": 5})
+                             stats=lambda wait=True: {"frames_integrated": {"tof": 56, "stereo": 74}, "blocks": 5})
     pipeline = SimpleNamespace(latest_stamp_ns=0, ingest=SimpleNamespace(counters=lambda: {}), time_jumps=0,
                                frames_failed=0, frames_unfinished=0, engine=engine)
     report = StatusReport(pipeline, HealthMonitor({}, window_s=1.0, stale_after_s=1.0), {}, LatencyStats(), topics={},
