@@ -136,6 +136,8 @@ class MeshPublisher:
         # been lost, for it and for readers that could not keep up with the rest): once every reader
         # has taken what was published, the next publication sends the whole map
         self._parts_unacknowledged = False
+        self._most_parts = 1  # the most parts an update went out in so far (said in the log as it grows)
+        self._logger = node.get_logger()
         self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
         # an idle turn of the net runs on this thread while `publish`'s thread encodes and publishes
         self._turns = ThreadPoolExecutor(1, thread_name_prefix="senfunet-net-turn", initializer=thread_setup)
@@ -189,16 +191,19 @@ class MeshPublisher:
                 self._timings["weights"].add(time.perf_counter() - t_update)
             t_cloud = time.perf_counter()
             frame_id = s.fixed_frame
+            max_bytes = int(s.mesh_message_max_mb * (1 << 20))
             readers = (self.mesh_pub.get_subscription_count(), self._matched)
             messages = None
             caught_up = self._parts_unacknowledged and self.mesh_pub.wait_for_all_acked(_NO_WAIT)
             if readers[0] > served[0] or readers[1] > served[1] or caught_up:
                 # Someone new joined (or caught up): transient local only holds the last few messages, so send it all.
                 messages = conv.marker_array_messages(self.display(engine.block_meshes()), (),
-                                                      stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True)
+                                                      stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True,
+                                                      max_bytes=max_bytes)
             elif update.cleared or len(update.meshes) or update.removed:
                 messages = conv.marker_array_messages(self.display(update.meshes), update.removed, stamp_ns=stamp_ns,
-                                                      frame_id=frame_id, delete_all_first=update.cleared)
+                                                      frame_id=frame_id, delete_all_first=update.cleared,
+                                                      max_bytes=max_bytes)
             # the net's turn ends with this mesh period (less a margin for the updates' jitter): the next
             # update is not to wait for it
             period_s = (1.0 - MESH_PERIOD_MARGIN) * mesh_period_s(s.mesh_rate_hz)
@@ -220,7 +225,9 @@ class MeshPublisher:
                     publish_s += time.perf_counter() - t_encoded
                 ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
                 unacknowledged = 0  # parts published while a reader had not taken the one before
+                parts = 0
                 for i, data in enumerate(messages or ()):
+                    parts += 1
                     t_encoded = time.perf_counter()
                     # the history holds 2: let readers take the previous part before it can be overwritten
                     if i and not self._wait_mesh_acked(ack_deadline):
@@ -231,6 +238,12 @@ class MeshPublisher:
                     self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
                     self._timings["publish"].add(publish_s)
                 self._latency.published(contained)
+                if parts > self._most_parts:
+                    self._most_parts = parts
+                    self._logger.info(f"a ~/mesh update went out in {parts} parts of at most "
+                                      f"{s.mesh_message_max_mb:g} MB: a reader keeping fewer messages than that (a "
+                                      "latched reader of depth 1) loses parts; subscribe with KEEP_ALL or raise "
+                                      "parameter mesh_message_max_mb")
                 if unacknowledged:
                     self._warn(("mesh_readers_behind",), f"a ~/mesh reader did not take the parts of a mesh update "
                                f"within {_PARTS_ACK_TIMEOUT_S:g} s ({unacknowledged} part(s) published without "

@@ -108,6 +108,11 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "size (per block; the map and ~/save_mesh keep full resolution): a snapshot of a room stays a few tens of "
           "MB for subscribers over Wi-Fi; 0 (or not above voxel_size_m) = full resolution",
           lo=0.0, hi=1.0, runtime=True),
+    Param("mesh_message_max_mb", 16.0, "a ~/mesh update larger than this goes out in parts (each holds whole "
+          "blocks; applied in order they are the whole update): a reader must keep that many messages (KEEP_ALL, or "
+          "a history as deep as the parts; a latched reader of depth 1 loses all but the last) or this must be "
+          "raised; larger parts cost the DDS writer up to three times this much memory", lo=1.0, hi=2048.0,
+          runtime=True),
     Param("mesh_colors", "weighting", "vertex colours of ~/mesh: weighting (amber = sensor 1 trusted, blue = sensor "
           "2) | camera (the colour images, averaged on a grid of twice the voxel size; the weighting where no "
           "camera colour was seen)", choices=("weighting", "camera"), runtime=True),

@@ -561,14 +561,12 @@ def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: 
     reader process stopped with SIGSTOP) makes the rest come faster than the history keeps them:
     once every reader has caught up, the next publication, with nothing new in the engine, sends
     the whole map (not while one is still behind: a stuck reader would make every update whole)."""
-    import functools
     import signal
     import subprocess
     import sys
 
     from rclpy.duration import Duration
 
-    from senfunet_ros import mesh_publisher
 
     run = Running("slowreader", {**topic_params("slowreader"), **SMALL, "mesh_rate_hz": 0.05}, tmp_path)
     reader = subprocess.Popen([sys.executable, "-c", _READER, f"{run.prefix}/mesh"], stdout=subprocess.PIPE, text=True,
@@ -582,10 +580,10 @@ def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: 
         run.node.engine.refresh_alpha(None)  # all judged: the first update holds the whole map
         run.node.publish_mesh()
         wait_for(lambda: collector.keys() and collector.keys() == _marker_keys(run.node), 30, "the first mesh")
-        # from now on parts of ~4 KB: every update of this scene is several (the first mesh came whole:
-        #   its many parts would wait for acknowledgements longer than the node waits)
-        monkeypatch.setattr(mesh_publisher.conv, "marker_array_messages",
-                            functools.partial(mesh_publisher.conv.marker_array_messages, max_bytes=4096))
+        # from now on parts of ~4 KB (below the parameter's range: set directly): every update of this scene is
+        #   several (the first mesh came whole: its many parts would wait for acknowledgements longer than the node
+        #   waits)
+        run.node.settings.values["mesh_message_max_mb"] = 4096 / (1 << 20)
         reader.send_signal(signal.SIGSTOP)
         fuse_in_process(run, messages)
         run.node.engine.refresh_alpha(None)  # all judged: no later update re-meshes anything by itself
@@ -604,6 +602,35 @@ def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: 
         reader.send_signal(signal.SIGCONT)
         reader.send_signal(signal.SIGINT)
         reader.wait(10)
+        run.close()
+
+
+def test_the_mesh_part_size_is_a_parameter(ros, tmp_path: Path, monkeypatch) -> None:
+    """A reader that keeps one message (latched, depth 1) needs each update whole: parameter
+    mesh_message_max_mb sets the size above which an update goes out in parts."""
+    from senfunet_ros import mesh_publisher
+
+    run = Running("partsize", {**topic_params("partsize"), **SMALL}, tmp_path)
+    split = mesh_publisher.conv.marker_array_messages
+    asked: list[int] = []
+
+    def recording(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        asked.append(kwargs["max_bytes"])
+        return split(*args, **kwargs)
+
+    monkeypatch.setattr(mesh_publisher.conv, "marker_array_messages", recording)
+    try:
+        messages = scene_messages()
+        fuse_in_process(run, messages[: len(messages) // 2])
+        run.node.publish_mesh()
+        (r,) = _set(run, mesh_message_max_mb=64.0)
+        assert r.successful, r.reason
+        fuse_in_process(run, messages)
+        run.node.publish_mesh()
+        assert asked[0] == 16 << 20 and asked[-1] == 64 << 20
+        (r,) = _set(run, mesh_message_max_mb=0.5)
+        assert not r.successful and "mesh_message_max_mb" in r.reason
+    finally:
         run.close()
 
 
