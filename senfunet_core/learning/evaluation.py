@@ -58,7 +58,8 @@ ABLATION_LABELS = {
 
 
 def observed_gt_vertices(engine, gt_vertices: np.ndarray) -> np.ndarray:
-    """GT mesh vertices whose nearest voxel was observed by any sensor (weight_base > 0)."""
+    """GT mesh vertices whose nearest voxel was observed by any sensor (a sensor's weight > 0; the same
+    voxels as the TSDF Fusion baseline's weight > 0, which an engine without the baseline lacks)."""
     v = np.asarray(gt_vertices, np.float64).reshape(-1, 3)
     if len(v) == 0:
         return v.astype(np.float32)
@@ -68,8 +69,11 @@ def observed_gt_vertices(engine, gt_vertices: np.ndarray) -> np.ndarray:
     local = vox - blocks * BLOCK
     slots = grid.lookup(blocks)
     flat = slots.clamp(min=0) * BLOCK_VOXELS + local[:, 0] * 64 + local[:, 1] * 8 + local[:, 2]
-    weight = grid.pools["weight_base"].reshape(-1)[flat.to(grid.device)].cpu()
-    keep = (slots >= 0) & (weight > 0)
+    flat = flat.to(grid.device)
+    observed = torch.zeros(len(flat), dtype=torch.bool)
+    for i in range(len(engine.config.sensors)):
+        observed |= (grid.pools[f"weight{i}"].reshape(-1)[flat] > 0).cpu()
+    keep = (slots >= 0) & observed
     return v[keep.numpy()].astype(np.float32)
 
 

@@ -56,10 +56,11 @@ def test_markdown_report(tiny_result):
                                               "MAD < TSDF Fusion"}
 
 
-def test_gt_crop_keeps_only_observed_vertices():
+@pytest.mark.parametrize("tsdf_fusion", [True, False])  # replay without --compare has no TSDF Fusion grid
+def test_gt_crop_keeps_only_observed_vertices(tsdf_fusion):
     from senfunet_core.engine import EngineConfig, SenFuNet
 
-    engine = SenFuNet(EngineConfig(), weights=None)
+    engine = SenFuNet(EngineConfig(tsdf_fusion=tsdf_fusion), weights=None)
     depth = np.full((256, 256), 1.0, np.float32)  # a wall 1 m ahead; pixels 0.8 cm apart there
     K = np.array([[128.0, 0, 127.5], [0, 128.0, 127.5], [0, 0, 1]])
     engine.integrate("tof", depth, K, np.eye(4))
