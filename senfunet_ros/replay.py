@@ -275,6 +275,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     out = Path(out_dir)
     with open_bag(bag) as reader:
         TopicRouter(settings, reader.topics, bag)  # a BagError comes before the heavy imports
+    _prepare_out(out)  # and a bad --out before the fusing, not after it
     import torch  # heavy: only once the bag is known to be usable
 
     from senfunet_core.engine import SenFuNet
@@ -332,6 +333,20 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     (out / "stats.json").write_text(json.dumps(result.stats, indent=2, default=_json_default) + "\n")
     result.files["stats"] = out / "stats.json"
     return result
+
+
+def _prepare_out(out: Path) -> None:
+    """Create the output folder (ValueError, saying what to pass, when that is impossible)."""
+    import os
+
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; pass a folder for mesh.ply and stats.json")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--out {out}: cannot create the folder ({err.strerror}); pass a writable folder") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out}: the folder is not writable; pass a writable folder")
 
 
 def _read_gt(gt: str | Path | None) -> Any:
