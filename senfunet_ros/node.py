@@ -662,6 +662,7 @@ def main(args: list[str] | None = None) -> int:
 
     use_large_shm_profile()  # large mesh messages; set before the participant exists
     prepare_process()  # before the executor's threads exist
+    _sigterm_as_interrupt()  # rclpy's handler calls it too: a SIGTERM during start-up stops it like Ctrl-C
     rclpy.init(args=args)
     node: FusionNode | None = None
     try:
@@ -669,14 +670,34 @@ def main(args: list[str] | None = None) -> int:
         spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as err:  # bad parameters (InputError is a ValueError too): say which, no traceback
-        print(f"senfunet: cannot start: {err}", flush=True)
-        return 2
+    except Exception as err:
+        if not rclpy.ok():  # a signal shut the context down under the start-up (a handle failed on it): a stop
+            return 0
+        if isinstance(err, ValueError):  # bad parameters (InputError is a ValueError too): say which, no traceback
+            print(f"senfunet: cannot start: {err}", flush=True)
+            return 2
+        raise
     finally:
         if node is not None:
             stop_node(node)
         rclpy.try_shutdown()
     return 0
+
+
+def _sigterm_as_interrupt() -> None:
+    """SIGTERM raises KeyboardInterrupt in the main thread, as SIGINT does (rclpy's own handler, installed
+    by rclpy.init, shuts the context down and then calls this one): without it a SIGTERM during the
+    start-up (kernel warm-up: seconds, a minute on a first start) went unnoticed until a handle failed."""
+    import signal
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    try:
+        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+            signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:  # not the main thread
+        pass
 
 
 def stop_node(node: FusionNode) -> None:
@@ -697,7 +718,7 @@ def stop_node(node: FusionNode) -> None:
         print("senfunet: interrupted again: the frames not integrated yet are dropped", flush=True)
 
     try:
-        previous = signal.signal(signal.SIGINT, interrupted)
+        previous = {sig: signal.signal(sig, interrupted) for sig in (signal.SIGINT, signal.SIGTERM)}
     except ValueError:  # not the main thread: signals go to the main thread's handlers
         previous = None
     try:
@@ -719,8 +740,8 @@ def stop_node(node: FusionNode) -> None:
             except Exception as err:
                 print(f"senfunet: saving on shutdown failed: {err}", flush=True)
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        for sig, handler in (previous or {}).items():
+            signal.signal(sig, handler)
         node.destroy_node()
 
 
