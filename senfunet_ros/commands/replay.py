@@ -24,6 +24,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _stale_meshes(result, args: argparse.Namespace) -> list[str]:  # noqa: ANN001 - ReplayResult
+    """Comparison meshes in --out that this run did not write (an earlier --compare run's, maybe with
+    other parameters): they sit beside the new mesh.ply and would be compared with it."""
+    from pathlib import Path
+
+    names = {*result.stats.get("sensors", {}), "tsdf_fusion"}
+    written = {Path(p).name for p in result.files.values()}
+    return sorted(f"{n}.ply" for n in names if (Path(args.out) / f"{n}.ply").is_file() and f"{n}.ply" not in written)
+
+
 def _error(text: str) -> int:
     print(f"senfunet replay: {text}", file=sys.stderr)
     return 2
@@ -71,6 +81,10 @@ def run(args: argparse.Namespace) -> int:
         print(line)
     for path in result.files.values():
         print(f"wrote {path}")
+    stale = _stale_meshes(result, args)
+    if stale:
+        print(f"senfunet replay: note: {', '.join(stale)} in {args.out} are from an earlier run, not this one; "
+              "delete them, or pass --compare to rewrite them", file=sys.stderr)
     t = stats["timings"]
     print(f"time: {t['total_s']:.1f} s (integration {t['integrate_s']:.1f} s, "
           f"{t['integrate_per_frame_ms']:.0f} ms per frame)")
