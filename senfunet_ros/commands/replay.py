@@ -14,9 +14,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", metavar="FILE", help="node parameter file (default: the built-in defaults)")
     parser.add_argument("--gt", metavar="MESH",
                         help="ground-truth mesh (PLY): print F-score, precision, recall of each mesh")
-    parser.add_argument("--weights", metavar="PATH",
-                        help="network weights ('default' = shipped, 'none' = untrained); overrides --params")
-    parser.add_argument("--threads", type=int, default=1, metavar="N",
+    parser.add_argument("--weights", metavar="NAME|PATH",
+                        help="network weights: 'default' (shipped), 'paper' (the paper-exact model), a .pt path or "
+                             "'none' (untrained); overrides --params (default: the parameter file's, else 'default')")
+    parser.add_argument("--threads", type=_positive_int, default=1, metavar="N",
                         help="torch CPU threads (default 1; the mesh bytes depend on it, keep it fixed)")
     parser.add_argument("--compare", action="store_true",
                         help="also write each sensor's mesh and the plain TSDF Fusion baseline (tsdf_fusion.ply), "
@@ -32,6 +33,16 @@ def _stale_meshes(result, args: argparse.Namespace) -> list[str]:  # noqa: ANN00
     names = {*result.stats.get("sensors", {}), "tsdf_fusion"}
     written = {Path(p).name for p in result.files.values()}
     return sorted(f"{n}.ply" for n in names if (Path(args.out) / f"{n}.ply").is_file() and f"{n}.ply" not in written)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}")
+    return value
 
 
 def _error(text: str) -> int:
