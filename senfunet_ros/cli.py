@@ -10,10 +10,17 @@ import importlib
 import sys
 
 COMMANDS = ("node", "replay", "play", "simulate", "train", "evaluate", "demo")
+DESCRIPTION = "SenFuNet-ROS: fuse the depth of two sensors (e.g. ToF + stereo) into one 3D mesh, learned weighting."
+EPILOG = """examples:
+  senfunet demo                                          the sample bag live through the node; mesh + PNG in out/demo
+  senfunet replay bags/sim_room --out out/replay         offline: out/replay/mesh.ply and stats.json
+  senfunet node --params config/default.yaml             the live node
+`senfunet COMMAND --help` gives each command's options."""
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="senfunet", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="senfunet", description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMANDS:
         try:
