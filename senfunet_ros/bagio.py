@@ -326,6 +326,15 @@ def _describe(err: BaseException) -> str:
     return text.splitlines()[0]
 
 
+def _is_ros1_bag(path: Path) -> bool:
+    """A ROS 1 bag file (its '#ROSBAG V2.0' header), which no rosbag2 reader takes."""
+    try:
+        with path.open("rb") as file:
+            return file.read(9) == b"#ROSBAG V"
+    except OSError:
+        return False
+
+
 def _mcap_is_unindexed(path: Path) -> bool:
     """True if an .mcap file starts right but has no summary section to index it: it lacks its
     footer (a truncated recording), or its footer points at no summary (a writer that writes none;
@@ -388,6 +397,9 @@ class BagReader:
                 self._source = self._open_rosbags(storage)
         elif path.suffix in (".mcap", ".db3"):
             self._source = self._open_rosbags(path)
+        elif _is_ros1_bag(path):
+            raise BagError(f"{path}: a ROS 1 bag; convert it to rosbag2 first: "
+                           f"rosbags-convert --src {path} --dst {path.with_suffix('')}")
         else:
             raise BagError(f"{path}: not a bag; pass a rosbag2 folder or a .mcap file")
         return self
