@@ -68,8 +68,13 @@ def _read_params_file(path: Path, *, node_sections_only: bool = False) -> dict[s
         doc = yaml.safe_load(path.read_text())
     except OSError as err:
         raise ValueError(f"{path}: cannot read the parameter file: {err.strerror}") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file; pass a YAML parameter file such as config/default.yaml") from None
     except yaml.YAMLError as err:
-        raise ValueError(f"{path}: not valid YAML: {str(err).splitlines()[0]}") from None
+        mark = getattr(err, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise ValueError(f"{path}: not valid YAML{where}: {problem}") from None
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: expected '{P.NODE_NAME}: ros__parameters: ...' at the top")
     for key in (P.NODE_NAME, f"/{P.NODE_NAME}", "/**"):
