@@ -98,7 +98,14 @@ class TrainConfig:
 def load_config(path: str | Path) -> TrainConfig:
     import yaml
 
-    values = yaml.safe_load(Path(path).read_text()) or {}
+    try:
+        values = yaml.safe_load(Path(path).read_text()) or {}
+    except yaml.YAMLError as err:  # a ValueError for the caller, like every other bad config
+        mark = getattr(err, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+        raise ValueError(f"not valid YAML{where}: {getattr(err, 'problem', None) or err}") from None
+    if not isinstance(values, dict):
+        raise ValueError(f"expected a mapping of training settings (key: value), got a {type(values).__name__}")
     return TrainConfig.from_dict(values)
 
 
