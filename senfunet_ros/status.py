@@ -195,8 +195,15 @@ class StatusReport:
             for stream, r in report.streams.items():
                 if r.never and (sensor, stream) not in self._silent_warned:
                     self._silent_warned.add((sensor, stream))
+                    topic = self.topics[sensor][stream]
+                    config = self.pipeline.engine.config
+                    if stream == "color" and not dict(zip(config.sensors, config.sensor_uses_rgb)).get(sensor, True):
+                        # nothing is missing
+                        self._logger.info(f"{sensor}: nothing on {topic}; {sensor}'s feature net takes no colour, "
+                                          "only mesh_colors: camera would show it")
+                        continue
                     self._logger.warning(
-                        f"{sensor}: nothing received on {self.topics[sensor][stream]} for {r.silent_s:.0f} s; check "
+                        f"{sensor}: nothing received on {topic} for {r.silent_s:.0f} s; check "
                         f"the topic name (parameter {sensor}.{stream}_topic), its message type and QoS"
                         + (" (colour is optional: set it to '' if there is none)" if stream == "color" else ""))
 

@@ -254,6 +254,34 @@ def test_diagnostics_rates_warn_clears_and_stale(ros, tmp_path: Path) -> None:
         run.close()
 
 
+def test_a_silent_colour_topic_is_a_warning_only_for_a_sensor_whose_net_takes_colour() -> None:
+    """The sample has no /tof/color and the ToF net takes no colour: nothing is missing, so no warning."""
+    from types import SimpleNamespace
+
+    from senfunet_ros.health import HealthMonitor
+    from senfunet_ros.node import LatencyStats
+    from senfunet_ros.status import StatusReport
+
+    logged: list[tuple[str, str]] = []
+    logger = SimpleNamespace(warning=lambda text: logged.append(("warning", text)),
+                             info=lambda text: logged.append(("info", text)))
+    engine = SimpleNamespace(counters={}, timings_s={}, stats=lambda wait=True: {},
+                             config=SimpleNamespace(sensors=("tof", "stereo"), sensor_uses_rgb=(False, True)))
+    pipeline = SimpleNamespace(latest_stamp_ns=0, ingest=SimpleNamespace(counters=lambda: {}), time_jumps=0,
+                               frames_failed=0, frames_unfinished=0, engine=engine)
+    health = HealthMonitor({"tof": ("depth", "color"), "stereo": ("depth", "color")}, window_s=0.05,
+                           stale_after_s=1.0)
+    for sensor in ("tof", "stereo"):
+        health.received(sensor, "depth")
+    topics = {s: {"depth": f"/{s}/depth", "color": f"/{s}/color"} for s in ("tof", "stereo")}
+    report = StatusReport(pipeline, health, {}, LatencyStats(), topics=topics, hardware_id="/senfunet",
+                          warn=lambda key, text: None, logger=logger)
+    time.sleep(0.1)
+    report.message("map")
+    assert [level for level, text in logged if "/tof/color" in text] == ["info"]
+    assert [level for level, text in logged if "/stereo/color" in text] == ["warning"]
+
+
 def test_save_map_load_map_round_trip_and_file_modes(ros, tmp_path: Path) -> None:
     run = Running("maps", {**topic_params("maps"), **SMALL, "map_file": "room.pt"}, tmp_path)
     old_umask = os.umask(0o077)  # a restrictive umask: the files must still be readable by others
