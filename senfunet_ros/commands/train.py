@@ -3,15 +3,16 @@ from __future__ import annotations
 
 import argparse
 
+DEFAULT_OUT = "runs/tof_stereo.pt"  # runs/ is git-ignored: a training run never overwrites the shipped model by default
 HELP = "train SenFuNet on simulated two-sensor scenes (progress bar, periodic validation, best checkpoint)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default="config/train_tof_stereo.yaml", metavar="YAML",
                         help="training config (default: config/train_tof_stereo.yaml)")
-    parser.add_argument("--out", default=None, metavar="PATH",
-                        help="where the best weights go "
-                             "(default: senfunet_core/weights/tof_stereo.pt, the shipped file)")
+    parser.add_argument("--out", default=DEFAULT_OUT, metavar="PATH",
+                        help=f"where the best weights go (default: {DEFAULT_OUT}); the shipped model is replaced only "
+                             "when this names it (senfunet_core/weights/tof_stereo.pt)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="training frames (overrides the config)")
     parser.add_argument("--time-budget", type=float, default=None, metavar="S",
                         help="stop after S seconds of wall time (overrides the config; 0 = no limit)")
@@ -76,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
             return 2
         overrides[field] = steps
     config = dataclasses.replace(config, **overrides)
-    out = Path(args.out) if args.out else networks.DEFAULT_WEIGHTS
+    out = Path(args.out)
+    shipped = out.resolve() == networks.DEFAULT_WEIGHTS.resolve()
     budget = f", at most {config.time_budget_s:.0f} s" if config.time_budget_s > 0 else ""
     print(f"senfunet train: {config.steps} frames{budget}, scenes {list(config.train_scenes)}, validation scenes "
           f"{list(config.val_scenes)}, lr {config.lr:g}, best weights -> {out}", flush=True)
@@ -97,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     history = out.with_suffix(".history.json")
     record = {k: summary[k] for k in ("history", "best", "frames", "optimizer_steps", "seconds", "paused_s", "wall_s",
                                       "timings_s", "mean_terms")}
-    if args.out:  # keep the repository clean when writing the shipped file
+    if not shipped:  # keep the repository clean when writing the shipped file
         history.write_text(json.dumps(record, indent=1))
     else:
         print(json.dumps(record, indent=1))

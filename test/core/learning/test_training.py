@@ -340,9 +340,10 @@ def test_run_from_a_checkpoint_keeps_it_unless_the_online_frames_beat_its_valida
 
 
 @pytest.mark.slow  # simulates a training and a validation room, integrates and validates them
-def test_train_command_overrides_seed_and_block_steps(tmp_path, sim_cache):
+def test_train_command_overrides_seed_and_block_steps(tmp_path, sim_cache, monkeypatch):
     """`senfunet train --seed N --block-steps M --steps 0`: a block phase of M steps with that seed, recorded
-    in the weights file, the config file untouched (a tiny run)."""
+    in the weights file, the config file untouched (a tiny run); without --out the weights go to
+    runs/tof_stereo.pt, never over the shipped model."""
     import yaml
 
     from senfunet_ros import cli
@@ -362,6 +363,13 @@ def test_train_command_overrides_seed_and_block_steps(tmp_path, sim_cache):
     assert meta["config"]["seed"] == 3 and meta["config"]["init_seed"] == 3 and meta["config"]["block_steps"] == 3
     assert yaml.safe_load(config.read_text())["block_steps"] == 50
     assert cli.main(["train", "--config", str(config), "--block-steps", "-1"]) == 2
+    from senfunet_core.networks import DEFAULT_WEIGHTS
+
+    shipped = DEFAULT_WEIGHTS.read_bytes()
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["train", "--config", str(config), "--block-steps", "1", "--steps", "0", "--no-progress"]) == 0
+    assert (tmp_path / "runs" / "tof_stereo.pt").is_file() and (tmp_path / "runs" / "tof_stereo.history.json").is_file()
+    assert DEFAULT_WEIGHTS.read_bytes() == shipped
 
 
 def test_pixel_labels_against_the_rendered_true_depth(tiny_sequence):
