@@ -315,8 +315,11 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
                             for s, c in counters.items())
         result.error = f"{bag}: no frame could be fused ({dropped}); see {out / 'stats.json'}"
     out.mkdir(parents=True, exist_ok=True)
-    # what needs the map is read before its last mesh: the map's memory goes as that mesh is made
-    engine_stats = pipeline.engine.stats()
+    # what needs the map is read before its last mesh: the map's memory goes as that mesh is made. The
+    # live node's mesh-update statistics (meshed blocks, how long they waited for the net) mean nothing
+    # here: replay runs no mesh update, its one mesh judges every block
+    engine_stats = {key: value for key, value in (pipeline.engine.stats() or {}).items()
+                    if not key.startswith("meshed_blocks") and key != "oldest_unjudged_change_s"}
     gt_vertices = _observed_gt(pipeline.engine, gt_mesh) if n_integrated else None
     if n_integrated:
         torch.set_num_threads(max(1, int(threads)))
