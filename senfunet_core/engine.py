@@ -610,6 +610,8 @@ class SenFuNet:
         """`MapBound.evict` (call with the update lock held); the evicted blocks are no longer shown
         as live meshes (the archive shows them), and an integration waiting for it goes on."""
         eviction = self.bound.evict()
+        if self.bound.spill_failures:
+            self.counters["spill_failures"] = self.bound.spill_failures
         if eviction is not None:
             self.counters["evicted_blocks"] = self.bound.evicted_blocks
             self.counters["evictions"] = self.bound.evictions
@@ -627,11 +629,11 @@ class SenFuNet:
         size = self.config.mesh_batch_blocks
         while len(slots):
             if self.bound.over_hard_bound():
-                eviction = self._evict()
-                assert eviction is not None  # over the hard bound
-                slots, kept = eviction.follow(slots)
-                coords = coords[kept]
-                evicted.append(eviction.dropped_keys)
+                eviction = self._evict()  # None: the spill could not be written, the blocks stay
+                if eviction is not None:
+                    slots, kept = eviction.follow(slots)
+                    coords = coords[kept]
+                    evicted.append(eviction.dropped_keys)
             n = min(len(slots), size * threads)
             (batch, slots), (batch_coords, coords) = (slots[:n], slots[n:]), (coords[:n], coords[n:])
             if threads > 1 and n >= 2 * _MIN_THREAD_BLOCKS:  # equal shares: the round ends with its last share

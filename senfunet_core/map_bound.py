@@ -68,6 +68,8 @@ class MapBound:
         self._frame_blocks = 0  # how many blocks it touched
         self.evicted_blocks = 0
         self.evictions = 0
+        self.spill_failures = 0  # evictions abandoned because the spill could not be written (blocks kept)
+        self._retry_at_blocks = 0  # after such a failure: no eviction is tried until the map holds this many
         self.evicted_in_view = 0  # evicted blocks that the sensors' latest frames had reached
 
     def clear(self) -> None:
@@ -76,6 +78,7 @@ class MapBound:
         self.newly_archived = []
         self.camera_m = np.zeros(3)
         self._frame_s, self._frame_blocks = np.nan, 0
+        self._retry_at_blocks = 0
 
     def frame_integrated(self, *, camera_m: np.ndarray, touched_s: float, n_touched: int) -> None:
         """A frame was integrated (data lock held): the blocks near its camera stay. Its blocks are
@@ -86,7 +89,8 @@ class MapBound:
 
     def over_hard_bound(self) -> bool:
         """Integration outgrew the bound by HARD_BOUND: an eviction is due before it goes on."""
-        return self.max_blocks > 0 and self.store.n_blocks > HARD_BOUND * self.max_blocks
+        return (self.max_blocks > 0 and self.store.n_blocks > HARD_BOUND * self.max_blocks
+                and self.store.n_blocks >= self._retry_at_blocks)
 
     def take_archived(self) -> BlockMeshes:
         """The meshes archived since the last call (the next update sends them)."""
@@ -99,7 +103,7 @@ class MapBound:
         the module docstring); None when it does not. Their neighbours' cells that reached into them
         are re-meshed without them by the next update (so a snapshot equals what the updates sent)."""
         store = self.store
-        if self.max_blocks <= 0 or store.n_blocks <= self.max_blocks:
+        if self.max_blocks <= 0 or store.n_blocks <= self.max_blocks or store.n_blocks < self._retry_at_blocks:
             return None
         t0 = time.perf_counter()
         with self._data_lock:
@@ -130,9 +134,20 @@ class MapBound:
                                                     self._final_meshes(victims[again], victim_coords[again],
                                                                        around[store.stale[around] > 0])])
             archived = with_seams(archived, self.mesher.seam_meshes(readers, victim_coords))
+            try:  # first: a spill that cannot be written leaves the store as it was
+                eviction = store.remove(victims)
+            except OSError as err:
+                # the blocks stay in memory (nothing is lost, nothing archived); tried again once the map
+                # grew by a tenth of the bound, not at every frame and update
+                self.spill_failures += 1
+                self._retry_at_blocks = store.n_blocks + max(1, self.max_blocks // 10)
+                log.error("map bound: eviction of %d blocks abandoned, they stay in memory (the map now exceeds "
+                          "max_blocks %d): %s. Tried again when the map holds %d blocks; counted as "
+                          "spill_failures", len(victim_coords), self.max_blocks, err, self._retry_at_blocks)
+                return None
+            self._retry_at_blocks = 0
             self.archive.add(archived)
             self.newly_archived.append(archived)
-            eviction = store.remove(victims)
         self.evicted_blocks += len(victim_coords)
         self.evictions += 1
         if in_view:
