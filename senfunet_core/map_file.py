@@ -51,9 +51,10 @@ def save_map(engine: SenFuNet, path: str | Path) -> None:
 
 
 def load_map(path: str | Path, device: str | None = None, *,
-             worker_setup: Callable[[], object] | None = None) -> SenFuNet:
+             worker_setup: Callable[[], object] | None = None, max_blocks: int | None = None) -> SenFuNet:
     """An engine with the state `save_map` wrote; the next update re-sends the whole mesh.
-    worker_setup: as for `SenFuNet`."""
+    worker_setup: as for `SenFuNet`. max_blocks: the map bound from now on (the caller's, e.g. the
+    node's max_map_blocks; None: the one the map was saved with)."""
     path = Path(path)
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -73,6 +74,8 @@ def load_map(path: str | Path, device: str | None = None, *,
     config = EngineConfig(**config_values)
     if device is not None:
         config = replace(config, device=device)
+    if max_blocks is not None:
+        config = replace(config, max_blocks=max_blocks)
     engine = SenFuNet(config, weights=None, worker_setup=worker_setup)
     for net, net_state in zip(engine.feature_nets, state["feature_nets"]):
         net.load_state_dict(net_state)

@@ -88,7 +88,9 @@ class MapServices:
             P.configure_engine(engine, self.settings())
 
         with self.mesh_publisher.lock:
-            engine = self.pipeline.load_map(path, device=want.device, configure=check_and_configure)
+            # the node's map bound (max_map_blocks), not the one the map was saved with
+            engine = self.pipeline.load_map(path, device=want.device, max_blocks=want.max_blocks,
+                                            configure=check_and_configure)
             # a parameter change racing the load reaches the loaded engine too; subscribers get it whole
             P.configure_engine(engine, self.settings())
             self.mesh_publisher.resend_all()

@@ -199,7 +199,7 @@ class Pipeline:
         os.chmod(path, FILE_MODE)
         return path
 
-    def load_map(self, path: str | Path, *, device: str | None = None,
+    def load_map(self, path: str | Path, *, device: str | None = None, max_blocks: int | None = None,
                  configure: Callable[[Any], None] | None = None) -> Any:
         """Replace the engine by the one saved in `path` (InputError if it is not a saved map); the
         queued frames go (they belong to the old map's timeline). `configure` gets the new engine
@@ -211,7 +211,7 @@ class Pipeline:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such map file; set parameter map_file or call ~/save_map first")
         # its alpha threads start as the old engine's did (the node's: at its mesh thread's priority)
-        engine = load_map(path, device=device, worker_setup=self.engine.alpha.worker_setup)
+        engine = load_map(path, device=device, worker_setup=self.engine.alpha.worker_setup, max_blocks=max_blocks)
         if configure is not None:
             configure(engine)
         with self.lock:
