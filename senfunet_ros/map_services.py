@@ -73,7 +73,11 @@ class MapServices:
         return "map reset"
 
     def _save_mesh(self) -> str:
-        return "wrote " + ", ".join(str(p) for p in self.save_meshes())
+        spill = getattr(self.pipeline.engine.grid, "spill", None)
+        on_disk = len(spill) if spill is not None else 0
+        note = (f" (the per-sensor meshes leave out the {on_disk} blocks the map bound evicted; mesh.ply has them)"
+                if on_disk else "")
+        return "wrote " + ", ".join(str(p) for p in self.save_meshes()) + note
 
     def _load_map(self) -> str:
         path = self.map_path()

@@ -176,6 +176,8 @@ class Pipeline:
         # lock would stop draining the queues, which then overflow); only a reset excludes them
         with self.lock if then_reset else contextlib.nullcontext():
             engine = self.engine
+            spill = getattr(engine.grid, "spill", None)
+            on_disk = len(spill) if spill is not None else 0  # evicted blocks: only their fused meshes are kept
             for name in which:
                 t0 = time.perf_counter()
                 mesh = engine.extract_mesh(name, then_reset=then_reset and name == which[-1])
@@ -188,6 +190,11 @@ class Pipeline:
             write_ply(path, mesh)
             os.chmod(path, FILE_MODE)
             saved[stem] = SavedMesh(path, mesh, seconds)
+        partial = [f"{MESH_FILES.get(name, name)}.ply" for name in which if name != "fused"]
+        if on_disk and partial:
+            self._log("warning", f"{', '.join(partial)} cover only the blocks in memory: the {on_disk} blocks the map "
+                      f"bound (max_map_blocks) evicted to disk are not in them; {MESH_FILES.get('fused', 'fused')}.ply "
+                      "has them (their final fused meshes)")
         return saved
 
     def save_map(self, path: str | Path) -> Path:

@@ -40,3 +40,24 @@ def test_load_map_keeps_the_nodes_map_bound(tmp_path):
     integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[1:3]] + far_views(3))
     engine.update()
     assert engine.grid.n_blocks <= 165 and engine.stats()["evicted_blocks"] > 0
+
+
+def test_save_mesh_says_the_per_sensor_meshes_leave_out_evicted_blocks(tmp_path):
+    """~/save_mesh under a bound: the per-sensor PLY files hold only the blocks in memory (the fused one has
+    the evicted blocks' final meshes): said in the log and in the service's reply, not silently."""
+    params = tmp_path / "p.yaml"
+    params.write_text("senfunet:\n  ros__parameters:\n    max_map_blocks: 165\n    weights: none\n"
+                      f"    output_dir: {tmp_path}\n    rgb_sensors: []\n    tof:\n      depth_min_m: 0.05\n"
+                      "    stereo:\n      depth_min_m: 0.05\n")
+    settings = load_settings(params)
+    logged: list[tuple[str, str]] = []
+    pipeline = Pipeline(SenFuNet(P.engine_config(settings), weights=None), Ingest(ingest_config(settings)),
+                        log=lambda level, text: logged.append((level, text)))
+    integrate_views(pipeline.engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2))
+    pipeline.engine.update()
+    assert len(pipeline.engine.grid.spill) > 0
+    services = MapServices(pipeline, lambda: settings, SimpleNamespace(lock=threading.Lock(), resend_all=lambda: None),
+                           logging.getLogger("test"))
+    reply = services.save_mesh(None, SimpleNamespace(success=None, message=None))
+    assert reply.success and "evicted" in reply.message
+    assert any(level == "warning" and "tof.ply" in text and "evicted" in text for level, text in logged)
