@@ -70,7 +70,7 @@ from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
-from .mesh_archive import MeshArchive
+from .mesh_archive import MeshArchive, as_mesh, union
 from .mesher import BlockMeshes, Mesh, StreamingWeld
 from .spill import BlockSpill
 from .stage_times import StageTimes
@@ -397,6 +397,13 @@ class SenFuNet:
                 pending = np.flatnonzero(self.store.mesh_pending[: self.grid.n_blocks])
                 self.store.mesh_pending[pending] = False
                 slots = self.mesher.mesh_readers(pending)
+                # blocks in memory that have an archived mesh near these: their markers show both, and
+                # the archived part shrinks as neighbours come back (see below)
+                pruned = self.bound.take_pruned()  # by evictions since the last update
+                near = self.archive.keys_near(self.grid.coords[slots].numpy()) | pruned
+                if near:
+                    found = self.grid.lookup(torch.tensor(sorted(near), dtype=torch.int64)).numpy()
+                    slots = np.union1d(slots, found[found >= 0])
                 coords = self.grid.coords[slots].numpy().copy()
             self.counters["mesh_blocks"] += len(slots)
             self.counters["mesh_blocks_last"] = len(slots)
@@ -404,16 +411,25 @@ class SenFuNet:
             self._cleared = False
             live = self._block_meshes(slots, coords, threads=min(mesh_threads, self.config.alpha_threads))
             live_keys, changed_keys = (block_keys(torch.from_numpy(c)).numpy() for c in (live.keys, coords))
-            if len(self.archive):
-                self.archive.replace({tuple(k) for k in live.keys.tolist()})
-            # the evicted blocks' final meshes: subscribers keep showing them (unless live again)
-            archived = self.bound.take_archived()
-            archived = archived.select(np.flatnonzero(~np.isin(block_keys(torch.from_numpy(archived.keys)).numpy(),
-                                                               live_keys)))
-            result.meshes = BlockMeshes.concatenate([live, archived])
+            # the evicted blocks' final meshes: subscribers keep showing them, a block's marker with its
+            # live mesh, less the triangles of cells whose 8 corners are all in memory again (the live
+            # meshes have those cells: each reader of a block that came back was re-meshed)
+            archived_now = {tuple(k) for k in self.bound.take_archived().keys.tolist()}
+            # (only those found before meshing: a block in memory is shown whole only if it was re-meshed)
+            near = {key for key in near | archived_now if key in self.archive or key in pruned}
+            if near:
+                with self.data_lock:
+                    in_memory = np.sort(self.grid.slot_keys[: self.grid.n_blocks])
+                self.archive.prune(near, in_memory, self.config.voxel_size_m)
+            shown_archived = BlockMeshes.from_meshes({key: mesh for key in sorted(near)
+                                                      if (mesh := self.archive.get(key)) is not None})
+            result.meshes = union(live, shown_archived)
             has_faces = np.isin(changed_keys, live_keys)
             vanished = coords[~has_faces & np.isin(changed_keys, self._meshed)]
             result.removed = [key for key in map(tuple, vanished.tolist()) if key not in self.archive]
+            live_set = set(map(tuple, live.keys.tolist()))  # archived meshes pruned away where nothing live shows
+            result.removed += [key for key in sorted(near) if key not in self.archive and key not in live_set
+                               and key not in result.removed]
             self._meshed = np.union1d(np.setdiff1d(self._meshed, changed_keys), live_keys)
             self.counters["meshed_blocks"] = len(self._meshed)
             with self.data_lock:  # for the weighting net's order (slots stay put while the update lock is held)
@@ -442,8 +458,10 @@ class SenFuNet:
                 slots = np.arange(self.grid.n_blocks)
                 coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
             live = self._block_meshes(slots, coords)
-            archived = self.archive.meshes(exclude={tuple(k) for k in live.keys.tolist()})
-        return BlockMeshes.concatenate([live, archived])
+            with self.data_lock:
+                in_memory = np.sort(self.grid.slot_keys[: self.grid.n_blocks])
+            archived = self.archive.visible(in_memory, self.config.voxel_size_m)
+        return union(live, archived)
 
     @torch.inference_mode()
     def extract_mesh(self, which: str = FUSED, filtered: bool = True, *, then_reset: bool = False) -> Mesh:
@@ -458,7 +476,6 @@ class SenFuNet:
                 self._refresh_alpha()
                 self.alpha.release_buffers()
                 release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise
-            live_with_faces = []
             with self.data_lock:  # one consistent state of the whole map
                 if then_reset:  # the channels this mesh does not read go first (the mesh's peak comes on top)
                     self.grid.release_channels(set(self.grid.pools) - set(self.mesher.channels(which)))
@@ -469,11 +486,11 @@ class SenFuNet:
                                        coords.max(axis=0, initial=0))
                 for part in self.mesher.batches(slots, which, filtered):
                     welder.add(part.vertices_vox, part.faces, part.vertex_values if which == FUSED else None)
-                    live_with_faces.append(np.diff(part.face_offsets) > 0)
                     del part
             if which == FUSED and filtered and len(self.archive):
-                live = np.concatenate(live_with_faces or [np.zeros(0, bool)])
-                archived = self.archive.mesh(exclude={tuple(k) for k in coords[live].tolist()})
+                # without the triangles of cells the live mesh has (all 8 corners in memory)
+                archived = as_mesh(self.archive.visible(np.sort(block_keys(torch.from_numpy(coords)).numpy()),
+                                                        self.config.voxel_size_m))
                 if archived.n_faces:  # welded with the live mesh: colours instead of alpha
                     assert archived.colors is not None
                     welder.add_colored_m(archived.vertices, archived.faces, archived.colors)

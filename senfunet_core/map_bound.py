@@ -63,6 +63,7 @@ class MapBound:
         self.alpha_batch_blocks = alpha_batch_blocks
         self.archive = MeshArchive()  # final meshes of evicted blocks
         self.newly_archived: list[BlockMeshes] = []  # archived since the last update took them
+        self.pruned_keys: set[tuple[int, int, int]] = set()  # archived meshes an eviction pruned (ditto)
         self.camera_m = np.zeros(3)  # the last integrated frame's camera centre: what is near it stays
         self._frame_s = np.nan  # when the last frame touched its blocks (their store.touched_s)
         self._frame_blocks = 0  # how many blocks it touched
@@ -76,6 +77,7 @@ class MapBound:
         """Forget the archive and the camera (the map was reset)."""
         self.archive.clear()
         self.newly_archived = []
+        self.pruned_keys = set()
         self.camera_m = np.zeros(3)
         self._frame_s, self._frame_blocks = np.nan, 0
         self._retry_at_blocks = 0
@@ -91,6 +93,11 @@ class MapBound:
         """Integration outgrew the bound by HARD_BOUND: an eviction is due before it goes on."""
         return (self.max_blocks > 0 and self.store.n_blocks > HARD_BOUND * self.max_blocks
                 and self.store.n_blocks >= self._retry_at_blocks)
+
+    def take_pruned(self) -> set[tuple[int, int, int]]:
+        """The archived blocks evictions pruned since the last call (the next update re-sends them)."""
+        pruned, self.pruned_keys = self.pruned_keys, set()
+        return pruned
 
     def take_archived(self) -> BlockMeshes:
         """The meshes archived since the last call (the next update sends them)."""
@@ -134,6 +141,7 @@ class MapBound:
                                                     self._final_meshes(victims[again], victim_coords[again],
                                                                        around[store.stale[around] > 0])])
             archived = with_seams(archived, self.mesher.seam_meshes(readers, victim_coords))
+            in_memory = np.sort(store.grid.slot_keys[: store.n_blocks])  # the victims still among them
             try:  # first: a spill that cannot be written leaves the store as it was
                 eviction = store.remove(victims)
             except OSError as err:
@@ -146,7 +154,14 @@ class MapBound:
                           "spill_failures", len(victim_coords), self.max_blocks, err, self._retry_at_blocks)
                 return None
             self._retry_at_blocks = 0
-            self.archive.add(archived)
+            # archived triangles of cells whose corners are all in memory until now (a block came back
+            # since the last update) go: the final meshes just made have those cells; what a victim had
+            # archived from an earlier eviction, for cells its new mesh cannot have (a corner block still
+            # on disk), stays
+            near = self.archive.keys_near(victim_coords)
+            self.archive.prune(near, in_memory, self.voxel_size_m)
+            self.pruned_keys |= near  # the next update shows what is left of them
+            self.archive.add_merged(archived, in_memory, self.voxel_size_m)
             self.newly_archived.append(archived)
         self.evicted_blocks += len(victim_coords)
         self.evictions += 1
