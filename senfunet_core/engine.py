@@ -66,7 +66,7 @@ from .alpha_scheduler import AlphaScheduler
 from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
-from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys
+from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, keys_to_coords
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
@@ -316,6 +316,7 @@ class SenFuNet:
                          "sparse_dropped_blocks": 0}
         self.frames_integrated = {name: 0 for name in config.sensors}
         self._meshed = np.zeros(0, np.int64)  # sorted block keys of the blocks with a live mesh
+        self._evicted_shown: list[np.ndarray] = []  # keys of evicted blocks that had a live mesh (see _evict)
         self._cleared = False  # reset since the last mesh update
 
     # -- verbs ------------------------------------------------------------------------------------
@@ -430,6 +431,13 @@ class SenFuNet:
             live_set = set(map(tuple, live.keys.tolist()))  # archived meshes pruned away where nothing live shows
             result.removed += [key for key in sorted(near) if key not in self.archive and key not in live_set
                                and key not in result.removed]
+            # evicted blocks that were shown and whose final mesh was empty (the net, judging them before
+            # the eviction, filtered what was shown): their markers go
+            if self._evicted_shown:
+                evicted = keys_to_coords(torch.from_numpy(np.concatenate(self._evicted_shown))).numpy()
+                self._evicted_shown = []
+                result.removed += [key for key in map(tuple, evicted.tolist()) if key not in self.archive
+                                   and key not in live_set and key not in result.removed]
             self._meshed = np.union1d(np.setdiff1d(self._meshed, changed_keys), live_keys)
             self.counters["meshed_blocks"] = len(self._meshed)
             with self.data_lock:  # for the weighting net's order (slots stay put while the update lock is held)
@@ -570,6 +578,7 @@ class SenFuNet:
             self.bound.clear()
             self.frames_integrated = {name: 0 for name in self.config.sensors}
             self._meshed = np.zeros(0, np.int64)
+            self._evicted_shown = []
             self._cleared = True
 
     def stats(self, *, wait: bool = True) -> dict | None:
@@ -632,6 +641,8 @@ class SenFuNet:
         if eviction is not None:
             self.counters["evicted_blocks"] = self.bound.evicted_blocks
             self.counters["evictions"] = self.bound.evictions
+            # shown until now: the next update deletes those whose final mesh had no triangle (not archived)
+            self._evicted_shown.append(eviction.dropped_keys[np.isin(eviction.dropped_keys, self._meshed)])
             self._meshed = np.setdiff1d(self._meshed, eviction.dropped_keys)
             self.update_lock.evicted()
         return eviction

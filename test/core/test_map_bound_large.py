@@ -105,3 +105,32 @@ def test_an_update_never_sends_a_block_in_memory_without_its_live_mesh():
         live = {tuple(k) for k in engine.grid.coords[: engine.grid.n_blocks].numpy().tolist()}
         sent = set(update.changed) | set(map(tuple, update.removed))
         assert not (sent & live) - set().union(*meshed)
+
+
+def test_an_evicted_block_whose_final_mesh_is_empty_is_deleted_from_the_subscribers():
+    """A block shown by an update, judged by the net before its eviction and found to hold nothing the
+    filter keeps, is archived as nothing: the next update deletes its marker (subscribers showed its
+    stale surface forever, which neither ~/save_mesh nor a late subscriber's snapshot has)."""
+    from test_engine import SPHERE_K, SPHERE_R, constant_alpha, render_sphere
+
+    engine = engine_for_tests(max_blocks=165)
+    constant_alpha(engine, 0.9)  # ToF-only voxels trusted, and only the ToF sees the near sphere
+    for T in SPHERE_VIEWS[:2]:
+        engine.integrate("tof", render_sphere(SPHERE_C, SPHERE_R, SPHERE_K, T), SPHERE_K, T)
+    shown: dict = {}
+
+    def apply(update) -> None:
+        for key in update.removed:
+            shown.pop(tuple(key), None)
+        shown.update(update.changed)
+
+    apply(engine.update())
+    near = set(shown)
+    constant_alpha(engine, 0.1)  # then distrusted
+    engine.networks_changed()
+    integrate_views(engine, far_views(2))  # the near sphere is evicted
+    apply(engine.update(alpha_budget_s=0))
+    assert engine.stats()["evicted_blocks"] > 50
+    in_memory = set(map(tuple, engine.grid.coords[: engine.grid.n_blocks].numpy().tolist()))
+    assert not [key for key in near & set(shown) if key not in in_memory and key not in engine.archive]
+    assert set(shown) == set(engine.block_meshes().as_dict())  # what subscribers show is the snapshot
