@@ -154,15 +154,16 @@ class MapBound:
                           "spill_failures", len(victim_coords), self.max_blocks, err, self._retry_at_blocks)
                 return None
             self._retry_at_blocks = 0
-            # archived triangles of cells whose corners are all in memory until now (a block came back
-            # since the last update) go: the final meshes just made have those cells; what a victim had
-            # archived from an earlier eviction, for cells its new mesh cannot have (a corner block still
-            # on disk), stays
-            near = self.archive.keys_near(victim_coords)
-            self.archive.prune(near, in_memory, self.voxel_size_m)
-            self.pruned_keys |= near  # the next update shows what is left of them
-            self.archive.add_merged(archived, in_memory, self.voxel_size_m)
-            self.newly_archived.append(archived)
+        # The archive is the update lock's (held): changed without the data lock, so that integration goes on
+        # meanwhile (it copies the whole archive, which grows with the run). Archived triangles of cells whose
+        # corners were all in memory until now (a block came back since the last update) go: the final meshes
+        # just made have those cells; what a victim had archived from an earlier eviction, for cells its new
+        # mesh cannot have (a corner block still on disk), stays.
+        near = self.archive.keys_near(victim_coords)
+        self.archive.prune(near, in_memory, self.voxel_size_m)
+        self.pruned_keys |= near  # the next update shows what is left of them
+        self.archive.add_merged(archived, in_memory, self.voxel_size_m)
+        self.newly_archived.append(archived)
         self.evicted_blocks += len(victim_coords)
         self.evictions += 1
         if in_view:
