@@ -146,7 +146,7 @@ def test_the_archive_grows_without_holding_the_data_lock(monkeypatch):
     add_merged = MeshArchive.add_merged
 
     def recording(self, *args, **kwargs):
-        held.append(engine._data_lock._is_owned())
+        held.append(engine.data_lock._is_owned())
         return add_merged(self, *args, **kwargs)
 
     monkeypatch.setattr(MeshArchive, "add_merged", recording)
