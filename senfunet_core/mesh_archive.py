@@ -3,8 +3,10 @@
 When the map outgrows its bound, the engine evaluates the weighting net on the blocks it evicts,
 meshes them (fused, filtered) and hands the meshes here before freeing the blocks. They stay part
 of the fused mesh: in every snapshot (`SenFuNet.block_meshes`), in `extract_mesh("fused")` and in
-saved engine states. When a sensor sees such a block again, the engine allocates it anew, and
-its live mesh replaces the archived one as soon as it has triangles (`replace`).
+saved engine states. When a sensor sees such a block again, the engine allocates it anew; an
+archived triangle stays shown until all 8 corner blocks of its marching-cubes cell are in memory
+again (the live mesh then has that cell: `prune`, `visible`), so seam cells whose other corners are
+still on disk stay, and a block whose live mesh became empty shows no stale surface.
 """
 from __future__ import annotations
 
