@@ -405,3 +405,19 @@ def test_play_bad_bags(prefix: Path, tmp_path: Path):
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip() == f"senfunet play: {only_custom}: none of its topics has a message type installed " \
         "here (acme_msgs/msg/Thing); install their packages (pip install ros-jazzy-<package>)"
+
+
+def test_ros1_bag_is_named_with_the_conversion(tmp_path):
+    bag = tmp_path / "robot.bag"
+    bag.write_bytes(b"#ROSBAG V2.0\nE\x00\x00\x00")
+    with pytest.raises(BagError, match=r"a ROS 1 bag; convert it to rosbag2 first: rosbags-convert --src .*robot\.bag"):
+        with open_bag(bag):
+            pass
+
+
+def test_other_files_are_still_not_a_bag(tmp_path):
+    other = tmp_path / "notes.txt"
+    other.write_text("hello")
+    with pytest.raises(BagError, match="not a bag"):
+        with open_bag(other):
+            pass

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from senfunet_ros.cli import build_parser
+
 REPO = Path(__file__).resolve().parents[2]
 # import name -> distribution name in install_requires (where they differ)
 DIST = {"cv2": "opencv-python-headless", "yaml": "pyyaml", "skimage": "scikit-image", "ruamel": "ruamel.yaml"}
@@ -87,3 +89,9 @@ def test_colcon_build_installs_the_package(tmp_path: Path) -> None:
     assert list((site / "senfunet_core" / "weights").glob("*.pt"))
     assert (site / "senfunet_ros" / "fastdds_profile.xml").is_file()
     assert importlib.util.find_spec("senfunet_ros") is not None
+
+
+def test_top_level_help_is_for_users():
+    text = build_parser().format_help()
+    assert "senfunet_ros.commands" not in text
+    assert "mesh" in text and "senfunet demo" in text and "COMMAND --help" in text

@@ -1,15 +1,20 @@
 """Offline replay (senfunet_ros.replay): storages agree byte for byte, stats, metrics."""
 from __future__ import annotations
 
+import argparse
 import json
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from senfunet_ros.bagio import copy_bag, open_bag
+from senfunet_ros.cli import build_parser
+from senfunet_ros.commands.replay import _stale_meshes
+from senfunet_ros.replay import ReplayResult, load_settings, replay_bag
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / "bags" / "sim_room"
@@ -241,3 +246,58 @@ def test_weights_parameter_takes_a_shipped_name_or_a_path_and_refuses_the_rest(t
     assert P.engine_weights(load_settings(None, {"weights": paper})) == paper
     with pytest.raises(ValueError, match="default.*paper"):
         load_settings(None, {"weights": str(tmp_path / "missing.pt")})
+
+
+@pytest.mark.parametrize("value", ["0", "-3", "two"])
+def test_threads_below_one_is_refused(value, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        build_parser().parse_args(["replay", "bag", "--out", "out", "--threads", value])
+    assert exit_info.value.code == 2
+    assert "--threads: must be a whole number >= 1" in capsys.readouterr().err
+
+
+def test_threads_default_and_value():
+    assert build_parser().parse_args(["replay", "bag", "--out", "out"]).threads == 1
+    assert build_parser().parse_args(["replay", "bag", "--out", "out", "--threads", "2"]).threads == 2
+
+
+
+def test_out_that_is_a_file_is_refused_at_once(tmp_path):
+    target = tmp_path / "afile"
+    target.write_text("keep me\n")
+    t0 = time.monotonic()
+    with pytest.raises(ValueError, match="is a file; pass a folder"):
+        replay_bag(SAMPLE, target, progress=False)
+    assert time.monotonic() - t0 < 10.0  # not after fusing the bag (~20-60 s)
+    assert target.read_text() == "keep me\n"
+
+
+def test_out_below_a_file_is_refused_at_once(tmp_path):
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(ValueError, match="cannot create the folder"):
+        replay_bag(SAMPLE, tmp_path / "afile" / "sub", progress=False)
+
+
+def test_stale_comparison_meshes_are_named(tmp_path: Path):
+    for name in ("mesh", "tof", "stereo", "tsdf_fusion", "other"):
+        (tmp_path / f"{name}.ply").write_bytes(b"")
+    result = ReplayResult(stats={"sensors": {"tof": {}, "stereo": {}}},
+                          files={"mesh": tmp_path / "mesh.ply", "stats": tmp_path / "stats.json"})
+    args = argparse.Namespace(out=str(tmp_path), compare=False)
+    assert _stale_meshes(result, args) == ["stereo.ply", "tof.ply", "tsdf_fusion.ply"]
+    result.files.update({n: tmp_path / f"{n}.ply" for n in ("tof", "stereo", "tsdf_fusion")})
+    assert _stale_meshes(result, argparse.Namespace(out=str(tmp_path), compare=True)) == []
+
+
+def test_binary_file_named(tmp_path):
+    bad = tmp_path / "bag.mcap"
+    bad.write_bytes(b"\x89MCAP0\r\n\xff\xfe")
+    with pytest.raises(ValueError, match=r"bag\.mcap: not a text file; pass a YAML parameter file"):
+        load_settings(bad)
+
+
+def test_yaml_error_names_the_line(tmp_path):
+    bad = tmp_path / "p.yaml"
+    bad.write_text("senfunet:\n  ros__parameters:\n    voxel_size_m: [oops\n")
+    with pytest.raises(ValueError, match=r"p\.yaml: not valid YAML \(line \d+, column \d+\)"):
+        load_settings(bad)

@@ -10,6 +10,7 @@ import torch
 from senfunet_core.learning import block_phase
 from senfunet_core.learning import trainer as trainer_module
 from senfunet_core.learning import training as tr
+from senfunet_core.learning.training import load_config
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -457,3 +458,14 @@ def test_train_command_pretrains_the_feature_nets(tmp_path, sim_cache):
     argv = ["train", "--config", str(config), "--feature-pretrain-steps", "4", "--init-weights", str(out)]
     assert cli.main(argv) == 2
     assert cli.main(["train", "--config", str(config), "--feature-pretrain-steps", "-1"]) == 2
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("steps: [1, 2\n", r"not valid YAML \(line \d+, column \d+\)"),
+    ("- steps\n- 3\n", "expected a mapping of training settings"),
+])
+def test_bad_yaml_is_a_value_error(tmp_path, text, expected):
+    path = tmp_path / "train.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=expected):
+        load_config(path)
