@@ -79,3 +79,16 @@ def publish_serialized(publisher: Any, data: np.ndarray) -> None:
         ret = function(publisher.handle.pointer, ctypes.byref(message), None)
     if ret != 0:
         raise RuntimeError(f"rcl_publish_serialized_message failed (rcl_ret_t {ret}) on {publisher.topic_name}")
+
+
+def shut_down_rclpy() -> None:
+    """rclpy.try_shutdown, which a signal can race: rclpy's signal handler shuts the context down from
+    its own thread, between try_shutdown's check and its shutdown (then rcl says it was shut down)."""
+    import rclpy
+    from rclpy._rclpy_pybind11 import RCLError
+
+    try:
+        rclpy.try_shutdown()
+    except RCLError:
+        if rclpy.ok():
+            raise

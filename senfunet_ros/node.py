@@ -51,6 +51,7 @@ from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
 from senfunet_ros.bagio import message_class
 from senfunet_ros.conversions import PoseType
+from senfunet_ros.dds import shut_down_rclpy
 from senfunet_ros.health import HealthMonitor
 from senfunet_ros.ingest import Frame, Ingest, TimeJump
 from senfunet_ros.map_services import MapServices
@@ -680,7 +681,7 @@ def main(args: list[str] | None = None) -> int:
     finally:
         if node is not None:
             stop_node(node)
-        rclpy.try_shutdown()
+        shut_down_rclpy()
     return 0
 
 

@@ -214,6 +214,8 @@ class _Demo:
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from std_srvs.srv import Trigger
 
+        from senfunet_ros.dds import shut_down_rclpy
+
         args = self.args
         node_cmd = [*self.cli, "node", "--use-sim-time"]
         if args.params:
@@ -282,7 +284,7 @@ class _Demo:
             raise
         finally:
             node.destroy_node()
-            rclpy.try_shutdown()
+            shut_down_rclpy()
         return self.out / "mesh.ply"
 
 

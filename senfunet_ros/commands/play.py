@@ -60,7 +60,7 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
     except BagError as err:
         return _error(str(err))
 
-    from senfunet_ros.dds import use_large_shm_profile
+    from senfunet_ros.dds import shut_down_rclpy, use_large_shm_profile
 
     use_large_shm_profile()  # before the participant exists: Fast DDS reads it then
     rclpy.init(args=None)
@@ -129,7 +129,7 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        shut_down_rclpy()
 
 
 def _message_classes(reader, topics: list[str] | None, say) -> dict[str, type]:  # noqa: ANN001

@@ -152,3 +152,22 @@ def test_sigterm_during_start_up_exits_quietly(ros_domain_id: int):
     assert proc.returncode == 0, out
     assert "Traceback" not in out, out
     assert time.monotonic() - t0 < 10.0  # stopped at once, not after the start-up
+
+
+def test_a_shutdown_the_signal_handler_raced_is_a_stop(monkeypatch: pytest.MonkeyPatch) -> None:
+    """rclpy's signal handler shuts the context down from its own thread: main's try_shutdown, racing
+    it, got 'rcl_shutdown already called' (a traceback and exit 1 after a SIGTERM at start-up)."""
+    import rclpy
+    from rclpy._rclpy_pybind11 import RCLError
+
+    from senfunet_ros.dds import shut_down_rclpy
+
+    def raced() -> None:
+        raise RCLError("failed to shutdown: rcl_shutdown already called on the given context")
+
+    monkeypatch.setattr(rclpy, "try_shutdown", raced)
+    monkeypatch.setattr(rclpy, "ok", lambda: False)
+    shut_down_rclpy()  # a stop, not an error
+    monkeypatch.setattr(rclpy, "ok", lambda: True)  # the context still up: a real failure, raised
+    with pytest.raises(RCLError):
+        shut_down_rclpy()
