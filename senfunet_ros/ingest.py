@@ -241,8 +241,8 @@ class _SensorInput:
         except (ValueError, AttributeError) as err:
             return self.drop("bad_camera_info", str(err))
         while self.awaiting_info:
-            msg, stamp_ns, arrival_s = self.awaiting_info.popleft()
-            self.enqueue(_decode_depth(msg, stamp_ns, arrival_s, camera_info=self.camera_info,
+            depth_msg, stamp_ns, arrival_s = self.awaiting_info.popleft()
+            self.enqueue(_decode_depth(depth_msg, stamp_ns, arrival_s, camera_info=self.camera_info,
                                        working_size=config.working_size), config, cleared=self.cleared)
         return None
 
