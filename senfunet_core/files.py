@@ -1,4 +1,4 @@
-"""Files written whole or not at all."""
+"""Files written whole or not at all; what a YAML file has wrong, in one line."""
 from __future__ import annotations
 
 import contextlib
@@ -30,3 +30,11 @@ def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def yaml_error_text(err: Exception) -> str:
+    """What a yaml.YAMLError says, in one line, with where: "not valid YAML (line 4, column 1): ..."."""
+    mark = getattr(err, "problem_mark", None)
+    where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+    problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+    return f"not valid YAML{where}: {problem}"

@@ -43,20 +43,11 @@ class MeshArchive:
         """Archive these blocks' meshes (a block archived before is replaced)."""
         if len(meshes) == 0:
             return
-        self.replace({tuple(k) for k in meshes.keys.tolist()})
-        self._meshes = BlockMeshes.concatenate([self._meshes, meshes])
+        replaced = [self._row[key] for key in map(tuple, meshes.keys.tolist()) if key in self._row]
+        keep = np.ones(len(self._meshes), bool)
+        keep[replaced] = False
+        self._meshes = BlockMeshes.concatenate([self._meshes.select(np.flatnonzero(keep)), meshes])
         self._reindex()
-
-    def replace(self, live_keys: set[BlockKey]) -> list[BlockKey]:
-        """Forget the archived meshes of these blocks (their live meshes take over); returns the keys
-        that were archived."""
-        gone = [key for key in live_keys if key in self._row]
-        if gone:
-            keep = np.ones(len(self._meshes), bool)
-            keep[[self._row[key] for key in gone]] = False
-            self._meshes = self._meshes.select(np.flatnonzero(keep))
-            self._reindex()
-        return gone
 
     def add_merged(self, meshes: BlockMeshes, in_memory: np.ndarray, voxel_size_m: float) -> None:
         """Archive these blocks' meshes; what was archived under the same keys for cells that are not
@@ -95,16 +86,9 @@ class MeshArchive:
         row = self._row.get(key)
         return None if row is None else self._meshes.mesh(row)
 
-    def meshes(self, exclude: set[BlockKey] | None = None) -> BlockMeshes:
-        """The archived block meshes, without the blocks in `exclude`."""
-        if not exclude:
-            return self._meshes
-        keep = [row for key, row in self._row.items() if key not in exclude]
-        return self._meshes.select(np.sort(np.asarray(keep, np.int64)))
-
-    def mesh(self, exclude: set[BlockKey] | None = None) -> Mesh:
-        """The archived meshes as one mesh (vertices not welded across blocks)."""
-        return as_mesh(self.meshes(exclude))
+    def meshes(self) -> BlockMeshes:
+        """Every archived block mesh."""
+        return self._meshes
 
     def keys_near(self, coords: np.ndarray) -> set[BlockKey]:
         """The archived blocks among these blocks (B x 3) and their 26 neighbours."""

@@ -226,11 +226,10 @@ class MeshPublisher:
                 ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
                 unacknowledged = 0  # parts published while a reader had not taken the one before
                 parts = 0
-                for i, data in enumerate(messages or ()):
-                    parts += 1
+                for parts, data in enumerate(messages or (), start=1):
                     t_encoded = time.perf_counter()
                     # the history holds 2: let readers take the previous part before it can be overwritten
-                    if i and not self._wait_mesh_acked(ack_deadline):
+                    if parts > 1 and not self._wait_mesh_acked(ack_deadline):
                         unacknowledged += 1
                     publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
                     publish_s += time.perf_counter() - t_encoded

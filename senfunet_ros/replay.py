@@ -64,6 +64,8 @@ def _read_params_file(path: Path, *, node_sections_only: bool = False) -> dict[s
     section unless `node_sections_only`: ROS gives the node only its own), flattened."""
     import yaml
 
+    from senfunet_core.files import yaml_error_text
+
     try:
         doc = yaml.safe_load(path.read_text())
     except OSError as err:
@@ -71,10 +73,7 @@ def _read_params_file(path: Path, *, node_sections_only: bool = False) -> dict[s
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a text file; pass a YAML parameter file such as config/default.yaml") from None
     except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
-        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
-        raise ValueError(f"{path}: not valid YAML{where}: {problem}") from None
+        raise ValueError(f"{path}: {yaml_error_text(err)}") from None
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: expected '{P.NODE_NAME}: ros__parameters: ...' at the top")
     for key in (P.NODE_NAME, f"/{P.NODE_NAME}", "/**"):
@@ -314,7 +313,6 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
         dropped = "; ".join(f"{s}: " + (", ".join(f"{n} {r}" for r, n in c["dropped"].items() if n) or "no frames")
                             for s, c in counters.items())
         result.error = f"{bag}: no frame could be fused ({dropped}); see {out / 'stats.json'}"
-    out.mkdir(parents=True, exist_ok=True)
     # what needs the map is read before its last mesh: the map's memory goes as that mesh is made. The
     # live node's mesh-update statistics (meshed blocks, how long they waited for the net) mean nothing
     # here: replay runs no mesh update, its one mesh judges every block

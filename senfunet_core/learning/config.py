@@ -5,6 +5,7 @@ from dataclasses import dataclass, field, fields
 from fractions import Fraction
 from pathlib import Path
 
+from ..files import yaml_error_text
 from ..integrator import IntegratorConfig
 
 SENSORS = ("tof", "stereo")
@@ -101,9 +102,7 @@ def load_config(path: str | Path) -> TrainConfig:
     try:
         values = yaml.safe_load(Path(path).read_text()) or {}
     except yaml.YAMLError as err:  # a ValueError for the caller, like every other bad config
-        mark = getattr(err, "problem_mark", None)
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
-        raise ValueError(f"not valid YAML{where}: {getattr(err, 'problem', None) or err}") from None
+        raise ValueError(yaml_error_text(err)) from None
     if not isinstance(values, dict):
         raise ValueError(f"expected a mapping of training settings (key: value), got a {type(values).__name__}")
     return TrainConfig.from_dict(values)
