@@ -70,7 +70,7 @@ from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, keys_to_coords
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
-from .mesh_archive import MeshArchive, as_mesh, union
+from .mesh_archive import MeshArchive, as_mesh, blocks_around, union
 from .mesher import BlockMeshes, Mesh, StreamingWeld
 from .spill import BlockSpill
 from .stage_times import StageTimes
@@ -401,7 +401,7 @@ class SenFuNet:
                 # blocks in memory that have an archived mesh near these: their markers show both, and
                 # the archived part shrinks as neighbours come back (see below)
                 pruned = self.bound.take_pruned()  # by evictions since the last update
-                near = self.archive.keys_near(self.grid.coords[slots].numpy()) | pruned
+                near = self.archive.held(blocks_around(self.grid.coords[slots].numpy())) | pruned
                 if near:
                     found = self.grid.lookup(torch.tensor(sorted(near), dtype=torch.int64)).numpy()
                     slots = np.union1d(slots, found[found >= 0])
@@ -417,27 +417,24 @@ class SenFuNet:
             # meshes have those cells: each reader of a block that came back was re-meshed)
             archived_now = {tuple(k) for k in self.bound.take_archived().keys.tolist()}
             # (only those found before meshing: a block in memory is shown whole only if it was re-meshed)
-            near = {key for key in near | archived_now if key in self.archive or key in pruned}
+            near = self.archive.held(near | archived_now) | (near & pruned)
             if near:
                 with self.data_lock:
                     in_memory = np.sort(self.grid.slot_keys[: self.grid.n_blocks])
                 self.archive.prune(near, in_memory, self.config.voxel_size_m)
-            shown_archived = BlockMeshes.from_meshes({key: mesh for key in sorted(near)
-                                                      if (mesh := self.archive.get(key)) is not None})
-            result.meshes = union(live, shown_archived)
+            result.meshes = union(live, self.archive.select(near))
             has_faces = np.isin(changed_keys, live_keys)
-            vanished = coords[~has_faces & np.isin(changed_keys, self._meshed)]
-            result.removed = [key for key in map(tuple, vanished.tolist()) if key not in self.archive]
-            live_set = set(map(tuple, live.keys.tolist()))  # archived meshes pruned away where nothing live shows
-            result.removed += [key for key in sorted(near) if key not in self.archive and key not in live_set
-                               and key not in result.removed]
+            vanished = [tuple(key) for key in coords[~has_faces & np.isin(changed_keys, self._meshed)].tolist()]
             # evicted blocks that were shown and whose final mesh was empty (the net, judging them before
             # the eviction, filtered what was shown): their markers go
-            if self._evicted_shown:
-                evicted = keys_to_coords(torch.from_numpy(np.concatenate(self._evicted_shown))).numpy()
-                self._evicted_shown = []
-                result.removed += [key for key in map(tuple, evicted.tolist()) if key not in self.archive
-                                   and key not in live_set and key not in result.removed]
+            evicted = [tuple(key) for key in keys_to_coords(torch.from_numpy(np.concatenate(
+                self._evicted_shown or [np.zeros(0, np.int64)]))).tolist()]
+            self._evicted_shown = []
+            archived = self.archive.held(vanished + sorted(near) + evicted)
+            live_set = set(map(tuple, live.keys.tolist()))  # archived meshes pruned away where nothing live shows
+            removed = [key for key in vanished if key not in archived]
+            removed += [key for key in sorted(near) + evicted if key not in archived and key not in live_set]
+            result.removed = list(dict.fromkeys(removed))
             self._meshed = np.union1d(np.setdiff1d(self._meshed, changed_keys), live_keys)
             self.counters["meshed_blocks"] = len(self._meshed)
             with self.data_lock:  # for the weighting net's order (slots stay put while the update lock is held)
@@ -611,7 +608,11 @@ class SenFuNet:
                 "sparse_dropped_samples": self.counters["sparse_dropped_samples"],
                 "sparse_dropped_blocks": self.counters["sparse_dropped_blocks"],
                 "occupancy": observed / max(self.grid.n_blocks * 512, 1),
-                "archived_blocks": len(self.archive), "archived_faces": self.archive.n_faces,
+                "archived_blocks": len(self.archive), "archived_faces": self.archive.chunks.n_faces,
+                # the archive's meshes in RAM (the recent ones) and in its memory-mapped files (the rest)
+                "archive_bytes_in_memory": self.archive.chunks.bytes_in_memory,
+                "archive_bytes_on_disk": self.archive.chunks.bytes_on_disk,
+                "archive_seal_failures": self.archive.chunks.seal_failures,
                 "spilled_blocks": spilled[0], "spill_bytes": spilled[1], "restored_blocks": spilled[2],
                 "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
                 "meshed_blocks_alpha_current": int(current.sum()),

@@ -22,7 +22,7 @@ import numpy as np
 from .alpha_scheduler import AlphaScheduler
 from .block_mesher import MESH_READ_CODES, MESH_READER_CODES, BlockMesher, with_seams
 from .block_store import BlockStore, Eviction
-from .mesh_archive import MeshArchive
+from .mesh_archive import MeshArchive, blocks_around
 from .mesher import BlockMeshes
 
 __all__ = ["HARD_BOUND", "MapBound", "memory_bound_blocks"]
@@ -155,14 +155,13 @@ class MapBound:
                 return None
             self._retry_at_blocks = 0
         # The archive is the update lock's (held): changed without the data lock, so that integration goes on
-        # meanwhile (it copies the whole archive, which grows with the run). Archived triangles of cells whose
-        # corners were all in memory until now (a block came back since the last update) go: the final meshes
-        # just made have those cells; what a victim had archived from an earlier eviction, for cells its new
-        # mesh cannot have (a corner block still on disk), stays.
-        near = self.archive.keys_near(victim_coords)
+        # meanwhile. Archived triangles of cells whose corners were all in memory until now (a block came back
+        # since the last update) go: the final meshes just made have those cells; what a victim had archived
+        # from an earlier eviction, for cells its new mesh cannot have (a corner block still on disk), stays.
+        near = self.archive.held(blocks_around(victim_coords))
         self.archive.prune(near, in_memory, self.voxel_size_m)
         self.pruned_keys |= near  # the next update shows what is left of them
-        self.archive.add_merged(archived, in_memory, self.voxel_size_m)
+        self.archive.add(archived, in_memory, self.voxel_size_m)
         self.newly_archived.append(archived)
         self.evicted_blocks += len(victim_coords)
         self.evictions += 1

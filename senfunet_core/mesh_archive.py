@@ -10,112 +10,97 @@ still on disk stay, and a block whose live mesh became empty shows no stale surf
 """
 from __future__ import annotations
 
-import numpy as np
+from collections.abc import Iterable
 
+import numpy as np
 import torch
 
-from .grid import BLOCK, block_keys
+from .grid import BLOCK, keys_to_coords
+from .mesh_chunks import SEAL_BYTES, MeshChunks, packed_keys
+from .block_mesher import joined
 from .mesher import BlockMeshes, Mesh
 
 __all__ = ["MeshArchive"]
 
 BlockKey = tuple[int, int, int]
+_STATE = ("keys", "vertices", "colors", "faces", "vertex_offsets", "face_offsets")  # BlockMeshes' fields
+_AROUND = np.array(list(np.ndindex(3, 3, 3)), np.int64) - 1  # a block and its 26 neighbours
 
 
 class MeshArchive:
-    """Block key -> final fused mesh of an evicted block (world frame, metres)."""
+    """Block key -> final fused mesh of an evicted block (world frame, metres), stored in `chunks`
+    (what is large on disk, memory-mapped: see mesh_chunks)."""
 
-    def __init__(self) -> None:
-        self._meshes = BlockMeshes.concatenate([])
-        self._row: dict[BlockKey, int] = {}  # key -> block index in _meshes
+    def __init__(self, *, directory: str | None = None, seal_bytes: int = SEAL_BYTES) -> None:
+        self.chunks = MeshChunks(directory=directory, seal_bytes=seal_bytes)
 
     def __len__(self) -> int:
-        return len(self._row)
+        return len(self.chunks)
 
     def __contains__(self, key: BlockKey) -> bool:
-        return key in self._row
+        return bool(self.held([key]))
 
-    @property
-    def n_faces(self) -> int:
-        return int(self._meshes.face_offsets[-1])
-
-    def add(self, meshes: BlockMeshes) -> None:
-        """Archive these blocks' meshes (a block archived before is replaced)."""
-        if len(meshes) == 0:
-            return
-        replaced = [self._row[key] for key in map(tuple, meshes.keys.tolist()) if key in self._row]
-        keep = np.ones(len(self._meshes), bool)
-        keep[replaced] = False
-        self._meshes = BlockMeshes.concatenate([self._meshes.select(np.flatnonzero(keep)), meshes])
-        self._reindex()
-
-    def add_merged(self, meshes: BlockMeshes, in_memory: np.ndarray, voxel_size_m: float) -> None:
+    def add(self, meshes: BlockMeshes, in_memory: np.ndarray, voxel_size_m: float) -> None:
         """Archive these blocks' meshes; what was archived under the same keys for cells that are not
-        all in memory now (`in_memory`: sorted keys of the blocks in memory, the evicted ones still
-        among them) stays beside them: those cells are in none of the new meshes."""
+        all in memory now (`in_memory`: sorted packed keys of the blocks in memory, the evicted ones
+        still among them) stays beside them: those cells are in none of the new meshes."""
         if len(meshes) == 0:
             return
-        new_keys = {tuple(k) for k in meshes.keys.tolist()}
-        old = [key for key in new_keys if key in self._row]
-        if old:
-            kept = self._meshes.select(np.array([self._row[key] for key in old], np.int64))
-            kept = _drop_meshable(kept, in_memory, voxel_size_m)
-            merged = {key: mesh for key, mesh in meshes.as_dict().items()}
+        kept = _drop_meshable(self.chunks.select(packed_keys(meshes.keys)), in_memory, voxel_size_m)
+        if len(kept):
+            merged = meshes.as_dict()
             for key, mesh in kept.as_dict().items():
-                merged[key] = _joined(merged[key], mesh)
+                merged[key] = joined([merged[key], mesh])
             meshes = BlockMeshes.from_meshes(merged)
-        self.add(meshes)
+        self.chunks.put(meshes)
 
     def prune(self, keys: set[BlockKey], in_memory: np.ndarray, voxel_size_m: float) -> None:
         """Drop, from the archived meshes of these blocks, the triangles of cells whose 8 corners are all
-        in blocks in memory (`in_memory`: their sorted keys): the live mesh has those cells."""
-        rows = np.array(sorted(self._row[key] for key in keys if key in self._row), np.int64)
-        if len(rows) == 0:
+        in blocks in memory (`in_memory`: their sorted packed keys): the live mesh has those cells."""
+        if not keys:
             return
-        pruned = _drop_meshable(self._meshes.select(rows), in_memory, voxel_size_m)
-        keep = np.ones(len(self._meshes), bool)
-        keep[rows] = False
-        self._meshes = BlockMeshes.concatenate([self._meshes.select(np.flatnonzero(keep)), pruned])
-        self._reindex()
+        held = self.chunks.select(packed_keys(np.array(sorted(keys))))
+        pruned = _drop_meshable(held, in_memory, voxel_size_m)
+        if pruned is not held:
+            emptied = np.setdiff1d(packed_keys(held.keys), packed_keys(pruned.keys))
+            self.chunks.put(pruned, removed=emptied)
 
     def visible(self, in_memory: np.ndarray, voxel_size_m: float) -> BlockMeshes:
-        """The archived meshes without the triangles of cells the live mesh has (all corners in memory)."""
-        return _drop_meshable(self._meshes, in_memory, voxel_size_m)
+        """The archived meshes without the triangles of cells the live mesh has (all corners in memory),
+        looked for only in blocks next to one in memory."""
+        parts = []
+        for part in self.chunks.parts():
+            near = _next_to(part.keys, in_memory)
+            parts += [part.select(np.flatnonzero(~near)),
+                      _drop_meshable(part.select(np.flatnonzero(near)), in_memory, voxel_size_m)]
+        return BlockMeshes.concatenate(parts)
 
-    def get(self, key: BlockKey) -> Mesh | None:
-        row = self._row.get(key)
-        return None if row is None else self._meshes.mesh(row)
+    def select(self, keys: Iterable[BlockKey]) -> BlockMeshes:
+        """The archived meshes of those of these blocks that have one."""
+        return self.chunks.select(packed_keys(_as_coords(keys)))
+
+    def held(self, keys: Iterable[BlockKey] | np.ndarray) -> set[BlockKey]:
+        """Those of these blocks (keys, or B x 3 coordinates) that have an archived mesh."""
+        coords = _as_coords(keys)
+        hits = np.zeros(len(coords), bool)
+        for _, found, _ in self.chunks.find(packed_keys(coords)):
+            hits |= found
+        return set(map(tuple, coords[hits].tolist()))
 
     def meshes(self) -> BlockMeshes:
-        """Every archived block mesh."""
-        return self._meshes
-
-    def keys_near(self, coords: np.ndarray) -> set[BlockKey]:
-        """The archived blocks among these blocks (B x 3) and their 26 neighbours."""
-        if not len(self._row) or not len(coords):
-            return set()
-        offsets = np.array(list(np.ndindex(3, 3, 3)), np.int64) - 1
-        around = np.unique((np.asarray(coords, np.int64)[:, None, :] + offsets[None]).reshape(-1, 3), axis=0)
-        archived = np.sort(block_keys(torch.from_numpy(self._meshes.keys)).numpy())
-        hits = np.isin(block_keys(torch.from_numpy(around)).numpy(), archived)
-        return set(map(tuple, around[hits].tolist()))
+        """Every archived block mesh (read-only)."""
+        return BlockMeshes.concatenate(list(self.chunks.parts()))
 
     def clear(self) -> None:
-        self._meshes = BlockMeshes.concatenate([])
-        self._row = {}
+        self.chunks.clear()
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        m = self._meshes
-        return {"keys": m.keys, "vertices": m.vertices, "colors": m.colors, "faces": m.faces,
-                "vertex_offsets": m.vertex_offsets, "face_offsets": m.face_offsets}
+        m = self.meshes()  # (a chunk's own arrays when it is the only one: copied, writable, in RAM)
+        return {name: np.array(getattr(m, name)) for name in _STATE}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
-        self._meshes = BlockMeshes(*(np.asarray(state[name]) for name in (
-            "keys", "vertices", "colors", "faces", "vertex_offsets", "face_offsets")))
-        self._reindex()
-
-    def _reindex(self) -> None:
-        self._row = {key: row for row, key in enumerate(map(tuple, self._meshes.keys.tolist()))}
+        self.chunks.clear()
+        self.chunks.put(BlockMeshes(*(np.asarray(state[name]) for name in _STATE)))
 
 
 def as_mesh(meshes: BlockMeshes) -> Mesh:
@@ -133,23 +118,37 @@ def union(live: BlockMeshes, archived: BlockMeshes) -> BlockMeshes:
         return live
     if len(live) == 0:
         return archived
-    live_row = {key: row for row, key in enumerate(map(tuple, live.keys.tolist()))}
-    both: dict[BlockKey, Mesh] = {}
-    only_archived = []
-    for row, key in enumerate(map(tuple, archived.keys.tolist())):
-        if key in live_row:
-            both[key] = _joined(live.mesh(live_row[key]), archived.mesh(row))
-        else:
-            only_archived.append(row)
-    only_live = [row for key, row in live_row.items() if key not in both]
-    return BlockMeshes.concatenate([live.select(np.array(only_live, np.int64)),
-                                    archived.select(np.array(only_archived, np.int64)),
-                                    BlockMeshes.from_meshes(both)])
+    live_keys, archived_keys = packed_keys(live.keys), packed_keys(archived.keys)
+    in_archive, in_live = np.isin(live_keys, archived_keys), np.isin(archived_keys, live_keys)
+    live_rows, archived_rows = np.flatnonzero(in_archive), np.flatnonzero(in_live)  # pairs in key order:
+    live_rows = live_rows[np.argsort(live_keys[live_rows])]
+    archived_rows = archived_rows[np.argsort(archived_keys[archived_rows])]
+    both = {tuple(live.keys[a].tolist()): joined([live.mesh(a), archived.mesh(b)])
+            for a, b in zip(live_rows.tolist(), archived_rows.tolist())}
+    return BlockMeshes.concatenate([live.select(np.flatnonzero(~in_archive)),
+                                    archived.select(np.flatnonzero(~in_live)), BlockMeshes.from_meshes(both)])
 
 
-def _joined(a: Mesh, b: Mesh) -> Mesh:
-    return Mesh(np.concatenate([a.vertices, b.vertices]), np.concatenate([a.faces, b.faces + len(a.vertices)]),
-                np.concatenate([a.colors, b.colors]) if a.colors is not None and b.colors is not None else None)
+def blocks_around(coords: np.ndarray) -> np.ndarray:
+    """These blocks (B x 3) and their 26 neighbours, each once (N x 3)."""
+    around = np.unique(packed_keys(np.asarray(coords, np.int64)[:, None, :] + _AROUND[None]))
+    return keys_to_coords(torch.from_numpy(around)).numpy()
+
+
+def _as_coords(keys: Iterable[BlockKey] | np.ndarray) -> np.ndarray:
+    return np.array(keys if isinstance(keys, np.ndarray) else list(keys), np.int64).reshape(-1, 3)
+
+
+def _next_to(coords: np.ndarray, in_memory: np.ndarray) -> np.ndarray:
+    """Per block (B x 3): whether it or one of its 26 neighbours is in memory (sorted packed keys)."""
+    near = np.zeros(len(coords), bool)
+    if not len(in_memory) or not len(coords):
+        return near
+    for offset in _AROUND:
+        keys = packed_keys(coords + offset)
+        at = np.minimum(np.searchsorted(in_memory, keys), len(in_memory) - 1)
+        near |= in_memory[at] == keys
+    return near
 
 
 def meshable_faces(vertices_m: np.ndarray, faces: np.ndarray, in_memory: np.ndarray, voxel_size_m: float,
@@ -170,7 +169,7 @@ def meshable_faces(vertices_m: np.ndarray, faces: np.ndarray, in_memory: np.ndar
         cell = np.floor(centroid + shift).astype(np.int64)
         all_in = np.ones(len(faces), bool)
         for corner in np.ndindex(2, 2, 2):
-            keys = block_keys(torch.from_numpy(np.floor_divide(cell + np.array(corner), BLOCK))).numpy()
+            keys = packed_keys(np.floor_divide(cell + np.array(corner), BLOCK))
             at = np.minimum(np.searchsorted(in_memory, keys), len(in_memory) - 1)
             all_in &= in_memory[at] == keys
         meshable |= all_in
@@ -187,7 +186,7 @@ def _drop_meshable(meshes: BlockMeshes, in_memory: np.ndarray, voxel_size_m: flo
         return meshes
     block_of_face = np.repeat(np.arange(len(meshes)), np.diff(meshes.face_offsets))
     global_faces = meshes.faces + meshes.vertex_offsets[:-1][block_of_face, None]
-    face_blocks = block_keys(torch.from_numpy(meshes.keys)).numpy()[block_of_face]
+    face_blocks = packed_keys(meshes.keys)[block_of_face]
     keep = ~meshable_faces(meshes.vertices, global_faces, in_memory, voxel_size_m, face_blocks)
     if keep.all():
         return meshes
