@@ -7,17 +7,55 @@ evaluation scheme), with a map bound of a few blocks so that eviction and the sp
 they compile at a live node's first eviction); then the mesh decimation, the renderer, the ~/mesh
 wire codec and the rvl depth codec, all on tiny inputs. Kernels the cache already holds load in a
 fraction of a second, so running it again costs little.
+
+numba renews a cached kernel only when its own file changes, yet kernels inline functions of other
+modules (integration's kernels inline the grid's): after any change of the sources (a `git pull`),
+every cached kernel is dropped first (`drop_stale_caches`), so none runs code that is gone.
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
+
+STAMP = "numba_sources.sha256"  # in the first package's __pycache__: the sources the caches were built from
+
+
+def sources_digest(roots: list[Path]) -> str:
+    digest = hashlib.sha256()
+    for root in roots:
+        for path in sorted(root.rglob("*.py")):
+            digest.update(str(path.relative_to(root.parent)).encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
+def drop_stale_caches(roots: list[Path]) -> str | None:
+    """Delete numba's cache files under these package folders unless they were built from the sources
+    there now; the digest to stamp once the kernels are compiled (None: the caches are current)."""
+    digest = sources_digest(roots)
+    stamp = roots[0] / "__pycache__" / STAMP
+    if stamp.is_file() and stamp.read_text().strip() == digest:
+        return None
+    dropped = [path for root in roots for pattern in ("__pycache__/*.nbi", "__pycache__/*.nbc")
+               for path in root.rglob(pattern)]
+    for path in dropped:
+        path.unlink(missing_ok=True)
+    if dropped:
+        print(f"senfunet: the sources changed since the numba kernels were cached: {len(dropped)} cache files "
+              "dropped, compiling again")
+    return digest
 
 
 def main() -> None:
     start = time.monotonic()
+    import senfunet_core
+    import senfunet_ros
+
+    roots = [Path(package.__file__).parent for package in (senfunet_core, senfunet_ros)]
+    digest = drop_stale_caches(roots)
     from senfunet_core import decimate
     from senfunet_core.engine import SenFuNet
     from senfunet_core.mesher import Mesh
@@ -38,6 +76,9 @@ def main() -> None:
     rasterize(triangle, default_camera([triangle], 4 / 3), 32, 24)
     rvl_decode(np.array([1, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0x20, 0x01], np.uint8))  # one pixel of depth 1
     marker_array_from_cdr(marker_array_cdr({(0, 0, 0): triangle}, (), stamp_ns=0, frame_id="map"))
+    if digest is not None:
+        (roots[0] / "__pycache__").mkdir(exist_ok=True)
+        (roots[0] / "__pycache__" / STAMP).write_text(digest + "\n")
     print(f"senfunet: numba kernels compiled (or loaded from the cache) in {time.monotonic() - start:.1f} s")
 
 
