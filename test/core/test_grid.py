@@ -1,6 +1,8 @@
 """The sparse block grid: hash-table lookups, growth, neighbour tables and half-precision kernels."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numba
 import numpy as np
 import pytest
@@ -151,7 +153,18 @@ def test_dropping_uncommitted_new_blocks_keeps_every_other_key_findable():
     assert (grid.table_keys != G.EMPTY_KEY).sum() == grid.n_blocks
 
 
-@numba.njit
+def _cached_kernel(function):
+    """numba.njit(cache=True): these kernels compile for two pool dtypes, tens of seconds a run
+    uncached. numba renews a cached kernel when this file changes only, and they inline grid.py's
+    functions: their cache is dropped when grid.py is newer, so they never run a stale grid."""
+    here = Path(__file__)
+    for index in (here.parent / "__pycache__").glob(f"{here.stem}.{function.__name__}-*.nbi"):
+        if index.stat().st_mtime < Path(G.__file__).stat().st_mtime:
+            index.unlink(missing_ok=True)
+    return numba.njit(cache=True)(function)
+
+
+@_cached_kernel
 def _store_load_features(values, packed):
     n_voxels, n = values.shape
     back = np.empty_like(values)
@@ -165,7 +178,7 @@ def _store_load_features(values, packed):
     return back
 
 
-@numba.njit
+@_cached_kernel
 def _load_rows(pool, n_voxels, n):
     rows = np.empty((n_voxels, n), np.float32)
     for v in range(n_voxels):
@@ -218,7 +231,7 @@ def test_depth_code_rounds_to_the_nearest_representable_depth():
     assert np.abs(got - depth)[~far].max() <= 1 / 256 + 1e-6
 
 
-@numba.njit
+@_cached_kernel
 def _blend_all(features, n, keep, add, sums, inv_count, changes):
     for v in range(changes.shape[0]):
         changes[v] = G.blend_features(features, n, v, keep[v], add[v], sums[v], inv_count[v])
