@@ -675,7 +675,7 @@ def main(args: list[str] | None = None) -> int:
         if not rclpy.ok():  # a signal shut the context down under the start-up (a handle failed on it): a stop
             return 0
         if isinstance(err, ValueError):  # bad parameters (InputError is a ValueError too): say which, no traceback
-            print(f"senfunet: cannot start: {err}", flush=True)
+            print(f"senfunet: cannot start: {err}", file=sys.stderr, flush=True)
             return 2
         raise
     finally:
@@ -729,7 +729,7 @@ def stop_node(node: FusionNode) -> None:
                   f"{done['discarded']} still waiting and {done['interrupted']} being integrated were dropped "
                   "(counted as shutdown)", flush=True)
         except Exception as err:
-            print(f"senfunet: finishing the queued frames failed: {err}", flush=True)
+            print(f"senfunet: finishing the queued frames failed: {err}", file=sys.stderr, flush=True)
         if node.settings.save_on_shutdown:
             saving = True
             try:
@@ -739,7 +739,7 @@ def stop_node(node: FusionNode) -> None:
                 print("senfunet: interrupted again: saving on shutdown stopped (files already written stay, "
                       "the one being written was not replaced)", flush=True)
             except Exception as err:
-                print(f"senfunet: saving on shutdown failed: {err}", flush=True)
+                print(f"senfunet: saving on shutdown failed: {err}", file=sys.stderr, flush=True)
     finally:
         for sig, handler in (previous or {}).items():
             signal.signal(sig, handler)
