@@ -281,7 +281,8 @@ class _SensorInput:
         the drop reason (counted), or what to decode, or None."""
         if stream == "pose":
             conflict = self.poses.add(stamp_ns, message, keep=config.pose_buffer_size)
-            return None if conflict is None else self.drop("pose_conflict", f"pose: {conflict}")
+            return None if conflict is None else self.drop("pose_conflict",
+                                                           f"pose: stamp {stamp_ns * 1e-9:.3f} s: {conflict}")
         msg, arrival_s = message if stream == "depth" else (message, 0.0)
         if stream == "depth" and self.camera_info is None:
             if len(self.awaiting_info) >= config.queue_size:
