@@ -101,7 +101,7 @@ def run_node_case(args: argparse.Namespace) -> dict:
                     time.sleep(delay)
             else:  # frames may also wait for a later pose only this feeder delivers: never wait long
                 waited = time.monotonic() + 0.2
-                while sum(ingest.queue_depths().values()) > _BACKLOG_FRAMES and time.monotonic() < waited:
+                while sum(ingest.ledger.queue_depths().values()) > _BACKLOG_FRAMES and time.monotonic() < waited:
                     time.sleep(0.002)
             t = time.perf_counter()
             decoded = router.decode(msg)
@@ -109,12 +109,12 @@ def run_node_case(args: argparse.Namespace) -> dict:
                 router.dispatch(ingest, *decoded)
                 frames_sent += decoded[0].stream == "depth"
             conversion_s += time.perf_counter() - t
-            peak_queue = max(peak_queue, sum(ingest.queue_depths().values()))
+            peak_queue = max(peak_queue, sum(ingest.ledger.queue_depths().values()))
 
     stream_end = time.monotonic()  # the last message handed over
 
     def settled() -> bool:
-        c = ingest.counters()
+        c = ingest.ledger.counters()
         return all(v["integrated"] + sum(v["dropped"].values()) >= v["received"] for v in c.values())
 
     def five_seconds_after() -> tuple[int, dict, int, LiveMap | None]:
@@ -151,7 +151,7 @@ def run_node_case(args: argparse.Namespace) -> dict:
     while (not node.latency.updates or node.latency.updates[-1][0] < taken_by) and time.monotonic() < taken_by + 30:
         time.sleep(0.01)
     wall_s = integrated_at - start
-    counters = ingest.counters()
+    counters = ingest.ledger.counters()
     frames = sum(c["integrated"] for c in counters.values())
     dropped: dict[str, int] = {}
     for c in counters.values():

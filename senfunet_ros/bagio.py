@@ -1,7 +1,9 @@
 """Reading and writing recordings without ROS: rosbag2 folders (mcap or sqlite3) and bare `.mcap` files.
 
-Reading gives raw CDR bytes per message in recorded order; turning them into message objects is
-the caller's job (replay deserialises them into rclpy classes, play publishes the bytes as they
+Reading gives raw CDR bytes per message in recorded (log-time) order, across the files of a split
+recording too (their times may overlap); a rosbag2 folder is read through its files' own topic
+tables where metadata.yaml disagrees with them (`BagReader.note` says so). Turning them into
+message objects is the caller's job (replay deserialises them into rclpy classes, play publishes the bytes as they
 are). Writing turns a simulated `Sequence` into the contract's topic layout (../shared/DESIGN.md):
 
     /<s>/camera_info   sensor_msgs/msg/CameraInfo   before each depth image, same stamp
@@ -17,10 +19,13 @@ of one bag come back in the same order.
 Errors: `BagError` (one line saying which file or topic is wrong and what to do) when a bag cannot
 be opened or written; `BagBrokenError` from `BagReader.messages` when a bag breaks midway (the
 messages before the break have been yielded). A truncated `.mcap` without its summary is read
-sequentially up to the break.
+sequentially up to the break. Compressed storage is read as rosbags and the mcap library read it
+(mcap chunks in zstd or lz4; rosbag2's zstd file and message modes); another compression is a
+BagError that says to convert the bag.
 """
 from __future__ import annotations
 
+import heapq
 import importlib
 import re
 from dataclasses import dataclass, field
@@ -157,6 +162,7 @@ class _Source:
     message_count: int
     start_ns: int
     end_ns: int
+    note: str | None = None  # what was not as it should be, yet read
 
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
         raise NotImplementedError
@@ -166,7 +172,12 @@ class _Source:
 
 
 class _RosbagsSource(_Source):
-    """rosbags' reader: rosbag2 folders of either storage and bare .mcap/.db3 files (indexed)."""
+    """rosbags' reader: rosbag2 folders of either storage and bare .mcap/.db3 files (indexed).
+
+    A folder's files are read through their own topic tables, which are what the recorder wrote with
+    the messages (rosbag2 reads them so too): where metadata.yaml disagrees (another writer's offered
+    QoS or type hash), rosbags would leave that topic's messages out without a word. The files of a
+    split recording are merged in log-time order (their times may overlap)."""
 
     def __init__(self, path: Path) -> None:
         from rosbags.rosbag2 import Reader
@@ -181,19 +192,65 @@ class _RosbagsSource(_Source):
         self.message_count = int(reader.message_count)
         self.start_ns = int(reader.start_time) if self.message_count else 0
         self.end_ns = int(reader.end_time) if self.message_count else 0
-        self.topics = _topic_infos(
-            (conn.topic, conn.msgtype, int(conn.msgcount), getattr(conn.msgdef, "data", "") or "", conn.digest or "",
-             _latched(getattr(conn.ext, "offered_qos_profiles", ()))) for conn in reader.connections)
+        # a folder's storage files (rosbags' DirectoryReader), or the one file
+        self._files: list[Any] = list(getattr(reader.storage, "storages", None) or [reader.storage])
+        self._unzip = _zstd_decompress if reader.compression_mode == "message" else None
+        listed, in_files = list(reader.connections), [conn for file in self._files for conn in file.connections]
+        self.topics = _topic_infos(_connection_rows(listed, in_files))
+        disagree = _disagreements(listed, in_files)
+        self.note = (f"{path / 'metadata.yaml'} disagrees with the bag's files on {', '.join(disagree)} (offered QoS, "
+                     "type hash or the topic itself): read as the files record them" if disagree else None)
 
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
-        conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
+        streams = [self._file_messages(file, topics) for file in self._files]
+        if len(streams) == 1:
+            yield from streams[0]
+        else:  # a split recording: in log-time order across its files, whose times may overlap
+            yield from heapq.merge(*streams, key=lambda msg: msg.log_time_ns)
+
+    def _file_messages(self, file: Any, topics: Collection[str] | None) -> Iterator[BagMessage]:
+        conns = [c for c in file.connections if topics is None or c.topic in topics]
         if not conns:
             return
-        for conn, timestamp, data in self._reader.messages(connections=conns):
+        for conn, timestamp, data in file.messages(conns):
+            data = data if self._unzip is None else self._unzip(data)
             yield BagMessage(conn.topic, normalize_msgtype(conn.msgtype), int(timestamp), bytes(data))
 
     def close(self) -> None:
         self._reader.close()
+
+
+def _zstd_decompress(data: bytes) -> bytes:
+    """One message of a bag recorded with compression_mode message (zstd frames)."""
+    import zstandard
+
+    return zstandard.ZstdDecompressor().decompressobj().decompress(bytes(data))
+
+
+def _connection_rows(listed: list[Any], in_files: list[Any]) -> Iterator[tuple[str, str, int, str, str, bool]]:
+    """`_topic_infos` rows of rosbags connections: the listed ones (metadata.yaml's, with their counts;
+    a bare file's own), latched as the files record it, then those only the files have."""
+    for conn in listed:
+        recorded = [c for c in in_files if c.topic == conn.topic] or [conn]
+        yield (conn.topic, conn.msgtype, int(conn.msgcount), getattr(conn.msgdef, "data", "") or "", conn.digest or "",
+               any(_latched(getattr(c.ext, "offered_qos_profiles", ())) for c in recorded))
+    known = {(conn.topic, normalize_msgtype(conn.msgtype)) for conn in listed}
+    for conn in in_files:
+        if (conn.topic, normalize_msgtype(conn.msgtype)) not in known:
+            yield (conn.topic, conn.msgtype, int(conn.msgcount), getattr(conn.msgdef, "data", "") or "",
+                   conn.digest or "", _latched(getattr(conn.ext, "offered_qos_profiles", ())))
+
+
+def _disagreements(listed: list[Any], in_files: list[Any]) -> list[str]:
+    """The topics a file records otherwise than metadata.yaml lists them (rosbags matches the two
+    on topic, type, offered QoS and type hash, and reads nothing of a topic that differs)."""
+    out = []
+    for conn in in_files:
+        same = any(c.topic == conn.topic and c.msgtype == conn.msgtype and c.ext == conn.ext
+                   and (not c.digest or not conn.digest or c.digest == conn.digest) for c in listed)
+        if not same and conn.topic not in out:
+            out.append(conn.topic)
+    return out
 
 
 def _folder_storage(path: Path) -> str:
@@ -281,8 +338,9 @@ def _latched(offered_qos_profiles: Any) -> bool:
                for q in offered_qos_profiles or ())
 
 
-class _ChainSource(_Source):
-    """A split recording's files read one after the other (as rosbag2 reads them)."""
+class _MergedSource(_Source):
+    """A split recording's files read together, in log-time order across them (their times may
+    overlap: a recorder that split by size while messages of one topic were late)."""
 
     def __init__(self, sources: list[_Source]) -> None:
         self._sources = sources
@@ -296,17 +354,17 @@ class _ChainSource(_Source):
                                    for msgtype, n in info.types.items())
 
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
-        for source in self._sources:
-            yield from source.messages(topics)
+        yield from heapq.merge(*(source.messages(topics) for source in self._sources), key=lambda msg: msg.log_time_ns)
 
     def close(self) -> None:
         for source in self._sources:
             source.close()
 
 
-def _split_mcap_files(folder: Path) -> list[Path]:
-    """The .mcap files of a rosbag2 folder in recording order: as metadata.yaml lists them, else by name."""
-    files = sorted(folder.glob("*.mcap"))
+def _split_files(folder: Path) -> list[Path]:
+    """The storage files (.mcap or .db3) of a rosbag2 folder in recording order: as metadata.yaml lists
+    them, else by name."""
+    files = sorted([*folder.glob("*.mcap"), *folder.glob("*.db3")])
     try:
         from ruamel.yaml import YAML
 
@@ -359,6 +417,79 @@ def _mcap_is_unindexed(path: Path) -> bool:
     return footer[:1] == b"\x02" and summary_start == 0
 
 
+def _open_source(path: Path) -> _Source:
+    """How to read `path` (a rosbag2 folder, a bare .mcap or .db3 file, or a split recording's
+    folder), opened; its `note` says how, when not the normal way. BagError says what is wrong."""
+    if not path.exists():
+        raise BagError(f"{path}: no such bag; pass a rosbag2 folder (with metadata.yaml) or a .mcap file")
+    if path.is_dir():
+        parts = _split_files(path)
+        if len(parts) > 1 and (not (path / "metadata.yaml").is_file() or any(map(_mcap_is_unindexed, parts))):
+            # a split recording rosbags cannot take whole (no metadata.yaml, or a part cut short by a
+            # killed recorder): its files together, each as it can be read
+            source: _Source = _MergedSource([_open_rosbags(part) for part in parts])
+            names = ", ".join(part.name for part in parts)
+            source.note = f"{path}: reading its {len(parts)} files together, in time order ({names})"
+            return source
+        if (path / "metadata.yaml").is_file():
+            return _open_rosbags(path)
+        storage = bag_storage_file(path) if any(path.glob("*.mcap")) or any(path.glob("*.db3")) else None
+        if storage is None:
+            raise BagError(f"{path}: not a rosbag2 folder (no metadata.yaml and no .mcap or .db3 file)")
+        source = _open_rosbags(storage)
+        source.note = f"{path} has no metadata.yaml; reading {storage.name} directly"
+        return source
+    if path.suffix in (".mcap", ".db3"):
+        return _open_rosbags(path)
+    if _is_ros1_bag(path):
+        raise BagError(f"{path}: a ROS 1 bag; convert it to rosbag2 first: "
+                       f"rosbags-convert --src {path} --dst {path.with_suffix('')}")
+    raise BagError(f"{path}: not a bag; pass a rosbag2 folder or a .mcap file")
+
+
+def _open_rosbags(path: Path) -> _Source:
+    """A rosbag2 folder or one storage file through rosbags; an MCAP file without an index (or that
+    rosbags refuses) read sequentially. BagError says what is wrong."""
+    import sqlite3
+
+    from rosbags.rosbag2 import ReaderError
+
+    mcap_file = path if path.suffix == ".mcap" else None
+    if path.is_dir() and _folder_storage(path) == "mcap":
+        try:
+            mcap_file = bag_storage_file(path)
+        except BagError:
+            mcap_file = None
+    if mcap_file is not None and _mcap_is_unindexed(mcap_file):
+        stream = _McapStreamSource(mcap_file)
+        if not stream.topics:
+            raise BagError(f"{mcap_file}: truncated before any topic was recorded; nothing to read")
+        return stream
+    try:
+        return _RosbagsSource(path)
+    except FileNotFoundError as err:
+        raise BagError(f"{path}: {_describe(err)}") from None
+    except Exception as err:  # the storage libraries raise many kinds on what they cannot read
+        refusal = err
+    if mcap_file is not None:  # an MCAP rosbags refuses (e.g. its profile is not 'ros2'): read it as written
+        source: _McapStreamSource | None = None
+        try:
+            source = _McapStreamSource(mcap_file)
+        except Exception:  # noqa: BLE001 (then rosbags' refusal is the error)
+            pass
+        if source is not None and source.topics and source.break_error is None:
+            source.note = f"{mcap_file}: read in file order ({_describe(refusal)})"
+            return source
+    if isinstance(refusal, ReaderError) and "not supported" in str(refusal):  # e.g. a compression rosbags lacks
+        raise BagError(f"{path}: {_describe(refusal)}; convert the bag to an uncompressed or zstd-compressed "
+                       "rosbag2 first (ros2 bag convert, or rosbags-convert)") from None
+    if isinstance(refusal, (ReaderError, sqlite3.Error, OSError, KeyError, ValueError, TypeError)):
+        what = "an sqlite3 database" if path.suffix == ".db3" else "a readable bag"
+        raise BagError(f"{path}: not {what}: {_describe(refusal)}; "
+                       "the file is damaged or not a rosbag2 recording") from None
+    raise BagError(f"{path}: cannot read the bag: {_describe(refusal)}") from None
+
+
 class BagReader:
     """An open bag. Context manager; `messages()` yields `BagMessage`s in recorded order.
 
@@ -366,80 +497,25 @@ class BagReader:
             print(bag.topics)
             for msg in bag.messages(topics={"/tof/depth"}):
                 ...
-    """
+
+    `open()` sets what the bag holds: `storage`, `topics`, `message_count`, `start_ns`, `end_ns`
+    (log times), and `note` (how the bag was read, when not the normal way)."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self._source: _Source | None = None
-        self.note: str | None = None  # how the bag was read, when not the normal way
-
-    # -- lifecycle ------------------------------------------------------------------------------
+        self.note: str | None = None
+        self.storage = ""
+        self.topics: dict[str, TopicInfo] = {}
+        self.message_count = 0
+        self.start_ns = 0
+        self.end_ns = 0
 
     def open(self) -> BagReader:
-        path = self.path
-        if not path.exists():
-            raise BagError(f"{path}: no such bag; pass a rosbag2 folder (with metadata.yaml) or a .mcap file")
-        if path.is_dir():
-            parts = _split_mcap_files(path)
-            if len(parts) > 1 and (not (path / "metadata.yaml").is_file() or any(map(_mcap_is_unindexed, parts))):
-                # a split recording rosbags cannot take whole (no metadata.yaml, or a part cut short
-                # by a killed recorder): its files one after the other, each as it can be read
-                self._source = _ChainSource([self._open_rosbags(part) for part in parts])
-                names = ", ".join(part.name for part in parts)
-                self.note = f"{path}: reading its {len(parts)} files one after the other ({names})"
-            elif (path / "metadata.yaml").is_file():
-                self._source = self._open_rosbags(path)
-            else:
-                storage = bag_storage_file(path) if any(path.glob("*.mcap")) or any(path.glob("*.db3")) else None
-                if storage is None:
-                    raise BagError(f"{path}: not a rosbag2 folder (no metadata.yaml and no .mcap or .db3 file)")
-                self.note = f"{path} has no metadata.yaml; reading {storage.name} directly"
-                self._source = self._open_rosbags(storage)
-        elif path.suffix in (".mcap", ".db3"):
-            self._source = self._open_rosbags(path)
-        elif _is_ros1_bag(path):
-            raise BagError(f"{path}: a ROS 1 bag; convert it to rosbag2 first: "
-                           f"rosbags-convert --src {path} --dst {path.with_suffix('')}")
-        else:
-            raise BagError(f"{path}: not a bag; pass a rosbag2 folder or a .mcap file")
+        source = self._source = _open_source(self.path)
+        self.note, self.storage, self.topics = source.note, source.storage, dict(source.topics)
+        self.message_count, self.start_ns, self.end_ns = source.message_count, source.start_ns, source.end_ns
         return self
-
-    def _open_rosbags(self, path: Path) -> _Source:
-        import sqlite3
-
-        from rosbags.rosbag2 import ReaderError
-
-        mcap_file = path if path.suffix == ".mcap" else None
-        if path.is_dir() and _folder_storage(path) == "mcap":
-            try:
-                mcap_file = bag_storage_file(path)
-            except BagError:
-                mcap_file = None
-        if mcap_file is not None and _mcap_is_unindexed(mcap_file):
-            stream = _McapStreamSource(mcap_file)
-            if not stream.topics:
-                raise BagError(f"{mcap_file}: truncated before any topic was recorded; nothing to read")
-            return stream
-        try:
-            return _RosbagsSource(path)
-        except FileNotFoundError as err:
-            raise BagError(f"{path}: {_describe(err)}") from None
-        except Exception as err:  # the storage libraries raise many kinds on what they cannot read
-            refusal = err
-        if mcap_file is not None:  # an MCAP rosbags refuses (e.g. its profile is not 'ros2'): read it as written
-            source: _McapStreamSource | None = None
-            try:
-                source = _McapStreamSource(mcap_file)
-            except Exception:  # noqa: BLE001 (then rosbags' refusal is the error)
-                pass
-            if source is not None and source.topics and source.break_error is None:
-                self.note = f"{mcap_file}: read in file order ({_describe(refusal)})"
-                return source
-        if isinstance(refusal, (ReaderError, sqlite3.Error, OSError, KeyError, ValueError, TypeError)):
-            what = "an sqlite3 database" if path.suffix == ".db3" else "a readable bag"
-            raise BagError(f"{path}: not {what}: {_describe(refusal)}; "
-                           "the file is damaged or not a rosbag2 recording") from None
-        raise BagError(f"{path}: cannot read the bag: {_describe(refusal)}") from None
 
     def close(self) -> None:
         if self._source is not None:
@@ -453,42 +529,16 @@ class BagReader:
                  tb: TracebackType | None) -> None:
         self.close()
 
-    # -- contents -------------------------------------------------------------------------------
-
-    @property
-    def _src(self) -> _Source:
-        if self._source is None:
-            raise BagError(f"{self.path}: bag is not open")
-        return self._source
-
-    @property
-    def storage(self) -> str:
-        return self._src.storage
-
-    @property
-    def topics(self) -> dict[str, TopicInfo]:
-        return dict(self._src.topics)
-
-    @property
-    def message_count(self) -> int:
-        return self._src.message_count
-
-    @property
-    def start_ns(self) -> int:
-        return self._src.start_ns
-
-    @property
-    def end_ns(self) -> int:
-        return self._src.end_ns
-
     @property
     def duration_s(self) -> float:
         return max(0, self.end_ns - self.start_ns) * 1e-9
 
     def messages(self, topics: Collection[str] | None = None) -> Iterator[BagMessage]:
         """Messages of `topics` (all if None) in recorded order. BagBrokenError where the bag breaks."""
+        if self._source is None:
+            raise BagError(f"{self.path}: bag is not open")
         read = 0
-        iterator = self._src.messages(None if topics is None else set(topics))
+        iterator = self._source.messages(None if topics is None else set(topics))
         while True:
             try:
                 msg = next(iterator)

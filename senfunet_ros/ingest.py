@@ -10,16 +10,20 @@ Per sensor:
 - depth images that arrive before their sensor's first camera_info wait for it (drivers publish the
   two on separate topics, so either may arrive first), at most `pose_max_wait_s` of stream time;
 - depth images are decoded on arrival (outside Ingest's lock, so that a large image holds up no
-  other stream nor the consumer), checked, resized to the working resolution and put in a bounded
+  other stream nor the consumer; so are those that waited, for their camera_info or for a restart to
+  be confirmed), checked, resized to the working resolution and put in a bounded
   queue (the oldest frame is dropped when it is full);
 - colour images wait in a short buffer and are matched to depth by the nearest stamp;
 - poses go to a sorted buffer; a frame leaves the queue once a pose at or after its stamp
   exists, with the pose interpolated at the depth stamp (lerp + slerp). A frame is dropped when
-  the sensor's stream time has moved more than `pose_max_wait_s` past it with no such pose.
+  the sensor's stream time has moved more than `pose_max_wait_s` past it with no such pose. A pose
+  (or dynamic TF transform) for a stamp already given keeps the first; a different one is dropped
+  as `pose_conflict` (frames may have been posed with the first: keeping it, what the consumer gets
+  does not depend on when it asked).
 
-Counters per sensor: `received` (depth images), `integrated` (reported back by the caller with
-`mark_integrated`), `dropped[reason]` (messages of any stream discarded, by reason; see
-`DROP_REASONS`).
+Counters per sensor (`Ingest.ledger`, which also takes the consumer's reports): `received` (depth
+images), `integrated` (reported back by the caller with `ledger.mark_integrated`), `dropped[reason]`
+(messages of any stream discarded, by reason; see `DROP_REASONS`).
 
 Time: each stream keeps a timeline (`timeline.Timelines`): a stamp off its stream's timeline is
 dropped as `bad_stamp`; depth stamps that do not move forward as `duplicate` or `out_of_order`.
@@ -58,8 +62,8 @@ from senfunet_ros.matching import ColorBuffer, PoseBuffer
 from senfunet_ros.tf import TfAdded, TfWait
 from senfunet_ros.timeline import Restart, Timelines
 
-__all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "NoDepthInRange",
-           "integrate_ready"]
+__all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "IngestLedger",
+           "NoDepthInRange", "integrate_ready"]
 
 DROP_REASONS: tuple[str, ...] = (
     "no_camera_info",  # no camera_info of its sensor arrived within pose_max_wait_s of the depth image
@@ -69,6 +73,7 @@ DROP_REASONS: tuple[str, ...] = (
     "all_invalid",  # no valid depth pixel at all
     "out_of_range",  # no depth pixel within the sensor's depth range inside the image border (reported by the caller)
     "bad_pose",  # pose message with NaN/inf or a non-unit quaternion
+    "pose_conflict",  # a pose (or dynamic TF transform) for a stamp already given, another value: the first is kept
     "pose_timeout",  # no pose after the frame arrived within pose_max_wait_s of stream time
     "pose_gap",  # the poses around the frame are further than pose_tolerance_s from it
     "queue_full",  # the frame queue overflowed; the oldest frame goes
@@ -184,6 +189,29 @@ class _Pending:
     frame_id: str = ""  # the depth image's optical frame (pose_type tf looks it up)
 
 
+@dataclass(frozen=True)
+class _Undecoded:
+    """An image on time, to decode outside Ingest's lock (`_decode`), then `_SensorInput.put`."""
+
+    sensor: str
+    stream: str  # "depth" or "color"
+    stamp_ns: int
+    msg: Any
+    arrival_s: float  # depth: time.monotonic() when it arrived (statistics only)
+    camera_info: tuple[np.ndarray, tuple[int, int]] | None  # depth: (K, (width, height)) to check it against
+    working_size: tuple[int, int]  # depth: IngestConfig.working_size
+    cleared: int  # its sensor's _SensorInput.cleared when it was taken: a clear meanwhile takes it too
+
+
+def _decode(image: _Undecoded) -> Any:
+    """A depth image as `_decode_depth` gives it, a colour image as `_decode_color`."""
+    if image.stream == "depth":
+        assert image.camera_info is not None
+        return _decode_depth(image.msg, image.stamp_ns, image.arrival_s, camera_info=image.camera_info,
+                             working_size=image.working_size)
+    return _decode_color(image.msg)
+
+
 class _SensorInput:
     """One sensor's camera_info, frame queues, colour and pose buffers and counters: what its messages
     do once their stamps are known to be on time. Not thread-safe: Ingest calls it under its lock."""
@@ -232,37 +260,44 @@ class _SensorInput:
         self.cleared, self.cleared_by = self.cleared + 1, "time_jump"
         return n
 
-    def set_camera_info(self, msg: Any, config: IngestConfig) -> str | None:
-        """Cache K and the image size, and queue the depth images that waited for it. Returns the
-        drop reason, or None when it was cached."""
+    def set_camera_info(self, name: str, msg: Any, config: IngestConfig) -> tuple[str | None, list[_Undecoded]]:
+        """Cache K and the image size of sensor `name`. Returns the drop reason (or None when it was
+        cached) and the depth images that waited for it, to decode outside Ingest's lock and `put`."""
         try:
             self.camera_info = conv.intrinsics_from_camera_info(msg)
             self.counters.distorted = bool(np.any(np.asarray(getattr(msg, "d", ()), np.float64) != 0))
         except (ValueError, AttributeError) as err:
-            return self.drop("bad_camera_info", str(err))
-        while self.awaiting_info:
-            depth_msg, stamp_ns, arrival_s = self.awaiting_info.popleft()
-            self.enqueue(_decode_depth(depth_msg, stamp_ns, arrival_s, camera_info=self.camera_info,
-                                       working_size=config.working_size), config, cleared=self.cleared)
-        return None
+            return self.drop("bad_camera_info", str(err)), []
+        waited = [_Undecoded(name, "depth", stamp_ns, depth_msg, arrival_s, self.camera_info, config.working_size,
+                             self.cleared) for depth_msg, stamp_ns, arrival_s in self.awaiting_info]
+        self.awaiting_info.clear()
+        return None, waited
 
-    def accept(self, stream: str, stamp_ns: int, message: Any, config: IngestConfig) -> str | None:
-        """Take a message whose stamp is on time: a depth image ((msg, arrival time)) is queued, a
-        colour image buffered, a pose (4x4) stored. Returns the drop reason (counted) or None."""
-        if stream == "depth":
-            msg, arrival_s = message
-            if self.camera_info is not None:
-                return self.enqueue(_decode_depth(msg, stamp_ns, arrival_s, camera_info=self.camera_info,
-                                                  working_size=config.working_size), config, cleared=self.cleared)
+    def accept(self, name: str, stream: str, stamp_ns: int, message: Any, config: IngestConfig
+               ) -> str | _Undecoded | None:
+        """Take a message of sensor `name` whose stamp is on time: a pose (4x4) is stored, a depth image
+        ((msg, arrival time)) before the sensor's first camera_info waits for it; an image to decode is
+        returned (`_Undecoded`: the caller decodes it outside Ingest's lock, then `put`s it). Returns
+        the drop reason (counted), or what to decode, or None."""
+        if stream == "pose":
+            conflict = self.poses.add(stamp_ns, message, keep=config.pose_buffer_size)
+            return None if conflict is None else self.drop("pose_conflict",
+                                                           f"pose: stamp {stamp_ns * 1e-9:.3f} s: {conflict}")
+        msg, arrival_s = message if stream == "depth" else (message, 0.0)
+        if stream == "depth" and self.camera_info is None:
             if len(self.awaiting_info) >= config.queue_size:
                 self.awaiting_info.popleft()
                 self.drop("no_camera_info")
             self.awaiting_info.append((msg, stamp_ns, arrival_s))
             return None
-        if stream == "color":
-            return self.take_color(stamp_ns, _decode_color(message), cleared=self.cleared)
-        self.poses.add(stamp_ns, message, keep=config.pose_buffer_size)
-        return None
+        return _Undecoded(name, stream, stamp_ns, msg, arrival_s, self.camera_info, config.working_size, self.cleared)
+
+    def put(self, image: _Undecoded, decoded: Any, config: IngestConfig) -> str | None:
+        """An image `accept` returned, decoded (`_decode`): queued (depth) or buffered (colour) unless
+        its decoding failed or what it was meant for was cleared meanwhile. Returns the drop reason."""
+        if image.stream == "depth":
+            return self.enqueue(decoded, config, cleared=image.cleared)
+        return self.take_color(image.stamp_ns, decoded, cleared=image.cleared)
 
     def enqueue(self, decoded: _Pending | tuple[str, str], config: IngestConfig, *, cleared: int) -> str | None:
         """Queue a decoded depth image (`_decode_depth`), in stamp order, unless its decoding failed or
@@ -340,19 +375,80 @@ class _SensorInput:
         return out
 
 
+class _StreamTime:
+    """The streams' timelines, and what a restart does to the sensors' inputs: flushed (time went
+    back, with a TimeJump to report), then the new timeline's held messages taken. Not thread-safe:
+    Ingest calls it under its lock."""
+
+    def __init__(self, config: IngestConfig, sensors: dict[str, _SensorInput]) -> None:
+        self.config = config
+        self.timelines = Timelines(config.sensors, **_timeline_limits(config))
+        self.jumps: list[TimeJump] = []  # seen since the last pop_ready
+        self._sensors = sensors
+
+    def configure(self, config: IngestConfig) -> None:
+        self.config = config
+        self.timelines.configure(**_timeline_limits(config))
+
+    def on_time(self, sensor: str, stream: str, stamp_ns: int, message: Any) -> tuple[str | None, list[_Undecoded]]:
+        """Whether a message of `stream` is on its stream's timeline (`Timelines.check`): None, or the
+        drop reason (counted). A restart it confirmed is carried out first: the images of the new
+        timeline's held messages, to decode outside the lock, come second. `message` is what
+        `_SensorInput.accept` takes for the stream, should the stamp turn out to start a new timeline
+        (it is held until that is confirmed, then accepted)."""
+        verdict = self.timelines.check(sensor, stream, stamp_ns, message)
+        images = [] if verdict.restart is None else self.restarted(sensor, stream, verdict.restart)
+        if verdict.reason is not None:
+            return self._sensors[sensor].drop(verdict.reason, verdict.error), images
+        return None, images
+
+    def restart(self, to_ns: int | None) -> None:
+        """Time restarted, known from outside (see Ingest.restart)."""
+        self.restarted(self.config.sensors[0], "clock", self.timelines.restart(to_ns))
+
+    def restarted(self, sensor: str, stream: str, restart: Restart) -> list[_Undecoded]:
+        """Time restarted. Back: flush everything and report a TimeJump. Ahead (every stream resumed
+        after a pause longer than time_jump_s): what waits is older and stays. Then the new timeline's
+        first messages, dropped as bad_stamp until now, are taken; returns their images, to decode
+        outside the lock (a burst of up to a queue's worth per stream)."""
+        sensors = self._sensors
+        if restart.went_back:
+            assert restart.from_ns is not None
+            self.jumps.append(TimeJump(sensor, stream, restart.from_ns, restart.to_ns))
+            sensors[sensor].counters.time_jumps += 1
+            if self.config.tf is not None and hasattr(self.config.tf, "clear"):
+                self.config.tf.clear()
+            for state in sensors.values():
+                state.drop("time_jump", n=state.flush())
+        for (name, _), n in restart.lost.items():  # bad_stamp until now, in fact lost to the restart
+            sensors[name].drop("bad_stamp", n=-n)
+            sensors[name].drop("time_jump", n=n)
+        images = []
+        for held in restart.held:
+            state = sensors[held.sensor]
+            state.drop("bad_stamp", n=-1)
+            taken = state.accept(held.sensor, held.stream, held.stamp_ns, held.message, self.config)
+            if isinstance(taken, _Undecoded):
+                images.append(taken)
+        for state in sensors.values():
+            if state.counters.dropped["bad_stamp"] == 0:
+                state.counters.errors.pop("bad_stamp", None)  # every one of them was the restart
+        return images
+
+
 class Ingest:
-    """Per-sensor queues, caches and counters; thread-safe (callbacks add, a timer pops). One lock
-    guards all of it; images are decoded with it released (`_SensorInput.cleared` says whether what
-    they were meant for was cleared meanwhile)."""
+    """Messages in, frames out; thread-safe (callbacks add, a timer pops). One lock guards all of it,
+    shared with `ledger` (the counters and the consumer's reports); images are decoded with it
+    released (`_SensorInput.cleared` says whether what they were meant for was cleared meanwhile)."""
 
     def __init__(self, config: IngestConfig) -> None:
         self._config = config
         self._lock = threading.Lock()
         self._sensors = {name: _SensorInput(config) for name in config.sensors}
-        self._timelines = Timelines(config.sensors, **_timeline_limits(config))
-        self._jumps: list[TimeJump] = []
+        self._time = _StreamTime(config, self._sensors)
         self._set_aside = SetAside(config.sensors)
         self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
+        self.ledger = IngestLedger(self._lock, self._sensors, self._set_aside)
 
     @property
     def config(self) -> IngestConfig:
@@ -365,105 +461,58 @@ class Ingest:
             raise ValueError(f"sensors {config.sensors} differ from {self._config.sensors}: make a new Ingest")
         with self._lock:
             self._config = config
-            self._timelines.configure(**_timeline_limits(config))
+            self._time.configure(config)
 
     # -- inputs ---------------------------------------------------------------------------
-
-    def _state(self, sensor: str) -> _SensorInput:
-        try:
-            return self._sensors[sensor]
-        except KeyError:
-            raise ValueError(f"unknown sensor '{sensor}'; configured sensors are {list(self._sensors)}") from None
-
-    def _on_time(self, sensor: str, stream: str, stamp_ns: int, message: Any) -> str | None:
-        """Whether a message of `stream` is on its stream's timeline (`Timelines.check`): None, or the
-        drop reason (counted). A restart it confirmed is carried out first. `message` is what
-        `_SensorInput.accept` takes for the stream, should the stamp turn out to start a new timeline
-        (it is held until that is confirmed, then accepted). Lock held."""
-        verdict = self._timelines.check(sensor, stream, stamp_ns, message)
-        if verdict.restart is not None:
-            self._restarted(sensor, stream, verdict.restart)
-        if verdict.reason is not None:
-            return self._sensors[sensor].drop(verdict.reason, verdict.error)
-        return None
-
-    def _restarted(self, sensor: str, stream: str, restart: Restart) -> None:
-        """Time restarted. Back: flush everything and report a TimeJump. Ahead (every stream resumed
-        after a pause longer than time_jump_s): what waits is older and stays. Then the new timeline's
-        first messages, dropped as bad_stamp until now, are taken. Lock held."""
-        if restart.went_back:
-            assert restart.from_ns is not None
-            self._jumps.append(TimeJump(sensor, stream, restart.from_ns, restart.to_ns))
-            self._sensors[sensor].counters.time_jumps += 1
-            if self.config.tf is not None and hasattr(self.config.tf, "clear"):
-                self.config.tf.clear()
-            for state in self._sensors.values():
-                state.drop("time_jump", n=state.flush())
-        for (name, _), n in restart.lost.items():  # bad_stamp until now, in fact lost to the restart
-            self._sensors[name].drop("bad_stamp", n=-n)
-            self._sensors[name].drop("time_jump", n=n)
-        for held in restart.held:
-            state = self._sensors[held.sensor]
-            state.drop("bad_stamp", n=-1)
-            state.accept(held.stream, held.stamp_ns, held.message, self.config)
-        for state in self._sensors.values():
-            if state.counters.dropped["bad_stamp"] == 0:
-                state.counters.errors.pop("bad_stamp", None)  # every one of them was the restart
 
     def restart(self, to_ns: int | None = None) -> None:
         """Time restarted, known from outside (the /clock went back to `to_ns`): flush everything, start
         the timelines again from `to_ns` (old messages still in flight are off them) and report a
         TimeJump."""
         with self._lock:
-            self._restarted(self.config.sensors[0], "clock", self._timelines.restart(to_ns))
+            self._time.restart(to_ns)
 
     def add_camera_info(self, sensor: str, msg: Any) -> str | None:
         """Cache K and the image size, and queue the depth images that waited for it. Returns the
         drop reason, or None when it was cached."""
         with self._lock:
-            return self._state(sensor).set_camera_info(msg, self.config)
+            reason, waited = _sensor_input(self._sensors, sensor).set_camera_info(sensor, msg, self.config)
+        return self._decode_and_put(waited, reason)
 
     def add_depth(self, sensor: str, msg: Any) -> str | None:
         """Queue one depth image. Returns the drop reason, or None when it was queued (or, before the
         sensor's first camera_info, put aside to wait for it)."""
         stamp_ns = conv.stamp_to_ns(msg.header.stamp)
         with self._lock:
-            state = self._state(sensor)
+            state = _sensor_input(self._sensors, sensor)
             state.counters.received += 1
             self._last_depth_arrival_s = arrival_s = time.monotonic()
-            reason = self._on_time(sensor, "depth", stamp_ns, (msg, arrival_s))
-            if reason is not None or state.camera_info is None:  # dropped, or waits for its camera_info
-                return reason or state.accept("depth", stamp_ns, (msg, arrival_s), self.config)
-            camera_info, working_size, cleared = state.camera_info, self.config.working_size, state.cleared
-        # decoded outside the lock: other streams' messages and the integration go on meanwhile
-        decoded = _decode_depth(msg, stamp_ns, arrival_s, camera_info=camera_info, working_size=working_size)
-        with self._lock:
-            return state.enqueue(decoded, self.config, cleared=cleared)
+            reason, held = self._time.on_time(sensor, "depth", stamp_ns, (msg, arrival_s))
+            taken = reason or state.accept(sensor, "depth", stamp_ns, (msg, arrival_s), self.config)
+        return self._decode_and_put(held, taken)
 
     def add_color(self, sensor: str, msg: Any) -> str | None:
         """Buffer one colour image for matching. Returns the drop reason, or None."""
         stamp_ns = conv.stamp_to_ns(msg.header.stamp)
         with self._lock:
-            state = self._state(sensor)
+            state = _sensor_input(self._sensors, sensor)
             state.counters.color_received += 1
-            reason = self._on_time(sensor, "color", stamp_ns, msg)
-            if reason is not None:
-                return reason
-            cleared = state.cleared
-        decoded = _decode_color(msg)  # outside the lock, as depth
-        with self._lock:
-            return state.take_color(stamp_ns, decoded, cleared=cleared)
+            reason, held = self._time.on_time(sensor, "color", stamp_ns, msg)
+            taken = reason or state.accept(sensor, "color", stamp_ns, msg, self.config)
+        return self._decode_and_put(held, taken)
 
     def add_tf(self, msg: Any, *, static: bool) -> str | None:
         """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).
         Returns the drop reason (bad_stamp for a dynamic transform more than time_jump_s ahead of
         the streams' newest stamp, which is left out; bad_pose for a transform the buffer refused:
-        NaN, a non-unit quaternion, a cycle, a second parent), or None. Each transform left out is
-        counted, on the first sensor (a transform serves them all); the rest of the message is kept."""
+        NaN, a non-unit quaternion, a cycle, a second parent; pose_conflict for a dynamic transform
+        that gave a stamp its link had another value, the first kept), or None. Each transform left
+        out is counted, on the first sensor (a transform serves them all); the rest of the message is
+        kept."""
         if self.config.tf is None or not hasattr(self.config.tf, "add_message"):
             return None
         with self._lock:
-            now_ns = self._timelines.now_ns()
+            now_ns = self._time.timelines.now_ns()
         latest_ns = None if now_ns is None else now_ns + int(self.config.time_jump_s * 1e9)
         try:
             added = self.config.tf.add_message(msg, static=static, latest_ns=latest_ns)
@@ -477,15 +526,18 @@ class Ingest:
                 "s ahead of the streams' newest stamp, was left out; check the clock of its publisher")))
         if added.refused:
             drops.append(("bad_pose", len(added.refused), f"tf: {added.refused[0]}"))
+        if added.conflicts:
+            drops.append(("pose_conflict", len(added.conflicts), f"tf: {added.conflicts[0]}"))
         with self._lock:
             for reason, count, error in drops:
                 self._sensors[self.config.sensors[0]].drop(reason, error, n=count)
         return drops[0][0] if drops else None
 
     def add_pose(self, sensor: str, msg: Any) -> str | None:
-        """Add one pose message (PoseStamped, Odometry or TransformStamped). Returns the drop reason."""
+        """Add one pose message (PoseStamped, Odometry or TransformStamped). Returns the drop reason
+        (pose_conflict: its stamp had another pose, which is kept)."""
         with self._lock:
-            state = self._state(sensor)
+            state = _sensor_input(self._sensors, sensor)
             state.counters.pose_received += 1
             try:
                 stamp_ns, T = self.config.pose_parser(msg)
@@ -493,7 +545,24 @@ class Ingest:
                     T = T @ self.config.T_body_camera[sensor]  # T_world_body -> T_world_camera
             except (ValueError, AttributeError) as err:
                 return state.drop("bad_pose", str(err))
-            return self._on_time(sensor, "pose", stamp_ns, T) or state.accept("pose", stamp_ns, T, self.config)
+            reason, held = self._time.on_time(sensor, "pose", stamp_ns, T)
+            taken = reason or state.accept(sensor, "pose", stamp_ns, T, self.config)
+        return self._decode_and_put(held, taken)
+
+    def _decode_and_put(self, held: list[_Undecoded], taken: str | _Undecoded | None) -> str | None:
+        """Decode, with the lock released, the images that waited (`held`: the new timeline's first
+        messages once a restart is confirmed, or the depth images that waited for their camera_info),
+        then the message just added if it is an image (`taken`; else its drop reason or None), and
+        queue or buffer them, in that order. Returns the added message's drop reason, or None."""
+        images = [*held, taken] if isinstance(taken, _Undecoded) else held
+        if not images:
+            return None if isinstance(taken, _Undecoded) else taken
+        # other streams' messages and the integration go on meanwhile
+        decoded = [_decode(image) for image in images]
+        with self._lock:
+            reasons = [self._sensors[image.sensor].put(image, result, self.config)
+                       for image, result in zip(images, decoded)]
+        return reasons[-1] if isinstance(taken, _Undecoded) else taken
 
     # -- outputs --------------------------------------------------------------------------
 
@@ -511,12 +580,13 @@ class Ingest:
         waited too long are dropped and counted.
         """
         with self._lock:
-            jumps, self._jumps = self._jumps, []
+            jumps, self._time.jumps = self._time.jumps, []
+            timelines = self._time.timelines
             frames: list[Frame] = []
             for name, state in self._sensors.items():
-                frames.extend(state.pop(name, self.config, now_ns=self._timelines.sensor_now_ns(name),
-                                        newest_depth_ns=self._timelines.last_ns(name, "depth"),
-                                        last_color_ns=self._timelines.last_ns(name, "color"),
+                frames.extend(state.pop(name, self.config, now_ns=timelines.sensor_now_ns(name),
+                                        newest_depth_ns=timelines.last_ns(name, "depth"),
+                                        last_color_ns=timelines.last_ns(name, "color"),
                                         set_aside=self._set_aside))
             quiet = time.monotonic() - self._last_depth_arrival_s >= self.config.max_lag_s
             if not frames and set_aside and quiet:
@@ -531,18 +601,27 @@ class Ingest:
                                  frame.T_world_camera))
         return [*jumps, *frames]
 
-    # -- bookkeeping ----------------------------------------------------------------------
+
+class IngestLedger:
+    """What became of each sensor's messages: the counters and queue depths, and what the consumer
+    reports of the frames it took (integrated, dropped, the map reset under the frames still
+    waiting). Thread-safe, under Ingest's lock (`Ingest.ledger`)."""
+
+    def __init__(self, lock: threading.Lock, sensors: dict[str, _SensorInput], set_aside: SetAside) -> None:
+        self._lock = lock
+        self._sensors = sensors
+        self._set_aside = set_aside
 
     def mark_integrated(self, sensor: str) -> None:
         with self._lock:
-            self._state(sensor).counters.integrated += 1
+            _sensor_input(self._sensors, sensor).counters.integrated += 1
 
     def mark_dropped(self, sensor: str, reason: str, error: str = "") -> None:
         """The caller dropped one of the sensor's frames; `error` says what was wrong with it."""
         if reason not in DROP_REASONS:
             raise ValueError(f"unknown drop reason '{reason}'; use one of {DROP_REASONS}")
         with self._lock:
-            self._state(sensor).drop(reason, error)
+            _sensor_input(self._sensors, sensor).drop(reason, error)
 
     def counters(self) -> dict[str, dict[str, Any]]:
         """A snapshot: sensor -> SensorCounters.as_dict() plus `queue_depth` (frames waiting, set
@@ -572,6 +651,13 @@ class Ingest:
             for state in self._sensors.values():
                 n += state.discard(reason)
             return n
+
+
+def _sensor_input(sensors: dict[str, _SensorInput], sensor: str) -> _SensorInput:
+    try:
+        return sensors[sensor]
+    except KeyError:
+        raise ValueError(f"unknown sensor '{sensor}'; configured sensors are {list(sensors)}") from None
 
 
 def _timeline_limits(config: IngestConfig) -> dict[str, Any]:

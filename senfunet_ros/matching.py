@@ -13,7 +13,27 @@ import numpy as np
 from senfunet_ros import conversions as conv
 from senfunet_ros.geometry import interpolate_pose
 
-__all__ = ["ColorBuffer", "PoseBuffer"]
+__all__ = ["ColorBuffer", "PoseBuffer", "pose_conflict"]
+
+# a pose republished at its stamp differs from the first beyond this (metres, and the rotation
+# matrices' entries): float noise of a re-encoded message stays far below
+_SAME_POSE_TOL = 1e-6
+
+
+def pose_conflict(first: np.ndarray, again: np.ndarray) -> str | None:
+    """What differs between two poses (4x4) given for one stamp, or None when they are the same pose.
+
+    The first is kept: frames may already have been posed with it, so keeping it makes the frames
+    independent of when the consumer took them, and a stream cannot rewrite the trajectory behind
+    the map (a driver bug, or two publishers on one topic)."""
+    first, again = np.asarray(first, np.float64), np.asarray(again, np.float64)
+    if np.abs(first - again).max() <= _SAME_POSE_TOL:
+        return None
+    moved_m = float(np.linalg.norm(again[:3, 3] - first[:3, 3]))
+    cos = (np.trace(first[:3, :3].T @ again[:3, :3]) - 1.0) / 2.0
+    turned_deg = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return (f"another pose for a stamp already given ({moved_m:.3f} m, {turned_deg:.2f} deg from the first, which "
+            "is kept); check the driver: two publishers on one topic, or one that rewrites its past poses?")
 
 
 class PoseBuffer:
@@ -23,18 +43,19 @@ class PoseBuffer:
         self._stamps: list[int] = []
         self._poses: list[np.ndarray] = []
 
-    def add(self, stamp_ns: int, T: np.ndarray, *, keep: int) -> None:
-        """Insert a pose (a republished stamp: the newest wins), keeping the `keep` newest."""
+    def add(self, stamp_ns: int, T: np.ndarray, *, keep: int) -> str | None:
+        """Insert a pose, keeping the `keep` newest. A stamp already held keeps its first pose: returns
+        what differs when the new one is another pose (`pose_conflict`), None otherwise."""
         i = bisect.bisect_left(self._stamps, stamp_ns)
         if i < len(self._stamps) and self._stamps[i] == stamp_ns:
-            self._poses[i] = T
-        else:
-            self._stamps.insert(i, stamp_ns)
-            self._poses.insert(i, T)
+            return pose_conflict(self._poses[i], T)
+        self._stamps.insert(i, stamp_ns)
+        self._poses.insert(i, T)
         excess = len(self._stamps) - keep
         if excess > 0:
             del self._stamps[:excess]
             del self._poses[:excess]
+        return None
 
     def at(self, stamp_ns: int, *, tolerance_ns: int, waited_too_long: bool) -> tuple[np.ndarray | None, str | None]:
         """The pose at a depth stamp, interpolated between the poses around it: (T, None); or

@@ -249,7 +249,7 @@ class FusionNode(Node):
                                  log=lambda level, text: getattr(logger, level)(text),
                                  on_integrated=self._integrated, on_new_map=self.camera_colors.clear)
         self.ingest = self.pipeline.ingest
-        self._last_counters = self.ingest.counters()
+        self._last_counters = self.ingest.ledger.counters()
         # 3. subscriptions: they only enqueue; the status reports their health
         self._subscribe()
         topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in sensor_streams(sensor, s.pose_type)}
@@ -275,7 +275,7 @@ class FusionNode(Node):
         # 5. publishers
         self.mesh_publisher = MeshPublisher(self, self.pipeline, lambda: self.settings, timings=self.timings,
                                             latency=self.latency, camera_colors=self.camera_colors,
-                                            frame_waiting=lambda: any(self.ingest.queue_depths().values()),
+                                            frame_waiting=lambda: any(self.ingest.ledger.queue_depths().values()),
                                             warn=self._warn, thread_setup=at_mesh_priority)
         self.status_pub = self.create_publisher(DiagnosticArray, "~/status", _STATUS_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", _STATUS_QOS)
@@ -337,8 +337,8 @@ class FusionNode(Node):
         integrated = self.pipeline.drain(until_abandoned())
         for item in left:
             if isinstance(item, Frame):
-                self.ingest.mark_dropped(item.sensor, "shutdown")
-        waiting = self.ingest.discard_waiting("shutdown")
+                self.ingest.ledger.mark_dropped(item.sensor, "shutdown")
+        waiting = self.ingest.ledger.discard_waiting("shutdown")
         return {"integrated": integrated, "discarded": waiting + sum(isinstance(item, Frame) for item in left),
                 "interrupted": self.pipeline.frames_unfinished}
 
@@ -418,7 +418,7 @@ class FusionNode(Node):
                     yield from items
 
             self.pipeline.drain(ready())
-            counters = self.ingest.counters()
+            counters = self.ingest.ledger.counters()
             for key, message in counter_warnings(self._last_counters, counters, self.settings):
                 self._warn(key, message)
             self._last_counters = counters
@@ -675,7 +675,7 @@ def main(args: list[str] | None = None) -> int:
         if not rclpy.ok():  # a signal shut the context down under the start-up (a handle failed on it): a stop
             return 0
         if isinstance(err, ValueError):  # bad parameters (InputError is a ValueError too): say which, no traceback
-            print(f"senfunet: cannot start: {err}", flush=True)
+            print(f"senfunet: cannot start: {err}", file=sys.stderr, flush=True)
             return 2
         raise
     finally:
@@ -729,7 +729,7 @@ def stop_node(node: FusionNode) -> None:
                   f"{done['discarded']} still waiting and {done['interrupted']} being integrated were dropped "
                   "(counted as shutdown)", flush=True)
         except Exception as err:
-            print(f"senfunet: finishing the queued frames failed: {err}", flush=True)
+            print(f"senfunet: finishing the queued frames failed: {err}", file=sys.stderr, flush=True)
         if node.settings.save_on_shutdown:
             saving = True
             try:
@@ -739,7 +739,7 @@ def stop_node(node: FusionNode) -> None:
                 print("senfunet: interrupted again: saving on shutdown stopped (files already written stay, "
                       "the one being written was not replaced)", flush=True)
             except Exception as err:
-                print(f"senfunet: saving on shutdown failed: {err}", flush=True)
+                print(f"senfunet: saving on shutdown failed: {err}", file=sys.stderr, flush=True)
     finally:
         for sig, handler in (previous or {}).items():
             signal.signal(sig, handler)

@@ -364,6 +364,7 @@ def declare(node: Any) -> Settings:
     """Declare every parameter on an rclpy node and read them back. Descriptors carry the help,
     the range, the choices and read_only for what cannot change at run time."""
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+    from rclpy.exceptions import ParameterException
 
     def one(p: Param) -> Any:
         descriptor = ParameterDescriptor(description=p.help, read_only=not p.runtime,
@@ -375,7 +376,10 @@ def declare(node: Any) -> Settings:
             descriptor.floating_point_range = [FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi))]
         elif isinstance(p.default, int) and not isinstance(p.default, bool) and p.lo is not None and p.hi is not None:
             descriptor.integer_range = [IntegerRange(from_value=int(p.lo), to_value=int(p.hi), step=1)]
-        value = node.declare_parameter(p.name, p.default, descriptor).value
+        try:
+            value = node.declare_parameter(p.name, p.default, descriptor).value
+        except ParameterException as err:  # a value given at start-up (-p, a file) outside the range
+            raise ValueError(f"parameter {p.name}: {err}") from None
         return coerce(p.name, p.default if value is None else value, p.default)
 
     values: dict[str, Any] = {}

@@ -134,22 +134,22 @@ class Pipeline:
         self.integrate_s += seconds
         if error is None:
             self.frames_integrated += 1
-            self.ingest.mark_integrated(frame.sensor)
+            self.ingest.ledger.mark_integrated(frame.sensor)
             self.latest_stamp_ns = max(self.latest_stamp_ns, frame.stamp_ns)
             if self._on_integrated is not None:
                 self._on_integrated(frame, seconds)
             return
         if self.stopping and isinstance(error, RuntimeError):  # the worker pools went away under it
             self.frames_unfinished += 1
-            self.ingest.mark_dropped(frame.sensor, "shutdown")
+            self.ingest.ledger.mark_dropped(frame.sensor, "shutdown")
             return
         # counted and described: the node warns of new drops once per cause and period, not per frame
         what = f"frame at {frame.stamp_ns * 1e-9:.3f} s: {error}"
         if isinstance(error, NoDepthInRange):  # nothing to integrate: a drop, not a failure
-            self.ingest.mark_dropped(frame.sensor, "out_of_range", what)
+            self.ingest.ledger.mark_dropped(frame.sensor, "out_of_range", what)
             return
         self.frames_failed += 1  # InputError or worse: this frame is lost, the map is not
-        self.ingest.mark_dropped(frame.sensor, "engine_error", what)
+        self.ingest.ledger.mark_dropped(frame.sensor, "engine_error", what)
         if len(self.engine_errors) < 10:
             self.engine_errors.append(f"{frame.sensor} {what}")
 
@@ -159,7 +159,7 @@ class Pipeline:
         """Forget the map and the queued frames (poses and camera_info stay)."""
         with self.lock:
             self.engine.reset()
-            self.ingest.discard_waiting("map_reset")
+            self.ingest.ledger.discard_waiting("map_reset")
             self._on_new_map()
 
     def save_meshes(self, out_dir: str | Path, *, sensors: Iterable[str], tsdf_fusion: bool,
@@ -223,6 +223,6 @@ class Pipeline:
             configure(engine)
         with self.lock:
             self.engine = engine
-            self.ingest.discard_waiting("map_reset")
+            self.ingest.ledger.discard_waiting("map_reset")
             self._on_new_map()
         return engine

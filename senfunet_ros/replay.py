@@ -300,7 +300,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     finally:
         torch.set_num_threads(previous_threads)
 
-    counters = pipeline.ingest.counters()
+    counters = pipeline.ingest.ledger.counters()
     n_integrated = sum(c["integrated"] for c in counters.values())
     result = ReplayResult(stats={}, error=run.error, interrupted=run.interrupted)
     timings: dict[str, Any] = {"read_decode_s": round(run.read_s - pipeline.integrate_s, 3),

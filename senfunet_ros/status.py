@@ -35,6 +35,8 @@ DROP_HINTS: dict[str, str] = {
     "all_invalid": "every pixel of the depth image was 0, negative, NaN or inf",
     "out_of_range": "no depth pixel lay within {s.depth_min_m}..{s.depth_max_m} m inside the image border",
     "bad_pose": "a pose on {s.pose_topic} had NaN/inf or a quaternion of length other than 1",
+    "pose_conflict": "a pose on {s.pose_topic} (or a /tf transform) came again for a stamp already given, with "
+                     "another value; the first is kept: two publishers on one topic, or a driver rewriting its past?",
     "pose_timeout": "no pose on {s.pose_topic} at or after the image's stamp within pose_max_wait_s; check that "
                     "poses arrive and are stamped on the depth images' clock",
     "pose_gap": "the poses around the image's stamp are more than pose_tolerance_s from it; publish poses more "
@@ -149,7 +151,7 @@ class StatusReport:
         sec, nanosec = conv.ns_to_stamp(pipeline.latest_stamp_ns)
         msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
         msg.header.frame_id = fixed_frame
-        counters = pipeline.ingest.counters()
+        counters = pipeline.ingest.ledger.counters()
         self.health.counters(counters)
         reports = self.health.report()
         self._warn_silent_topics(reports)

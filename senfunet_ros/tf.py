@@ -10,7 +10,8 @@ an error naming the frames: NaN or a non-unit quaternion, a frame as its own par
 (a cycle), and a second parent for a frame while its first is alive (two publishers of one
 frame; a dynamic link is taken over by another parent only after `REPARENT_AFTER_S` of silence, a
 static one only by another static transform). Of a static and a dynamic transform on the same
-link, the newest kind holds.
+link, the newest kind holds. A dynamic transform for a stamp its link already has keeps the first
+(`TfAdded.conflicts` says when the second differed).
 
 Convention: `lookup(target, source, stamp_ns)` returns the 4x4 transform taking points in
 `source` to `target` (`T_target_source`; with target = fixed frame and source = the camera's
@@ -28,6 +29,7 @@ import numpy as np
 from senfunet_ros.conversions.poses import transform_from_msg
 from senfunet_ros.conversions.stamps import stamp_to_ns
 from senfunet_ros.geometry import interpolate_pose, invert_transform
+from senfunet_ros.matching import pose_conflict
 
 __all__ = ["REPARENT_AFTER_S", "TfAdded", "TfBuffer", "TfError", "TfWait"]
 
@@ -63,11 +65,14 @@ class _Link:
 
 @dataclass(frozen=True)
 class TfAdded:
-    """What `TfBuffer.add_message` left out: dynamic stamps too far ahead, and the transforms it
-    refused, each with the reason."""
+    """What `TfBuffer.add_message` left out: dynamic stamps too far ahead, the transforms it refused,
+    each with the reason, and those that gave a stamp already given another value."""
 
     left_out: list[int] = field(default_factory=list)
     refused: list[str] = field(default_factory=list)
+    # dynamic transforms for a stamp their link already had, with another value (the first is kept):
+    # what differs, per transform
+    conflicts: list[str] = field(default_factory=list)
 
 
 class TfBuffer:
@@ -92,13 +97,17 @@ class TfBuffer:
                 if not static and latest_ns is not None and stamp_ns > latest_ns:
                     added.left_out.append(stamp_ns)
                     continue
-                self.add(tf.header.frame_id, tf.child_frame_id, stamp_ns, T, static=static)
+                conflict = self.add(tf.header.frame_id, tf.child_frame_id, stamp_ns, T, static=static)
+                if conflict is not None:
+                    added.conflicts.append(f"{what} at {stamp_ns * 1e-9:.3f} s: {conflict}")
             except (ValueError, AttributeError, TypeError) as err:
                 added.refused.append(str(err))
         return added
 
-    def add(self, parent: str, child: str, stamp_ns: int, T_parent_child: np.ndarray, *, static: bool) -> None:
-        """One transform; ValueError naming the frames if it would break the tree (see the module)."""
+    def add(self, parent: str, child: str, stamp_ns: int, T_parent_child: np.ndarray, *, static: bool) -> str | None:
+        """One transform; ValueError naming the frames if it would break the tree (see the module). A
+        dynamic transform for a stamp its link already has keeps the first: returns what differs when
+        the new one is another transform (`matching.pose_conflict`), else None."""
         parent, child = parent.lstrip("/"), child.lstrip("/")
         if not parent or not child:
             raise ValueError(f"transform '{parent}' -> '{child}' has an empty frame id; name both frames")
@@ -121,16 +130,16 @@ class TfBuffer:
                 link.static = np.asarray(T_parent_child, np.float64)
                 link.stamps.clear()
                 link.transforms.clear()
-                return
+                return None
             link.static = None
             i = bisect.bisect_left(link.stamps, stamp_ns)
             if i < len(link.stamps) and link.stamps[i] == stamp_ns:
-                link.transforms[i] = T_parent_child
-            else:
-                link.stamps.insert(i, stamp_ns)
-                link.transforms.insert(i, np.asarray(T_parent_child, np.float64))
+                return pose_conflict(link.transforms[i], T_parent_child)
+            link.stamps.insert(i, stamp_ns)
+            link.transforms.insert(i, np.asarray(T_parent_child, np.float64))
             if len(link.stamps) > self.history:
                 del link.stamps[0], link.transforms[0]
+            return None
 
     def clear(self) -> None:
         """Forget the dynamic transforms (time restarted); static ones stay."""

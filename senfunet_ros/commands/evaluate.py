@@ -2,9 +2,16 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 HELP = ("evaluate on simulated rooms: table (MSE, MAD, IoU, Acc, F, P, R), ablations, spread over rooms, "
         "asynchronous test, figure")
+
+
+def _error(text: str) -> int:
+    """An error, on stderr; the exit code 2."""
+    print(f"senfunet evaluate: {text}", file=sys.stderr)
+    return 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,13 +51,11 @@ def run(args: argparse.Namespace) -> int:
 
     seeds = SEED_SETS[args.seed_set]
     if args.scenes is not None and not 1 <= args.scenes <= len(seeds):
-        print(f"senfunet evaluate: --scenes must be 1..{len(seeds)} for --set {args.seed_set}, got {args.scenes}")
-        return 2
+        return _error(f"--scenes must be 1..{len(seeds)} for --set {args.seed_set}, got {args.scenes}")
     try:
         weights = networks.resolve_weights(args.weights)
     except InputError as err:
-        print(f"senfunet evaluate: {err}")
-        return 2
+        return _error(str(err))
     config = EvaluationConfig(seeds=seeds[:args.scenes] if args.scenes else seeds, seed_set=args.seed_set,
                               ablations=args.ablations,
                               cache_dir=None if str(args.cache_dir).lower() == "none" else args.cache_dir)
@@ -82,8 +87,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = evaluate(weights, config, figure_path=figure, after_room=write)
     except InputError as err:
-        print(f"senfunet evaluate: {err}")
-        return 2
+        return _error(str(err))
     print(format_table(labelled(result.rows), COLUMNS))
     for name, ok in {**goal_check(result.per_scene), **bar_check(result.rows)}.items():
         print(f"{name}: {'met' if ok else 'NOT met'}")
@@ -112,15 +116,14 @@ def _run_seed_spread(args: argparse.Namespace, weights, config, out) -> int:
     from senfunet_core.learning.report import seed_section_key, seed_spread_markdown, splice_section
 
     if weights is None:
-        print("senfunet evaluate: --seeds-weights compares trained weights; --weights none is not one")
-        return 2
+        return _error("--seeds-weights compares trained weights; --weights none is not one")
     missing = [p for p in args.seeds_weights if not Path(p).is_file()]
     if missing:
-        print(f"senfunet evaluate: --seeds-weights: no such file: {', '.join(missing)}; pass .pt files "
-              "written by `senfunet train --seed N --out PATH`")
-        return 2
+        return _error(f"--seeds-weights: no such file: {', '.join(missing)}; pass .pt files "
+                      "written by `senfunet train --seed N --out PATH`")
     if args.ablations:
-        print("senfunet evaluate: --seeds-weights scores the SenFuNet row only; --ablations is not run")
+        print("senfunet evaluate: --seeds-weights scores the SenFuNet row only; --ablations is not run",
+              file=sys.stderr)
     command = _command_line()
     out.mkdir(parents=True, exist_ok=True)
     path = out / "results.md"
@@ -132,8 +135,7 @@ def _run_seed_spread(args: argparse.Namespace, weights, config, out) -> int:
     try:
         result = seed_spread([weights, *args.seeds_weights], config, after_room=write)
     except InputError as err:
-        print(f"senfunet evaluate: {err}")
-        return 2
+        return _error(str(err))
     write(result)
     for run, s in zip(result.runs, seed_summary(result)):
         print(f"{run.path}: mean F {s['F']:.2f}, {s['margin']:+.2f} over the better sensor "

@@ -2,8 +2,15 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 HELP = "run the live fusion node (subscribes to the sensors, publishes ~/mesh, ~/weights, ~/status)"
+
+
+def _error(text: str) -> int:
+    """An error, on stderr; the exit code 2."""
+    print(f"senfunet node: {text}", file=sys.stderr)
+    return 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -21,16 +28,14 @@ def run(args: argparse.Namespace) -> int:
     if args.params:
         path = Path(args.params)
         if not path.is_file():
-            print(f"senfunet node: parameter file {path} not found; pass e.g. --params config/default.yaml")
-            return 2
+            return _error(f"parameter file {path} not found; pass e.g. --params config/default.yaml")
         if not any(arg.startswith("__node:=") for arg in args.ros_args or ()):  # else another node's section
             from senfunet_ros.replay import load_settings
 
             try:  # the node would take the file's section and ignore what it does not know: refuse it here
                 load_settings(path, node_sections_only=True)
             except ValueError as err:
-                print(f"senfunet node: {err}")
-                return 2
+                return _error(str(err))
         ros_args += ["--params-file", str(path)]
     if args.use_sim_time:
         ros_args += ["-p", "use_sim_time:=true"]

@@ -2,9 +2,16 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 DEFAULT_OUT = "runs/tof_stereo.pt"  # runs/ is git-ignored: a training run never overwrites the shipped model by default
 HELP = "train SenFuNet on simulated two-sensor scenes (progress bar, periodic validation, best checkpoint)"
+
+
+def _error(text: str) -> int:
+    """An error, on stderr; the exit code 2."""
+    print(f"senfunet train: {text}", file=sys.stderr)
+    return 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,13 +51,11 @@ def run(args: argparse.Namespace) -> int:
 
     path = Path(args.config)
     if not path.is_file():
-        print(f"senfunet train: config {path} not found; pass e.g. --config config/train_tof_stereo.yaml")
-        return 2
+        return _error(f"config {path} not found; pass e.g. --config config/train_tof_stereo.yaml")
     try:
         config = load_config(path)
     except (ValueError, TypeError) as err:
-        print(f"senfunet train: bad config {path}: {err}")
-        return 2
+        return _error(f"bad config {path}: {err}")
     overrides = {}
     if args.steps is not None:
         overrides["steps"] = args.steps
@@ -60,8 +65,7 @@ def run(args: argparse.Namespace) -> int:
         overrides["cache_dir"] = args.cache_dir
     if args.init_weights is not None:
         if not Path(args.init_weights).is_file():
-            print(f"senfunet train: --init-weights {args.init_weights} not found; pass a weights file (.pt)")
-            return 2
+            return _error(f"--init-weights {args.init_weights} not found; pass a weights file (.pt)")
         overrides.update(init_weights=args.init_weights, block_steps=0)
     if args.val_every is not None:
         overrides["val_every"] = args.val_every
@@ -73,8 +77,7 @@ def run(args: argparse.Namespace) -> int:
         if steps is None:
             continue
         if steps < 0 or (steps and args.init_weights is not None):
-            print(f"senfunet train: {option} takes N >= 0 and {phase}, which --init-weights skips; pass one of them")
-            return 2
+            return _error(f"{option} takes N >= 0 and {phase}, which --init-weights skips; pass one of them")
         overrides[field] = steps
     config = dataclasses.replace(config, **overrides)
     out = Path(args.out)
@@ -86,8 +89,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = train(config, out, progress=not args.no_progress)
     except InputError as err:
-        print(f"senfunet train: {err}")
-        return 2
+        return _error(str(err))
     best = summary["best"]
     print(f"senfunet train: {summary['frames']} frames ({summary['optimizer_steps']} optimizer steps, "
           f"{summary['skipped_frames']} frames without a chunk, {summary['resets']} random resets, "

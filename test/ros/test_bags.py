@@ -211,8 +211,8 @@ def test_a_topic_recorded_with_two_types_fuses_the_type_the_node_takes_and_says_
     assert stats["topics"]["/tof/depth"]["other_types"] == {compressed: 3}
 
 
-def test_a_split_recording_without_metadata_or_with_a_part_cut_short_reads_file_after_file(prefix: Path,
-                                                                                         tmp_path: Path):
+def test_a_split_recording_without_metadata_or_with_a_part_cut_short_reads_its_files_together(prefix: Path,
+                                                                                             tmp_path: Path):
     """A recording split in two .mcap files: read whole without metadata.yaml, and up to the break
     when the recorder was killed while writing the second."""
     from mcap.writer import Writer
@@ -232,7 +232,7 @@ def test_a_split_recording_without_metadata_or_with_a_part_cut_short_reads_file_
                 writer.add_message(channels[m.topic], m.log_time_ns, m.data, m.log_time_ns, j)
             writer.finish()
     with open_bag(folder) as reader:
-        assert reader.note and "2 files one after the other" in reader.note
+        assert reader.note and "2 files together, in time order" in reader.note
         assert reader.message_count == len(messages) and reader.topics["/tof/depth"].count == topics["/tof/depth"].count
     assert _digest(folder) == _digest(prefix)
     second = folder / "split_1.mcap"
@@ -421,3 +421,57 @@ def test_other_files_are_still_not_a_bag(tmp_path):
     with pytest.raises(BagError, match="not a bag"):
         with open_bag(other):
             pass
+
+
+# -- bags of other writers ----------------------------------------------------------------------
+
+
+def test_a_db3_whose_metadata_disagrees_with_its_topic_table_is_read_as_the_file_records_it(prefix: Path,
+                                                                                          tmp_path: Path,
+                                                                                          tiny_params: Path):
+    """rosbags matches metadata.yaml's topics to the db3's own by offered QoS too, and read nothing of
+    a topic whose QoS differed (the camera_info of a sensor: none of its frames fused). The file's own
+    table is what the recorder wrote with the messages: every message is read, latched as the file
+    says, with a note naming the topics."""
+    from odd_bags import db3_with_disagreeing_metadata
+
+    bag = db3_with_disagreeing_metadata(prefix, tmp_path / "db3")
+    with open_bag(bag) as reader:
+        assert reader.note and "metadata.yaml disagrees" in reader.note
+        assert "/tof/camera_info" in reader.note and "/tof/depth" in reader.note
+        assert reader.topics["/tof/camera_info"].latched and not reader.topics["/tof/depth"].latched
+    assert _digest(bag) == _digest(prefix)
+    ref, got = _replay(prefix, tmp_path / "ref", tiny_params), _replay(bag, tmp_path / "got", tiny_params)
+    assert got.returncode == 0 and ref.stdout.splitlines()[:2] == got.stdout.splitlines()[:2], got.stdout + got.stderr
+    assert "metadata.yaml disagrees" in got.stderr
+
+
+@pytest.mark.parametrize("storage, metadata", [("mcap", True), ("sqlite3", True), ("mcap", False)])
+def test_a_split_recording_whose_files_overlap_in_time_is_read_in_time_order(prefix: Path, tmp_path: Path,
+                                                                             storage: str, metadata: bool):
+    """rosbag2 folders (or a folder of files without metadata.yaml) whose files hold interleaved
+    times: one message sequence in log-time order, as recorded, not file after file."""
+    from odd_bags import split_overlapping
+
+    bag = split_overlapping(prefix, tmp_path / "split", storage=storage, metadata=metadata)
+    assert len(list(bag.iterdir())) == 2 + metadata
+    with open_bag(bag) as reader:
+        assert reader.message_count == len(_digest(prefix))
+    assert _digest(bag) == _digest(prefix)
+
+
+@pytest.mark.parametrize("how", ["mcap-lz4", "mcap-zstd", "db3-file", "db3-message"])
+def test_compressed_bags_read_whole(prefix: Path, tmp_path: Path, how: str):
+    from odd_bags import compressed
+
+    assert _digest(compressed(prefix, tmp_path / "bag", how)) == _digest(prefix)
+
+
+def test_a_compression_rosbags_cannot_read_is_named_with_what_to_do(prefix: Path, tmp_path: Path, tiny_params: Path):
+    from odd_bags import compressed
+
+    bag = compressed(prefix, tmp_path / "lz4", "db3-file")
+    meta = (bag / "metadata.yaml").read_text()
+    (bag / "metadata.yaml").write_text(meta.replace("compression_format: zstd", "compression_format: lz4"))
+    line = _one_line_error(_replay(bag, tmp_path / "out", tiny_params))
+    assert "Compression format 'lz4' is not supported" in line and "convert" in line and "damaged" not in line

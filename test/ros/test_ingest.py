@@ -70,7 +70,7 @@ def test_frame_waits_for_later_pose_then_is_interpolated() -> None:
     ingest.add_pose("tof", pose_msg(0, x=0.0, yaw_rad=0.0))
     assert ingest.add_depth("tof", depth_msg(25 * MS)) is None
     assert ingest.pop_ready() == []  # no pose after the frame yet
-    assert ingest.queue_depths()["tof"] == 1
+    assert ingest.ledger.queue_depths()["tof"] == 1
     ingest.add_pose("tof", pose_msg(100 * MS, x=1.0, yaw_rad=math.pi / 2))
     (frame,) = frames(ingest.pop_ready())
     assert frame.sensor == "tof" and frame.stamp_ns == 25 * MS
@@ -78,8 +78,8 @@ def test_frame_waits_for_later_pose_then_is_interpolated() -> None:
     yaw = math.atan2(frame.T_world_camera[1, 0], frame.T_world_camera[0, 0])
     assert yaw == pytest.approx(math.pi / 8)  # slerp: a quarter of the way
     assert frame.depth_m.dtype == np.float32 and frame.rgb is None
-    ingest.mark_integrated("tof")
-    assert ingest.counters()["tof"]["integrated"] == 1 and ingest.counters()["tof"]["received"] == 1
+    ingest.ledger.mark_integrated("tof")
+    assert ingest.ledger.counters()["tof"]["integrated"] == 1 and ingest.ledger.counters()["tof"]["received"] == 1
 
 
 def test_interpolate_pose_endpoints_and_short_way() -> None:
@@ -97,12 +97,12 @@ def test_pose_timeout_and_gap() -> None:
     ingest.add_depth("tof", depth_msg(0))  # no pose stream at all
     ingest.add_depth("tof", depth_msg(600 * MS))  # stream time moves on past the limit
     assert ingest.pop_ready() == []
-    assert ingest.counters()["tof"]["dropped"]["pose_timeout"] == 1
+    assert ingest.ledger.counters()["tof"]["dropped"]["pose_timeout"] == 1
     ingest.add_pose("tof", pose_msg(400 * MS))
     ingest.add_pose("tof", pose_msg(800 * MS))  # 200 ms from the frame: beyond the tolerance
     assert ingest.pop_ready() == []
-    assert ingest.counters()["tof"]["dropped"]["pose_gap"] == 1
-    assert ingest.queue_depths()["tof"] == 0
+    assert ingest.ledger.counters()["tof"]["dropped"]["pose_gap"] == 1
+    assert ingest.ledger.queue_depths()["tof"] == 0
 
 
 @pytest.mark.parametrize("case", ["bad_encoding", "size_mismatch", "all_invalid", "bad_pose", "bad_camera_info"])
@@ -122,7 +122,7 @@ def test_bad_inputs_are_counted(case: str) -> None:
             "all_invalid": depth_msg(0, value=float("nan")),
         }[case]
         assert ingest.add_depth("tof", msg) == case
-    counters = ingest.counters()["tof"]
+    counters = ingest.ledger.counters()["tof"]
     assert counters["dropped"][case] == 1
     assert sum(counters["dropped"].values()) == 1 and counters["queue_depth"] == 0
     if case != "all_invalid":  # the others say what was wrong with the message
@@ -135,7 +135,7 @@ def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
     ingest = Ingest(IngestConfig(sensors=("tof", "stereo"), queue_size=2, pose_max_wait_s=0.5))
     ingest.add_pose("tof", pose_msg(0))
     assert ingest.add_depth("tof", depth_msg(25 * MS, value=2.0)) is None
-    assert ingest.pop_ready() == [] and ingest.queue_depths()["tof"] == 1
+    assert ingest.pop_ready() == [] and ingest.ledger.queue_depths()["tof"] == 1
     assert ingest.add_camera_info("tof", info_msg()) is None
     ingest.add_pose("tof", pose_msg(100 * MS))
     (frame,) = frames(ingest.pop_ready())
@@ -144,13 +144,14 @@ def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
 
     for t in (0, 100, 200):  # stereo's camera_info never comes; the third image overflows the wait
         assert ingest.add_depth("stereo", depth_msg(t * MS)) is None
-    assert ingest.counters()["stereo"]["dropped"]["no_camera_info"] == 1
+    assert ingest.ledger.counters()["stereo"]["dropped"]["no_camera_info"] == 1
     ingest.add_pose("stereo", pose_msg(650 * MS))  # 550 ms past 100 ms: beyond pose_max_wait_s
     assert ingest.pop_ready() == []
-    assert ingest.counters()["stereo"]["dropped"]["no_camera_info"] == 2 and ingest.queue_depths()["stereo"] == 1
+    assert ingest.ledger.counters()["stereo"]["dropped"]["no_camera_info"] == 2
+    assert ingest.ledger.queue_depths()["stereo"] == 1
     ingest.add_pose("stereo", pose_msg(750 * MS))
     ingest.pop_ready()
-    counters = ingest.counters()["stereo"]
+    counters = ingest.ledger.counters()["stereo"]
     assert counters["dropped"]["no_camera_info"] == 3 and counters["queue_depth"] == 0
     assert counters["received"] == 3 and counters["integrated"] == 0
 
@@ -162,7 +163,7 @@ def test_out_of_order_duplicate_and_queue_full() -> None:
     assert ingest.add_depth("tof", depth_msg(50 * MS)) == "out_of_order"
     ingest.add_depth("tof", depth_msg(150 * MS))
     ingest.add_depth("tof", depth_msg(200 * MS))  # third in a queue of two: the oldest goes
-    dropped = ingest.counters()["tof"]["dropped"]
+    dropped = ingest.ledger.counters()["tof"]["dropped"]
     assert (dropped["duplicate"], dropped["out_of_order"], dropped["queue_full"]) == (1, 1, 1)
     ingest.add_pose("tof", pose_msg(140 * MS))
     ingest.add_pose("tof", pose_msg(210 * MS))
@@ -184,7 +185,7 @@ def test_time_jump_flushes_and_is_reported_first() -> None:
     items = ingest.pop_ready()
     assert isinstance(items[0], TimeJump) and items[0].from_ns == 5100 * MS and items[0].to_ns == 10 * MS
     assert [f.stamp_ns for f in frames(items) if f.sensor == "tof"] == [15 * MS, 25 * MS, 35 * MS, 45 * MS, 55 * MS]
-    c = ingest.counters()
+    c = ingest.ledger.counters()
     assert c["tof"]["time_jumps"] + c["stereo"]["time_jumps"] == 1  # counted on the stream that confirmed it
     assert c["tof"]["dropped"]["bad_stamp"] == 0 and c["stereo"]["dropped"]["bad_stamp"] == 0
     assert c["tof"]["dropped"]["time_jump"] == 1 and c["stereo"]["dropped"]["time_jump"] == 1  # flushed
@@ -201,7 +202,7 @@ def test_a_restart_holds_as_many_messages_as_a_queue_and_counts_the_rest_as_lost
     ingest.add_pose("tof", pose_msg(50 * MS))
     items = ingest.pop_ready()
     assert isinstance(items[0], TimeJump) and [f.stamp_ns for f in frames(items)] == [35 * MS, 45 * MS]
-    c = ingest.counters()["tof"]
+    c = ingest.ledger.counters()["tof"]
     assert c["dropped"]["bad_stamp"] == 0 and c["dropped"]["time_jump"] == 1 + 2  # the frame flushed, two lost
 
 
@@ -215,7 +216,7 @@ def test_a_held_message_that_turns_out_bad_is_counted_once() -> None:
         ingest.add_pose("tof", pose_msg(t * MS))
         ingest.add_depth("tof", depth_msg(t * MS + 5 * MS, encoding="rgb8" if t == 10 else "32FC1"))
         ingest.add_color("tof", color_msg(t * MS + 5 * MS) if t != 20 else depth_msg(t * MS + 5 * MS))
-    c = ingest.counters()["tof"]
+    c = ingest.ledger.counters()["tof"]
     assert c["time_jumps"] == 1 and c["dropped"]["bad_stamp"] == 0
     assert c["dropped"]["bad_encoding"] == 2  # the rgb8 depth image and the 32FC1 "colour" image, once each
 
@@ -235,7 +236,7 @@ def test_a_stray_stamp_is_dropped_and_does_not_move_the_timeline(stray_s: float)
     items = ingest.pop_ready()
     assert not any(isinstance(i, TimeJump) for i in items)
     assert [f.stamp_ns for f in frames(items)] == [5100 * MS, 5150 * MS]
-    c = ingest.counters()["tof"]
+    c = ingest.ledger.counters()["tof"]
     assert c["dropped"]["bad_stamp"] == 3 and c["time_jumps"] == 0 and c["dropped"]["time_jump"] == 0
     assert "stamp" in c["errors"]["bad_stamp"]
 
@@ -260,7 +261,7 @@ def test_a_burst_of_consistent_stray_stamps_on_one_stream_is_not_a_restart() -> 
         ingest.add_depth("tof", depth_msg(t + 5 * MS))
     items = ingest.pop_ready()
     assert not any(isinstance(i, TimeJump) for i in items) and len(frames(items)) == 19
-    assert ingest.counters()["tof"]["dropped"]["bad_stamp"] == 20
+    assert ingest.ledger.counters()["tof"]["dropped"]["bad_stamp"] == 20
 
 
 def test_restart_from_outside_the_streams() -> None:
@@ -273,22 +274,23 @@ def test_restart_from_outside_the_streams() -> None:
     ingest.add_pose("tof", pose_msg(15 * MS))
     items = ingest.pop_ready()
     assert isinstance(items[0], TimeJump) and [f.stamp_ns for f in frames(items)] == [10 * MS]
-    assert ingest.counters()["tof"]["dropped"]["time_jump"] == 1
+    assert ingest.ledger.counters()["tof"]["dropped"]["time_jump"] == 1
 
 
 def test_a_camera_info_with_distortion_is_noted() -> None:
     """The node takes images as rectified: a camera_info with distortion coefficients is noted (and
     warned about by the node), one without clears it."""
     ingest = make()
-    assert ingest.counters()["tof"]["distorted"] is False
+    assert ingest.ledger.counters()["tof"]["distorted"] is False
     distorted = info_msg()
     distorted.distortion_model, distorted.d = "plumb_bob", [0.1, -0.05, 0.0, 0.0, 0.0]
     assert ingest.add_camera_info("tof", distorted) is None
-    assert ingest.counters()["tof"]["distorted"] is True and ingest.counters()["stereo"]["distorted"] is False
+    counters = ingest.ledger.counters()
+    assert counters["tof"]["distorted"] is True and counters["stereo"]["distorted"] is False
     rectified = info_msg()
     rectified.d = [0.0] * 5
     ingest.add_camera_info("tof", rectified)
-    assert ingest.counters()["tof"]["distorted"] is False
+    assert ingest.ledger.counters()["tof"]["distorted"] is False
 
 
 def test_colour_matched_by_nearest_stamp_and_resized() -> None:
@@ -303,12 +305,12 @@ def test_colour_matched_by_nearest_stamp_and_resized() -> None:
     assert frame.rgb is not None and np.all(frame.rgb == 2)  # 3 ms beats 10 ms
     assert frame.depth_m.shape == (4, 5) and frame.rgb.shape == (4, 5, 3)  # aspect ratio kept
     assert frame.K[0, 0] == pytest.approx(5.0)
-    assert ingest.counters()["stereo"]["without_color"] == 0
+    assert ingest.ledger.counters()["stereo"]["without_color"] == 0
     ingest.add_pose("stereo", pose_msg(140 * MS))
     ingest.add_depth("stereo", depth_msg(150 * MS))
     ingest.add_color("stereo", color_msg(190 * MS, value=3))  # 40 ms off: beyond color_tolerance_s
     (frame,) = frames(ingest.pop_ready())
-    assert frame.rgb is None and ingest.counters()["stereo"]["without_color"] == 1  # counted, not silent
+    assert frame.rgb is None and ingest.ledger.counters()["stereo"]["without_color"] == 1  # counted, not silent
 
 
 def test_frames_in_stamp_order_and_deterministic() -> None:
@@ -370,7 +372,7 @@ def test_images_are_decoded_outside_the_lock_and_one_decoded_across_a_reset_is_c
     def served() -> None:  # another stream, another sensor, the consumer, the counters
         assert ingest.add_pose("tof", pose_msg(0)) is None and ingest.add_pose("tof", pose_msg(50 * MS)) is None
         assert ingest.add_depth("stereo", depth_msg(20 * MS)) is None
-        assert frames(ingest.pop_ready()) == [] and ingest.counters()["stereo"]["queue_depth"] == 1
+        assert frames(ingest.pop_ready()) == [] and ingest.ledger.counters()["stereo"]["queue_depth"] == 1
 
     assert while_decoding(10, served) is None
     if stream == "color":
@@ -379,10 +381,10 @@ def test_images_are_decoded_outside_the_lock_and_one_decoded_across_a_reset_is_c
     assert frame.stamp_ns == 10 * MS and (frame.rgb is None) == (stream == "depth")
 
     def reset() -> None:
-        assert ingest.discard_waiting("map_reset") == 1  # the stereo frame; the tof image is on its way
+        assert ingest.ledger.discard_waiting("map_reset") == 1  # the stereo frame; the tof image is on its way
 
     assert while_decoding(30, reset) == "map_reset"
-    counters = ingest.counters()["tof"]
+    counters = ingest.ledger.counters()["tof"]
     assert counters["dropped"]["map_reset"] == 1 and counters["queue_depth"] == 0
     if stream == "color":  # the colour image decoded across the reset was not kept
         assert ingest.add_depth("tof", depth_msg(30 * MS)) is None
@@ -412,7 +414,7 @@ def test_depth_of_one_sensor_added_by_two_threads_is_queued_in_stamp_order(monke
     ingest.add_pose("tof", pose_msg(0))
     ingest.add_pose("tof", pose_msg(15 * MS))  # the older frame can be posed, the newer one waits
     assert [(f.stamp_ns, float(f.depth_m[0, 0])) for f in frames(ingest.pop_ready())] == [(10 * MS, 1.0)]
-    assert ingest.queue_depths()["tof"] == 1
+    assert ingest.ledger.queue_depths()["tof"] == 1
 
 
 def test_depth_of_a_binned_camera_info_is_taken_at_its_size() -> None:
@@ -446,11 +448,11 @@ def test_consumer_behind_skips_old_frames_and_pop_limit_keeps_the_rest() -> None
     ingest = make(max_lag_s=0.25)
     feed(ingest)
     (first,) = frames(ingest.pop_ready(max_frames=1))
-    assert first.stamp_ns == 0 and ingest.counters()["tof"]["dropped"]["behind"] == 0
-    assert ingest.queue_depths()["tof"] == 9  # posed, waiting for the consumer
+    assert first.stamp_ns == 0 and ingest.ledger.counters()["tof"]["dropped"]["behind"] == 0
+    assert ingest.ledger.queue_depths()["tof"] == 9  # posed, waiting for the consumer
     (second,) = frames(ingest.pop_ready(max_frames=1))  # the consumer is back, and behind
     assert second.stamp_ns == 700 * MS  # 100..600 ms were more than 250 ms behind the newest (900 ms)
-    assert ingest.counters()["tof"]["dropped"]["behind"] == 6
+    assert ingest.ledger.counters()["tof"]["dropped"]["behind"] == 6
     rest = frames(ingest.pop_ready())
     assert [f.stamp_ns for f in rest] == [800 * MS, 900 * MS]
     np.testing.assert_allclose(rest[1].T_world_camera[:3, 3], [0.9, 0, 0])
@@ -477,9 +479,9 @@ def test_frames_behind_are_set_aside_and_handed_out_when_nothing_newer_waits() -
     (first,) = frames(ingest.pop_ready(max_frames=1))
     (second,) = frames(ingest.pop_ready(max_frames=1))
     assert (first.stamp_ns, second.stamp_ns) == (0, 700 * MS)
-    c = ingest.counters()["tof"]
+    c = ingest.ledger.counters()["tof"]
     assert (c["set_aside"], c["set_aside_now"], c["dropped"]["behind"]) == (4, 4, 2)
-    assert ingest.queue_depths()["tof"] == 2 + 4  # 800 and 900 ms ready, 4 set aside
+    assert ingest.ledger.queue_depths()["tof"] == 2 + 4  # 800 and 900 ms ready, 4 set aside
     live = [f.stamp_ns for f in frames(ingest.pop_ready(max_frames=1)) + frames(ingest.pop_ready(max_frames=1))]
     assert live == [800 * MS, 900 * MS]  # what is newest goes first
     assert frames(ingest.pop_ready(max_frames=1)) == []  # images came just now: the sensors may go on
@@ -487,19 +489,20 @@ def test_frames_behind_are_set_aside_and_handed_out_when_nothing_newer_waits() -
     later = [frames(ingest.pop_ready(max_frames=1)) for _ in range(5)]
     assert [[f.stamp_ns for f in batch] for batch in later] == [[100 * MS], [200 * MS], [300 * MS], [400 * MS], []]
     np.testing.assert_allclose(later[2][0].T_world_camera[:3, 3], [0.3, 0, 0])
-    assert ingest.counters()["tof"]["set_aside_now"] == 0 and ingest.queue_depths()["tof"] == 0
+    assert ingest.ledger.counters()["tof"]["set_aside_now"] == 0 and ingest.ledger.queue_depths()["tof"] == 0
 
     feed(ingest, start_ms=1000)  # behind again, with room for all four again
     frames(ingest.pop_ready(max_frames=1)), frames(ingest.pop_ready(max_frames=1))
-    assert ingest.counters()["tof"]["set_aside_now"] == 4
-    ingest.discard_waiting("map_reset")  # ~/reset: they belonged to the old map
-    c = ingest.counters()["tof"]
-    assert c["set_aside_now"] == 0 and c["dropped"]["map_reset"] == 4 + 2 and ingest.queue_depths()["tof"] == 0
+    assert ingest.ledger.counters()["tof"]["set_aside_now"] == 4
+    ingest.ledger.discard_waiting("map_reset")  # ~/reset: they belonged to the old map
+    c = ingest.ledger.counters()["tof"]
+    assert c["set_aside_now"] == 0 and c["dropped"]["map_reset"] == 4 + 2 and ingest.ledger.queue_depths()["tof"] == 0
 
     feed(ingest, start_ms=2000)
     frames(ingest.pop_ready(max_frames=1)), frames(ingest.pop_ready(max_frames=1))
     assert len(frames(ingest.pop_ready(set_aside=False))) == 2  # a stop integrates what is ready, not what waits
-    assert ingest.discard_waiting("shutdown") == 4 and ingest.counters()["tof"]["dropped"]["shutdown"] == 4
+    assert ingest.ledger.discard_waiting("shutdown") == 4
+    assert ingest.ledger.counters()["tof"]["dropped"]["shutdown"] == 4
 
 
 def test_integrate_ready_keeps_order_isolates_errors_and_flushes_before_a_time_jump() -> None:
@@ -604,19 +607,19 @@ def test_pipeline_counts_rejected_and_empty_frames_with_the_reason_and_logs_none
     far[0, 3] = 1e5  # 100 km from the origin: beyond the grid's key range
     rejected = [Frame("tof", i * 10**8, np.ones((48, 64), np.float32), None, K, far) for i in range(3)]
     assert pipeline.drain(rejected) == 0
-    counters = pipeline.ingest.counters()["tof"]
+    counters = pipeline.ingest.ledger.counters()["tof"]
     assert counters["dropped"]["engine_error"] == 3 and pipeline.frames_failed == 3
     assert counters["errors"]["engine_error"].startswith("frame at 0.200 s: ")
     # depth in millimetres in a 32FC1 image: every pixel beyond depth_max_m, nothing to integrate
     millimetres = [Frame("tof", (5 + i) * 10**8, np.full((48, 64), 1500.0, np.float32), None, K, np.eye(4))
                    for i in range(2)]
     assert pipeline.drain(millimetres) == 0
-    counters = pipeline.ingest.counters()["tof"]
+    counters = pipeline.ingest.ledger.counters()["tof"]
     assert counters["dropped"]["out_of_range"] == 2 and counters["integrated"] == 0 and pipeline.frames_failed == 3
     assert "1500.000 m: millimetres" in counters["errors"]["out_of_range"]
     # a 20x20 image: all of it within the engine's 10-pixel border (the depth itself is in range)
     assert pipeline.drain([Frame("tof", 9 * 10**8, np.ones((20, 20), np.float32), None, K, np.eye(4))]) == 0
-    counters = pipeline.ingest.counters()["tof"]
+    counters = pipeline.ingest.ledger.counters()["tof"]
     assert counters["dropped"]["out_of_range"] == 3 and "(20x20) is not larger than twice the 10-pixel border" in (
         counters["errors"]["out_of_range"])
     assert logged == []
@@ -673,7 +676,7 @@ def test_a_pause_of_every_stream_keeps_what_waits_and_old_messages_in_flight_aft
     assert not any(isinstance(i, TimeJump) for i in items)
     # the messages that confirmed the pause were held and taken: the last frame waits for a pose after it
     assert [f.stamp_ns for f in frames(items)] == [10_005 * MS, 10_015 * MS]
-    counters = ingest.counters()["tof"]
+    counters = ingest.ledger.counters()["tof"]
     assert counters["dropped"]["time_jump"] == 0 and counters["dropped"]["bad_stamp"] == 0
     # the frame queued before the pause was not flushed: the poses around it are 5 s apart
     assert counters["dropped"]["pose_gap"] == 1 and "bad_stamp" not in counters["errors"]
@@ -683,3 +686,98 @@ def test_a_pause_of_every_stream_keeps_what_waits_and_old_messages_in_flight_aft
     assert ingest.add_depth("tof", depth_msg(10 * MS)) is None
     ingest.add_pose("tof", pose_msg(15 * MS))
     assert [f.stamp_ns for f in frames(ingest.pop_ready())] == [10 * MS]
+
+
+def test_a_pose_republished_at_its_stamp_with_another_value_is_counted_and_the_first_kept() -> None:
+    """A driver that republishes a stamp with another pose would silently bend the trajectory: the
+    first pose stays (frames may have been posed with it already), the second is dropped as
+    pose_conflict with what differs; the same pose again is no conflict."""
+    ingest = make()
+    assert ingest.add_pose("tof", pose_msg(0, x=0.0)) is None
+    assert ingest.add_pose("tof", pose_msg(100 * MS, x=1.0)) is None
+    assert ingest.add_pose("tof", pose_msg(100 * MS, x=1.0)) is None  # the same pose again: fine
+    assert ingest.add_pose("tof", pose_msg(100 * MS, x=3.0)) == "pose_conflict"
+    assert ingest.add_pose("tof", pose_msg(100 * MS, x=1.0, yaw_rad=0.5)) == "pose_conflict"
+    ingest.add_depth("tof", depth_msg(50 * MS))
+    (frame,) = frames(ingest.pop_ready())
+    np.testing.assert_allclose(frame.T_world_camera[:3, 3], [0.5, 0, 0])  # between x 0 and the first x 1
+    c = ingest.ledger.counters()["tof"]
+    assert c["dropped"]["pose_conflict"] == 2 and c["pose_received"] == 5
+    assert "28.65 deg from the first" in c["errors"]["pose_conflict"]
+
+
+def test_a_tf_transform_republished_at_its_stamp_with_another_value_is_counted_and_the_first_kept() -> None:
+    from geometry_msgs.msg import TransformStamped
+
+    from senfunet_ros.tf import TfBuffer
+
+    class TFMessage:  # tf2_msgs/TFMessage's one field (tf2_msgs is not on the package index)
+        def __init__(self, transforms: list[TransformStamped]) -> None:
+            self.transforms = transforms
+
+    def transform(t_ns: int, x: float) -> TransformStamped:
+        msg = TransformStamped()
+        _stamp(msg, t_ns)
+        msg.header.frame_id, msg.child_frame_id = "map", "cam"
+        msg.transform.translation.x, msg.transform.rotation.w = x, 1.0
+        return msg
+
+    tf = TfBuffer()
+    ingest = Ingest(IngestConfig(sensors=("tof", "stereo"), tf=tf))
+    assert ingest.add_tf(TFMessage([transform(0, 0.0), transform(100 * MS, 1.0)]), static=False) is None
+    assert ingest.add_tf(TFMessage([transform(100 * MS, 1.0)]), static=False) is None  # the same again
+    assert ingest.add_tf(TFMessage([transform(100 * MS, 2.0), transform(200 * MS, 2.0)]), static=False) == \
+        "pose_conflict"
+    np.testing.assert_allclose(tf.lookup("map", "cam", 100 * MS)[:3, 3], [1.0, 0, 0])  # the first kept
+    np.testing.assert_allclose(tf.lookup("map", "cam", 200 * MS)[:3, 3], [2.0, 0, 0])  # the rest of the message
+    c = ingest.ledger.counters()["tof"]
+    assert c["dropped"]["pose_conflict"] == 1 and "transform map -> cam at 0.100 s" in c["errors"]["pose_conflict"]
+
+
+def test_the_images_a_confirmed_restart_takes_are_decoded_outside_the_lock(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The new timeline's held images (a queue's worth per stream) are decoded as any image is, with
+    the lock released: meanwhile other streams and the consumer are served; counts stay exact."""
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    ingest.add_depth("tof", depth_msg(5100 * MS))
+    decoding, release = threading.Event(), threading.Event()
+    decode = conv.depth_from_image
+
+    def slow_decode(msg):  # noqa: ANN001, ANN202
+        if threading.current_thread().name == "restart":  # the restart's burst
+            decoding.set()
+            assert release.wait(10)
+        return decode(msg)
+
+    monkeypatch.setattr(conv, "depth_from_image", slow_decode)
+    for t in (10, 20):  # the new timeline: held until it is confirmed
+        ingest.add_pose("tof", pose_msg(t * MS))
+        assert ingest.add_depth("tof", depth_msg(t * MS + 5 * MS)) == "bad_stamp"
+    ingest.add_pose("tof", pose_msg(30 * MS))
+    result: list[str | None] = []
+    worker = threading.Thread(target=lambda: result.append(ingest.add_depth("tof", depth_msg(35 * MS))),
+                              name="restart")
+    worker.start()  # the third depth image confirms the restart: the two held ones are decoded
+    try:
+        assert decoding.wait(10)
+        served: list[bool] = []
+
+        def serve() -> None:  # another sensor, the consumer, the counters
+            assert ingest.add_depth("stereo", depth_msg(32 * MS)) is None
+            items = ingest.pop_ready()
+            assert isinstance(items[0], TimeJump) and frames(items) == []  # the tof frames are not queued yet
+            served.append(ingest.ledger.counters()["tof"]["dropped"]["bad_stamp"] == 0)
+
+        server = threading.Thread(target=serve, daemon=True)
+        server.start()
+        server.join(5)
+        assert served == [True], "the lock was held while the restart's images were decoded"
+    finally:
+        release.set()
+        worker.join(10)
+    assert result == [None]
+    ingest.add_pose("tof", pose_msg(40 * MS))
+    assert [f.stamp_ns for f in frames(ingest.pop_ready()) if f.sensor == "tof"] == [15 * MS, 25 * MS, 35 * MS]
+    c = ingest.ledger.counters()["tof"]
+    assert c["dropped"]["bad_stamp"] == 0 and c["dropped"]["time_jump"] == 1 and c["time_jumps"] == 1
+    assert c["received"] == 4 and c["queue_depth"] == 0

@@ -184,7 +184,7 @@ FLOW_AHEAD = (100, 100, 10, 10)
 
 
 def _flow_counts(node: FusionNode) -> list[int]:
-    counters = node.ingest.counters()
+    counters = node.ingest.ledger.counters()
     return [counters[s][key] for s, key in FLOW]
 
 
@@ -384,15 +384,15 @@ def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: P
         assert counters["stereo"]["color_received"] > 0
         def all_accounted() -> bool:  # every received frame integrated or dropped (not just dequeued)
             return all(c["integrated"] + sum(c["dropped"].values()) >= c["received"]
-                       for c in run.node.ingest.counters().values())
+                       for c in run.node.ingest.ledger.counters().values())
 
         t0 = time.monotonic()
         wait_for(all_accounted, 120, "every frame to be integrated")
         print(f"\nintegration finished {time.monotonic() - t0:.1f} s after the stream ended")
-        integrated = {s: c["integrated"] for s, c in run.node.ingest.counters().items()}
+        integrated = {s: c["integrated"] for s, c in run.node.ingest.ledger.counters().items()}
         # Frames not bracketed by received poses (the first and last of a short best-effort stream,
         # more under CPU load) are dropped by design as pose_gap / pose_timeout.
-        counters = run.node.ingest.counters()
+        counters = run.node.ingest.ledger.counters()
         assert integrated["tof"] >= 0.6 * n_tof and integrated["stereo"] >= 0.6 * n_stereo, str(counters)
         # One more mesh update after the last integration, then wait for it to arrive.
         run.node.publish_mesh()
@@ -406,7 +406,7 @@ def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: P
         # surface, so tau = 2 voxels; a mesh of the scene scores well above 40 % on the visible
         # part, while a mesh in the wrong frame or place (pose/K/stamp mix-ups) scores near 0.
         assert m["F"] > 40.0, m
-        print(f"\nstreamed mesh vs visible GT (tau 8 cm): {m}; counters: {run.node.ingest.counters()}")
+        print(f"\nstreamed mesh vs visible GT (tau 8 cm): {m}; counters: {run.node.ingest.ledger.counters()}")
 
         # ~/weights: the contract's fields, and each voxel's own values. The stream is over, and the
         # weighting net now judges what is still stale (else the mesh timer's budgeted refreshes, on
@@ -471,7 +471,7 @@ def _node_hears_streamer(node: FusionNode, prefix: str) -> bool:
     readers = [sub for sub in node.subscriptions if sub.topic_name.startswith(f"/{prefix}/")]
     if not readers or any(sub.get_publisher_count() == 0 for sub in readers):
         return False
-    counters = node.ingest.counters()
+    counters = node.ingest.ledger.counters()
     return all(counters[s]["pose_received"] > 0 and node.ingest._sensors[s].camera_info is not None
                for s in ("tof", "stereo"))
 
@@ -482,10 +482,10 @@ def _settled_counters(node: FusionNode, quiet_s: float = 1.0, timeout_s: float =
         return tuple(v for s in sorted(c) for v in (c[s]["received"], c[s]["color_received"], c[s]["pose_received"]))
 
     deadline = time.monotonic() + timeout_s
-    counters = node.ingest.counters()
+    counters = node.ingest.ledger.counters()
     while time.monotonic() < deadline:
         time.sleep(quiet_s)
-        latest = node.ingest.counters()
+        latest = node.ingest.ledger.counters()
         if arrivals(latest) == arrivals(counters):
             return latest
         counters = latest
@@ -529,7 +529,7 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
         ingest = run.node.ingest
 
         def dropped(sensor: str, reason: str) -> int:
-            return ingest.counters()[sensor]["dropped"][reason]
+            return ingest.ledger.counters()[sensor]["dropped"][reason]
 
         def send(sensor: str, kind: str, msg: Any) -> None:
             pubs[(sensor, kind)].publish(msg)
@@ -572,13 +572,13 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
         # one stray stamp is dropped, it is no time jump
         send("tof", "depth", _image(1 * S, good))
         wait_for(lambda: dropped("tof", "bad_stamp") >= 1, 10, "bad_stamp")
-        assert ingest.counters()["tof"]["time_jumps"] == 0
+        assert ingest.ledger.counters()["tof"]["time_jumps"] == 0
 
         # time going back on every stream that speaks (a bag restarting): confirmed after 3 messages each
         for k in range(1, 5):
             send("tof", "pose", _pose(1 * S + k * S // 20))
             send("tof", "depth", _image(1 * S + k * S // 20 + 1, good))
-        wait_for(lambda: ingest.counters()["tof"]["time_jumps"] >= 1, 10, "time jump")
+        wait_for(lambda: ingest.ledger.counters()["tof"]["time_jumps"] >= 1, 10, "time jump")
         wait_for(lambda: run.node.pipeline.time_jumps >= 1, 10, "the node to handle the time jump")
 
         # still alive: a good frame with poses around it is integrated
@@ -586,7 +586,7 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
         send("tof", "pose", _pose(1 * S + S // 2))
         send("tof", "depth", _image(1 * S + S * 4 // 10, good))
         send("tof", "pose", _pose(1 * S + S * 6 // 10))
-        wait_for(lambda: ingest.counters()["tof"]["integrated"] >= 1, 30, "a good frame to be integrated")
+        wait_for(lambda: ingest.ledger.counters()["tof"]["integrated"] >= 1, 30, "a good frame to be integrated")
         assert run.thread.is_alive()
         status = run.node.status()
         names = [s.name for s in status.status]
@@ -729,7 +729,7 @@ def test_counter_warnings_name_what_is_new_and_why_colour_is_missing() -> None:
     from senfunet_ros.status import counter_warnings
 
     settings = P.Settings.from_values({name: default for name, (default, _) in P.expanded_defaults().items()})
-    before = Ingest(IngestConfig(sensors=settings.sensor_names)).counters()
+    before = Ingest(IngestConfig(sensors=settings.sensor_names)).ledger.counters()
     now = {name: {**c, "dropped": dict(c["dropped"]), "errors": dict(c["errors"])} for name, c in before.items()}
     now["stereo"]["without_color"] = 3
     warnings = dict(counter_warnings(before, now, settings))

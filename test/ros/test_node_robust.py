@@ -60,7 +60,7 @@ def fuse_in_process(run: Running, messages: list[tuple[str, str, Any]]) -> None:
     expected = sum(1 for _, stream, _ in messages if stream == "depth")
 
     def settled() -> bool:  # nearly every frame integrated, and none still in flight
-        counters = run.node.ingest.counters().values()
+        counters = run.node.ingest.ledger.counters().values()
         return (sum(c["integrated"] for c in counters) >= expected - 2
                 and all(c["integrated"] + sum(c["dropped"].values()) >= c["received"] for c in counters))
 
@@ -98,17 +98,18 @@ def test_malformed_burst_keeps_the_map(ros, tmp_path: Path) -> None:
         wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20, "discovery")
         time.sleep(1.0)  # the node's side of discovery
         received_before = {s: c["received"] + c["pose_received"] + c["color_received"]
-                           for s, c in run.node.ingest.counters().items()}
+                           for s, c in run.node.ingest.ledger.counters().items()}
         for i in range(400):  # 400 malformed messages over every input type of both sensors
             sensor, kind = list(pubs)[i % len(pubs)]
             pubs[(sensor, kind)].publish(malformed(2.5, kind, i))
             if i % 8 == 7:
                 time.sleep(0.01)  # best-effort readers keep 30: let them take the burst
         wait_for(lambda: sum(c["received"] + c["pose_received"] + c["color_received"]
-                             for c in run.node.ingest.counters().values()) - sum(received_before.values()) >= 100,
+                             for c in run.node.ingest.ledger.counters().values())
+                         - sum(received_before.values()) >= 100,
                  20, "the burst to arrive")
         time.sleep(2.0)  # integration and mesh timers run over it
-        counters = run.node.ingest.counters()
+        counters = run.node.ingest.ledger.counters()
         assert run.thread.is_alive()
         assert run.node.pipeline.time_jumps == 0 and all(c["time_jumps"] == 0 for c in counters.values())
         assert sum(c["dropped"]["bad_stamp"] for c in counters.values()) > 0
@@ -137,10 +138,10 @@ def test_frames_behind_are_set_aside_and_integrated_once_nothing_newer_waits(ros
 
         def settled() -> bool:
             return all(c["integrated"] + sum(c["dropped"].values()) >= c["received"]
-                       for c in run.node.ingest.counters().values())
+                       for c in run.node.ingest.ledger.counters().values())
 
         wait_for(settled, 120, "every frame to be integrated or dropped")
-        counters = run.node.ingest.counters().values()
+        counters = run.node.ingest.ledger.counters().values()
         integrated = sum(c["integrated"] for c in counters)
         set_aside = sum(c["set_aside"] for c in counters)
         behind = sum(c["dropped"]["behind"] for c in counters)
@@ -254,6 +255,48 @@ def test_diagnostics_rates_warn_clears_and_stale(ros, tmp_path: Path) -> None:
         run.close()
 
 
+def test_a_pose_republished_with_another_value_is_counted_in_diagnostics_and_logged_once(ros, tmp_path: Path,
+                                                                                         capfd) -> None:
+    """A pose driver that republishes stamps with other poses: each such pose is dropped as
+    pose_conflict (the first kept), on /diagnostics with what differed, and warned about once per
+    warning period, not once per message; the same pose again is no conflict."""
+    prefix = "conflict"
+    run = Running("conflict", {**topic_params(prefix), **SMALL, "status_rate_hz": 5.0}, tmp_path)
+    pub_node = Node("conflict_publisher")
+    got: list[DiagnosticArray] = []
+    run.helper.create_subscription(DiagnosticArray, "/diagnostics", got.append, 10)
+    try:
+        pose_pub = pub_node.create_publisher(PoseStamped, f"/{prefix}/tof/pose", 50)
+        wait_for(lambda: pose_pub.get_subscription_count() > 0, 20, "discovery")
+        time.sleep(1.0)  # the node's side of discovery
+        for i in range(10):
+            for x in (0.0, 0.0, 0.5):  # each stamp: a pose, the same again, then another pose
+                msg = PoseStamped()
+                msg.pose.orientation.w, msg.pose.position.x = 1.0, 0.1 * i + x
+                _stamp(msg, 10.0 + 0.05 * i)
+                pose_pub.publish(msg)
+            time.sleep(0.05)
+
+        def tof_values() -> dict[str, str]:
+            for msg in reversed(got):
+                for status in msg.status:
+                    if status.name == "senfunet: tof":
+                        return {kv.key: kv.value for kv in status.values}
+            return {}
+
+        wait_for(lambda: int(tof_values().get("pose_received", 0)) == 30, 20, "the poses")
+        wait_for(lambda: int(tof_values().get("dropped.pose_conflict", 0)) == 10, 10, "the conflicts on /diagnostics")
+        values = tof_values()
+        assert "0.500 m" in values["error.pose_conflict"] and "the first" in values["error.pose_conflict"]
+        assert int(values["recent_dropped.pose_conflict"]) == 10
+        time.sleep(0.5)  # the integration tick's warnings
+    finally:
+        pub_node.destroy_node()
+        run.close()
+    log = capfd.readouterr().err
+    assert len([line for line in log.splitlines() if "pose_conflict" in line]) == 1, log
+
+
 def test_a_silent_colour_topic_is_a_warning_only_for_a_sensor_whose_net_takes_colour() -> None:
     """The sample has no /tof/color and the ToF net takes no colour: nothing is missing, so no warning."""
     from types import SimpleNamespace
@@ -267,8 +310,8 @@ def test_a_silent_colour_topic_is_a_warning_only_for_a_sensor_whose_net_takes_co
                              info=lambda text: logged.append(("info", text)))
     engine = SimpleNamespace(counters={}, timings_s={}, stats=lambda wait=True: {},
                              config=SimpleNamespace(sensors=("tof", "stereo"), sensor_uses_rgb=(False, True)))
-    pipeline = SimpleNamespace(latest_stamp_ns=0, ingest=SimpleNamespace(counters=lambda: {}), time_jumps=0,
-                               frames_failed=0, frames_unfinished=0, engine=engine)
+    pipeline = SimpleNamespace(latest_stamp_ns=0, ingest=SimpleNamespace(ledger=SimpleNamespace(counters=lambda: {})),
+                               time_jumps=0, frames_failed=0, frames_unfinished=0, engine=engine)
     health = HealthMonitor({"tof": ("depth", "color"), "stereo": ("depth", "color")}, window_s=0.05,
                            stale_after_s=1.0)
     for sensor in ("tof", "stereo"):
@@ -395,7 +438,7 @@ def test_clock_going_back_restarts_time_at_once(ros, tmp_path: Path) -> None:
             clock.publish(msg)
             time.sleep(0.2)
         wait_for(lambda: run.node.pipeline.time_jumps >= 1, 10, "the restart")
-        assert run.node.ingest.counters()["tof"]["dropped"]["bad_stamp"] == 0
+        assert run.node.ingest.ledger.counters()["tof"]["dropped"]["bad_stamp"] == 0
     finally:
         pub_node.destroy_node()
         run.close()
@@ -430,7 +473,7 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
 
         def settled() -> bool:  # every frame received integrated (or dropped): none in flight
             return all(c["integrated"] + sum(c["dropped"].values()) >= c["received"]
-                       for c in run.node.ingest.counters().values())
+                       for c in run.node.ingest.ledger.counters().values())
 
         wait_for(settled, 60, "every frame to be integrated")
         engine = run.node.engine
@@ -458,14 +501,14 @@ def test_weighting_net_catches_up_in_slices_only_while_no_frame_comes(ros, tmp_p
             later = copy.deepcopy(msg)
             later.header.stamp.sec += 1
             run.node.pipeline.dispatch(sensor, stream, later)
-        assert sum(run.node.ingest.queue_depths().values()) == 1
+        assert sum(run.node.ingest.ledger.queue_depths().values()) == 1
         run.node.settings = P.Settings.from_values({**slices.values, "mesh_rate_hz": 1.0})  # room for the budget
         run.node.publish_mesh()  # a frame waits: the running budget
         run.node.settings = slices
         assert turns == [(0.001, False)] and turn_threads == [threading.get_ident()]  # after publishing
         backlog = engine.counters["alpha_backlog_blocks"]
         assert backlog > 0
-        assert run.node.ingest.discard_waiting("pose_timeout") == 1  # its pose will not come
+        assert run.node.ingest.ledger.discard_waiting("pose_timeout") == 1  # its pose will not come
         turns.clear()
         arrive.extend(held_back)
         run.node.publish_mesh()  # idle, but a frame comes during the slice
@@ -542,7 +585,7 @@ def test_ctrl_c_during_the_stop_drops_the_queued_frames_and_the_saving_not_the_n
         run.spinning.stop()  # as the first Ctrl-C stops the executor
         for sensor, stream, msg in messages[len(messages) // 2:]:  # frames ready, not integrated
             run.node.pipeline.dispatch(sensor, stream, msg)
-        integrated = sum(c["integrated"] for c in run.node.ingest.counters().values())
+        integrated = sum(c["integrated"] for c in run.node.ingest.ledger.counters().values())
         drain, save = run.node.pipeline.drain, run.node.map_services.save_meshes
 
         def interrupted(action: Any) -> Any:
@@ -556,7 +599,7 @@ def test_ctrl_c_during_the_stop_drops_the_queued_frames_and_the_saving_not_the_n
         stop_node(run.node)
         out = capsys.readouterr().out
         assert "frames not integrated yet are dropped" in out and "saving on shutdown stopped" in out
-        counters = run.node.ingest.counters().values()
+        counters = run.node.ingest.ledger.counters().values()
         assert sum(c["integrated"] for c in counters) == integrated
         assert sum(c["dropped"]["shutdown"] for c in counters) >= 2
         assert not list((tmp_path / "out").glob("*.ply*"))
@@ -806,8 +849,8 @@ def test_diagnostics_values_of_engine_statistics_are_plain_numbers() -> None:
 
     engine = SimpleNamespace(counters={}, timings_s={},
                              stats=lambda wait=True: {"frames_integrated": {"tof": 56, "stereo": 74}, "blocks": 5})
-    pipeline = SimpleNamespace(latest_stamp_ns=0, ingest=SimpleNamespace(counters=lambda: {}), time_jumps=0,
-                               frames_failed=0, frames_unfinished=0, engine=engine)
+    pipeline = SimpleNamespace(latest_stamp_ns=0, ingest=SimpleNamespace(ledger=SimpleNamespace(counters=lambda: {})),
+                               time_jumps=0, frames_failed=0, frames_unfinished=0, engine=engine)
     report = StatusReport(pipeline, HealthMonitor({}, window_s=1.0, stale_after_s=1.0), {}, LatencyStats(), topics={},
                           hardware_id="/senfunet", warn=lambda key, text: None, logger=None)
     (status,) = report.message("map").status

@@ -95,3 +95,23 @@ def test_top_level_help_is_for_users():
     text = build_parser().format_help()
     assert "senfunet_ros.commands" not in text
     assert "mesh" in text and "senfunet demo" in text and "COMMAND --help" in text
+
+
+def test_every_command_reports_its_errors_on_stderr(tmp_path: Path, ros_domain_id: int) -> None:
+    """node, train and evaluate as replay and play do: the error on stderr, nothing on stdout, exit code
+    2; the node's own refusal to start too (a parameter out of range)."""
+    unknown = tmp_path / "unknown.yaml"
+    unknown.write_text("senfunet:\n  ros__parameters:\n    voxel_size: 0.02\n")
+    cases = [
+        (["node", "--params", str(tmp_path / "missing.yaml")], "senfunet node: parameter file"),
+        (["node", "--params", str(unknown)], "senfunet node: "),
+        (["node", "--", "--ros-args", "-p", "voxel_size_m:=-1.0"], "senfunet: cannot start: "),
+        (["train", "--config", str(tmp_path / "missing.yaml")], "senfunet train: config"),
+        (["evaluate", "--scenes", "999", "--out", str(tmp_path / "eval")], "senfunet evaluate: --scenes"),
+    ]
+    for args, expected in cases:
+        proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", *args], capture_output=True, text=True,
+                              timeout=300, cwd=tmp_path)
+        assert proc.returncode == 2, (args, proc.stdout, proc.stderr)
+        assert proc.stdout == "", (args, proc.stdout)
+        assert expected in proc.stderr and "Traceback" not in proc.stderr, (args, proc.stderr)

@@ -250,3 +250,23 @@ def test_large_shm_profile_unless_fast_dds_is_configured(tmp_path: Path, monkeyp
         assert use_large_shm_profile(env) is None and env == preset
     (tmp_path / "DEFAULT_FASTRTPS_PROFILES.xml").write_text("<profiles/>")
     assert use_large_shm_profile({}) is None
+
+
+@pytest.mark.parametrize("odd", ["split_overlapping", "db3_with_disagreeing_metadata"])
+def test_play_publishes_the_bags_of_other_writers_whole_and_in_time_order(prefix: Path, tmp_path: Path,
+                                                                          ros_domain_id: int, odd: str):
+    """A split recording whose files overlap in time: /clock never goes back (a node would see a
+    restart at each file). A db3 whose metadata.yaml disagrees with its topic table: every topic
+    is published, the latched one as latched."""
+    import odd_bags
+
+    bag = getattr(odd_bags, odd)(prefix, tmp_path / "bag")
+    with open_bag(prefix) as reader:
+        topics = {t: i.msgtype for t, i in reader.topics.items()}
+        counts = {t: i.count for t, i in reader.topics.items()}
+    latched = frozenset({"/tof/camera_info"}) if odd == "db3_with_disagreeing_metadata" else frozenset()
+    listener = _Listener(topics, latched=latched)
+    returncode, stderr = _play_to(listener, bag, counts, "--rate", "4")
+    assert returncode == 0, stderr
+    assert listener.counts == counts
+    assert listener.clock_ns == sorted(listener.clock_ns) and listener.clock_ns

@@ -218,7 +218,7 @@ def test_settings_from_file_match_the_node_defaults(tmp_path: Path):
     for bad in (typo, other_node):  # `senfunet node` refuses them before it starts
         proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "node", "--params", str(bad)],
                               capture_output=True, text=True, timeout=60)
-        assert proc.returncode == 2 and ("voxel_sise_m" in proc.stdout or "senfunet_node" in proc.stdout), proc.stdout
+        assert proc.returncode == 2 and ("voxel_sise_m" in proc.stderr or "senfunet_node" in proc.stderr), proc.stderr
 
 
 def test_node_engine_config_runs_on_the_cpu_when_cuda_is_asked_for_and_absent(tmp_path: Path, monkeypatch):

@@ -162,7 +162,7 @@ def test_live_node_says_at_start_when_tf_is_unavailable(ros_domain_id: int) -> N
     proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "node", "--", "--ros-args", "-p", "pose_type:=tf"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2, proc.stdout + proc.stderr
-    assert "cannot start" in proc.stdout and "tf2_ros" in proc.stdout and "Traceback" not in proc.stderr
+    assert "cannot start" in proc.stderr and "tf2_ros" in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_the_live_node_looks_poses_up_in_its_fixed_frame() -> None:
@@ -210,7 +210,7 @@ def test_a_transform_stamped_far_ahead_is_left_out_and_does_not_cut_its_link() -
     assert ingest.add_tf(tf_msg(10_100 * MS, 1.0), static=False) is None
     (frame,) = ingest.pop_ready()
     assert frame.stamp_ns == 10_080 * MS and frame.T_world_camera[0, 3] == pytest.approx(0.8)
-    counters = ingest.counters()["tof"]
+    counters = ingest.ledger.counters()["tof"]
     assert counters["dropped"]["bad_stamp"] == 1 and "ahead" in counters["errors"]["bad_stamp"]
     assert counters["dropped"]["pose_gap"] == 0
 
@@ -241,7 +241,7 @@ def test_what_breaks_the_tree_is_refused_transform_by_transform_and_the_rest_kep
              transform("base", "cam3", 0, 0.3), transform("cam3", "cam3", 0, 0.0), transform("cam3", "base", 0, 0.0),
              transform("map", "base", 0, 1.0)]
     assert ingest.add_tf(SimpleNamespace(transforms=mixed), static=True) == "bad_pose"
-    counters = ingest.counters()["tof"]
+    counters = ingest.ledger.counters()["tof"]
     assert counters["dropped"]["bad_pose"] == 3 and "odom -> x" in counters["errors"]["bad_pose"]
     assert tf.lookup("map", "cam3", 5 * S)[0, 3] == pytest.approx(1.3)  # kept: after the NaN, before the cycle
     assert tf.lookup("map", "cam2", 5 * S)[0, 3] == pytest.approx(1.2)

@@ -57,7 +57,7 @@ def test_seeds_weights_writes_its_section_and_keeps_the_rest(tmp_path, monkeypat
 def test_seeds_weights_refuses_a_missing_file(tmp_path, capsys):
     argv = ["evaluate", "--out", str(tmp_path), "--seeds-weights", str(tmp_path / "nope.pt")]
     assert cli.main(argv) == 2
-    assert "nope.pt" in capsys.readouterr().out
+    assert "nope.pt" in capsys.readouterr().err  # an error: on stderr
     assert not (tmp_path / "results.md").exists()
 
 

@@ -1,0 +1,114 @@
+"""Bags as other writers and recorders leave them: a db3 whose metadata.yaml disagrees with its own
+topic table, split recordings whose files overlap in time, compressed storage. Each is written from
+a bag of ours (with rosbags, the mcap library, or by editing metadata.yaml as another tool would)."""
+from __future__ import annotations
+
+import io
+import shutil
+from pathlib import Path
+from typing import Any
+
+from ruamel.yaml import YAML
+
+from senfunet_ros.bagio import latched_qos, open_bag
+
+
+def _rewrite(src: Path, dst: Path, *, storage: str = "sqlite3", compression: str = "",
+             qos_topics: frozenset[str] = frozenset(), keep: slice = slice(None)) -> Path:
+    """`src`'s messages (every one in `keep`) written by rosbags as a rosbag2 folder: `storage`,
+    `compression` "" or "file" or "message" (zstd), latched QoS offered on `qos_topics`."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+    plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
+    writer = Writer(dst, version=9, storage_plugin=plugin)
+    if compression:
+        writer.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
+    with open_bag(src) as reader, writer:
+        infos, conns = reader.topics, {}
+        for msg in list(reader.messages())[keep]:
+            if msg.topic not in conns:
+                info = infos[msg.topic]
+                conns[msg.topic] = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef, rihs01=info.digest,
+                                                         offered_qos_profiles=latched_qos() if msg.topic in qos_topics
+                                                         else [])
+            writer.write(conns[msg.topic], msg.log_time_ns, msg.data)
+    return dst
+
+
+def _metadata(folder: Path) -> dict[str, Any]:
+    return YAML(typ="safe").load((folder / "metadata.yaml").read_text())
+
+
+def _write_metadata(folder: Path, meta: dict[str, Any]) -> None:
+    text = io.StringIO()
+    YAML().dump(meta, text)
+    (folder / "metadata.yaml").write_text(text.getvalue())
+
+
+def db3_with_disagreeing_metadata(src: Path, dst: Path) -> Path:
+    """A db3 recorded with /tof/camera_info latched, whose metadata.yaml (rewritten by another tool)
+    says /tof/camera_info is volatile and /tof/depth latched: rosbags reads nothing of a topic whose
+    offered QoS differs between the two."""
+    _rewrite(src, dst, qos_topics=frozenset({"/tof/camera_info"}))
+    meta = _metadata(dst)
+    info = meta["rosbag2_bagfile_information"]
+    latched = next(t["topic_metadata"]["offered_qos_profiles"] for t in info["topics_with_message_count"]
+                   if t["topic_metadata"]["name"] == "/tof/camera_info")
+    assert latched, "rosbags wrote no QoS for the latched topic"
+    for topic in info["topics_with_message_count"]:
+        name = topic["topic_metadata"]["name"]
+        if name in ("/tof/camera_info", "/tof/depth"):
+            topic["topic_metadata"]["offered_qos_profiles"] = [] if name == "/tof/camera_info" else latched
+    _write_metadata(dst, meta)
+    return dst
+
+
+def split_overlapping(src: Path, dst: Path, *, storage: str = "mcap", metadata: bool = True) -> Path:
+    """A recording split in two files whose times overlap: every other message in each (as a
+    recorder writing two streams to two files, or two recordings merged, leaves them)."""
+    dst.mkdir()
+    parts = [_rewrite(src, dst.parent / f"{dst.name}_part{i}", storage=storage, keep=slice(i, None, 2))
+             for i in range(2)]
+    metas = [_metadata(part)["rosbag2_bagfile_information"] for part in parts]
+    for part, meta in zip(parts, metas):
+        (part / meta["relative_file_paths"][0]).rename(dst / meta["relative_file_paths"][0])
+        shutil.rmtree(part)
+    if metadata:
+        info = metas[0]
+        info["relative_file_paths"] = [m["relative_file_paths"][0] for m in metas]
+        info["files"] = [m["files"][0] for m in metas]
+        info["message_count"] = sum(m["message_count"] for m in metas)
+        counts = {t["topic_metadata"]["name"]: 0 for m in metas for t in m["topics_with_message_count"]}
+        for m in metas:
+            for t in m["topics_with_message_count"]:
+                counts[t["topic_metadata"]["name"]] += t["message_count"]
+        for t in info["topics_with_message_count"]:
+            t["message_count"] = counts[t["topic_metadata"]["name"]]
+        start = min(m["starting_time"]["nanoseconds_since_epoch"] for m in metas)
+        end = max(m["starting_time"]["nanoseconds_since_epoch"] + m["duration"]["nanoseconds"] for m in metas)
+        info["starting_time"]["nanoseconds_since_epoch"], info["duration"]["nanoseconds"] = start, end - start
+        _write_metadata(dst, {"rosbag2_bagfile_information": info})
+    return dst
+
+
+def compressed(src: Path, dst: Path, how: str) -> Path:
+    """`src` compressed as recorders compress: "mcap-lz4" or "mcap-zstd" (chunks of a bare .mcap,
+    written by the mcap library), "db3-file" or "db3-message" (rosbag2's zstd compression modes)."""
+    if how.startswith("db3-"):
+        return _rewrite(src, dst, compression=how.removeprefix("db3-"))
+    from mcap.writer import CompressionType, Writer
+
+    with open_bag(src) as reader:
+        topics, messages = reader.topics, list(reader.messages())
+    dst = dst.with_suffix(".mcap")
+    with dst.open("wb") as f:
+        writer = Writer(f, compression=CompressionType.LZ4 if how == "mcap-lz4" else CompressionType.ZSTD,
+                        chunk_size=64 * 1024)
+        writer.start(profile="ros2", library="another recorder")
+        channels = {t: writer.register_channel(t, "cdr", writer.register_schema(info.msgtype, "ros2msg",
+                                                                                info.msgdef.encode()))
+                    for t, info in topics.items()}
+        for i, msg in enumerate(messages):
+            writer.add_message(channels[msg.topic], msg.log_time_ns, msg.data, msg.log_time_ns, i)
+        writer.finish()
+    return dst
