@@ -28,7 +28,7 @@ def test_surface_targets_are_the_corners_of_cells_that_can_hold_triangles():
     engine = _engine(False)
     grid = engine.grid
     slots = np.arange(grid.n_blocks)
-    nb = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
+    nb = neighbour_table(*grid.hash_table, grid.slot_keys, slots)
     views = engine.store.views("tsdf0", "weight0", "tsdf1", "weight1")
     targets = surface_targets(nb, *views)
     # a minority of the voxels of the blocks that hold targets
@@ -70,7 +70,7 @@ def test_voxel_evaluation_equals_the_block_evaluation_at_the_targets():
         engine = _engine(tsdf_input)
         grid = engine.grid
         slots = np.arange(grid.n_blocks)
-        nb = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
+        nb = neighbour_table(*grid.hash_table, grid.slot_keys, slots)
         targets = surface_targets(nb, *engine.store.views("tsdf0", "weight0", "tsdf1", "weight1"))
         holding = np.flatnonzero(targets.any(axis=1))
         windows = weighting_windows(nb[holding], *engine.alpha.inputs())
@@ -90,7 +90,7 @@ def test_voxel_evaluation_equals_the_block_evaluation_at_the_targets():
 def test_windows_written_to_a_reused_buffer_as_bfloat16_equal_torch_rounding_of_the_float32_windows():
     engine = _engine(True)
     grid = engine.grid
-    nb = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, np.arange(grid.n_blocks))
+    nb = neighbour_table(*grid.hash_table, grid.slot_keys, np.arange(grid.n_blocks))
     expected = weighting_windows(nb, *engine.alpha.inputs())
     assert (expected == 0).any() and (expected != 0).mean() > 0.1  # missing neighbours and inputs both
     want_bits = torch.from_numpy(expected).to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16)
