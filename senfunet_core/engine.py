@@ -6,7 +6,8 @@
     mesh = engine.extract_mesh("fused")                         # or a sensor name, or "tsdf_fusion"
 
 Rooms: the map's blocks and per-block flags live in `block_store.BlockStore`; which blocks the
-weighting net must judge, and judging them, in `alpha_scheduler.AlphaScheduler`; marching cubes
+weighting net must judge, and when, in `alpha_scheduler.AlphaScheduler` (judging a batch in
+`alpha_evaluator.AlphaEvaluator`); marching cubes
 over blocks in `block_mesher.BlockMesher`; the map bound (which blocks leave memory, their final
 meshes in `mesh_archive.MeshArchive`, their voxels in `spill.BlockSpill` on disk) in
 `map_bound.MapBound`. This module holds the verbs, the networks and the locks.
@@ -482,7 +483,7 @@ class SenFuNet:
         with self.update_lock.held():
             if which == FUSED:
                 self._refresh_alpha()
-                self.alpha.release_buffers()
+                self.alpha.evaluator.release_buffers()
                 release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise
             with self.data_lock:  # one consistent state of the whole map
                 if then_reset:  # the channels this mesh does not read go first (the mesh's peak comes on top)
