@@ -1,13 +1,15 @@
-"""Which blocks the weighting net must judge, in which order, and judging them.
+"""Which blocks the weighting net must judge, in which order, and when; judging a batch is
+`alpha_evaluator`'s.
 
 Integration marks the blocks it touched (`BlockStore.alpha_pending`) and collects, per block, the
 blocks within 2 voxels of its changed voxels (`BlockStore.reach_changed`, `reach_renewed`).
 `schedule` turns those into stale blocks (`alpha.reach_levels`); `order` lists the stale blocks
 (`EngineConfig.alpha_order`); `evaluate` runs the net on a batch of them where alpha matters
-(`EngineConfig.alpha_voxels`, see `alpha`); `write` stores the results; `refresh` does all of it
-within a budget, on `alpha_threads` threads when it may. The engine decides when (budgets,
-eviction points) and holds its locks as the threading model in `engine` says: the scheduler takes
-the data lock it is given only around its reads of the reach bits and its writes.
+(`EngineConfig.alpha_voxels`, see `alpha`; `alpha_evaluator.AlphaEvaluator`); `write` stores the
+results; `refresh` does all of it within a budget, on `alpha_threads` threads when it may. The
+engine decides when (budgets, eviction points) and holds its locks as the threading model in
+`engine` says: the scheduler takes the data lock it is given only around its reads of the reach
+bits and its writes.
 """
 from __future__ import annotations
 
@@ -23,26 +25,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from .alpha import (WINDOW, evaluate_gathers, holds_surface_targets, near_surface_voxels, reach_levels, surface_targets,
-                    target_gathers, weighting_windows)
+from .alpha import near_surface_voxels, reach_levels
+from .alpha_evaluator import AlphaBatch, AlphaEvaluator
 from .block_store import BlockStore, Eviction
-from .grid import BLOCK, encode_alpha
-from .scratch import ThreadScratch
 
-__all__ = ["AlphaBatch", "AlphaScheduler", "Refresh"]
+__all__ = ["AlphaScheduler", "Refresh"]
 
 log = logging.getLogger("senfunet.engine")
-
-
-@dataclass
-class AlphaBatch:
-    """The weighting net's output for a batch of blocks."""
-
-    slots: np.ndarray  # B blocks checked
-    holds: np.ndarray  # B bool: holds voxels alpha matters for (see EngineConfig.alpha_voxels)
-    voxels: np.ndarray  # N flat voxel indices evaluated (slot * 512 + local)
-    alpha: np.ndarray  # N values as the alpha pool stores them (8-bit codes, or float32)
-    flops: int = 0  # the net's FLOPs for it (for the benchmark's fraction of peak)
 
 
 @dataclass
@@ -69,20 +58,15 @@ class AlphaScheduler:
                  device: torch.device, batch_blocks: int, threads: int, alpha_order: str,
                  worker_setup: Callable[[], object] | None = None) -> None:
         self.store = store
-        self.net = net
+        self.evaluator = AlphaEvaluator(store, net, alpha_voxels=alpha_voxels, alpha_dtype=alpha_dtype,
+                                        tsdf_input=tsdf_input, band_m=band_m, device=device)
         self._data_lock = data_lock
-        self.alpha_voxels = alpha_voxels
-        self.dtype = torch.bfloat16 if alpha_dtype == "bfloat16" else torch.float32
-        self.tsdf_input = tsdf_input
-        self.tsdf_scale = 2.0 / band_m
         self.voxel_size_m = voxel_size_m
-        self.device = device
         self.batch_blocks = batch_blocks
         self.alpha_order = alpha_order
         self.threads = threads
         self._executor: ThreadPoolExecutor | None = None  # threads > 1: `workers`
         self.worker_setup = worker_setup  # run by each alpha thread as it starts (SenFuNet's worker_setup)
-        self._scratch = ThreadScratch()  # per evaluating thread: its input windows' buffer
         self.schedules = 0  # schedules so far (BlockStore.last_reached counts in them)
         self.flops = 0  # weighting-net FLOPs written so far (for the benchmark's fraction of peak)
 
@@ -171,51 +155,10 @@ class AlphaScheduler:
         return stale[np.lexsort((np.where(meshed, -levels, reached), np.where(meshed, reached, -levels), -surface,
                                  group))]
 
-    @torch.inference_mode()  # grad mode is per thread, and evaluating threads may be new
     def evaluate(self, slots: np.ndarray) -> AlphaBatch:
-        """The weighting net on these blocks, where alpha matters (`alpha_voxels`): "all", every voxel
-        of every block; "surface", every voxel of the blocks that hold `alpha.surface_targets` (as
-        blocks with a 2-voxel halo: convolutions); "surface_voxels", those targets alone (layer by
-        layer, as matrix products). Reads the grid without the data lock (see `engine`) and writes
-        nothing, so several threads may evaluate batches at once."""
-        neighbours = self.store.neighbours(slots)
-        holds = np.ones(len(slots), bool)
-        if self.alpha_voxels != "all":
-            sensor_tsdfs = self.store.views("tsdf0", "weight0", "tsdf1", "weight1")
-            if self.alpha_voxels == "surface_voxels":
-                targets = surface_targets(neighbours, *sensor_tsdfs)
-                holds = targets.any(axis=1)
-            else:  # whole blocks: whether each holds a target is enough
-                holds = holds_surface_targets(neighbours, *sensor_tsdfs)
-            if not holds.any():
-                return AlphaBatch(slots, holds, np.zeros(0, np.int64), np.zeros(0, np.float32))
-        if self.alpha_voxels == "surface_voxels":
-            inputs, gather_1, gather_2, voxels = target_gathers(neighbours[holds], targets[holds], *self.inputs())
-            alpha = evaluate_gathers(self.net, inputs, gather_1, gather_2, dtype=self.dtype)
-            flops = self._flops(layer_1_positions=len(gather_1), voxels=len(voxels), inputs=27 * inputs.shape[1])
-            return AlphaBatch(slots, holds, voxels, self._as_stored(alpha), flops)
-        slots_holding = slots[holds]
-        if self.device.type == "cpu":  # the inputs written in the net's dtype, to this thread's buffer
-            bfloat16 = self.dtype == torch.bfloat16
-            windows = weighting_windows(neighbours[holds], *self.inputs(), out=self._scratch.array(
-                "windows", len(slots_holding) * WINDOW**3 * self.net.conv1.in_channels,
-                np.uint16 if bfloat16 else np.float32))
-            x = torch.from_numpy(windows.view(np.int16)).view(torch.bfloat16) if bfloat16 else torch.from_numpy(windows)
-            alpha = self.net.infer(x.permute(0, 4, 1, 2, 3), self.dtype).reshape(-1).numpy()  # channels last
-        else:
-            windows = self.windows(neighbours[holds])
-            x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
-            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.dtype == torch.bfloat16):
-                alpha = self.net(x, pad=False).float().reshape(-1).cpu().numpy()
-        voxels = (slots_holding[:, None] * BLOCK**3 + np.arange(BLOCK**3)).reshape(-1)
-        flops = self._flops(layer_1_positions=len(slots_holding) * (WINDOW - 2) ** 3, voxels=len(voxels),
-                            inputs=27 * windows.shape[-1])
-        return AlphaBatch(slots, holds, voxels, self._as_stored(alpha), flops)
-
-    def _as_stored(self, alpha: np.ndarray) -> np.ndarray:
-        """Alpha as the pool stores it: encoded here, by the evaluating thread, not by `write`
-        under the data lock that integration waits for."""
-        return encode_alpha(alpha) if self.store.grid.pools["alpha"].dtype == torch.uint8 else alpha
+        """The weighting net on a batch (`AlphaEvaluator.evaluate`: without the data lock, writing
+        nothing); `refresh` and the map bound evaluate through this."""
+        return self.evaluator.evaluate(slots)
 
     def write(self, results: list[AlphaBatch], *, wait: bool) -> None:
         """Write evaluated batches (and empty `results`), if the data lock is free or `wait`. Where
@@ -303,23 +246,6 @@ class AlphaScheduler:
         started = time.perf_counter()
         return self.evaluate(slots), time.perf_counter() - started
 
-    def windows(self, neighbours: np.ndarray) -> np.ndarray:
-        """The weighting net's B x 12^3 x C input windows of these blocks (alpha.weighting_windows)."""
-        return weighting_windows(neighbours, *self.inputs())
-
-    def release_buffers(self) -> None:
-        """Let go of every thread's window buffer (after a bulk evaluation)."""
-        self._scratch.release()
-
-    def inputs(self) -> tuple:
-        """The pools the weighting net reads (alpha.weighting_windows, alpha.target_gathers), with the
-        sensors' TSDFs when the net reads them."""
-        if self.tsdf_input:
-            tsdf = self.store.views("tsdf0", "tsdf1")
-        else:
-            tsdf = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
-        return (*self.store.views("feat0", "weight0", "feat1", "weight1"), *tsdf, self.tsdf_scale)
-
     def workers(self) -> ThreadPoolExecutor:
         """The `threads` alpha threads that evaluate batches side by side (created on first use, by
         the thread that first needs them: they share its priority, then run `worker_setup`). The
@@ -338,11 +264,6 @@ class AlphaScheduler:
         if self._executor is not None:
             self._executor.shutdown(wait=True)
             self._executor = None
-
-    def _flops(self, *, layer_1_positions: int, voxels: int, inputs: int) -> int:
-        """Multiply-adds of the weighting net (x2 = FLOPs)."""
-        hidden_1, hidden_2 = self.net.conv1.out_channels, self.net.conv2.out_channels
-        return 2 * (layer_1_positions * inputs * hidden_1 + voxels * (27 * hidden_1 * hidden_2 + hidden_2))
 
 
 def _set_up_alpha_thread(worker_setup: Callable[[], object] | None) -> None:

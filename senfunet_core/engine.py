@@ -6,7 +6,8 @@
     mesh = engine.extract_mesh("fused")                         # or a sensor name, or "tsdf_fusion"
 
 Rooms: the map's blocks and per-block flags live in `block_store.BlockStore`; which blocks the
-weighting net must judge, and judging them, in `alpha_scheduler.AlphaScheduler`; marching cubes
+weighting net must judge, and when, in `alpha_scheduler.AlphaScheduler` (judging a batch in
+`alpha_evaluator.AlphaEvaluator`); marching cubes
 over blocks in `block_mesher.BlockMesher`; the map bound (which blocks leave memory, their final
 meshes in `mesh_archive.MeshArchive`, their voxels in `spill.BlockSpill` on disk) in
 `map_bound.MapBound`. This module holds the verbs, the networks and the locks.
@@ -66,7 +67,7 @@ from .alpha_scheduler import AlphaScheduler
 from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
-from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, keys_to_coords
+from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, keys_to_coords, voxel_centres, warm_up_lookups
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
@@ -479,11 +480,11 @@ class SenFuNet:
         with self.update_lock.held():
             if which == FUSED:
                 self._refresh_alpha()
-                self.alpha.release_buffers()
+                self.alpha.evaluator.release_buffers()
                 release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise
             with self.data_lock:  # one consistent state of the whole map
                 if then_reset:  # the channels this mesh does not read go first (the mesh's peak comes on top)
-                    self.grid.release_channels(set(self.grid.pools) - set(self.mesher.channels(which)))
+                    self.grid.channel_pools.release(set(self.grid.pools) - set(self.mesher.channels(which)))
                 slots = np.arange(self.grid.n_blocks)
                 coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
                 # each batch goes into the weld's compact arrays at once (extraction's memory peak)
@@ -516,7 +517,7 @@ class SenFuNet:
                 slots = torch.arange(self.grid.n_blocks)
                 blocks = self.mesher.whole_blocks(slots, self.mesher.channels(which))
                 tsdf, observed = self.mesher.values(blocks, which, filtered)
-                centres = self.grid.voxel_centres(slots, self.config.voxel_size_m)
+                centres = voxel_centres(self.grid.coords[slots], self.config.voxel_size_m)
                 return centres[observed].numpy(), tsdf[observed].numpy()
 
     @torch.inference_mode()
@@ -531,7 +532,7 @@ class SenFuNet:
             with self.data_lock:
                 slots = torch.arange(self.grid.n_blocks)
                 blocks = self.mesher.whole_blocks(slots, self.mesher.channels(FUSED))
-                centres = self.grid.voxel_centres(slots, self.config.voxel_size_m)
+                centres = voxel_centres(self.grid.coords[slots], self.config.voxel_size_m)
         n = len(self.config.sensors)
         weights = torch.stack([blocks[f"weight{i}"] for i in range(n)], dim=-1)
         keep = (weights > 0).any(dim=-1) & torch.isfinite(blocks["alpha"])
@@ -556,7 +557,7 @@ class SenFuNet:
             self.integrate(sensor, depth, K, np.eye(4), rgb)
         self.update()
         self.extract_mesh(self.config.sensors[0])
-        self.grid.warm_up()
+        warm_up_lookups()
         self.reset()
         self._cleared = False
         # the alpha threads the update started share the warming thread's priority: the first real

@@ -11,6 +11,11 @@ packed per voxel (`FEATURE_SCALE`, `encode_depth`; `load_feature` / `store_featu
 / `encode_features` in torch). Alpha may be 8-bit codes (`encode_alpha` / `load_alpha` /
 `decode_alpha`).
 
+`BlockGrid` keeps the blocks by slot: their keys and coordinates, the `HashTable` that finds a
+key's slot, the allocation and removal of blocks and the hand-back of spilled ones; `ChannelPools`
+stores their channels (grown, moved and released row by row). Geometry of a block's voxels:
+`voxel_centres`.
+
 Convention: voxel (i, j, k) has its centre at (i, j, k) * voxel_size_m; block (a, b, c) holds the
 voxels 8a..8a+7, 8b..8b+7, 8c..8c+7.
 """
@@ -20,6 +25,7 @@ import math
 import mmap
 import platform
 from collections.abc import Iterable
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -819,19 +825,100 @@ def _release_rows(pool: torch.Tensor, memory: mmap.mmap, start: int, stop: int) 
     memory.madvise(mmap.MADV_DONTNEED, first, last - first)
 
 
-def _hash_table(slot_keys: np.ndarray, n_blocks: int, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """A new hash table of `size` entries (keys, slots) holding blocks 0..n_blocks-1."""
-    table_keys, table_slots = np.full(size, EMPTY_KEY, np.int64), np.full(size, -1, np.int64)
-    _rehash(slot_keys, n_blocks, table_keys, table_slots)
-    return table_keys, table_slots
+class HashTable(NamedTuple):
+    """The open-addressing table from block keys to slots: entry i holds the key keys[i] (EMPTY_KEY:
+    free) of the block in slot slots[i]. A table that grows or is rebuilt is replaced by a complete
+    new one, never filled in place while readers without the writers' lock may probe it (kernels
+    under that lock add blocks to it in place: `hash_find_or_add`)."""
+
+    keys: np.ndarray  # int64 entries, a power of two
+    slots: np.ndarray  # int64, -1 where free
+
+    def max_blocks(self) -> int:
+        """Blocks it holds before it must grow (its load limit)."""
+        return int(_MAX_LOAD * len(self.keys))
+
+
+def _hash_table(slot_keys: np.ndarray, n_blocks: int, size: int) -> HashTable:
+    """A new hash table of `size` entries holding blocks 0..n_blocks-1."""
+    table = HashTable(np.full(size, EMPTY_KEY, np.int64), np.full(size, -1, np.int64))
+    _rehash(slot_keys, n_blocks, table.keys, table.slots)
+    return table
+
+
+def warm_up_lookups() -> None:
+    """Compile (or load from numba's cache) the table kernel integration does not call: the lookups
+    (the rehash a growing table runs already ran when the first table was made)."""
+    nothing = np.zeros(0, np.int64)
+    _find_many(nothing, nothing, nothing, nothing)
+
+
+def voxel_centres(block_coords: torch.Tensor, voxel_size_m: float) -> torch.Tensor:
+    """B x 512 x 3 world positions (metres) of the voxel centres of blocks at these B x 3 coordinates."""
+    r = torch.arange(BLOCK)
+    lx, ly, lz = torch.meshgrid(r, r, r, indexing="ij")
+    local = torch.stack([lx, ly, lz], dim=-1).reshape(1, BLOCK_VOXELS, 3)
+    return ((block_coords * BLOCK).unsqueeze(1) + local).to(torch.float32) * voxel_size_m
+
+
+class ChannelPools:
+    """The storage of a grid's channels: per channel a pool of (capacity, 512, *storage shape), row
+    `slot` holding one block's voxels, in memory committed only where written (`_zeros`). `pools`
+    (channel name -> pool) is one dict for the pools' life, updated in place when they grow: the
+    grid hands it out as `BlockGrid.pools`."""
+
+    def __init__(self, shapes: dict[str, tuple[int, ...]], *, dtypes: dict[str, torch.dtype], capacity: int,
+                 fill: dict[str, float]) -> None:
+        self.fill = fill  # value of a channel in a new block (default 0)
+        self.pools: dict[str, torch.Tensor] = {}
+        self._memory: dict[str, mmap.mmap] = {}  # each pool's mapping (to give memory back)
+        for name, shape in shapes.items():
+            dtype = dtypes[name]
+            if dtype == torch.int8:  # packed features (FEATURE_SCALE)
+                shape = feature_storage_shape(shape[0], dtype)
+            self.pools[name], self._memory[name] = _zeros((capacity, BLOCK_VOXELS, *shape), dtype)
+
+    def grow(self, capacity: int, *, rows_in_use: int) -> None:
+        """Pools of `capacity` rows, the first rows_in_use copied (a copy of everything: rarely)."""
+        for name, pool in self.pools.items():
+            grown, self._memory[name] = _zeros((capacity, *pool.shape[1:]), pool.dtype)
+            grown[:rows_in_use] = pool[:rows_in_use]
+            self.pools[name] = grown
+
+    def fill_new_rows(self, start: int, stop: int) -> None:
+        """Rows start..stop-1, of new blocks: each channel's fill value (zero rows need nothing)."""
+        for name, value in self.fill.items():
+            self.pools[name][start:stop] = value
+
+    def move_rows(self, from_rows: np.ndarray, to_rows: np.ndarray, *, rows_kept: int, rows_in_use: int) -> None:
+        """rows[to] = rows[from] in every pool (to_rows < rows_kept <= from_rows), then rows
+        rows_kept..rows_in_use-1 emptied and their memory given back to the OS."""
+        for name, pool in self.pools.items():
+            _move_rows(pool.numpy().reshape(len(pool), -1).view(np.uint8), from_rows, to_rows)
+            _release_rows(pool, self._memory[name], rows_kept, rows_in_use)
+
+    def release(self, names: Iterable[str]) -> None:
+        """Zero these channels in every row and give their memory back to the OS (for a map about
+        to be forgotten, whose last reader does not need them)."""
+        for name in names:
+            _release_rows(self.pools[name], self._memory[name], 0, len(self.pools[name]))
+
+    def row_bytes(self) -> int:
+        """Bytes of one block's rows, all pools together."""
+        return sum(p[0].numel() * p.element_size() for p in self.pools.values())
+
+
+_SLOT_BYTES = 3 * 8 + 8  # a block's coordinates and key, besides its pool rows
 
 
 class BlockGrid:
-    """Blocks and their channels. Slots are never freed except by `clear`.
+    """Blocks by slot: their keys and coordinates, the hash table that finds them, and their
+    channels (`pools`, stored by `ChannelPools`). Slots are never freed except by `clear` and
+    `remove_blocks`, which keeps them 0..n_blocks-1.
 
     Not thread-safe by itself: the engine serialises writers (allocation, integration) against
     readers that hold on to pool views. A reader without the writers' lock (the engine's alpha
-    threads and meshing) takes the hash table as one `hash_table` pair: a table that grows or is
+    threads and meshing) takes the hash table as one `hash_table`: a table that grows or is
     rebuilt is replaced by a complete new one, never filled in place while readers may probe it.
     """
 
@@ -862,29 +949,16 @@ class BlockGrid:
         self.slot_keys = np.full(cap, EMPTY_KEY, np.int64)
         self.coords = _zeros((cap, 3), torch.int64)[0]
         self.hash_table = _hash_table(self.slot_keys, 0, _INITIAL_TABLE)
-        self.pools: dict[str, torch.Tensor] = {}
-        self._memory: dict[str, mmap.mmap] = {}  # each pool's mapping (to give memory back)
-        for name, shape in self.channel_shapes.items():
-            dtype = self.channel_dtypes[name]
-            if dtype == torch.int8:  # packed features (FEATURE_SCALE)
-                shape = feature_storage_shape(shape[0], dtype)
-            self.pools[name], self._memory[name] = _zeros((cap, BLOCK_VOXELS, *shape), dtype)
+        self.channel_pools = ChannelPools(self.channel_shapes, dtypes=self.channel_dtypes, capacity=cap,
+                                          fill=self.fill)
+        self.pools = self.channel_pools.pools  # the same dict, grown in place
 
     # -- lookup and allocation ------------------------------------------------------------
-    @property
-    def table_keys(self) -> np.ndarray:
-        """The hash table's keys (EMPTY_KEY: free entry), for kernels run under the writers' lock."""
-        return self.hash_table[0]
-
-    @property
-    def table_slots(self) -> np.ndarray:
-        """The hash table's slots (entry by entry with `table_keys`), under the writers' lock."""
-        return self.hash_table[1]
-
     def lookup_keys(self, keys: torch.Tensor) -> torch.Tensor:
         """Slots of the given block keys, -1 where the block does not exist."""
         out = np.empty(keys.numel(), np.int64)
-        _find_many(self.table_keys, self.table_slots, np.ascontiguousarray(keys.reshape(-1).numpy(), np.int64), out)
+        table = self.hash_table
+        _find_many(table.keys, table.slots, np.ascontiguousarray(keys.reshape(-1).numpy(), np.int64), out)
         return torch.from_numpy(out).reshape(keys.shape)
 
     def lookup(self, block_coords: torch.Tensor) -> torch.Tensor:
@@ -897,28 +971,24 @@ class BlockGrid:
         done = 0
         while done < len(keys):
             self.reserve(self.n_blocks + len(keys) - done)
-            state = np.array([self.n_blocks, self.max_blocks_before_rehash()], np.int64)
-            done += _add_many(self.table_keys, self.table_slots, keys[done:], state, self.slot_keys, out[done:])
+            table = self.hash_table
+            state = np.array([self.n_blocks, table.max_blocks()], np.int64)
+            done += _add_many(table.keys, table.slots, keys[done:], state, self.slot_keys, out[done:])
             self.commit_new_blocks(int(state[0]))
         return torch.from_numpy(out)
 
-    def warm_up(self) -> None:
-        """Compile (or load from numba's cache) the table kernel integration does not call: the
-        lookups (on nothing here; the rehash a growing table runs already ran when the table was made)."""
-        _find_many(self.table_keys, self.table_slots, np.zeros(0, np.int64), np.zeros(0, np.int64))
-
-    def max_blocks_before_rehash(self) -> int:
-        return int(_MAX_LOAD * len(self.table_keys))
-
     def commit_new_blocks(self, n_blocks: int) -> None:
-        """Record blocks a kernel added through `hash_find_or_add` (slots n_blocks_before..n_blocks-1)."""
-        if n_blocks > self.n_blocks:
-            new = torch.from_numpy(self.slot_keys[self.n_blocks:n_blocks])
-            self.coords[self.n_blocks:n_blocks] = keys_to_coords(new)
-            for name, value in self.fill.items():
-                self.pools[name][self.n_blocks:n_blocks] = value
+        """Record blocks a kernel added through `hash_find_or_add` (slots n_blocks_before..n_blocks-1);
+        those the spill holds get their rows back."""
+        start = self.n_blocks
+        if n_blocks > start:
+            new = torch.from_numpy(self.slot_keys[start:n_blocks])
+            self.coords[start:n_blocks] = keys_to_coords(new)
+            self.channel_pools.fill_new_rows(start, n_blocks)
             if self.spill is not None and len(self.spill):
-                self._restore(self.n_blocks, n_blocks)
+                restored = self.spill.take(self.slot_keys[start:n_blocks],
+                                           [pool[start:n_blocks].numpy() for pool in self.pools.values()])
+                self._restored_slots.append(start + np.flatnonzero(restored))
             self.n_blocks = n_blocks
 
     def on_disk(self, keys: np.ndarray) -> np.ndarray:
@@ -926,18 +996,6 @@ class BlockGrid:
         if self.spill is None or not len(self.spill):
             return np.zeros(len(keys), np.bool_)
         return self.spill.holds(keys)
-
-    def _restore(self, first: int, end: int) -> None:
-        """Give the new slots first..end-1 whose blocks were spilled their rows back."""
-        assert self.spill is not None
-        restored = self.spill.take(self.slot_keys[first:end], [pool[first:end].numpy() for pool in self.pools.values()])
-        self._restored_slots.append(first + np.flatnonzero(restored))
-
-    def release_channels(self, names: Iterable[str]) -> None:
-        """Zero these channels in every block and give their memory back to the OS (for a map about
-        to be forgotten, whose last reader does not need them)."""
-        for name in names:
-            _release_rows(self.pools[name], self._memory[name], 0, len(self.pools[name]))
 
     def take_restored_slots(self) -> np.ndarray:
         """The slots of blocks taken back from the spill since the last call (before any removal)."""
@@ -951,10 +1009,7 @@ class BlockGrid:
         n_keys = self.n_blocks + added
         if n_blocks > self.capacity:
             cap = max(n_blocks, int(self.growth * self.capacity) + 1)
-            for name, pool in self.pools.items():
-                grown, self._memory[name] = _zeros((cap, *pool.shape[1:]), pool.dtype)
-                grown[: self.n_blocks] = pool[: self.n_blocks]
-                self.pools[name] = grown
+            self.channel_pools.grow(cap, rows_in_use=self.n_blocks)
             coords = _zeros((cap, 3), torch.int64)[0]
             coords[: self.n_blocks] = self.coords[: self.n_blocks]
             self.coords = coords
@@ -962,8 +1017,8 @@ class BlockGrid:
             slot_keys[:n_keys] = self.slot_keys[:n_keys]
             self.slot_keys = slot_keys
             self.capacity = cap
-        if n_blocks > self.max_blocks_before_rehash():
-            size = len(self.table_keys)
+        if n_blocks > self.hash_table.max_blocks():
+            size = len(self.hash_table.keys)
             while n_blocks > _MAX_LOAD * size:
                 size *= 2
             self.hash_table = _hash_table(self.slot_keys, n_keys, size)
@@ -978,48 +1033,23 @@ class BlockGrid:
         holes = victims[victims < n_new]
         tail = np.arange(n_new, n_old)
         movers = tail[~np.isin(tail, victims)]  # as many as holes
-        for name, pool in self.pools.items():
-            _move_rows(pool.numpy().reshape(len(pool), -1).view(np.uint8), movers, holes)  # holes < n_new <= movers
-            _release_rows(pool, self._memory[name], n_new, n_old)
+        self.channel_pools.move_rows(movers, holes, rows_kept=n_new, rows_in_use=n_old)
         self.coords[holes] = self.coords[movers]
         self.coords[n_new:n_old] = 0
         self.slot_keys[holes] = self.slot_keys[movers]
         self.slot_keys[n_new:n_old] = EMPTY_KEY
         self.n_blocks = n_new
-        self.hash_table = _hash_table(self.slot_keys, self.n_blocks, len(self.table_keys))
+        self.hash_table = _hash_table(self.slot_keys, self.n_blocks, len(self.hash_table.keys))
         return movers, holes
 
-    # -- geometry ------------------------------------------------------------------------------
-    def voxel_centres(self, slots: torch.Tensor, voxel_size_m: float) -> torch.Tensor:
-        """B x 512 x 3 world positions of the voxel centres of the given blocks."""
-        r = torch.arange(BLOCK)
-        lx, ly, lz = torch.meshgrid(r, r, r, indexing="ij")
-        local = torch.stack([lx, ly, lz], dim=-1).reshape(1, BLOCK_VOXELS, 3)
-        return ((self.coords[slots] * BLOCK).unsqueeze(1) + local).to(torch.float32) * voxel_size_m
-
-    # -- state ---------------------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        n = self.n_blocks
-        return {"coords": self.coords[:n].clone(), **{f"pool.{k}": v[:n].clone() for k, v in self.pools.items()}}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.clear()
-        slots = self.allocate_keys(block_keys(state["coords"]))
-        for name, pool in self.pools.items():
-            saved = state[f"pool.{name}"]
-            if pool.dtype == torch.int8 and saved.shape[-1] != pool.shape[-1]:  # saved by an earlier version
-                saved = encode_features(decode_saved_features(saved, self.channel_shapes[name][0]))
-            pool[slots] = saved.to(pool.dtype)
-
+    # -- memory ----------------------------------------------------------------------------
     def nbytes(self) -> int:
         """Bytes of the blocks in use and the index (pool pages beyond them are never committed)."""
-        return self.n_blocks * self._row_bytes() + self.table_keys.nbytes + self.table_slots.nbytes
+        table = self.hash_table
+        return self.n_blocks * (self.channel_pools.row_bytes() + _SLOT_BYTES) + table.keys.nbytes + table.slots.nbytes
 
     def bytes_per_block(self) -> int:
         """Memory one more block costs at most: its pool rows, coordinates and key, and its share of
         the hash table (which doubles at load factor 0.5, so up to 4 entries a block)."""
-        entry = self.table_keys.itemsize + self.table_slots.itemsize
-        return self._row_bytes() + int(4 * entry)
-
-    def _row_bytes(self) -> int:
-        return sum(p[0].numel() * p.element_size() for p in self.pools.values()) + 3 * 8 + 8
+        entry = self.hash_table.keys.itemsize + self.hash_table.slots.itemsize
+        return self.channel_pools.row_bytes() + _SLOT_BYTES + int(4 * entry)

@@ -560,10 +560,10 @@ def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_
         slot_to_touched = scratch_array(scratch, "slot_to_touched", grid.capacity, np.int32)
         slot_to_touched.fill(-1)
         touched_slots = scratch_array(scratch, "touched_slots", grid.capacity, np.int64)
-        state = np.array([n_blocks, min(grid.max_blocks_before_rehash(), grid.capacity)], np.int64)
+        state = np.array([n_blocks, min(grid.hash_table.max_blocks(), grid.capacity)], np.int64)
         n_pixels, n_touched, ok = locate_samples(
             depth, depth_range_m[0], depth_range_m[1], border_px, K64, T64, offsets, voxel_size_m,
-            grid.table_keys, grid.table_slots, state, grid.slot_keys, slot_to_touched, touched_slots, sample_flat,
+            *grid.hash_table, state, grid.slot_keys, slot_to_touched, touched_slots, sample_flat,
             sample_touched, pixel_index)
         n_blocks = int(state[0])
         if ok:
@@ -578,7 +578,7 @@ def locate_frame_samples(grid: BlockGrid, depth_m: np.ndarray, K: np.ndarray, T_
     if min_new_block_samples > 1 and n_blocks > n_before:
         n_blocks, n_touched, dropped_samples, dropped_blocks, touched_map = drop_sparse_new_blocks(
             n_before, n_blocks, min_new_block_samples, n_pixels * len(offsets_m), n_touched, touched_slots,
-            slot_to_touched, sample_touched, grid.table_keys, grid.table_slots, grid.slot_keys,
+            slot_to_touched, sample_touched, *grid.hash_table, grid.slot_keys,
             grid.on_disk(grid.slot_keys[n_before:n_blocks]))
         touched_map = touched_map if len(touched_map) else None
     grid.commit_new_blocks(int(n_blocks))

@@ -19,7 +19,7 @@ import torch
 from .engine import EngineConfig, SenFuNet
 from .errors import InputError
 from .files import atomic_file
-from .grid import BlockGrid, encode_alpha, keys_to_coords
+from .grid import BlockGrid, block_keys, decode_saved_features, encode_alpha, encode_features, keys_to_coords
 from .integrator import REACH_ALL
 from .spill import BlockSpill, spilled_rows
 
@@ -37,7 +37,7 @@ def save_map(engine: SenFuNet, path: str | Path) -> None:
             state = {
                 "format": "senfunet-engine-1",
                 "config": asdict(engine.config),
-                "grid": engine.grid.state_dict(),
+                "grid": _grid_state(engine.grid),
                 "feature_nets": [net.state_dict() for net in engine.feature_nets],
                 "weighting_net": engine.weighting_net.state_dict(),
                 "frames_integrated": dict(engine.frames_integrated),
@@ -82,7 +82,7 @@ def load_map(path: str | Path, device: str | None = None, *,
     engine.weighting_net.load_state_dict(state["weighting_net"])
     engine.weights_source = f"{path} (saved state)"
     grid_state, spill_loads = _grid_state_for(engine.grid, path, state)
-    engine.grid.load_state_dict(grid_state)
+    _load_grid_state(engine.grid, grid_state)
     drifted = np.flatnonzero(_drifted_blocks(grid_state))  # slots follow the saved order
     engine.store.alpha_pending[drifted] = True
     engine.store.reach_renewed[drifted] = REACH_ALL
@@ -100,10 +100,28 @@ def load_map(path: str | Path, device: str | None = None, *,
     return engine
 
 
+def _grid_state(grid: BlockGrid) -> dict:
+    """The blocks in use: their coordinates and every pool's rows (copies)."""
+    n = grid.n_blocks
+    return {"coords": grid.coords[:n].clone(), **{f"pool.{k}": v[:n].clone() for k, v in grid.pools.items()}}
+
+
+def _load_grid_state(grid: BlockGrid, grid_state: dict) -> None:
+    """The grid holds the blocks of this state (`_grid_state`, or `_grid_state_for` of an earlier
+    version's) and no others; feature pools saved with another packing are converted."""
+    grid.clear()
+    slots = grid.allocate_keys(block_keys(grid_state["coords"]))
+    for name, pool in grid.pools.items():
+        saved = grid_state[f"pool.{name}"]
+        if pool.dtype == torch.int8 and saved.shape[-1] != pool.shape[-1]:  # saved by an earlier version
+            saved = encode_features(decode_saved_features(saved, grid.channel_shapes[name][0]))
+        pool[slots] = saved.to(pool.dtype)
+
+
 def _grid_state_for(grid: BlockGrid, path: Path, state: dict) -> tuple[dict, bool]:
     """The grid state of a saved map in this version's layout, and whether its spill can be loaded
     as it is. Maps saved by earlier versions hold alpha as float16 values (converted here) and a
-    per-voxel drift channel (`_drifted_blocks`); other feature packings convert in `BlockGrid.load_state_dict`.
+    per-voxel drift channel (`_drifted_blocks`); other feature packings convert in `_load_grid_state`.
     A spill written with another row layout cannot be read block by block later: its blocks come back
     into memory here, converted with the others (the map bound evicts them again)."""
     grid_state = dict(state["grid"])

@@ -5,50 +5,131 @@ every grid channel go here, compressed, into an anonymous temporary file (it van
 process); when a frame's samples land in such a block again, the grid takes its rows back instead of
 starting the block empty (`BlockGrid.commit_new_blocks`), so the block goes on averaging where it
 left off and the bounded map fuses what an unbounded one does. Saved maps include the spilled blocks.
+`BlockSpill` turns block rows into compressed blobs and back; `BlobFile` keeps the blobs by key in
+the file and rewrites it when the blocks taken back leave too many holes.
 
 Single-threaded by itself: the engine's data lock serialises its users.
 """
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Iterable
 from typing import IO
 
 import numpy as np
 import zstandard
 
-__all__ = ["BlockSpill", "spilled_rows"]
+__all__ = ["BlobFile", "BlockSpill", "spilled_rows"]
 
-# Rewrite the file once the space of taken blocks exceeds both this and the space still in use.
+# Rewrite the file once the space of dropped blobs exceeds both this and the space still in use.
 _COMPACT_MIN_BYTES = 64 << 20
 
 
-class BlockSpill:
-    """Block rows by block key: `put` when evicted, `take` when allocated again."""
+class BlobFile:
+    """Byte strings by key in an anonymous temporary file (it vanishes with the process): appended
+    after the others, read back, dropped; the file is rewritten without the dropped ones once they
+    take more space than `_COMPACT_MIN_BYTES` and than the ones still held."""
 
     def __init__(self, directory: str | None = None) -> None:
-        self._directory = directory
+        self.directory = directory
+        self.index: dict[int, tuple[int, int]] = {}  # key -> (offset, length) in the file
         self._file: IO[bytes] | None = None
-        self._index: dict[int, tuple[int, int]] = {}  # key -> (offset, length) in the file
         self._end = 0  # bytes written
-        self._dead = 0  # bytes of blocks taken back since the last compaction
+        self._dead = 0  # bytes of blobs dropped or replaced since the last compaction
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes on disk of the blobs held."""
+        return self._end - self._dead
+
+    def append(self, blobs: Iterable[tuple[int, bytes | memoryview]]) -> None:
+        """Write these (key, blob) after the others; a key held already gets the newer blob. All or
+        none: after an OSError the file holds what it held before (and the error is raised)."""
+        previous: dict[int, tuple[int, int] | None] = {}  # to undo a failed write
+        end, dead = self._end, self._dead
+        try:
+            file = self._open()
+            file.seek(self._end)
+            for key, blob in blobs:
+                file.write(blob)
+                entry = self.index.get(key)
+                previous.setdefault(key, entry)
+                if entry is not None:
+                    self._dead += entry[1]
+                self.index[key] = (self._end, len(blob))
+                self._end += len(blob)
+        except OSError:
+            for key, entry in previous.items():
+                if entry is None:
+                    self.index.pop(key, None)
+                else:
+                    self.index[key] = entry
+            self._end, self._dead = end, dead
+            raise
+
+    def read(self, key: int) -> bytes:
+        assert self._file is not None
+        offset, length = self.index[key]
+        self._file.seek(offset)
+        return self._file.read(length)
+
+    def drop(self, keys: Iterable[int]) -> None:
+        """Forget these keys' blobs (the file is compacted when their holes are due)."""
+        for key in keys:
+            self._dead += self.index.pop(key)[1]
+        if self._dead > max(_COMPACT_MIN_BYTES, self._end - self._dead):
+            self._compact()
+
+    def clear(self) -> None:
+        if self._file is not None:
+            self._file.close()
+        self._file = None
+        self.index.clear()
+        self._end = self._dead = 0
+
+    def _open(self) -> IO[bytes]:
+        if self._file is None:
+            self._file = tempfile.TemporaryFile(prefix="senfunet-spill-", dir=self.directory)
+        return self._file
+
+    def _compact(self) -> None:
+        """Copy the blobs still held into a fresh file (dropped ones leave holes), one at a time."""
+        old, index = self._file, self.index
+        self._file, self.index, self._end, self._dead = None, {}, 0, 0
+        file = self._open()
+        assert old is not None
+        for key, (offset, length) in index.items():
+            old.seek(offset)
+            file.write(old.read(length))
+            self.index[key] = (self._end, length)
+            self._end += length
+        old.close()
+
+
+class BlockSpill:
+    """Block rows by block key: `put` when evicted, `take` when allocated again; each block's rows
+    compressed into one blob of a `BlobFile`."""
+
+    def __init__(self, directory: str | None = None) -> None:
+        self._blobs = BlobFile(directory)
         self.restored = 0  # blocks taken back so far
         self._compressor = zstandard.ZstdCompressor(level=1)  # fast: evictions hold the engine's data lock
         self._decompressor = zstandard.ZstdDecompressor()
 
     def __len__(self) -> int:
-        return len(self._index)
+        return len(self._blobs.index)
 
     def __contains__(self, key: int) -> bool:
-        return int(key) in self._index
+        return int(key) in self._blobs.index
 
     @property
     def nbytes(self) -> int:
         """Bytes on disk held by spilled blocks (compressed)."""
-        return self._end - self._dead
+        return self._blobs.nbytes
 
     def holds(self, keys: np.ndarray) -> np.ndarray:
         """Which of these block keys are spilled (bool per key)."""
-        index = self._index
+        index = self._blobs.index
         return np.fromiter((key in index for key in keys.tolist()), np.bool_, len(keys))
 
     def put(self, keys: np.ndarray, rows: list[np.ndarray]) -> None:
@@ -56,26 +137,11 @@ class BlockSpill:
         if len(keys) == 0:
             return
         flat = [np.ascontiguousarray(r).reshape(len(keys), -1).view(np.uint8) for r in rows]
-        previous = {key: self._index.get(key) for key in keys.tolist()}  # to undo a failed write
-        end, dead = self._end, self._dead
-        try:
-            file = self._open()
-            file.seek(self._end)
-            for n, key in enumerate(keys.tolist()):
-                blob = self._compressor.compress(b"".join(channel[n].tobytes() for channel in flat))
-                file.write(blob)
-                if key in self._index:  # spilled before and not taken back: the newer rows win
-                    self._dead += self._index[key][1]
-                self._index[key] = (self._end, len(blob))
-                self._end += len(blob)
+        try:  # spilled before and not taken back: the newer rows win
+            self._blobs.append((key, self._compressor.compress(b"".join(channel[n].tobytes() for channel in flat)))
+                               for n, key in enumerate(keys.tolist()))
         except OSError as err:  # none of them spilled: the caller keeps the blocks in memory
-            for key, entry in previous.items():
-                if entry is None:
-                    self._index.pop(key, None)
-                else:
-                    self._index[key] = entry
-            self._end, self._dead = end, dead
-            where = self._directory or tempfile.gettempdir()
+            where = self._blobs.directory or tempfile.gettempdir()
             raise OSError(f"cannot write evicted blocks to the spill file in {where}: {err}; free disk space "
                           "there, point TMPDIR at a disk with room, or raise the map bound (max_map_blocks)") from err
 
@@ -85,76 +151,43 @@ class BlockSpill:
         found = self.holds(keys)
         if not found.any():
             return found
-        assert self._file is not None
         flat = [r.reshape(len(keys), -1).view(np.uint8) for r in rows]
         if not all(np.may_share_memory(f, r) for f, r in zip(flat, rows)):
             raise ValueError("take() writes into `rows`: pass views whose rows reshape without a copy")
         sizes = [channel.shape[1] for channel in flat]
-        for n in np.flatnonzero(found).tolist():
-            offset, length = self._index.pop(int(keys[n]))
-            self._file.seek(offset)
-            data = np.frombuffer(self._decompressor.decompress(self._file.read(length)), np.uint8)
+        restored = np.flatnonzero(found).tolist()
+        taken = [int(keys[n]) for n in restored]
+        for n, key in zip(restored, taken):
+            data = np.frombuffer(self._decompressor.decompress(self._blobs.read(key)), np.uint8)
             start = 0
             for channel, size in zip(flat, sizes):
                 channel[n] = data[start:start + size]
                 start += size
-            self._dead += length
-        self.restored += int(found.sum())
-        if self._dead > max(_COMPACT_MIN_BYTES, self._end - self._dead):
-            self._compact()
+        self._blobs.drop(taken)
+        self.restored += len(taken)
         return found
 
     def clear(self) -> None:
-        if self._file is not None:
-            self._file.close()
-        self._file = None
-        self._index.clear()
-        self._end = self._dead = 0
+        self._blobs.clear()
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """Keys, lengths and the compressed blobs, for a saved map."""
-        keys = np.fromiter(self._index, np.int64, len(self._index))
-        lengths = np.array([self._index[k][1] for k in keys.tolist()], np.int64)
+        index = self._blobs.index
+        keys = np.fromiter(index, np.int64, len(index))
+        lengths = np.array([index[k][1] for k in keys.tolist()], np.int64)
         blobs = np.empty(int(lengths.sum()), np.uint8)
         start = 0
         for key, length in zip(keys.tolist(), lengths.tolist()):
-            blobs[start:start + length] = np.frombuffer(self._read(key), np.uint8)
+            blobs[start:start + length] = np.frombuffer(self._blobs.read(key), np.uint8)
             start += length
         return {"keys": keys, "lengths": lengths, "blobs": blobs}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self.clear()
-        file = self._open()
-        data = np.ascontiguousarray(state["blobs"], np.uint8)
-        file.write(data.tobytes())
-        offsets = np.concatenate([[0], np.cumsum(state["lengths"])[:-1]]).astype(np.int64)
-        for key, offset, length in zip(state["keys"].tolist(), offsets.tolist(), state["lengths"].tolist()):
-            self._index[key] = (offset, length)
-        self._end = len(data)
-
-    def _read(self, key: int) -> bytes:
-        assert self._file is not None
-        offset, length = self._index[key]
-        self._file.seek(offset)
-        return self._file.read(length)
-
-    def _open(self) -> IO[bytes]:
-        if self._file is None:
-            self._file = tempfile.TemporaryFile(prefix="senfunet-spill-", dir=self._directory)
-        return self._file
-
-    def _compact(self) -> None:
-        """Copy the blocks still spilled into a fresh file (taken ones leave holes), one at a time."""
-        old, index = self._file, self._index
-        self._file, self._index, self._end, self._dead = None, {}, 0, 0
-        file = self._open()
-        assert old is not None
-        for key, (offset, length) in index.items():
-            old.seek(offset)
-            file.write(old.read(length))
-            self._index[key] = (self._end, length)
-            self._end += length
-        old.close()
+        data = np.ascontiguousarray(state["blobs"], np.uint8).data
+        ends = np.cumsum(state["lengths"]).tolist()
+        self._blobs.append((key, data[end - length:end])
+                           for key, end, length in zip(state["keys"].tolist(), ends, state["lengths"].tolist()))
 
 
 def spilled_rows(state: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -55,8 +55,8 @@ def collect_blocks(trainer, sequences, engine_config) -> tuple[list[dict[str, to
         if len(candidates) == 0:
             continue
         keep = np.sort(rng.choice(candidates, size=min(len(candidates), cfg.block_scene_blocks), replace=False))
-        neighbours = neighbour_table(g.table_keys, g.table_slots, g.slot_keys, keep)
-        x = engine.alpha.windows(neighbours)
+        neighbours = neighbour_table(*g.hash_table, g.slot_keys, keep)
+        x = engine.alpha.evaluator.windows(neighbours)
         gt = gt_tsdf_blocks(seq.scene, g.coords[keep].numpy(), cfg.voxel_size_m, cfg.band_m)
         data.append({"x": torch.from_numpy(x).permute(0, 4, 1, 2, 3).contiguous(), "gt": torch.from_numpy(gt),
                      **{f"{c}{i}": g.pools[f"{c}{i}"][keep].float().clone() for c in ("tsdf", "weight")

@@ -119,10 +119,10 @@ class Trainer:
         while True:
             slot_to_touched = np.full(grid.capacity, -1, np.int32)
             touched_slots = np.empty(grid.capacity, np.int64)
-            state = np.array([grid.n_blocks, min(grid.max_blocks_before_rehash(), grid.capacity)], np.int64)
+            state = np.array([grid.n_blocks, min(grid.hash_table.max_blocks(), grid.capacity)], np.int64)
             n_pixels, n_touched, ok = locate_samples(
                 depth, cfg.depth_min_m[s], cfg.depth_max_m[s], cfg.border_px, K64, T64, self.offsets_m,
-                cfg.voxel_size_m, grid.table_keys, grid.table_slots, state, grid.slot_keys, slot_to_touched,
+                cfg.voxel_size_m, *grid.hash_table, state, grid.slot_keys, slot_to_touched,
                 touched_slots, sample_flat, sample_touched, pixel_index)
             grid.commit_new_blocks(int(state[0]))
             if ok:
@@ -203,7 +203,7 @@ class Trainer:
         box = (int(size[0]), int(size[1]), int(size[2]))
         upd = torch.from_numpy(updated)
         plan = sparse_plan(upd, box)  # G's inputs: the voxels within 2 of an updated one (box-clamped)
-        chunk_flat = torch.from_numpy(_box_flat(corner, size, plan.inputs.numpy(), grid.table_keys, grid.table_slots))
+        chunk_flat = torch.from_numpy(_box_flat(corner, size, plan.inputs.numpy(), *grid.hash_table))
         present = chunk_flat >= 0
         index = chunk_flat.clamp(min=0)
 

@@ -71,21 +71,13 @@ __all__ = [
 ]
 
 
-class _Run:
-    """One training run: the scenes' frame stream, the optional block phase, the online frames, the
-    periodic validation and the best checkpoint."""
+class _SceneFrames:
+    """The training scenes' frames: their recordings read back from the cache when needed (the few in
+    use kept), cut into segments and handed out shuffled, slot by slot."""
 
-    def __init__(self, config: TrainConfig, out_path: Path, log, progress: bool) -> None:
-        self.config, self.out_path, self.log, self.progress = config, out_path, log, progress
-        self.clock = ActiveClock()
-        torch.set_num_threads(max(1, config.threads))
-        self.trainer = Trainer(config)
-        self.validator = Validator(config, log)
+    def __init__(self, config: TrainConfig, trainer: Trainer, log) -> None:
+        self.config, self.trainer, self.log = config, trainer, log
         self.loaded: dict[int, object] = {}  # the few recordings in use (read back from the cache: ~1 s each)
-        self.best: dict = {"margin": -math.inf}
-        self.history: list[dict] = []
-        self.chunk_frames = 0  # online frames whose loss reached the networks
-        self.block_phase: dict = {}
 
     def sequence(self, seed: int):
         from .evaluation import cached_sequence
@@ -113,7 +105,7 @@ class _Run:
                 rng.shuffle(frames)
                 yield seq.scene, frames
 
-    def frame_stream(self):
+    def stream(self):
         """(slot, frame, scene): each slot trains on one segment in its own fresh grids; frames of the
         slots interleave at random so that an accumulated gradient spans several scenes."""
         source = self.segments()
@@ -128,6 +120,29 @@ class _Run:
             if not frames:
                 queues[slot] = next(source)
                 self.trainer.reset_grids(slot)
+
+
+def _history_record(history: list[dict]) -> list[dict]:
+    """The validations as a checkpoint records them."""
+    keys = ("step", "F", "margin", "MAD", "tsdf_F", "best_single_F", "source")
+    return [{k: e[k] for k in keys if k in e} for e in history]
+
+
+class _Run:
+    """One training run: the optional block phase, the online frames (from `_SceneFrames`), the
+    periodic validation and the best checkpoint."""
+
+    def __init__(self, config: TrainConfig, out_path: Path, log, progress: bool) -> None:
+        self.config, self.out_path, self.log, self.progress = config, out_path, log, progress
+        self.clock = ActiveClock()
+        torch.set_num_threads(max(1, config.threads))
+        self.trainer = Trainer(config)
+        self.validator = Validator(config, log)
+        self.scenes = _SceneFrames(config, self.trainer, log)
+        self.best: dict = {"margin": -math.inf}
+        self.history: list[dict] = []
+        self.chunk_frames = 0  # online frames whose loss reached the networks
+        self.block_phase: dict = {}
 
     def ran(self, step: int) -> dict:
         """What actually ran up to online frame `step` (the checkpoint's record; docs/results.md reads it)."""
@@ -167,14 +182,10 @@ class _Run:
         self.trainer.save(self.out_path, meta={
             "trained_steps": step, "optimizer_steps": self.trainer.optimizer_steps, "ran": self.ran(step),
             "init": {"path": cfg.init_weights, "meta": self.trainer.init_meta} if cfg.init_weights else None,
-            "validation_history": self.history_record(),
+            "validation_history": _history_record(self.history),
             "val_scenes": list(cfg.val_scenes), "val_F": v["F"], "val_margin": v["margin"], "val_MAD_m": v["MAD"],
             "val_tsdf_F": v["tsdf_F"], "val_best_single_F": v["best_single_F"], "val_per_scene": per_scene,
             "config": {k: (list(x) if isinstance(x, tuple) else x) for k, x in asdict(cfg).items()}})
-
-    def history_record(self) -> list[dict]:
-        keys = ("step", "F", "margin", "MAD", "tsdf_F", "best_single_F", "source")
-        return [{k: e[k] for k in keys if k in e} for e in self.history]
 
     def adopt_init_validation(self) -> None:
         """Frame 0 of a run started from a checkpoint: that checkpoint's own validation (the same rooms
@@ -195,7 +206,7 @@ class _Run:
         if not self.out_path.is_file():
             return
         state = torch.load(self.out_path, map_location="cpu", weights_only=True)
-        state["meta"]["validation_history"] = self.history_record()
+        state["meta"]["validation_history"] = _history_record(self.history)
         state["meta"]["ran_in_total"] = self.ran(self.history[-1]["step"] if self.history else 0)
         torch.save(state, self.out_path)
 
@@ -212,9 +223,9 @@ class _Run:
 
         cfg = self.config
         t0 = time.perf_counter()
-        frames = pixel_frames((self.sequence(seed) for seed in cfg.train_scenes), frame_stride=cfg.val_frame_stride,
-                              eta_m=cfg.eta_m, depth_min_m=cfg.depth_min_m, depth_max_m=cfg.depth_max_m,
-                              border_px=cfg.border_px)
+        frames = pixel_frames((self.scenes.sequence(seed) for seed in cfg.train_scenes),
+                              frame_stride=cfg.val_frame_stride, eta_m=cfg.eta_m, depth_min_m=cfg.depth_min_m,
+                              depth_max_m=cfg.depth_max_m, border_px=cfg.border_px)
         got = pretrain_feature_nets(self.trainer.feature_nets, frames, steps=cfg.feature_pretrain_steps,
                                     lr=cfg.feature_pretrain_lr, batch=cfg.feature_pretrain_batch,
                                     crop_px=cfg.feature_pretrain_crop_px, seed=cfg.seed, log=self.log)
@@ -225,7 +236,7 @@ class _Run:
     def run_block_phase(self) -> None:
         cfg = self.config
         t0 = time.perf_counter()
-        got = self.trainer.train_weighting_net_on_blocks((self.sequence(seed) for seed in cfg.train_scenes),
+        got = self.trainer.train_weighting_net_on_blocks((self.scenes.sequence(seed) for seed in cfg.train_scenes),
                                                          self.validator.engine_config(), self.log)
         self.block_phase.update(block_scenes=got["scenes"], blocks=got["blocks"])
         self.log(f"G on {got['blocks']} blocks of {got['scenes']} integrated scenes: {cfg.block_steps} steps "
@@ -237,7 +248,7 @@ class _Run:
         from tqdm import tqdm
 
         cfg, trainer = self.config, self.trainer
-        stream = self.frame_stream()
+        stream = self.scenes.stream()
         bar = tqdm(total=cfg.steps, disable=not self.progress, dynamic_ncols=True, desc="train")
         recent: list[float] = []
         losses: list[float] = []

@@ -28,7 +28,7 @@ def test_surface_targets_are_the_corners_of_cells_that_can_hold_triangles():
     engine = _engine(False)
     grid = engine.grid
     slots = np.arange(grid.n_blocks)
-    nb = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
+    nb = neighbour_table(*grid.hash_table, grid.slot_keys, slots)
     views = engine.store.views("tsdf0", "weight0", "tsdf1", "weight1")
     targets = surface_targets(nb, *views)
     # a minority of the voxels of the blocks that hold targets
@@ -70,14 +70,15 @@ def test_voxel_evaluation_equals_the_block_evaluation_at_the_targets():
         engine = _engine(tsdf_input)
         grid = engine.grid
         slots = np.arange(grid.n_blocks)
-        nb = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots)
+        nb = neighbour_table(*grid.hash_table, grid.slot_keys, slots)
         targets = surface_targets(nb, *engine.store.views("tsdf0", "weight0", "tsdf1", "weight1"))
         holding = np.flatnonzero(targets.any(axis=1))
-        windows = weighting_windows(nb[holding], *engine.alpha.inputs())
+        windows = weighting_windows(nb[holding], *engine.alpha.evaluator.inputs())
         x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3)
         with torch.no_grad():
             block_alpha = engine.weighting_net(x, pad=False).reshape(len(holding), 512).numpy()
-        inputs, gather_1, gather_2, voxels = target_gathers(nb[holding], targets[holding], *engine.alpha.inputs())
+        inputs, gather_1, gather_2, voxels = target_gathers(nb[holding], targets[holding],
+                                                            *engine.alpha.evaluator.inputs())
         with torch.no_grad():
             alpha = evaluate_gathers(engine.weighting_net, inputs, gather_1, gather_2)
         assert len(alpha) == targets.sum() > 1000
@@ -90,17 +91,17 @@ def test_voxel_evaluation_equals_the_block_evaluation_at_the_targets():
 def test_windows_written_to_a_reused_buffer_as_bfloat16_equal_torch_rounding_of_the_float32_windows():
     engine = _engine(True)
     grid = engine.grid
-    nb = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, np.arange(grid.n_blocks))
-    expected = weighting_windows(nb, *engine.alpha.inputs())
+    nb = neighbour_table(*grid.hash_table, grid.slot_keys, np.arange(grid.n_blocks))
+    expected = weighting_windows(nb, *engine.alpha.evaluator.inputs())
     assert (expected == 0).any() and (expected != 0).mean() > 0.1  # missing neighbours and inputs both
     want_bits = torch.from_numpy(expected).to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16)
     for dtype, want in ((np.float32, expected), (np.uint16, want_bits)):
         buffer = np.full(expected.size + 7, 12345, dtype)  # an earlier batch's leftovers: all overwritten
-        got = weighting_windows(nb, *engine.alpha.inputs(), out=buffer)
+        got = weighting_windows(nb, *engine.alpha.evaluator.inputs(), out=buffer)
         np.testing.assert_array_equal(got, want)
         assert np.shares_memory(got, buffer)
     # packed features (looked up in tables) and the same features stored unpacked, as float32 values
-    features_1, weight_1, features_2, weight_2, *rest = engine.alpha.inputs()
+    features_1, weight_1, features_2, weight_2, *rest = engine.alpha.evaluator.inputs()
     n_voxels = grid.n_blocks * 512  # the blocks in use (the pools hold more)
     unpacked = [decode_features(torch.from_numpy(f).reshape(len(weight_1), -1)[:n_voxels]).numpy().reshape(-1)
                 for f in (features_1, features_2)]

@@ -62,7 +62,7 @@ def test_neighbours_taken_without_the_lock_while_the_grid_grows_find_every_block
     finally:
         done.set()
         reader.join()
-    assert grid.n_blocks == len(cube) + len(far) and len(grid.table_keys) >= 2 * grid.n_blocks and reads[0] > 100
+    assert grid.n_blocks == len(cube) + len(far) and len(grid.hash_table.keys) >= 2 * grid.n_blocks and reads[0] > 100
     assert not wrong
 
 
@@ -76,9 +76,9 @@ def test_blocks_a_frame_is_still_allocating_are_absent_for_neighbours():
     store = BlockStore(grid)
     centre = grid.allocate_keys(block_keys(torch.tensor([[5, 5, 5]]))).numpy()
     new_key = block_keys(torch.tensor([[6, 5, 5]])).numpy()
-    state = np.array([grid.n_blocks, grid.max_blocks_before_rehash()], np.int64)
+    state = np.array([grid.n_blocks, grid.hash_table.max_blocks()], np.int64)
     added = np.empty(1, np.int64)
-    assert grid_module._add_many(grid.table_keys, grid.table_slots, new_key, state, grid.slot_keys, added) == 1
+    assert grid_module._add_many(*grid.hash_table, new_key, state, grid.slot_keys, added) == 1
     code = 9 * 2 + 3 * 1 + 1  # +x
     assert store.neighbours(centre)[0, code] == -1  # added, not committed
     grid.commit_new_blocks(int(state[0]))

@@ -20,7 +20,7 @@ from senfunet_core.engine import EngineConfig, SenFuNet
 from senfunet_core.errors import InputError
 from senfunet_core.fusion import fuse
 from senfunet_core.grid import (ALPHA_UNKNOWN, BLOCK, block_keys, decode_alpha, decode_features,
-                                decode_saved_features, encode_alpha, encode_features)
+                                decode_saved_features, encode_alpha, encode_features, voxel_centres)
 from senfunet_core.mesher import Mesh, weld
 from senfunet_core.map_file import load_map, save_map
 from senfunet_core.spill import spilled_rows
@@ -336,7 +336,7 @@ def test_fusion_equation_on_c12_c1_c2():
     n = grid.n_blocks
     v1, w1 = grid.pools["tsdf0"][:n].flatten(), grid.pools["weight0"][:n].flatten()
     v2, w2 = grid.pools["tsdf1"][:n].flatten(), grid.pools["weight1"][:n].flatten()
-    centres = grid.voxel_centres(torch.arange(n), VOXEL).reshape(-1, 3).numpy()
+    centres = voxel_centres(grid.coords[:n], VOXEL).reshape(-1, 3).numpy()
     keys_by_position = {tuple(np.round(c / VOXEL).astype(int)): i for i, c in enumerate(centres)}
     got_centres, got = engine.voxel_values("fused", filtered=False)
     idx = np.array([keys_by_position[tuple(np.round(c / VOXEL).astype(int))] for c in got_centres])
@@ -1105,10 +1105,10 @@ def test_the_default_map_bound_follows_the_machines_memory():
     T = SPHERE_VIEWS[0]
     engine.integrate("tof", render_sphere(SPHERE_C, SPHERE_R, SPHERE_K, T), SPHERE_K, T)
     grid = engine.grid
-    table_bytes = grid.table_keys.nbytes + grid.table_slots.nbytes
+    table_bytes = grid.hash_table.keys.nbytes + grid.hash_table.slots.nbytes
     assert grid.n_blocks > 10 and grid.nbytes() - table_bytes <= grid.n_blocks * per_block
-    entry_bytes = grid.table_keys.itemsize + grid.table_slots.itemsize
-    assert len(grid.table_keys) <= max(4096, 4 * grid.n_blocks) and per_block - 4 * entry_bytes > 512 * 8
+    entry_bytes = grid.hash_table.keys.itemsize + grid.hash_table.slots.itemsize
+    assert len(grid.hash_table.keys) <= max(4096, 4 * grid.n_blocks) and per_block - 4 * entry_bytes > 512 * 8
     with pytest.raises(InputError, match="max_blocks"):
         EngineConfig(max_blocks=-2).validate()
 

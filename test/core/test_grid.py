@@ -68,7 +68,7 @@ def test_allocate_lookup_and_growth():
     assert bool((grid.pools["b"][first] == 7.0).all()) and bool((grid.pools["a"][slots] == 0.5).all())
     absent = block_keys(torch.tensor([[4000, 0, 0], [-4000, 5, 5]]))
     assert grid.lookup_keys(absent).tolist() == [-1, -1]
-    assert grid.max_blocks_before_rehash() >= grid.n_blocks
+    assert grid.hash_table.max_blocks() >= grid.n_blocks
 
 
 def test_remove_blocks_keeps_the_survivors_and_zeroes_freed_slots():
@@ -113,7 +113,7 @@ def test_neighbour_table_matches_coordinates():
     cube = torch.stack(torch.meshgrid(*[torch.arange(3)] * 3, indexing="ij"), -1).reshape(-1, 3)
     coords = torch.cat([cube, torch.tensor([[10, 10, 10]])])
     slots = grid.allocate_keys(block_keys(coords))
-    table = neighbour_table(grid.table_keys, grid.table_slots, grid.slot_keys, slots.numpy())
+    table = neighbour_table(*grid.hash_table, grid.slot_keys, slots.numpy())
     index = {tuple(c): int(s) for c, s in zip(coords.tolist(), slots)}
     for row, c in zip(table, coords.tolist()):
         for code in range(27):
@@ -137,11 +137,11 @@ def test_dropping_uncommitted_new_blocks_keeps_every_other_key_findable():
     grid.allocate_keys(old)
     n_before = grid.n_blocks
     # add the new keys as a kernel would (not committed), then drop every third one
-    state = np.array([grid.n_blocks, grid.max_blocks_before_rehash()], np.int64)
+    state = np.array([grid.n_blocks, grid.hash_table.max_blocks()], np.int64)
     for key in new.tolist():
-        G.hash_find_or_add(grid.table_keys, grid.table_slots, key, state, grid.slot_keys)
+        G.hash_find_or_add(*grid.hash_table, key, state, grid.slot_keys)
     keep = np.arange(len(new)) % 3 != 0
-    moved = G.drop_new_blocks(grid.table_keys, grid.table_slots, grid.slot_keys, n_before, keep)
+    moved = G.drop_new_blocks(*grid.hash_table, grid.slot_keys, n_before, keep)
     grid.commit_new_blocks(n_before + int(keep.sum()))
     assert grid.n_blocks == n_before + keep.sum()
     assert torch.equal(grid.lookup_keys(old), torch.arange(n_before))
@@ -150,7 +150,7 @@ def test_dropping_uncommitted_new_blocks_keeps_every_other_key_findable():
     assert torch.equal(kept, torch.from_numpy(moved[keep]))
     assert (grid.lookup_keys(new[torch.from_numpy(~keep)]) == -1).all()
     assert torch.equal(block_keys(grid.coords[: grid.n_blocks]), torch.cat([old, new[torch.from_numpy(keep)]]))
-    assert (grid.table_keys != G.EMPTY_KEY).sum() == grid.n_blocks
+    assert (grid.hash_table.keys != G.EMPTY_KEY).sum() == grid.n_blocks
 
 
 def _cached_kernel(function):
@@ -275,8 +275,8 @@ def test_hash_table_follows_the_blocks_and_spreads_neighbours():
     x, y, z = np.meshgrid(np.arange(-60, 60), np.arange(-40, 40), np.arange(0, 3), indexing="ij")
     keys = torch.unique(block_keys(torch.from_numpy(np.stack([x, y, z], -1).reshape(-1, 3))))
     grid.allocate_keys(keys)
-    assert len(grid.table_keys) <= 4 * grid.n_blocks + 4096  # sized by the blocks, not the pools' capacity
-    mask = len(grid.table_keys) - 1
+    assert len(grid.hash_table.keys) <= 4 * grid.n_blocks + 4096  # sized by the blocks, not the pools' capacity
+    mask = len(grid.hash_table.keys) - 1
     homes = np.array([G._bucket(int(k), mask) for k in keys.tolist()])
     assert len(np.unique(homes)) > 0.7 * len(keys)
     assert torch.equal(grid.lookup_keys(keys), torch.arange(len(keys)))

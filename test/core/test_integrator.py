@@ -104,7 +104,7 @@ def test_a_full_hash_table_grows_with_the_blocks_not_with_the_pools(monkeypatch)
     integrate_frame(grid, np.nan_to_num(depth), features, K, pose(0.0, 0.0), RANGE, CONFIG,
                     ("tsdf0", "weight0", "feat0"))
     assert grid.n_blocks > 8 and grid.capacity == 1 << 15
-    assert len(grid.table_keys) <= 4 * (grid.n_blocks + 1024)
+    assert len(grid.hash_table.keys) <= 4 * (grid.n_blocks + 1024)
     assert (grid.lookup_keys(torch.from_numpy(grid.slot_keys[:grid.n_blocks])).numpy()
             == np.arange(grid.n_blocks)).all()
 

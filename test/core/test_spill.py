@@ -63,7 +63,7 @@ def test_state_dict_and_compaction_keep_every_block(via, monkeypatch):
     else:  # taking half the blocks back rewrites the file without them
         monkeypatch.setattr(spill_module, "_COMPACT_MIN_BYTES", 0)
         spill.take(keys[:20], empty_like(rows_of(keys[:20], 3)))
-        assert spill.nbytes == sum(length for _, length in spill._index.values())
+        assert spill.nbytes == sum(length for _, length in spill._blobs.index.values())
         keys, rows = keys[20:], [r[20:] for r in rows]
     out = empty_like(rows)
     assert spill.take(keys[::-1].copy(), [o[::-1] for o in out]).all()
@@ -78,7 +78,7 @@ def test_a_failed_write_spills_nothing_and_says_what_to_do(tmp_path, monkeypatch
     keys = np.array([1, 2], np.int64)
     spill.put(keys[:1], rows_of(keys[:1], 0))
     nbytes = spill.nbytes
-    file = spill._open()
+    file = spill._blobs._open()
 
     def full(_data: bytes) -> int:
         raise OSError(28, "No space left on device")
