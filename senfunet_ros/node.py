@@ -251,7 +251,9 @@ class FusionNode(Node):
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.ledger.counters()
         # 3. subscriptions: they only enqueue; the status reports their health
-        self._subscribe()
+        self._subscriptions_keep, self.health = subscribe(
+            self, s, callback=self._guard, ingest=self.ingest, time_jump_s=lambda: self.settings.time_jump_s,
+            warn=self._warn)
         topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in sensor_streams(sensor, s.pose_type)}
                   for sensor in s.sensors}
         self.status_report = StatusReport(self.pipeline, self.health, self.timings, self.latency, topics=topics,
@@ -298,26 +300,6 @@ class FusionNode(Node):
             f"fusing {list(s.sensor_names)} into '{s.fixed_frame}' with weights: {self.engine.weights_source}")
 
     # -- set-up and stop -------------------------------------------------------------------------
-    def _subscribe(self) -> None:
-        """Each sensor's topics, and /clock under use_sim_time (a jump back confirms a restart at
-        once). Each subscription has its own mutually exclusive group: streams run in parallel, but
-        one stream's messages never overlap, so they reach Ingest in arrival order."""
-        s = self.settings
-        self._subscriptions_keep = []
-        subscribed: dict[str, tuple[str, ...]] = {}
-        for sensor in s.sensors:
-            streams = [entry for entry in sensor_streams(sensor, s.pose_type) if entry[2]]  # a topic set
-            subscribed[sensor.name] = tuple(stream.value for stream, *_ in streams)
-            for stream, msg_type, topic, qos in streams:
-                self._subscriptions_keep.append(self.create_subscription(
-                    msg_type, topic, self._guard(sensor.name, stream), qos,
-                    callback_group=MutuallyExclusiveCallbackGroup()))
-        self.health = HealthMonitor(subscribed, window_s=s.diagnostics_window_s, stale_after_s=s.stale_after_s)
-        if self.get_parameter("use_sim_time").value:
-            watch = _ClockWatch(self.ingest, lambda: self.settings.time_jump_s, self.get_logger(), self._warn)
-            self._subscriptions_keep.append(self.create_subscription(
-                RosClock, "/clock", watch.on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup()))
-
     def finish(self, abandon: threading.Event | None = None) -> dict[str, int]:
         """After the executor stopped: integrate the frames that are ready, count the ones still
         waiting (for a pose, a colour image, a camera_info) as dropped at shutdown. `abandon` set
@@ -461,6 +443,29 @@ class FusionNode(Node):
         self.mesh_publisher.close()
         logging.getLogger("senfunet").removeHandler(self._engine_log)
         super().destroy_node()
+
+
+def subscribe(node: Node, settings: P.Settings, *, callback: Callable[[str, Stream], Callable[[Any], None]],
+              ingest: Ingest, time_jump_s: Callable[[], float], warn: Callable[..., None]
+              ) -> tuple[list[Any], HealthMonitor]:
+    """Each sensor's topics, and /clock under use_sim_time (a jump back confirms a restart at once):
+    the subscriptions and the health monitor of what they subscribed. Each subscription has its own
+    mutually exclusive group: streams run in parallel, but one stream's messages never overlap, so
+    they reach Ingest in arrival order."""
+    subscriptions = []
+    subscribed: dict[str, tuple[str, ...]] = {}
+    for sensor in settings.sensors:
+        streams = [entry for entry in sensor_streams(sensor, settings.pose_type) if entry[2]]  # a topic set
+        subscribed[sensor.name] = tuple(stream.value for stream, *_ in streams)
+        for stream, msg_type, topic, qos in streams:
+            subscriptions.append(node.create_subscription(msg_type, topic, callback(sensor.name, stream), qos,
+                                                          callback_group=MutuallyExclusiveCallbackGroup()))
+    health = HealthMonitor(subscribed, window_s=settings.diagnostics_window_s, stale_after_s=settings.stale_after_s)
+    if node.get_parameter("use_sim_time").value:
+        watch = _ClockWatch(ingest, time_jump_s, node.get_logger(), warn)
+        subscriptions.append(node.create_subscription(RosClock, "/clock", watch.on_clock, _CLOCK_QOS,
+                                                      callback_group=MutuallyExclusiveCallbackGroup()))
+    return subscriptions, health
 
 
 def sensor_streams(sensor: P.SensorSettings, pose_type: str) -> list[tuple[Stream, type, str, QoSProfile]]:
