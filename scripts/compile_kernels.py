@@ -57,7 +57,7 @@ def main() -> None:
     roots = [Path(package.__file__).parent for package in (senfunet_core, senfunet_ros)]
     digest = drop_stale_caches(roots)
     from senfunet_core import decimate
-    from senfunet_core.engine import SenFuNet
+    from senfunet_core.engine import SenFuNet, warm_up
     from senfunet_core.mesher import Mesh
     from senfunet_core.render import default_camera, rasterize
     from senfunet_ros.conversions.rvl import rvl_decode
@@ -69,7 +69,7 @@ def main() -> None:
     for alpha_voxels in ("surface", "surface_voxels"):  # the node's choice, and the engine's other one
         engine = SenFuNet(engine_config(settings, alpha_dtype="float32", feature_dtype="float32", max_blocks=4,
                                         alpha_voxels=alpha_voxels), weights=engine_weights(settings))
-        engine.warm_up()
+        warm_up(engine)
     decimate.warm_up()
     triangle = Mesh(np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], np.float32), np.array([[0, 1, 2]], np.int32),
                     np.full((3, 3), 0.5, np.float32))

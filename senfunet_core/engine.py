@@ -20,7 +20,7 @@ over the whole grid there); then it re-meshes every block whose cells read a cha
 +x, +y, +z neighbours).
 
 Threading model (the one place it is described):
-- Threads: an integrating thread calls `prepare`/`integrate`; an updating thread calls `update`,
+- Threads: an integrating thread calls `prepare_frame`/`integrate`; an updating thread calls `update`,
   `refresh_alpha`, the extractions, `map_file.save_map`, `reset`; one feature-net worker thread (module-wide)
   runs the 2D nets; with `alpha_threads` > 1, that many alpha threads (per engine, owned by its
   `AlphaScheduler`) evaluate the weighting net's batches for an update that has no time budget (or
@@ -67,7 +67,7 @@ from .alpha_scheduler import AlphaScheduler
 from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
-from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, keys_to_coords, voxel_centres, warm_up_lookups
+from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, keys_to_coords, warm_up_lookups
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
@@ -215,7 +215,7 @@ class MeshUpdate:
 
 @dataclass
 class PreparedFrame:
-    """A checked frame whose feature net is running (`SenFuNet.prepare`)."""
+    """A checked frame whose feature net is running (`prepare_frame`)."""
 
     sensor_index: int
     depth_m: np.ndarray  # float32, NaN and inf set to 0
@@ -229,13 +229,6 @@ class PreparedFrame:
         """No pixel is valid (within the sensor's depth range, inside the image border): integrating
         it changes nothing."""
         return self.features is None
-
-
-@dataclass
-class WeightCloud:
-    positions_m: np.ndarray  # Nx3 float32 voxel centres
-    alpha: np.ndarray  # N float32 sensor weighting (weight of sensor 1)
-    weights: np.ndarray  # N x n_sensors float32 weight counters
 
 
 class SenFuNet:
@@ -329,23 +322,7 @@ class SenFuNet:
         Invalid pixels (0, NaN, inf, negative, out of range, image border) are skipped. Raises
         InputError (grids untouched) for wrong shapes, dtypes, intrinsics or poses.
         """
-        return self.integrate_prepared(self.prepare(sensor, depth_m, K, T_world_camera, rgb))
-
-    def prepare(self, sensor: str, depth_m: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray,
-                rgb: np.ndarray | None = None) -> PreparedFrame:
-        """First half of `integrate`: check the frame (InputError as there) and start its feature
-        net in the worker thread. A caller holding the next frame prepares it before integrating
-        the current one, so that the feature net runs while the current frame's kernels do."""
-        t0 = time.perf_counter()
-        s = self.config.sensor_index(sensor)
-        check_frame(depth_m, K, T_world_camera, rgb)
-        cfg = self.config
-        depth, deepest_m = clean_depth(depth_m, cfg.border_px, cfg.depth_min_m[s], cfg.depth_max_m[s])
-        if deepest_m < 0:  # no valid pixel
-            return PreparedFrame(s, depth, K, T_world_camera, None, time.perf_counter() - t0)
-        check_key_range(deepest_m, K, T_world_camera, depth.shape, cfg.band_m)
-        features = _FEATURE_WORKER.submit(_pixel_features, self.feature_nets[s], self.times, depth, rgb)
-        return PreparedFrame(s, depth, K, T_world_camera, features, time.perf_counter() - t0)
+        return self.integrate_prepared(prepare_frame(self, sensor, depth_m, K, T_world_camera, rgb))
 
     @torch.inference_mode()
     def integrate_prepared(self, frame: PreparedFrame) -> int:
@@ -506,78 +483,16 @@ class SenFuNet:
         release_free_memory()  # the batches' buffers
         return welder.mesh()
 
-    @torch.inference_mode()
-    def voxel_values(self, which: str = FUSED, filtered: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Centres (N x 3, metres) and TSDF values (N) of the observed voxels of `which`."""
-        self.config.check_mesh_name(which)
-        with self.update_lock.held():
-            if which == FUSED:
-                self._refresh_alpha()
-            with self.data_lock:
-                slots = torch.arange(self.grid.n_blocks)
-                blocks = self.mesher.whole_blocks(slots, self.mesher.channels(which))
-                tsdf, observed = self.mesher.values(blocks, which, filtered)
-                centres = voxel_centres(self.grid.coords[slots], self.config.voxel_size_m)
-                return centres[observed].numpy(), tsdf[observed].numpy()
-
-    @torch.inference_mode()
-    def weight_cloud(self, max_abs_tsdf_m: float | None = None, refresh_alpha: bool = True) -> WeightCloud:
-        """Voxels observed by any sensor whose alpha is known: position, alpha and each sensor's
-        weight counter. With max_abs_tsdf_m, only voxels whose unfiltered fused |TSDF| is at most
-        that. Without refresh_alpha, alpha is as the last updates left it (voxels the net has not
-        judged yet are left out)."""
-        with self.update_lock.held():
-            if refresh_alpha:
-                self._refresh_alpha()
-            with self.data_lock:
-                slots = torch.arange(self.grid.n_blocks)
-                blocks = self.mesher.whole_blocks(slots, self.mesher.channels(FUSED))
-                centres = voxel_centres(self.grid.coords[slots], self.config.voxel_size_m)
-        n = len(self.config.sensors)
-        weights = torch.stack([blocks[f"weight{i}"] for i in range(n)], dim=-1)
-        keep = (weights > 0).any(dim=-1) & torch.isfinite(blocks["alpha"])
-        if max_abs_tsdf_m is not None:
-            tsdf, _ = self.mesher.values(blocks, FUSED, filtered=False)
-            keep &= tsdf.abs() <= max_abs_tsdf_m
-        return WeightCloud(centres[keep].numpy(), blocks["alpha"][keep].numpy().astype(np.float32),
-                           weights[keep].numpy().astype(np.float32))
-
-    def warm_up(self) -> None:
-        """Compile (or load from numba's cache) every kernel on a small synthetic frame per sensor,
-        then forget it: the first real frame and update then run at full speed."""
-        size = 4 * self.config.border_px + 32
-        depth_m = 0.5 * (self.config.depth_min_m[0] + self.config.depth_max_m[0])
-        # pixels half a voxel apart on the plane: cells with all corners observed, which the weighting
-        # net's kernels need to run at all
-        focal = 2.0 * depth_m / self.config.voxel_size_m
-        K = np.array([[focal, 0, (size - 1) / 2], [0, focal, (size - 1) / 2], [0, 0, 1]], np.float64)
-        depth = np.full((size, size), depth_m, np.float32)
-        rgb = np.full((size, size, 3), 128, np.uint8)
-        for sensor in self.config.sensors:
-            self.integrate(sensor, depth, K, np.eye(4), rgb)
-        self.update()
-        self.extract_mesh(self.config.sensors[0])
-        warm_up_lookups()
-        self.reset()
-        self._cleared = False
-        # the alpha threads the update started share the warming thread's priority: the first real
-        # update starts them again from its own thread (the live node's mesh thread, of lower priority)
-        self.alpha.stop_workers()
-
-    def networks_changed(self) -> None:
-        """The networks' weights were changed in place: the next update re-evaluates alpha everywhere."""
-        with self.data_lock:
-            self.store.stale[: self.grid.n_blocks] = 2
-
-    def reset(self) -> None:
-        """Forget everything fused; the next update reports `cleared`."""
+    def reset(self, *, report_cleared: bool = True) -> None:
+        """Forget everything fused; the next update reports `cleared` (unless not `report_cleared`:
+        nothing was shown yet)."""
         with self.update_lock.held(), self.data_lock:
             self.store.clear()
             self.bound.clear()
             self.frames_integrated = {name: 0 for name in self.config.sensors}
             self._meshed = np.zeros(0, np.int64)
             self._evicted_shown = []
-            self._cleared = True
+            self._cleared = report_cleared
 
     def stats(self, *, wait: bool = True) -> dict | None:
         """Map size and memory, and how much of the meshed surface has its alpha: judged at least
@@ -677,3 +592,43 @@ class SenFuNet:
             gone = np.isin(block_keys(torch.from_numpy(meshes.keys)).numpy(), np.concatenate(evicted))
             meshes = meshes.select(np.flatnonzero(~gone))
         return meshes
+
+
+def prepare_frame(engine: SenFuNet, sensor: str, depth_m: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray,
+                  rgb: np.ndarray | None = None) -> PreparedFrame:
+    """First half of `SenFuNet.integrate`: check the frame (InputError as there) and start its feature
+    net in the worker thread; `integrate_prepared` is the second. A caller holding the next frame
+    prepares it before integrating the current one, so that the feature net runs while the current
+    frame's kernels do. Reads only the engine's configuration and networks: no lock."""
+    t0 = time.perf_counter()
+    cfg = engine.config
+    s = cfg.sensor_index(sensor)
+    check_frame(depth_m, K, T_world_camera, rgb)
+    depth, deepest_m = clean_depth(depth_m, cfg.border_px, cfg.depth_min_m[s], cfg.depth_max_m[s])
+    if deepest_m < 0:  # no valid pixel
+        return PreparedFrame(s, depth, K, T_world_camera, None, time.perf_counter() - t0)
+    check_key_range(deepest_m, K, T_world_camera, depth.shape, cfg.band_m)
+    features = _FEATURE_WORKER.submit(_pixel_features, engine.feature_nets[s], engine.times, depth, rgb)
+    return PreparedFrame(s, depth, K, T_world_camera, features, time.perf_counter() - t0)
+
+
+def warm_up(engine: SenFuNet) -> None:
+    """Compile (or load from numba's cache) every kernel on a small synthetic frame per sensor,
+    then forget it: the first real frame and update then run at full speed."""
+    size = 4 * engine.config.border_px + 32
+    depth_m = 0.5 * (engine.config.depth_min_m[0] + engine.config.depth_max_m[0])
+    # pixels half a voxel apart on the plane: cells with all corners observed, which the weighting
+    # net's kernels need to run at all
+    focal = 2.0 * depth_m / engine.config.voxel_size_m
+    K = np.array([[focal, 0, (size - 1) / 2], [0, focal, (size - 1) / 2], [0, 0, 1]], np.float64)
+    depth = np.full((size, size), depth_m, np.float32)
+    rgb = np.full((size, size, 3), 128, np.uint8)
+    for sensor in engine.config.sensors:
+        engine.integrate(sensor, depth, K, np.eye(4), rgb)
+    engine.update()
+    engine.extract_mesh(engine.config.sensors[0])
+    warm_up_lookups()
+    engine.reset(report_cleared=False)
+    # the alpha threads the update started share the warming thread's priority: the first real
+    # update starts them again from its own thread (the live node's mesh thread, of lower priority)
+    engine.alpha.stop_workers()

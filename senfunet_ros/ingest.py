@@ -789,6 +789,8 @@ def integrate_ready(engine: Any, items: Iterable[Frame | TimeJump], on_time_jump
     on_frame(frame, error, seconds) follows each frame: error is None once it is integrated, or what
     the engine raised (the frame is lost, the map is not), or NoDepthInRange (nothing to integrate);
     seconds is the engine time it took."""
+    from senfunet_core.engine import prepare_frame
+
     ahead: tuple[Frame, Any, float] | None = None
 
     def finish() -> None:
@@ -814,8 +816,9 @@ def integrate_ready(engine: Any, items: Iterable[Frame | TimeJump], on_time_jump
             on_time_jump(item)
             continue
         start = time.perf_counter()
+        prepared: Any
         try:
-            prepared = engine.prepare(item.sensor, item.depth_m, item.K, item.T_world_camera, item.rgb)
+            prepared = prepare_frame(engine, item.sensor, item.depth_m, item.K, item.T_world_camera, item.rgb)
         except Exception as err:  # noqa: BLE001
             prepared = err
         seconds = time.perf_counter() - start

@@ -187,7 +187,9 @@ class MeshPublisher:
                 self._next_weights_s = now + 1.0 / s.weights_rate_hz
                 band = s.weights_band_m
                 # alpha as the budgeted updates left it (NaN: not evaluated yet), not a full refresh
-                cloud = engine.weight_cloud(band if band > 0 else None, refresh_alpha=False)
+                from senfunet_core.readout import weight_cloud
+
+                cloud = weight_cloud(engine, band if band > 0 else None, refresh_alpha=False)
                 self._timings["weights"].add(time.perf_counter() - t_update)
             t_cloud = time.perf_counter()
             frame_id = s.fixed_frame

@@ -517,7 +517,7 @@ def make_engine(settings: P.Settings, logger: Any) -> Any:
     """The node's engine, its kernels compiled (or loaded from numba's cache) before the first frame."""
     # heavy (torch): imported when a node is made, not when this module is
     from senfunet_core import decimate
-    from senfunet_core.engine import SenFuNet
+    from senfunet_core.engine import SenFuNet, warm_up
     from senfunet_core.networks import choose_device
 
     fallback = choose_device(settings.device, cpu_fallback=True).fallback_reason
@@ -530,7 +530,7 @@ def make_engine(settings: P.Settings, logger: Any) -> Any:
     # whichever thread starts them (a ~/save_mesh call before the first update does)
     engine = SenFuNet(P.engine_config(settings), weights=weights, worker_setup=at_mesh_priority)
     start = time.monotonic()
-    engine.warm_up()  # compile the kernels now, not in the first frame's integration
+    warm_up(engine)  # compile the kernels now, not in the first frame's integration
     conv.marker_array_cdr({}, (), stamp_ns=0, frame_id="")
     decimate.warm_up()
     logger.info(f"engine kernels ready in {time.monotonic() - start:.1f} s")

@@ -29,6 +29,7 @@ import torch
 from ..grid import BLOCK, BLOCK_VOXELS
 from ..metrics import grid_metrics, mesh_metrics
 from ..networks import N_FEATURE_CHANNELS
+from ..readout import voxel_values
 
 METHODS = ("tof", "stereo", "tsdf_fusion", "senfunet_nofilter", "senfunet")
 METHOD_LABELS = {
@@ -162,14 +163,14 @@ def method_metrics(engine, scene, gt_vertices_cropped: np.ndarray, methods=METHO
     truth = GridTruth(engine, scene, band) if truth is None else truth
     vs = engine.config.voxel_size_m
     if common:
-        ref_centres, _ = engine.voxel_values("tsdf_fusion", filtered=True)
+        ref_centres, _ = voxel_values(engine, "tsdf_fusion", filtered=True)
         ref_keys = _voxel_keys(ref_centres, vs)
         order = np.argsort(ref_keys)
         ref_keys, ref_gt = ref_keys[order], truth.at(ref_centres)[order]
     out: dict[str, dict[str, float]] = {}
     for method in methods:
         which, filtered = _which(method)
-        centres, tsdf = engine.voxel_values(which, filtered=filtered)
+        centres, tsdf = voxel_values(engine, which, filtered=filtered)
         row = grid_metrics(tsdf, truth.at(centres))
         if common:
             pred = np.full(len(ref_keys), np.nan)

@@ -18,7 +18,7 @@ def alpha_statistics(engine) -> dict[str, float]:
     """How an engine's alpha splits the work: mean alpha and the share of alpha > 0.5 on voxels both
     sensors saw, and the share of single-sensor voxels the outlier filter keeps (a collapsed net
     shows alpha = 1 everywhere: all ToF, every stereo-only voxel dropped). Call it after the fused
-    grid was read (`voxel_values("fused")` or a fused mesh): alpha is up to date then."""
+    grid was read (`readout.voxel_values(engine, "fused")` or a fused mesh): alpha is up to date then."""
     grid = engine.grid
     n = grid.n_blocks
     w0 = grid.pools["weight0"][:n].reshape(-1).float()

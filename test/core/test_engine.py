@@ -16,13 +16,14 @@ from scipy.spatial import cKDTree
 
 from senfunet_core import networks
 from senfunet_core.alpha import near_surface_voxels
-from senfunet_core.engine import EngineConfig, SenFuNet
+from senfunet_core.engine import EngineConfig, SenFuNet, warm_up
 from senfunet_core.errors import InputError
 from senfunet_core.fusion import fuse
 from senfunet_core.grid import (ALPHA_UNKNOWN, BLOCK, block_keys, decode_alpha, decode_features,
                                 decode_saved_features, encode_alpha, encode_features, voxel_centres)
 from senfunet_core.mesher import Mesh, weld
 from senfunet_core.map_file import load_map, save_map
+from senfunet_core.readout import voxel_values, weight_cloud
 from senfunet_core.spill import spilled_rows
 
 VOXEL = 0.01
@@ -92,10 +93,13 @@ def render_plane_z(z_plane, K, T, size=128) -> np.ndarray:
 
 
 def constant_alpha(engine: SenFuNet, alpha: float) -> None:
-    """Make the weighting net output `alpha` everywhere (a known weighting for the fusion tests)."""
+    """Make the weighting net output `alpha` everywhere (a known weighting for the fusion tests); the
+    blocks fused so far are re-evaluated by the next update."""
     with torch.no_grad():
         engine.weighting_net.conv3.weight.zero_()
         engine.weighting_net.conv3.bias.fill_(math.log(alpha / (1 - alpha)))
+    with engine.data_lock:
+        engine.store.stale[: engine.grid.n_blocks] = 2
 
 
 def engine_for_tests(worker_setup=None, **overrides) -> SenFuNet:
@@ -132,7 +136,7 @@ def test_plane_tsdf_matches_analytic_distance():
     K = pinhole(400.0)  # narrow field of view: the projective distance is close to the true one
     T = look_at((0.03, 0.02, 1.0), (0.03, 0.02, 0.0))
     engine.integrate("tof", render_plane_z(0.0, K, T), K, T)
-    centres, tsdf = engine.voxel_values("tof")
+    centres, tsdf = voxel_values(engine, "tof")
     expected = centres[:, 2]  # signed distance to the plane z = 0, positive on the camera side
     near = np.abs(expected) <= 0.03
     assert near.sum() > 1000
@@ -176,7 +180,7 @@ def test_sphere_tsdf_matches_analytic_distance():
     eye = np.array([0.0, -1.0, 0.2])
     T = look_at(eye, SPHERE_C)
     engine.integrate("tof", render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
-    centres, tsdf = engine.voxel_values("tof")
+    centres, tsdf = voxel_values(engine, "tof")
     radial = centres - SPHERE_C
     expected = np.linalg.norm(radial, axis=1) - SPHERE_R
     towards_camera = eye - centres
@@ -338,7 +342,7 @@ def test_fusion_equation_on_c12_c1_c2():
     v2, w2 = grid.pools["tsdf1"][:n].flatten(), grid.pools["weight1"][:n].flatten()
     centres = voxel_centres(grid.coords[:n], VOXEL).reshape(-1, 3).numpy()
     keys_by_position = {tuple(np.round(c / VOXEL).astype(int)): i for i, c in enumerate(centres)}
-    got_centres, got = engine.voxel_values("fused", filtered=False)
+    got_centres, got = voxel_values(engine, "fused", filtered=False)
     idx = np.array([keys_by_position[tuple(np.round(c / VOXEL).astype(int))] for c in got_centres])
     v1, w1, v2, w2 = (t.float().numpy()[idx] for t in (v1, w1, v2, w2))
     c12, c1, c2 = (w1 > 0) & (w2 > 0), (w1 > 0) & (w2 == 0), (w1 == 0) & (w2 > 0)
@@ -348,11 +352,10 @@ def test_fusion_equation_on_c12_c1_c2():
     np.testing.assert_allclose(got[c1], v1[c1], atol=1e-7)
     np.testing.assert_allclose(got[c2], v2[c2], atol=1e-7)
     # the outlier filter: alpha 0.3 < 0.5 drops exactly the sensor-1-only voxels
-    kept, _ = engine.voxel_values("fused", filtered=True)
+    kept, _ = voxel_values(engine, "fused", filtered=True)
     assert len(kept) == int(c12.sum() + c2.sum())
-    constant_alpha(engine, 0.7)
-    engine.networks_changed()  # the net changed: re-evaluate everywhere
-    kept, _ = engine.voxel_values("fused", filtered=True)
+    constant_alpha(engine, 0.7)  # the net changed: alpha is re-evaluated everywhere
+    kept, _ = voxel_values(engine, "fused", filtered=True)
     assert len(kept) == int(c12.sum() + c1.sum())
 
 
@@ -390,7 +393,7 @@ def test_running_average_and_weight_clip():
     weights = engine.grid.pools["weight0"][: engine.grid.n_blocks]
     assert weights.max().item() == 3.0
     # a voxel seen by every frame: average with the clipped weight, (W*V + v) / (W + 1), W <= 3
-    centres, tsdf = engine.voxel_values("tof")
+    centres, tsdf = voxel_values(engine, "tof")
     probe = np.argmin(np.linalg.norm(centres - np.array([0.0, 0.0, 0.0]), axis=1))
     expected = 0.0
     for i, z in enumerate(planes_z):
@@ -549,12 +552,12 @@ def test_invalid_depth_pixels_are_skipped():
     bad[::3, 1::3] = 0.0
     assert engine.integrate("tof", np.full_like(depth, np.nan), K, T) == 0
     engine.integrate("tof", bad, K, T)
-    centres, tsdf = engine.voxel_values("tof")
+    centres, tsdf = voxel_values(engine, "tof")
     assert np.all(np.isfinite(tsdf)) and len(tsdf) > 1000
     reference = engine_for_tests(border_px=0)
     good_only = np.where(np.isfinite(bad) & (bad > 0), bad, 0).astype(np.float32)
     reference.integrate("tof", good_only, K, T)
-    assert len(reference.voxel_values("tof")[1]) == len(tsdf)
+    assert len(voxel_values(reference, "tof")[1]) == len(tsdf)
 
 
 def test_weight_cloud_reports_each_voxel_where_it_is_with_its_own_alpha_and_weights():
@@ -570,14 +573,14 @@ def test_weight_cloud_reports_each_voxel_where_it_is_with_its_own_alpha_and_weig
         half = depth.copy()
         half[:, depth.shape[1] // 2:] = 0
         engine.integrate("stereo", half, K, T)
-    cloud = engine.weight_cloud()
+    cloud = weight_cloud(engine)
     n = len(cloud.positions_m)
     assert n > 1000 and cloud.alpha.shape == (n,) and cloud.weights.shape == (n, 2)
     # the net's output as the grid stores it (float16), not another channel
     np.testing.assert_allclose(cloud.alpha, np.rint(0.8 * 254) / 254, atol=1e-7)  # as stored (grid.encode_alpha)
     tof, stereo = cloud.weights[:, 0], cloud.weights[:, 1]
     assert np.all(tof >= stereo) and np.any((tof > 0) & (stereo == 0)) and np.any(stereo > 0)
-    near = engine.weight_cloud(max_abs_tsdf_m=VOXEL)
+    near = weight_cloud(engine, max_abs_tsdf_m=VOXEL)
     assert 0 < len(near.positions_m) < n
     radius_m = np.linalg.norm(near.positions_m - SPHERE_C, axis=1)
     assert np.abs(radius_m - SPHERE_R).max() < 1.5 * VOXEL  # voxel centres in metres, in the world frame
@@ -1367,7 +1370,7 @@ def test_warm_up_compiles_every_kernel_a_stream_calls():
     """A kernel first compiled in the middle of a stream stalls the node for seconds (GIL held):
     after warm_up, frames, updates and statistics compile nothing new."""
     engine = SenFuNet(EngineConfig(depth_min_m=(0.05, 0.05)), weights="default")
-    engine.warm_up()
+    warm_up(engine)
     before = _kernel_signatures()
     K = SPHERE_K
     rgb = np.full((128, 128, 3), 100, np.uint8)
@@ -1440,7 +1443,7 @@ def test_the_alpha_threads_share_the_priority_of_the_thread_that_updates():
     import threading
 
     engine = engine_for_tests(alpha_threads=2)
-    engine.warm_up()  # from this thread, at its priority
+    warm_up(engine)  # from this thread, at its priority
     K, T = SPHERE_K, SPHERE_VIEWS[0]
     depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
     engine.integrate("tof", depth, K, T)

@@ -127,7 +127,6 @@ def test_an_evicted_block_whose_final_mesh_is_empty_is_deleted_from_the_subscrib
     apply(engine.update())
     near = set(shown)
     constant_alpha(engine, 0.1)  # then distrusted
-    engine.networks_changed()
     integrate_views(engine, far_views(2))  # the near sphere is evicted
     apply(engine.update(alpha_budget_s=0))
     assert engine.stats()["evicted_blocks"] > 50

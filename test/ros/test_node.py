@@ -336,6 +336,7 @@ def _visible_gt(gt_vertices: np.ndarray, seq: Any, border_px: int = 10, tol_m: f
 def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: Path) -> None:
     from senfunet_core.metrics import mesh_metrics
     from senfunet_core.ply import read_ply
+    from senfunet_core.readout import weight_cloud
     from senfunet_core.learning.simulator import gt_mesh, make_scene, simulate_sequence
 
     prefix = "e2e"
@@ -424,7 +425,7 @@ def test_streamed_scene_mesh_weights_save_reset_late_subscriber(ros, tmp_path: P
         voxel_m = E2E_PARAMS["voxel_size_m"]
         voxels = np.round(table[:, :3] / voxel_m).astype(np.int64)
         np.testing.assert_allclose(table[:, :3], voxels * voxel_m, atol=1e-4)  # voxel centres, metres
-        engine_cloud = run.node.engine.weight_cloud(refresh_alpha=False)
+        engine_cloud = weight_cloud(run.node.engine, refresh_alpha=False)
         expected = {tuple(v): (a, *w) for v, a, w in zip(
             np.round(engine_cloud.positions_m / voxel_m).astype(np.int64).tolist(), engine_cloud.alpha.tolist(),
             engine_cloud.weights.tolist())}

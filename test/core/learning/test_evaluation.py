@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from senfunet_core.learning import evaluation as ev
+from senfunet_core.readout import voxel_values
 from senfunet_core.learning import report
 
 
@@ -83,7 +84,7 @@ def test_grid_truth_lookup_equals_gt_tsdf_at_the_voxel_centres():
     gt_vertices = ev.observed_gt_vertices(engine, simulator.gt_mesh(scene, 0.02).vertices)
     rows = ev.method_metrics(engine, scene, gt_vertices, methods=("tof", "senfunet"))
     for method, which in (("tof", "tof"), ("senfunet", "fused")):
-        centres, tsdf = engine.voxel_values(which)
+        centres, tsdf = voxel_values(engine, which)
         want = simulator.gt_tsdf(scene, centres, 0.1)
         np.testing.assert_allclose(truth.at(centres), want, atol=1e-6)
         expected = grid_metrics(tsdf, want)

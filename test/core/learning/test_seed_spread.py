@@ -78,6 +78,7 @@ def test_grid_truth_is_shared_between_engines_with_the_same_blocks():
     """Another engine over the same frames (other networks) has the same block layout: the truth is
     shared, and looks up what a fresh one would; an engine over other frames gets its own."""
     from senfunet_core.engine import EngineConfig, SenFuNet
+    from senfunet_core.readout import voxel_values
     from senfunet_core.learning import simulator
 
     scene = simulator.make_scene(7, room_size_m=(2.5, 2.5, 2.4))
@@ -90,7 +91,7 @@ def test_grid_truth_is_shared_between_engines_with_the_same_blocks():
     truth = ev.GridTruth(engines[0], scene, 0.1)
     shared = truth.for_engine(engines[1], scene)
     assert shared.values is truth.values and shared.engine is engines[1]
-    centres, _ = engines[1].voxel_values("tof")
+    centres, _ = voxel_values(engines[1], "tof")
     assert (shared.at(centres) == ev.GridTruth(engines[1], scene, 0.1).at(centres)).all()
     own = truth.for_engine(engines[2], scene)
     assert own.values is not truth.values and own.n_blocks == engines[2].grid.n_blocks
