@@ -83,7 +83,8 @@ def run_node_case(args: argparse.Namespace) -> dict:
     overrides = {f"{s}.{k}_topic": f"/senfunet_bench_{os.getpid()}/{s}/{k}"  # nothing else talks to it
                  for s in ("tof", "stereo") for k in ("depth", "color", "camera_info", "pose")}
     if args.mode == "throughput":  # nothing may expire or be skipped while the feeder waits on the node
-        overrides.update(pose_max_wait_s=600.0, pose_buffer_size=100_000, max_lag_s=0.0)  # the ranges allowed
+        # (the ranges allowed; a restart is a jump longer than the pose wait, time_jump_s >= pose_max_wait_s)
+        overrides.update(pose_max_wait_s=600.0, time_jump_s=600.0, pose_buffer_size=100_000, max_lag_s=0.0)
     node = FusionNode(namespace="bench", parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
     spinner = threading.Thread(target=spin, args=(node,), daemon=True)
     spinner.start()
