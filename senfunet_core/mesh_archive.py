@@ -16,14 +16,13 @@ import numpy as np
 import torch
 
 from .grid import BLOCK, keys_to_coords
-from .mesh_chunks import SEAL_BYTES, MeshChunks, packed_keys
+from .mesh_chunks import FIELD_NAMES, SEAL_BYTES, MeshChunks, packed_keys
 from .block_mesher import joined
 from .mesher import BlockMeshes, Mesh
 
 __all__ = ["MeshArchive"]
 
 BlockKey = tuple[int, int, int]
-_STATE = ("keys", "vertices", "colors", "faces", "vertex_offsets", "face_offsets")  # BlockMeshes' fields
 _AROUND = np.array(list(np.ndindex(3, 3, 3)), np.int64) - 1  # a block and its 26 neighbours
 
 
@@ -96,11 +95,11 @@ class MeshArchive:
 
     def state_dict(self) -> dict[str, np.ndarray]:
         m = self.meshes()  # (a chunk's own arrays when it is the only one: copied, writable, in RAM)
-        return {name: np.array(getattr(m, name)) for name in _STATE}
+        return {name: np.array(getattr(m, name)) for name in FIELD_NAMES}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self.chunks.clear()
-        self.chunks.put(BlockMeshes(*(np.asarray(state[name]) for name in _STATE)))
+        self.chunks.put(BlockMeshes(*(np.asarray(state[name]) for name in FIELD_NAMES)))
 
 
 def as_mesh(meshes: BlockMeshes) -> Mesh:

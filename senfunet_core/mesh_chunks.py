@@ -24,7 +24,7 @@ import torch
 from .grid import block_keys
 from .mesher import BlockMeshes
 
-__all__ = ["MeshChunks", "SEAL_BYTES", "packed_keys"]
+__all__ = ["FIELD_NAMES", "MeshChunks", "SEAL_BYTES", "packed_keys"]
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +32,7 @@ SEAL_BYTES = 32 << 20  # a chunk this large goes to disk: what stays in RAM is a
 MAX_CHUNK_BYTES_PER_SEAL = 8  # chunks merge up to this many times seal_bytes
 _FIELDS = (("keys", np.int64), ("vertices", np.float32), ("colors", np.float32), ("faces", np.int32),
            ("vertex_offsets", np.int64), ("face_offsets", np.int64))
+FIELD_NAMES = tuple(name for name, _ in _FIELDS)  # BlockMeshes' arrays, in its order
 _ALIGN = 64  # bytes: where each array starts in a chunk's file
 
 
@@ -45,7 +46,7 @@ class _Chunk:
 
     @property
     def nbytes(self) -> int:
-        return sum(getattr(self.meshes, name).nbytes for name, _ in _FIELDS)
+        return _nbytes(self.meshes)
 
     def alive_meshes(self) -> BlockMeshes:
         """The blocks not replaced (copies, or the chunk's own arrays when it has no dead block)."""
@@ -59,6 +60,10 @@ class _Chunk:
         rows = self.order[at]
         found = (self.packed[at] == packed) & self.alive[rows]
         return found, rows[found]
+
+
+def _nbytes(meshes: BlockMeshes) -> int:
+    return sum(getattr(meshes, name).nbytes for name in FIELD_NAMES)
 
 
 def packed_keys(coords: np.ndarray) -> np.ndarray:
@@ -166,7 +171,7 @@ class MeshChunks:
     def _append(self, chunk: _Chunk) -> None:
         """Add a chunk of keys not held; merge the last two chunks while the one before the last is at most
         twice the last (sizes fall geometrically: each mesh is copied O(log n) times) and together they fit
-        in a chunk; what reaches `seal_bytes` goes to a file."""
+        in a chunk (`_chunk` puts what reaches `seal_bytes` in a file)."""
         self._chunks.append(chunk)
         self.n_blocks += len(chunk.alive)
         self.n_faces += int(chunk.meshes.face_offsets[-1])
@@ -175,12 +180,10 @@ class MeshChunks:
                and chunks[-2].nbytes + chunks[-1].nbytes <= MAX_CHUNK_BYTES_PER_SEAL * self.seal_bytes):
             last, before = chunks.pop(), chunks.pop()
             chunks.append(self._chunk([before.alive_meshes(), last.alive_meshes()]))
-        if not chunks[-1].on_disk and chunks[-1].nbytes >= self.seal_bytes:
-            chunks[-1] = self._chunk([chunks[-1].meshes])
 
     def _chunk(self, parts: list[BlockMeshes]) -> _Chunk:
         """A chunk of these meshes, in a file if they take `seal_bytes` or more and it can be written."""
-        if sum(sum(getattr(p, name).nbytes for name, _ in _FIELDS) for p in parts) >= self.seal_bytes:
+        if sum(_nbytes(p) for p in parts) >= self.seal_bytes:
             try:
                 return _new_chunk(_on_disk(parts, self.directory), on_disk=True)
             except OSError as err:  # warned once, counted (the archive's stats)
