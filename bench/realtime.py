@@ -97,7 +97,7 @@ def run_node_case(args: argparse.Namespace) -> dict:
         for msg in messages:
             t0_bag = msg.log_time_ns if t0_bag is None else t0_bag
             if args.mode == "realtime":
-                delay = (msg.log_time_ns - t0_bag) / 1e9 - (time.monotonic() - start)
+                delay = (msg.log_time_ns - t0_bag) / 1e9 / args.rate - (time.monotonic() - start)
                 if delay > 0:
                     time.sleep(delay)
             else:  # frames may also wait for a later pose only this feeder delivers: never wait long
@@ -493,12 +493,18 @@ def main() -> None:
     ap.add_argument("--cache", default=str(ROOT / "bench" / ".cache"))
     ap.add_argument("--max-seconds", type=float, default=0.0, help="only the first seconds of each bag (0 = all)")
     ap.add_argument("--open3d-frames", type=int, default=60, help="frames for the Open3D comparison (0 = skip it)")
+    ap.add_argument("--rate", type=float, default=1.0,
+                    help="realtime mode: the recorded times divided by this (0.5: half speed, slower sensors)")
     ap.add_argument("--no-write", dest="write", action="store_false")
     ap.add_argument("--no-replay-check", dest="replay_check", action="store_false",
                     help="skip replaying each bag to compare the live mesh with replay's (realtime mode)")
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--mode", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.rate <= 0:
+        ap.error("--rate must be positive")
+    if args.write and args.rate != 1.0:
+        ap.error("docs/performance.md holds the recorded rate's figures: add --no-write to --rate")
     if args.case:  # child process: one case in one mode, JSON on the last line
         result = run_open3d(args) if args.mode == "open3d" else run_node_case(args)
         print(json.dumps(result), flush=True)
