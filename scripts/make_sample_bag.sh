@@ -13,10 +13,8 @@ cd "$(dirname "$0")/.."
 SEED=${SEED:-2024}
 DURATION=${DURATION:-4}
 OUT=${OUT:-bags}
-tmp=$(mktemp -d)
-trap 'rm -rf "$tmp"' EXIT
 mkdir -p "$OUT"
 rm -rf "$OUT/sim_room" "$OUT/sim_room_gt.ply"
 .venv/bin/senfunet simulate --seed "$SEED" --duration "$DURATION" --tof-rate 15 --stereo-rate 20 \
-  --out "$tmp/dataset" --bag "$OUT/sim_room" --storage mcap --gt "$OUT/sim_room_gt.ply" --no-progress
+  --bag "$OUT/sim_room" --storage mcap --gt "$OUT/sim_room_gt.ply" --no-progress
 du -sh "$OUT/sim_room" "$OUT/sim_room_gt.ply"

@@ -20,14 +20,16 @@ Errors: `BagError` (one line saying which file or topic is wrong and what to do)
 be opened or written; `BagBrokenError` from `BagReader.messages` when a bag breaks midway (the
 messages before the break have been yielded). A truncated `.mcap` without its summary is read
 sequentially up to the break. Compressed storage is read as rosbags and the mcap library read it
-(mcap chunks in zstd or lz4; rosbag2's zstd file and message modes); another compression is a
-BagError that says to convert the bag.
+(mcap chunks in zstd or lz4; rosbag2's zstd file and message modes; file-compressed `.mcap.zstd` and
+`.db3.zstd` files without their metadata.yaml are decompressed into a temporary folder first);
+another compression is a BagError that says to convert the bag.
 """
 from __future__ import annotations
 
 import heapq
 import importlib
 import re
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -433,18 +435,74 @@ def _open_source(path: Path) -> _Source:
             return source
         if (path / "metadata.yaml").is_file():
             return _open_rosbags(path)
+        zipped = sorted(part for part in path.iterdir() if part.name.endswith(_ZIPPED))
+        if zipped and not parts:
+            return _decompressed(zipped, f"{path} has no metadata.yaml")
         storage = bag_storage_file(path) if any(path.glob("*.mcap")) or any(path.glob("*.db3")) else None
         if storage is None:
-            raise BagError(f"{path}: not a rosbag2 folder (no metadata.yaml and no .mcap or .db3 file)")
+            raise BagError(f"{path}: not a rosbag2 folder (no metadata.yaml and no .mcap, .db3, .mcap.zstd or "
+                           ".db3.zstd file)")
         source = _open_rosbags(storage)
         source.note = f"{path} has no metadata.yaml; reading {storage.name} directly"
         return source
     if path.suffix in (".mcap", ".db3"):
         return _open_rosbags(path)
+    if path.name.endswith(_ZIPPED):
+        return _decompressed([path], f"{path} is compressed")
     if _is_ros1_bag(path):
         raise BagError(f"{path}: a ROS 1 bag; convert it to rosbag2 first: "
                        f"rosbags-convert --src {path} --dst {path.with_suffix('')}")
     raise BagError(f"{path}: not a bag; pass a rosbag2 folder or a .mcap file")
+
+
+_ZIPPED = (".mcap.zstd", ".db3.zstd")  # rosbag2's file compression: each storage file in one zstd frame
+
+
+class _DecompressedSource(_Source):
+    """A source read from storage files decompressed into a temporary folder, which goes on close."""
+
+    def __init__(self, inner: _Source, folder: tempfile.TemporaryDirectory, note: str) -> None:
+        self._inner, self._folder = inner, folder
+        self.storage, self.topics, self.message_count = inner.storage, inner.topics, inner.message_count
+        self.start_ns, self.end_ns = inner.start_ns, inner.end_ns
+        self.note = f"{note}; {inner.note}" if inner.note else note
+
+    def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
+        return self._inner.messages(topics)
+
+    def close(self) -> None:
+        try:
+            self._inner.close()
+        finally:
+            self._folder.cleanup()
+
+
+def _decompressed(files: list[Path], why: str) -> _Source:
+    """Storage files compressed whole with zstd (rosbag2's file mode), without the metadata.yaml that
+    says so to rosbags: each decompressed into a temporary folder, then read from there."""
+    import zstandard
+
+    folder = tempfile.TemporaryDirectory(prefix="senfunet-bag-")
+    try:
+        plain = []
+        for file in files:
+            out = Path(folder.name) / file.name.removesuffix(".zstd")
+            try:
+                with file.open("rb") as source, out.open("wb") as target:
+                    zstandard.ZstdDecompressor().copy_stream(source, target)
+            except zstandard.ZstdError as err:
+                raise BagError(f"{file}: cannot decompress it as zstd ({err}); is it a rosbag2 file-compressed "
+                               "storage file?") from err
+            except OSError as err:
+                raise BagError(f"{file}: cannot decompress it into {folder.name} ({err}); free some space "
+                               "there, or decompress it yourself (zstd -d) and pass the result") from err
+            plain.append(out)
+        inner = _open_rosbags(plain[0]) if len(plain) == 1 else _MergedSource([_open_rosbags(p) for p in plain])
+    except BaseException:
+        folder.cleanup()
+        raise
+    names = ", ".join(file.name for file in files)
+    return _DecompressedSource(inner, folder, f"{why}; reading {names} decompressed into a temporary folder")
 
 
 def _open_rosbags(path: Path) -> _Source:

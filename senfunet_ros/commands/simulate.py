@@ -11,7 +11,8 @@ HELP = "simulate a room scanned by a ToF and a stereo camera: dataset folder, op
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="scene and sensor-noise seed (default 0)")
     parser.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds of recording (default 10)")
-    parser.add_argument("--out", required=True, metavar="DIR", help="dataset folder to write (frames, poses, GT mesh)")
+    parser.add_argument("--out", metavar="DIR", help="dataset folder to write (frames, poses, GT mesh); this, --bag or "
+                        "--gt is needed")
     parser.add_argument("--bag", metavar="PATH",
                         help="also write the stream as a rosbag2 folder in the ROS topic layout")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="bag storage (default mcap)")
@@ -33,7 +34,10 @@ def run(args: argparse.Namespace) -> int:
     from senfunet_core.ply import write_ply
     from senfunet_ros.bagio import BagError, write_sequence_bag
 
-    out = Path(args.out)
+    if not (args.out or args.bag or args.gt):
+        print("senfunet simulate: nothing to write; pass --out DIR (the dataset), --bag PATH or --gt PLY",
+              file=sys.stderr)
+        return 2
     bag = Path(args.bag) if args.bag else None
     if bag is not None and bag.exists():
         print(f"senfunet simulate: {bag} exists already; remove it or choose another --bag path", file=sys.stderr)
@@ -44,8 +48,9 @@ def run(args: argparse.Namespace) -> int:
               f"{args.duration:g} s", file=sys.stderr)
         seq = sim.simulate_sequence(scene, args.seed, duration_s=args.duration, tof_rate_hz=args.tof_rate,
                                     stereo_rate_hz=args.stereo_rate, pose_rate_hz=args.pose_rate)
-        sim.write_dataset(seq, out, gt_voxel_size_m=args.gt_voxel)
-        print(f"dataset: {out} ({len(seq.frames)} frames)")
+        if args.out:
+            sim.write_dataset(seq, Path(args.out), gt_voxel_size_m=args.gt_voxel)
+            print(f"dataset: {args.out} ({len(seq.frames)} frames)")
         if args.gt:
             write_ply(args.gt, sim.gt_mesh(scene, args.gt_voxel))
             print(f"ground truth mesh: {args.gt}")

@@ -5,6 +5,7 @@ import hashlib
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -465,6 +466,33 @@ def test_compressed_bags_read_whole(prefix: Path, tmp_path: Path, how: str):
     from odd_bags import compressed
 
     assert _digest(compressed(prefix, tmp_path / "bag", how)) == _digest(prefix)
+
+
+def test_file_compressed_storage_without_metadata_reads_whole(prefix: Path, tmp_path: Path):
+    """rosbag2's file compression (x.db3.zstd, x.mcap.zstd) in a folder without metadata.yaml, or as a
+    bare file: decompressed into a temporary folder (gone once the reader closes), then read."""
+    import zstandard
+    from odd_bags import compressed
+
+    db3 = compressed(prefix, tmp_path / "db3", "db3-file")
+    (db3 / "metadata.yaml").unlink()
+    mcap = tmp_path / "mcap"
+    mcap.mkdir()
+    plain = next(prefix.glob("*.mcap"))
+    (mcap / f"{plain.name}.zstd").write_bytes(zstandard.ZstdCompressor().compress(plain.read_bytes()))
+    reference = _digest(prefix)
+    folders = Path(tempfile.gettempdir()).glob
+    for bag in (db3, next(db3.glob("*.db3.zstd")), mcap, next(mcap.iterdir())):
+        before = set(folders("senfunet-bag-*"))
+        with open_bag(bag) as reader:
+            assert reader.note and "decompressed into a temporary folder" in reader.note, bag
+            unpacked = set(folders("senfunet-bag-*")) - before
+            assert unpacked
+        assert not any(folder.exists() for folder in unpacked)
+        assert _digest(bag) == reference, bag
+    (mcap / "broken.db3.zstd").write_bytes(b"not zstd at all")
+    with pytest.raises(BagError, match="cannot decompress it as zstd"):
+        open_bag(mcap / "broken.db3.zstd")
 
 
 def test_a_compression_rosbags_cannot_read_is_named_with_what_to_do(prefix: Path, tmp_path: Path, tiny_params: Path):

@@ -13,8 +13,6 @@ SNAPSHOT_MAX_BYTES = 30_000_000
 
 @pytest.mark.slow
 def test_sample_room_snapshot_is_small_and_saved_mesh_full(capsys: pytest.CaptureFixture) -> None:
-    import torch
-
     from senfunet_core.decimate import decimate_block_meshes
     from senfunet_core.engine import SenFuNet
     from senfunet_ros import conversions as conv
@@ -23,7 +21,6 @@ def test_sample_room_snapshot_is_small_and_saved_mesh_full(capsys: pytest.Captur
     from senfunet_ros.pipeline import Pipeline
     from senfunet_ros.replay import _fuse, load_settings
 
-    torch.set_num_threads(1)
     settings = load_settings()  # the node's defaults
     engine = SenFuNet(P.engine_config(settings, alpha_dtype="float32"), weights=P.engine_weights(settings))
     pipeline = Pipeline(engine, Ingest(P.ingest_config(settings)))
