@@ -84,33 +84,11 @@ def rasterize(mesh: Mesh, T_world_camera: np.ndarray, width: int, height: int,
         u = f * Vc[:, 0] / z + width / 2
         v = f * Vc[:, 1] / z + height / 2
 
-    # Triangles with a vertex behind the near plane are dropped (no clipping: the default
-    # camera always sees the whole scene in front of it).
-    zf = z[F]
-    keep = (zf > near).all(axis=1) & np.isfinite(zf).all(axis=1)
-    uf, vf = u[F], v[F]
-    # (per-column minimum and maximum: numpy's reductions along a row of 3 are slow)
-    x0 = np.floor(np.minimum(np.minimum(uf[:, 0], uf[:, 1]), uf[:, 2]) - 0.5).astype(np.int64) + 1  # first pixel
-    x1 = np.floor(np.maximum(np.maximum(uf[:, 0], uf[:, 1]), uf[:, 2]) - 0.5).astype(np.int64)  # whose centre >= min
-    y0 = np.floor(np.minimum(np.minimum(vf[:, 0], vf[:, 1]), vf[:, 2]) - 0.5).astype(np.int64) + 1
-    y1 = np.floor(np.maximum(np.maximum(vf[:, 0], vf[:, 1]), vf[:, 2]) - 0.5).astype(np.int64)
-    keep &= (x1 >= 0) & (y1 >= 0) & (x0 < width) & (y0 < height)
-    x0, y0 = np.maximum(x0, 0), np.maximum(y0, 0)
-    x1, y1 = np.minimum(x1, width - 1), np.minimum(y1, height - 1)
-    keep &= (x1 >= x0) & (y1 >= y0)
-    # Signed doubled area; zero-area triangles cover nothing.
-    den = (uf[:, 1] - uf[:, 0]) * (vf[:, 2] - vf[:, 0]) - (uf[:, 2] - uf[:, 0]) * (vf[:, 1] - vf[:, 0])
-    keep &= np.abs(den) > 1e-12
-    tri = np.flatnonzero(keep)
-    if tri.size == 0:
-        return img
-
     zbuf = np.full(width * height, np.inf)
     fbuf = np.full(width * height, -1, np.int64)
     b1buf = np.zeros(width * height)
     b2buf = np.zeros(width * height)
-    _zbuffer(tri, x0, x1, y0, y1, np.ascontiguousarray(uf), np.ascontiguousarray(vf), np.ascontiguousarray(zf), den,
-             width, zbuf, fbuf, b1buf, b2buf)
+    _zbuffer(F, u, v, z, width, height, near, zbuf, fbuf, b1buf, b2buf)
 
     hit = np.flatnonzero(fbuf >= 0)
     if hit.size == 0:
@@ -138,28 +116,40 @@ def rasterize(mesh: Mesh, T_world_camera: np.ndarray, width: int, height: int,
 
 
 @numba.njit(cache=True, nogil=True)
-def _zbuffer(tri: np.ndarray, x0: np.ndarray, x1: np.ndarray, y0: np.ndarray, y1: np.ndarray, uf: np.ndarray,
-             vf: np.ndarray, zf: np.ndarray, den: np.ndarray, width: int, zbuf: np.ndarray, fbuf: np.ndarray,
-             b1buf: np.ndarray, b2buf: np.ndarray) -> None:
-    """Each triangle of `tri`, in order, at the pixel centres of its bounding box [x0, x1] x [y0, y1]
-    inside it (barycentrics with inclusive edges, so adjacent triangles leave no cracks): where its
-    perspective-correct depth (1/z interpolated in screen space) is nearer than zbuf's, it takes the
-    pixel (zbuf, fbuf: its index, b1buf/b2buf: its barycentrics there). A tie keeps the earlier."""
+def _zbuffer(faces: np.ndarray, u: np.ndarray, v: np.ndarray, z: np.ndarray, width: int, height: int, near: float,
+             zbuf: np.ndarray, fbuf: np.ndarray, b1buf: np.ndarray, b2buf: np.ndarray) -> None:
+    """Each triangle of `faces`, in order (u, v: its corners' pixel coordinates, z: their depths), at
+    the pixel centres of its bounding box inside it (barycentrics with inclusive edges, so adjacent
+    triangles leave no cracks): where its perspective-correct depth (1/z interpolated in screen
+    space) is nearer than zbuf's, it takes the pixel (zbuf, fbuf: its index, b1buf/b2buf: its
+    barycentrics there). A tie keeps the earlier. Triangles with a corner behind the near plane are
+    dropped (no clipping: the default camera sees the whole scene in front of it), as are those
+    without area."""
     eps = -1e-7
-    for k in range(tri.size):
-        t = tri[k]
-        u0, u1, u2 = uf[t, 0], uf[t, 1], uf[t, 2]
-        v0, v1, v2 = vf[t, 0], vf[t, 1], vf[t, 2]
-        d = den[t]
-        for py in range(y0[t], y1[t] + 1):
+    for t in range(faces.shape[0]):
+        i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
+        z0, z1, z2 = z[i0], z[i1], z[i2]
+        if not (z0 > near and z1 > near and z2 > near and np.isfinite(z0) and np.isfinite(z1) and np.isfinite(z2)):
+            continue
+        u0, u1, u2 = u[i0], u[i1], u[i2]
+        v0, v1, v2 = v[i0], v[i1], v[i2]
+        # the pixels whose centres lie within the triangle's box
+        x_first = max(int(np.floor(min(u0, u1, u2) - 0.5)) + 1, 0)
+        x_last = min(int(np.floor(max(u0, u1, u2) - 0.5)), width - 1)
+        y_first = max(int(np.floor(min(v0, v1, v2) - 0.5)) + 1, 0)
+        y_last = min(int(np.floor(max(v0, v1, v2) - 0.5)), height - 1)
+        d = (u1 - u0) * (v2 - v0) - (u2 - u0) * (v1 - v0)  # signed doubled area
+        if x_last < x_first or y_last < y_first or abs(d) <= 1e-12:
+            continue
+        for py in range(y_first, y_last + 1):
             pv = py + 0.5
-            for px in range(x0[t], x1[t] + 1):
+            for px in range(x_first, x_last + 1):
                 pu = px + 0.5
                 b1 = ((pu - u0) * (v2 - v0) - (u2 - u0) * (pv - v0)) / d
                 b2 = ((u1 - u0) * (pv - v0) - (pu - u0) * (v1 - v0)) / d
                 b0 = 1.0 - b1 - b2
                 if b0 >= eps and b1 >= eps and b2 >= eps:
-                    depth = 1.0 / (b0 / zf[t, 0] + b1 / zf[t, 1] + b2 / zf[t, 2])
+                    depth = 1.0 / (b0 / z0 + b1 / z1 + b2 / z2)
                     pixel = py * width + px
                     if depth < zbuf[pixel]:
                         zbuf[pixel] = depth
