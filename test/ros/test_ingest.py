@@ -129,6 +129,23 @@ def test_bad_inputs_are_counted(case: str) -> None:
         assert len(counters["errors"][case]) > 20
 
 
+@pytest.mark.parametrize("x_m", [1e6, 1e9, 1e300])
+def test_a_pose_beyond_the_maps_reach_is_refused_and_spoils_no_frame(x_m: float) -> None:
+    """A pose kilometres away (a wrong unit, a glitch) was taken into the pose buffer: the good frame
+    between it and the good poses was interpolated with it (and then refused by the engine, lost),
+    and nothing counted the pose as bad."""
+    ingest = make()
+    ingest.add_camera_info("tof", info_msg())
+    ingest.add_pose("tof", pose_msg(0))
+    assert ingest.add_pose("tof", pose_msg(MS, x=x_m)) == "bad_pose"
+    ingest.add_depth("tof", depth_msg(5 * MS))
+    ingest.add_pose("tof", pose_msg(10 * MS))
+    (frame,) = frames(ingest.pop_ready())
+    np.testing.assert_allclose(frame.T_world_camera, np.eye(4), atol=1e-12)
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["bad_pose"] == 1 and "km from the origin" in counters["errors"]["bad_pose"]
+
+
 def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
     """Drivers publish camera_info and depth on separate topics, so the first depth image may come
     first: it waits for the camera_info, within the queue size and pose_max_wait_s of stream time."""
