@@ -20,7 +20,7 @@ setup(
     # everything the code imports but ROS 2 (pinned versions: requirements.txt; the ROS 2 packages come from
     # the ROS install or the ros-jazzy-* wheels); test/ros/test_packaging.py checks the list
     install_requires=["numpy", "scipy", "numba", "llvmlite", "scikit-image", "pyyaml", "ruamel.yaml", "tqdm", "torch",
-                      "rosbags", "mcap", "zstandard", "opencv-python-headless", "matplotlib"],
+                      "rosbags", "mcap", "zstandard", "opencv-python-headless", "matplotlib", "pillow"],
     python_requires=">=3.11",  # the pinned numpy, scipy and scikit-image need it
     zip_safe=False,
     entry_points={

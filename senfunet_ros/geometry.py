@@ -23,6 +23,9 @@ __all__ = [
 # A quaternion whose norm is off by more than this is a driver bug, not rounding: reject it.
 # Smaller deviations (float32 round trips) are renormalised.
 QUATERNION_NORM_TOLERANCE = 1e-2
+# The map reaches 5 km from the origin (senfunet_core.integrator refuses frames beyond): a pose
+# farther is a wrong unit or frame, refused where it arrives, not interpolated into good frames
+MAX_TRANSLATION_M = 5000.0
 
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:
@@ -63,6 +66,10 @@ def transform_from_tq(t: np.ndarray | Sequence[float], q: np.ndarray | Sequence[
     q = np.asarray(q, dtype=np.float64)
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
         raise ValueError(f"{what} contains NaN or inf; the localisation source lost track, fix it upstream")
+    if float(np.max(np.abs(t))) > MAX_TRANSLATION_M:
+        raise ValueError(f"{what} position ({t[0]:.4g}, {t[1]:.4g}, {t[2]:.4g}) m is more than "
+                         f"{MAX_TRANSLATION_M / 1000:g} km from the origin, beyond the map; check the pose's "
+                         "units (metres) and frame")
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
         raise ValueError(

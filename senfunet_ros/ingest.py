@@ -482,10 +482,15 @@ class Ingest:
     def add_depth(self, sensor: str, msg: Any) -> str | None:
         """Queue one depth image. Returns the drop reason, or None when it was queued (or, before the
         sensor's first camera_info, put aside to wait for it)."""
-        stamp_ns = conv.stamp_to_ns(msg.header.stamp)
+        try:
+            stamp_ns: int | None = conv.stamp_to_ns(msg.header.stamp)
+        except ValueError as err:
+            stamp_ns, stamp_error = None, f"depth: {err}"
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.received += 1
+            if stamp_ns is None:
+                return state.drop("bad_stamp", stamp_error)
             self._last_depth_arrival_s = arrival_s = time.monotonic()
             reason, held = self._time.on_time(sensor, "depth", stamp_ns, (msg, arrival_s))
             taken = reason or state.accept(sensor, "depth", stamp_ns, (msg, arrival_s), self.config)
@@ -493,10 +498,15 @@ class Ingest:
 
     def add_color(self, sensor: str, msg: Any) -> str | None:
         """Buffer one colour image for matching. Returns the drop reason, or None."""
-        stamp_ns = conv.stamp_to_ns(msg.header.stamp)
+        try:
+            stamp_ns: int | None = conv.stamp_to_ns(msg.header.stamp)
+        except ValueError as err:
+            stamp_ns, stamp_error = None, f"color: {err}"
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.color_received += 1
+            if stamp_ns is None:
+                return state.drop("bad_stamp", stamp_error)
             reason, held = self._time.on_time(sensor, "color", stamp_ns, msg)
             taken = reason or state.accept(sensor, "color", stamp_ns, msg, self.config)
         return self._decode_and_put(held, taken)
@@ -539,6 +549,10 @@ class Ingest:
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.pose_received += 1
+            try:
+                conv.stamp_to_ns(msg.header.stamp)
+            except ValueError as err:
+                return state.drop("bad_stamp", f"pose: {err}")
             try:
                 stamp_ns, T = self.config.pose_parser(msg)
                 if sensor in self.config.T_body_camera:

@@ -60,19 +60,28 @@ def _is_compressed(msg: Any) -> bool:
 _COMPRESSED_DEPTH_HEADER = np.dtype([("format", "<i4"), ("depth_a", "<f4"), ("depth_b", "<f4")])
 
 
-def _decode(data: np.ndarray, flags: int, what: str) -> np.ndarray:
-    import cv2
+def _decode(data: np.ndarray, what: str, *, color: bool) -> np.ndarray:
+    """A png/jpeg payload -> (H, W) as stored (color=False) or (H, W, 3) RGB uint8 (color=True).
 
-    # OpenCV would print its own lines for every malformed image, unthrottled, to stderr; the
-    # caller's error says the same, counted and rate-limited (the node's log, ~/status)
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    Pillow, not OpenCV: OpenCV's libpng and libjpeg print a line of their own to stderr for every
+    corrupt image ("libpng error: ...", "Corrupt JPEG data: ..."), unthrottled, once per message; the
+    caller's error says the same, counted and rate-limited (the node's log, ~/status)."""
+    import io
+
+    from PIL import Image as PilImage
+
+    if not data.size:
+        raise ValueError(f"{what} is empty; check the publisher's image_transport")
     try:
-        image = cv2.imdecode(data, flags) if data.size else None
-    except cv2.error as err:
-        raise ValueError(f"{what} cannot be decoded ({str(err).strip().splitlines()[-1]})") from None
-    if image is None:
-        raise ValueError(f"{what} is not a readable png/jpeg image; check the publisher's image_transport")
-    return image
+        with PilImage.open(io.BytesIO(data.tobytes())) as image:
+            image.load()
+            if color:
+                return np.ascontiguousarray(np.asarray(image.convert("RGB"), np.uint8))
+            return np.asarray(image)
+    except Exception as err:  # noqa: BLE001 (Pillow raises OSError, SyntaxError, struct.error... on corrupt data)
+        reason = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
+        raise ValueError(f"{what} is not a readable png/jpeg image ({reason}); check the publisher's "
+                         "image_transport") from None
 
 
 def _compressed_depth_codec(fmt: str) -> str:
@@ -92,8 +101,6 @@ def depth_from_compressed(msg: Any) -> np.ndarray:
     """sensor_msgs/CompressedImage as image_transport's compressedDepth writes it -> depth_m float32
     (H, W): format '16UC1; compressedDepth png|rvl' (millimetres) or '32FC1; compressedDepth png|rvl'
     (inverse depth quantised with the header's parameters)."""
-    import cv2
-
     fmt = str(msg.format)
     data = np.frombuffer(bytes(msg.data), np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8)
     codec = _compressed_depth_codec(fmt)
@@ -107,7 +114,7 @@ def depth_from_compressed(msg: Any) -> np.ndarray:
     if codec == "rvl":
         raw = rvl_decode(payload)
     else:
-        raw = _decode(payload, cv2.IMREAD_UNCHANGED, "compressedDepth payload")
+        raw = _decode(payload, "compressedDepth payload", color=False)
         if raw.dtype != np.uint16 or raw.ndim != 2:
             raise ValueError(f"compressedDepth payload is {raw.dtype} with {raw.ndim} dims; "
                              "expected a 16-bit single-channel png")
@@ -124,11 +131,8 @@ def depth_from_compressed(msg: Any) -> np.ndarray:
 
 def rgb_from_compressed(msg: Any) -> np.ndarray:
     """sensor_msgs/CompressedImage (jpeg or png, image_transport's 'compressed') -> rgb uint8 (H, W, 3)."""
-    import cv2
-
     data = np.frombuffer(bytes(msg.data), np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8)
-    image = _decode(data, cv2.IMREAD_COLOR, f"compressed colour image (format '{msg.format}')")  # BGR
-    return np.ascontiguousarray(image[:, :, ::-1])
+    return _decode(data, f"compressed colour image (format '{msg.format}')", color=True)
 
 
 def depth_from_image(msg: Any) -> np.ndarray:

@@ -313,6 +313,50 @@ def test_a_malformed_compressed_image_raises_without_opencv_printing(capfd: pyte
     assert capfd.readouterr().err == ""
 
 
+def test_a_corrupt_png_or_jpeg_payload_prints_nothing_of_its_own(capfd: pytest.CaptureFixture) -> None:
+    """A byte flipped inside the compressed data (not just a broken signature): OpenCV's libpng and
+    libjpeg printed "libpng error: IDAT: incorrect data check" / "Corrupt JPEG data: ..." to stderr
+    for each such message, unthrottled; the decode must only raise (png) or return (jpeg)."""
+    import cv2
+    from sensor_msgs.msg import CompressedImage
+
+    rng = np.random.default_rng(0)
+    depth = (1000 + rng.integers(0, 3000, (32, 32))).astype(np.uint16)
+    png = bytearray(cv2.imencode(".png", depth)[1].tobytes())
+    png[len(png) // 2] ^= 0xFF  # inside IDAT
+    msg = CompressedImage(format="16UC1; compressedDepth png")
+    msg.data = bytes(12) + bytes(png)
+    with pytest.raises(ValueError, match="not a readable png"):
+        conv.depth_from_image(msg)
+    rgb = rng.integers(0, 256, (32, 32, 3)).astype(np.uint8)
+    jpg = bytearray(cv2.imencode(".jpg", rgb)[1].tobytes())
+    jpg[2 * len(jpg) // 3] ^= 0xFF  # inside the entropy-coded data
+    msg = CompressedImage(format="rgb8; jpeg compressed bgr8")
+    msg.data = bytes(jpg)
+    try:
+        assert conv.rgb_from_image(msg).shape == (32, 32, 3)
+    except ValueError as err:
+        assert "not a readable" in str(err)
+    assert capfd.readouterr().err == ""
+
+
+def test_compressed_png_and_jpeg_decode_as_published() -> None:
+    import cv2
+    from sensor_msgs.msg import CompressedImage
+
+    depth = np.arange(32 * 24, dtype=np.uint16).reshape(24, 32) * 7
+    msg = CompressedImage(format="16UC1; compressedDepth png")
+    msg.data = bytes(12) + cv2.imencode(".png", depth)[1].tobytes()
+    np.testing.assert_array_equal(conv.depth_from_image(msg), depth.astype(np.float32) * np.float32(1e-3))
+    rgb = np.zeros((24, 32, 3), np.uint8)
+    rgb[..., 0] = 200  # red
+    msg = CompressedImage(format="rgb8; png compressed bgr8")
+    msg.data = cv2.imencode(".png", rgb[:, :, ::-1])[1].tobytes()
+    np.testing.assert_array_equal(conv.rgb_from_image(msg), rgb)
+    msg.data = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+    assert np.abs(conv.rgb_from_image(msg).astype(int) - rgb).max() <= 3
+
+
 def _compressed_depth(fmt: str, payload: bytes, depth_a: float = 0.0, depth_b: float = 0.0) -> object:
     from sensor_msgs.msg import CompressedImage
 

@@ -129,6 +129,41 @@ def test_bad_inputs_are_counted(case: str) -> None:
         assert len(counters["errors"][case]) > 20
 
 
+@pytest.mark.parametrize("x_m", [1e6, 1e9, 1e300])
+def test_a_pose_beyond_the_maps_reach_is_refused_and_spoils_no_frame(x_m: float) -> None:
+    """A pose kilometres away (a wrong unit, a glitch) was taken into the pose buffer: the good frame
+    between it and the good poses was interpolated with it (and then refused by the engine, lost),
+    and nothing counted the pose as bad."""
+    ingest = make()
+    ingest.add_camera_info("tof", info_msg())
+    ingest.add_pose("tof", pose_msg(0))
+    assert ingest.add_pose("tof", pose_msg(MS, x=x_m)) == "bad_pose"
+    ingest.add_depth("tof", depth_msg(5 * MS))
+    ingest.add_pose("tof", pose_msg(10 * MS))
+    (frame,) = frames(ingest.pop_ready())
+    np.testing.assert_allclose(frame.T_world_camera, np.eye(4), atol=1e-12)
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["bad_pose"] == 1 and "km from the origin" in counters["errors"]["bad_pose"]
+
+
+@pytest.mark.parametrize("stream", ["depth", "color", "pose"])
+def test_a_stamp_whose_nanosec_is_not_below_one_second_is_a_bad_stamp(stream: str) -> None:
+    """nanosec 1500000000 was read as 1.5 s later: a pose within time_jump_s ahead was taken, and the
+    frames before it lost their poses (pose_gap); a depth image moved its timeline ahead."""
+    ingest = make()
+    ingest.add_camera_info("tof", info_msg())
+    ingest.add_pose("tof", pose_msg(0))
+    msg = {"depth": depth_msg(5 * MS), "color": color_msg(5 * MS), "pose": pose_msg(5 * MS)}[stream]
+    msg.header.stamp.nanosec = 1_500_000_000
+    add = {"depth": ingest.add_depth, "color": ingest.add_color, "pose": ingest.add_pose}[stream]
+    assert add("tof", msg) == "bad_stamp"
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["bad_stamp"] == 1 and "nanosec 1500000000" in counters["errors"]["bad_stamp"]
+    ingest.add_depth("tof", depth_msg(10 * MS))
+    ingest.add_pose("tof", pose_msg(20 * MS))
+    assert [f.stamp_ns for f in frames(ingest.pop_ready())] == [10 * MS]
+
+
 def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
     """Drivers publish camera_info and depth on separate topics, so the first depth image may come
     first: it waits for the camera_info, within the queue size and pose_max_wait_s of stream time."""

@@ -18,7 +18,8 @@ from senfunet_ros.cli import build_parser
 
 REPO = Path(__file__).resolve().parents[2]
 # import name -> distribution name in install_requires (where they differ)
-DIST = {"cv2": "opencv-python-headless", "yaml": "pyyaml", "skimage": "scikit-image", "ruamel": "ruamel.yaml"}
+DIST = {"cv2": "opencv-python-headless", "PIL": "pillow", "yaml": "pyyaml", "skimage": "scikit-image",
+        "ruamel": "ruamel.yaml"}
 ROS = {"rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "geometry_msgs", "nav_msgs", "visualization_msgs",
        "diagnostic_msgs", "std_srvs", "rosgraph_msgs", "builtin_interfaces", "tf2_ros", "tf2_msgs", "launch",
        "launch_ros", "ament_index_python"}
