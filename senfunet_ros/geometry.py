@@ -17,6 +17,7 @@ __all__ = [
     "matrix_from_quat",
     "quat_from_matrix",
     "tq_from_transform",
+    "check_within_map",
     "transform_from_tq",
 ]
 
@@ -24,8 +25,20 @@ __all__ = [
 # Smaller deviations (float32 round trips) are renormalised.
 QUATERNION_NORM_TOLERANCE = 1e-2
 # The map reaches 5 km from the origin (senfunet_core.integrator refuses frames beyond): a pose
-# farther is a wrong unit or frame, refused where it arrives, not interpolated into good frames
+# farther is a wrong unit or frame, refused where it arrives, not interpolated into good frames.
+# Not a limit on TF links: a robot's tree may hang its map off a UTM or earth frame far away.
 MAX_TRANSLATION_M = 5000.0
+
+
+def check_within_map(T: np.ndarray, what: str) -> np.ndarray:
+    """T, if its position lies within MAX_TRANSLATION_M of the origin on every axis; else ValueError
+    naming `what`."""
+    t = T[:3, 3]
+    if float(np.max(np.abs(t))) > MAX_TRANSLATION_M:
+        raise ValueError(f"{what} position ({t[0]:.4g}, {t[1]:.4g}, {t[2]:.4g}) m is more than "
+                         f"{MAX_TRANSLATION_M / 1000:g} km from the origin, beyond the map; check the pose's "
+                         "units (metres) and frame")
+    return T
 
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:
@@ -66,10 +79,6 @@ def transform_from_tq(t: np.ndarray | Sequence[float], q: np.ndarray | Sequence[
     q = np.asarray(q, dtype=np.float64)
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
         raise ValueError(f"{what} contains NaN or inf; the localisation source lost track, fix it upstream")
-    if float(np.max(np.abs(t))) > MAX_TRANSLATION_M:
-        raise ValueError(f"{what} position ({t[0]:.4g}, {t[1]:.4g}, {t[2]:.4g}) m is more than "
-                         f"{MAX_TRANSLATION_M / 1000:g} km from the origin, beyond the map; check the pose's "
-                         "units (metres) and frame")
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
         raise ValueError(

@@ -75,8 +75,8 @@ def _decode(data: np.ndarray, what: str, *, color: bool) -> np.ndarray:
     try:
         with PilImage.open(io.BytesIO(data.tobytes())) as image:
             image.load()
-            if color:
-                return np.ascontiguousarray(np.asarray(image.convert("RGB"), np.uint8))
+            if color and image.mode != "RGB":
+                return np.asarray(image.convert("RGB"), np.uint8)
             return np.asarray(image)
     except Exception as err:  # noqa: BLE001 (Pillow raises OSError, SyntaxError, struct.error... on corrupt data)
         reason = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from senfunet_ros.conversions.stamps import stamp_to_ns
-from senfunet_ros.geometry import transform_from_tq
+from senfunet_ros.geometry import check_within_map, transform_from_tq
 
 __all__ = [
     "PoseType",
@@ -32,21 +32,25 @@ def transform_from_msg(translation: Any, rotation: Any, what: str) -> np.ndarray
 
 
 def pose_from_pose_stamped(msg: Any) -> tuple[int, np.ndarray]:
-    """geometry_msgs/PoseStamped -> (stamp_ns, T_world_camera)."""
-    return stamp_to_ns(msg.header.stamp), transform_from_msg(msg.pose.position, msg.pose.orientation, "PoseStamped")
+    """geometry_msgs/PoseStamped -> (stamp_ns, T_world_camera). The pose topics' messages are refused
+    beyond the map's reach (`check_within_map`)."""
+    return stamp_to_ns(msg.header.stamp), check_within_map(
+        transform_from_msg(msg.pose.position, msg.pose.orientation, "PoseStamped"), "PoseStamped")
 
 
 def pose_from_odometry(msg: Any) -> tuple[int, np.ndarray]:
     """nav_msgs/Odometry -> (stamp_ns, T_world_child) from its pose (the twist is ignored). The pose
     is the child_frame_id's (usually base_link): a sensor extrinsic turns it into the camera's."""
     pose = msg.pose.pose
-    return stamp_to_ns(msg.header.stamp), transform_from_msg(pose.position, pose.orientation, "Odometry")
+    return stamp_to_ns(msg.header.stamp), check_within_map(
+        transform_from_msg(pose.position, pose.orientation, "Odometry"), "Odometry")
 
 
 def pose_from_transform_stamped(msg: Any) -> tuple[int, np.ndarray]:
     """geometry_msgs/TransformStamped -> (stamp_ns, T_world_camera)."""
     tf = msg.transform
-    return stamp_to_ns(msg.header.stamp), transform_from_msg(tf.translation, tf.rotation, "TransformStamped")
+    return stamp_to_ns(msg.header.stamp), check_within_map(
+        transform_from_msg(tf.translation, tf.rotation, "TransformStamped"), "TransformStamped")
 
 
 def pose_from_msg(msg: Any) -> tuple[int, np.ndarray]:

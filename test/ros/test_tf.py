@@ -265,6 +265,11 @@ def test_what_breaks_the_tree_is_refused_transform_by_transform_and_the_rest_kep
     assert tf.lookup("map", "mast", 4 * S + S // 60)[0, 3] == pytest.approx(2.0)
     tf.add("map", "mast", 0, _rot_z(0.0, (3, 0, 0)), static=True)
     assert tf.lookup("map", "mast", 9 * S)[0, 3] == pytest.approx(3.0)
+    # a map hung off a UTM frame thousands of km away (a GPS-aided robot): a link, not a pose
+    far = [transform("utm", "map", 0, 4.5e6), transform("map", "rover", 0, 2.0)]
+    assert ingest.add_tf(SimpleNamespace(transforms=far), static=True) is None
+    assert tf.lookup("map", "rover", 0)[0, 3] == pytest.approx(2.0)
+    assert ingest.ledger.counters()["tof"]["dropped"]["bad_pose"] == 3
 
 
 def test_a_slow_link_is_interpolated_from_its_second_transform() -> None:
