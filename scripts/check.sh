@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # The README's test command: set-up, lint (ruff), types (mypy), then the tests.
-# Arguments go to pytest, e.g. `bash scripts/check.sh -m "not slow"` or `bash scripts/check.sh test/core`.
+# Without arguments: test/core on up to 4 pytest-xdist workers, then test/ros in one process.
+# Arguments go to one pytest run instead, e.g. `bash scripts/check.sh -m "not slow"` or
+# `bash scripts/check.sh test/core`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -9,7 +11,14 @@ echo "senfunet: ruff check"
 echo "senfunet: mypy"
 .venv/bin/mypy
 echo "senfunet: pytest"
-if [ "$#" -eq 0 ]; then
-  set -- test
+if [ "$#" -gt 0 ]; then
+  exec .venv/bin/python -m pytest -q "$@"
 fi
-.venv/bin/python -m pytest -q "$@"
+# The core tests side by side, one file per worker (each is CPU work on one thread; up to 4 workers);
+# then the ROS tests one at a time: they run live nodes, DDS and processes against the clock.
+workers=$(nproc 2>/dev/null || echo 2)
+workers=$(( workers < 2 ? 2 : (workers > 4 ? 4 : workers) ))
+status=0
+.venv/bin/python -m pytest -q -n "$workers" --dist loadfile test/core || status=$?
+.venv/bin/python -m pytest -q test/ros || status=$?
+exit "$status"
