@@ -175,6 +175,11 @@ def rgb_from_image(msg: Any) -> np.ndarray:
     return np.ascontiguousarray(pixels[:, :, :3])
 
 
+# The fields of view a depth camera's K may give: beyond, K is a placeholder (a driver's identity K) or
+# in other units, and its rays would smear each frame over the map.
+MIN_FOV_DEG, MAX_FOV_DEG = 0.5, 170.0
+
+
 def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
     """sensor_msgs/CameraInfo -> (K 3x3 float64, (width, height)) of the images it describes.
 
@@ -210,6 +215,12 @@ def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
         if width == 0 or height == 0:
             raise ValueError(f"camera_info binning {bin_x}x{bin_y} leaves no pixel of its {roi_width}x{roi_height} "
                              "roi; fix the driver's binning")
+    for axis, focal, pixels in (("horizontal", K[0, 0], width), ("vertical", K[1, 1], height)):
+        fov_deg = float(np.degrees(2.0 * np.arctan2(pixels / 2.0, focal)))
+        if not MIN_FOV_DEG <= fov_deg <= MAX_FOV_DEG:
+            raise ValueError(f"camera_info K gives a {fov_deg:.3g} degree {axis} field of view (focal length "
+                             f"{focal:.4g} px over {pixels} px), outside {MIN_FOV_DEG:g}..{MAX_FOV_DEG:g}: not a "
+                             "calibrated camera (an identity K, or focal lengths in mm?); calibrate the camera")
     return K, (width, height)
 
 

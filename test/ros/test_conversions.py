@@ -75,6 +75,12 @@ def test_camera_info() -> None:
     assert size == (640, 480) and K[1, 1] == 510 and K[0, 2] == 320
     with pytest.raises(ValueError, match="focal"):
         conv.intrinsics_from_camera_info(CameraInfo(width=640, height=480))  # all-zero K
+    # a placeholder or mis-scaled K would smear each frame over the map: identity, millimetres, absurd
+    for fx, fy in ((1.0, 1.0), (1.93, 1.93), (1e308, 500.0), (500.0, 1e-300)):
+        with pytest.raises(ValueError, match="field of view"):
+            conv.intrinsics_from_camera_info(CameraInfo(width=640, height=480, k=[fx, 0, 320, 0, fy, 240, 0, 0, 1]))
+    wide = CameraInfo(width=640, height=480, k=[60.0, 0, 320, 0, 60.0, 240, 0, 0, 1])  # 158 x 152 degrees
+    assert conv.intrinsics_from_camera_info(wide)[1] == (640, 480)
 
 
 def test_camera_info_of_a_cropped_and_binned_image() -> None:
