@@ -75,9 +75,10 @@ def _decode(data: np.ndarray, what: str, *, color: bool) -> np.ndarray:
     try:
         with PilImage.open(io.BytesIO(data.tobytes())) as image:
             image.load()
+            # np.array, not asarray: Pillow's arrays are read-only, and the frame's users may write
             if color and image.mode != "RGB":
-                return np.asarray(image.convert("RGB"), np.uint8)
-            return np.asarray(image)
+                return np.array(image.convert("RGB"), np.uint8)
+            return np.array(image)
     except Exception as err:  # noqa: BLE001 (Pillow raises OSError, SyntaxError, struct.error... on corrupt data)
         reason = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
         raise ValueError(f"{what} is not a readable png/jpeg image ({reason}); check the publisher's "

@@ -360,7 +360,9 @@ def test_compressed_png_and_jpeg_decode_as_published() -> None:
     msg.data = cv2.imencode(".png", rgb[:, :, ::-1])[1].tobytes()
     np.testing.assert_array_equal(conv.rgb_from_image(msg), rgb)
     msg.data = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
-    assert np.abs(conv.rgb_from_image(msg).astype(int) - rgb).max() <= 3
+    decoded = conv.rgb_from_image(msg)
+    assert np.abs(decoded.astype(int) - rgb).max() <= 3
+    assert decoded.flags.writeable  # a frame's user may write into it (torch.from_numpy warns otherwise)
 
 
 def _compressed_depth(fmt: str, payload: bytes, depth_a: float = 0.0, depth_b: float = 0.0) -> object:
