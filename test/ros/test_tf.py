@@ -284,3 +284,56 @@ def test_a_slow_link_is_interpolated_from_its_second_transform() -> None:
         tf.lookup("map", "base", S // 2)
     tf.add("map", "odom", S, _rot_z(0.0, (0.1, 0, 0)), static=False)
     assert tf.lookup("map", "base", S // 2)[0, 3] == pytest.approx(0.05)
+
+
+def test_tf2_lookups_take_a_leading_slash_and_an_invalid_frame_drops_one_frame() -> None:
+    """With tf2_ros (a sourced ROS 2 install), a depth image whose frame_id starts with '/' (a ROS 1
+    habit of some drivers) or is empty made tf2 raise InvalidArgumentException out of pop_ready: every
+    integration tick failed on that frame and the frames behind it were never posed. tf2 strips a
+    leading '/' from the transforms it is sent; the lookup strips it too, and an empty frame_id drops
+    its frame (pose_gap, saying what to fix)."""
+    from types import SimpleNamespace
+
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+    from senfunet_ros.node import _Tf2Lookup
+
+    class TransformException(Exception):  # tf2_py's hierarchy
+        pass
+
+    class InvalidArgumentException(TransformException):
+        pass
+
+    class LookupException(TransformException):
+        pass
+
+    tf2_ros = SimpleNamespace(TransformException=TransformException, InvalidArgumentException=InvalidArgumentException,
+                              LookupException=LookupException,
+                              ConnectivityException=type("ConnectivityException", (TransformException,), {}),
+                              ExtrapolationException=type("ExtrapolationException", (TransformException,), {}))
+
+    class Buffer:  # tf2_ros.Buffer as tf2 validates frame ids: "map" -> "cam" known at any time
+        def lookup_transform(self, target: str, source: str, time: object) -> object:
+            for frame in (target, source):
+                if not frame or frame.startswith("/"):
+                    raise InvalidArgumentException(f'Invalid argument "{frame}" passed to lookupTransform: tf2 '
+                                                   "frame_ids cannot start with a '/'")
+            if (target, source) != ("map", "cam"):
+                raise LookupException(f'"{source}" passed to lookupTransform argument source_frame does not exist.')
+            zero = SimpleNamespace(x=0.0, y=0.0, z=0.0)
+            return SimpleNamespace(transform=SimpleNamespace(translation=SimpleNamespace(x=1.0, y=0.0, z=0.0),
+                                                             rotation=SimpleNamespace(**vars(zero), w=1.0)))
+
+    MS = 1_000_000
+    ingest = Ingest(IngestConfig(sensors=("tof",), tf=_Tf2Lookup(Buffer(), tf2_ros), fixed_frame="/map"))
+    ingest.add_camera_info("tof", info_msg())
+    for k, frame_id in enumerate(("/cam", "", "cam")):
+        msg = depth_msg(10_000 * MS + k * 50 * MS)
+        msg.header.frame_id = frame_id
+        assert ingest.add_depth("tof", msg) is None
+    frames = ingest.pop_ready()
+    assert [f.stamp_ns for f in frames] == [10_000 * MS, 10_100 * MS]
+    assert all(f.T_world_camera[0, 3] == pytest.approx(1.0) for f in frames)
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["pose_gap"] == 1 and "no header.frame_id" in counters["errors"]["pose_gap"]
