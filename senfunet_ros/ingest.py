@@ -108,7 +108,8 @@ class IngestConfig:
     # pause or stop (see pop_ready), so a consumer behind for a while loses nothing; 0 = skip at once
     set_aside_bytes: int = 0
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
-    # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link); absent = identity
+    # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link), or with tf in its depth
+    # images' frame_id (a driver that names camera_link, x forward, not the optical frame); absent = identity
     T_body_camera: dict[str, np.ndarray] = field(default_factory=dict)
     # poses from TF instead of pose topics: an object with lookup(target, source, stamp_ns) -> 4x4 that
     # raises senfunet_ros.tf.TfWait (not yet) or TfError (never); each depth image's frame_id in fixed_frame
@@ -355,6 +356,8 @@ class _SensorInput:
             waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
             if config.tf is not None:
                 T, reason, error = _tf_pose(config.tf, config.fixed_frame, pending, waited_too_long)
+                if T is not None and name in config.T_body_camera:  # the frame_id is not the optical frame
+                    T = T @ config.T_body_camera[name]
             else:
                 T, reason = self.poses.at(t, tolerance_ns=int(config.pose_tolerance_s * 1e9),
                                           waited_too_long=waited_too_long)

@@ -337,3 +337,29 @@ def test_tf2_lookups_take_a_leading_slash_and_an_invalid_frame_drops_one_frame()
     assert all(f.T_world_camera[0, 3] == pytest.approx(1.0) for f in frames)
     counters = ingest.ledger.counters()["tof"]
     assert counters["dropped"]["pose_gap"] == 1 and "no header.frame_id" in counters["errors"]["pose_gap"]
+
+
+def test_t_body_camera_corrects_an_image_frame_id_that_is_not_the_optical_frame() -> None:
+    """A driver whose depth images name camera_link (x forward) instead of its optical frame (z forward):
+    with pose_type tf, T_body_camera was ignored (applied to pose topics only), so there was no way to
+    tell the node, and every frame was integrated turned by 90 degrees. It applies to TF lookups too."""
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.geometry import transform_from_tq
+    from senfunet_ros.ingest import Ingest, IngestConfig
+
+    S = 1_000_000_000
+    T_link_optical = transform_from_tq([0, 0, 0], [-0.5, 0.5, -0.5, 0.5], "camera_link -> optical")
+    tf = TfBuffer()
+    tf.add("map", "base_link", 0, _rot_z(0.3, (1.0, 2.0, 0.0)), static=True)
+    tf.add("base_link", "camera_link", 0, _rot_z(0.0, (0.1, 0.0, 0.5)), static=True)
+    tf.add("camera_link", "camera_depth_optical_frame", 0, T_link_optical, static=True)
+    truth = tf.lookup("map", "camera_depth_optical_frame", 10 * S)
+    for frame_id, extrinsic in (("camera_depth_optical_frame", {}), ("camera_link", {"tof": T_link_optical})):
+        ingest = Ingest(IngestConfig(sensors=("tof",), tf=tf, fixed_frame="map", T_body_camera=extrinsic))
+        ingest.add_camera_info("tof", info_msg())
+        msg = depth_msg(10 * S)
+        msg.header.frame_id = frame_id
+        ingest.add_depth("tof", msg)
+        (frame,) = ingest.pop_ready()
+        assert np.abs(frame.T_world_camera - truth).max() < 1e-9, frame_id
