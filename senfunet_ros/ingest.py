@@ -517,8 +517,9 @@ class Ingest:
     def add_tf(self, msg: Any, *, static: bool) -> str | None:
         """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).
         Returns the drop reason (bad_stamp for a dynamic transform more than time_jump_s ahead of
-        the streams' newest stamp, which is left out; bad_pose for a transform the buffer refused:
-        NaN, a non-unit quaternion, a cycle, a second parent; pose_conflict for a dynamic transform
+        the streams' newest stamp and of the newest dynamic transform taken, which is left out;
+        bad_pose for a transform the buffer refused: NaN, a non-unit quaternion, a cycle, a second
+        parent; pose_conflict for a dynamic transform
         that gave a stamp its link had another value, the first kept), or None. Each transform left
         out is counted, on the first sensor (a transform serves them all); the rest of the message is
         kept."""
@@ -526,6 +527,10 @@ class Ingest:
             return None
         with self._lock:
             now_ns = self._time.timelines.now_ns()
+        # ahead of the streams' newest stamp or, while the cameras pause and TF goes on, of TF's own
+        tf_newest_ns = getattr(self.config.tf, "newest_ns", None)
+        if now_ns is not None and tf_newest_ns is not None:
+            now_ns = max(now_ns, tf_newest_ns)
         latest_ns = None if now_ns is None else now_ns + int(self.config.time_jump_s * 1e9)
         try:
             added = self.config.tf.add_message(msg, static=static, latest_ns=latest_ns)
@@ -536,7 +541,7 @@ class Ingest:
             assert now_ns is not None
             drops.append(("bad_stamp", len(added.left_out), (
                 f"tf: a transform stamped {added.left_out[0] * 1e-9:.3f} s, {(added.left_out[0] - now_ns) * 1e-9:.3f} "
-                "s ahead of the streams' newest stamp, was left out; check the clock of its publisher")))
+                "s ahead of the newest stamp of the streams and /tf, was left out; check the clock of its publisher")))
         if added.refused:
             drops.append(("bad_pose", len(added.refused), f"tf: {added.refused[0]}"))
         if added.conflicts:

@@ -83,6 +83,9 @@ class TfBuffer:
         self.history = history
         self._links: dict[str, _Link] = {}  # child frame -> link to its parent
         self._lock = threading.Lock()
+        # the newest stamp of a dynamic transform taken: TF goes on while a camera pauses, so its own
+        # stamps, not only the images', tell a stamp far ahead (Ingest.add_tf)
+        self.newest_ns: int | None = None
 
     def add_message(self, msg: Any, *, static: bool, latest_ns: int | None = None) -> TfAdded:
         """Every transform of a tf2_msgs/TFMessage (duck-typed) that `add` takes, but dynamic ones
@@ -132,6 +135,7 @@ class TfBuffer:
                 link.transforms.clear()
                 return None
             link.static = None
+            self.newest_ns = stamp_ns if self.newest_ns is None else max(self.newest_ns, stamp_ns)
             i = bisect.bisect_left(link.stamps, stamp_ns)
             if i < len(link.stamps) and link.stamps[i] == stamp_ns:
                 return pose_conflict(link.transforms[i], T_parent_child)
@@ -144,6 +148,7 @@ class TfBuffer:
     def clear(self) -> None:
         """Forget the dynamic transforms (time restarted); static ones stay."""
         with self._lock:
+            self.newest_ns = None
             for link in self._links.values():
                 link.stamps.clear()
                 link.transforms.clear()

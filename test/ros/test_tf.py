@@ -363,3 +363,45 @@ def test_t_body_camera_corrects_an_image_frame_id_that_is_not_the_optical_frame(
         ingest.add_depth("tof", msg)
         (frame,) = ingest.pop_ready()
         assert np.abs(frame.T_world_camera - truth).max() < 1e-9, frame_id
+
+
+def test_tf_that_goes_on_while_the_camera_pauses_is_kept() -> None:
+    """The camera driver pauses for 2 s while the robot drives on and /tf goes on at 50 Hz. Each /tf
+    transform more than time_jump_s ahead of the images' newest stamp was left out as bad_stamp ("check
+    the clock of its publisher"), so once the camera resumed its frames found a 2 s hole in odom ->
+    base_link and were dropped as pose_gap. A transform is judged against TF's own newest stamp too:
+    a stray far ahead is still left out."""
+    from types import SimpleNamespace
+
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+
+    S, MS = 1_000_000_000, 1_000_000
+
+    def tf_msg(t_ns: int, x: float) -> SimpleNamespace:
+        sec, nanosec = divmod(t_ns, S)
+        return SimpleNamespace(transforms=[SimpleNamespace(
+            header=SimpleNamespace(frame_id="odom", stamp=SimpleNamespace(sec=sec, nanosec=nanosec)),
+            child_frame_id="base_link", transform=SimpleNamespace(
+                translation=SimpleNamespace(x=x, y=0.0, z=0.0), rotation=SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0)))])
+
+    tf = TfBuffer(max_gap_s=0.1)
+    tf.add("base_link", "cam", 0, np.eye(4), static=True)
+    ingest = Ingest(IngestConfig(sensors=("tof",), tf=tf, fixed_frame="odom"))
+    ingest.add_camera_info("tof", info_msg())
+    posed = []
+    for k in range(250):  # 5 s of /tf at 50 Hz, 0.1 m/s; images at 10 Hz but none from 1 s to 3 s
+        t_ns = 10 * S + k * 20 * MS
+        ingest.add_tf(tf_msg(t_ns, 0.1 * k * 0.02), static=False)
+        if k % 5 == 1 and not 50 <= k < 150:
+            msg = depth_msg(t_ns + 5 * MS)
+            msg.header.frame_id = "cam"
+            ingest.add_depth("tof", msg)
+        posed += ingest.pop_ready()
+    assert ingest.add_tf(tf_msg(1000 * S, 9.0), static=False) == "bad_stamp"  # a stray is still left out
+    counters = ingest.ledger.counters()["tof"]
+    assert {r: n for r, n in counters["dropped"].items() if n} == {"bad_stamp": 1}, counters["errors"]
+    assert len(posed) == counters["received"] == 30
+    for frame in posed:
+        assert frame.T_world_camera[0, 3] == pytest.approx(0.1 * (frame.stamp_ns - 10 * S) / S, abs=1e-6)
