@@ -162,10 +162,14 @@ class TfBuffer:
             raise TfWait(f"no transform {link.parent} -> {child} at or after {stamp_ns * 1e-9:.3f} s yet")
         if stamps[i] == stamp_ns:
             return link.transforms[i]
+        if i == 0:  # no interval can reach it: more transforms or a tolerance would not help
+            raise TfError(f"{stamp_ns * 1e-9:.3f} s is before the first transform {link.parent} -> {child} held "
+                          f"({stamps[0] * 1e-9:.3f} s): frames stamped before a link's publisher started (or before "
+                          "the node heard it) cannot be posed")
         # a link published slowly (a localisation's map -> odom at 1 Hz) is interpolated over its own
         # interval: a gap is a missing transform, measured against the link's rate
         max_gap_ns = max(self.max_gap_ns, _GAP_INTERVALS * _typical_interval_ns(stamps, i))
-        if i == 0 or stamp_ns - stamps[i - 1] > max_gap_ns or stamps[i] - stamp_ns > max_gap_ns:
+        if stamp_ns - stamps[i - 1] > max_gap_ns or stamps[i] - stamp_ns > max_gap_ns:
             raise TfError(f"the transforms {link.parent} -> {child} around {stamp_ns * 1e-9:.3f} s are more than "
                           f"{max_gap_ns * 1e-9:g} s from it; publish them more often or raise pose_tolerance_s")
         s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
