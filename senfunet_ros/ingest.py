@@ -108,7 +108,8 @@ class IngestConfig:
     # pause or stop (see pop_ready), so a consumer behind for a while loses nothing; 0 = skip at once
     set_aside_bytes: int = 0
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
-    # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link); absent = identity
+    # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link), or with tf in its depth
+    # images' frame_id (a driver that names camera_link, x forward, not the optical frame); absent = identity
     T_body_camera: dict[str, np.ndarray] = field(default_factory=dict)
     # poses from TF instead of pose topics: an object with lookup(target, source, stamp_ns) -> 4x4 that
     # raises senfunet_ros.tf.TfWait (not yet) or TfError (never); each depth image's frame_id in fixed_frame
@@ -355,6 +356,8 @@ class _SensorInput:
             waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
             if config.tf is not None:
                 T, reason, error = _tf_pose(config.tf, config.fixed_frame, pending, waited_too_long)
+                if T is not None and name in config.T_body_camera:  # the frame_id is not the optical frame
+                    T = T @ config.T_body_camera[name]
             else:
                 T, reason = self.poses.at(t, tolerance_ns=int(config.pose_tolerance_s * 1e9),
                                           waited_too_long=waited_too_long)
@@ -514,8 +517,9 @@ class Ingest:
     def add_tf(self, msg: Any, *, static: bool) -> str | None:
         """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).
         Returns the drop reason (bad_stamp for a dynamic transform more than time_jump_s ahead of
-        the streams' newest stamp, which is left out; bad_pose for a transform the buffer refused:
-        NaN, a non-unit quaternion, a cycle, a second parent; pose_conflict for a dynamic transform
+        the streams' newest stamp and of the newest dynamic transform taken, which is left out;
+        bad_pose for a transform the buffer refused: NaN, a non-unit quaternion, a cycle, a second
+        parent; pose_conflict for a dynamic transform
         that gave a stamp its link had another value, the first kept), or None. Each transform left
         out is counted, on the first sensor (a transform serves them all); the rest of the message is
         kept."""
@@ -523,6 +527,10 @@ class Ingest:
             return None
         with self._lock:
             now_ns = self._time.timelines.now_ns()
+        # ahead of the streams' newest stamp or, while the cameras pause and TF goes on, of TF's own
+        tf_newest_ns = getattr(self.config.tf, "newest_ns", None)
+        if now_ns is not None and tf_newest_ns is not None:
+            now_ns = max(now_ns, tf_newest_ns)
         latest_ns = None if now_ns is None else now_ns + int(self.config.time_jump_s * 1e9)
         try:
             added = self.config.tf.add_message(msg, static=static, latest_ns=latest_ns)
@@ -533,7 +541,7 @@ class Ingest:
             assert now_ns is not None
             drops.append(("bad_stamp", len(added.left_out), (
                 f"tf: a transform stamped {added.left_out[0] * 1e-9:.3f} s, {(added.left_out[0] - now_ns) * 1e-9:.3f} "
-                "s ahead of the streams' newest stamp, was left out; check the clock of its publisher")))
+                "s ahead of the newest stamp of the streams and /tf, was left out; check the clock of its publisher")))
         if added.refused:
             drops.append(("bad_pose", len(added.refused), f"tf: {added.refused[0]}"))
         if added.conflicts:

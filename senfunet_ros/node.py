@@ -162,6 +162,11 @@ class _Tf2Lookup:
 
         from senfunet_ros.tf import TfError, TfWait
 
+        # tf2 strips a leading '/' from the frames it is sent (a ROS 1 habit some drivers keep) but refuses
+        # one in a lookup (InvalidArgumentException): strip it here too, as the node's own buffer does
+        target, source = target.lstrip("/"), source.lstrip("/")
+        if not source:
+            raise TfError("the depth image has no header.frame_id; the driver must name its optical frame")
         try:
             tf = self._buffer.lookup_transform(target, source, Time(nanoseconds=stamp_ns))
         except self._tf2.ExtrapolationException as err:
@@ -170,6 +175,8 @@ class _Tf2Lookup:
             raise TfError(str(err)) from None
         except (self._tf2.LookupException, self._tf2.ConnectivityException) as err:
             raise TfWait(str(err)) from None
+        except self._tf2.TransformException as err:  # an invalid frame id, ...: this frame cannot be posed
+            raise TfError(f"{type(err).__name__}: {err}") from None
         return conv.transform_from_msg(tf.transform.translation, tf.transform.rotation,
                                        f"transform {target} -> {source}")
 

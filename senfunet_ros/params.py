@@ -157,8 +157,9 @@ SENSOR_PARAMS: tuple[Param, ...] = (
     Param("{sensor}.camera_info_topic", "/{sensor}/camera_info", "camera_info topic of the depth image"),
     Param("{sensor}.pose_topic", "/{sensor}/pose", "pose topic (unused with pose_type tf)"),
     Param("{sensor}.T_body_camera", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], "the camera's optical frame in the frame "
-          "the pose topic gives (x y z qx qy qz qw; e.g. base_link of an Odometry); identity = the pose is the "
-          "camera's"),
+          "the pose topic gives (x y z qx qy qz qw; e.g. base_link of an Odometry), or with pose_type tf in the "
+          "depth image's frame_id (a driver naming camera_link, x forward, instead of its optical frame, z "
+          "forward: 0 0 0 -0.5 0.5 -0.5 0.5); identity = the pose is the camera's"),
     Param("{sensor}.depth_min_m", 0.1, "depth below this is ignored, metres", lo=0.0, hi=1000.0, runtime=True),
     Param("{sensor}.depth_max_m", 3.0, "depth beyond this is ignored, metres (at 1 cm voxels and 256 px, rays beyond "
           "~3 m are > 2 voxels apart and noise spreads samples over many sparse blocks: memory and time, little "

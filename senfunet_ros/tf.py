@@ -83,6 +83,9 @@ class TfBuffer:
         self.history = history
         self._links: dict[str, _Link] = {}  # child frame -> link to its parent
         self._lock = threading.Lock()
+        # the newest stamp of a dynamic transform taken: TF goes on while a camera pauses, so its own
+        # stamps, not only the images', tell a stamp far ahead (Ingest.add_tf)
+        self.newest_ns: int | None = None
 
     def add_message(self, msg: Any, *, static: bool, latest_ns: int | None = None) -> TfAdded:
         """Every transform of a tf2_msgs/TFMessage (duck-typed) that `add` takes, but dynamic ones
@@ -132,6 +135,7 @@ class TfBuffer:
                 link.transforms.clear()
                 return None
             link.static = None
+            self.newest_ns = stamp_ns if self.newest_ns is None else max(self.newest_ns, stamp_ns)
             i = bisect.bisect_left(link.stamps, stamp_ns)
             if i < len(link.stamps) and link.stamps[i] == stamp_ns:
                 return pose_conflict(link.transforms[i], T_parent_child)
@@ -144,6 +148,7 @@ class TfBuffer:
     def clear(self) -> None:
         """Forget the dynamic transforms (time restarted); static ones stay."""
         with self._lock:
+            self.newest_ns = None
             for link in self._links.values():
                 link.stamps.clear()
                 link.transforms.clear()
@@ -157,10 +162,14 @@ class TfBuffer:
             raise TfWait(f"no transform {link.parent} -> {child} at or after {stamp_ns * 1e-9:.3f} s yet")
         if stamps[i] == stamp_ns:
             return link.transforms[i]
+        if i == 0:  # no interval can reach it: more transforms or a tolerance would not help
+            raise TfError(f"{stamp_ns * 1e-9:.3f} s is before the first transform {link.parent} -> {child} held "
+                          f"({stamps[0] * 1e-9:.3f} s): frames stamped before a link's publisher started (or before "
+                          "the node heard it) cannot be posed")
         # a link published slowly (a localisation's map -> odom at 1 Hz) is interpolated over its own
         # interval: a gap is a missing transform, measured against the link's rate
         max_gap_ns = max(self.max_gap_ns, _GAP_INTERVALS * _typical_interval_ns(stamps, i))
-        if i == 0 or stamp_ns - stamps[i - 1] > max_gap_ns or stamps[i] - stamp_ns > max_gap_ns:
+        if stamp_ns - stamps[i - 1] > max_gap_ns or stamps[i] - stamp_ns > max_gap_ns:
             raise TfError(f"the transforms {link.parent} -> {child} around {stamp_ns * 1e-9:.3f} s are more than "
                           f"{max_gap_ns * 1e-9:g} s from it; publish them more often or raise pose_tolerance_s")
         s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])

@@ -41,8 +41,10 @@ def test_buffer_chains_interpolates_waits_and_refuses_gaps() -> None:
     assert np.abs(tf.lookup("cam", "map", 10 * S) - invert_transform(tf.lookup("map", "cam", 10 * S))).max() < 1e-9
     with pytest.raises(TfWait):  # nothing at or after it yet: may still come
         tf.lookup("map", "cam", 11 * S)
-    with pytest.raises(TfError, match="more than"):
-        tf.lookup("map", "cam", 9 * S)  # before the first transform
+    # before the first transform: said so, not "publish them more often or raise pose_tolerance_s", which
+    # could not help (a node started after the images' first stamps told its users to)
+    with pytest.raises(TfError, match="before the first transform odom -> base_link held"):
+        tf.lookup("map", "cam", 9 * S)
     with pytest.raises(TfWait, match="no transform path"):
         tf.lookup("map", "other_cam", 10 * S)
 
@@ -284,3 +286,124 @@ def test_a_slow_link_is_interpolated_from_its_second_transform() -> None:
         tf.lookup("map", "base", S // 2)
     tf.add("map", "odom", S, _rot_z(0.0, (0.1, 0, 0)), static=False)
     assert tf.lookup("map", "base", S // 2)[0, 3] == pytest.approx(0.05)
+
+
+def test_tf2_lookups_take_a_leading_slash_and_an_invalid_frame_drops_one_frame() -> None:
+    """With tf2_ros (a sourced ROS 2 install), a depth image whose frame_id starts with '/' (a ROS 1
+    habit of some drivers) or is empty made tf2 raise InvalidArgumentException out of pop_ready: every
+    integration tick failed on that frame and the frames behind it were never posed. tf2 strips a
+    leading '/' from the transforms it is sent; the lookup strips it too, and an empty frame_id drops
+    its frame (pose_gap, saying what to fix)."""
+    from types import SimpleNamespace
+
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+    from senfunet_ros.node import _Tf2Lookup
+
+    class TransformException(Exception):  # tf2_py's hierarchy
+        pass
+
+    class InvalidArgumentException(TransformException):
+        pass
+
+    class LookupException(TransformException):
+        pass
+
+    tf2_ros = SimpleNamespace(TransformException=TransformException, InvalidArgumentException=InvalidArgumentException,
+                              LookupException=LookupException,
+                              ConnectivityException=type("ConnectivityException", (TransformException,), {}),
+                              ExtrapolationException=type("ExtrapolationException", (TransformException,), {}))
+
+    class Buffer:  # tf2_ros.Buffer as tf2 validates frame ids: "map" -> "cam" known at any time
+        def lookup_transform(self, target: str, source: str, time: object) -> object:
+            for frame in (target, source):
+                if not frame or frame.startswith("/"):
+                    raise InvalidArgumentException(f'Invalid argument "{frame}" passed to lookupTransform: tf2 '
+                                                   "frame_ids cannot start with a '/'")
+            if (target, source) != ("map", "cam"):
+                raise LookupException(f'"{source}" passed to lookupTransform argument source_frame does not exist.')
+            zero = SimpleNamespace(x=0.0, y=0.0, z=0.0)
+            return SimpleNamespace(transform=SimpleNamespace(translation=SimpleNamespace(x=1.0, y=0.0, z=0.0),
+                                                             rotation=SimpleNamespace(**vars(zero), w=1.0)))
+
+    MS = 1_000_000
+    ingest = Ingest(IngestConfig(sensors=("tof",), tf=_Tf2Lookup(Buffer(), tf2_ros), fixed_frame="/map"))
+    ingest.add_camera_info("tof", info_msg())
+    for k, frame_id in enumerate(("/cam", "", "cam")):
+        msg = depth_msg(10_000 * MS + k * 50 * MS)
+        msg.header.frame_id = frame_id
+        assert ingest.add_depth("tof", msg) is None
+    frames = ingest.pop_ready()
+    assert [f.stamp_ns for f in frames] == [10_000 * MS, 10_100 * MS]
+    assert all(f.T_world_camera[0, 3] == pytest.approx(1.0) for f in frames)
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["pose_gap"] == 1 and "no header.frame_id" in counters["errors"]["pose_gap"]
+
+
+def test_t_body_camera_corrects_an_image_frame_id_that_is_not_the_optical_frame() -> None:
+    """A driver whose depth images name camera_link (x forward) instead of its optical frame (z forward):
+    with pose_type tf, T_body_camera was ignored (applied to pose topics only), so there was no way to
+    tell the node, and every frame was integrated turned by 90 degrees. It applies to TF lookups too."""
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.geometry import transform_from_tq
+    from senfunet_ros.ingest import Ingest, IngestConfig
+
+    S = 1_000_000_000
+    T_link_optical = transform_from_tq([0, 0, 0], [-0.5, 0.5, -0.5, 0.5], "camera_link -> optical")
+    tf = TfBuffer()
+    tf.add("map", "base_link", 0, _rot_z(0.3, (1.0, 2.0, 0.0)), static=True)
+    tf.add("base_link", "camera_link", 0, _rot_z(0.0, (0.1, 0.0, 0.5)), static=True)
+    tf.add("camera_link", "camera_depth_optical_frame", 0, T_link_optical, static=True)
+    truth = tf.lookup("map", "camera_depth_optical_frame", 10 * S)
+    for frame_id, extrinsic in (("camera_depth_optical_frame", {}), ("camera_link", {"tof": T_link_optical})):
+        ingest = Ingest(IngestConfig(sensors=("tof",), tf=tf, fixed_frame="map", T_body_camera=extrinsic))
+        ingest.add_camera_info("tof", info_msg())
+        msg = depth_msg(10 * S)
+        msg.header.frame_id = frame_id
+        ingest.add_depth("tof", msg)
+        (frame,) = ingest.pop_ready()
+        assert np.abs(frame.T_world_camera - truth).max() < 1e-9, frame_id
+
+
+def test_tf_that_goes_on_while_the_camera_pauses_is_kept() -> None:
+    """The camera driver pauses for 2 s while the robot drives on and /tf goes on at 50 Hz. Each /tf
+    transform more than time_jump_s ahead of the images' newest stamp was left out as bad_stamp ("check
+    the clock of its publisher"), so once the camera resumed its frames found a 2 s hole in odom ->
+    base_link and were dropped as pose_gap. A transform is judged against TF's own newest stamp too:
+    a stray far ahead is still left out."""
+    from types import SimpleNamespace
+
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+
+    S, MS = 1_000_000_000, 1_000_000
+
+    def tf_msg(t_ns: int, x: float) -> SimpleNamespace:
+        sec, nanosec = divmod(t_ns, S)
+        return SimpleNamespace(transforms=[SimpleNamespace(
+            header=SimpleNamespace(frame_id="odom", stamp=SimpleNamespace(sec=sec, nanosec=nanosec)),
+            child_frame_id="base_link", transform=SimpleNamespace(
+                translation=SimpleNamespace(x=x, y=0.0, z=0.0), rotation=SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0)))])
+
+    tf = TfBuffer(max_gap_s=0.1)
+    tf.add("base_link", "cam", 0, np.eye(4), static=True)
+    ingest = Ingest(IngestConfig(sensors=("tof",), tf=tf, fixed_frame="odom"))
+    ingest.add_camera_info("tof", info_msg())
+    posed = []
+    for k in range(250):  # 5 s of /tf at 50 Hz, 0.1 m/s; images at 10 Hz but none from 1 s to 3 s
+        t_ns = 10 * S + k * 20 * MS
+        ingest.add_tf(tf_msg(t_ns, 0.1 * k * 0.02), static=False)
+        if k % 5 == 1 and not 50 <= k < 150:
+            msg = depth_msg(t_ns + 5 * MS)
+            msg.header.frame_id = "cam"
+            ingest.add_depth("tof", msg)
+        posed += ingest.pop_ready()
+    assert ingest.add_tf(tf_msg(1000 * S, 9.0), static=False) == "bad_stamp"  # a stray is still left out
+    counters = ingest.ledger.counters()["tof"]
+    assert {r: n for r, n in counters["dropped"].items() if n} == {"bad_stamp": 1}, counters["errors"]
+    assert len(posed) == counters["received"] == 30
+    for frame in posed:
+        assert frame.T_world_camera[0, 3] == pytest.approx(0.1 * (frame.stamp_ns - 10 * S) / S, abs=1e-6)
