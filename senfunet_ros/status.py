@@ -37,8 +37,9 @@ DROP_HINTS: dict[str, str] = {
     "bad_pose": "a pose on {s.pose_topic} had NaN/inf or a quaternion of length other than 1",
     "pose_conflict": "a pose on {s.pose_topic} (or a /tf transform) came again for a stamp already given, with "
                      "another value; the first is kept: two publishers on one topic, or a driver rewriting its past?",
-    "pose_timeout": "no pose on {s.pose_topic} at or after the image's stamp within pose_max_wait_s; check that "
-                    "poses arrive and are stamped on the depth images' clock",
+    "pose_timeout": "no pose on {s.pose_topic} (or /tf transform) at or after the image's stamp within "
+                    "pose_max_wait_s; check that poses arrive and are stamped on the depth images' clock, or raise "
+                    "pose_max_wait_s if they come later than that",
     "pose_gap": "the poses around the image's stamp are more than pose_tolerance_s from it; publish poses more "
                 "often or raise pose_tolerance_s",
     "queue_full": "more than queue_size images waited for their poses; the oldest went",
