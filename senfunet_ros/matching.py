@@ -59,17 +59,21 @@ class PoseBuffer:
 
     def at(self, stamp_ns: int, *, tolerance_ns: int, waited_too_long: bool) -> tuple[np.ndarray | None, str | None]:
         """The pose at a depth stamp, interpolated between the poses around it: (T, None); or
-        (None, None) when it must wait for a later pose; or (None, reason) when it has none:
-        "pose_timeout" (no later pose came in time), "pose_gap" (the poses around it are further
-        than tolerance_ns from it)."""
+        (None, None) when it must wait for a later pose (none yet, or only the newest, too far); or
+        (None, reason) when it has none: "pose_timeout" (no later pose came in time), "pose_gap" (the
+        poses around it are further than tolerance_ns from it)."""
         stamps = self._stamps
         i = bisect.bisect_left(stamps, stamp_ns)
         if i == len(stamps):  # no pose at or after the frame yet
             return None, ("pose_timeout" if waited_too_long else None)
         if stamps[i] == stamp_ns:
             return self._poses[i], None
-        if i == 0 or stamp_ns - stamps[i - 1] > tolerance_ns or stamps[i] - stamp_ns > tolerance_ns:
+        if i == 0 or stamp_ns - stamps[i - 1] > tolerance_ns:
             return None, "pose_gap"
+        if stamps[i] - stamp_ns > tolerance_ns:
+            # the next pose is far but the newest: a nearer one may still come (a pose a glitching driver
+            # stamped ahead stays the newest while the stream's poses fill in before it)
+            return None, (None if i == len(stamps) - 1 and not waited_too_long else "pose_gap")
         s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
         return interpolate_pose(self._poses[i - 1], self._poses[i], s), None
 

@@ -99,10 +99,31 @@ def test_pose_timeout_and_gap() -> None:
     assert ingest.pop_ready() == []
     assert ingest.ledger.counters()["tof"]["dropped"]["pose_timeout"] == 1
     ingest.add_pose("tof", pose_msg(400 * MS))
-    ingest.add_pose("tof", pose_msg(800 * MS))  # 200 ms from the frame: beyond the tolerance
+    ingest.add_pose("tof", pose_msg(800 * MS))  # both 200 ms from the frame: beyond the tolerance
     assert ingest.pop_ready() == []
     assert ingest.ledger.counters()["tof"]["dropped"]["pose_gap"] == 1
     assert ingest.ledger.queue_depths()["tof"] == 0
+
+
+def test_a_pose_stamped_ahead_by_a_glitch_costs_no_frame() -> None:
+    """A pose a glitching driver stamped 0.5 s ahead (within time_jump_s, so taken) was the next pose
+    of the frames before it: they were dropped as pose_gap at once, though the stream's own poses
+    around them came a moment later. Now they wait for those while the far pose is the newest."""
+    ingest = make(pose_max_wait_s=1.0, pose_tolerance_s=0.05)
+    for k in range(5):
+        ingest.add_pose("tof", pose_msg(k * 10 * MS, x=0.01 * k))
+    ingest.add_pose("tof", pose_msg(540 * MS, x=9.0))  # the glitch
+    ingest.add_depth("tof", depth_msg(45 * MS))
+    assert ingest.pop_ready() == []  # waits: the pose after it is far, but the newest
+    ingest.add_pose("tof", pose_msg(50 * MS, x=0.05))  # the stream's own next pose
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.T_world_camera[0, 3] == pytest.approx(0.045)
+    assert ingest.ledger.counters()["tof"]["dropped"]["pose_gap"] == 0
+    # a real hole in the poses after 50 ms: a gap once the stream went on past the pose after it
+    ingest.add_depth("tof", depth_msg(55 * MS))
+    assert ingest.pop_ready() == [] and ingest.ledger.queue_depths()["tof"] == 1
+    ingest.add_pose("tof", pose_msg(550 * MS, x=0.55))
+    assert ingest.pop_ready() == [] and ingest.ledger.counters()["tof"]["dropped"]["pose_gap"] == 1
 
 
 @pytest.mark.parametrize("case", ["bad_encoding", "size_mismatch", "all_invalid", "bad_pose", "bad_camera_info"])
