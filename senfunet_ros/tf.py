@@ -169,6 +169,11 @@ class TfBuffer:
         # a link published slowly (a localisation's map -> odom at 1 Hz) is interpolated over its own
         # interval: a gap is a missing transform, measured against the link's rate
         max_gap_ns = max(self.max_gap_ns, _GAP_INTERVALS * _typical_interval_ns(stamps, i))
+        if stamp_ns - stamps[i - 1] <= max_gap_ns < stamps[i] - stamp_ns and i == len(stamps) - 1:
+            # the next transform is far but the newest: nearer ones may still come (a transform a
+            # glitching publisher stamped ahead stays the newest while the link fills in before it)
+            raise TfWait(f"the transform {link.parent} -> {child} after {stamp_ns * 1e-9:.3f} s, its newest, is "
+                         f"{(stamps[i] - stamp_ns) * 1e-9:.3f} s from it; waiting for nearer ones")
         if stamp_ns - stamps[i - 1] > max_gap_ns or stamps[i] - stamp_ns > max_gap_ns:
             raise TfError(f"the transforms {link.parent} -> {child} around {stamp_ns * 1e-9:.3f} s are more than "
                           f"{max_gap_ns * 1e-9:g} s from it; publish them more often or raise pose_tolerance_s")

@@ -49,6 +49,27 @@ def test_buffer_chains_interpolates_waits_and_refuses_gaps() -> None:
         tf.lookup("map", "other_cam", 10 * S)
 
 
+def test_a_transform_stamped_ahead_by_a_glitch_costs_no_frame() -> None:
+    """A dynamic transform a glitching publisher stamped 0.5 s ahead (within time_jump_s, so taken)
+    was the next transform of the stamps before it: their lookups failed as a gap at once, though the
+    link's own transforms came a moment later. Now they wait while the far one is the newest; a real
+    hole is a gap once the link went on past it."""
+    tf = TfBuffer(max_gap_s=0.1)
+    MS = 1_000_000
+    for k in range(5):
+        tf.add("map", "cam", k * 20 * MS, _rot_z(0.0, (0.02 * k, 0, 0)), static=False)
+    tf.add("map", "cam", 580 * MS, _rot_z(0.0, (9.0, 0, 0)), static=False)  # the glitch
+    with pytest.raises(TfWait, match="its newest"):
+        tf.lookup("map", "cam", 90 * MS)
+    tf.add("map", "cam", 100 * MS, _rot_z(0.0, (0.1, 0, 0)), static=False)  # the link's own next one
+    assert tf.lookup("map", "cam", 90 * MS)[0, 3] == pytest.approx(0.09)
+    with pytest.raises(TfWait):  # a hole after 100 ms, while the far one is the newest
+        tf.lookup("map", "cam", 150 * MS)
+    tf.add("map", "cam", 600 * MS, _rot_z(0.0, (0.6, 0, 0)), static=False)  # the link went on past it
+    with pytest.raises(TfError, match="more than"):
+        tf.lookup("map", "cam", 150 * MS)
+
+
 def test_a_slow_link_is_interpolated_over_its_interval_and_a_hole_in_a_fast_one_refused() -> None:
     """A localisation's map -> odom at 1 Hz under odom -> base_link at 20 Hz (a robot's usual tree):
     lookups between two map -> odom transforms interpolate, as tf2 does; a hole of 0.5 s in the 20 Hz
