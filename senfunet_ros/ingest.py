@@ -485,10 +485,7 @@ class Ingest:
     def add_depth(self, sensor: str, msg: Any) -> str | None:
         """Queue one depth image. Returns the drop reason, or None when it was queued (or, before the
         sensor's first camera_info, put aside to wait for it)."""
-        try:
-            stamp_ns: int | None = conv.stamp_to_ns(msg.header.stamp)
-        except ValueError as err:
-            stamp_ns, stamp_error = None, f"depth: {err}"
+        stamp_ns, stamp_error = _header_stamp(msg, "depth")
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.received += 1
@@ -501,10 +498,7 @@ class Ingest:
 
     def add_color(self, sensor: str, msg: Any) -> str | None:
         """Buffer one colour image for matching. Returns the drop reason, or None."""
-        try:
-            stamp_ns: int | None = conv.stamp_to_ns(msg.header.stamp)
-        except ValueError as err:
-            stamp_ns, stamp_error = None, f"color: {err}"
+        stamp_ns, stamp_error = _header_stamp(msg, "color")
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.color_received += 1
@@ -557,10 +551,9 @@ class Ingest:
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.pose_received += 1
-            try:
-                conv.stamp_to_ns(msg.header.stamp)
-            except ValueError as err:
-                return state.drop("bad_stamp", f"pose: {err}")
+            stamp_ns, stamp_error = _header_stamp(msg, "pose")  # before the parser, whose error says bad_pose
+            if stamp_ns is None:
+                return state.drop("bad_stamp", stamp_error)
             try:
                 stamp_ns, T = self.config.pose_parser(msg)
                 if sensor in self.config.T_body_camera:
@@ -715,6 +708,14 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
         depth_m = conv.resize_depth(depth_m, target)
         K = conv.scale_intrinsics(K, (width, height), target)
     return _Pending(stamp_ns, depth_m, K, arrival_s, frame_id=str(getattr(msg.header, "frame_id", "")))
+
+
+def _header_stamp(msg: Any, stream: str) -> tuple[int | None, str]:
+    """A message's header stamp in ns, or None and what was wrong with it (a bad_stamp)."""
+    try:
+        return conv.stamp_to_ns(msg.header.stamp), ""
+    except ValueError as err:
+        return None, f"{stream}: {err}"
 
 
 def _decode_color(msg: Any) -> np.ndarray | str:
