@@ -26,10 +26,11 @@ images), `integrated` (reported back by the caller with `ledger.mark_integrated`
 (messages of any stream discarded, by reason; see `DROP_REASONS`).
 
 Time: each stream keeps a timeline (`timeline.Timelines`): a stamp off its stream's timeline is
-dropped as `bad_stamp`; depth stamps that do not move forward as `duplicate` or `out_of_order`.
-When time restarts (a bag looping, a robot restarting its clock) all queues and pose buffers are
-flushed and, if it went back, a `TimeJump` item is reported ahead of the frames that follow, so
-the caller can reset its map or keep it. `restart()` says so from outside (the /clock jumping back
+dropped as `bad_stamp`; depth stamps that do not move forward as `duplicate` or `out_of_order`
+(one between the sensor's two newest is taken: see `timeline`). When time restarts (a bag
+looping, a robot restarting its clock) all queues and pose buffers are flushed and, if it went
+back, a `TimeJump` item is reported ahead of the frames that follow, so the caller can reset its
+map or keep it. `restart()` says so from outside (the /clock jumping back
 under use_sim_time).
 
 Typical use::
@@ -78,8 +79,8 @@ DROP_REASONS: tuple[str, ...] = (
     "pose_gap",  # the poses around the frame are further than pose_tolerance_s from it
     "queue_full",  # the frame queue overflowed; the oldest frame goes
     "behind",  # more than max_lag_s older than its sensor's newest (the consumer fell behind), no room to set it aside
-    "out_of_order",  # depth stamp older than the previous one of the same sensor
-    "duplicate",  # depth stamp equal to the previous one of the same sensor
+    "out_of_order",  # depth stamp older than the two newest of the same sensor
+    "duplicate",  # depth stamp equal to one of the latest of the same sensor
     "bad_stamp",  # stamp 0, or far from its stream's timeline (past or future): the timeline does not move
     "time_jump",  # frames flushed because time went back, and a new timeline's first messages not held
     "engine_error",  # the engine rejected the frame (reported by the caller)

@@ -46,7 +46,7 @@ DROP_HINTS: dict[str, str] = {
     "behind": "integration cannot keep up with the sensors, and the images it set aside (max_lag_s behind the "
               "newest) fill behind_buffer_mb: the next ones are skipped (a smaller working_width, a lower sensor "
               "rate or a larger behind_buffer_mb helps)",
-    "out_of_order": "a depth stamp on {s.depth_topic} went back in time",
+    "out_of_order": "a depth stamp on {s.depth_topic} went back in time, behind the sensor's two newest",
     "duplicate": "a depth stamp on {s.depth_topic} came twice",
     "bad_stamp": "a stamp far (time_jump_s) from its stream's timeline, or 0; check the driver's clock",
     "time_jump": "time restarted (a bag looping?): the queued images were flushed, and messages that showed it "

@@ -11,8 +11,10 @@ to the new timeline: back (the caller flushes what waits) or ahead (every stream
 pause). The candidates' messages, held meanwhile (the newest `hold_msgs` per stream), are handed
 back with the restart, so the new timeline loses none of its start. A restart known from outside
 (`restart`: the /clock went back) starts every timeline again from its time, so that old messages
-still in flight are off it. Decisions depend on stamps and their order alone, never on the wall
-clock.
+still in flight are off it. A depth stamp must be new (not among the stream's latest) and move
+forward, except one between the stream's two newest: that newest was stamped ahead of its place
+(or two frames crossed), and the stream's time goes back. Decisions depend on stamps and their
+order alone, never on the wall clock.
 
 `Timelines` is not thread-safe: its owner (`ingest.Ingest`) calls it under its lock.
 """
@@ -26,6 +28,7 @@ from typing import Any
 __all__ = ["STREAMS", "Held", "Restart", "Timelines", "Verdict"]
 
 STREAMS: tuple[str, ...] = ("depth", "color", "pose")
+_RECENT_DEPTH_STAMPS = 16  # a depth stamp among this many taken lately is a duplicate
 
 
 @dataclass(frozen=True)
@@ -81,6 +84,10 @@ class Timelines:
         self.configure(time_jump_s=time_jump_s, restart_confirm_msgs=restart_confirm_msgs,
                        restart_confirm_s=restart_confirm_s, hold_msgs=hold_msgs)
         self._spoke: dict[tuple[str, str], bool] = {key: False for key in self._last_ns}
+        # depth streams: the stamps taken lately (duplicates), and the newest before the newest (order)
+        self._recent_depth_ns: dict[tuple[str, str], deque[int]] = {
+            key: deque(maxlen=_RECENT_DEPTH_STAMPS) for key in self._last_ns if key[1] == "depth"}
+        self._previous_depth_ns: dict[tuple[str, str], int] = {}
         # where time restarted, known from outside (the /clock): the timeline until a stream has one
         self._anchor_ns: int | None = None
 
@@ -129,12 +136,25 @@ class Timelines:
             return Verdict("bad_stamp", error, restart)
         if any(self._spoke.values()):  # the old timeline is alive: what was building up is not a restart
             self._close_episode()
-        if stream == "depth" and last is not None:
-            if stamp_ns == last:
-                return Verdict("duplicate")
-            if stamp_ns < last:
-                return Verdict("out_of_order")
+        if stream == "depth":
+            return self._depth_order(key, stamp_ns, last)
         self._last_ns[key] = stamp_ns if last is None else max(last, stamp_ns)
+        return Verdict()
+
+    def _depth_order(self, key: tuple[str, str], stamp_ns: int, last: int | None) -> Verdict:
+        """A depth stamp on its stream's timeline must be new and move forward. One that falls between
+        the two newest is taken, and the stream's time goes back to it: the newest was stamped ahead
+        of its place (a glitching driver) or two frames crossed, and the frames after it would
+        otherwise all be out of order until the stream caught up with it."""
+        recent, previous = self._recent_depth_ns[key], self._previous_depth_ns.get(key)
+        if stamp_ns in recent:
+            return Verdict("duplicate")
+        if last is not None and stamp_ns < last and (previous is None or stamp_ns < previous):
+            return Verdict("out_of_order")
+        if last is not None and stamp_ns > last:
+            self._previous_depth_ns[key] = last
+        recent.append(stamp_ns)
+        self._last_ns[key] = stamp_ns
         return Verdict()
 
     def restart(self, to_ns: int | None) -> Restart:
@@ -178,6 +198,9 @@ class Timelines:
         """Every stream onto the new timeline (its newest candidate, or none yet)."""
         for key in self._last_ns:
             self._last_ns[key] = timelines.get(key)
+        for recent in self._recent_depth_ns.values():
+            recent.clear()
+        self._previous_depth_ns.clear()
         self._anchor_ns = None
         self._close_episode()
         return restart

@@ -218,12 +218,31 @@ def test_out_of_order_duplicate_and_queue_full() -> None:
     assert ingest.add_depth("tof", depth_msg(100 * MS)) == "duplicate"
     assert ingest.add_depth("tof", depth_msg(50 * MS)) == "out_of_order"
     ingest.add_depth("tof", depth_msg(150 * MS))
+    assert ingest.add_depth("tof", depth_msg(100 * MS)) == "duplicate"  # not the newest, still seen
     ingest.add_depth("tof", depth_msg(200 * MS))  # third in a queue of two: the oldest goes
     dropped = ingest.ledger.counters()["tof"]["dropped"]
-    assert (dropped["duplicate"], dropped["out_of_order"], dropped["queue_full"]) == (1, 1, 1)
+    assert (dropped["duplicate"], dropped["out_of_order"], dropped["queue_full"]) == (2, 1, 1)
     ingest.add_pose("tof", pose_msg(140 * MS))
     ingest.add_pose("tof", pose_msg(210 * MS))
     assert [f.stamp_ns for f in frames(ingest.pop_ready())] == [150 * MS, 200 * MS]
+
+
+def test_a_depth_stamp_ahead_by_a_glitch_costs_no_frame() -> None:
+    """A depth image a glitching driver stamped 0.4 s ahead (within time_jump_s, so taken) moved its
+    stream's time there: every frame after it was out_of_order until the stream caught up with it.
+    Now a frame between the two newest takes the stream's time back; frames still leave in stamp
+    order, and one older than both is still out of order."""
+    ingest = make(pose_tolerance_s=0.05)
+    for t in range(0, 800, 10):
+        ingest.add_pose("tof", pose_msg(t * MS, x=t / 1000))
+    stamps = [500, 550, 1000, 600, 650, 700, 750]  # 1000: the glitch (poses end at 790 ms)
+    assert [ingest.add_depth("tof", depth_msg(t * MS)) for t in stamps] == [None] * len(stamps)
+    assert ingest.add_depth("tof", depth_msg(620 * MS)) == "out_of_order"  # before 700 and 750
+    assert ingest.add_depth("tof", depth_msg(1000 * MS)) == "duplicate"
+    assert [f.stamp_ns // MS for f in frames(ingest.pop_ready())] == [500, 550, 600, 650, 700, 750]
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["queue_depth"] == 1  # the glitch waits for poses that reach its stamp
+    assert sum(counters["dropped"].values()) == 2
 
 
 def test_time_jump_flushes_and_is_reported_first() -> None:

@@ -562,7 +562,7 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
         # out-of-order and duplicate stamps
         send("tof", "depth", _image(6 * S, good))
         send("tof", "depth", _image(6 * S, good))
-        send("tof", "depth", _image(6 * S - S // 2, good))
+        send("tof", "depth", _image(3 * S + S // 2, good))  # older than the two newest (4 s, 6 s)
         wait_for(lambda: dropped("tof", "duplicate") >= 1 and dropped("tof", "out_of_order") >= 1, 10,
                  "duplicate and out_of_order")
 
