@@ -25,9 +25,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from senfunet_ros.ingest import Frame, Ingest, NoDepthInRange, TimeJump, integrate_ready
+from senfunet_ros.ingest import Frame, Ingest, IngestConfig, NoDepthInRange, TimeJump, integrate_ready
 
-__all__ = ["FILE_MODE", "MESH_FILES", "Pipeline", "SavedMesh", "Stream", "TimeJumpAction"]
+__all__ = ["FILE_MODE", "MESH_FILES", "Pipeline", "SavedMesh", "Stream", "TimeJumpAction", "optical_frame_advice"]
 
 MESH_FILES = {"fused": "mesh"}  # engine mesh name -> file stem (sensors and tsdf_fusion keep their names)
 FILE_MODE = 0o644  # maps and meshes are for other users and tools too (a temporary file would be 0600)
@@ -89,11 +89,17 @@ class Pipeline:
         self.integrate_s = 0.0
         self.engine_errors: list[str] = []  # the first few, for stats.json and the status
         self.stopping = False
+        self._frame_ids_checked: set[str] = set()  # sensors whose depth frame_id was looked at
 
     # -- messages ---------------------------------------------------------------------------------
 
     def dispatch(self, sensor: str, stream: Stream | str, message: Any) -> str | None:
         """Hand one message to Ingest (what a subscription callback does); returns the drop reason."""
+        if stream == Stream.DEPTH and sensor not in self._frame_ids_checked:
+            self._frame_ids_checked.add(sensor)
+            advice = optical_frame_advice(self.ingest.config, sensor, getattr(message.header, "frame_id", ""))
+            if advice:
+                self._log("warning", advice)
         return self.dispatch_to(self.ingest, sensor, stream, message)
 
     @staticmethod
@@ -226,3 +232,16 @@ class Pipeline:
             self.ingest.ledger.discard_waiting("map_reset")
             self._on_new_map()
         return engine
+
+
+def optical_frame_advice(config: IngestConfig, sensor: str, frame_id: str) -> str:
+    """What to check when frames are posed by TF as a depth image's frame_id that does not look like
+    an optical frame (REP 103 names them *_optical_frame), with no T_body_camera to turn it: a
+    driver naming its camera_link (x forward) would turn the map by 90 degrees. Empty if fine."""
+    if config.tf is None or sensor in config.T_body_camera or not frame_id or "optical" in frame_id.lower():
+        return ""
+    return (f"{sensor}: depth images name frame '{frame_id}', which does not look like an optical frame (z forward, "
+            f"x right, y down; REP 103 names them '*_optical_frame'). With pose_type tf the camera is posed as that "
+            f"frame: if it is the camera's body frame (x forward), set {sensor}.T_body_camera to "
+            f"'0 0 0 -0.5 0.5 -0.5 0.5', or the map is turned by 90 degrees; if it is an optical frame by another "
+            f"name, nothing to do")

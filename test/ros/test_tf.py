@@ -428,3 +428,29 @@ def test_tf_that_goes_on_while_the_camera_pauses_is_kept() -> None:
     assert len(posed) == counters["received"] == 30
     for frame in posed:
         assert frame.T_world_camera[0, 3] == pytest.approx(0.1 * (frame.stamp_ns - 10 * S) / S, abs=1e-6)
+
+
+def test_an_image_frame_id_that_is_not_an_optical_frame_is_warned_about_once() -> None:
+    """With pose_type tf, depth images naming camera_link (x forward) are posed turned by 90 degrees
+    unless T_body_camera turns them: the pipeline says so, once per sensor, naming the fix; not for
+    an optical frame, nor once T_body_camera is set, nor with pose topics."""
+    from test_ingest import depth_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+    from senfunet_ros.pipeline import Pipeline
+
+    def warnings(frame_id: str, **config) -> list[str]:
+        lines: list[str] = []
+        pipeline = Pipeline(None, Ingest(IngestConfig(sensors=("tof",), **config)),
+                            log=lambda level, text: lines.append(text) if level == "warning" else None)
+        for t in (1, 2):
+            msg = depth_msg(t * 1_000_000)
+            msg.header.frame_id = frame_id
+            pipeline.dispatch("tof", "depth", msg)
+        return lines
+
+    (line,) = warnings("camera_link", tf=TfBuffer())
+    assert "'camera_link'" in line and "tof.T_body_camera" in line and "-0.5 0.5 -0.5 0.5" in line
+    assert warnings("camera_depth_optical_frame", tf=TfBuffer()) == []
+    assert warnings("camera_link", tf=TfBuffer(), T_body_camera={"tof": np.eye(4)}) == []
+    assert warnings("camera_link") == []
