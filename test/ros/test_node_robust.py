@@ -2,9 +2,11 @@
 map save/load, file modes. Real rclpy nodes on a private ROS_DOMAIN_ID (see conftest)."""
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -205,18 +207,28 @@ def test_parameters_typed_ranged_read_only_and_applied(ros, tmp_path: Path) -> N
         run.close()
 
 
-def test_diagnostics_rates_warn_clears_and_stale(ros, tmp_path: Path) -> None:
-    prefix = "diag"
-    run = Running("diag", {**topic_params(prefix), **SMALL, "status_rate_hz": 5.0, "diagnostics_window_s": 1.5,
-                           "stale_after_s": 1.0}, tmp_path)
-    pub_node = Node("diag_publisher")
+@contextlib.contextmanager
+def _posing_run(name: str, tmp_path: Path, **params: Any) -> Iterator[tuple[Running, Any, list[DiagnosticArray]]]:
+    """A node on topics /<name>/..., its /diagnostics as they come, and a publisher of its tof poses
+    the node has discovered; both go at the end."""
+    run = Running(name, {**topic_params(name), **SMALL, "status_rate_hz": 5.0, **params}, tmp_path)
+    pub_node = Node(f"{name}_publisher")
     got: list[DiagnosticArray] = []
     run.helper.create_subscription(DiagnosticArray, "/diagnostics", got.append, 10)
     try:
-        pose_pub = pub_node.create_publisher(PoseStamped, f"/{prefix}/tof/pose", 50)
+        pose_pub = pub_node.create_publisher(PoseStamped, f"/{name}/tof/pose", 50)
         wait_for(lambda: pose_pub.get_subscription_count() > 0, 20, "discovery")
-        time.sleep(1.0)
+        time.sleep(1.0)  # the node's side of discovery
+        yield run, pose_pub, got
+    finally:
+        # the helper's subscription goes with it in close(), once the executor stopped: destroyed while
+        # it spins, a callback it had already queued fails on the handle, an error nobody retrieves
+        pub_node.destroy_node()
+        run.close()
 
+
+def test_diagnostics_rates_warn_clears_and_stale(ros, tmp_path: Path) -> None:
+    with _posing_run("diag", tmp_path, diagnostics_window_s=1.5, stale_after_s=1.0) as (run, pose_pub, got):
         def tof_status() -> Any:
             for msg in reversed(got):
                 for status in msg.status:
@@ -248,11 +260,6 @@ def test_diagnostics_rates_warn_clears_and_stale(ros, tmp_path: Path) -> None:
         stereo = next(s for s in got[-1].status if s.name == "senfunet: stereo")
         assert stereo.level == DiagnosticStatus.WARN and "nothing received" in stereo.message
         assert any(s.name == "senfunet: pipeline" for s in got[-1].status)
-    finally:
-        # the helper's subscription goes with it in close(), once the executor stopped: destroyed while
-        # it spins, a callback it had already queued fails on the handle, an error nobody retrieves
-        pub_node.destroy_node()
-        run.close()
 
 
 def test_a_pose_republished_with_another_value_is_counted_in_diagnostics_and_logged_once(ros, tmp_path: Path,
@@ -260,15 +267,7 @@ def test_a_pose_republished_with_another_value_is_counted_in_diagnostics_and_log
     """A pose driver that republishes stamps with other poses: each such pose is dropped as
     pose_conflict (the first kept), on /diagnostics with what differed, and warned about once per
     warning period, not once per message; the same pose again is no conflict."""
-    prefix = "conflict"
-    run = Running("conflict", {**topic_params(prefix), **SMALL, "status_rate_hz": 5.0}, tmp_path)
-    pub_node = Node("conflict_publisher")
-    got: list[DiagnosticArray] = []
-    run.helper.create_subscription(DiagnosticArray, "/diagnostics", got.append, 10)
-    try:
-        pose_pub = pub_node.create_publisher(PoseStamped, f"/{prefix}/tof/pose", 50)
-        wait_for(lambda: pose_pub.get_subscription_count() > 0, 20, "discovery")
-        time.sleep(1.0)  # the node's side of discovery
+    with _posing_run("conflict", tmp_path) as (run, pose_pub, got):
         for i in range(10):
             for x in (0.0, 0.0, 0.5):  # each stamp: a pose, the same again, then another pose
                 msg = PoseStamped()
@@ -290,9 +289,6 @@ def test_a_pose_republished_with_another_value_is_counted_in_diagnostics_and_log
         assert "0.500 m" in values["error.pose_conflict"] and "the first" in values["error.pose_conflict"]
         assert int(values["recent_dropped.pose_conflict"]) == 10
         time.sleep(0.5)  # the integration tick's warnings
-    finally:
-        pub_node.destroy_node()
-        run.close()
     log = capfd.readouterr().err
     assert len([line for line in log.splitlines() if "pose_conflict" in line]) == 1, log
 
