@@ -419,26 +419,42 @@ def test_mesh_coloured_by_camera_colour(ros, tmp_path: Path) -> None:
         run.close()
 
 
-def test_clock_going_back_restarts_time_at_once(ros, tmp_path: Path) -> None:
+def _publish_clock_going_back(run: Running, clock: Any) -> None:
+    """A timeline at 1100 s, then /clock at 1100 s, 1100.5 s and 1010 s: the bag loops."""
     from rosgraph_msgs.msg import Clock
 
-    run = Running("clock", {**topic_params("clock"), **SMALL, "use_sim_time": True,
+    pose = PoseStamped()
+    pose.pose.orientation.w = 1.0
+    _stamp(pose, 100.0)
+    run.node.pipeline.dispatch("tof", "pose", pose)
+    for t_s in (100.0, 100.5, 10.0):  # /clock goes back by 90 s
+        msg = Clock()
+        msg.clock.sec = int(t_s + BASE_S)
+        clock.publish(msg)
+        time.sleep(0.2)
+
+
+@pytest.mark.parametrize("sim_time_set", ["at_start", "at_run_time"])
+def test_clock_going_back_restarts_time_at_once(ros, tmp_path: Path, sim_time_set: str) -> None:
+    """Under use_sim_time, given at start or set at run time (`ros2 param set /senfunet use_sim_time true`,
+    which the node accepted but left /clock unwatched: a loop was recognised only from the new timeline),
+    and no longer once it is set false."""
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+
+    run = Running("clock", {**topic_params("clock"), **SMALL, "use_sim_time": sim_time_set == "at_start",
                             "tof.T_body_camera": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}, tmp_path)
     pub_node = Node("clock_publisher")
     try:
+        if sim_time_set == "at_run_time":
+            assert all(r.successful for r in run.node.set_parameters([Parameter("use_sim_time", value=True)]))
         clock = pub_node.create_publisher(Clock, "/clock", 10)
         wait_for(lambda: clock.get_subscription_count() > 0, 20, "discovery")
-        pose = PoseStamped()
-        pose.pose.orientation.w = 1.0
-        _stamp(pose, 100.0)
-        run.node.pipeline.dispatch("tof", "pose", pose)  # a timeline at 1100 s
-        for t_s in (100.0, 100.5, 10.0):  # the bag loops: /clock goes back by 90 s
-            msg = Clock()
-            msg.clock.sec = int(t_s + BASE_S)
-            clock.publish(msg)
-            time.sleep(0.2)
+        _publish_clock_going_back(run, clock)
         wait_for(lambda: run.node.pipeline.time_jumps >= 1, 10, "the restart")
         assert run.node.ingest.ledger.counters()["tof"]["dropped"]["bad_stamp"] == 0
+        assert all(r.successful for r in run.node.set_parameters([Parameter("use_sim_time", value=False)]))
+        wait_for(lambda: clock.get_subscription_count() == 0, 20, "the /clock watch dropped")
     finally:
         pub_node.destroy_node()
         run.close()
