@@ -28,11 +28,11 @@ def node_fqn(ros_args: Sequence[str]) -> str:
     from senfunet_ros.params import NODE_NAME
 
     namespace, name = "", NODE_NAME
-    for arg in ros_args:  # -r __ns:=/robot1, or a node's own remapping (senfunet:__ns:=/robot1)
-        if "__ns:=" in arg:
-            namespace = arg.split("__ns:=", 1)[1].strip("/")
-        elif "__node:=" in arg:
-            name = arg.split("__node:=", 1)[1]
+    for arg in ros_args:  # -r __ns:=/robot1, or one for this node alone (senfunet:__ns:=/robot1)
+        for key in ("__ns:=", "__node:="):
+            target, _, value = arg.partition(key)
+            if key in arg and target in ("", f"{NODE_NAME}:"):
+                namespace, name = (value.strip("/"), name) if key == "__ns:=" else (namespace, value)
     return f"/{namespace}/{name}" if namespace else f"/{name}"
 
 
