@@ -365,6 +365,29 @@ def test_save_map_load_map_round_trip_and_file_modes(ros, tmp_path: Path) -> Non
         run.close()
 
 
+def test_load_map_of_a_file_that_is_no_map_says_so_and_keeps_the_map(ros, tmp_path: Path) -> None:
+    """~/load_map with map_file naming a PLY (mesh.ply next to the maps), or a map cut short: the reply
+    passed on torch's error, which for the PLY advised loading it with weights_only=False (unsafe) and
+    for the cut one said "[Errno 22] Invalid argument"."""
+    run = Running("notmap", {**topic_params("notmap"), **SMALL}, tmp_path)
+    try:
+        fuse_in_process(run, scene_messages())
+        faces = run.node.engine.extract_mesh("fused").n_faces
+        assert run.call("save_map").success and run.call("save_mesh").success
+        out = tmp_path / "out"
+        cut = out / "cut.pt"
+        cut.write_bytes((out / "map.pt").read_bytes()[:50_000])
+        for path in (out / "mesh.ply", cut):
+            (res,) = _set(run, map_file=str(path))
+            assert res.successful
+            r = run.call("load_map")
+            assert not r.success and f"{path} is not a map" in r.message, r.message
+            assert "weights_only" not in r.message and "Errno" not in r.message, r.message
+            assert run.node.engine.extract_mesh("fused").n_faces == faces  # the map stays
+    finally:
+        run.close()
+
+
 def test_compressed_inputs_are_decoded(ros, tmp_path: Path) -> None:
     import cv2
 
