@@ -8,6 +8,7 @@ earlier version of the format wrote it.
 from __future__ import annotations
 
 import logging
+import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, fields, replace
 from pathlib import Path
@@ -56,6 +57,11 @@ def load_map(path: str | Path, device: str | None = None, *,
     worker_setup: as for `SenFuNet`. max_blocks: the map bound from now on (the caller's, e.g. the
     node's max_map_blocks; None: the one the map was saved with)."""
     path = Path(path)
+    # torch.save writes a zip archive: anything else (a PLY, a file cut short) would get torch's own
+    # error, which names weights_only and advises loading the file unsafely, or a bare "[Errno 22]"
+    if not zipfile.is_zipfile(path):
+        raise InputError(f"{path} is not a map (~/save_map and replay write one: a zip archive), or it is "
+                         "damaged (cut short?)")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
         if state.get("format") != "senfunet-engine-1":

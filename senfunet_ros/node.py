@@ -258,9 +258,10 @@ class FusionNode(Node):
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.ledger.counters()
         # 3. subscriptions: they only enqueue; the status reports their health
-        self._subscriptions_keep, self.health = subscribe(
-            self, s, callback=self._guard, ingest=self.ingest, time_jump_s=lambda: self.settings.time_jump_s,
-            warn=self._warn)
+        self._subscriptions_keep, self.health = subscribe(self, s, callback=self._guard)
+        # under use_sim_time, /clock going back is a restart: followed as use_sim_time is set, at start or later
+        self._clock_subscription: Any = None
+        self._follow_clock(bool(self.get_parameter("use_sim_time").value))
         topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in sensor_streams(sensor, s.pose_type)}
                   for sensor in s.sensors}
         self.status_report = StatusReport(self.pipeline, self.health, self.timings, self.latency, topics=topics,
@@ -300,6 +301,7 @@ class FusionNode(Node):
             lambda parameters: P.as_declared_types(parameters, P.param_table(self.settings.sensor_names)))
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
+        self.add_post_set_parameters_callback(self._apply_use_sim_time)
         # Ctrl-C / SIGTERM shut the context down while timers may be mid-frame: say so to the pipeline,
         # so what the stop interrupts is counted as such, not as an engine error
         self.context.on_shutdown(lambda: setattr(self.pipeline, "stopping", True))
@@ -390,6 +392,25 @@ class FusionNode(Node):
         except Exception as err:  # a post-set callback that raises takes the executor down
             self.get_logger().error(f"parameters accepted but not all applied ({err!r}); set them again")
 
+    def _apply_use_sim_time(self, parameters: list[Parameter]) -> None:
+        """use_sim_time set at run time (rclpy's own parameter; its clock follows it at once): the /clock
+        watch too, else a bag looping after `ros2 param set ... use_sim_time true` were recognised only
+        from the new timeline, and after `false` a /clock still flushed the queues."""
+        for p in parameters:
+            if p.name == "use_sim_time" and p.type_ is Parameter.Type.BOOL:
+                self._follow_clock(bool(p.value))
+
+    def _follow_clock(self, on: bool) -> None:
+        """Subscribe a /clock watch (on; a new one: the /clock it saw before it was dropped is no reference) or
+        drop it."""
+        if on and self._clock_subscription is None:
+            watch = _ClockWatch(self.ingest, lambda: self.settings.time_jump_s, self.get_logger(), self._warn)
+            self._clock_subscription = self.create_subscription(
+                RosClock, "/clock", watch.on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup())
+        elif not on and self._clock_subscription is not None:
+            self.destroy_subscription(self._clock_subscription)
+            self._clock_subscription = None
+
     # -- timers ---------------------------------------------------------------------------------
 
     def _integrate_tick(self) -> None:
@@ -452,13 +473,11 @@ class FusionNode(Node):
         super().destroy_node()
 
 
-def subscribe(node: Node, settings: P.Settings, *, callback: Callable[[str, Stream], Callable[[Any], None]],
-              ingest: Ingest, time_jump_s: Callable[[], float], warn: Callable[..., None]
+def subscribe(node: Node, settings: P.Settings, *, callback: Callable[[str, Stream], Callable[[Any], None]]
               ) -> tuple[list[Any], HealthMonitor]:
-    """Each sensor's topics, and /clock under use_sim_time (a jump back confirms a restart at once):
-    the subscriptions and the health monitor of what they subscribed. Each subscription has its own
-    mutually exclusive group: streams run in parallel, but one stream's messages never overlap, so
-    they reach Ingest in arrival order."""
+    """Each sensor's topics: the subscriptions and the health monitor of what they subscribed. Each
+    subscription has its own mutually exclusive group: streams run in parallel, but one stream's
+    messages never overlap, so they reach Ingest in arrival order. (/clock: `FusionNode._follow_clock`.)"""
     subscriptions = []
     subscribed: dict[str, tuple[str, ...]] = {}
     for sensor in settings.sensors:
@@ -468,10 +487,6 @@ def subscribe(node: Node, settings: P.Settings, *, callback: Callable[[str, Stre
             subscriptions.append(node.create_subscription(msg_type, topic, callback(sensor.name, stream), qos,
                                                           callback_group=MutuallyExclusiveCallbackGroup()))
     health = HealthMonitor(subscribed, window_s=settings.diagnostics_window_s, stale_after_s=settings.stale_after_s)
-    if node.get_parameter("use_sim_time").value:
-        watch = _ClockWatch(ingest, time_jump_s, node.get_logger(), warn)
-        subscriptions.append(node.create_subscription(RosClock, "/clock", watch.on_clock, _CLOCK_QOS,
-                                                      callback_group=MutuallyExclusiveCallbackGroup()))
     return subscriptions, health
 
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 
 HELP = "run the live fusion node (subscribes to the sensors, publishes ~/mesh, ~/weights, ~/status)"
 
@@ -21,6 +22,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="further ROS arguments after --, e.g. -- --ros-args -p voxel_size_m:=0.02")
 
 
+def node_fqn(ros_args: Sequence[str]) -> str:
+    """The node's namespace and name as the remappings among `ros_args` set them (`__ns:=/robot1`,
+    `__node:=fusion`): the parameter file sections it gets depend on both."""
+    from senfunet_ros.params import NODE_NAME
+
+    namespace, name = "", NODE_NAME
+    for arg in ros_args:  # -r __ns:=/robot1, or one for this node alone (senfunet:__ns:=/robot1)
+        for key in ("__ns:=", "__node:="):
+            target, _, value = arg.partition(key)
+            if key in arg and target in ("", f"{NODE_NAME}:"):
+                namespace, name = (value.strip("/"), name) if key == "__ns:=" else (namespace, value)
+    return f"/{namespace}/{name}" if namespace else f"/{name}"
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -29,13 +44,12 @@ def run(args: argparse.Namespace) -> int:
         path = Path(args.params)
         if not path.is_file():
             return _error(f"parameter file {path} not found; pass e.g. --params config/default.yaml")
-        if not any(arg.startswith("__node:=") for arg in args.ros_args or ()):  # else another node's section
-            from senfunet_ros.replay import load_settings
+        from senfunet_ros.replay import load_settings
 
-            try:  # the node would take the file's section and ignore what it does not know: refuse it here
-                load_settings(path, node_sections_only=True)
-            except ValueError as err:
-                return _error(str(err))
+        try:  # the node would take the file's sections for it and ignore what it does not know: refuse it here
+            load_settings(path, node_sections_only=True, node_fqn=node_fqn(args.ros_args or ()))
+        except ValueError as err:
+            return _error(str(err))
         ros_args += ["--params-file", str(path)]
     if args.use_sim_time:
         ros_args += ["-p", "use_sim_time:=true"]

@@ -311,6 +311,18 @@ def _check_meshes(meshes: Any) -> None:
 
 # CDR bytes per triangle of a TRIANGLE_LIST marker: 3 float64 points and 3 float32 RGBA colours
 MARKER_BYTES_PER_FACE = 3 * 24 + 3 * 16
+# the longest marker namespace: "senfunet_mesh_{}_{}_{}" of a block key's high bits (int64 keys >> 10)
+_MAX_NS_BYTES = len("senfunet_mesh") + 3 * len(f"_{-(2 ** 53)}")
+
+
+def _marker_bytes_without_faces(frame_id: str) -> int:
+    """CDR bytes of one marker besides its triangles and its namespace, at most: a DELETE marker's
+    (header, pose, the empty texture and mesh fields) with the padding that aligning its strings and
+    its points can add."""
+    one = marker_array_cdr({}, [(0, 0, 0)], stamp_ns=0, frame_id=frame_id)
+    return len(one) - 8 - len("senfunet_mesh") + 3 + 3 + 7  # less the header and count; frame_id, ns, points padding
+
+
 # ~/mesh messages are cut to about this size: the DDS writer keeps every sample of its history (and
 # a spare) in buffers as large as the largest message, and a whole-room update is hundreds of MB.
 MESH_MESSAGE_MAX_BYTES = 16 << 20
@@ -325,19 +337,29 @@ def marker_array_messages(
     delete_all_first: bool = False,
     max_bytes: int = MESH_MESSAGE_MAX_BYTES,
 ) -> Iterator[np.ndarray]:
-    """One mesh update (see `marker_array_cdr`) as MarkerArray CDR arrays of about max_bytes at
-    most, consecutive runs of whole blocks; the DELETEALL and the DELETEs of removed blocks go in
-    the first. Applied in order they equal the single message. The arrays share one buffer: use
-    (publish) each before taking the next."""
+    """One mesh update (see `marker_array_cdr`) as MarkerArray CDR arrays of max_bytes at most (a
+    single block larger than that goes alone), consecutive runs of whole blocks; the DELETEALL and
+    the DELETEs of removed blocks go in the first. Applied in order they equal the single message.
+    The arrays share one buffer: use (publish) each before taking the next."""
     from senfunet_core.mesher import BlockMeshes
 
     meshes = changed if isinstance(changed, BlockMeshes) else BlockMeshes.from_meshes(dict(changed))
-    faces_before = meshes.face_offsets  # B+1: faces of the blocks before each block
-    budget_faces = max(1, max_bytes // MARKER_BYTES_PER_FACE)
+    removed = list(removed)
+    # each marker's fixed part counts too: a display mesh has tens of triangles a block, and parts
+    # cut by their triangles alone came out a tenth larger than max_bytes
+    names, _ = block_marker_ids(meshes.keys)
+    fixed = _marker_bytes_without_faces(frame_id)
+    block_bytes = (np.diff(meshes.face_offsets) * MARKER_BYTES_PER_FACE + fixed
+                   + np.fromiter((len(name) for name in names), np.int64, len(names)))
+    bytes_before = np.concatenate([[0], np.cumsum(block_bytes)])  # B+1: bytes of the blocks before each block
+    budget = max_bytes - 8  # the encapsulation header and the marker count
+    # the first part also holds the DELETEALL and the removed blocks' DELETEs (namespaces up to _MAX_NS_BYTES)
+    first_budget = budget - (len(removed) + int(delete_all_first)) * (fixed + _MAX_NS_BYTES)
     buffer = np.zeros(0, np.uint8)
     start, first = 0, True
     while first or start < len(meshes):
-        stop = int(np.searchsorted(faces_before, faces_before[start] + budget_faces, side="right")) - 1
+        limit = bytes_before[start] + (first_budget if first else budget)
+        stop = int(np.searchsorted(bytes_before, limit, side="right")) - 1
         stop = min(max(stop, start + 1), len(meshes))
         data = marker_array_cdr(meshes.blocks(start, stop), removed if first else (), stamp_ns=stamp_ns,
                                 frame_id=frame_id, delete_all_first=delete_all_first and first, as_array=True,

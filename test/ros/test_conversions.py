@@ -234,6 +234,23 @@ def test_marker_array_messages_split_an_update_into_parts() -> None:
     assert [m.action for m in deserialize_message(only_deletes[0].tobytes(), MarkerArray).markers] == [Marker.DELETE]
 
 
+def test_marker_array_parts_stay_within_max_bytes_for_small_blocks() -> None:
+    """A display mesh has tens of triangles a block: the parts were cut by their triangles alone, and
+    each marker's fixed ~230 bytes made them a tenth larger than mesh_message_max_mb."""
+    blocks = {(i, -i, 2000 * (i % 3)): _mesh(i, n_faces=8 + i % 30) for i in range(3000)}  # some far (long ns)
+    removed = [(5000 + i, 0, 0) for i in range(200)]
+    max_bytes = 256 << 10
+    parts = [data.tobytes() for data in conv.marker_array_messages(
+        blocks, removed, stamp_ns=7, frame_id="a_long_fixed_frame_name", delete_all_first=True, max_bytes=max_bytes)]
+    assert len(parts) > 5
+    assert max(map(len, parts)) <= max_bytes, [len(part) for part in parts]
+    assert min(map(len, parts[:-1])) > max_bytes * 0.9  # not cut much smaller either
+    whole = conv.marker_array_cdr(blocks, removed, stamp_ns=7, frame_id="a_long_fixed_frame_name",
+                                  delete_all_first=True)
+    assert sorted((m.ns, m.id, m.action, len(m.points_m)) for part in parts for m in conv.marker_array_from_cdr(part)) \
+        == sorted((m.ns, m.id, m.action, len(m.points_m)) for m in conv.marker_array_from_cdr(whole))
+
+
 def test_marker_delete_all_and_empty_block() -> None:
     msg = deserialize_message(conv.delete_all_marker_array_cdr(stamp_ns=0, frame_id="map"), MarkerArray)
     assert [m.action for m in msg.markers] == [Marker.DELETEALL]

@@ -309,6 +309,41 @@ def test_parameter_table_declared_and_default_yaml_matches(ros, tmp_path: Path, 
     assert flat == {name: default for name, (default, _) in expected.items()}
 
 
+def test_senfunet_node_in_a_namespace_takes_the_file_sections_that_reach_it(ros, tmp_path: Path) -> None:
+    """`senfunet node --params FILE -- --ros-args -r __ns:=/robot1`: rcl gives the node /robot1/senfunet
+    the file's '/robot1/senfunet' (or '/**/senfunet') section, which the command refused, and not a plain
+    'senfunet' one, which the command let through: the node then ran with the defaults, silently."""
+    import subprocess
+    import sys
+
+    from rclpy.parameter_client import AsyncParameterClient
+
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(f"senfunet:\n  ros__parameters:\n    output_dir: {tmp_path / 'plain'}\n")
+    command = [sys.executable, "-m", "senfunet_ros.cli", "node", "--params"]
+    refused = subprocess.run([*command, str(plain), "--", "--ros-args", "-r", "__ns:=/robot1"], capture_output=True,
+                             text=True, timeout=120)
+    assert refused.returncode == 2 and "'/**/senfunet'" in refused.stderr, refused.stderr
+    namespaced = tmp_path / "namespaced.yaml"
+    namespaced.write_text(f"/robot1/senfunet:\n  ros__parameters:\n    output_dir: {tmp_path / 'robot1'}\n")
+    node = subprocess.Popen([*command, str(namespaced), "--", "--ros-args", "-r", "__ns:=/robot1"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    client_node = Node("namespace_client")
+    try:
+        client = AsyncParameterClient(client_node, "/robot1/senfunet")
+        deadline = time.monotonic() + 120
+        while not client.services_are_ready() and node.poll() is None and time.monotonic() < deadline:
+            rclpy.spin_once(client_node, timeout_sec=0.1)
+        assert node.poll() is None, node.communicate()[1]
+        future = client.get_parameters(["output_dir"])
+        rclpy.spin_until_future_complete(client_node, future, timeout_sec=30)
+        assert future.result() is not None and future.result().values[0].string_value == str(tmp_path / "robot1")
+    finally:
+        client_node.destroy_node()
+        node.terminate()
+        node.wait(timeout=60)
+
+
 def _visible_gt(gt_vertices: np.ndarray, seq: Any, border_px: int = 10, tol_m: float = 0.1) -> np.ndarray:
     """GT vertices some ToF frame saw (in its image, depth agreeing): the part a short
     trajectory can reconstruct, so recall measures the fusion, not the trajectory's coverage."""
