@@ -345,6 +345,8 @@ def marker_array_messages(
 
     meshes = changed if isinstance(changed, BlockMeshes) else BlockMeshes.from_meshes(dict(changed))
     removed = list(removed)
+    if delete_all_first:  # a snapshot: after the DELETEALL a DELETE (removed, or no triangles) clears nothing
+        meshes, removed = meshes.select(np.flatnonzero(np.diff(meshes.face_offsets) > 0)), []
     # each marker's fixed part counts too: a display mesh has tens of triangles a block, and parts
     # cut by their triangles alone came out a tenth larger than max_bytes
     names, _ = block_marker_ids(meshes.keys)
@@ -398,8 +400,10 @@ def marker_array_cdr(
     _check_meshes(meshes)
     has_faces = np.diff(meshes.face_offsets) > 0
     keep = np.flatnonzero(has_faces)
-    deletes = {tuple(int(v) for v in key) for key in removed}
-    deletes.update(map(tuple, meshes.keys[~has_faces].tolist()))
+    deletes: set[tuple[int, ...]] = set()
+    if not delete_all_first:  # after a DELETEALL a DELETE (removed, or no triangles) clears nothing
+        deletes.update(tuple(int(v) for v in key) for key in removed)
+        deletes.update(map(tuple, meshes.keys[~has_faces].tolist()))
     delete_keys = np.array(sorted(deletes), np.int64).reshape(-1, 3)
     # markers: [DELETEALL], DELETEs, then the ADDs, which use the kept blocks' ranges
     delete_names, delete_ids = block_marker_ids(delete_keys)

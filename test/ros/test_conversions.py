@@ -254,11 +254,16 @@ def test_marker_array_parts_stay_within_max_bytes_for_small_blocks() -> None:
 def test_marker_delete_all_and_empty_block() -> None:
     msg = deserialize_message(conv.delete_all_marker_array_cdr(stamp_ns=0, frame_id="map"), MarkerArray)
     assert [m.action for m in msg.markers] == [Marker.DELETEALL]
-    data = conv.marker_array_cdr({(1, 1, 1): Mesh.empty(), (2, 2, 2): _mesh(2)}, [], stamp_ns=1, frame_id="odom",
-                                 delete_all_first=True)
-    msg = deserialize_message(data, MarkerArray)
-    assert [m.action for m in msg.markers] == [Marker.DELETEALL, Marker.DELETE, Marker.ADD]
-    assert msg.markers[1].id == conv.block_marker_id((1, 1, 1))[1]
+    blocks = {(1, 1, 1): Mesh.empty(), (2, 2, 2): _mesh(2)}
+    msg = deserialize_message(conv.marker_array_cdr(blocks, [], stamp_ns=1, frame_id="odom"), MarkerArray)
+    assert [m.action for m in msg.markers] == [Marker.DELETE, Marker.ADD]
+    assert msg.markers[0].id == conv.block_marker_id((1, 1, 1))[1]
+    # a snapshot: after its DELETEALL, DELETEs of blocks without triangles or removed would clear nothing
+    for parts in ([conv.marker_array_cdr(blocks, [(3, 3, 3)], stamp_ns=1, frame_id="odom", delete_all_first=True)],
+                  list(conv.marker_array_messages(blocks, [(3, 3, 3)], stamp_ns=1, frame_id="odom",
+                                                  delete_all_first=True, max_bytes=1))):
+        markers = [m for data in parts for m in deserialize_message(bytes(data), MarkerArray).markers]
+        assert [m.action for m in markers] == [Marker.DELETEALL, Marker.ADD]
 
 
 def test_marker_array_decoder_reads_what_rclpy_writes() -> None:
