@@ -122,7 +122,9 @@ class HealthMonitor:
 
     @staticmethod
     def _judge(streams: dict[str, StreamReport], recent: dict[str, int]) -> SensorReport:
-        stale = sorted(name for name, r in streams.items() if r.stale)
+        # camera_info may come once (a latched publisher): its silence while depth comes is no stop
+        depth_live = "depth" in streams and not streams["depth"].stale and not streams["depth"].never
+        stale = sorted(name for name, r in streams.items() if r.stale and not (name == "camera_info" and depth_live))
         never = sorted(name for name, r in streams.items() if r.never and name not in _OPTIONAL)
         if stale:
             level = Level.STALE

@@ -321,6 +321,23 @@ def test_a_silent_colour_topic_is_a_warning_only_for_a_sensor_whose_net_takes_co
     assert [level for level, text in logged if "/stereo/color" in text] == ["warning"]
 
 
+def test_a_camera_info_that_came_once_is_not_stale_while_its_depth_comes() -> None:
+    """A driver that publishes camera_info once (latched): its K is cached and the sensor fuses, so
+    the sensor is not STALE for that silence; once its depth stops too, both are named."""
+    from senfunet_ros.health import HealthMonitor, Level
+
+    now = [0.0]
+    health = HealthMonitor({"tof": ("camera_info", "depth")}, window_s=1.0, stale_after_s=2.0, clock=lambda: now[0])
+    health.received("tof", "camera_info")
+    for _ in range(50):  # depth at 10 Hz for 5 s
+        now[0] += 0.1
+        health.received("tof", "depth")
+    assert health.report()["tof"].level == Level.OK
+    now[0] += 3.0
+    report = health.report()["tof"]
+    assert report.level == Level.STALE and "camera_info, depth" in report.message
+
+
 def test_save_map_load_map_round_trip_and_file_modes(ros, tmp_path: Path) -> None:
     run = Running("maps", {**topic_params("maps"), **SMALL, "map_file": "room.pt"}, tmp_path)
     old_umask = os.umask(0o077)  # a restrictive umask: the files must still be readable by others
