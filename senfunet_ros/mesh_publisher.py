@@ -185,27 +185,13 @@ class MeshPublisher:
             cloud = None
             if weights:
                 self._next_weights_s = now + 1.0 / s.weights_rate_hz
-                band = s.weights_band_m
-                # alpha as the budgeted updates left it (NaN: not evaluated yet), not a full refresh
-                from senfunet_core.readout import weight_cloud
-
-                cloud = weight_cloud(engine, band if band > 0 else None, refresh_alpha=False)
+                cloud = self._weight_cloud(engine, s)
                 self._timings["weights"].add(time.perf_counter() - t_update)
             t_cloud = time.perf_counter()
-            frame_id = s.fixed_frame
-            max_bytes = int(s.mesh_message_max_mb * (1 << 20))
             readers = (self.mesh_pub.get_subscription_count(), self._matched)
-            messages = None
             caught_up = self._parts_unacknowledged and self.mesh_pub.wait_for_all_acked(_NO_WAIT)
-            if readers[0] > served[0] or readers[1] > served[1] or caught_up:
-                # Someone new joined (or caught up): transient local only holds the last few messages, so send it all.
-                messages = conv.marker_array_messages(self.display(engine.block_meshes()), (),
-                                                      stamp_ns=stamp_ns, frame_id=frame_id, delete_all_first=True,
-                                                      max_bytes=max_bytes)
-            elif update.cleared or len(update.meshes) or update.removed:
-                messages = conv.marker_array_messages(self.display(update.meshes), update.removed, stamp_ns=stamp_ns,
-                                                      frame_id=frame_id, delete_all_first=update.cleared,
-                                                      max_bytes=max_bytes)
+            messages = self._mesh_messages(engine, update, s, stamp_ns,
+                                           whole=readers[0] > served[0] or readers[1] > served[1] or caught_up)
             # the net's turn ends with this mesh period (less a margin for the updates' jitter): the next
             # update is not to wait for it
             period_s = (1.0 - MESH_PERIOD_MARGIN) * mesh_period_s(s.mesh_rate_hz)
@@ -218,39 +204,9 @@ class MeshPublisher:
             turn = (self._turns.submit(self.weighting_net_turn, idle=True, period_left_s=period_s - (t_alpha - start))
                     if idle else None)
             try:
-                publish_s = 0.0  # the rest, from t_cloud on, is encoding (the parts are encoded as they are taken)
-                if cloud is not None:
-                    cloud_data = conv.point_cloud2_cdr(cloud.positions_m, cloud.alpha, cloud.weights,
-                                                       s.sensor_names, stamp_ns=stamp_ns, frame_id=frame_id)
-                    t_encoded = time.perf_counter()
-                    publish_serialized(self.weights_pub, np.frombuffer(cloud_data, np.uint8))
-                    publish_s += time.perf_counter() - t_encoded
-                ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
-                unacknowledged = 0  # parts published while a reader had not taken the one before
-                parts = 0
-                for parts, data in enumerate(messages or (), start=1):
-                    t_encoded = time.perf_counter()
-                    # the history holds 2: let readers take the previous part before it can be overwritten
-                    if parts > 1 and not self._wait_mesh_acked(ack_deadline):
-                        unacknowledged += 1
-                    publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
-                    publish_s += time.perf_counter() - t_encoded
-                if messages is not None or cloud is not None:
-                    self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
-                    self._timings["publish"].add(publish_s)
+                unacknowledged = self._send(messages, cloud, s, stamp_ns, t_cloud=t_cloud)
                 self._latency.published(contained)
-                if parts > self._most_parts:
-                    self._most_parts = parts
-                    self._logger.info(f"a ~/mesh update went out in {parts} parts of at most "
-                                      f"{s.mesh_message_max_mb:g} MB: a reader keeping fewer messages than that (a "
-                                      "latched reader of depth 1) loses parts; subscribe with KEEP_ALL or raise "
-                                      "parameter mesh_message_max_mb")
-                if unacknowledged:
-                    self._warn(("mesh_readers_behind",), f"a ~/mesh reader did not take the parts of a mesh update "
-                               f"within {_PARTS_ACK_TIMEOUT_S:g} s ({unacknowledged} part(s) published without "
-                               "waiting for it; readers may have missed some): the whole map is sent again once "
-                               "every reader has caught up")
-                self._parts_unacknowledged = bool(unacknowledged) or (self._parts_unacknowledged and not caught_up)
+                self._parts_unacknowledged = unacknowledged or (self._parts_unacknowledged and not caught_up)
                 self._served = readers
             finally:  # the turn ends before the next publication, even if this one failed
                 if turn is not None:
@@ -261,6 +217,63 @@ class MeshPublisher:
                 t_alpha = time.perf_counter()
                 self.weighting_net_turn(idle=False, period_left_s=period_s - (t_alpha - start))
             self._timings["alpha"].add(time.perf_counter() - t_alpha)
+
+    @staticmethod
+    def _weight_cloud(engine: Any, s: P.Settings) -> Any:
+        """~/weights' points: alpha as the budgeted updates left it (NaN: not evaluated yet), not a full
+        refresh, within weights_band_m of the surface (0: everywhere observed)."""
+        from senfunet_core.readout import weight_cloud
+
+        return weight_cloud(engine, s.weights_band_m if s.weights_band_m > 0 else None, refresh_alpha=False)
+
+    def _mesh_messages(self, engine: Any, update: Any, s: P.Settings, stamp_ns: int, *, whole: bool) -> Any:
+        """The update's ~/mesh parts (encoded as they are taken), or None when nothing changed; the
+        whole map when `whole` (a reader joined or caught up: transient local keeps only the last few
+        messages)."""
+        frame_id, max_bytes = s.fixed_frame, int(s.mesh_message_max_mb * (1 << 20))
+        if whole:
+            return conv.marker_array_messages(self.display(engine.block_meshes()), (), stamp_ns=stamp_ns,
+                                              frame_id=frame_id, delete_all_first=True, max_bytes=max_bytes)
+        if update.cleared or len(update.meshes) or update.removed:
+            return conv.marker_array_messages(self.display(update.meshes), update.removed, stamp_ns=stamp_ns,
+                                              frame_id=frame_id, delete_all_first=update.cleared,
+                                              max_bytes=max_bytes)
+        return None
+
+    def _send(self, messages: Any, cloud: Any, s: P.Settings, stamp_ns: int, *, t_cloud: float) -> bool:
+        """Publish the weight cloud and the mesh parts, each part once the readers took the one before,
+        within _PARTS_ACK_TIMEOUT_S for all. Returns whether a part went out before a reader took the
+        one before (warned about: the whole map goes out again once every reader has caught up)."""
+        publish_s = 0.0  # the rest, from t_cloud on, is encoding (the parts are encoded as they are taken)
+        if cloud is not None:
+            cloud_data = conv.point_cloud2_cdr(cloud.positions_m, cloud.alpha, cloud.weights, s.sensor_names,
+                                               stamp_ns=stamp_ns, frame_id=s.fixed_frame)
+            t_encoded = time.perf_counter()
+            publish_serialized(self.weights_pub, np.frombuffer(cloud_data, np.uint8))
+            publish_s += time.perf_counter() - t_encoded
+        ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
+        unacknowledged = 0  # parts published while a reader had not taken the one before
+        parts = 0
+        for parts, data in enumerate(messages or (), start=1):
+            t_encoded = time.perf_counter()
+            # the history holds 2: let readers take the previous part before it can be overwritten
+            if parts > 1 and not self._wait_mesh_acked(ack_deadline):
+                unacknowledged += 1
+            publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
+            publish_s += time.perf_counter() - t_encoded
+        if messages is not None or cloud is not None:
+            self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
+            self._timings["publish"].add(publish_s)
+        if parts > self._most_parts:
+            self._most_parts = parts
+            self._logger.info(f"a ~/mesh update went out in {parts} parts of at most {s.mesh_message_max_mb:g} MB: a "
+                              "reader keeping fewer messages than that (a latched reader of depth 1) loses parts; "
+                              "subscribe with KEEP_ALL or raise parameter mesh_message_max_mb")
+        if unacknowledged:
+            self._warn(("mesh_readers_behind",), f"a ~/mesh reader did not take the parts of a mesh update within "
+                       f"{_PARTS_ACK_TIMEOUT_S:g} s ({unacknowledged} part(s) published without waiting for it; "
+                       "readers may have missed some): the whole map is sent again once every reader has caught up")
+        return bool(unacknowledged)
 
     def close(self) -> None:
         """End the net's turn thread (after the last `publish`)."""
