@@ -151,3 +151,18 @@ def test_the_archive_grows_without_holding_the_data_lock(monkeypatch):
     integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2))
     engine.update()
     assert held and not any(held)
+
+
+def test_a_bound_of_one_block_evicts_every_block_and_keeps_the_mesh(caplog):
+    """max_blocks 1 (smaller than any frame's view): 90% of the bound is no block at all, so every block
+    goes; the eviction must not fail (numpy's argpartition was asked for the (n)th of n blocks, which
+    raised ValueError at every update and at integration past the hard bound), it is warned about and
+    counted as in view, and the fused mesh keeps the evicted surface."""
+    caplog.set_level(logging.WARNING, logger="senfunet.engine")
+    engine = engine_for_tests(max_blocks=1)
+    integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]])  # past the hard bound: evicts itself
+    update = engine.update()
+    stats = engine.stats()
+    assert engine.grid.n_blocks <= 1 and stats["evicted_blocks"] > 100
+    assert stats["evicted_in_view_blocks"] > 0 and any("max_blocks 1 " in r.getMessage() for r in caplog.records)
+    assert len(update.changed) > 0 and engine.extract_mesh("fused").n_faces > 1000
