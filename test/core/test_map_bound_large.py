@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import re
 
 import numpy as np
 
@@ -166,3 +167,22 @@ def test_a_bound_of_one_block_evicts_every_block_and_keeps_the_mesh(caplog):
     assert engine.grid.n_blocks <= 1 and stats["evicted_blocks"] > 100
     assert stats["evicted_in_view_blocks"] > 0 and any("max_blocks 1 " in r.getMessage() for r in caplog.records)
     assert len(update.changed) > 0 and engine.extract_mesh("fused").n_faces > 1000
+
+
+def test_warm_up_under_a_bound_smaller_than_its_frame_leaves_no_eviction_behind(caplog):
+    """The node warms its kernels up on a synthetic frame and then resets the map; under max_map_blocks 1 that
+    frame was evicted (twice), so ~/status counted evictions that never happened, and the one warning about
+    a bound smaller than a frame's view spoke of the synthetic frame, not of the sensors'."""
+    from senfunet_core.engine import warm_up
+
+    caplog.set_level(logging.WARNING, logger="senfunet.engine")
+    engine = engine_for_tests(max_blocks=1)
+    warm_up(engine)
+    stats = engine.stats()
+    assert stats["evicted_blocks"] == stats["evicted_in_view_blocks"] == 0 and "evictions" not in engine.counters
+    assert engine.max_blocks == engine.bound.max_blocks == 1 and not caplog.records
+    integrate_views(engine, [(SPHERE_C, SPHERE_VIEWS[0])])
+    engine.update()
+    warned = [r.getMessage() for r in caplog.records if "smaller than what a frame sees" in r.getMessage()]
+    assert len(warned) == 1 and int(re.search(r"which touched (\d+) blocks", warned[0]).group(1)) > 100  # the sphere's
+    assert engine.stats()["evicted_blocks"] == engine.stats()["spilled_blocks"] + engine.stats()["restored_blocks"]
