@@ -131,6 +131,8 @@ class BlockStore:
     def farthest(self, point_m: np.ndarray, *, keep: int, voxel_size_m: float) -> np.ndarray:
         """Slots of all blocks but the `keep` nearest to point_m (sorted)."""
         n = self.grid.n_blocks
+        if keep <= 0:  # a bound of one block keeps 90% of it: none (argpartition has no (n)th of n)
+            return np.arange(n)
         centres_m = (self.grid.coords[:n].numpy() * BLOCK + (BLOCK - 1) / 2) * voxel_size_m
         distance = np.linalg.norm(centres_m - point_m, axis=1)
         return np.sort(np.argpartition(-distance, n - keep)[: n - keep])

@@ -156,13 +156,15 @@ class MeshChunks:
             self.n_faces -= int(np.diff(old.meshes.face_offsets)[rows].sum())
         if chunk is not None:
             self._append(chunk)
-        # a chunk most of whose blocks were replaced is rewritten with the rest (dead ones go)
-        for old in [c for c in self._chunks if 2 * int(c.alive.sum()) < len(c.alive)]:
-            self._chunks.remove(old)
-            self.n_blocks -= int(old.alive.sum())
-            self.n_faces -= int(np.diff(old.meshes.face_offsets)[old.alive].sum())
-            if old.alive.any():
-                self._append(self._chunk([old.alive_meshes()]))
+        # a chunk most of whose blocks were replaced is rewritten with the rest (dead ones go); looked for
+        # again after each rewrite: appending the rewritten chunk may merge it with another one due (which
+        # then leaves the list with its dead blocks gone)
+        while (due := next((c for c in self._chunks if 2 * int(c.alive.sum()) < len(c.alive)), None)) is not None:
+            self._chunks.remove(due)
+            self.n_blocks -= int(due.alive.sum())
+            self.n_faces -= int(np.diff(due.meshes.face_offsets)[due.alive].sum())
+            if due.alive.any():
+                self._append(self._chunk([due.alive_meshes()]))
 
     def clear(self) -> None:
         self._chunks = []

@@ -148,6 +148,14 @@ class BlockSpill:
     def take(self, keys: np.ndarray, rows: list[np.ndarray]) -> np.ndarray:
         """Restore the spilled blocks among `keys` into `rows` (per channel, N rows each, written in
         place) and forget them here; returns which of the N were restored."""
+        found = self.peek(keys, rows)
+        taken = keys[found].tolist()
+        self._blobs.drop(taken)
+        self.restored += len(taken)
+        return found
+
+    def peek(self, keys: np.ndarray, rows: list[np.ndarray]) -> np.ndarray:
+        """As `take`, but the blocks stay spilled: their rows read for a look (evaluation)."""
         found = self.holds(keys)
         if not found.any():
             return found
@@ -155,16 +163,12 @@ class BlockSpill:
         if not all(np.may_share_memory(f, r) for f, r in zip(flat, rows)):
             raise ValueError("take() writes into `rows`: pass views whose rows reshape without a copy")
         sizes = [channel.shape[1] for channel in flat]
-        restored = np.flatnonzero(found).tolist()
-        taken = [int(keys[n]) for n in restored]
-        for n, key in zip(restored, taken):
-            data = np.frombuffer(self._decompressor.decompress(self._blobs.read(key)), np.uint8)
+        for n in np.flatnonzero(found).tolist():
+            data = np.frombuffer(self._decompressor.decompress(self._blobs.read(int(keys[n]))), np.uint8)
             start = 0
             for channel, size in zip(flat, sizes):
                 channel[n] = data[start:start + size]
                 start += size
-        self._blobs.drop(taken)
-        self.restored += len(taken)
         return found
 
     def clear(self) -> None:

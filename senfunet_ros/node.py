@@ -450,8 +450,10 @@ class FusionNode(Node):
         return self.pipeline.engine
 
     def publish_mesh(self, weights: bool | None = None) -> None:
-        """What the mesh timer does, now (`MeshPublisher.publish`)."""
+        """What the mesh timer does, now (`MeshPublisher.publish`), then the engine's statistics for
+        ~/status when due (the status timer finds the map held by the updates too often)."""
         self.mesh_publisher.publish(weights)
+        self.status_report.refresh_engine_stats()
 
     def _status_tick(self) -> None:
         try:

@@ -210,12 +210,19 @@ class StatusReport:
                         f"the topic name (parameter {sensor}.{stream}_topic), its message type and QoS"
                         + (" (colour is optional: set it to '' if there is none)" if stream == "color" else ""))
 
-    def _engine_stats(self) -> dict[str, Any]:
+    def refresh_engine_stats(self) -> None:
+        """engine.stats() when the last are due, waiting for the map: for the mesh thread, after each
+        publication. The status timer does not wait, and under a map bound updates, evictions (seconds
+        each) and the weighting net's turns hold the map one after the other: the statistics it found
+        the map free for were the first ones, shown for the whole run."""
+        self._engine_stats(wait=True)
+
+    def _engine_stats(self, *, wait: bool = False) -> dict[str, Any]:
         """engine.stats(), at most every ENGINE_STATS_PERIOD_S (a failure keeps the last ones)."""
         now = time.monotonic()
         if now - self._engine_stats_at[0] >= ENGINE_STATS_PERIOD_S:
             try:
-                stats = self.pipeline.engine.stats(wait=False)
+                stats = self.pipeline.engine.stats(wait=wait)
                 if stats is not None:  # else a save or extraction holds the map: the last ones, tried again next time
                     self._engine_stats_at = (now, stats)
             except Exception as err:  # statistics never stop the status

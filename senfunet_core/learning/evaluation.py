@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..grid import BLOCK, BLOCK_VOXELS
+from ..grid import BLOCK, BLOCK_VOXELS, block_keys
 from ..metrics import grid_metrics, mesh_metrics
 from ..networks import N_FEATURE_CHANNELS
 from ..readout import voxel_values
@@ -74,8 +74,29 @@ def observed_gt_vertices(engine, gt_vertices: np.ndarray) -> np.ndarray:
     observed = torch.zeros(len(flat), dtype=torch.bool)
     for i in range(len(engine.config.sensors)):
         observed |= (grid.pools[f"weight{i}"].reshape(-1)[flat] > 0).cpu()
-    keep = (slots >= 0) & observed
-    return v[keep.numpy()].astype(np.float32)
+    keep = ((slots >= 0) & observed).numpy()
+    if grid.spill is not None and len(grid.spill):  # under a map bound: the blocks it evicted were observed too
+        away = np.flatnonzero((slots < 0).numpy())
+        keep[away] = _observed_on_disk(grid, blocks[away].numpy(), local[away].numpy(), len(engine.config.sensors))
+    return v[keep].astype(np.float32)
+
+
+def _observed_on_disk(grid, blocks: np.ndarray, local: np.ndarray, n_sensors: int,
+                      chunk_blocks: int = 1024) -> np.ndarray:
+    """Per voxel (its block's key and place in it) outside the blocks in memory: whether a sensor observed it
+    in the block the map bound spilled to disk (read there, in chunks of blocks, and left there)."""
+    keys = block_keys(torch.from_numpy(blocks)).numpy()
+    unique, inverse = np.unique(keys, return_inverse=True)
+    in_voxel = local[:, 0] * 64 + local[:, 1] * 8 + local[:, 2]
+    observed_voxels = np.zeros((len(unique), BLOCK_VOXELS), bool)
+    for start in range(0, len(unique), chunk_blocks):
+        part = unique[start:start + chunk_blocks]
+        rows = [np.empty((len(part), *pool.shape[1:]), pool.numpy().dtype) for pool in grid.pools.values()]
+        found = grid.spill.peek(part, rows)
+        for name, channel in zip(grid.pools, rows):
+            if name in {f"weight{i}" for i in range(n_sensors)}:
+                observed_voxels[start:start + len(part)] |= (channel > 0) & found[:, None]
+    return observed_voxels[inverse.reshape(-1), in_voxel]
 
 
 def _which(method: str) -> tuple[str, bool]:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import re
 
 import numpy as np
 
@@ -151,3 +152,37 @@ def test_the_archive_grows_without_holding_the_data_lock(monkeypatch):
     integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2))
     engine.update()
     assert held and not any(held)
+
+
+def test_a_bound_of_one_block_evicts_every_block_and_keeps_the_mesh(caplog):
+    """max_blocks 1 (smaller than any frame's view): 90% of the bound is no block at all, so every block
+    goes; the eviction must not fail (numpy's argpartition was asked for the (n)th of n blocks, which
+    raised ValueError at every update and at integration past the hard bound), it is warned about and
+    counted as in view, and the fused mesh keeps the evicted surface."""
+    caplog.set_level(logging.WARNING, logger="senfunet.engine")
+    engine = engine_for_tests(max_blocks=1)
+    integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]])  # past the hard bound: evicts itself
+    update = engine.update()
+    stats = engine.stats()
+    assert engine.grid.n_blocks <= 1 and stats["evicted_blocks"] > 100
+    assert stats["evicted_in_view_blocks"] > 0 and any("max_blocks 1 " in r.getMessage() for r in caplog.records)
+    assert len(update.changed) > 0 and engine.extract_mesh("fused").n_faces > 1000
+
+
+def test_warm_up_under_a_bound_smaller_than_its_frame_leaves_no_eviction_behind(caplog):
+    """The node warms its kernels up on a synthetic frame and then resets the map; under max_map_blocks 1 that
+    frame was evicted (twice), so ~/status counted evictions that never happened, and the one warning about
+    a bound smaller than a frame's view spoke of the synthetic frame, not of the sensors'."""
+    from senfunet_core.engine import warm_up
+
+    caplog.set_level(logging.WARNING, logger="senfunet.engine")
+    engine = engine_for_tests(max_blocks=1)
+    warm_up(engine)
+    stats = engine.stats()
+    assert stats["evicted_blocks"] == stats["evicted_in_view_blocks"] == 0 and "evictions" not in engine.counters
+    assert engine.max_blocks == engine.bound.max_blocks == 1 and not caplog.records
+    integrate_views(engine, [(SPHERE_C, SPHERE_VIEWS[0])])
+    engine.update()
+    warned = [r.getMessage() for r in caplog.records if "smaller than what a frame sees" in r.getMessage()]
+    assert len(warned) == 1 and int(re.search(r"which touched (\d+) blocks", warned[0]).group(1)) > 100  # the sphere's
+    assert engine.stats()["evicted_blocks"] == engine.stats()["spilled_blocks"] + engine.stats()["restored_blocks"]

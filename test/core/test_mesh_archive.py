@@ -167,3 +167,24 @@ def test_archive_state_round_trips_from_its_files(tmp_path):
     assert got.keys() == expected.keys() and len(got) == len(archive)
     for key in expected:
         assert_same(got[key], expected[key])
+
+
+def test_rewriting_two_mostly_dead_chunks_that_merge_keeps_every_mesh():
+    """One put leaves two chunks mostly dead, and the first one's rewrite merges with the second: the
+    second must not be rewritten again from the list taken before (it raised ValueError, an eviction's
+    archive update failing after its blocks had left memory)."""
+    rng = np.random.default_rng(5)
+    chunks = MeshChunks()
+    big = {(i, 0, 0): random_mesh(rng, (i, 0, 0), 2) for i in range(100)}
+    small = {(i, 1, 0): random_mesh(rng, (i, 1, 0), 2) for i in range(40)}
+    chunks.put(BlockMeshes.from_meshes(big))
+    chunks.put(BlockMeshes.from_meshes(small))
+    assert len(chunks._chunks) == 2  # too different in size to merge
+    removed = list(big)[:60] + list(small)[:25]
+    chunks.put(BlockMeshes.concatenate([]), removed=packed(removed))
+    reference = {key: mesh for key, mesh in {**big, **small}.items() if key not in removed}
+    assert len(chunks) == len(reference) and chunks.n_faces == 2 * len(reference)
+    held = chunks.select(packed(list(reference))).as_dict()
+    assert held.keys() == reference.keys()
+    for key, mesh in reference.items():
+        assert_same(held[key], mesh)

@@ -150,3 +150,30 @@ def test_named_weights_resolve():
     engine = SenFuNet(EngineConfig(), weights=networks.resolve_weights("paper"))  # the 12-input paper model
     assert not engine.config.weighting_tsdf_input and engine.weighting_net.conv1.in_channels == 12
     assert sum(p.numel() for p in engine.weighting_net.parameters()) == 24257
+
+
+def test_gt_crop_under_a_map_bound_keeps_the_vertices_of_evicted_blocks():
+    """`senfunet replay --gt` under a map bound (the node's max_map_blocks) cropped the GT to the observed
+    voxels of the blocks in memory alone: the surface the bound had spilled to disk was cropped away, and
+    the fused mesh's archived part counted as false (the 8 x 7 m room at 2 cm voxels, bound 10000: F 19.62
+    against 37.94 unbounded, for meshes within 2 cm of each other everywhere). The spilled blocks count."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from test_engine import SPHERE_C, SPHERE_R, SPHERE_VIEWS, engine_for_tests, far_views, integrate_views
+
+    views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2)
+    reference, bounded = engine_for_tests(), engine_for_tests(max_blocks=165)
+    for engine in (reference, bounded):
+        integrate_views(engine, views)
+        engine.update()
+    assert len(bounded.grid.spill) > 50
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(4000, 3))
+    on_spheres = SPHERE_R * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    gt = np.concatenate([SPHERE_C + on_spheres, views[-1][0] + on_spheres]).astype(np.float32)
+    expected = ev.observed_gt_vertices(reference, gt)
+    assert len(expected) > 1000
+    assert len(ev.observed_gt_vertices(bounded, gt)) == len(expected)
+    assert len(bounded.grid.spill) > 50  # looked at, left on disk
