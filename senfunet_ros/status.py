@@ -141,7 +141,8 @@ class StatusReport:
         self.hardware_id = hardware_id
         self._warn = warn
         self._logger = logger
-        self._engine_stats_at: tuple[float, dict[str, Any]] = (-1e9, {})
+        self._engine_stats_at: tuple[float, dict[str, Any]] = (-1e9, {})  # (monotonic time, engine.stats())
+        self._engine_stats_lock = threading.Lock()
         self._silent_warned: set[tuple[str, str]] = set()
 
     def message(self, fixed_frame: str) -> DiagnosticArray:
@@ -218,14 +219,21 @@ class StatusReport:
         self._engine_stats(wait=True)
 
     def _engine_stats(self, *, wait: bool = False) -> dict[str, Any]:
-        """engine.stats(), at most every ENGINE_STATS_PERIOD_S (a failure keeps the last ones)."""
+        """engine.stats(), at most every ENGINE_STATS_PERIOD_S (a failure keeps the last ones). Called by
+        the status timer and the mesh thread: the lock guards the last statistics, not the engine call
+        (which may wait for the map), so neither thread holds the other up."""
         now = time.monotonic()
-        if now - self._engine_stats_at[0] >= ENGINE_STATS_PERIOD_S:
-            try:
-                stats = self.pipeline.engine.stats(wait=wait)
-                if stats is not None:  # else a save or extraction holds the map: the last ones, tried again next time
-                    self._engine_stats_at = (now, stats)
-            except Exception as err:  # statistics never stop the status
-                self._warn(("engine_stats",), f"engine statistics failed: {err!r}")
-                self._engine_stats_at = (now, self._engine_stats_at[1])
-        return self._engine_stats_at[1]
+        with self._engine_stats_lock:
+            at, last = self._engine_stats_at
+        if now - at < ENGINE_STATS_PERIOD_S:
+            return last
+        try:
+            stats = self.pipeline.engine.stats(wait=wait)
+        except Exception as err:  # statistics never stop the status: the last ones, tried again when due
+            self._warn(("engine_stats",), f"engine statistics failed: {err!r}")
+            stats = last
+        if stats is None:  # a save or extraction holds the map: the last ones, tried again next time
+            return last
+        with self._engine_stats_lock:
+            self._engine_stats_at = (now, stats)
+        return stats

@@ -860,19 +860,17 @@ def _engine_stat(msg: Any, key: str) -> str | None:
     return None
 
 
-def test_status_shows_the_engine_statistics_of_now_though_the_map_is_always_held(tmp_path: Path,
-                                                                                 monkeypatch) -> None:
+def test_status_shows_the_engine_statistics_of_now_though_the_map_is_always_held(tmp_path: Path, monkeypatch,
+                                                                                 ros_domain_id: int) -> None:
     """Under a map bound, mesh updates, evictions and the weighting net's turns hold the map one after
     the other; the status timer, which does not wait for it, found it held at every tick and showed the
     first statistics all run (a 170 s bounded run over DDS: engine.stats.evicted_blocks 0 beside
     engine.counters.evicted_blocks 62405). The mesh thread now takes them after publishing when due."""
-    import os
-
     from senfunet_ros import status
 
     monkeypatch.setattr(status, "ENGINE_STATS_PERIOD_S", 0.0)  # due at every look
-    context = rclpy.Context()  # a private domain (of this test's own), whatever the session's is
-    rclpy.init(context=context, domain_id=int(os.environ.get("SENFUNET_TEST_DOMAIN_ID", "165")))
+    context = rclpy.Context()  # a context of its own: the node is destroyed with it
+    rclpy.init(context=context, domain_id=ros_domain_id)
     node = FusionNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in {
         **topic_params("stats"), "weights": "none", "output_dir": str(tmp_path), "max_map_blocks": 1}.items()])
     try:
