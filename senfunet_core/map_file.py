@@ -59,7 +59,7 @@ def load_map(path: str | Path, device: str | None = None, *,
     path = Path(path)
     # torch.save writes a zip archive: anything else (a PLY, a file cut short) would get torch's own
     # error, which names weights_only and advises loading the file unsafely, or a bare "[Errno 22]"
-    if not zipfile.is_zipfile(path):
+    if path.is_file() and not zipfile.is_zipfile(path):  # a missing or unreadable path: torch.load says why
         raise InputError(f"{path} is not a map (~/save_map and replay write one: a zip archive), or it is "
                          "damaged (cut short?)")
     try:
