@@ -128,13 +128,19 @@ class BlockStore:
             return int(_count_positive(kernel_view(first).reshape(-1)[:n], kernel_view(second).reshape(-1)[:n]))
         return int(((first.reshape(-1)[:n] > 0) | (second.reshape(-1)[:n] > 0)).sum())
 
-    def farthest(self, point_m: np.ndarray, *, keep: int, voxel_size_m: float) -> np.ndarray:
-        """Slots of all blocks but the `keep` nearest to point_m (sorted)."""
+    def farthest(self, point_m: np.ndarray, *, keep: int, voxel_size_m: float, touched_since_s: float = np.inf
+                 ) -> np.ndarray:
+        """Slots of all blocks but the `keep` to keep (sorted): first those touched at or after
+        `touched_since_s` (what the latest frames see, wherever the camera looks), then the nearest
+        to point_m."""
         n = self.grid.n_blocks
         if keep <= 0:  # a bound of one block keeps 90% of it: none (argpartition has no (n)th of n)
             return np.arange(n)
         centres_m = (self.grid.coords[:n].numpy() * BLOCK + (BLOCK - 1) / 2) * voxel_size_m
         distance = np.linalg.norm(centres_m - point_m, axis=1)
+        recent = self.touched_s[:n] >= touched_since_s  # NaN (never touched) is not recent
+        if recent.any():
+            distance[recent] -= distance.max() + 1.0  # nearer than any other block
         return np.sort(np.argpartition(-distance, n - keep)[: n - keep])
 
     def remove(self, victims: np.ndarray) -> Eviction:

@@ -1,10 +1,11 @@
 """The map bound: past `max_blocks`, the blocks farthest from the camera leave memory, not the mesh.
 
-An eviction picks the blocks farthest from the last camera position (down to 90% of the bound, so
-that it does not happen every update), evaluates the weighting net where their final fused meshes
-read a stale alpha, meshes them, and archives those meshes (`mesh_archive`) with the seam
-triangles of the staying blocks' cells that read them; then the store drops the blocks, their
-voxels going to the grid's spill (`spill`) to come back when a frame reaches them again.
+An eviction picks the blocks farthest from the last camera position, those the latest frames
+touched last (down to 90% of the bound, so that it does not happen every update), evaluates the
+weighting net where their final fused meshes read a stale alpha, meshes them, and archives those
+meshes (`mesh_archive`) with the seam triangles of the staying blocks' cells that read them; then
+the store drops the blocks, their voxels going to the grid's spill (`spill`) to come back when a
+frame reaches them again.
 
 When evictions run and which locks they hold is the engine's business (see its threading model):
 `MapBound.evict` is called with the update lock held and takes the data lock it is given only to
@@ -16,6 +17,7 @@ import logging
 import os
 import threading
 import time
+from collections import deque
 
 import numpy as np
 
@@ -31,6 +33,9 @@ log = logging.getLogger("senfunet.engine")
 
 # integration itself has blocks evicted once the map exceeds max_blocks by this factor (updates do it first)
 HARD_BOUND = 1.25
+# the blocks the latest this many frames touched are evicted last: they are in view wherever the camera
+# looks, while the blocks nearest it may lie behind it
+RECENT_FRAMES = 10
 
 
 def memory_bound_blocks(bytes_per_block: int, *, memory_fraction: float = 0.5) -> int:
@@ -66,6 +71,8 @@ class MapBound:
         self.pruned_keys: set[tuple[int, int, int]] = set()  # archived meshes an eviction pruned (ditto)
         self.camera_m = np.zeros(3)  # the last integrated frame's camera centre: what is near it stays
         self._frame_s = np.nan  # when the last frame touched its blocks (their store.touched_s)
+        # ... and the latest RECENT_FRAMES frames: what they touched stays before what is nearest the camera
+        self._recent_frames_s: deque[float] = deque(maxlen=RECENT_FRAMES)
         self._frame_blocks = 0  # how many blocks it touched
         self.evicted_blocks = 0
         self.evictions = 0
@@ -80,6 +87,7 @@ class MapBound:
         self.pruned_keys = set()
         self.camera_m = np.zeros(3)
         self._frame_s, self._frame_blocks = np.nan, 0
+        self._recent_frames_s.clear()
         self._retry_at_blocks = 0
 
     def frame_integrated(self, *, camera_m: np.ndarray, touched_s: float, n_touched: int) -> None:
@@ -88,6 +96,7 @@ class MapBound:
         frame's view and thrashes."""
         self.camera_m = camera_m
         self._frame_s, self._frame_blocks = touched_s, n_touched
+        self._recent_frames_s.append(touched_s)
 
     def over_hard_bound(self) -> bool:
         """Integration outgrew the bound by HARD_BOUND: an eviction is due before it goes on."""
@@ -114,7 +123,8 @@ class MapBound:
             return None
         t0 = time.perf_counter()
         with self._data_lock:
-            victims = store.farthest(self.camera_m, keep=int(0.9 * self.max_blocks), voxel_size_m=self.voxel_size_m)
+            victims = store.farthest(self.camera_m, keep=int(0.9 * self.max_blocks), voxel_size_m=self.voxel_size_m,
+                                     touched_since_s=self._recent_frames_s[0] if self._recent_frames_s else np.inf)
             in_view = int((store.touched_s[victims] >= self._frame_s).sum())
             victim_coords = store.grid.coords[victims].numpy()  # copies (fancy index)
             around_victims = store.neighbours(victims)

@@ -751,6 +751,34 @@ def test_a_bound_smaller_than_a_frames_view_is_warned_about_once_and_counted(cap
     assert not any("smaller than what a frame sees" in r.getMessage() for r in caplog.records)
 
 
+def test_the_bound_keeps_what_the_latest_frames_see_before_what_lies_behind_the_camera(caplog):
+    """Victims went by distance from the camera alone: a camera looking at a far surface, with an old
+    one just behind it, had the surface in view evicted (and back at once: thrashing, and the warning
+    about a bound smaller than a frame's view, at bounds well above it). The blocks the latest frames
+    touched now go last."""
+    caplog.set_level(logging.WARNING, logger="senfunet.engine")
+    behind = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]]
+    eye = SPHERE_C + np.array([0.6, 0.0, 0.0])  # 0.3 m from the first sphere, 2.1 m from the far one
+    ahead = [(FAR_C, look_at(eye + offset, FAR_C)) for offset in 0.05 * fibonacci_directions(6)]
+    probe, probe_behind = engine_for_tests(), engine_for_tests()
+    integrate_views(probe, ahead)
+    integrate_views(probe_behind, behind)
+    n_ahead = probe.grid.n_blocks
+    # both spheres exceed the bound (the update evicts), not its hard bound (integration does not)
+    engine = engine_for_tests(max_blocks=int((n_ahead + probe_behind.grid.n_blocks) / 1.2))
+    integrate_views(engine, behind)
+    n_behind = engine.grid.n_blocks
+    integrate_views(engine, ahead)  # 12 frames: more than map_bound.RECENT_FRAMES
+    assert 1.25 * engine.config.max_blocks > engine.grid.n_blocks > engine.config.max_blocks
+    assert 0.9 * engine.config.max_blocks > n_ahead  # the bound holds what the camera sees
+    engine.update()
+    stats = engine.stats()
+    assert 0 < stats["evicted_blocks"] <= n_behind and stats["evicted_in_view_blocks"] == 0
+    kept = engine.grid.coords[: engine.grid.n_blocks]
+    assert bool((probe.grid.lookup(kept) >= 0).sum() == n_ahead)  # every block in view stayed
+    assert not any("smaller than what a frame sees" in r.getMessage() for r in caplog.records)
+
+
 def test_integration_past_the_hard_bound_during_an_update_is_served_between_batches():
     """Integration that outgrows the hard bound while an update runs waits only for the update's
     next batch boundary, where the update evicts and carries on with the blocks that moved. What a
