@@ -489,6 +489,8 @@ class SenFuNet:
         with self.update_lock.held(), self.data_lock:
             self.store.clear()
             self.bound.clear()
+            for name in ("evicted_blocks", "evictions"):  # the map's, as the spill and the archive (emptied)
+                self.counters.pop(name, None)
             self.frames_integrated = {name: 0 for name in self.config.sensors}
             self._meshed = np.zeros(0, np.int64)
             self._evicted_shown = []

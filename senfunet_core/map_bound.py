@@ -88,6 +88,7 @@ class MapBound:
         self.camera_m = np.zeros(3)
         self._frame_s, self._frame_blocks = np.nan, 0
         self._recent_frames_s.clear()
+        self.evicted_blocks = self.evictions = self.evicted_in_view = 0  # of the map that was
         self._retry_at_blocks = 0
 
     def frame_integrated(self, *, camera_m: np.ndarray, touched_s: float, n_touched: int) -> None:
@@ -102,6 +103,16 @@ class MapBound:
         """Integration outgrew the bound by HARD_BOUND: an eviction is due before it goes on."""
         return (self.max_blocks > 0 and self.store.n_blocks > HARD_BOUND * self.max_blocks
                 and self.store.n_blocks >= self._retry_at_blocks)
+
+    def tallies(self) -> dict[str, int]:
+        """What evictions did to this map (a saved map keeps them, `restore_tallies`)."""
+        return {"evicted_blocks": self.evicted_blocks, "evictions": self.evictions,
+                "evicted_in_view_blocks": self.evicted_in_view}
+
+    def restore_tallies(self, tallies: dict[str, int]) -> None:
+        self.evicted_blocks = int(tallies.get("evicted_blocks", 0))
+        self.evictions = int(tallies.get("evictions", 0))
+        self.evicted_in_view = int(tallies.get("evicted_in_view_blocks", 0))
 
     def take_pruned(self) -> set[tuple[int, int, int]]:
         """The archived blocks evictions pruned since the last call (the next update re-sends them)."""

@@ -44,6 +44,9 @@ def save_map(engine: SenFuNet, path: str | Path) -> None:
                 "frames_integrated": dict(engine.frames_integrated),
                 "archive": {k: torch.from_numpy(np.ascontiguousarray(v))
                             for k, v in engine.archive.state_dict().items()},
+                # what evictions did, beside what they left (archive, spill): ~/status counts on
+                "evictions": {**engine.bound.tallies(),
+                              "restored_blocks": engine.grid.spill.restored if engine.grid.spill is not None else 0},
             }
             if engine.grid.spill is not None:
                 state["spill"] = {k: torch.from_numpy(v) for k, v in engine.grid.spill.state_dict().items()}
@@ -96,7 +99,11 @@ def load_map(path: str | Path, device: str | None = None, *,
         if engine.grid.spill is None:
             engine.grid.spill = BlockSpill()
         engine.grid.spill.load_state_dict({k: v.numpy() for k, v in state["spill"].items()})
+        engine.grid.spill.restored = int(state.get("evictions", {}).get("restored_blocks", 0))
     engine.frames_integrated.update(state["frames_integrated"])
+    engine.bound.restore_tallies(state.get("evictions", {}))  # maps saved before they were kept: none
+    if engine.bound.evictions:
+        engine.counters.update(evicted_blocks=engine.bound.evicted_blocks, evictions=engine.bound.evictions)
     if "archive" in state:
         engine.archive.load_state_dict({k: v.numpy() for k, v in state["archive"].items()})
         engine.bound.newly_archived = [engine.archive.meshes()]  # re-sent with the whole mesh

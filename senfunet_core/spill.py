@@ -173,6 +173,7 @@ class BlockSpill:
 
     def clear(self) -> None:
         self._blobs.clear()
+        self.restored = 0
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """Keys, lengths and the compressed blobs, for a saved map."""

@@ -779,6 +779,25 @@ def test_the_bound_keeps_what_the_latest_frames_see_before_what_lies_behind_the_
     assert not any("smaller than what a frame sees" in r.getMessage() for r in caplog.records)
 
 
+def test_eviction_tallies_belong_to_the_map_reset_and_saved_with_it(tmp_path):
+    """~/reset emptied the archive and the spill but kept the evictions' tallies (evicted blocks more
+    than spilled plus restored), and a loaded map began them at 0 beside its archive and spill."""
+    engine = engine_for_tests(max_blocks=165)  # both spheres: about 280 blocks
+    for views in ([(SPHERE_C, T) for T in SPHERE_VIEWS[:2]], far_views(2), [(SPHERE_C, SPHERE_VIEWS[0])]):
+        integrate_views(engine, views)  # away and back: some evicted blocks come back from disk
+        engine.update()
+    keys = ("evicted_blocks", "evicted_in_view_blocks", "spilled_blocks", "restored_blocks", "archived_blocks")
+    before = {key: engine.stats()[key] for key in keys}
+    assert before["evicted_blocks"] == before["spilled_blocks"] + before["restored_blocks"] > 0
+    assert before["restored_blocks"] > 0 and engine.counters["evicted_blocks"] == before["evicted_blocks"]
+    save_map(engine, tmp_path / "map.pt")
+    loaded = load_map(tmp_path / "map.pt")
+    assert {key: loaded.stats()[key] for key in keys} == before
+    assert loaded.counters["evicted_blocks"] == before["evicted_blocks"]
+    engine.reset()
+    assert all(engine.stats()[key] == 0 for key in keys) and "evicted_blocks" not in engine.counters
+
+
 def test_integration_past_the_hard_bound_during_an_update_is_served_between_batches():
     """Integration that outgrows the hard bound while an update runs waits only for the update's
     next batch boundary, where the update evicts and carries on with the blocks that moved. What a
