@@ -75,8 +75,8 @@ class MapServices:
     def _save_mesh(self) -> str:
         # the weighting net first judges what it has not reached: on a large map during a stream that is
         # many seconds, which the caller (and the services queued behind it) should not wait for unexplained
-        self.logger.info(f"~/save_mesh: judging what the weighting net has not reached yet, then writing the meshes "
-                         f"into {Path(self.settings().output_dir).expanduser().absolute()}")
+        self.logger.info(f"~/save_mesh: judging what the weighting net has not reached yet (mesh updates wait for it), "
+                         f"then writing the meshes into {Path(self.settings().output_dir).expanduser().absolute()}")
         spill = getattr(self.pipeline.engine.grid, "spill", None)
         on_disk = len(spill) if spill is not None else 0
         note = (f" (the per-sensor meshes leave out the {on_disk} blocks the map bound evicted; mesh.ply has them)"
