@@ -89,13 +89,13 @@ def _observed_on_disk(grid, blocks: np.ndarray, local: np.ndarray, n_sensors: in
     unique, inverse = np.unique(keys, return_inverse=True)
     in_voxel = local[:, 0] * 64 + local[:, 1] * 8 + local[:, 2]
     observed_voxels = np.zeros((len(unique), BLOCK_VOXELS), bool)
+    weights = [list(grid.pools).index(f"weight{i}") for i in range(n_sensors)]  # the spill reads every channel
     for start in range(0, len(unique), chunk_blocks):
         part = unique[start:start + chunk_blocks]
         rows = [np.empty((len(part), *pool.shape[1:]), pool.numpy().dtype) for pool in grid.pools.values()]
         found = grid.spill.peek(part, rows)
-        for name, channel in zip(grid.pools, rows):
-            if name in {f"weight{i}" for i in range(n_sensors)}:
-                observed_voxels[start:start + len(part)] |= (channel > 0) & found[:, None]
+        for channel in weights:
+            observed_voxels[start:start + len(part)] |= (rows[channel] > 0) & found[:, None]
     return observed_voxels[inverse.reshape(-1), in_voxel]
 
 
