@@ -203,19 +203,45 @@ class _EngineLogToRos(logging.Handler):
 
 class _ClockWatch:
     """Under use_sim_time: /clock going back by more than time_jump_s is a restart (a bag looping),
-    confirmed at once. One subscription calls it, so its state has one writer."""
+    confirmed at once. /clock is subscribed while use_sim_time is true, set at start or at run time
+    (rclpy's own parameter: its clock follows it at once; the watch must too, else a bag looping after
+    `ros2 param set ... use_sim_time true` were recognised only from the new timeline, and after
+    `false` a /clock still flushed the queues). `on_clock` runs in the subscription's callback,
+    (un)subscribing in the parameter callbacks: the last /clock is under a lock of its own."""
 
-    def __init__(self, ingest: Ingest, time_jump_s: Callable[[], float], logger: Any,
+    def __init__(self, node: Node, ingest: Ingest, time_jump_s: Callable[[], float],
                  warn: Callable[[tuple[str, ...], str], None]) -> None:
-        self._ingest, self._time_jump_s, self._logger, self._warn = ingest, time_jump_s, logger, warn
+        self._node, self._ingest, self._time_jump_s, self._warn = node, ingest, time_jump_s, warn
         self._last_ns: int | None = None
+        self._last_lock = threading.Lock()
+        self._subscription: Any = None
+        self.follow(bool(node.get_parameter("use_sim_time").value))
+
+    def follow(self, on: bool) -> None:
+        """Subscribe /clock (on; the /clock seen before it was dropped is no reference) or drop it."""
+        if on and self._subscription is None:
+            with self._last_lock:
+                self._last_ns = None
+            self._subscription = self._node.create_subscription(
+                RosClock, "/clock", self.on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup())
+        elif not on and self._subscription is not None:
+            self._node.destroy_subscription(self._subscription)
+            self._subscription = None
+
+    def on_parameters(self, parameters: list[Parameter]) -> None:
+        """A post-set parameters callback: follows use_sim_time."""
+        for p in parameters:
+            if p.name == "use_sim_time" and p.type_ is Parameter.Type.BOOL:
+                self.follow(bool(p.value))
 
     def on_clock(self, msg: Any) -> None:
         try:
             now_ns = conv.stamp_to_ns(msg.clock)
-            last, self._last_ns = self._last_ns, now_ns
+            with self._last_lock:
+                last, self._last_ns = self._last_ns, now_ns
             if last is not None and now_ns < last - int(self._time_jump_s() * 1e9):
-                self._logger.info(f"/clock went back from {last * 1e-9:.3f} s to {now_ns * 1e-9:.3f} s: time restarted")
+                self._node.get_logger().info(
+                    f"/clock went back from {last * 1e-9:.3f} s to {now_ns * 1e-9:.3f} s: time restarted")
                 self._ingest.restart(now_ns)
         except Exception as err:
             self._warn(("clock",), f"/clock message ignored: {err!r}")
@@ -260,8 +286,7 @@ class FusionNode(Node):
         # 3. subscriptions: they only enqueue; the status reports their health
         self._subscriptions_keep, self.health = subscribe(self, s, callback=self._guard)
         # under use_sim_time, /clock going back is a restart: followed as use_sim_time is set, at start or later
-        self._clock_subscription: Any = None
-        self._follow_clock(bool(self.get_parameter("use_sim_time").value))
+        self._clock_watch = _ClockWatch(self, self.ingest, lambda: self.settings.time_jump_s, self._warn)
         topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in sensor_streams(sensor, s.pose_type)}
                   for sensor in s.sensors}
         self.status_report = StatusReport(self.pipeline, self.health, self.timings, self.latency, topics=topics,
@@ -301,7 +326,7 @@ class FusionNode(Node):
             lambda parameters: P.as_declared_types(parameters, P.param_table(self.settings.sensor_names)))
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
-        self.add_post_set_parameters_callback(self._apply_use_sim_time)
+        self.add_post_set_parameters_callback(self._clock_watch.on_parameters)
         # Ctrl-C / SIGTERM shut the context down while timers may be mid-frame: say so to the pipeline,
         # so what the stop interrupts is counted as such, not as an engine error
         self.context.on_shutdown(lambda: setattr(self.pipeline, "stopping", True))
@@ -392,25 +417,6 @@ class FusionNode(Node):
         except Exception as err:  # a post-set callback that raises takes the executor down
             self.get_logger().error(f"parameters accepted but not all applied ({err!r}); set them again")
 
-    def _apply_use_sim_time(self, parameters: list[Parameter]) -> None:
-        """use_sim_time set at run time (rclpy's own parameter; its clock follows it at once): the /clock
-        watch too, else a bag looping after `ros2 param set ... use_sim_time true` were recognised only
-        from the new timeline, and after `false` a /clock still flushed the queues."""
-        for p in parameters:
-            if p.name == "use_sim_time" and p.type_ is Parameter.Type.BOOL:
-                self._follow_clock(bool(p.value))
-
-    def _follow_clock(self, on: bool) -> None:
-        """Subscribe a /clock watch (on; a new one: the /clock it saw before it was dropped is no reference) or
-        drop it."""
-        if on and self._clock_subscription is None:
-            watch = _ClockWatch(self.ingest, lambda: self.settings.time_jump_s, self.get_logger(), self._warn)
-            self._clock_subscription = self.create_subscription(
-                RosClock, "/clock", watch.on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup())
-        elif not on and self._clock_subscription is not None:
-            self.destroy_subscription(self._clock_subscription)
-            self._clock_subscription = None
-
     # -- timers ---------------------------------------------------------------------------------
 
     def _integrate_tick(self) -> None:
@@ -479,7 +485,7 @@ def subscribe(node: Node, settings: P.Settings, *, callback: Callable[[str, Stre
               ) -> tuple[list[Any], HealthMonitor]:
     """Each sensor's topics: the subscriptions and the health monitor of what they subscribed. Each
     subscription has its own mutually exclusive group: streams run in parallel, but one stream's
-    messages never overlap, so they reach Ingest in arrival order. (/clock: `FusionNode._follow_clock`.)"""
+    messages never overlap, so they reach Ingest in arrival order. (/clock: `_ClockWatch`.)"""
     subscriptions = []
     subscribed: dict[str, tuple[str, ...]] = {}
     for sensor in settings.sensors:
