@@ -316,6 +316,9 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     with open_bag(bag) as reader:
         TopicRouter(settings, reader.topics, bag)  # a BagError comes before the heavy imports
     _prepare_out(out)  # and a bad --out before the fusing, not after it
+    if settings.tsdf_fusion and not compare:  # the node's switch; replay's is --compare
+        log("note: parameter tsdf_fusion is for the node (~/save_mesh); replay writes tsdf_fusion.ply and each "
+            "sensor's mesh with --compare")
     import torch  # heavy: only once the bag is known to be usable
 
     from senfunet_core.engine import SenFuNet
