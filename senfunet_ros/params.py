@@ -135,7 +135,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("weights", "default", "network weights: 'default' (shipped; its weighting net also reads the sensors' "
           "TSDFs), 'paper' (the shipped paper-exact model), a .pt path, or 'none' (untrained)"),
     Param("device", "cpu", "torch device: cpu | cuda (falls back to cpu with a warning)"),
-    Param("save_on_shutdown", False, "write the PLY files into output_dir when the node stops", runtime=True),
+    Param("save_on_shutdown", False, "write the PLY files into output_dir when the node stops (into a new "
+          "temporary folder, named in the log, if output_dir cannot be written)", runtime=True),
     Param("max_map_blocks", -1, "memory bound in 8^3-voxel blocks: past it, the blocks farthest from the sensor are "
           "evicted: their final meshes stay on ~/mesh and in save_mesh, their voxels go to disk (the temporary "
           "directory, $TMPDIR) until a sensor sees them again; -1 = half of this machine's memory; 0 = unbounded",

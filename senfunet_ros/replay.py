@@ -159,6 +159,7 @@ class TopicRouter:
         self.other_types: dict[str, dict[str, int]] = {}  # routed topic -> its other recorded types (left out)
         pose_type = PoseType(settings.pose_type)
         missing: list[str] = []
+        missing_params: list[str] = []  # the parameters that name the missing topics
         # sensor, stream, topic, accepted types, required
         wanted: list[tuple[str, Stream, str, tuple[str | None, ...], bool]] = []
         for sensor in settings.sensors:
@@ -177,6 +178,8 @@ class TopicRouter:
             if info is None or (required and info.count == 0):
                 if required:
                     missing.append(topic)
+                    if sensor_name:
+                        missing_params.append(f"{sensor_name}.{Stream(stream).value}_topic")
                 continue
             # a topic recorded with several types (two recordings merged): the most recorded type the
             # node takes there; the others are left out, and said so
@@ -193,11 +196,27 @@ class TopicRouter:
         if missing:
             have = sorted(topics)
             shown = ", ".join(have[:12]) + (f" (+{len(have) - 12} more)" if len(have) > 12 else "")
-            raise BagError(
-                f"{self.bag_path}: no messages on {', '.join(missing)}; the bag has: {shown or 'no topics'}; "
-                "map the topics with --params (e.g. tof.depth_topic: /camera/depth)")
+            raise BagError(f"{self.bag_path}: no messages on {', '.join(missing)}; the bag has: "
+                           f"{shown or 'no topics'}; " + self._missing_hint(missing_params, "/tf" in missing, topics))
         self.ignored = {t: i.msgtype for t, i in topics.items() if t not in self.routes}
         self._typestore: Any = None
+
+    @staticmethod
+    def _missing_hint(params: list[str], no_tf: bool, topics: dict[str, TopicInfo]) -> str:
+        """What to do about missing topics: the parameters that name them, and for a bag without /tf
+        under pose_type tf, the pose topics it has instead."""
+        hints = []
+        if params:
+            hints.append(f"set {', '.join(params)} to the bag's topics with --params")
+        if no_tf:
+            kinds = {t: PoseType.from_msgtype(normalize_msgtype(i.msgtype)) for t, i in topics.items()}
+            pose_topics = sorted(t for t, kind in kinds.items() if kind is not None)
+            named = {kind.value for kind in kinds.values() if kind is not None}
+            to = f"pose_type: {named.pop()}" if len(named) == 1 else "pose_type to their type"
+            hints.append("pose_type tf reads poses from /tf and /tf_static, which the bag does not have" + (
+                f"; it has pose topics ({', '.join(pose_topics)}): set {to} and <sensor>.pose_topic with --params"
+                if pose_topics else ""))
+        return "; ".join(hints)
 
     def _type_error(self, topic: str, msgtype: str, expected: str, stream: str, settings: P.Settings) -> str:
         if stream == "pose":
@@ -297,6 +316,9 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     with open_bag(bag) as reader:
         TopicRouter(settings, reader.topics, bag)  # a BagError comes before the heavy imports
     _prepare_out(out)  # and a bad --out before the fusing, not after it
+    if settings.tsdf_fusion and not compare:  # the node's switch; replay's is --compare
+        log("note: parameter tsdf_fusion is for the node (~/save_mesh); replay writes tsdf_fusion.ply and each "
+            "sensor's mesh with --compare")
     import torch  # heavy: only once the bag is known to be usable
 
     from senfunet_core.engine import SenFuNet

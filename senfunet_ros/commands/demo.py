@@ -30,7 +30,9 @@ def _default_bag() -> Path:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bag", metavar="BAG", help=f"bag to play (default: bags/{SAMPLE_BAG} of this clone)")
     parser.add_argument("--out", default="out/demo", metavar="DIR", help="output folder (default out/demo)")
-    parser.add_argument("--params", metavar="FILE", help="node parameter file (default: the built-in defaults)")
+    parser.add_argument("--params", metavar="FILE",
+                        help="node parameter file (default: the built-in defaults); the demo sets output_dir (--out), "
+                        "queue_size (--queue-size), max_lag_s 0 and tsdf_fusion true over it")
     parser.add_argument("--rate", type=float, default=0.25, metavar="R", help="playback speed factor (default 0.25)")
     parser.add_argument("--queue-size", type=int, default=400, metavar="N",
                         help="the node's queue_size parameter (default 400: a slow CPU falls behind instead of "

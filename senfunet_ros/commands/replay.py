@@ -21,7 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch CPU threads (default 1; the mesh bytes depend on it, keep it fixed)")
     parser.add_argument("--compare", action="store_true",
                         help="also write each sensor's mesh and the plain TSDF Fusion baseline (tsdf_fusion.ply), "
-                             "for comparison: the baseline is integrated alongside (more time and memory)")
+                             "for comparison: the baseline is integrated alongside, and the map is not bounded "
+                             "(max_map_blocks is not applied: evicted blocks keep no per-sensor mesh): more time and "
+                             "memory")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

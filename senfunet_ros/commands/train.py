@@ -26,7 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache-dir", default=None, metavar="DIR",
                         help="simulated datasets cache (overrides the config; default ~/.cache/senfunet)")
     parser.add_argument("--init-weights", default=None, metavar="PATH",
-                        help="start from this weights file (e.g. this recipe's block phase) and skip the block phase")
+                        help="start from this weights file (e.g. this recipe's block phase) and skip the feature-net "
+                        "pretraining and the block phase")
     parser.add_argument("--val-every", type=int, default=None, metavar="N",
                         help="validate every N online frames (overrides the config; 0 = at the end only)")
     parser.add_argument("--seed", type=int, default=None, metavar="N",
@@ -66,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
     if args.init_weights is not None:
         if not Path(args.init_weights).is_file():
             return _error(f"--init-weights {args.init_weights} not found; pass a weights file (.pt)")
-        overrides.update(init_weights=args.init_weights, block_steps=0)
+        # its networks had their feature-net pretraining and block phase: both are skipped
+        overrides.update(init_weights=args.init_weights, block_steps=0, feature_pretrain_steps=0)
     if args.val_every is not None:
         overrides["val_every"] = args.val_every
     if args.seed is not None:

@@ -23,8 +23,10 @@ sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
 
 @pytest.fixture(scope="session")
 def ros_domain_id() -> int:
-    """A ROS_DOMAIN_ID in 1..101 from the pid, exported so child processes inherit it."""
-    domain = 1 + os.getpid() % 101
+    """A ROS_DOMAIN_ID in 1..101 from the pid, or SENFUNET_TEST_DOMAIN_ID when set (a shared machine
+    that hands each run its own); exported so child processes inherit it."""
+    chosen = os.environ.get("SENFUNET_TEST_DOMAIN_ID", "").strip()
+    domain = int(chosen) if chosen else 1 + os.getpid() % 101
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # keep test traffic off the network
     return domain

@@ -350,6 +350,24 @@ def test_bag_without_expected_topics(prefix: Path, tmp_path: Path, tiny_params: 
     assert "--params" in line
 
 
+def test_missing_topics_name_the_parameters_to_set(prefix: Path):
+    """A topic the parameters name that the bag lacks: the error names the parameter to change, and
+    with pose_type tf on a bag of pose topics, says the bag has no /tf and which pose topics it has."""
+    from senfunet_ros.replay import TopicRouter, load_settings
+
+    with open_bag(prefix) as reader:
+        topics = dict(reader.topics)
+    with pytest.raises(BagError) as info:
+        TopicRouter(load_settings(overrides={"tof.depth_topic": "/camera/depth"}), topics, prefix)
+    assert "no messages on /camera/depth" in str(info.value)
+    assert "set tof.depth_topic to the bag's topics with --params" in str(info.value)
+    with pytest.raises(BagError) as info:
+        TopicRouter(load_settings(overrides={"pose_type": "tf"}), topics, prefix)
+    assert "no messages on /tf" in str(info.value)
+    assert ("which the bag does not have; it has pose topics (/stereo/pose, /tof/pose): set pose_type: pose_stamped"
+            in str(info.value))
+
+
 def _bag_with_custom_depth_type(path: Path, prefix: Path) -> Path:
     """The prefix, but /tof/depth recorded as a message type nobody has installed."""
     from rosbags.rosbag2 import Writer

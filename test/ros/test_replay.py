@@ -195,6 +195,19 @@ def test_fused_mesh_beats_tsdf_fusion(work: Path):
 # -- parameters -------------------------------------------------------------------------------
 
 
+def test_replay_says_that_parameter_tsdf_fusion_takes_compare(prefix: Path, work: Path):
+    """tsdf_fusion: true in the parameter file is the node's switch; replay without --compare writes no
+    tsdf_fusion.ply and says that --compare does."""
+    from replays import replay_in_process
+
+    params = work / "tsdf_fusion.yaml"
+    params.write_text(SMALL_PARAMS + "    tsdf_fusion: true\n")
+    proc = replay_in_process(prefix, work / "out_tsdf_param", params)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "parameter tsdf_fusion is for the node" in proc.stderr and "with --compare" in proc.stderr
+    assert not (work / "out_tsdf_param" / "tsdf_fusion.ply").exists()
+
+
 def test_settings_from_file_match_the_node_defaults(tmp_path: Path):
     from senfunet_ros import params as P
     from senfunet_ros.replay import load_settings

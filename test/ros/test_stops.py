@@ -65,6 +65,28 @@ def test_node_sigterm_finishes_and_exits_zero(tmp_path: Path, ros_domain_id: int
     assert "senfunet: stopped" in text and (tmp_path / "out" / "mesh.ply").is_file()
 
 
+def test_node_saving_on_shutdown_into_an_unusable_output_dir_saves_elsewhere_and_says_so(tmp_path: Path,
+                                                                                          ros_domain_id: int) -> None:
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")  # output_dir below a file: no folder can be made there
+    log = tmp_path / "node.log"
+    proc = _start([*CLI, "node", "--", "-p", "voxel_size_m:=0.04", "-p", "working_width:=64",
+                   "-p", "save_on_shutdown:=true", "-p", f"output_dir:={blocker / 'out'}"], log)
+    _wait_for_text(log, "fusing", proc, 180)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(60) == 0, log.read_text()
+    text = log.read_text()
+    assert "Traceback" not in text
+    assert "saving on shutdown into output_dir failed" in text and "check parameter output_dir" in text
+    saved = [line for line in text.splitlines() if line.startswith("senfunet: saved instead ")]
+    assert saved, text
+    mesh = Path(saved[0].removeprefix("senfunet: saved instead ").split(", ")[-1])
+    assert mesh.name == "mesh.ply" and mesh.is_file()
+    import shutil
+
+    shutil.rmtree(mesh.parent)
+
+
 def test_replay_sigterm_saves_what_it_fused(tmp_path: Path) -> None:
     log = tmp_path / "replay.log"
     proc = _start([*CLI, "replay", str(SAMPLE), "--out", str(tmp_path / "out")], log)

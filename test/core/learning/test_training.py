@@ -460,6 +460,34 @@ def test_train_command_pretrains_the_feature_nets(tmp_path, sim_cache):
     assert cli.main(["train", "--config", str(config), "--feature-pretrain-steps", "-1"]) == 2
 
 
+def test_train_command_from_init_weights_skips_the_pretraining_the_config_asks_for(tmp_path, sim_cache):
+    """`senfunet train --config C --init-weights W` with a config that pretrains the feature nets (as
+    config/train_tof_stereo.yaml does, whose comment gives this command for the online phase): W's
+    networks had that pretraining and block phase, so both are skipped, not refused."""
+    import yaml
+
+    from senfunet_core import networks
+    from senfunet_ros import cli
+
+    config = tmp_path / "tiny.yaml"
+    values = {"seed": 0, "init_seed": 0, "train_scenes": [5], "val_scenes": [7], "duration_s": 0.3,
+              "val_duration_s": 0.3, "val_frame_stride": 2, "weighting_tsdf_input": True, "block_steps": 2,
+              "block_batch": 4, "block_scene_blocks": 20, "feature_pretrain_steps": 4, "feature_pretrain_batch": 2,
+              "feature_pretrain_crop_px": 48, "threads": 1, "cache_dir": sim_cache}
+    config.write_text(yaml.safe_dump(values))
+    feature_nets, g = networks.make_networks((False, True), 3, tsdf_input=True)
+    start = tmp_path / "start.pt"
+    networks.save_weights(start, ("tof", "stereo"), feature_nets, g, {"config": {"val_scenes": [7]}})
+    out = tmp_path / "online.pt"
+    argv = ["train", "--config", str(config), "--init-weights", str(start), "--steps", "0", "--out", str(out),
+            "--no-progress"]
+    assert cli.main(argv) == 0
+    state = torch.load(out, map_location="cpu", weights_only=True)
+    assert "feature_pretrain" not in state["meta"].get("ran", {})
+    for net, saved in zip(feature_nets, state["feature_nets"]):
+        assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), saved.values()))
+
+
 @pytest.mark.parametrize("text, expected", [
     ("steps: [1, 2\n", r"not valid YAML \(line \d+, column \d+\)"),
     ("- steps\n- 3\n", "expected a mapping of training settings"),
