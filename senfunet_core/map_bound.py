@@ -9,7 +9,8 @@ frame reaches them again.
 
 When evictions run and which locks they hold is the engine's business (see its threading model):
 `MapBound.evict` is called with the update lock held and takes the data lock it is given only to
-pick the victims, to redo what a frame changed meanwhile, and to remove them.
+pick the victims, to redo what a frame changed meanwhile, and to remove them; it has the weighting
+net judge on the alpha threads side by side while integration waits for it.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import os
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 
@@ -125,10 +127,13 @@ class MapBound:
         self.newly_archived = []
         return archived
 
-    def evict(self) -> Eviction | None:
+    def evict(self, *, integration_waits: bool = False) -> Eviction | None:
         """Evict the blocks farthest from the camera if the map holds more than `max_blocks` (see
         the module docstring); None when it does not. Their neighbours' cells that reached into them
-        are re-meshed without them by the next update (so a snapshot equals what the updates sent)."""
+        are re-meshed without them by the next update (so a snapshot equals what the updates sent).
+        The net judges on the alpha threads side by side while integration waits for it
+        (`integration_waits`: the caller is the integrating thread; or the map is past the hard
+        bound), else on this thread alone."""
         store = self.store
         if self.max_blocks <= 0 or store.n_blocks <= self.max_blocks or store.n_blocks < self._retry_at_blocks:
             return None
@@ -147,8 +152,10 @@ class MapBound:
         # Judged and meshed without the data lock, so that integration goes on meanwhile (slots move
         # only in evictions, which the update lock serialises) ...
         self.alpha.schedule()
-        unjudged = around[(store.stale[around] > 0) | ~store.evaluated[around]]
-        archived = self._final_meshes(victims, victim_coords, unjudged)
+        # (a block found to hold no voxel alpha matters for, and not stale since, still holds none)
+        unjudged = around[(store.stale[around] > 0) | ~(store.evaluated[around] | store.no_targets[around])]
+        archived = self._final_meshes(victims, victim_coords, unjudged,
+                                      lambda: integration_waits or self.over_hard_bound())
         with self._data_lock:
             # ... and again, under it, where a frame changed them in the meantime
             touched = around[store.alpha_pending[around]]
@@ -158,9 +165,11 @@ class MapBound:
                 again = np.flatnonzero(np.isin(read, changed).any(axis=1))
                 redone = {tuple(key) for key in victim_coords[again].tolist()}
                 older = [key not in redone for key in map(tuple, archived.keys.tolist())]
+                # (integration waits for the data lock held here: judged side by side)
                 archived = BlockMeshes.concatenate([archived.select(np.flatnonzero(older)),
                                                     self._final_meshes(victims[again], victim_coords[again],
-                                                                       around[store.stale[around] > 0])])
+                                                                       around[store.stale[around] > 0],
+                                                                       lambda: True)])
             archived = with_seams(archived, self.mesher.seam_meshes(readers, victim_coords))
             in_memory = np.sort(store.grid.slot_keys[: store.n_blocks])  # the victims still among them
             try:  # first: a spill that cannot be written leaves the store as it was
@@ -202,12 +211,12 @@ class MapBound:
                  time.perf_counter() - t0)
         return eviction
 
-    def _final_meshes(self, slots: np.ndarray, coords: np.ndarray, unjudged: np.ndarray) -> BlockMeshes:
+    def _final_meshes(self, slots: np.ndarray, coords: np.ndarray, unjudged: np.ndarray,
+                      side_by_side: Callable[[], bool]) -> BlockMeshes:
         """Fused, filtered meshes of blocks about to be evicted, alpha first evaluated on the blocks
-        `unjudged` (those the meshes read whose alpha is stale or was never evaluated)."""
-        size = self.alpha_batch_blocks
-        self.alpha.write([self.alpha.evaluate(unjudged[i:i + size]) for i in range(0, len(unjudged), size)],
-                         wait=True)
+        `unjudged` (those the meshes read whose alpha is stale or was never evaluated; on the alpha
+        threads while `side_by_side()`, see `AlphaScheduler.judge`)."""
+        self.alpha.judge(unjudged, side_by_side=side_by_side)
         size = self.mesher.batch_blocks
         return BlockMeshes.concatenate([self.mesher.block_meshes(slots[i:i + size], coords[i:i + size])
                                         for i in range(0, len(slots), size)])

@@ -1343,6 +1343,34 @@ def test_a_frame_reaching_blocks_while_they_are_evicted_is_in_their_final_mesh()
         np.testing.assert_allclose(archived[key].vertices, expected[key].vertices, atol=1e-5)
 
 
+def test_an_eviction_integration_waits_for_judges_on_the_alpha_threads():
+    """Integration past the hard bound with no update running evicts itself: the weighting net then
+    judged the victims' surroundings on that one thread while the other core idled. It now judges
+    them on the alpha threads side by side, and the archived meshes are what one thread gives."""
+    import threading
+
+    views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2)
+    meshes = []
+    for threads in (1, 2):
+        engine = engine_for_tests(max_blocks=100, alpha_threads=threads)
+        evaluate, judged_on = engine.alpha.evaluate, set()
+
+        def recorded(slots, evaluate=evaluate, judged_on=judged_on):
+            judged_on.add(threading.current_thread().name.split("_")[0])
+            return evaluate(slots)
+
+        engine.alpha.evaluate = recorded
+        integrate_views(engine, views)  # no update: integration evicts
+        assert engine.stats()["evicted_blocks"] > 0
+        if threads == 2:
+            assert "senfunet-alpha" in judged_on, judged_on
+        meshes.append(engine.archive.meshes().as_dict())
+        engine.alpha.stop_workers()
+    assert meshes[0].keys() == meshes[1].keys() and len(meshes[0]) > 10
+    for key, mesh in meshes[0].items():
+        assert np.array_equal(mesh.vertices, meshes[1][key].vertices), key
+
+
 def test_stats_counts_the_voxels_without_holding_the_data_lock():
     """Integration waits for the data lock: the statistics' whole-grid count must not hold it."""
     import threading
