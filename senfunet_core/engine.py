@@ -47,8 +47,10 @@ Threading model (the one place it is described):
   (`BlockStore.neighbours`). Evictions wait for the batches being evaluated.
 - Lock order: update lock, then data lock. Integration never takes the update lock while holding
   the data lock; past the map's hard bound it releases the data lock and either evicts itself (the
-  update lock free: tried without blocking) or waits until woken by an eviction or a release of the
-  update lock (`UpdateLock.wait_for_eviction`). Nobody waits for that while holding the data lock,
+  update lock free: tried without blocking) or waits until woken by an eviction's slice (an eviction
+  removes its victims slice by slice and wakes the waiters after each, so a waiter goes on once the
+  map is under the hard bound, not when the whole eviction ends) or a release of the update lock
+  (`UpdateLock.wait_for_eviction`). Nobody waits for that while holding the data lock,
   so the waiter may evict under it. No thread polls.
 """
 from __future__ import annotations
@@ -557,8 +559,8 @@ class SenFuNet:
     def _evict(self, *, integration_waits: bool = False) -> Eviction | None:
         """`MapBound.evict` (call with the update lock held; `integration_waits`: by the integrating
         thread); the evicted blocks are no longer shown as live meshes (the archive shows them), and
-        an integration waiting for it goes on."""
-        eviction = self.bound.evict(integration_waits=integration_waits)
+        an integration waiting for it goes on after its first slice."""
+        eviction = self.bound.evict(integration_waits=integration_waits, removed=self.update_lock.evicted)
         if self.bound.spill_failures:
             self.counters["spill_failures"] = self.bound.spill_failures
         if eviction is not None:
