@@ -47,9 +47,9 @@ Threading model (the one place it is described):
   (`BlockStore.neighbours`). Evictions wait for the batches being evaluated.
 - Lock order: update lock, then data lock. Integration never takes the update lock while holding
   the data lock; past the map's hard bound it releases the data lock and either evicts itself (the
-  update lock free: tried without blocking) or waits until woken by an eviction's slice (an eviction
-  removes its victims slice by slice and wakes the waiters after each, so a waiter goes on once the
-  map is under the hard bound, not when the whole eviction ends) or a release of the update lock
+  update lock free: tried without blocking) or waits until woken by an eviction's slice (an update's
+  eviction removes its victims slice by slice and wakes the waiters after each, so a waiter goes on
+  once the map is under the hard bound, not when the whole eviction ends) or a release of the update lock
   (`UpdateLock.wait_for_eviction`). Nobody waits for that while holding the data lock,
   so the waiter may evict under it. No thread polls.
 """

@@ -1,12 +1,12 @@
 """The map bound: past `max_blocks`, the blocks farthest from the camera leave memory, not the mesh.
 
-An eviction takes the map down to 90% of the bound (so that it does not happen every update) in
-slices (SLICE_OF_BOUND of the bound each). A slice picks the blocks farthest from the last camera
-position, those the latest frames touched last, evaluates the weighting net where their final fused
-meshes read a stale alpha and where alpha reads their voxels, meshes them, and archives those
-meshes (`mesh_archive`) with the seam triangles of the staying blocks' cells that read them; then
-the store drops the blocks, their voxels going to the grid's spill (`spill`) to come back when a
-frame reaches them again.
+An eviction takes the map down to 90% of the bound (so that it does not happen every update), in
+slices (SLICE_OF_BOUND of the bound each) unless the integrating thread evicts. A slice picks the
+blocks farthest from the last camera position, those the latest frames touched last, evaluates
+the weighting net where their final fused meshes read a stale alpha and where alpha reads their
+voxels, meshes them, and archives those meshes (`mesh_archive`) with the seam triangles of the
+staying blocks' cells that read them; then the store drops the blocks, their voxels going to the
+grid's spill (`spill`) to come back when a frame reaches them again.
 
 When evictions run and which locks they hold is the engine's business (see its threading model):
 `MapBound.evict` is called with the update lock held and takes the data lock it is given only to
@@ -140,7 +140,8 @@ class MapBound:
 
         The victims go in slices of SLICE_OF_BOUND of the bound, each picked, judged, meshed and
         removed in turn, `removed()` called after each: an integration waiting at the hard bound
-        goes on after the first slice, not after the whole eviction. The net judges on the alpha
+        goes on after the first slice, not after the whole eviction (in one slice when the caller is
+        the integrating thread itself). The net judges on the alpha
         threads side by side while integration waits for it (`integration_waits`: the caller is
         the integrating thread; or the map is past the hard bound), else on this thread alone."""
         store = self.store
@@ -149,7 +150,10 @@ class MapBound:
         t0 = time.perf_counter()
         # what integration adds meanwhile stays for the next eviction: this one ends
         left = store.n_blocks - int(0.9 * self.max_blocks)
-        slice_blocks = max(self.alpha_batch_blocks, int(SLICE_OF_BOUND * self.max_blocks))
+        # one slice when the integrating thread evicts: nobody else waits, and slices cost (each picks,
+        # meshes seams and removes; a replay on a thrashing bound took a third longer in slices)
+        slice_blocks = left if integration_waits else max(self.alpha_batch_blocks,
+                                                          int(SLICE_OF_BOUND * self.max_blocks))
         eviction: Eviction | None = None
         self._judged, self._judge_s, slices = 0, 0.0, 0
         while left > 0:
