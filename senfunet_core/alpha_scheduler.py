@@ -160,6 +160,37 @@ class AlphaScheduler:
         nothing); `refresh` and the map bound evaluate through this."""
         return self.evaluator.evaluate(slots)
 
+    def judge(self, slots: np.ndarray, *, side_by_side: Callable[[], bool]) -> int:
+        """Evaluate and write all of these blocks (the map bound's victims' surroundings), batch by
+        batch; while `side_by_side()` says so (integration waits for this: the cores are free), on
+        the `threads` alpha threads at once, with as many more queued, else one batch at a time on
+        this thread (integration has the other core). Each batch is one thread's, so alpha does not
+        depend on how many. Returns the blocks judged (holding voxels alpha matters for)."""
+        results: list[AlphaBatch] = []
+        evaluating: collections.deque[Future[AlphaBatch]] = collections.deque()
+        judged = 0
+
+        def take(result: AlphaBatch) -> None:
+            nonlocal judged
+            judged += int(result.holds.sum())
+            results.append(result)
+
+        for start in range(0, len(slots), self.batch_blocks):
+            batch = slots[start:start + self.batch_blocks]
+            if self.threads > 1 and side_by_side():
+                while len(evaluating) >= 2 * self.threads:  # the oldest first: results are written in order
+                    take(evaluating.popleft().result())
+                evaluating.append(self.workers().submit(self.evaluate, batch))
+            else:
+                while evaluating:
+                    take(evaluating.popleft().result())
+                take(self.evaluate(batch))
+            self.write(results, wait=False)  # whenever the data lock is free: integration may hold it
+        while evaluating:
+            take(evaluating.popleft().result())
+        self.write(results, wait=True)
+        return judged
+
     def write(self, results: list[AlphaBatch], *, wait: bool) -> None:
         """Write evaluated batches (and empty `results`), if the data lock is free or `wait`. Where
         alpha matters in an evaluated block, it is up to date; a block without voxels alpha matters

@@ -31,6 +31,14 @@ class Eviction:
         kept = moved >= 0
         return moved[kept], kept
 
+    def then(self, later: Eviction) -> Eviction:
+        """This eviction followed by `later` (a later slice of the same eviction) as one: slots held
+        from before this one are followed through both."""
+        new_slot = self.new_slot.copy()
+        kept = new_slot >= 0
+        new_slot[kept] = later.new_slot[new_slot[kept]]
+        return Eviction(np.concatenate([self.dropped_keys, later.dropped_keys]), new_slot)
+
 
 class BlockStore:
     """The grid and, per block slot (arrays as long as the grid's capacity):

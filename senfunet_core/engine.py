@@ -24,10 +24,12 @@ Threading model (the one place it is described):
   `refresh_alpha`, the extractions, `map_file.save_map`, `reset`; one feature-net worker thread (module-wide)
   runs the 2D nets; with `alpha_threads` > 1, that many alpha threads (per engine, owned by its
   `AlphaScheduler`) evaluate the weighting net's batches for an update that has no time budget (or
-  an idle catch-up, `refresh_alpha(until_frame=True)`), while the updating thread waits for them in
-  order and writes their results; they also mesh the batches of an `update(mesh_threads=...)` (no
-  frame waiting) and, in an idle catch-up, count the voxels near a surface that order it
-  (`AlphaScheduler.order`), reading the grid as the updating thread does. Several threads may integrate, and
+  an idle catch-up, `refresh_alpha(until_frame=True)`), and for an eviction that integration waits
+  for (`MapBound.evict`: the integrating thread evicts, or the map is past the hard bound), while the
+  updating (or evicting) thread waits for them in order and writes their results; they also mesh
+  the batches of an `update(mesh_threads=...)` (no frame waiting) and, in an idle catch-up, count
+  the voxels near a surface that order it (`AlphaScheduler.order`), reading the grid as the
+  updating thread does. Several threads may integrate, and
   several may update: the locks serialise them. The alpha threads start at the priority of the
   thread that first needs them and then run the constructor's `worker_setup` (the live node's
   lowers them to its mesh thread's). The engine's parts (`AlphaScheduler`,
@@ -45,8 +47,10 @@ Threading model (the one place it is described):
   (`BlockStore.neighbours`). Evictions wait for the batches being evaluated.
 - Lock order: update lock, then data lock. Integration never takes the update lock while holding
   the data lock; past the map's hard bound it releases the data lock and either evicts itself (the
-  update lock free: tried without blocking) or waits until woken by an eviction or a release of the
-  update lock (`UpdateLock.wait_for_eviction`). Nobody waits for that while holding the data lock,
+  update lock free: tried without blocking) or waits until woken by an eviction's slice (an update's
+  eviction removes its victims slice by slice and wakes the waiters after each, so a waiter goes on
+  once the map is under the hard bound, not when the whole eviction ends) or a release of the update lock
+  (`UpdateLock.wait_for_eviction`). Nobody waits for that while holding the data lock,
   so the waiter may evict under it. No thread polls.
 """
 from __future__ import annotations
@@ -351,7 +355,8 @@ class SenFuNet:
                                         touched_s=touched_s, n_touched=len(update.touched_slots))
         self.times.add(integrate=frame.checks_s + time.perf_counter() - t0 - update.waited_s)
         if self.bound.over_hard_bound():  # updates come too rarely to keep the bound
-            self.update_lock.wait_for_eviction(self.bound.over_hard_bound, self._evict)
+            # (this thread evicts, or waits for the update that holds the update lock to do so)
+            self.update_lock.wait_for_eviction(self.bound.over_hard_bound, lambda: self._evict(integration_waits=True))
         return update.voxels_updated
 
     @torch.inference_mode()
@@ -551,10 +556,11 @@ class SenFuNet:
         self.counters["alpha_flops"] = self.alpha.flops
         self.counters["alpha_backlog_blocks"] = refresh.backlog
 
-    def _evict(self) -> Eviction | None:
-        """`MapBound.evict` (call with the update lock held); the evicted blocks are no longer shown
-        as live meshes (the archive shows them), and an integration waiting for it goes on."""
-        eviction = self.bound.evict()
+    def _evict(self, *, integration_waits: bool = False) -> Eviction | None:
+        """`MapBound.evict` (call with the update lock held; `integration_waits`: by the integrating
+        thread); the evicted blocks are no longer shown as live meshes (the archive shows them), and
+        an integration waiting for it goes on after its first slice."""
+        eviction = self.bound.evict(integration_waits=integration_waits, removed=self.update_lock.evicted)
         if self.bound.spill_failures:
             self.counters["spill_failures"] = self.bound.spill_failures
         if eviction is not None:

@@ -1,15 +1,17 @@
 """The map bound: past `max_blocks`, the blocks farthest from the camera leave memory, not the mesh.
 
-An eviction picks the blocks farthest from the last camera position, those the latest frames
-touched last (down to 90% of the bound, so that it does not happen every update), evaluates the
-weighting net where their final fused meshes read a stale alpha, meshes them, and archives those
-meshes (`mesh_archive`) with the seam triangles of the staying blocks' cells that read them; then
-the store drops the blocks, their voxels going to the grid's spill (`spill`) to come back when a
-frame reaches them again.
+An eviction takes the map down to 90% of the bound (so that it does not happen every update), in
+slices (SLICE_OF_BOUND of the bound each) unless the integrating thread evicts. A slice picks the
+blocks farthest from the last camera position, those the latest frames touched last, evaluates
+the weighting net where their final fused meshes read a stale alpha and where alpha reads their
+voxels, meshes them, and archives those meshes (`mesh_archive`) with the seam triangles of the
+staying blocks' cells that read them; then the store drops the blocks, their voxels going to the
+grid's spill (`spill`) to come back when a frame reaches them again.
 
 When evictions run and which locks they hold is the engine's business (see its threading model):
 `MapBound.evict` is called with the update lock held and takes the data lock it is given only to
-pick the victims, to redo what a frame changed meanwhile, and to remove them.
+pick each slice's victims, to redo what a frame changed meanwhile, and to remove them; it has the
+weighting net judge on the alpha threads side by side while integration waits for it.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ import os
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 
@@ -36,6 +39,9 @@ HARD_BOUND = 1.25
 # the blocks the latest this many frames touched are evicted last: they are in view wherever the camera
 # looks, while the blocks nearest it may lie behind it
 RECENT_FRAMES = 10
+# an eviction removes its victims in slices of this share of the bound: an integration waiting at the
+# hard bound waits for one slice (its judging and meshing), not for all of them
+SLICE_OF_BOUND = 0.05
 
 
 def memory_bound_blocks(bytes_per_block: int, *, memory_fraction: float = 0.5) -> int:
@@ -79,6 +85,7 @@ class MapBound:
         self.spill_failures = 0  # evictions abandoned because the spill could not be written (blocks kept)
         self._retry_at_blocks = 0  # after such a failure: no eviction is tried until the map holds this many
         self.evicted_in_view = 0  # evicted blocks that the sensors' latest frames had reached
+        self._judged, self._judge_s = 0, 0.0  # the current eviction's: blocks the net judged, and how long
 
     def clear(self) -> None:
         """Forget the archive and the camera (the map was reset)."""
@@ -125,16 +132,58 @@ class MapBound:
         self.newly_archived = []
         return archived
 
-    def evict(self) -> Eviction | None:
+    def evict(self, *, integration_waits: bool = False, removed: Callable[[], None] | None = None
+              ) -> Eviction | None:
         """Evict the blocks farthest from the camera if the map holds more than `max_blocks` (see
         the module docstring); None when it does not. Their neighbours' cells that reached into them
-        are re-meshed without them by the next update (so a snapshot equals what the updates sent)."""
+        are re-meshed without them by the next update (so a snapshot equals what the updates sent).
+
+        The victims go in slices of SLICE_OF_BOUND of the bound, each picked, judged, meshed and
+        removed in turn, `removed()` called after each: an integration waiting at the hard bound
+        goes on after the first slice, not after the whole eviction (in one slice when the caller is
+        the integrating thread itself). The net judges on the alpha
+        threads side by side while integration waits for it (`integration_waits`: the caller is
+        the integrating thread; or the map is past the hard bound), else on this thread alone."""
         store = self.store
         if self.max_blocks <= 0 or store.n_blocks <= self.max_blocks or store.n_blocks < self._retry_at_blocks:
             return None
         t0 = time.perf_counter()
+        # what integration adds meanwhile stays for the next eviction: this one ends
+        left = store.n_blocks - int(0.9 * self.max_blocks)
+        # one slice when the integrating thread evicts: nobody else waits, and slices cost (each picks,
+        # meshes seams and removes; a replay on a thrashing bound took a third longer in slices)
+        slice_blocks = left if integration_waits else max(self.alpha_batch_blocks,
+                                                          int(SLICE_OF_BOUND * self.max_blocks))
+        eviction: Eviction | None = None
+        self._judged, self._judge_s, slices = 0, 0.0, 0
+        while left > 0:
+            part = self._evict_slice(min(left, slice_blocks),
+                                     side_by_side=lambda: integration_waits or self.over_hard_bound())
+            if part is None:  # the spill could not be written: what was removed so far stays removed
+                break
+            eviction = part if eviction is None else eviction.then(part)
+            left -= len(part.dropped_keys)
+            slices += 1
+            if removed is not None:
+                removed()
+        if eviction is None:
+            return None
+        self.evictions += 1
+        spill = store.grid.spill
+        log.info("map bound: evicted %d blocks farthest from the camera (max_blocks %d; %d evicted so far, their "
+                 "final meshes kept: %d archived blocks; their voxels on disk until seen again: %d blocks, %.0f MB) "
+                 "in %.2f s (%d slices; the net judged %d blocks around them in %.2f s)", len(eviction.dropped_keys),
+                 self.max_blocks, self.evicted_blocks, len(self.archive),
+                 len(spill) if spill is not None else 0, (spill.nbytes if spill is not None else 0) / 1e6,
+                 time.perf_counter() - t0, slices, self._judged, self._judge_s)
+        return eviction
+
+    def _evict_slice(self, count: int, *, side_by_side: Callable[[], bool]) -> Eviction | None:
+        """Evict the `count` blocks farthest from the camera (`evict`'s slice); None when the spill
+        could not be written (the blocks stay)."""
+        store = self.store
         with self._data_lock:
-            victims = store.farthest(self.camera_m, keep=int(0.9 * self.max_blocks), voxel_size_m=self.voxel_size_m,
+            victims = store.farthest(self.camera_m, keep=store.n_blocks - count, voxel_size_m=self.voxel_size_m,
                                      touched_since_s=self._recent_frames_s[0] if self._recent_frames_s else np.inf)
             in_view = int((store.touched_s[victims] >= self._frame_s).sum())
             victim_coords = store.grid.coords[victims].numpy()  # copies (fancy index)
@@ -143,12 +192,16 @@ class MapBound:
             readers = around_victims[:, MESH_READER_CODES]  # the blocks whose cells read victims
             readers = np.setdiff1d(readers[readers >= 0], victims)
             scope = store.neighbours(np.union1d(victims, readers))[:, MESH_READ_CODES]
-            around = np.unique(scope[scope >= 0])  # every block whose alpha the final meshes read
+            # every block whose alpha the final meshes read, and every block whose alpha reads the victims'
+            # voxels: judged now, with them; judged after they left, a later slice's final meshes (or the
+            # live ones) would read an alpha that lacks them
+            around = np.unique(np.concatenate([scope[scope >= 0], around_victims[around_victims >= 0]]))
         # Judged and meshed without the data lock, so that integration goes on meanwhile (slots move
         # only in evictions, which the update lock serialises) ...
         self.alpha.schedule()
-        unjudged = around[(store.stale[around] > 0) | ~store.evaluated[around]]
-        archived = self._final_meshes(victims, victim_coords, unjudged)
+        # (a block found to hold no voxel alpha matters for, and not stale since, still holds none)
+        unjudged = around[(store.stale[around] > 0) | ~(store.evaluated[around] | store.no_targets[around])]
+        archived = self._final_meshes(victims, victim_coords, unjudged, side_by_side)
         with self._data_lock:
             # ... and again, under it, where a frame changed them in the meantime
             touched = around[store.alpha_pending[around]]
@@ -158,9 +211,11 @@ class MapBound:
                 again = np.flatnonzero(np.isin(read, changed).any(axis=1))
                 redone = {tuple(key) for key in victim_coords[again].tolist()}
                 older = [key not in redone for key in map(tuple, archived.keys.tolist())]
+                # (integration waits for the data lock held here: judged side by side)
                 archived = BlockMeshes.concatenate([archived.select(np.flatnonzero(older)),
                                                     self._final_meshes(victims[again], victim_coords[again],
-                                                                       around[store.stale[around] > 0])])
+                                                                       around[store.stale[around] > 0],
+                                                                       lambda: True)])
             archived = with_seams(archived, self.mesher.seam_meshes(readers, victim_coords))
             in_memory = np.sort(store.grid.slot_keys[: store.n_blocks])  # the victims still among them
             try:  # first: a spill that cannot be written leaves the store as it was
@@ -185,7 +240,6 @@ class MapBound:
         self.archive.add(archived, in_memory, self.voxel_size_m)
         self.newly_archived.append(archived)
         self.evicted_blocks += len(victim_coords)
-        self.evictions += 1
         if in_view:
             if not self.evicted_in_view:
                 log.warning("map bound: max_blocks %d is smaller than what a frame sees: %d of the %d blocks "
@@ -194,20 +248,16 @@ class MapBound:
                             "this machine's memory). Counted as evicted_in_view_blocks; warned once.",
                             self.max_blocks, in_view, len(victim_coords), self._frame_blocks)
             self.evicted_in_view += in_view
-        spill = store.grid.spill
-        log.info("map bound: evicted %d blocks farthest from the camera (max_blocks %d; %d evicted so far, their "
-                 "final meshes kept: %d archived blocks; their voxels on disk until seen again: %d blocks, %.0f MB) "
-                 "in %.2f s", len(victim_coords), self.max_blocks, self.evicted_blocks, len(self.archive),
-                 len(spill) if spill is not None else 0, (spill.nbytes if spill is not None else 0) / 1e6,
-                 time.perf_counter() - t0)
         return eviction
 
-    def _final_meshes(self, slots: np.ndarray, coords: np.ndarray, unjudged: np.ndarray) -> BlockMeshes:
+    def _final_meshes(self, slots: np.ndarray, coords: np.ndarray, unjudged: np.ndarray,
+                      side_by_side: Callable[[], bool]) -> BlockMeshes:
         """Fused, filtered meshes of blocks about to be evicted, alpha first evaluated on the blocks
-        `unjudged` (those the meshes read whose alpha is stale or was never evaluated)."""
-        size = self.alpha_batch_blocks
-        self.alpha.write([self.alpha.evaluate(unjudged[i:i + size]) for i in range(0, len(unjudged), size)],
-                         wait=True)
+        `unjudged` (those the meshes read whose alpha is stale or was never evaluated; on the alpha
+        threads while `side_by_side()`, see `AlphaScheduler.judge`)."""
+        started = time.perf_counter()
+        self._judged += self.alpha.judge(unjudged, side_by_side=side_by_side)
+        self._judge_s += time.perf_counter() - started
         size = self.mesher.batch_blocks
         return BlockMeshes.concatenate([self.mesher.block_meshes(slots[i:i + size], coords[i:i + size])
                                         for i in range(0, len(slots), size)])

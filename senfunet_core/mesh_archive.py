@@ -155,7 +155,8 @@ def meshable_faces(vertices_m: np.ndarray, faces: np.ndarray, in_memory: np.ndar
     """Per triangle: whether the 8 corners of its marching-cubes cell (the floor of its centroid, in
     voxels) all lie in blocks whose keys are in the sorted array `in_memory`. A triangle on a face
     between two cells (its centroid on a voxel plane: either cell may have made it, and both may)
-    counts as meshable when either cell is; a triangle without area (marching cubes at corners exactly
+    counts as meshable when the cell in the block it is archived under is (either cell, when both lie
+    in that block); a triangle without area (marching cubes at corners exactly
     0), whose cell cannot be told, when the block it is archived under (`face_blocks`: per triangle,
     that block's key) is in memory."""
     if len(faces) == 0 or len(in_memory) == 0:
@@ -164,14 +165,19 @@ def meshable_faces(vertices_m: np.ndarray, faces: np.ndarray, in_memory: np.ndar
     centroid = corners.mean(axis=1)
     area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
     meshable = np.zeros(len(faces), bool)
-    for shift in (-1e-3, 1e-3):
-        cell = np.floor(centroid + shift).astype(np.int64)
+    cells = [np.floor(centroid + shift).astype(np.int64) for shift in (-1e-3, 1e-3)]
+    # A triangle is archived under the block its cell lies in: where the two cells lie in different
+    # blocks, that tells which one made it (the other cell, in memory, need not have made the same
+    # triangle: an evicted block's face triangle went when its neighbour across the face left later)
+    made_it = [packed_keys(np.floor_divide(cell, BLOCK)) == face_blocks for cell in cells]
+    either = made_it[0] == made_it[1]  # same block (or neither): either cell may have made it
+    for cell, made in zip(cells, made_it):
         all_in = np.ones(len(faces), bool)
         for corner in np.ndindex(2, 2, 2):
             keys = packed_keys(np.floor_divide(cell + np.array(corner), BLOCK))
             at = np.minimum(np.searchsorted(in_memory, keys), len(in_memory) - 1)
             all_in &= in_memory[at] == keys
-        meshable |= all_in
+        meshable |= all_in & (made | either)
     flat = area <= 1e-6
     at = np.minimum(np.searchsorted(in_memory, face_blocks[flat]), len(in_memory) - 1)
     meshable[flat] = in_memory[at] == face_blocks[flat]

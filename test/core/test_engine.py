@@ -1343,6 +1343,102 @@ def test_a_frame_reaching_blocks_while_they_are_evicted_is_in_their_final_mesh()
         np.testing.assert_allclose(archived[key].vertices, expected[key].vertices, atol=1e-5)
 
 
+def test_an_eviction_integration_waits_for_judges_on_the_alpha_threads():
+    """Integration past the hard bound with no update running evicts itself: the weighting net then
+    judged the victims' surroundings on that one thread while the other core idled. It now judges
+    them on the alpha threads side by side, and the archived meshes are what one thread gives."""
+    import threading
+
+    views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2)
+    meshes = []
+    for threads in (1, 2):
+        engine = engine_for_tests(max_blocks=100, alpha_threads=threads)
+        evaluate, judged_on = engine.alpha.evaluate, set()
+
+        def recorded(slots, evaluate=evaluate, judged_on=judged_on):
+            judged_on.add(threading.current_thread().name.split("_")[0])
+            return evaluate(slots)
+
+        engine.alpha.evaluate = recorded
+        integrate_views(engine, views)  # no update: integration evicts
+        assert engine.stats()["evicted_blocks"] > 0
+        if threads == 2:
+            assert "senfunet-alpha" in judged_on, judged_on
+        meshes.append(engine.archive.meshes().as_dict())
+        engine.alpha.stop_workers()
+    assert meshes[0].keys() == meshes[1].keys() and len(meshes[0]) > 10
+    for key, mesh in meshes[0].items():
+        assert np.array_equal(mesh.vertices, meshes[1][key].vertices), key
+
+
+def test_integration_waiting_at_the_hard_bound_goes_on_after_the_first_slice_of_an_eviction(monkeypatch):
+    """An update's eviction judges and meshes its victims slice by slice and removes each slice as it
+    goes: an integration that outgrew the hard bound meanwhile goes on once a slice brought the map
+    under it, while the eviction carries on (it waited for the whole eviction)."""
+    import threading
+
+    from senfunet_core import map_bound
+
+    small_r, beside = 0.1, SPHERE_C + np.array([0.0, 1.0, 0.0])  # the late frame: a small sphere
+    late_T = look_at(beside + [0.0, 0.0, 0.6], beside)
+    late = render_sphere(beside, small_r, SPHERE_K, late_T)
+    views = [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2)
+    probe = engine_for_tests(min_new_block_samples=0)
+    integrate_views(probe, views)
+    n_start = probe.grid.n_blocks
+    probe.integrate("tof", late, SPHERE_K, late_T)
+    late_blocks = probe.grid.n_blocks - n_start
+    # the late frame takes the map past the hard bound by half its blocks; one slice brings it back
+    hard_bound = n_start + late_blocks // 2
+    max_blocks = int(hard_bound / map_bound.HARD_BOUND)
+    monkeypatch.setattr(map_bound, "SLICE_OF_BOUND", late_blocks / max_blocks, raising=False)
+    slice_blocks = max(8, int(map_bound.SLICE_OF_BOUND * max_blocks))
+    assert max_blocks < n_start and n_start - int(0.9 * max_blocks) > 2 * slice_blocks  # several slices
+    engine = engine_for_tests(max_blocks=max_blocks, alpha_batch_blocks=8, min_new_block_samples=0)
+    integrate_views(engine, views)
+    assert engine.grid.n_blocks == n_start and engine.stats()["evicted_blocks"] == 0
+
+    blocked, released, eviction_ended = threading.Event(), threading.Event(), threading.Event()
+    over_hard_bound, remove, block_meshes, evict = (engine.bound.over_hard_bound, engine.store.remove,
+                                                    engine.mesher.block_meshes, engine.bound.evict)
+    worker = threading.Thread(target=lambda: (engine.integrate("tof", late, SPHERE_K, late_T), released.set()))
+    removals: list[int] = []
+    released_mid_eviction: list[bool] = []
+
+    def watched_over_hard_bound() -> bool:
+        over = over_hard_bound()
+        if over and threading.current_thread() is worker:
+            blocked.set()  # the worker holds the wake-up condition from here until it waits on it
+        return over
+
+    def watched_remove(victims):
+        removals.append(len(victims))
+        return remove(victims)
+
+    def first_slice_lets_a_frame_in(slots, coords):
+        if worker.ident is None:  # the first slice: the late frame comes, and waits at the hard bound
+            worker.start()
+            assert blocked.wait(timeout=120)
+        elif removals and not released_mid_eviction:  # a later slice: the frame went on meanwhile
+            released_mid_eviction.append(released.wait(timeout=120) and not eviction_ended.is_set())
+        return block_meshes(slots, coords)
+
+    def recorded_evict(**kwargs):
+        eviction = evict(**kwargs)
+        eviction_ended.set()
+        return eviction
+
+    engine.bound.over_hard_bound = watched_over_hard_bound
+    engine.store.remove, engine.mesher.block_meshes = watched_remove, first_slice_lets_a_frame_in
+    engine.bound.evict = recorded_evict
+    engine.update()
+    worker.join(timeout=120)
+    assert not worker.is_alive() and released.is_set()
+    assert released_mid_eviction == [True], (removals, released_mid_eviction)
+    assert len(removals) > 1 and engine.bound.evictions == 1
+    assert engine.grid.n_blocks <= max_blocks
+
+
 def test_stats_counts_the_voxels_without_holding_the_data_lock():
     """Integration waits for the data lock: the statistics' whole-grid count must not hold it."""
     import threading

@@ -188,3 +188,22 @@ def test_rewriting_two_mostly_dead_chunks_that_merge_keeps_every_mesh():
     assert held.keys() == reference.keys()
     for key, mesh in reference.items():
         assert_same(held[key], mesh)
+
+
+def test_a_face_triangle_belongs_to_the_cell_in_the_block_it_is_archived_under():
+    """A triangle on the face between two cells of different blocks was counted as either cell's:
+    archived under block A (its cell there, the other in block B), it went when A was evicted before
+    B and prune ran with B alone in memory, though B's mesh need not have it. Its block tells."""
+    voxel = VOXEL
+    z_m = 24 * voxel  # the face between cells z = 23 (block z 2) and z = 24 (block z 3)
+    triangle = Mesh(np.array([[284.2, 8.2, 24.0], [284.8, 8.3, 24.0], [284.4, 8.9, 24.0]], np.float32) * voxel,
+                    np.array([[0, 1, 2]], np.int32))
+    assert float(triangle.vertices[0, 2]) == pytest.approx(z_m)
+    below, above = (35, 1, 2), (35, 1, 3)
+    for key, survives_with_above_alone in ((below, True), (above, False)):
+        archive = MeshArchive()
+        archive.add(BlockMeshes.from_meshes({key: triangle}), np.zeros(0, np.int64), voxel)
+        archive.prune({key}, np.sort(packed([above])), voxel)  # block z 2 is on disk, z 3 in memory
+        assert (key in archive) == survives_with_above_alone, key
+        archive.prune({key}, np.sort(packed([below, above])), voxel)  # both in memory: the live mesh has it
+        assert key not in archive
