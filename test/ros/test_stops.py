@@ -3,6 +3,7 @@ finished or counted, exit code 0 (130 for an interrupted replay that saved what 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -53,15 +54,23 @@ def test_play_loop_stops_quietly(prefix: Path, tmp_path: Path, ros_domain_id: in
     assert "Traceback" not in text and "RCLError" not in text and "stopped" in text
 
 
-def test_node_sigterm_finishes_and_exits_zero(tmp_path: Path, ros_domain_id: int) -> None:
+def _node_stopped_by_sigterm(tmp_path: Path, output_dir: Path) -> str:
+    """A node saving on shutdown into output_dir, stopped by SIGTERM once it fuses: exit code 0, no
+    traceback; its log."""
     log = tmp_path / "node.log"
     proc = _start([*CLI, "node", "--", "-p", "voxel_size_m:=0.04", "-p", "working_width:=64",
-                   "-p", "save_on_shutdown:=true", "-p", f"output_dir:={tmp_path / 'out'}"], log)
+                   "-p", "save_on_shutdown:=true", "-p", f"output_dir:={output_dir}"], log)
     _wait_for_text(log, "fusing", proc, 180)
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(60) == 0, log.read_text()
     text = log.read_text()
-    assert "Traceback" not in text and "rejected by the engine" not in text
+    assert "Traceback" not in text
+    return text
+
+
+def test_node_sigterm_finishes_and_exits_zero(tmp_path: Path, ros_domain_id: int) -> None:
+    text = _node_stopped_by_sigterm(tmp_path, tmp_path / "out")
+    assert "rejected by the engine" not in text
     assert "senfunet: stopped" in text and (tmp_path / "out" / "mesh.ply").is_file()
 
 
@@ -69,21 +78,12 @@ def test_node_saving_on_shutdown_into_an_unusable_output_dir_saves_elsewhere_and
                                                                                           ros_domain_id: int) -> None:
     blocker = tmp_path / "a_file"
     blocker.write_text("")  # output_dir below a file: no folder can be made there
-    log = tmp_path / "node.log"
-    proc = _start([*CLI, "node", "--", "-p", "voxel_size_m:=0.04", "-p", "working_width:=64",
-                   "-p", "save_on_shutdown:=true", "-p", f"output_dir:={blocker / 'out'}"], log)
-    _wait_for_text(log, "fusing", proc, 180)
-    proc.send_signal(signal.SIGTERM)
-    assert proc.wait(60) == 0, log.read_text()
-    text = log.read_text()
-    assert "Traceback" not in text
+    text = _node_stopped_by_sigterm(tmp_path, blocker / "out")
     assert "saving on shutdown into output_dir failed" in text and "check parameter output_dir" in text
     saved = [line for line in text.splitlines() if line.startswith("senfunet: saved instead ")]
     assert saved, text
     mesh = Path(saved[0].removeprefix("senfunet: saved instead ").split(", ")[-1])
     assert mesh.name == "mesh.ply" and mesh.is_file()
-    import shutil
-
     shutil.rmtree(mesh.parent)
 
 
