@@ -150,8 +150,8 @@ class MapBound:
         t0 = time.perf_counter()
         # what integration adds meanwhile stays for the next eviction: this one ends
         left = store.n_blocks - int(0.9 * self.max_blocks)
-        # one slice when the integrating thread evicts: nobody else waits, and slices cost (each picks,
-        # meshes seams and removes; a replay on a thrashing bound took a third longer in slices)
+        # one slice when the integrating thread evicts: nobody else waits, and each slice costs a pick,
+        # seam meshes and a removal
         slice_blocks = left if integration_waits else max(self.alpha_batch_blocks,
                                                           int(SLICE_OF_BOUND * self.max_blocks))
         eviction: Eviction | None = None
