@@ -42,7 +42,14 @@ def run(args: argparse.Namespace) -> int:
     except BagError as err:
         return _error(str(err))
     with reader:
-        return _play(reader, args)
+        try:
+            return _play(reader, args)
+        except KeyboardInterrupt:
+            # one Ctrl-C arrives twice: rclpy's handler shuts the context down (a publish raises) and
+            # chains to Python's, whose KeyboardInterrupt can come while _play handles the first
+            if not args.quiet:
+                print("senfunet play: stopped", file=sys.stderr)
+            return 0
 
 
 def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader, imported lazily
