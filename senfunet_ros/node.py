@@ -743,6 +743,7 @@ def stop_node(node: FusionNode) -> None:
     dropped; while saving, the saving stops (each file is written whole or not at all, see
     `write_ply`); the node is destroyed either way."""
     import signal
+    import tempfile
 
     abandon = threading.Event()
     saving = False
@@ -768,33 +769,23 @@ def stop_node(node: FusionNode) -> None:
         if node.settings.save_on_shutdown:
             saving = True
             try:
-                paths = node.map_services.save_meshes()
-                print("senfunet: saved " + ", ".join(str(p) for p in paths), flush=True)
+                try:
+                    paths, saved = node.map_services.save_meshes(), "saved"
+                except OSError as err:  # output_dir cannot be written: the map would end with the process
+                    print(f"senfunet: saving on shutdown into output_dir failed: {err}; check parameter output_dir; "
+                          "saving into a new temporary folder instead", file=sys.stderr, flush=True)
+                    paths = node.map_services.save_meshes(tempfile.mkdtemp(prefix="senfunet_output_"))
+                    saved = "saved instead"
+                print(f"senfunet: {saved} " + ", ".join(str(p) for p in paths), flush=True)
             except KeyboardInterrupt:
                 print("senfunet: interrupted again: saving on shutdown stopped (files already written stay, "
                       "the one being written was not replaced)", flush=True)
-            except OSError as err:  # output_dir not writable: the map would be lost with the process
-                _save_elsewhere(node, err)
             except Exception as err:
                 print(f"senfunet: saving on shutdown failed: {err}", file=sys.stderr, flush=True)
     finally:
         for sig, handler in (previous or {}).items():
             signal.signal(sig, handler)
         node.destroy_node()
-
-
-def _save_elsewhere(node: FusionNode, err: OSError) -> None:
-    """Saving on shutdown into output_dir failed (not writable, not a folder): the meshes go into a new
-    temporary folder instead, as the map ends with the process, and the message says where and why."""
-    import tempfile
-
-    print(f"senfunet: saving on shutdown into output_dir failed: {err}; check parameter output_dir",
-          file=sys.stderr, flush=True)
-    try:
-        paths = node.map_services.save_meshes(tempfile.mkdtemp(prefix="senfunet_output_"))
-        print("senfunet: saved instead " + ", ".join(str(p) for p in paths), file=sys.stderr, flush=True)
-    except Exception as again:
-        print(f"senfunet: saving into a temporary folder failed too: {again}", file=sys.stderr, flush=True)
 
 
 if __name__ == "__main__":
