@@ -19,14 +19,15 @@ Numba kernels over blocks; each block's neighbourhood comes from a B x 27 neighb
 """
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numba
 import numpy as np
 import torch
 
-from .grid import (as_stored, copy_features, f16_to_f32, feature_code_tables, features_per_voxel, load_f32,
-                   load_features, store_f32)
+from .grid import (F16_VALUES, as_stored, copy_features, f16_to_f32, feature_code_tables, features_per_voxel,
+                   load_f32, load_features, packed_words)
 from .integrator import TANH_OF_COUNT
 from .networks import WEIGHTING_HALO
 
@@ -66,32 +67,42 @@ def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: 
     """B x 12^3 x C weighting-net inputs of each block with its 2-voxel halo (channels last), zero
     where no block exists: [F_1 (5), tanh(W_1), F_2 (5), tanh(W_2)] (C = 12) and, unless tsdf_1 and
     tsdf_2 are empty, [V_1, V_2] * tsdf_scale (C = 14, the inputs of WeightingNet.tsdf_input).
-    features_i: flat feature-pool views (`grid.load_feature`). out: a flat buffer of at least
+    features_i: flat feature-pool views (`grid.load_feature`); weights and TSDFs: the grid's float16
+    pools as int16 bits (`grid.kernel_view`). out: a flat buffer of at least
     B * 12^3 * C entries to write them to (reused between batches: a fresh array of this size costs
     its page faults), float32, or uint16 for bfloat16 bits (what the net computes in; no
     conversion pass); default a new float32 array."""
     shape = (neighbours.shape[0], WINDOW, WINDOW, WINDOW, window_channels(features_1, weight_1, tsdf_1))
     size = int(np.prod(shape))
     out = np.empty(size, np.float32) if out is None else out[:size]
-    _fill_windows(out, neighbours, features_1, weight_1, features_2, weight_2, tsdf_1, tsdf_2, tsdf_scale,
-                  *_WINDOW_TABLES[out.dtype.type])
+    n_voxels = weight_1.shape[0]
+    _fill_windows(out, neighbours, packed_words(features_1, n_voxels), weight_1, packed_words(features_2, n_voxels),
+                  weight_2, tsdf_1, tsdf_2, *_window_tables(out.dtype, float(tsdf_scale)))
     return out.reshape(shape)
 
 
-# the values the windows take from lookups, as each buffer dtype stores them: a packed feature
-# code's, a depth code's, tanh of a weight count (bfloat16 bits: no rounding per value)
-_WINDOW_TABLES = {dtype: (*feature_code_tables(dtype), as_stored(TANH_OF_COUNT, dtype))
-                  for dtype in (np.float32, np.uint16)}
+@functools.lru_cache(maxsize=8)
+def _window_tables(dtype: np.dtype, tsdf_scale: float) -> tuple[np.ndarray, ...]:
+    """The values the windows take from lookups, as a buffer of this dtype stores them (bfloat16
+    bits: no conversion or rounding per value): a packed feature code's, a depth code's, and per
+    float16 bit pattern the tanh of the weight count it holds and the TSDF it holds times tsdf_scale
+    (computed in float32, as the net's inputs are)."""
+    counts = np.clip(np.nan_to_num(F16_VALUES, nan=0.0, posinf=0.0, neginf=0.0), 0, len(TANH_OF_COUNT) - 1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        tsdf = F16_VALUES * np.float32(tsdf_scale)
+    return (*feature_code_tables(dtype), as_stored(TANH_OF_COUNT[counts.astype(np.int64)], dtype),
+            as_stored(tsdf, dtype))
 
 
 @numba.njit(cache=True, nogil=True)
 def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray,
                   features_2: np.ndarray, weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray,
-                  tsdf_scale: float, feature_of_code: np.ndarray, depth_of_code: np.ndarray,
-                  tanh_of_count: np.ndarray) -> None:
+                  feature_of_code: np.ndarray, depth_of_code: np.ndarray, tanh_of_weight: np.ndarray,
+                  scaled_tsdf: np.ndarray) -> None:
     """`weighting_windows`' kernel: every entry of out written (out may hold an earlier batch). Each
     window row along z is three runs of consecutive voxels (local z -2..-1 in the block below, 0..7,
-    8..9 in the block above): one neighbour lookup per run."""
+    8..9 in the block above): one neighbour lookup per run. Weights and TSDFs (float16 bits) are
+    looked up by their bits (`_window_tables`)."""
     n_features = features_per_voxel(features_1, weight_1.shape[0])
     with_tsdf = tsdf_1.shape[0] > 0
     first_tsdf = 2 * (n_features + 1)
@@ -112,11 +123,11 @@ def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarra
                         copy_features(features_1, n_features, v, out, i, feature_of_code, depth_of_code)
                         copy_features(features_2, n_features, v, out, i + n_features + 1, feature_of_code,
                                       depth_of_code)
-                        out[i + n_features] = tanh_of_count[int(f16_to_f32(weight_1[v]))]
-                        out[i + first_tsdf - 1] = tanh_of_count[int(f16_to_f32(weight_2[v]))]
+                        out[i + n_features] = tanh_of_weight[weight_1[v] & 0xFFFF]
+                        out[i + first_tsdf - 1] = tanh_of_weight[weight_2[v] & 0xFFFF]
                         if with_tsdf:
-                            store_f32(out, i + first_tsdf, load_f32(tsdf_1, v) * tsdf_scale)
-                            store_f32(out, i + first_tsdf + 1, load_f32(tsdf_2, v) * tsdf_scale)
+                            out[i + first_tsdf] = scaled_tsdf[tsdf_1[v] & 0xFFFF]
+                            out[i + first_tsdf + 1] = scaled_tsdf[tsdf_2[v] & 0xFFFF]
                         i += channels
 
 

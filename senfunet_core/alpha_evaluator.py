@@ -107,7 +107,7 @@ class AlphaEvaluator:
         if self.tsdf_input:
             tsdf = self.store.views("tsdf0", "tsdf1")
         else:
-            tsdf = [np.zeros(0, np.float32), np.zeros(0, np.float32)]
+            tsdf = [np.zeros(0, np.int16), np.zeros(0, np.int16)]  # float16 bits, as the pools
         return (*self.store.views("feat0", "weight0", "feat1", "weight1"), *tsdf, self.tsdf_scale)
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import mmap
 import platform
+import sys
 from collections.abc import Iterable
 from typing import NamedTuple
 
@@ -314,12 +315,13 @@ def f32_to_bf16(x: float) -> np.uint16:
     return np.uint16((bits + np.uint32(0x7FFF) + ((bits >> np.uint32(16)) & np.uint32(1))) >> np.uint32(16))
 
 
-_F16_TABLE = np.arange(1 << 16, dtype=np.uint16).view(np.float16).astype(np.float32)
+# the float32 value of every float16 bit pattern
+F16_VALUES = np.arange(1 << 16, dtype=np.uint16).view(np.float16).astype(np.float32)
 
 
 @numba.njit(inline="always")
 def _f16_to_f32_soft(bits: int) -> float:
-    return _F16_TABLE[bits & 0xFFFF]
+    return F16_VALUES[bits & 0xFFFF]
 
 
 @numba.njit(inline="always")
@@ -504,12 +506,16 @@ def decode_saved_features(rows: torch.Tensor, n_features: int) -> torch.Tensor:
 
 def features_per_voxel(features: np.ndarray, n_voxels: int) -> int:
     """n, the features per voxel of a flat feature-pool view of n_voxels voxels (numba too)."""
+    if features.dtype == np.uint32:  # `packed_words`
+        return 5
     stride = features.shape[0] // max(n_voxels, 1)
     return 4 * (stride - 1) // 3 + 1 if features.dtype == np.int8 else stride
 
 
 @overload(features_per_voxel, inline="always")
 def _features_per_voxel(features, n_voxels):  # noqa: ANN001, ANN202 (numba overload)
+    if isinstance(features, types.Array) and features.dtype == types.uint32:
+        return lambda features, n_voxels: 5
     if isinstance(features, types.Array) and features.dtype == types.int8:
         return lambda features, n_voxels: 4 * (features.shape[0] // max(n_voxels, 1) - 1) // 3 + 1
     return lambda features, n_voxels: features.shape[0] // max(n_voxels, 1)
@@ -629,13 +635,23 @@ def _load_features(features, n_features, voxel, values):  # noqa: ANN001, ANN202
 def copy_features(features: np.ndarray, n_features: int, voxel: int, out: np.ndarray, at: int,
                   feature_of_code: np.ndarray, depth_of_code: np.ndarray) -> None:
     """out[at:at + n] = every feature of a voxel, as out stores values (`store_f32`). Packed rows
-    are decoded by lookup in feature_of_code (64 6-bit codes) and depth_of_code (256), tables of
-    their values as out stores them (`feature_code_tables`): no conversion per value. Kernels
-    compile this per dtype; this body is the reference."""
+    (int8 bytes, or `packed_words`) are decoded by lookup in feature_of_code (64 6-bit codes) and
+    depth_of_code (256), tables of their values as out stores them (`feature_code_tables`): no
+    conversion per value. Kernels compile this per dtype; this body is the reference (int8 rows)."""
     values = np.empty(n_features, np.float32)
     load_features(features, n_features, voxel, values)
     for c in range(n_features):
         store_f32(out, at + c, values[c])
+
+
+def packed_words(features: np.ndarray, n_voxels: int) -> np.ndarray:
+    """A flat feature-pool view of n_voxels voxels whose packed rows are 4 bytes (5 features: four
+    6-bit codes, then the depth code) as one little-endian uint32 word per voxel, which
+    `copy_features` reads with one load; any other view as it is."""
+    if (features.dtype == np.int8 and features.shape[0] == 4 * n_voxels and sys.byteorder == "little"
+            and features.flags.c_contiguous and features.ctypes.data % 4 == 0):
+        return features.view(np.uint32)
+    return features
 
 
 def feature_code_tables(dtype: np.dtype | type) -> tuple[np.ndarray, np.ndarray]:
@@ -654,6 +670,13 @@ def as_stored(values: np.ndarray, dtype: np.dtype | type) -> np.ndarray:
 
 @overload(copy_features, inline="always")
 def _copy_features(features, n_features, voxel, out, at, feature_of_code, depth_of_code):  # noqa: ANN001, ANN202
+    if isinstance(features, types.Array) and features.dtype == types.uint32:  # `packed_words`
+        def copy_word(features, n_features, voxel, out, at, feature_of_code, depth_of_code):  # noqa: ANN001, ANN202
+            word = np.int64(features[voxel])
+            for k in range(4):
+                out[at + k] = feature_of_code[(word >> (6 * k)) & _SIX_BITS]
+            out[at + 4] = depth_of_code[word >> 24]
+        return copy_word
     if not (isinstance(features, types.Array) and features.dtype == types.int8):
         def copy_each(features, n_features, voxel, out, at, feature_of_code, depth_of_code):  # noqa: ANN001, ANN202
             for c in range(n_features):

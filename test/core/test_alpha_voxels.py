@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from senfunet_core import alpha
 from senfunet_core.alpha import (evaluate_gathers, holds_surface_targets, surface_targets, target_gathers,
                                  weighting_windows)
 from senfunet_core.engine import EngineConfig, SenFuNet
-from senfunet_core.grid import decode_features, neighbour_table
+from senfunet_core.grid import decode_features, neighbour_table, packed_words
 from test_equivalence import K, frames
 
 
@@ -108,3 +109,19 @@ def test_windows_written_to_a_reused_buffer_as_bfloat16_equal_torch_rounding_of_
     weight_1, weight_2 = weight_1[:n_voxels], weight_2[:n_voxels]
     assert features_1.dtype == np.int8
     np.testing.assert_array_equal(weighting_windows(nb, unpacked[0], weight_1, unpacked[1], weight_2, *rest), expected)
+
+
+def test_packed_rows_read_as_words_give_the_windows_of_the_rows_read_byte_by_byte():
+    engine = _engine(True)
+    grid = engine.grid
+    nb = neighbour_table(*grid.hash_table, grid.slot_keys, np.arange(grid.n_blocks))
+    inputs = engine.alpha.evaluator.inputs()
+    features_1, weight_1, features_2, weight_2, tsdf_1, tsdf_2, tsdf_scale = inputs
+    assert packed_words(features_1, len(weight_1)).dtype == np.uint32  # the engine's packing is read as words
+    for dtype in (np.float32, np.uint16):
+        by_words = weighting_windows(nb, *inputs, out=np.empty(nb.shape[0] * 12**3 * 14, dtype))
+        by_bytes = np.full(by_words.size, 12345, dtype)
+        alpha._fill_windows(by_bytes, nb, features_1, weight_1, features_2, weight_2, tsdf_1, tsdf_2,
+                            *alpha._window_tables(np.dtype(dtype), tsdf_scale))
+        assert (by_words != 0).mean() > 0.1
+        np.testing.assert_array_equal(by_bytes.reshape(by_words.shape), by_words)
