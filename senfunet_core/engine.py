@@ -75,7 +75,7 @@ from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, keys_to_coords, warm_up_
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
 from .memory import release_free_memory
-from .mesh_archive import MeshArchive, as_mesh, blocks_around, union
+from .mesh_archive import MeshArchive, as_mesh, union
 from .mesher import BlockMeshes, Mesh, StreamingWeld
 from .spill import BlockSpill
 from .stage_times import StageTimes
@@ -384,7 +384,7 @@ class SenFuNet:
                 # blocks in memory that have an archived mesh near these: their markers show both, and
                 # the archived part shrinks as neighbours come back (see below)
                 pruned = self.bound.take_pruned()  # by evictions since the last update
-                near = self.archive.held(blocks_around(self.grid.coords[slots].numpy())) | pruned
+                near = self.archive.held_around(self.grid.coords[slots].numpy()) | pruned
                 if near:
                     found = self.grid.lookup(torch.tensor(sorted(near), dtype=torch.int64)).numpy()
                     slots = np.union1d(slots, found[found >= 0])

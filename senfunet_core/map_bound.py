@@ -27,7 +27,7 @@ import numpy as np
 from .alpha_scheduler import AlphaScheduler
 from .block_mesher import MESH_READ_CODES, MESH_READER_CODES, BlockMesher, with_seams
 from .block_store import BlockStore, Eviction
-from .mesh_archive import MeshArchive, blocks_around
+from .mesh_archive import MeshArchive
 from .mesher import BlockMeshes
 
 __all__ = ["HARD_BOUND", "MapBound", "memory_bound_blocks"]
@@ -234,7 +234,7 @@ class MapBound:
         # meanwhile. Archived triangles of cells whose corners were all in memory until now (a block came back
         # since the last update) go: the final meshes just made have those cells; what a victim had archived
         # from an earlier eviction, for cells its new mesh cannot have (a corner block still on disk), stays.
-        near = self.archive.held(blocks_around(victim_coords))
+        near = self.archive.held_around(victim_coords)
         self.archive.prune(near, in_memory, self.voxel_size_m)
         self.pruned_keys |= near  # the next update shows what is left of them
         self.archive.add(archived, in_memory, self.voxel_size_m)

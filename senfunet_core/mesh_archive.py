@@ -86,6 +86,13 @@ class MeshArchive:
             hits |= found
         return set(map(tuple, coords[hits].tolist()))
 
+    def held_around(self, coords: np.ndarray) -> set[BlockKey]:
+        """Those of these blocks (B x 3 coordinates) and of their 26 neighbours that have an archived
+        mesh; with nothing archived (no bound reached), found without looking at the neighbours."""
+        if not len(self.chunks):
+            return set()
+        return self.held(blocks_around(coords))
+
     def meshes(self) -> BlockMeshes:
         """Every archived block mesh (read-only)."""
         return BlockMeshes.concatenate(list(self.chunks.parts()))
