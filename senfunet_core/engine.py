@@ -418,7 +418,10 @@ class SenFuNet:
             removed = [key for key in vanished if key not in archived]
             removed += [key for key in sorted(near) + evicted if key not in archived and key not in live_set]
             result.removed = list(dict.fromkeys(removed))
-            self._meshed = np.union1d(np.setdiff1d(self._meshed, changed_keys), live_keys)
+            # (each key once, live ones among the changed: a sorted concatenation is the union, without
+            # np.unique, which hashes int64 keys)
+            self._meshed = np.sort(np.concatenate([np.setdiff1d(self._meshed, changed_keys, assume_unique=True),
+                                                   live_keys]))
             self.counters["meshed_blocks"] = len(self._meshed)
             with self.data_lock:  # for the weighting net's order (slots stay put while the update lock is held)
                 self.store.meshed[slots] = has_faces
