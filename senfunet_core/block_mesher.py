@@ -102,7 +102,7 @@ class BlockMesher:
     def triangles(self, slots: np.ndarray, which: str, filtered: bool) -> BlockTriangles:
         """Marching cubes over the given blocks of `which`, in one batch."""
         t0 = time.perf_counter()
-        neighbours = self.store.neighbours(slots)
+        neighbours = self.store.neighbours(slots, MESH_READ_CODES)  # what the mesh windows read
         if which == FUSED:
             mode, names = WINDOW_FUSED, ("tsdf0", "weight0", "tsdf1", "weight1", "alpha")
         else:
@@ -173,5 +173,5 @@ class BlockMesher:
         """The blocks whose cells read any of these blocks: those to re-mesh when they changed."""
         if len(changed) == 0:
             return changed
-        readers = self.store.neighbours(changed)[:, MESH_READER_CODES]
+        readers = self.store.neighbours(changed, MESH_READER_CODES)[:, MESH_READER_CODES]
         return np.unique(readers[readers >= 0])

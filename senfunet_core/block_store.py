@@ -13,7 +13,7 @@ import numba
 import numpy as np
 import torch
 
-from .grid import BLOCK, BlockGrid, kernel_view, neighbour_table
+from .grid import ALL_NEIGHBOURS, BLOCK, BlockGrid, kernel_view, neighbour_table
 
 __all__ = ["BlockStore", "Eviction"]
 
@@ -111,15 +111,16 @@ class BlockStore:
         """Flat kernel views of pools (fetch them under the data lock: pools move when they grow)."""
         return [kernel_view(self.grid.pools[name]).reshape(-1) for name in names]
 
-    def neighbours(self, slots: np.ndarray) -> np.ndarray:
-        """B x 27 slots of the blocks around these (grid.neighbour_table), committed blocks only. Safe
+    def neighbours(self, slots: np.ndarray, codes: np.ndarray = ALL_NEIGHBOURS) -> np.ndarray:
+        """B x 27 slots of the blocks around these (grid.neighbour_table: the neighbours `codes`, -1 for
+        the others), committed blocks only. Safe
         without the data lock (alpha threads, meshing): the hash table is taken as one pair, which a
         growing grid replaces whole, and the blocks a frame is still allocating (past n_blocks, read
         first: the allocation policy may yet drop them or move them to other slots) count as absent,
         as do blocks added meanwhile (they are marked, and read by the next update)."""
         n_blocks = self.grid.n_blocks
         table_keys, table_slots = self.grid.hash_table
-        table = neighbour_table(table_keys, table_slots, self.grid.slot_keys, slots)
+        table = neighbour_table(table_keys, table_slots, self.grid.slot_keys, slots, codes)
         table[table >= n_blocks] = -1
         return table
 

@@ -211,21 +211,30 @@ def _move_rows(rows: np.ndarray, src: np.ndarray, dst: np.ndarray) -> None:
         rows[dst[i]] = rows[src[i]]
 
 
-@numba.njit(cache=True, nogil=True)
-def neighbour_table(table_keys: np.ndarray, table_slots: np.ndarray, slot_keys: np.ndarray,
-                    slots: np.ndarray) -> np.ndarray:
+ALL_NEIGHBOURS = np.arange(27)
+
+
+def neighbour_table(table_keys: np.ndarray, table_slots: np.ndarray, slot_keys: np.ndarray, slots: np.ndarray,
+                    codes: np.ndarray = ALL_NEIGHBOURS) -> np.ndarray:
     """B x 27 slots of each block's neighbours at offsets (dx, dy, dz) in -1..1, index
-    9*(dx+1) + 3*(dy+1) + (dz+1) (13 is the block itself); -1 where absent."""
-    out = np.empty((slots.shape[0], 27), np.int64)
+    9*(dx+1) + 3*(dy+1) + (dz+1) (13 is the block itself); -1 where absent. Only the neighbours
+    `codes` are looked up (a caller that reads fewer saves their hash probes); the others are -1."""
+    out = np.full((slots.shape[0], 27), -1, np.int64)
+    _fill_neighbour_table(table_keys, table_slots, slot_keys, slots, np.asarray(codes, np.int64), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_neighbour_table(table_keys: np.ndarray, table_slots: np.ndarray, slot_keys: np.ndarray,
+                          slots: np.ndarray, codes: np.ndarray, out: np.ndarray) -> None:
     for n in range(slots.shape[0]):
         key = slot_keys[slots[n]]
         a = ((key >> (2 * _COORD_BITS)) & _COORD_MASK) - _COORD_OFFSET
         b = ((key >> _COORD_BITS) & _COORD_MASK) - _COORD_OFFSET
         c = (key & _COORD_MASK) - _COORD_OFFSET
-        for code in range(27):
+        for code in codes:
             k = coords_key(a + code // 9 - 1, b + (code // 3) % 3 - 1, c + code % 3 - 1)
             out[n, code] = hash_find(table_keys, table_slots, k) if k >= 0 else -1
-    return out
 
 
 # -- half precision in kernels (numba has no float16 type) ------------------------------------------

@@ -120,6 +120,11 @@ def test_neighbour_table_matches_coordinates():
             offset = (code // 9 - 1, (code // 3) % 3 - 1, code % 3 - 1)
             assert row[code] == index.get(tuple(a + o for a, o in zip(c, offset)), -1)
     assert table[-1, 13] == slots[-1] and (np.delete(table[-1], 13) == -1).all()
+    # a subset of the neighbours: those looked up as before, the others -1
+    codes = np.array([13, 14, 22, 26])
+    subset = neighbour_table(*grid.hash_table, grid.slot_keys, slots.numpy(), codes)
+    np.testing.assert_array_equal(subset[:, codes], table[:, codes])
+    assert (np.delete(subset, codes, axis=1) == -1).all() and (subset[:, codes] >= 0).sum() > len(coords)
 
 
 def test_keys_outside_the_range_are_refused():
