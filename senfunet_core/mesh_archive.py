@@ -194,8 +194,10 @@ def meshable_faces(vertices_m: np.ndarray, faces: np.ndarray, in_memory: np.ndar
 
 
 def _drop_meshable(meshes: BlockMeshes, in_memory: np.ndarray, voxel_size_m: float) -> BlockMeshes:
-    """These block meshes without the triangles `meshable_faces` finds (blocks left empty go; unused
-    vertices stay)."""
+    """These block meshes without the triangles `meshable_faces` finds (blocks left empty go), and a
+    block that lost some without the vertices only those used: `MeshArchive.add` joins what is kept of
+    a block's archived mesh with its new one, so a block evicted again and again beside one that stays
+    on disk would otherwise carry every earlier mesh's vertices along, growing with each eviction."""
     if len(meshes) == 0:
         return meshes
     block_of_face = np.repeat(np.arange(len(meshes)), np.diff(meshes.face_offsets))
@@ -204,8 +206,17 @@ def _drop_meshable(meshes: BlockMeshes, in_memory: np.ndarray, voxel_size_m: flo
     keep = ~meshable_faces(meshes.vertices, global_faces, in_memory, voxel_size_m, face_blocks)
     if keep.all():
         return meshes
-    counts = np.bincount(block_of_face[keep], minlength=len(meshes))
+    lost_faces = np.zeros(len(meshes), bool)
+    lost_faces[block_of_face[~keep]] = True
+    block_of_face, global_faces = block_of_face[keep], global_faces[keep]
+    block_of_vertex = np.repeat(np.arange(len(meshes)), np.diff(meshes.vertex_offsets))
+    used = ~lost_faces[block_of_vertex]  # the blocks that lost no triangle stay as they are
+    used[global_faces.ravel()] = True
+    vertex_offsets = np.concatenate([[0], np.cumsum(np.bincount(block_of_vertex[used], minlength=len(meshes)))])
+    new_index = np.cumsum(used) - 1  # a used vertex's row among the used ones
+    faces = new_index[global_faces] - vertex_offsets[block_of_face, None]
+    counts = np.bincount(block_of_face, minlength=len(meshes))
     face_offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    out = BlockMeshes(meshes.keys, meshes.vertices, meshes.colors, meshes.faces[keep], meshes.vertex_offsets,
-                      face_offsets)
+    out = BlockMeshes(meshes.keys, np.asarray(meshes.vertices)[used], np.asarray(meshes.colors)[used],
+                      faces.astype(np.int32), vertex_offsets.astype(np.int64), face_offsets)
     return out.select(np.flatnonzero(counts > 0))

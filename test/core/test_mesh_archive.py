@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from senfunet_core.block_mesher import joined
 from senfunet_core.mesh_archive import MeshArchive, _drop_meshable, blocks_around, union
 from senfunet_core.mesh_chunks import MeshChunks, packed_keys as packed
 from senfunet_core.mesher import BlockMeshes, Mesh
@@ -208,3 +209,30 @@ def test_a_face_triangle_belongs_to_the_cell_in_the_block_it_is_archived_under()
         assert (key in archive) == survives_with_above_alone, key
         archive.prune({key}, np.sort(packed([below, above])), voxel)  # both in memory: the live mesh has it
         assert key not in archive
+
+
+def test_a_block_evicted_again_and_again_beside_one_on_disk_keeps_its_archived_mesh_from_growing():
+    """A block goes back and forth between memory and disk while its neighbour stays on disk (a long run
+    under a map bound): each time it comes back an update prunes its archived mesh to the seam cell
+    that reaches the neighbour, and each time it leaves its new mesh joins what is kept. The triangles
+    that go take their vertices with them: the archived mesh stays the new mesh and the seam (every
+    vertex used), however many times the block was evicted (it grew by a mesh's vertices each time)."""
+    block = (0, 0, 0)  # its neighbour (1, 0, 0) stays on disk
+    voxels = np.array([[3.2, 3.3, 3.1], [3.8, 3.4, 3.2], [3.4, 3.9, 3.6],  # a cell inside the block
+                       [7.6, 3.2, 3.3], [7.7, 3.8, 3.4], [7.3, 3.4, 3.9]])  # the cell x 7..8: its corners x 8 on disk
+    interior = Mesh((voxels[:3] * VOXEL).astype(np.float32), np.array([[0, 1, 2]], np.int32),
+                    np.full((3, 3), 0.5, np.float32))
+    seam = Mesh((voxels[3:] * VOXEL).astype(np.float32), np.array([[0, 1, 2]], np.int32),
+                np.full((3, 3), 0.25, np.float32))
+    in_memory = np.sort(packed([block]))
+    archive = MeshArchive()
+    archive.add(BlockMeshes.from_meshes({block: joined([interior, seam])}), in_memory, VOXEL)
+    for _ in range(12):
+        archive.prune({block}, in_memory, VOXEL)  # back in memory: the live mesh has the inside cell
+        held = archive.select([block]).as_dict()[block]
+        assert held.n_faces == 1 and len(held.vertices) == 3
+        archive.add(BlockMeshes.from_meshes({block: interior}), in_memory, VOXEL)  # evicted again
+        held = archive.select([block]).as_dict()[block]
+        assert held.n_faces == 2 and len(held.vertices) == 6
+        np.testing.assert_array_equal(np.sort(held.vertices[held.faces].reshape(-1, 3), axis=0),
+                                      np.sort(np.concatenate([interior.vertices, seam.vertices]), axis=0))
