@@ -3,18 +3,21 @@
 Each stream (a sensor's depth, colour or pose messages) keeps a timeline: its newest accepted
 stamp. A stamp more than `time_jump_s` behind its stream's timeline, or ahead of the newest stamp
 of all streams, is off it (a glitching driver, one bad message, an unset stamp 0): rejected as
-`bad_stamp`, it moves no timeline. Such stamps are remembered as candidates of a new timeline:
-once every stream that spoke since the first candidate has continued on it for
-`restart_confirm_msgs` messages, spanning `restart_confirm_s`, with no message on the old timeline
-meanwhile, time has restarted (a bag looping, a robot restarting its clock) and the streams move
-to the new timeline: back (the caller flushes what waits) or ahead (every stream resumed after a
-pause). The candidates' messages, held meanwhile (the newest `hold_msgs` per stream), are handed
-back with the restart, so the new timeline loses none of its start. A restart known from outside
-(`restart`: the /clock went back) starts every timeline again from its time, so that old messages
-still in flight are off it. A depth stamp must be new (not among the stream's latest) and move
-forward, except one between the stream's two newest: that newest was stamped ahead of its place
-(or two frames crossed), and the stream's time goes back. Decisions depend on stamps and their
-order alone, never on the wall clock.
+`bad_stamp`, it moves no timeline. Such stamps are remembered as candidates of a new timeline: once
+every stream that spoke since the first candidate has continued on it for `restart_confirm_msgs`
+messages, spanning `restart_confirm_s`, time has restarted (a bag looping, a robot restarting its
+clock) and the streams move to the new timeline: back (the caller flushes what waits) or ahead
+(every stream resumed after a pause). A stream that speaks on the old timeline meanwhile ends that
+episode if it had moved to the new one (a glitch) or stays on the old one for more than
+`time_jump_s`; otherwise its messages were in flight when time restarted (a busy reader hands them
+over late), and it must move too before the restart is confirmed (unless the new timeline goes on
+without it for more than `time_jump_s`: it stopped). The candidates' messages, held meanwhile (the
+newest `hold_msgs` per stream), are handed back with the restart, so the new timeline loses none of
+its start. A restart known from outside (`restart`: the /clock went back) starts every timeline
+again from its time, so that old messages still in flight are off it. A depth stamp must be new
+(not among the stream's latest) and move forward, except one between the stream's two newest: that
+newest was stamped ahead of its place (or two frames crossed), and the stream's time goes back.
+Decisions depend on stamps and their order alone, never on the wall clock.
 
 `Timelines` is not thread-safe: its owner (`ingest.Ingest`) calls it under its lock.
 """
@@ -84,6 +87,11 @@ class Timelines:
         self.configure(time_jump_s=time_jump_s, restart_confirm_msgs=restart_confirm_msgs,
                        restart_confirm_s=restart_confirm_s, hold_msgs=hold_msgs)
         self._spoke: dict[tuple[str, str], bool] = {key: False for key in self._last_ns}
+        # streams that spoke on the old timeline since the first candidate, without candidates of their
+        # own: the stamp of their first such message, and the new timeline's newest stamp when they last
+        # spoke. Each must move to the new timeline before a restart is confirmed (unless it stopped); one
+        # that stays on the old one for longer than time_jump_s ends the episode
+        self._lagging: dict[tuple[str, str], tuple[int, int]] = {}
         # depth streams: the stamps taken lately (duplicates), and the newest before the newest (order)
         self._recent_depth_ns: dict[tuple[str, str], deque[int]] = {
             key: deque(maxlen=_RECENT_DEPTH_STAMPS) for key in self._last_ns if key[1] == "depth"}
@@ -134,8 +142,15 @@ class Timelines:
             if restart is not None and newest:
                 return Verdict(restart=restart)  # the newest message of the new timeline: on time
             return Verdict("bad_stamp", error, restart)
-        if any(self._spoke.values()):  # the old timeline is alive: what was building up is not a restart
-            self._close_episode()
+        if any(self._spoke.values()):
+            if self._candidates[key]:  # a stream back from the new timeline: what was building up is not a restart
+                self._close_episode()
+            else:  # a stream yet to move: its messages may still be in flight (a busy reader), or it stays
+                first_ns = self._lagging[key][0] if key in self._lagging else stamp_ns
+                if stamp_ns - first_ns > self._far_ns:  # it stays on the old timeline: not a restart
+                    self._close_episode()
+                else:
+                    self._lagging[key] = (first_ns, max(c[-1] for c in self._candidates.values() if c))
         if stream == "depth":
             return self._depth_order(key, stamp_ns, last)
         self._last_ns[key] = stamp_ns if last is None else max(last, stamp_ns)
@@ -187,6 +202,10 @@ class Timelines:
         firsts, lasts = [c[0] for c in lists.values()], [c[-1] for c in lists.values()]
         if max(lasts) - min(firsts) < self._confirm_ns or max(lasts) - min(lasts) > self._far_ns:
             return None, newest
+        # a stream that spoke on the old timeline meanwhile must have moved too, unless the new timeline went
+        # on for longer than time_jump_s since it last spoke (it stopped: a restart it is not part of)
+        if any(k not in lists and max(lasts) - heard_ns <= self._far_ns for k, (_, heard_ns) in self._lagging.items()):
+            return None, newest
         if newest:
             self._held[key].pop()  # the message being checked: its caller takes it
         lost = {k: len(c) - len(self._held[k]) - (k == key and newest) for k, c in lists.items()}
@@ -209,3 +228,4 @@ class Timelines:
         for key in self._candidates:
             self._candidates[key], self._spoke[key] = [], False
             self._held[key].clear()
+        self._lagging.clear()

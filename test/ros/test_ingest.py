@@ -267,6 +267,58 @@ def test_time_jump_flushes_and_is_reported_first() -> None:
     assert ingest.pop_ready() == []  # reported once
 
 
+def test_a_restart_loses_nothing_when_old_messages_of_one_stream_arrive_late() -> None:
+    """A busy reader hands stereo's last depth images of the old time over after the new timeline's
+    first messages: they are on the old timeline, and the restart waits for stereo to move too
+    instead of starting over (which would leave the new timeline's first messages as bad_stamp)."""
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    ingest.add_depth("tof", depth_msg(5100 * MS))
+    ingest.add_depth("stereo", depth_msg(5050 * MS))
+    for i, t in enumerate(range(10, 90, 10)):
+        ingest.add_pose("tof", pose_msg(t * MS))
+        ingest.add_depth("tof", depth_msg(t * MS + 5 * MS))
+        if i < 3:  # stereo: three of the old time still in flight (on its timeline), then the new time
+            assert ingest.add_depth("stereo", depth_msg(5080 * MS + i * 30 * MS)) is None
+        else:
+            ingest.add_depth("stereo", depth_msg(t * MS + 6 * MS))
+    ingest.add_pose("tof", pose_msg(90 * MS))
+    items = ingest.pop_ready()
+    assert sum(isinstance(i, TimeJump) for i in items) == 1
+    assert [f.stamp_ns // MS for f in frames(items) if f.sensor == "tof"] == list(range(15, 90, 10))
+    c = ingest.ledger.counters()
+    assert c["tof"]["dropped"]["bad_stamp"] == 0 and c["stereo"]["dropped"]["bad_stamp"] == 0
+
+
+def test_a_restart_goes_on_without_a_stream_that_stopped_on_the_old_timeline() -> None:
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    ingest.add_depth("tof", depth_msg(5100 * MS))
+    ingest.add_depth("stereo", depth_msg(5050 * MS))
+    ingest.add_pose("tof", pose_msg(10 * MS))
+    ingest.add_depth("stereo", depth_msg(5080 * MS))  # stereo's last message, of the old time
+    jumps = []
+    for t in range(20, 1400, 50):  # then only tof, on the new timeline
+        ingest.add_pose("tof", pose_msg(t * MS))
+        ingest.add_depth("tof", depth_msg(t * MS + 5 * MS))
+        jumps += [t for i in ingest.pop_ready() if isinstance(i, TimeJump)]
+    # confirmed once the new timeline went on for longer than time_jump_s after stereo last spoke
+    assert len(jumps) == 1 and 1000 < jumps[0] <= 1100
+
+
+def test_a_stream_that_stays_on_the_old_timeline_is_not_left_behind_by_a_restart() -> None:
+    """tof's driver moves to another clock while stereo's goes on: not a restart, however long tof
+    keeps to its new clock."""
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
+    ingest.add_pose("tof", pose_msg(5000 * MS))
+    ingest.add_depth("tof", depth_msg(5100 * MS))
+    for t in range(0, 3000, 50):
+        assert ingest.add_depth("tof", depth_msg(t * MS + 5 * MS)) == "bad_stamp"
+        assert ingest.add_depth("stereo", depth_msg(5100 * MS + t * MS)) is None
+    assert not any(isinstance(i, TimeJump) for i in ingest.pop_ready())
+    assert ingest.ledger.counters()["tof"]["time_jumps"] == 0
+
+
 def test_a_restart_holds_as_many_messages_as_a_queue_and_counts_the_rest_as_lost() -> None:
     ingest = make(time_jump_s=1.0, restart_confirm_msgs=4, restart_confirm_s=0.02, queue_size=2)
     ingest.add_pose("tof", pose_msg(5000 * MS))
