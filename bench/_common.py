@@ -17,12 +17,27 @@ shared machine they are noisy (see the load average recorded with them).
 """
 
 
+def vector_units() -> str:
+    """The CPU's fastest arithmetic units for the nets, from /proc/cpuinfo's flags: the model name
+    alone ("AMD EPYC") does not tell a CPU with bfloat16 units from one without."""
+    try:
+        flags = next(line for line in Path("/proc/cpuinfo").read_text().splitlines()
+                     if line.startswith(("flags", "Features"))).split()
+    except (OSError, StopIteration):
+        return "instruction sets unknown"
+    for flag, name in (("amx_bf16", "AMX"), ("avx512_bf16", "AVX-512 with bfloat16"), ("avx512f", "AVX-512"),
+                       ("avx2", "AVX2"), ("bf16", "bfloat16"), ("asimd", "NEON")):
+        if flag in flags:
+            return name
+    return "no AVX2"
+
+
 def machine() -> str:
     import torch
 
     from senfunet_core.learning.evaluation import cpu_model
 
-    cpu = cpu_model()
+    cpu = f"{cpu_model()} ({vector_units()})"
     load = "n/a"
     try:
         load = " ".join(Path("/proc/loadavg").read_text().split()[:3])
