@@ -513,10 +513,14 @@ def decode_saved_features(rows: torch.Tensor, n_features: int) -> torch.Tensor:
     return decode_features(rows)
 
 
+# the features in one packed 4-byte row (`packed_words`): four 6-bit codes, then the depth code
+WORD_FEATURES = 5
+
+
 def features_per_voxel(features: np.ndarray, n_voxels: int) -> int:
     """n, the features per voxel of a flat feature-pool view of n_voxels voxels (numba too)."""
     if features.dtype == np.uint32:  # `packed_words`
-        return 5
+        return WORD_FEATURES
     stride = features.shape[0] // max(n_voxels, 1)
     return 4 * (stride - 1) // 3 + 1 if features.dtype == np.int8 else stride
 
@@ -524,7 +528,7 @@ def features_per_voxel(features: np.ndarray, n_voxels: int) -> int:
 @overload(features_per_voxel, inline="always")
 def _features_per_voxel(features, n_voxels):  # noqa: ANN001, ANN202 (numba overload)
     if isinstance(features, types.Array) and features.dtype == types.uint32:
-        return lambda features, n_voxels: 5
+        return lambda features, n_voxels: WORD_FEATURES
     if isinstance(features, types.Array) and features.dtype == types.int8:
         return lambda features, n_voxels: 4 * (features.shape[0] // max(n_voxels, 1) - 1) // 3 + 1
     return lambda features, n_voxels: features.shape[0] // max(n_voxels, 1)
@@ -654,9 +658,9 @@ def copy_features(features: np.ndarray, n_features: int, voxel: int, out: np.nda
 
 
 def packed_words(features: np.ndarray, n_voxels: int) -> np.ndarray:
-    """A flat feature-pool view of n_voxels voxels whose packed rows are 4 bytes (5 features: four
-    6-bit codes, then the depth code) as one little-endian uint32 word per voxel, which
-    `copy_features` reads with one load; any other view as it is."""
+    """A flat feature-pool view of n_voxels voxels whose packed rows are 4 bytes (WORD_FEATURES) as
+    one little-endian uint32 word per voxel, which `copy_features` reads with one load; any other
+    view as it is."""
     if (features.dtype == np.int8 and features.shape[0] == 4 * n_voxels and sys.byteorder == "little"
             and features.flags.c_contiguous and features.ctypes.data % 4 == 0):
         return features.view(np.uint32)
@@ -684,7 +688,7 @@ def _copy_features(features, n_features, voxel, out, at, feature_of_code, depth_
             word = np.int64(features[voxel])
             for k in range(4):
                 out[at + k] = feature_of_code[(word >> (6 * k)) & _SIX_BITS]
-            out[at + 4] = depth_of_code[word >> 24]
+            out[at + WORD_FEATURES - 1] = depth_of_code[word >> 24]
         return copy_word
     if not (isinstance(features, types.Array) and features.dtype == types.int8):
         def copy_each(features, n_features, voxel, out, at, feature_of_code, depth_of_code):  # noqa: ANN001, ANN202
