@@ -46,14 +46,12 @@ def _neighbour_index(neighbours: np.ndarray, b: int, x: int, y: int, z: int) -> 
     return slot * 512 + (x & 7) * 64 + (y & 7) * 8 + (z & 7)
 
 
-def reach_levels(changed: np.ndarray, renewed: np.ndarray) -> np.ndarray:
-    """B x 27 levels (neighbour code 9*(dx+1) + 3*(dy+1) + (dz+1)) of the reach bits integration
-    collected per block (integrator.REACH_OF_VOXEL): 2 where a voxel within 2 of that neighbour was
-    first observed or changed sign, else 1 where a voxel's inputs changed, else 0."""
-    bits = np.arange(27, dtype=np.int32)
-    changed_bits = (changed.astype(np.int32)[:, None] >> bits) & 1
-    renewed_bits = (renewed.astype(np.int32)[:, None] >> bits) & 1
-    return np.where(renewed_bits > 0, 2, changed_bits).astype(np.int8)
+def reach_levels(renewed: np.ndarray, codes: np.ndarray) -> np.ndarray:
+    """The level at which a block's change reaches its neighbour `codes` (code 9*(dx+1) + 3*(dy+1)
+    + (dz+1)), given the block's renewed reach bits (integrator.REACH_OF_VOXEL) and that the
+    neighbour is reached: 2 where a voxel within 2 of it was first observed or changed sign, else 1
+    (a voxel's inputs changed)."""
+    return np.where((renewed.astype(np.int64) >> codes) & 1, 2, 1).astype(np.int8)
 
 
 def window_channels(features_1: np.ndarray, weight_1: np.ndarray, tsdf_1: np.ndarray) -> int:

@@ -81,12 +81,12 @@ class AlphaScheduler:
                 return
             store.alpha_pending[changed] = False
             touched_s = store.touched_s[changed]
-            reach = reach_levels(store.reach_changed[changed], store.reach_renewed[changed])  # B x 27
+            renewed = store.reach_renewed[changed]
+            reached = store.reach_changed[changed] | renewed
             store.reach_changed[changed] = 0
             store.reach_renewed[changed] = 0
-        around = store.neighbours(changed)
-        sources, codes = np.nonzero((around >= 0) & (reach > 0))
-        targets, target_levels = around[sources, codes], reach[sources, codes]
+        sources, codes, targets = store.reached(changed, reached)
+        target_levels = reach_levels(renewed[sources], codes)
         level_of = np.zeros(int(targets.max(initial=-1)) + 1, np.int8)
         for level in range(1, int(target_levels.max(initial=0)) + 1):  # ascending: a block's highest level wins
             level_of[targets[target_levels == level]] = level
@@ -216,18 +216,18 @@ class AlphaScheduler:
                 eviction_due: Callable[[], bool], evict: Callable[[], Eviction | None]) -> Refresh:
         """Re-evaluate alpha on the stale blocks in `order`, batch by batch; each batch first drops
         the blocks that hold no voxel alpha matters for (checked then, not when scheduling, so that
-        a budget also bounds the checking). With a budget (seconds), no batch is started that
-        would end past it (judged by the last batch's time; the first always runs), and with
-        `until_frame` none once it says a frame was integrated (batches queued but not started are
-        withdrawn): the rest stays stale for later. Without a budget or with `until_frame` (no
-        frame is coming), `threads` batches are evaluated at once (each single-threaded, so alpha
-        does not depend on how many), with as many more queued, so that a thread that finishes
-        takes the next at once. Between batches, where no evaluated batch waits to be written, it
-        calls `evict` when `eviction_due` (integration outgrew the map bound) and follows the
-        blocks that moved."""
+        a budget also bounds the checking). With a budget (seconds from the call: scheduling and
+        ordering count in it), no batch is started that would end past it (judged by the last
+        batch's time; the first always runs), and with `until_frame` none once it says a frame was
+        integrated (batches queued but not started are withdrawn): the rest stays stale for later.
+        Without a budget or with `until_frame` (no frame is coming), `threads` batches are evaluated
+        at once (each single-threaded, so alpha does not depend on how many), with as many more
+        queued, so that a thread that finishes takes the next at once. Between batches, where no
+        evaluated batch waits to be written, it calls `evict` when `eviction_due` (integration
+        outgrew the map bound) and follows the blocks that moved."""
+        start = time.perf_counter()  # scheduling and ordering count too: on a large map they take a batch's time
         self.schedule()
         order = self.order(idle=until_frame is not None)
-        start = time.perf_counter()
         done = voxels = left = 0
         # batches evaluated at once: one while frames come (integration needs the other core)
         threads = self.threads if budget_s is None or until_frame is not None else 1

@@ -13,7 +13,7 @@ import numba
 import numpy as np
 import torch
 
-from .grid import ALL_NEIGHBOURS, BLOCK, BlockGrid, kernel_view, neighbour_table
+from .grid import ALL_NEIGHBOURS, BLOCK, BlockGrid, kernel_view, masked_neighbours, neighbour_table
 
 __all__ = ["BlockStore", "Eviction"]
 
@@ -123,6 +123,15 @@ class BlockStore:
         table = neighbour_table(table_keys, table_slots, self.grid.slot_keys, slots, codes)
         table[table >= n_blocks] = -1
         return table
+
+    def reached(self, slots: np.ndarray, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The committed neighbours each block's 27-bit mask names (`grid.masked_neighbours`): (index
+        into slots, neighbour code, the neighbour's slot). Safe without the data lock, as `neighbours`."""
+        n_blocks = self.grid.n_blocks
+        table_keys, table_slots = self.grid.hash_table
+        sources, codes, targets = masked_neighbours(table_keys, table_slots, self.grid.slot_keys, slots, masks)
+        committed = targets < n_blocks
+        return sources[committed], codes[committed], targets[committed]
 
     def observed_voxels(self, weight_channels: list[str]) -> int:
         """Voxels with a positive weight in any of these channels (one or two), counted in place:

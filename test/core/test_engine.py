@@ -919,6 +919,37 @@ def test_a_budget_serves_the_blocks_its_order_puts_first(monkeypatch, alpha_orde
         assert evaluated.max() < n_far  # the far sphere's, waiting since the first schedule
 
 
+def test_scheduling_the_changes_counts_in_the_budget(monkeypatch):
+    """A budget is seconds from the call: on a large map scheduling the frames' changes takes a
+    batch's time, and a turn that left it out ran past the mesh period it was given. On a fake
+    clock scheduling takes 0.4 s and each batch 0.3 s: a budget of 0.65 s runs the first batch
+    (which always runs) and no second."""
+    engine = engine_for_tests(alpha_batch_blocks=16)
+    _two_spheres_one_scheduled_before(engine)
+    assert engine.store.alpha_pending[: engine.grid.n_blocks].any()  # the near sphere waits to be scheduled
+    import senfunet_core.alpha_scheduler as scheduler_module
+
+    clock = VirtualClock()
+    monkeypatch.setattr(scheduler_module, "time", clock)
+    schedule = engine.alpha.schedule
+
+    def slow_schedule() -> None:
+        clock.now_s += 0.4
+        schedule()
+
+    monkeypatch.setattr(engine.alpha, "schedule", slow_schedule)
+    infer = engine.weighting_net.infer
+
+    def slow_infer(*args, **kwargs):
+        clock.now_s += 0.3
+        return infer(*args, **kwargs)
+
+    engine.weighting_net.infer = slow_infer
+    engine.refresh_alpha(0.65)
+    assert clock.now_s == pytest.approx(0.7)
+    assert engine.store.evaluated[: engine.grid.n_blocks].sum() == 16
+
+
 @pytest.mark.parametrize("idle", [False, True])
 def test_longest_waiting_judges_the_blocks_with_a_mesh_first(monkeypatch, idle):
     """A far sphere seen by one sensor (no mesh while its alpha is unknown: the filter holds

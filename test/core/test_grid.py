@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from senfunet_core import grid as G
-from senfunet_core.grid import BlockGrid, block_keys, neighbour_table
+from senfunet_core.grid import BlockGrid, block_keys, masked_neighbours, neighbour_table
 
 
 def _codec(encode, decode):
@@ -125,6 +125,23 @@ def test_neighbour_table_matches_coordinates():
     subset = neighbour_table(*grid.hash_table, grid.slot_keys, slots.numpy(), codes)
     np.testing.assert_array_equal(subset[:, codes], table[:, codes])
     assert (np.delete(subset, codes, axis=1) == -1).all() and (subset[:, codes] >= 0).sum() > len(coords)
+
+
+def test_masked_neighbours_are_the_neighbour_tables_entries_the_masks_name():
+    grid = BlockGrid({"a": ()}, initial_capacity=64)
+    rng = np.random.default_rng(5)
+    coords = torch.unique(torch.from_numpy(rng.integers(-3, 3, (150, 3))), dim=0)
+    slots = grid.allocate_keys(block_keys(coords)).numpy()
+    masks = rng.integers(0, 1 << 27, len(slots)).astype(np.int32)
+    masks[::7] = 0  # blocks that reach nothing
+    table = neighbour_table(*grid.hash_table, grid.slot_keys, slots)
+    named = ((masks[:, None].astype(np.int64) >> np.arange(27)) & 1).astype(bool)
+    want_sources, want_codes = np.nonzero(named & (table >= 0))
+    sources, codes, targets = masked_neighbours(*grid.hash_table, grid.slot_keys, slots, masks)
+    np.testing.assert_array_equal(sources, want_sources)
+    np.testing.assert_array_equal(codes, want_codes)
+    np.testing.assert_array_equal(targets, table[want_sources, want_codes])
+    assert len(targets) > len(slots) and (named & (table < 0)).any()  # absent neighbours were named too
 
 
 def test_keys_outside_the_range_are_refused():
