@@ -218,8 +218,9 @@ class AlphaScheduler:
         the blocks that hold no voxel alpha matters for (checked then, not when scheduling, so that
         a budget also bounds the checking). With a budget (seconds from the call: scheduling and
         ordering count in it), no batch is started that would end past it (judged by the last
-        batch's time; the first always runs), and with `until_frame` none once it says a frame was
-        integrated (batches queued but not started are withdrawn): the rest stays stale for later.
+        batch's time; the first always runs, unless the budget is 0), and with `until_frame` none
+        once it says a frame was integrated (batches queued but not started are withdrawn): the rest
+        stays stale for later.
         Without a budget or with `until_frame` (no frame is coming), `threads` batches are evaluated
         at once (each single-threaded, so alpha does not depend on how many), with as many more
         queued, so that a thread that finishes takes the next at once. Between batches, where no
@@ -237,6 +238,7 @@ class AlphaScheduler:
         results: list[AlphaBatch] = []
         evaluating: collections.deque[tuple[Future[tuple[AlphaBatch, float]], int]] = collections.deque()  # blocks
         batch_s = 0.0  # the last batch's time: one that would end past the budget is not started
+        started = 0  # batches started: the first runs whatever the scheduling took (the net never stalls)
         while len(order) or evaluating:
             if len(order) and until_frame is not None and until_frame():
                 left += len(order)  # evaluate no more; the batches under way are written
@@ -254,12 +256,13 @@ class AlphaScheduler:
             # none queued before a batch's time is known (the budget could not be judged for it)
             while len(order) and len(evaluating) < (in_flight if batch_s else threads):
                 # a new batch starts once the batches ahead of it on its thread have ended
-                if budget_s is not None and (time.perf_counter() - start
-                                             + batch_s * (len(evaluating) // threads + 1) > budget_s):
+                if budget_s is not None and (budget_s <= 0 or started and (
+                        time.perf_counter() - start + batch_s * (len(evaluating) // threads + 1) > budget_s)):
                     left += len(order)
                     order = order[:0]
                     break
                 batch, order = order[:self.batch_blocks], order[self.batch_blocks:]
+                started += 1
                 evaluating.append((self.workers().submit(self._timed_evaluate, batch) if threads > 1
                                    else _done(self._timed_evaluate(batch)), len(batch)))
             if not evaluating:

@@ -919,11 +919,13 @@ def test_a_budget_serves_the_blocks_its_order_puts_first(monkeypatch, alpha_orde
         assert evaluated.max() < n_far  # the far sphere's, waiting since the first schedule
 
 
-def test_scheduling_the_changes_counts_in_the_budget(monkeypatch):
+@pytest.mark.parametrize("schedule_s", [0.4, 0.8])
+def test_scheduling_the_changes_counts_in_the_budget(monkeypatch, schedule_s):
     """A budget is seconds from the call: on a large map scheduling the frames' changes takes a
     batch's time, and a turn that left it out ran past the mesh period it was given. On a fake
-    clock scheduling takes 0.4 s and each batch 0.3 s: a budget of 0.65 s runs the first batch
-    (which always runs) and no second."""
+    clock each batch takes 0.3 s: with a budget of 0.65 s, scheduling that takes 0.4 s leaves time
+    for one batch, not two; scheduling that takes all of it (0.8 s) still leaves the first batch,
+    which always runs (the net never stalls while frames come)."""
     engine = engine_for_tests(alpha_batch_blocks=16)
     _two_spheres_one_scheduled_before(engine)
     assert engine.store.alpha_pending[: engine.grid.n_blocks].any()  # the near sphere waits to be scheduled
@@ -934,7 +936,7 @@ def test_scheduling_the_changes_counts_in_the_budget(monkeypatch):
     schedule = engine.alpha.schedule
 
     def slow_schedule() -> None:
-        clock.now_s += 0.4
+        clock.now_s += schedule_s
         schedule()
 
     monkeypatch.setattr(engine.alpha, "schedule", slow_schedule)
@@ -946,7 +948,7 @@ def test_scheduling_the_changes_counts_in_the_budget(monkeypatch):
 
     engine.weighting_net.infer = slow_infer
     engine.refresh_alpha(0.65)
-    assert clock.now_s == pytest.approx(0.7)
+    assert clock.now_s == pytest.approx(schedule_s + 0.3)
     assert engine.store.evaluated[: engine.grid.n_blocks].sum() == 16
 
 
