@@ -393,6 +393,7 @@ class SenFuNet:
             self.counters["mesh_blocks_last"] = len(slots)
             result = MeshUpdate(cleared=self._cleared)
             self._cleared = False
+            evictions = self.bound.evictions
             live = self._block_meshes(slots, coords, threads=min(mesh_threads, self.config.alpha_threads))
             live_keys, changed_keys = (block_keys(torch.from_numpy(c)).numpy() for c in (live.keys, coords))
             # the evicted blocks' final meshes: subscribers keep showing them, a block's marker with its
@@ -423,7 +424,10 @@ class SenFuNet:
             self._meshed = np.sort(np.concatenate([np.setdiff1d(self._meshed, changed_keys, assume_unique=True),
                                                    live_keys]))
             self.counters["meshed_blocks"] = len(self._meshed)
-            with self.data_lock:  # for the weighting net's order (slots stay put while the update lock is held)
+            with self.data_lock:  # for the weighting net's order
+                if self.bound.evictions != evictions:  # evicted between batches: blocks moved into the freed slots
+                    now = self.grid.lookup_keys(torch.from_numpy(changed_keys)).numpy()
+                    slots, has_faces = now[now >= 0], has_faces[now >= 0]
                 self.store.meshed[slots] = has_faces
             self.times.add(alpha=t1 - t0, mesh=time.perf_counter() - t1)
             return result

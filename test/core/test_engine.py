@@ -1634,3 +1634,47 @@ def test_the_alpha_threads_share_the_priority_of_the_thread_that_updates():
     alpha_threads = list(engine.alpha.workers()._threads)  # this engine's (other tests' engines have their own)
     assert alpha_threads and all(t.name.startswith("senfunet-alpha") for t in alpha_threads)
     assert {os.getpriority(os.PRIO_PROCESS, t.native_id) for t in alpha_threads} == {min(here + 3, 19)}
+
+
+def test_an_eviction_during_an_update_leaves_the_meshed_flags_on_the_blocks_they_describe():
+    """An update wrote each meshed block's `meshed` flag (which orders the weighting net's work) at the
+    slot the block had when the update began; integration that outgrew the hard bound meanwhile has
+    the update evict between batches, which moves blocks into the freed slots: the flags landed on
+    other blocks and on slots past the map's end, which the next new blocks inherit."""
+    import threading
+
+    K = SPHERE_K
+    far = SPHERE_C + [3.0, 0.0, 0.0]
+    engine = engine_for_tests(max_blocks=320, mesh_batch_blocks=8, alpha_batch_blocks=8, min_new_block_samples=0)
+    for centre, views in ((far, [look_at(far + 0.9 * (T[:3, 3] - SPHERE_C), far) for T in SPHERE_VIEWS[:3]]),
+                          (SPHERE_C, SPHERE_VIEWS[:1])):
+        integrate_views(engine, [(centre, T) for T in views])
+    assert engine.grid.n_blocks <= engine.config.max_blocks  # no eviction when the update starts
+    beside = SPHERE_C + [0.0, 1.0, 0.0]
+    beside_T = look_at(beside + [0.0, 0.0, 0.9], beside)
+    over_hard_bound, block_meshes = engine.bound.over_hard_bound, engine.mesher.block_meshes
+    waiting = threading.Event()
+    worker = threading.Thread(target=engine.integrate, args=("tof", render_sphere(beside, SPHERE_R, K, beside_T), K,
+                                                             beside_T))
+
+    def watched_over_hard_bound() -> bool:
+        over = over_hard_bound()
+        if over and threading.current_thread() is worker:
+            waiting.set()  # the frame is in, and it waits for the update to evict
+        return over
+
+    def first_batch_lets_a_frame_in(slots, coords):
+        if worker.ident is None:
+            worker.start()
+            assert waiting.wait(timeout=120)
+        return block_meshes(slots, coords)
+
+    engine.bound.over_hard_bound, engine.mesher.block_meshes = watched_over_hard_bound, first_batch_lets_a_frame_in
+    engine.update()
+    worker.join(timeout=120)
+    assert not worker.is_alive() and engine.bound.evictions == 1
+    n = engine.grid.n_blocks
+    shown = np.isin(engine.grid.slot_keys[:n], engine._meshed)  # the blocks whose live mesh has triangles
+    assert shown.sum() > 50
+    np.testing.assert_array_equal(engine.store.meshed[:n], shown)
+    assert not engine.store.meshed[n:].any()
