@@ -21,11 +21,14 @@ over the whole grid there); then it re-meshes every block whose cells read a cha
 
 Threading model (the one place it is described):
 - Threads: an integrating thread calls `prepare_frame`/`integrate`; an updating thread calls `update`,
-  `refresh_alpha`, the extractions, `map_file.save_map`, `reset`; one feature-net worker thread (module-wide)
-  runs the 2D nets; with `alpha_threads` > 1, that many alpha threads (per engine, owned by its
-  `AlphaScheduler`) evaluate the weighting net's batches for an update that has no time budget (or
-  an idle catch-up, `refresh_alpha(until_frame=True)`), and for an eviction that integration waits
-  for (`MapBound.evict`: the integrating thread evicts, or the map is past the hard bound), while the
+  `refresh_alpha`, the extractions, `map_file.save_map`, `reset`; one feature-net worker thread (module-wide,
+  "senfunet-features") runs the 2D nets; one voxel-update thread (module-wide, "senfunet-update") takes a
+  share of a large frame's blocks (`integrator.update_voxels`) while the integrating thread holds the data
+  lock, which it lets go only once that share is written; with `alpha_threads` > 1, that many alpha threads
+  ("senfunet-alpha", per engine, owned by its `AlphaScheduler`) evaluate the weighting net's batches for an
+  update that has no time budget (or an idle catch-up, `refresh_alpha(until_frame=True)`), and for an
+  eviction that integration waits for (`MapBound.evict`: the integrating thread evicts, or the map is past
+  the hard bound), while the
   updating (or evicting) thread waits for them in order and writes their results; they also mesh
   the batches of an `update(mesh_threads=...)` (no frame waiting) and, in an idle catch-up, count
   the voxels near a surface that order it (`AlphaScheduler.order`), reading the grid as the
