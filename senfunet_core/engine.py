@@ -450,12 +450,17 @@ class SenFuNet:
     def block_meshes(self) -> BlockMeshes:
         """The fused (filtered) mesh of every block, as `update` sends it, with alpha as it is now
         (nothing re-evaluated), and the archived meshes of evicted blocks: a snapshot for a
-        subscriber that joins late."""
+        subscriber that joins late. Its blocks count as shown from then on (an update deletes a
+        block whose mesh vanishes)."""
         with self.update_lock.held():
             with self.data_lock:
                 slots = np.arange(self.grid.n_blocks)
                 coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
             live = self._block_meshes(slots, coords)
+            # shown from now on: blocks integrated since the last update are too, and an update must
+            # delete their meshes should they vanish
+            self._meshed = np.union1d(self._meshed, block_keys(torch.from_numpy(live.keys)).numpy())
+            self.counters["meshed_blocks"] = len(self._meshed)
             with self.data_lock:
                 in_memory = np.sort(self.grid.slot_keys[: self.grid.n_blocks])
             archived = self.archive.visible(in_memory, self.config.voxel_size_m)

@@ -231,6 +231,31 @@ def test_incremental_block_meshes_equal_whole_mesh():
     np.testing.assert_allclose(np.unique(joined.vertices, axis=0), np.unique(whole.vertices, axis=0), atol=1e-5)
 
 
+def test_a_block_a_late_subscribers_snapshot_showed_is_deleted_when_its_mesh_vanishes():
+    """The node sends a late subscriber the whole mesh (block_meshes) just after an update while frames
+    keep coming: blocks integrated in between were in the snapshot but not among the blocks the updates
+    knew they had shown, so when their mesh vanished (the surface moved on) no update deleted it, and
+    every subscriber kept the stale triangles."""
+    engine = engine_for_tests()
+    K = pinhole(160.0)
+
+    def wall(z_m: float, frames: int = 1) -> None:  # both sensors see a wall z_m ahead
+        for _ in range(frames):
+            for sensor in engine.config.sensors:
+                engine.integrate(sensor, np.full((128, 128), z_m, np.float32), K, np.eye(4))
+
+    wall(0.30)
+    engine.update()
+    wall(0.57)  # integrated while that update is published: in the snapshot alone
+    shown = engine.block_meshes().as_dict()  # after a DELETEALL, what every subscriber shows
+    wall(0.54, frames=3)  # the wall moves back into the blocks before: those at 0.57 hold no surface any more
+    update = engine.update()
+    for key in update.removed:
+        shown.pop(key)
+    shown.update(update.changed)
+    assert set(shown) == set(engine.block_meshes().as_dict())
+
+
 def test_an_update_meshed_on_several_threads_equals_one_meshed_on_one(monkeypatch):
     """update(mesh_threads=2): the changed blocks' meshes in shares on the alpha threads, the same
     meshes in the same order as one thread's batches."""
