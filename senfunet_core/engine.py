@@ -21,11 +21,14 @@ over the whole grid there); then it re-meshes every block whose cells read a cha
 
 Threading model (the one place it is described):
 - Threads: an integrating thread calls `prepare_frame`/`integrate`; an updating thread calls `update`,
-  `refresh_alpha`, the extractions, `map_file.save_map`, `reset`; one feature-net worker thread (module-wide)
-  runs the 2D nets; with `alpha_threads` > 1, that many alpha threads (per engine, owned by its
-  `AlphaScheduler`) evaluate the weighting net's batches for an update that has no time budget (or
-  an idle catch-up, `refresh_alpha(until_frame=True)`), and for an eviction that integration waits
-  for (`MapBound.evict`: the integrating thread evicts, or the map is past the hard bound), while the
+  `refresh_alpha`, the extractions, `map_file.save_map`, `reset`; one feature-net worker thread (module-wide,
+  "senfunet-features") runs the 2D nets; one voxel-update thread (module-wide, "senfunet-update") takes a
+  share of a large frame's blocks (`integrator.update_voxels`) while the integrating thread holds the data
+  lock, which it lets go only once that share is written; with `alpha_threads` > 1, that many alpha threads
+  ("senfunet-alpha", per engine, owned by its `AlphaScheduler`) evaluate the weighting net's batches for an
+  update that has no time budget (or an idle catch-up, `refresh_alpha(until_frame=True)`), and for an
+  eviction that integration waits for (`MapBound.evict`: the integrating thread evicts, or the map is past
+  the hard bound), while the
   updating (or evicting) thread waits for them in order and writes their results; they also mesh
   the batches of an `update(mesh_threads=...)` (no frame waiting) and, in an idle catch-up, count
   the voxels near a surface that order it (`AlphaScheduler.order`), reading the grid as the
@@ -393,6 +396,7 @@ class SenFuNet:
             self.counters["mesh_blocks_last"] = len(slots)
             result = MeshUpdate(cleared=self._cleared)
             self._cleared = False
+            evictions = self.bound.evictions
             live = self._block_meshes(slots, coords, threads=min(mesh_threads, self.config.alpha_threads))
             live_keys, changed_keys = (block_keys(torch.from_numpy(c)).numpy() for c in (live.keys, coords))
             # the evicted blocks' final meshes: subscribers keep showing them, a block's marker with its
@@ -423,7 +427,10 @@ class SenFuNet:
             self._meshed = np.sort(np.concatenate([np.setdiff1d(self._meshed, changed_keys, assume_unique=True),
                                                    live_keys]))
             self.counters["meshed_blocks"] = len(self._meshed)
-            with self.data_lock:  # for the weighting net's order (slots stay put while the update lock is held)
+            with self.data_lock:  # for the weighting net's order
+                if self.bound.evictions != evictions:  # evicted between batches: blocks moved into the freed slots
+                    now = self.grid.lookup_keys(torch.from_numpy(changed_keys)).numpy()
+                    slots, has_faces = now[now >= 0], has_faces[now >= 0]
                 self.store.meshed[slots] = has_faces
             self.times.add(alpha=t1 - t0, mesh=time.perf_counter() - t1)
             return result
@@ -443,12 +450,17 @@ class SenFuNet:
     def block_meshes(self) -> BlockMeshes:
         """The fused (filtered) mesh of every block, as `update` sends it, with alpha as it is now
         (nothing re-evaluated), and the archived meshes of evicted blocks: a snapshot for a
-        subscriber that joins late."""
+        subscriber that joins late. Its blocks count as shown from then on (an update deletes a
+        block whose mesh vanishes)."""
         with self.update_lock.held():
             with self.data_lock:
                 slots = np.arange(self.grid.n_blocks)
                 coords = self.grid.coords[: self.grid.n_blocks].numpy().copy()
             live = self._block_meshes(slots, coords)
+            # shown from now on: blocks integrated since the last update are too, and an update must
+            # delete their meshes should they vanish
+            self._meshed = np.union1d(self._meshed, block_keys(torch.from_numpy(live.keys)).numpy())
+            self.counters["meshed_blocks"] = len(self._meshed)
             with self.data_lock:
                 in_memory = np.sort(self.grid.slot_keys[: self.grid.n_blocks])
             archived = self.archive.visible(in_memory, self.config.voxel_size_m)

@@ -65,9 +65,10 @@ class MeshWorker:
         self._keep_going = keep_going  # False: stop after the update under way (shutting down)
         self._warn = warn
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="senfunet-mesh", initializer=thread_setup)
-        self._lock = threading.Lock()  # guards the two flags below (timer thread vs. worker thread)
+        self._lock = threading.Lock()  # guards the three flags below (timer thread vs. worker thread)
         self._running = False  # an update is under way on the worker thread
         self._due = False  # a tick came meanwhile: the next update starts as soon as that one ends
+        self._stopped = False  # `shutdown` was called: a due update does not start
 
     def tick(self) -> None:
         with self._lock:
@@ -90,13 +91,15 @@ class MeshWorker:
                 if self._keep_going():
                     self._warn(("mesh_update",), f"mesh update failed: {err!r}")
             with self._lock:
-                if not self._due or not self._keep_going():
+                if not self._due or self._stopped or not self._keep_going():
                     self._running = False
                     return
                 self._due = False
 
     def shutdown(self) -> None:
         """No update starts any more; the one under way finishes first."""
+        with self._lock:
+            self._stopped = True
         self._pool.shutdown(wait=True)
 
 

@@ -11,7 +11,8 @@ No rclpy here: messages are duck-typed, logging goes through the `log(level, tex
 Threading: `dispatch` may run on several threads (Ingest locks); `drain`, `reset`, `load_map`
 run on one thread at a time (the node's integration timer and its services share a lock);
 `save_meshes` and `save_map` run beside them (the engine is thread-safe), so that frames keep
-being integrated while a large map is saved.
+being integrated while a large map is saved; a reset (a time jump) waits for the save (each holds the
+engine's update lock throughout), so that what is saved is one map.
 """
 from __future__ import annotations
 
@@ -182,12 +183,15 @@ class Pipeline:
         # lock would stop draining the queues, which then overflow); only a reset excludes them
         with self.lock if then_reset else contextlib.nullcontext():
             engine = self.engine
-            spill = getattr(engine.grid, "spill", None)
-            on_disk = len(spill) if spill is not None else 0  # evicted blocks: only their fused meshes are kept
-            for name in which:
-                t0 = time.perf_counter()
-                mesh = engine.extract_mesh(name, then_reset=then_reset and name == which[-1])
-                meshes[MESH_FILES.get(name, name)] = (mesh, time.perf_counter() - t0)
+            # the map's update lock from the first mesh to the last: a reset (a time jump) waits, so that
+            # the files show one map
+            with engine.update_lock.held():
+                spill = getattr(engine.grid, "spill", None)
+                on_disk = len(spill) if spill is not None else 0  # evicted blocks: only their fused meshes are kept
+                for name in which:
+                    t0 = time.perf_counter()
+                    mesh = engine.extract_mesh(name, then_reset=then_reset and name == which[-1])
+                    meshes[MESH_FILES.get(name, name)] = (mesh, time.perf_counter() - t0)
             if then_reset:
                 self._on_new_map()
         saved = {}

@@ -231,6 +231,31 @@ def test_incremental_block_meshes_equal_whole_mesh():
     np.testing.assert_allclose(np.unique(joined.vertices, axis=0), np.unique(whole.vertices, axis=0), atol=1e-5)
 
 
+def test_a_block_a_late_subscribers_snapshot_showed_is_deleted_when_its_mesh_vanishes():
+    """The node sends a late subscriber the whole mesh (block_meshes) just after an update while frames
+    keep coming: blocks integrated in between were in the snapshot but not among the blocks the updates
+    knew they had shown, so when their mesh vanished (the surface moved on) no update deleted it, and
+    every subscriber kept the stale triangles."""
+    engine = engine_for_tests()
+    K = pinhole(160.0)
+
+    def wall(z_m: float, frames: int = 1) -> None:  # both sensors see a wall z_m ahead
+        for _ in range(frames):
+            for sensor in engine.config.sensors:
+                engine.integrate(sensor, np.full((128, 128), z_m, np.float32), K, np.eye(4))
+
+    wall(0.30)
+    engine.update()
+    wall(0.57)  # integrated while that update is published: in the snapshot alone
+    shown = engine.block_meshes().as_dict()  # after a DELETEALL, what every subscriber shows
+    wall(0.54, frames=3)  # the wall moves back into the blocks before: those at 0.57 hold no surface any more
+    update = engine.update()
+    for key in update.removed:
+        shown.pop(key)
+    shown.update(update.changed)
+    assert set(shown) == set(engine.block_meshes().as_dict())
+
+
 def test_an_update_meshed_on_several_threads_equals_one_meshed_on_one(monkeypatch):
     """update(mesh_threads=2): the changed blocks' meshes in shares on the alpha threads, the same
     meshes in the same order as one thread's batches."""
@@ -1636,3 +1661,47 @@ def test_the_alpha_threads_share_the_priority_of_the_thread_that_updates():
     alpha_threads = list(engine.alpha.workers()._threads)  # this engine's (other tests' engines have their own)
     assert alpha_threads and all(t.name.startswith("senfunet-alpha") for t in alpha_threads)
     assert {os.getpriority(os.PRIO_PROCESS, t.native_id) for t in alpha_threads} == {min(here + 3, 19)}
+
+
+def test_an_eviction_during_an_update_leaves_the_meshed_flags_on_the_blocks_they_describe():
+    """An update wrote each meshed block's `meshed` flag (which orders the weighting net's work) at the
+    slot the block had when the update began; integration that outgrew the hard bound meanwhile has
+    the update evict between batches, which moves blocks into the freed slots: the flags landed on
+    other blocks and on slots past the map's end, which the next new blocks inherit."""
+    import threading
+
+    K = SPHERE_K
+    far = SPHERE_C + [3.0, 0.0, 0.0]
+    engine = engine_for_tests(max_blocks=320, mesh_batch_blocks=8, alpha_batch_blocks=8, min_new_block_samples=0)
+    for centre, views in ((far, [look_at(far + 0.9 * (T[:3, 3] - SPHERE_C), far) for T in SPHERE_VIEWS[:3]]),
+                          (SPHERE_C, SPHERE_VIEWS[:1])):
+        integrate_views(engine, [(centre, T) for T in views])
+    assert engine.grid.n_blocks <= engine.config.max_blocks  # no eviction when the update starts
+    beside = SPHERE_C + [0.0, 1.0, 0.0]
+    beside_T = look_at(beside + [0.0, 0.0, 0.9], beside)
+    over_hard_bound, block_meshes = engine.bound.over_hard_bound, engine.mesher.block_meshes
+    waiting = threading.Event()
+    worker = threading.Thread(target=engine.integrate, args=("tof", render_sphere(beside, SPHERE_R, K, beside_T), K,
+                                                             beside_T))
+
+    def watched_over_hard_bound() -> bool:
+        over = over_hard_bound()
+        if over and threading.current_thread() is worker:
+            waiting.set()  # the frame is in, and it waits for the update to evict
+        return over
+
+    def first_batch_lets_a_frame_in(slots, coords):
+        if worker.ident is None:
+            worker.start()
+            assert waiting.wait(timeout=120)
+        return block_meshes(slots, coords)
+
+    engine.bound.over_hard_bound, engine.mesher.block_meshes = watched_over_hard_bound, first_batch_lets_a_frame_in
+    engine.update()
+    worker.join(timeout=120)
+    assert not worker.is_alive() and engine.bound.evictions == 1
+    n = engine.grid.n_blocks
+    shown = np.isin(engine.grid.slot_keys[:n], engine._meshed)  # the blocks whose live mesh has triangles
+    assert shown.sum() > 50
+    np.testing.assert_array_equal(engine.store.meshed[:n], shown)
+    assert not engine.store.meshed[n:].any()

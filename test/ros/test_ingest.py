@@ -789,6 +789,48 @@ def test_frames_are_integrated_and_stats_answered_while_meshes_are_saved(tmp_pat
     assert (tmp_path / "mesh.ply").is_file() and engine.stats(wait=False)["frames_integrated"]["tof"] == 1
 
 
+def test_a_time_jump_that_resets_the_map_during_a_save_waits_for_the_last_mesh(tmp_path, monkeypatch) -> None:
+    """~/save_mesh makes its meshes one after the other while frames keep coming. A time jump that
+    reset the map (on_time_jump reset: a bag looping) between two of them gave files of two maps:
+    the per-sensor meshes of the map asked for, mesh.ply (made last) of the emptied one. The reset
+    now waits for the save's last mesh; frames do not."""
+    from senfunet_core.engine import EngineConfig, SenFuNet
+    from senfunet_ros.pipeline import Pipeline
+
+    engine = SenFuNet(EngineConfig(), weights=None)
+    pipeline = Pipeline(engine, make(), on_time_jump="reset")
+    K = np.array([[160.0, 0, 63.5], [0, 160.0, 63.5], [0, 0, 1]])
+    for sensor in ("tof", "stereo"):  # a wall 0.5 m ahead, seen by both
+        engine.integrate(sensor, np.full((128, 128), 0.5, np.float32), K, np.eye(4))
+    extract_mesh, held = engine.extract_mesh, engine.update_lock.held
+    settled = threading.Event()  # the reset ran, or it waits for the map
+    resetter = threading.Thread(target=lambda: (pipeline.drain([TimeJump("tof", "depth", 2 * 10**9, 10**9)]),
+                                                settled.set()))
+
+    def watched_held(*args, **kwargs):
+        if threading.current_thread() is resetter:
+            if engine.update_lock._lock.acquire(blocking=False):
+                engine.update_lock._lock.release()
+            else:
+                settled.set()  # the save holds the map: the reset waits for it
+        return held(*args, **kwargs)
+
+    def reset_after_the_first_mesh(*args, **kwargs):
+        mesh = extract_mesh(*args, **kwargs)
+        if resetter.ident is None:
+            resetter.start()
+            assert settled.wait(60)
+        return mesh
+
+    monkeypatch.setattr(engine.update_lock, "held", watched_held)
+    monkeypatch.setattr(engine, "extract_mesh", reset_after_the_first_mesh)
+    saved = pipeline.save_meshes(tmp_path, sensors=("tof", "stereo"), tsdf_fusion=False)
+    resetter.join(60)
+    assert not resetter.is_alive() and pipeline.time_jumps == 1 and engine.grid.n_blocks == 0  # reset after all
+    assert [stem for stem in saved] == ["tof", "stereo", "mesh"]
+    assert min(saved[stem].mesh.n_faces for stem in saved) > 1000, {stem: saved[stem].mesh.n_faces for stem in saved}
+
+
 def test_a_pause_of_every_stream_keeps_what_waits_and_old_messages_in_flight_after_a_clock_restart_are_off() -> None:
     """Every stream resuming after a pause longer than time_jump_s is a restart ahead: nothing queued
     is flushed. After the /clock went back, a message of the old time still in flight does not start

@@ -707,6 +707,41 @@ def test_the_mesh_timer_runs_the_mesh_update_on_a_thread_of_lower_priority(ros, 
         running.close()
 
 
+def test_no_mesh_update_starts_once_the_mesh_worker_shuts_down() -> None:
+    """`MeshWorker.shutdown` (the node being destroyed): the update under way finishes and none starts
+    after it, though a tick came during it. A node destroyed while its context is still up (tests, a
+    process spinning nodes in turn) ran one more whole update, and its net's turn, first."""
+    from senfunet_ros.mesh_publisher import MeshWorker
+
+    started, release, shutting_down = threading.Event(), threading.Event(), threading.Event()
+    updates: list[int] = []
+
+    def update() -> None:
+        updates.append(threading.get_ident())
+        started.set()
+        release.wait(30)
+
+    worker = MeshWorker(update, keep_going=lambda: True, thread_setup=lambda: None, warn=lambda key, text: None)
+    pool_shutdown = worker._pool.shutdown
+
+    def watched_pool_shutdown(*args: Any, **kwargs: Any) -> None:
+        shutting_down.set()  # shutdown() was called: from here on no update may start
+        pool_shutdown(*args, **kwargs)
+
+    worker._pool.shutdown = watched_pool_shutdown
+    worker.tick()
+    assert started.wait(30)
+    worker.tick()  # during the update: the next one is due
+    stopper = threading.Thread(target=worker.shutdown)
+    stopper.start()
+    try:
+        assert shutting_down.wait(30)
+    finally:
+        release.set()
+        stopper.join(30)
+    assert not stopper.is_alive() and len(updates) == 1
+
+
 def test_limit_malloc_applies_on_glibc() -> None:
     import platform
 
