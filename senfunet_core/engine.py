@@ -339,10 +339,12 @@ class SenFuNet:
         s, cfg = frame.sensor_index, self.config
         t0 = time.perf_counter()
         with self.data_lock:
-            update = integrate_frame(self.grid, frame.depth_m, frame.features.result, frame.K, frame.T_world_camera,
-                                     (cfg.depth_min_m[s], cfg.depth_max_m[s]), cfg.integrator,
-                                     (f"tsdf{s}", f"weight{s}", f"feat{s}"), scratch=self._scratch)
-            self.store.grow_flags()
+            try:
+                update = integrate_frame(self.grid, frame.depth_m, frame.features.result, frame.K,
+                                         frame.T_world_camera, (cfg.depth_min_m[s], cfg.depth_max_m[s]),
+                                         cfg.integrator, (f"tsdf{s}", f"weight{s}", f"feat{s}"), scratch=self._scratch)
+            finally:  # the grid may have grown before a failure: the flags keep its length for the updates
+                self.store.grow_flags()
             self.store.alpha_pending[update.touched_slots] = True
             self.store.reach_changed[update.touched_slots] |= update.reach[:, 0]
             self.store.reach_renewed[update.touched_slots] |= update.reach[:, 1]

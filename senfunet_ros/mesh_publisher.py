@@ -175,11 +175,11 @@ class MeshPublisher:
             # no frame waiting (the sensors paused, or integration keeps up): mesh on every core; a
             # frame coming meanwhile still goes first (the mesh thread's lower priority, which its
             # helper threads share)
+            # the update takes the engine's changes: until they are published, a failure (the update's
+            # own, encoding, a refused publication) makes the next publication send the whole map
+            served, self._served = self._served, (0, 0)
             update = engine.update(alpha_budget_s=0.0,
                                    mesh_threads=1 if self._frame_waiting() else engine.config.alpha_threads)
-            # the update took the engine's changes: until they are published, a failure (encoding, a
-            # refused publication) makes the next publication send the whole map
-            served, self._served = self._served, (0, 0)
             if self._resend.is_set():  # cleared before the map is read: a later request gets the next one
                 self._resend.clear()
                 served = (0, 0)

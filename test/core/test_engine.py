@@ -1705,3 +1705,29 @@ def test_an_eviction_during_an_update_leaves_the_meshed_flags_on_the_blocks_they
     assert shown.sum() > 50
     np.testing.assert_array_equal(engine.store.meshed[:n], shown)
     assert not engine.store.meshed[n:].any()
+
+
+def test_a_frame_that_fails_after_the_grid_grew_leaves_the_map_usable(monkeypatch):
+    """A frame whose integration fails once the grid has grown (memory, a kernel's error) leaves the
+    per-block flags as long as the grid: the next update and frame run as before."""
+    import senfunet_core.engine as engine_module
+
+    engine = engine_for_tests()
+    K, T = SPHERE_K, SPHERE_VIEWS[0]
+    engine.integrate("tof", render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
+    capacity = engine.grid.capacity
+    integrate_frame = engine_module.integrate_frame
+
+    def grow_then_fail(grid, *args, **kwargs):
+        grid.reserve(grid.capacity + 1)  # as a frame that reaches more blocks than the grid holds
+        raise MemoryError("test: the frame fails after the grid grew")
+
+    monkeypatch.setattr(engine_module, "integrate_frame", grow_then_fail)
+    with pytest.raises(MemoryError):
+        engine.integrate("stereo", render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
+    assert engine.grid.capacity > capacity
+    assert len(engine.store.stale) == engine.grid.capacity
+    monkeypatch.setattr(engine_module, "integrate_frame", integrate_frame)
+    engine.update()
+    engine.integrate("stereo", render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
+    assert engine.update().changed

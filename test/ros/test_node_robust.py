@@ -620,6 +620,37 @@ def test_a_failed_publication_is_made_good_by_the_next(ros, tmp_path: Path, monk
         run.close()
 
 
+def test_a_failed_mesh_update_is_made_good_by_the_next(ros, tmp_path: Path, monkeypatch) -> None:
+    """An update that fails after it took the engine's changes (here its meshing) leaves nothing
+    out for good: the next publication sends the whole map."""
+    run = Running("updfail", {**topic_params("updfail"), **SMALL, "mesh_rate_hz": 0.05}, tmp_path)
+    try:
+        collector = MeshCollector(run.helper, f"{run.prefix}/mesh")
+        wait_for(lambda: run.node.mesh_publisher.mesh_pub.get_subscription_count() > 0, 10, "the subscriber")
+        messages = scene_messages()
+        fuse_in_process(run, messages[: len(messages) // 2])
+        run.node.engine.refresh_alpha(None)
+        run.node.publish_mesh()
+        wait_for(lambda: collector.keys() and collector.keys() == _marker_keys(run.node), 30, "the first mesh")
+        fuse_in_process(run, messages)  # the second half
+        run.node.engine.refresh_alpha(None)  # all judged: no later update re-meshes anything by itself
+        engine = run.node.engine
+        block_meshes = engine._block_meshes
+
+        def fail(*args: Any, **kwargs: Any) -> Any:
+            raise MemoryError("meshing failed (test)")
+
+        monkeypatch.setattr(engine, "_block_meshes", fail)
+        with pytest.raises(MemoryError, match="test"):
+            run.node.publish_mesh()  # the second half's changes: taken from the engine, not meshed
+        monkeypatch.setattr(engine, "_block_meshes", block_meshes)
+        assert collector.keys() != _marker_keys(run.node)
+        run.node.publish_mesh()  # nothing new in the engine: the whole map
+        wait_for(lambda: collector.keys() == _marker_keys(run.node), 30, "the map the failed update held")
+    finally:
+        run.close()
+
+
 def test_ctrl_c_during_the_stop_drops_the_queued_frames_and_the_saving_not_the_node(ros, tmp_path: Path,
                                                                                    monkeypatch, capsys) -> None:
     """A second Ctrl-C while `stop_node` integrates the ready frames drops the ones not started yet;
