@@ -61,10 +61,18 @@ def load_map(path: str | Path, device: str | None = None, *,
     node's max_map_blocks; None: the one the map was saved with)."""
     path = Path(path)
     # torch.save writes a zip archive: anything else (a PLY, a file cut short) would get torch's own
-    # error, which names weights_only and advises loading the file unsafely, or a bare "[Errno 22]"
-    if path.is_file() and not zipfile.is_zipfile(path):  # a missing or unreadable path: torch.load says why
-        raise InputError(f"{path} is not a map (~/save_map and replay write one: a zip archive), or it is "
-                         "damaged (cut short?)")
+    # error, which names weights_only and advises loading the file unsafely, or a bare "[Errno 22]";
+    # torch.load does not check the archive's checksums: a file damaged inside loaded as a wrong map
+    if path.is_file():  # a missing path: torch.load says why; an unreadable one: the OSError here
+        try:
+            with zipfile.ZipFile(path) as archive:
+                damaged = archive.testzip()
+        except (zipfile.BadZipFile, EOFError):
+            raise InputError(f"{path} is not a map (~/save_map and replay write one: a zip archive), or it is "
+                             "damaged (cut short?)") from None
+        if damaged is not None:
+            raise InputError(f"{path} is damaged: its part {damaged} fails its checksum (changed since it was "
+                             "written: an incomplete copy, a failing disk?); load another copy of the map")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
         if state.get("format") != "senfunet-engine-1":

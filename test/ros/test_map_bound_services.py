@@ -1,11 +1,19 @@
 """The node's map services and its map bound (max_map_blocks), without DDS."""
 from __future__ import annotations
 
+import builtins
+import errno
+import io
 import logging
+import struct
 import sys
 import threading
+import zipfile
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "core"))
 
@@ -61,3 +69,72 @@ def test_save_mesh_says_the_per_sensor_meshes_leave_out_evicted_blocks(tmp_path)
     reply = services.save_mesh(None, SimpleNamespace(success=None, message=None))
     assert reply.success and "evicted" in reply.message
     assert any(level == "warning" and "tof.ply" in text and "evicted" in text for level, text in logged)
+
+
+def _services(tmp_path: Path, **values: object) -> tuple[MapServices, Pipeline, list[str]]:
+    """MapServices over a small fused sphere, its parameters `values` on top of the test's."""
+    params = tmp_path / "p.yaml"
+    params.write_text("senfunet:\n  ros__parameters:\n    weights: none\n"
+                      f"    output_dir: {tmp_path}\n    rgb_sensors: []\n    tof:\n      depth_min_m: 0.05\n"
+                      "    stereo:\n      depth_min_m: 0.05\n"
+                      + "".join(f"    {name}: {value}\n" for name, value in values.items()))
+    settings = load_settings(params)
+    pipeline = Pipeline(SenFuNet(P.engine_config(settings), weights=None), Ingest(ingest_config(settings)))
+    integrate_views(pipeline.engine, [(SPHERE_C, SPHERE_VIEWS[0])])
+    errors: list[str] = []
+    logger = SimpleNamespace(info=lambda text: None, warning=errors.append, error=errors.append)
+    services = MapServices(pipeline, lambda: settings, SimpleNamespace(lock=threading.Lock(), resend_all=lambda: None),
+                           logger)
+    return services, pipeline, errors
+
+
+def _call(handler: Any) -> Any:
+    return handler(None, SimpleNamespace(success=None, message=None))
+
+
+def test_load_map_of_a_map_damaged_inside_says_so_and_keeps_the_map(tmp_path):
+    """A map whose bytes changed after ~/save_map wrote it (an incomplete copy, a failing disk): torch.load
+    does not check the archive's checksums, so ~/load_map replaced the node's map by the damaged one and
+    replied success."""
+    services, pipeline, errors = _services(tmp_path, map_file="damaged.pt")
+    assert _call(services.save_map).success
+    before = pipeline.engine.extract_mesh("fused")
+    path = tmp_path / "damaged.pt"
+    with zipfile.ZipFile(path) as archive:
+        member = max(archive.infolist(), key=lambda info: info.file_size)  # a grid pool's bytes
+    data = bytearray(path.read_bytes())
+    name_len, extra_len = struct.unpack("<HH", data[member.header_offset + 26:member.header_offset + 30])
+    start = member.header_offset + 30 + name_len + extra_len + member.file_size // 2
+    data[start:start + 64] = bytes(b ^ 0xFF for b in data[start:start + 64])
+    path.write_bytes(bytes(data))
+    reply = _call(services.load_map)
+    assert not reply.success and f"{path} is damaged" in reply.message, reply.message
+    assert errors and "damaged" in errors[-1]
+    after = pipeline.engine.extract_mesh("fused")  # the node's map stays
+    assert after.n_faces == before.n_faces and np.array_equal(after.vertices, before.vertices)
+
+
+def test_load_map_of_a_map_that_cannot_be_read_says_why(tmp_path, monkeypatch):
+    """A map the node may not read (another user's, mode 0600): the check for a zip archive took the
+    refused open for a file that is no map and replied "is not a map ... or it is damaged"."""
+    services, pipeline, _ = _services(tmp_path)
+    assert _call(services.save_map).success
+    path = tmp_path / "map.pt"
+    path.chmod(0o000)  # refuses the open unless the tests run as root: then the open is refused by hand
+    real_open = io.open
+
+    def refusing_open(file: Any, *args: Any, **kwargs: Any) -> Any:
+        if str(file) == str(path):
+            raise PermissionError(errno.EACCES, "Permission denied", str(file))
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr(io, "open", refusing_open)
+    monkeypatch.setattr(builtins, "open", refusing_open)
+    blocks = pipeline.engine.grid.n_blocks
+    reply = _call(services.load_map)
+    monkeypatch.undo()
+    path.chmod(0o644)
+    assert not reply.success and "Permission denied" in reply.message and str(path) in reply.message, reply.message
+    assert "not a map" not in reply.message, reply.message
+    assert pipeline.engine.grid.n_blocks == blocks
+
