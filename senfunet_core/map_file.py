@@ -51,7 +51,12 @@ def save_map(engine: SenFuNet, path: str | Path) -> None:
             if engine.grid.spill is not None:
                 state["spill"] = {k: torch.from_numpy(v) for k, v in engine.grid.spill.state_dict().items()}
     with atomic_file(path) as file:
-        torch.save(state, file)
+        try:
+            torch.save(state, file)
+        except RuntimeError as err:  # torch reports a write that failed (a full disk) as "unexpected pos"
+            if not isinstance(err.__context__, OSError):
+                raise
+            raise OSError(err.__context__.errno, f"cannot write {path}: {err.__context__.strerror}") from err
 
 
 def load_map(path: str | Path, device: str | None = None, *,

@@ -5,6 +5,7 @@ import builtins
 import errno
 import io
 import logging
+import os
 import struct
 import sys
 import threading
@@ -138,3 +139,44 @@ def test_load_map_of_a_map_that_cannot_be_read_says_why(tmp_path, monkeypatch):
     assert "not a map" not in reply.message, reply.message
     assert pipeline.engine.grid.n_blocks == blocks
 
+
+class _FullDisk:
+    """A file on a disk that fills after `room` bytes: writes past it raise ENOSPC, as the kernel does."""
+
+    def __init__(self, file: Any, room: int) -> None:
+        self._file, self._room = file, room
+
+    def write(self, data: Any) -> int:
+        size = memoryview(data).nbytes
+        if size > self._room:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self._room -= size
+        return self._file.write(data)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._file, name)
+
+    def __enter__(self) -> _FullDisk:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._file.close()
+
+
+def test_save_map_on_a_full_disk_says_so_and_keeps_the_earlier_map_file(tmp_path, monkeypatch):
+    """~/save_map when the disk fills while the map is written: torch turns the failed write into its own
+    error, and the reply said "[enforce fail at inline_container.cc:...] . unexpected pos 400704 vs 598",
+    nothing of a full disk. The earlier map file stays whole, no temporary file is left."""
+    services, pipeline, _ = _services(tmp_path)
+    assert _call(services.save_map).success
+    path = tmp_path / "map.pt"
+    earlier = path.read_bytes()
+    integrate_views(pipeline.engine, [(SPHERE_C, SPHERE_VIEWS[1])])
+    real_fdopen = os.fdopen
+    monkeypatch.setattr(os, "fdopen", lambda *args, **kwargs: _FullDisk(real_fdopen(*args, **kwargs), 100_000))
+    reply = _call(services.save_map)
+    monkeypatch.undo()
+    assert not reply.success and "No space left on device" in reply.message and str(path) in reply.message, \
+        reply.message
+    assert "unexpected pos" not in reply.message, reply.message
+    assert path.read_bytes() == earlier and sorted(p.name for p in tmp_path.iterdir()) == ["map.pt", "p.yaml"]
