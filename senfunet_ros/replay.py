@@ -12,6 +12,7 @@ with torch pinned to a fixed thread count, the same mesh bytes.
 from __future__ import annotations
 
 import json
+import os
 import re
 import threading
 import time
@@ -22,13 +23,14 @@ from collections.abc import Callable
 
 import numpy as np
 
+from senfunet_core.files import atomic_file
 from senfunet_ros import params as P
 from senfunet_ros.params import engine_config, engine_weights, ingest_config
 from senfunet_ros.bagio import (BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype,
                                 open_bag)
 from senfunet_ros.conversions import PoseType
 from senfunet_ros.ingest import Ingest
-from senfunet_ros.pipeline import MESH_FILES, Pipeline, Stream
+from senfunet_ros.pipeline import FILE_MODE, MESH_FILES, Pipeline, Stream
 
 __all__ = [
     "load_settings",
@@ -375,7 +377,9 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     timings["total_s"] = round(time.perf_counter() - t_start, 3)
     result.stats = _stats(result, run, pipeline, settings, counters, params=params, threads=threads,
                           gt_info=gt_info, metrics=metrics, timings=timings, engine_stats=engine_stats)
-    (out / "stats.json").write_text(json.dumps(result.stats, indent=2, default=_json_default) + "\n")
+    with atomic_file(out / "stats.json") as file:  # whole or not at all (a full disk), as the meshes
+        file.write((json.dumps(result.stats, indent=2, default=_json_default) + "\n").encode())
+    os.chmod(out / "stats.json", FILE_MODE)
     result.files["stats"] = out / "stats.json"
     return result
 

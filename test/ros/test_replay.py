@@ -314,3 +314,51 @@ def test_yaml_error_names_the_line(tmp_path):
     bad.write_text("senfunet:\n  ros__parameters:\n    voxel_size_m: [oops\n")
     with pytest.raises(ValueError, match=r"p\.yaml: not valid YAML \(line \d+, column \d+\)"):
         load_settings(bad)
+
+
+def test_a_disk_that_fills_while_stats_json_is_written_leaves_no_half_file(prefix: Path, small_params: Path,
+                                                                           tmp_path: Path, monkeypatch):
+    """stats.json was written in place (Path.write_text): a disk that filled while it was written left the
+    first half of it under its name, looking like a replay's stats. It is written whole or not at all,
+    as the meshes are (and the error says why: no space left)."""
+    import errno
+    import io
+    import os
+
+    out = tmp_path / "out"
+    real_open, real_fdopen = io.open, os.fdopen
+
+    class HalfWritten:  # the disk fills halfway through the file: the first half is written, then ENOSPC
+        def __init__(self, file):
+            self._file = file
+
+        def write(self, data):
+            self._file.write(data[: len(data) // 2])
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __getattr__(self, name):
+            return getattr(self._file, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self._file.close()
+
+    def is_stats(name: str) -> bool:
+        return Path(name).name == "stats.json" or Path(name).name.startswith(".stats.json.")
+
+    def opening(file, *args, **kwargs):  # Path.write_text
+        opened = real_open(file, *args, **kwargs)
+        return HalfWritten(opened) if isinstance(file, (str, Path)) and is_stats(str(file)) else opened
+
+    def fd_opening(fd, *args, **kwargs):  # files.atomic_file's temporary file
+        opened = real_fdopen(fd, *args, **kwargs)
+        return HalfWritten(opened) if is_stats(os.readlink(f"/proc/self/fd/{fd}")) else opened
+
+    monkeypatch.setattr(io, "open", opening)
+    monkeypatch.setattr(os, "fdopen", fd_opening)
+    with pytest.raises(OSError, match="No space left on device"):
+        replay_bag(prefix, out, params=small_params, progress=False)
+    monkeypatch.undo()
+    assert sorted(p.name for p in out.iterdir()) == ["mesh.ply"]  # no stats.json, whole or half; no temporary file
