@@ -12,6 +12,8 @@ Single-threaded by itself: the engine's data lock serialises its users.
 """
 from __future__ import annotations
 
+import errno
+import os
 import tempfile
 from collections.abc import Iterable
 from typing import IO
@@ -51,7 +53,8 @@ class BlobFile:
             file = self._open()
             file.seek(self._end)
             for key, blob in blobs:
-                file.write(blob)
+                if file.write(blob) != len(blob):  # a disk that fills takes part of a write
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
                 entry = self.index.get(key)
                 previous.setdefault(key, entry)
                 if entry is not None:
@@ -89,7 +92,9 @@ class BlobFile:
 
     def _open(self) -> IO[bytes]:
         if self._file is None:
-            self._file = tempfile.TemporaryFile(prefix="senfunet-spill-", dir=self.directory)
+            # unbuffered: a write that fails (a full disk) fails in `append`, which undoes it; a buffered
+            # one failed at a later flush, in `read` under a frame's block allocation, the blobs unreadable
+            self._file = tempfile.TemporaryFile(buffering=0, prefix="senfunet-spill-", dir=self.directory)
         return self._file
 
     def _compact(self) -> None:

@@ -1,11 +1,15 @@
 """The map bound on long runs and large rooms: what the bound keeps when things go wrong."""
 from __future__ import annotations
 
+import errno
+import io
 import logging
 import re
+import tempfile
 
 import numpy as np
 
+import senfunet_core.spill as spill_module
 from senfunet_core.spill import BlockSpill
 from test_engine import SPHERE_C, SPHERE_VIEWS, engine_for_tests, far_views, integrate_views
 
@@ -186,3 +190,76 @@ def test_warm_up_under_a_bound_smaller_than_its_frame_leaves_no_eviction_behind(
     warned = [r.getMessage() for r in caplog.records if "smaller than what a frame sees" in r.getMessage()]
     assert len(warned) == 1 and int(re.search(r"which touched (\d+) blocks", warned[0]).group(1)) > 100  # the sphere's
     assert engine.stats()["evicted_blocks"] == engine.stats()["spilled_blocks"] + engine.stats()["restored_blocks"]
+
+
+class _FillingDisk(io.RawIOBase):
+    """A file on a disk that fills at `room[0]` bytes: a write takes what fits, the next raises ENOSPC."""
+
+    def __init__(self, file: io.FileIO, room: list[int | None]) -> None:
+        self._file, self._room = file, room
+
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def readinto(self, buffer) -> int:
+        return self._file.readinto(buffer)
+
+    def write(self, data) -> int:
+        size, room = memoryview(data).nbytes, self._room[0]
+        if room is not None and self._file.tell() + size > room:
+            if self._file.tell() >= room:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            size = room - self._file.tell()
+        return self._file.write(memoryview(data).cast("B")[:size])
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._file.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def close(self) -> None:
+        self._file.close()
+        super().close()
+
+
+def test_a_disk_that_fills_after_an_eviction_keeps_the_spilled_blocks_readable(monkeypatch):
+    """The spill file was buffered: an eviction's last blobs stayed in the buffer after `put` returned, and
+    a disk that filled then failed their flush at the next read, when a frame reached a spilled block
+    (the frame raised from the grid's block allocation, which left the grid's hash table ahead of its
+    blocks: the next frame crashed the process). The disk is simulated under the buffer, where the
+    kernel refuses the writes."""
+    room: list[int | None] = [None]
+    files: list[_FillingDisk] = []
+    temporary_file = tempfile.TemporaryFile
+
+    def on_the_disk(*args, buffering: int = -1, **kwargs):
+        if not kwargs.get("prefix", "").startswith("senfunet-spill-"):  # the mesh archive's files
+            return temporary_file(*args, buffering=buffering, **kwargs)
+        raw = _FillingDisk(temporary_file(*args, buffering=0, **kwargs), room)
+        files.append(raw)
+        return raw if buffering == 0 else io.BufferedRandom(raw)
+
+    monkeypatch.setattr(spill_module.tempfile, "TemporaryFile", on_the_disk)
+    engine = engine_for_tests(max_blocks=165)
+    integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2))
+    engine.update()
+    spill = engine.grid.spill
+    assert spill is not None and len(spill) > 0 and len(files) == 1
+    room[0] = files[0].tell() + 100  # the disk is full from now on, but for 100 bytes
+    integrate_views(engine, [(SPHERE_C, SPHERE_VIEWS[0])])  # back at the first sphere: its blocks come back
+    assert engine.frames_integrated == {"tof": 5, "stereo": 5} and spill.restored > 0
+    spilled = len(spill)
+    integrate_views(engine, far_views(4)[2:])
+    engine.update()  # an eviction while the disk is full: abandoned, its blocks stay (a write taken in part too)
+    assert engine.counters["spill_failures"] >= 1 and len(spill) == spilled
+    room[0] = None
+    integrate_views(engine, [(SPHERE_C, SPHERE_VIEWS[1])])
+    engine.update()
+    assert engine.frames_integrated == {"tof": 8, "stereo": 8} and engine.grid.n_blocks <= 165
