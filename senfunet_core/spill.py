@@ -13,6 +13,7 @@ Single-threaded by itself: the engine's data lock serialises its users.
 from __future__ import annotations
 
 import errno
+import logging
 import os
 import tempfile
 from collections.abc import Iterable
@@ -22,6 +23,8 @@ import numpy as np
 import zstandard
 
 __all__ = ["BlobFile", "BlockSpill", "spilled_rows"]
+
+log = logging.getLogger("senfunet.engine")
 
 # Rewrite the file once the space of dropped blobs exceeds both this and the space still in use.
 _COMPACT_MIN_BYTES = 64 << 20
@@ -38,6 +41,7 @@ class BlobFile:
         self._file: IO[bytes] | None = None
         self._end = 0  # bytes written
         self._dead = 0  # bytes of blobs dropped or replaced since the last compaction
+        self.compact_failures = 0  # compactions abandoned (a full disk): the file kept its holes
 
     @property
     def nbytes(self) -> int:
@@ -98,16 +102,29 @@ class BlobFile:
         return self._file
 
     def _compact(self) -> None:
-        """Copy the blobs still held into a fresh file (dropped ones leave holes), one at a time."""
-        old, index = self._file, self.index
+        """Copy the blobs still held into a fresh file (dropped ones leave holes), one at a time. When the
+        fresh file cannot be written (a full disk) the old one stays, holes and all."""
+        old, index, end, dead = self._file, self.index, self._end, self._dead
         self._file, self.index, self._end, self._dead = None, {}, 0, 0
-        file = self._open()
         assert old is not None
-        for key, (offset, length) in index.items():
-            old.seek(offset)
-            file.write(old.read(length))
-            self.index[key] = (self._end, length)
-            self._end += length
+        try:
+            file = self._open()
+            for key, (offset, length) in index.items():
+                old.seek(offset)
+                if file.write(old.read(length)) != length:  # a disk that fills takes part of a write
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                self.index[key] = (self._end, length)
+                self._end += length
+        except OSError as err:
+            if self._file is not None:
+                self._file.close()
+            self._file, self.index, self._end, self._dead = old, index, end, dead
+            self.compact_failures += 1
+            log.log(logging.WARNING if self.compact_failures == 1 else logging.DEBUG,
+                    "spill: the file of evicted blocks keeps the holes of the blocks taken back, its compacted "
+                    "copy could not be written (%s); free space in %s (warned once)", err,
+                    self.directory or tempfile.gettempdir())
+            return
         old.close()
 
 

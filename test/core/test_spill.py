@@ -91,3 +91,35 @@ def test_a_failed_write_spills_nothing_and_says_what_to_do(tmp_path, monkeypatch
     out = empty_like(rows_of(keys[:1], 2))
     assert spill.take(keys[:1], out).all()
     np.testing.assert_array_equal(out[0], rows_of(keys[:1], 0)[0])
+
+
+def test_a_compaction_on_a_full_disk_keeps_the_blobs_still_held(monkeypatch, caplog):
+    """Blocks taken back left holes; the compaction that copies the rest into a fresh file met a full
+    disk: the OSError left the spill on the fresh file with only the blobs copied so far (the others
+    lost) and reached the grid's block allocation (`take`). The old file now stays, holes and all."""
+    import io
+    import tempfile
+
+    from test_map_bound_large import _FillingDisk
+
+    room: list[int | None] = [None]
+    temporary_file = tempfile.TemporaryFile
+
+    def on_the_disk(*args, buffering: int = -1, **kwargs):
+        raw = _FillingDisk(temporary_file(*args, buffering=0, **kwargs), room)
+        return raw if buffering == 0 else io.BufferedRandom(raw)
+
+    monkeypatch.setattr(spill_module.tempfile, "TemporaryFile", on_the_disk)
+    monkeypatch.setattr(spill_module, "_COMPACT_MIN_BYTES", 0)
+    spill = BlockSpill()
+    keys = np.arange(100, dtype=np.int64) * 7
+    rows = rows_of(keys, seed=3)
+    spill.put(keys, rows)
+    room[0] = 1000  # a fresh file gets 1000 bytes: the disk is full
+    back = empty_like(rows)
+    assert spill.take(keys[:60], [r[:60] for r in back]).all()  # most of them: a compaction is due
+    assert len(spill) == 40 and spill.holds(keys[60:]).all()
+    rest = empty_like([r[60:] for r in rows])
+    assert spill.take(keys[60:], rest).all()
+    assert all(np.array_equal(a, b[60:]) for a, b in zip(rest, rows))
+    assert sum("could not be written" in r.getMessage() for r in caplog.records) == 1
