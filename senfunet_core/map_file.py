@@ -86,7 +86,7 @@ def load_map(path: str | Path, device: str | None = None, *,
                    if key not in state]
         if missing:
             raise InputError(f"{path} is an incomplete engine state (no {', '.join(missing)}); save the map again")
-    except InputError:
+    except (InputError, MemoryError):  # a file too large for the memory left is no damaged file
         raise
     except Exception as err:
         raise InputError(f"cannot read engine state {path}: {err}") from err

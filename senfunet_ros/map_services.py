@@ -22,6 +22,14 @@ from senfunet_ros.pipeline import Pipeline
 _MAP_FIELDS = ("sensors", "sensor_uses_rgb", "voxel_size_m", "band_m")
 
 
+def _reason(err: Exception) -> str:
+    """What an error says; an allocation's bare MemoryError says nothing by itself."""
+    if isinstance(err, MemoryError):
+        return (f"out of memory ({err})" if str(err) else "out of memory") + \
+            " (free memory, e.g. with a lower max_map_blocks, and call the service again; the map is kept)"
+    return str(err) or type(err).__name__
+
+
 def _plain(value: Any) -> Any:
     return tuple(value) if isinstance(value, (list, tuple)) else value
 
@@ -111,6 +119,6 @@ class MapServices:
             self.logger.info(log or response.message)
         except Exception as err:
             response.success = False
-            response.message = failure.format(err=err)
+            response.message = failure.format(err=_reason(err))
             self.logger.error(response.message)
         return response

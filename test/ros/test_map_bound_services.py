@@ -180,3 +180,27 @@ def test_save_map_on_a_full_disk_says_so_and_keeps_the_earlier_map_file(tmp_path
         reply.message
     assert "unexpected pos" not in reply.message, reply.message
     assert path.read_bytes() == earlier and sorted(p.name for p in tmp_path.iterdir()) == ["map.pt", "p.yaml"]
+
+
+def test_services_that_run_out_of_memory_say_so_and_keep_the_map(tmp_path, monkeypatch):
+    """A bare MemoryError (an allocation of Python bytes, torch.load of a map too large for the memory
+    left) has no text: ~/save_mesh replied "saving failed: ; check parameter output_dir" and ~/load_map
+    "cannot read engine state ...: ", as if the file were damaged."""
+    import senfunet_core.map_file
+    import senfunet_core.ply
+
+    services, pipeline, _ = _services(tmp_path)
+    assert _call(services.save_map).success
+    faces = pipeline.engine.extract_mesh("fused").n_faces
+
+    def no_memory(*args: Any, **kwargs: Any) -> Any:
+        raise MemoryError()
+
+    monkeypatch.setattr(senfunet_core.ply, "write_ply", no_memory)
+    monkeypatch.setattr(senfunet_core.map_file.torch, "load", no_memory)
+    for handler in (services.save_mesh, services.load_map):
+        reply = _call(handler)
+        assert not reply.success and "out of memory" in reply.message and ": ;" not in reply.message, reply.message
+        assert "cannot read" not in reply.message, reply.message
+    monkeypatch.undo()
+    assert pipeline.engine.extract_mesh("fused").n_faces == faces
