@@ -225,6 +225,8 @@ class Pipeline:
         from senfunet_core.map_file import load_map
 
         path = Path(path).expanduser()
+        if path.is_dir():
+            raise IsADirectoryError(f"{path} is a folder, not a map file; set parameter map_file to the map's file")
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such map file; set parameter map_file or call ~/save_map first")
         # its alpha threads start as the old engine's did (the node's: at its mesh thread's priority)

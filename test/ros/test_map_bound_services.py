@@ -204,3 +204,15 @@ def test_services_that_run_out_of_memory_say_so_and_keep_the_map(tmp_path, monke
         assert "cannot read" not in reply.message, reply.message
     monkeypatch.undo()
     assert pipeline.engine.extract_mesh("fused").n_faces == faces
+
+
+def test_load_map_of_a_folder_says_it_is_a_folder(tmp_path):
+    """map_file naming a folder (the folder of the maps, without the file): the reply said "no such map
+    file" of a path that exists."""
+    services, pipeline, _ = _services(tmp_path, map_file="maps")
+    (tmp_path / "maps").mkdir()
+    blocks = pipeline.engine.grid.n_blocks
+    reply = _call(services.load_map)
+    assert not reply.success and f"{tmp_path / 'maps'} is a folder" in reply.message, reply.message
+    assert "no such" not in reply.message and "set parameter map_file" in reply.message, reply.message
+    assert pipeline.engine.grid.n_blocks == blocks
