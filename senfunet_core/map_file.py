@@ -80,8 +80,13 @@ def load_map(path: str | Path, device: str | None = None, *,
                              "written: an incomplete copy, a failing disk?); load another copy of the map")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-        if state.get("format") != "senfunet-engine-1":
-            raise InputError(f"{path} is not a SenFuNet engine state")
+        made = state.get("format") if isinstance(state, dict) else None
+        if isinstance(made, str) and made.startswith("senfunet-engine-") and made != "senfunet-engine-1":
+            raise InputError(f"{path} is a map of another version of SenFuNet ({made}; this one reads "
+                             "senfunet-engine-1): load it with the version that saved it, or replay the recording")
+        if made != "senfunet-engine-1":  # another torch file (weights, a checkpoint)
+            raise InputError(f"{path} is not a SenFuNet engine state (~/save_map and replay write one); set "
+                             "parameter map_file to such a map")
         missing = [key for key in ("config", "grid", "feature_nets", "weighting_net", "frames_integrated")
                    if key not in state]
         if missing:

@@ -216,3 +216,23 @@ def test_load_map_of_a_folder_says_it_is_a_folder(tmp_path):
     assert not reply.success and f"{tmp_path / 'maps'} is a folder" in reply.message, reply.message
     assert "no such" not in reply.message and "set parameter map_file" in reply.message, reply.message
     assert pipeline.engine.grid.n_blocks == blocks
+
+
+def test_load_map_of_another_version_or_another_torch_file_says_what_to_do(tmp_path):
+    """A map a newer version wrote (another format), a tensor, the network weights: each was "not a
+    SenFuNet engine state" (a newer map's user learnt neither why nor what to do) or, for a tensor,
+    "cannot read engine state ...: 'Tensor' object has no attribute 'get'"."""
+    import torch
+
+    services, pipeline, _ = _services(tmp_path, map_file="other.pt")
+    assert _call(services.save_map).success
+    state = torch.load(tmp_path / "other.pt", weights_only=True)
+    blocks = pipeline.engine.grid.n_blocks
+    for saved, says in ((dict(state, format="senfunet-engine-2"), "another version of SenFuNet (senfunet-engine-2"),
+                        (torch.zeros(3), "is not a SenFuNet engine state"),
+                        ({"weights": torch.zeros(3)}, "is not a SenFuNet engine state")):
+        torch.save(saved, tmp_path / "other.pt")
+        reply = _call(services.load_map)
+        assert not reply.success and says in reply.message, reply.message
+        assert "replay the recording" in reply.message or "set parameter map_file" in reply.message, reply.message
+        assert pipeline.engine.grid.n_blocks == blocks
