@@ -1060,8 +1060,15 @@ class BlockGrid:
             self.coords[start:n_blocks] = keys_to_coords(new)
             self.channel_pools.fill_new_rows(start, n_blocks)
             if self.spill is not None and len(self.spill):
-                restored = self.spill.take(self.slot_keys[start:n_blocks],
-                                           [pool[start:n_blocks].numpy() for pool in self.pools.values()])
+                try:
+                    restored = self.spill.take(self.slot_keys[start:n_blocks],
+                                               [pool[start:n_blocks].numpy() for pool in self.pools.values()])
+                except BaseException:  # (a disk that fails a read) the blocks stay spilled and are not added:
+                    # left in the hash table past the committed slots, the next frame reaching them crashed
+                    self.slot_keys[start:n_blocks] = EMPTY_KEY
+                    self.coords[start:n_blocks] = 0
+                    self.hash_table = _hash_table(self.slot_keys, start, len(self.hash_table.keys))
+                    raise
                 self._restored_slots.append(start + np.flatnonzero(restored))
             self.n_blocks = n_blocks
 

@@ -8,6 +8,7 @@ import re
 import tempfile
 
 import numpy as np
+import pytest
 
 import senfunet_core.spill as spill_module
 from senfunet_core.spill import BlockSpill
@@ -263,3 +264,32 @@ def test_a_disk_that_fills_after_an_eviction_keeps_the_spilled_blocks_readable(m
     integrate_views(engine, [(SPHERE_C, SPHERE_VIEWS[1])])
     engine.update()
     assert engine.frames_integrated == {"tof": 8, "stereo": 8} and engine.grid.n_blocks <= 165
+
+
+def test_a_spill_that_fails_a_read_keeps_the_grid_whole(monkeypatch):
+    """A frame reaching spilled blocks when the disk fails their read (EIO): the grid's block allocation
+    raised with the blocks added to the hash table past the committed slots, and the next frame that
+    reached them crashed the process (a segfault in the integration kernels). The frame is lost (it
+    raises), the blocks stay spilled and come back with the next frame."""
+    import torch
+
+    engine = engine_for_tests(max_blocks=165)
+    integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2))
+    engine.update()
+    spill = engine.grid.spill
+    spilled = spill.state_dict()["keys"]
+    assert len(spilled) > 0
+    take = BlockSpill.take
+
+    def failing_read(self, keys, rows):
+        raise OSError(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr(BlockSpill, "take", failing_read)
+    with pytest.raises(OSError, match="Input/output error"):
+        integrate_views(engine, [(SPHERE_C, SPHERE_VIEWS[0])])
+    slots = engine.grid.lookup_keys(torch.from_numpy(spilled)).numpy()
+    assert (slots < engine.grid.n_blocks).all()  # no key of a block not added
+    assert len(spill) == len(spilled)
+    monkeypatch.setattr(BlockSpill, "take", take)
+    integrate_views(engine, [(SPHERE_C, SPHERE_VIEWS[0])])
+    assert spill.restored > 0 and engine.frames_integrated == {"tof": 5, "stereo": 5}
