@@ -14,8 +14,8 @@ from .errors import InputError
 @contextlib.contextmanager
 def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
     """A binary file to write `path` through: a temporary file in the same folder (so that the
-    final rename stays on one file system) that replaces `path` when the block ends, and is removed
-    when it raises. InputError when `path` is a folder."""
+    final rename stays on one file system) that replaces `path` when the block ends, once its data is
+    on disk (fsync), and is removed when it raises. InputError when `path` is a folder."""
     path = Path(path)
     if path.is_dir():
         raise InputError(f"{path} is a folder; give a file path")
@@ -25,6 +25,10 @@ def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
     try:
         with os.fdopen(fd, "wb") as file:
             yield file
+            # on disk before its name: a robot switched off after a save (save_on_shutdown) could find the
+            # final name on an empty or half-written file (the rename reached the disk, the data not yet)
+            file.flush()
+            os.fsync(file.fileno())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
