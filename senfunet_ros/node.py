@@ -47,6 +47,7 @@ from rosgraph_msgs.msg import Clock as RosClock
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import Trigger
 
+from senfunet_core.errors import InputError
 from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
 from senfunet_ros.bagio import message_class
@@ -771,7 +772,8 @@ def stop_node(node: FusionNode) -> None:
             try:
                 try:
                     paths, saved = node.map_services.save_meshes(), "saved"
-                except OSError as err:  # output_dir cannot be written: the map would end with the process
+                except (OSError, InputError) as err:  # output_dir cannot be written (a file there is a folder):
+                    # the map would end with the process
                     print(f"senfunet: saving on shutdown into output_dir failed: {err}; check parameter output_dir; "
                           "saving into a new temporary folder instead", file=sys.stderr, flush=True)
                     paths = node.map_services.save_meshes(tempfile.mkdtemp(prefix="senfunet_output_"))

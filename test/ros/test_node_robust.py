@@ -692,6 +692,33 @@ def test_ctrl_c_during_the_stop_drops_the_queued_frames_and_the_saving_not_the_n
         run.helper.destroy_node()
 
 
+def test_save_on_shutdown_into_an_output_dir_it_cannot_use_saves_into_a_temporary_folder(ros, tmp_path: Path,
+                                                                                          monkeypatch, capsys) -> None:
+    """save_on_shutdown with a folder where output_dir's mesh.ply goes: the refusal (InputError, not an
+    OSError) skipped the temporary folder meant for an output_dir that cannot be written, and the map
+    ended with the process."""
+    import tempfile
+
+    from senfunet_core.ply import read_ply
+    from senfunet_ros.node import stop_node
+
+    run = Running("stopsave", {**topic_params("stopsave"), **SMALL, "save_on_shutdown": True}, tmp_path)
+    try:
+        fuse_in_process(run, scene_messages())
+        faces = run.node.engine.extract_mesh("fused").n_faces
+        (tmp_path / "out" / "mesh.ply").mkdir(parents=True)
+        fallback = tmp_path / "fallback"
+        monkeypatch.setattr(tempfile, "mkdtemp", lambda prefix="": (fallback.mkdir(), str(fallback))[1])
+        run.spinning.stop()
+        stop_node(run.node)
+        captured = capsys.readouterr()
+        assert "saving into a new temporary folder instead" in captured.err, captured.err
+        assert f"saved instead {fallback}" in captured.out, captured.out
+        assert faces > 0 and read_ply(fallback / "mesh.ply").n_faces == faces
+    finally:
+        run.helper.destroy_node()
+
+
 _READER = """
 import sys
 import rclpy
