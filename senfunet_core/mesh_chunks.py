@@ -160,11 +160,13 @@ class MeshChunks:
         # again after each rewrite: appending the rewritten chunk may merge it with another one due (which
         # then leaves the list with its dead blocks gone)
         while (due := next((c for c in self._chunks if 2 * int(c.alive.sum()) < len(c.alive)), None)) is not None:
+            # (made before the old one goes: a copy that fails, out of memory, loses nothing)
+            rewritten = self._chunk([due.alive_meshes()]) if due.alive.any() else None
             self._chunks.remove(due)
             self.n_blocks -= int(due.alive.sum())
             self.n_faces -= int(np.diff(due.meshes.face_offsets)[due.alive].sum())
-            if due.alive.any():
-                self._append(self._chunk([due.alive_meshes()]))
+            if rewritten is not None:
+                self._append(rewritten)
 
     def clear(self) -> None:
         self._chunks = []
@@ -180,8 +182,10 @@ class MeshChunks:
         chunks = self._chunks
         while (len(chunks) >= 2 and chunks[-2].nbytes <= 2 * chunks[-1].nbytes
                and chunks[-2].nbytes + chunks[-1].nbytes <= MAX_CHUNK_BYTES_PER_SEAL * self.seal_bytes):
-            last, before = chunks.pop(), chunks.pop()
-            chunks.append(self._chunk([before.alive_meshes(), last.alive_meshes()]))
+            # made before the two go: a merge that fails (out of memory) loses neither
+            merged = self._chunk([chunks[-2].alive_meshes(), chunks[-1].alive_meshes()])
+            del chunks[-2:]
+            chunks.append(merged)
 
     def _chunk(self, parts: list[BlockMeshes]) -> _Chunk:
         """A chunk of these meshes, in a file if they take `seal_bytes` or more and it can be written."""

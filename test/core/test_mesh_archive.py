@@ -236,3 +236,30 @@ def test_a_block_evicted_again_and_again_beside_one_on_disk_keeps_its_archived_m
         assert held.n_faces == 2 and len(held.vertices) == 6
         np.testing.assert_array_equal(np.sort(held.vertices[held.faces].reshape(-1, 3), axis=0),
                                       np.sort(np.concatenate([interior.vertices, seam.vertices]), axis=0))
+
+
+def test_a_merge_that_runs_out_of_memory_loses_no_archived_mesh(monkeypatch):
+    """Merging two chunks (up to MAX_CHUNK_BYTES_PER_SEAL * seal_bytes, 256 MB) popped both before the
+    copy that joins them: a MemoryError in that copy lost the final meshes of every block they held,
+    and the archive went on without them (map data dropped). Now the merge is made first."""
+    import senfunet_core.mesh_chunks as mc
+
+    chunks = MeshChunks(seal_bytes=1 << 40)
+    rng = np.random.default_rng(6)
+    first = {(0, j, 0): random_mesh(rng, (0, j, 0), 4) for j in range(10)}
+    chunks.put(BlockMeshes.from_meshes(first))
+    new_chunk = mc._new_chunk
+
+    def no_memory(meshes, **kwargs):
+        raise MemoryError("Unable to allocate 256. MiB for an array")
+
+    monkeypatch.setattr(mc, "_new_chunk", lambda meshes, **kw: (no_memory if len(meshes) > 10 else new_chunk)(meshes,
+                                                                                                            **kw))
+    second = {(1, j, 0): random_mesh(rng, (1, j, 0), 4) for j in range(10)}
+    with pytest.raises(MemoryError):
+        chunks.put(BlockMeshes.from_meshes(second))  # its chunk is made, the merge with the first fails
+    monkeypatch.undo()
+    held = chunks.select(packed(list(first) + list(second))).as_dict()
+    assert len(chunks) == len(held) == 20
+    for key, mesh in {**first, **second}.items():
+        assert_same(held[key], mesh)
