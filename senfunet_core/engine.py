@@ -28,12 +28,11 @@ Threading model (the one place it is described):
   ("senfunet-alpha", per engine, owned by its `AlphaScheduler`) evaluate the weighting net's batches for an
   update that has no time budget (or an idle catch-up, `refresh_alpha(until_frame=True)`), and for an
   eviction that integration waits for (`MapBound.evict`: the integrating thread evicts, or the map is past
-  the hard bound), while the
-  updating (or evicting) thread waits for them in order and writes their results; they also mesh
-  the batches of an `update(mesh_threads=...)` (no frame waiting) and, in an idle catch-up, count
-  the voxels near a surface that order it (`AlphaScheduler.order`), reading the grid as the
-  updating thread does. Several threads may integrate, and
-  several may update: the locks serialise them. The alpha threads start at the priority of the
+  the hard bound), while the updating (or evicting) thread waits for them in order and writes their
+  results; they also mesh the batches of an `update(mesh_threads=...)` (no frame waiting) and, in an
+  idle catch-up, count the voxels near a surface that order it (`AlphaScheduler.order`), reading the
+  grid as the updating thread does. Several threads may integrate, and several may update: the locks
+  serialise them. The alpha threads start at the priority of the
   thread that first needs them and then run the constructor's `worker_setup` (the live node's
   lowers them to its mesh thread's). The engine's parts (`AlphaScheduler`,
   `BlockMesher`, `MapBound`) start no thread of their own besides those alpha threads, and take only

@@ -172,12 +172,12 @@ class MeshPublisher:
             weights = weights and self.weights_pub.get_subscription_count() > 0
             contained = self._latency.take()  # frames integrated before this update began
             stamp_ns = self.pipeline.latest_stamp_ns  # of them: a frame integrated during the update may be missing
-            # no frame waiting (the sensors paused, or integration keeps up): mesh on every core; a
-            # frame coming meanwhile still goes first (the mesh thread's lower priority, which its
-            # helper threads share)
             # the update takes the engine's changes: until they are published, a failure (the update's
             # own, encoding, a refused publication) makes the next publication send the whole map
             served, self._served = self._served, (0, 0)
+            # no frame waiting (the sensors paused, or integration keeps up): mesh on every core; a
+            # frame coming meanwhile still goes first (the mesh thread's lower priority, which its
+            # helper threads share)
             update = engine.update(alpha_budget_s=0.0,
                                    mesh_threads=1 if self._frame_waiting() else engine.config.alpha_threads)
             if self._resend.is_set():  # cleared before the map is read: a later request gets the next one
