@@ -1,6 +1,7 @@
 """The engine against analytic geometry: TSDF values, fusion, filter, incremental alpha, meshes, state."""
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import subprocess
@@ -267,9 +268,15 @@ def test_an_update_meshed_on_several_threads_equals_one_meshed_on_one(monkeypatc
     one, several = engine_for_tests(), engine_for_tests(alpha_threads=2, mesh_batch_blocks=64)
     meshing_threads: set[str] = set()
     block_meshes = several.mesher.block_meshes
+    # the first two shares on the alpha threads wait for each other: on a loaded machine one pool thread
+    # could otherwise take both before the other starts
+    meet, arrivals = threading.Barrier(2, timeout=60), itertools.count()
 
     def recorded(*args, **kwargs):
-        meshing_threads.add(threading.current_thread().name)
+        name = threading.current_thread().name
+        meshing_threads.add(name)
+        if name.startswith("senfunet-alpha") and next(arrivals) < 2:
+            meet.wait()
         return block_meshes(*args, **kwargs)
 
     several.mesher.block_meshes = recorded
