@@ -229,12 +229,17 @@ def _fill_neighbour_table(table_keys: np.ndarray, table_slots: np.ndarray, slot_
                           slots: np.ndarray, codes: np.ndarray, out: np.ndarray) -> None:
     for n in range(slots.shape[0]):
         key = slot_keys[slots[n]]
-        a = ((key >> (2 * _COORD_BITS)) & _COORD_MASK) - _COORD_OFFSET
-        b = ((key >> _COORD_BITS) & _COORD_MASK) - _COORD_OFFSET
-        c = (key & _COORD_MASK) - _COORD_OFFSET
         for code in codes:
-            k = coords_key(a + code // 9 - 1, b + (code // 3) % 3 - 1, c + code % 3 - 1)
-            out[n, code] = hash_find(table_keys, table_slots, k) if k >= 0 else -1
+            out[n, code] = _neighbour_slot(table_keys, table_slots, key, code)
+
+
+@numba.njit(inline="always")
+def _neighbour_slot(table_keys: np.ndarray, table_slots: np.ndarray, key: int, code: int) -> int:
+    """Slot of the neighbour at `code` (as in `neighbour_table`) of the block with `key`, -1 when absent."""
+    k = coords_key(((key >> (2 * _COORD_BITS)) & _COORD_MASK) - _COORD_OFFSET + code // 9 - 1,
+                   ((key >> _COORD_BITS) & _COORD_MASK) - _COORD_OFFSET + (code // 3) % 3 - 1,
+                   (key & _COORD_MASK) - _COORD_OFFSET + code % 3 - 1)
+    return hash_find(table_keys, table_slots, k) if k >= 0 else -1
 
 
 def masked_neighbours(table_keys: np.ndarray, table_slots: np.ndarray, slot_keys: np.ndarray, slots: np.ndarray,
@@ -242,10 +247,10 @@ def masked_neighbours(table_keys: np.ndarray, table_slots: np.ndarray, slot_keys
     """The neighbours each block's 27-bit mask names (bit `code`, as in `neighbour_table`) that
     exist, as (index into `slots`, code, the neighbour's slot): block by block, codes ascending.
     Without a B x 27 table: a caller that reaches a few neighbours of many blocks looks up those only."""
-    n_bits = int(np.bitwise_count(masks.astype(np.int64) & ((1 << 27) - 1)).sum())
+    masks = masks.astype(np.int64)
+    n_bits = int(np.bitwise_count(masks & ((1 << 27) - 1)).sum())
     sources, codes, targets = (np.empty(n_bits, np.int64) for _ in range(3))
-    found = _fill_masked_neighbours(table_keys, table_slots, slot_keys, slots, masks.astype(np.int64),
-                                    sources, codes, targets)
+    found = _fill_masked_neighbours(table_keys, table_slots, slot_keys, slots, masks, sources, codes, targets)
     return sources[:found], codes[:found], targets[:found]
 
 
@@ -259,14 +264,10 @@ def _fill_masked_neighbours(table_keys: np.ndarray, table_slots: np.ndarray, slo
         if mask == 0:
             continue
         key = slot_keys[slots[n]]
-        a = ((key >> (2 * _COORD_BITS)) & _COORD_MASK) - _COORD_OFFSET
-        b = ((key >> _COORD_BITS) & _COORD_MASK) - _COORD_OFFSET
-        c = (key & _COORD_MASK) - _COORD_OFFSET
         for code in range(27):
             if (mask >> code) & 1 == 0:
                 continue
-            k = coords_key(a + code // 9 - 1, b + (code // 3) % 3 - 1, c + code % 3 - 1)
-            slot = hash_find(table_keys, table_slots, k) if k >= 0 else -1
+            slot = _neighbour_slot(table_keys, table_slots, key, code)
             if slot >= 0:
                 sources[found] = n
                 codes[found] = code
