@@ -535,7 +535,8 @@ class SenFuNet:
                 current = evaluated & (self.store.stale[meshed] == 0) & ~self.store.alpha_pending[meshed]
                 waiting_s = self.alpha.waiting_s(meshed[~current], time.monotonic())
                 spill = self.grid.spill
-                spilled = (len(spill), spill.nbytes, spill.restored) if spill is not None else (0, 0, 0)
+                spilled = ((len(spill), spill.nbytes, spill.restored, spill.compact_failures) if spill is not None
+                           else (0, 0, 0, 0))
             # counted without the data lock, as an update reads the grid: a frame integrated meanwhile
             # may or may not be in the count
             observed = self.store.observed_voxels([f"weight{i}" for i in range(n)])
@@ -552,7 +553,10 @@ class SenFuNet:
                 "archive_bytes_in_memory": self.archive.chunks.bytes_in_memory,
                 "archive_bytes_on_disk": self.archive.chunks.bytes_on_disk,
                 "archive_seal_failures": self.archive.chunks.seal_failures,
+                # evicted blocks whose final meshes wait for memory to be archived (`MapBound._archive`)
+                "unarchived_blocks": sum(len(meshes) for meshes in self.bound.unarchived),
                 "spilled_blocks": spilled[0], "spill_bytes": spilled[1], "restored_blocks": spilled[2],
+                "spill_compact_failures": spilled[3],
                 "meshed_blocks": len(meshed), "meshed_blocks_alpha_evaluated": int(evaluated.sum()),
                 "meshed_blocks_alpha_current": int(current.sum()),
                 # how long the meshed surface waits for the weighting net after it changed

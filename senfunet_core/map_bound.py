@@ -27,7 +27,8 @@ import numpy as np
 from .alpha_scheduler import AlphaScheduler
 from .block_mesher import MESH_READ_CODES, MESH_READER_CODES, BlockMesher, with_seams
 from .block_store import BlockStore, Eviction
-from .mesh_archive import MeshArchive
+from .mesh_archive import MeshArchive, drop_meshable
+from .mesh_chunks import packed_keys
 from .mesher import BlockMeshes
 
 __all__ = ["HARD_BOUND", "MapBound", "memory_bound_blocks"]
@@ -82,6 +83,8 @@ class MapBound:
         self._frame_blocks = 0  # how many blocks it touched
         self.evicted_blocks = 0
         self.evictions = 0
+        self.unarchived: list[BlockMeshes] = []  # final meshes of evicted blocks the archive could not take yet
+        self.archive_failures = 0  # ... how often that happened
         self.spill_failures = 0  # evictions abandoned because the spill could not be written (blocks kept)
         self._retry_at_blocks = 0  # after such a failure: no eviction is tried until the map holds this many
         self.evicted_in_view = 0  # evicted blocks that the sensors' latest frames had reached
@@ -91,6 +94,7 @@ class MapBound:
         """Forget the archive and the camera (the map was reset)."""
         self.archive.clear()
         self.newly_archived = []
+        self.unarchived = []
         self.pruned_keys = set()
         self.camera_m = np.zeros(3)
         self._frame_s, self._frame_blocks = np.nan, 0
@@ -145,6 +149,8 @@ class MapBound:
         threads side by side while integration waits for it (`integration_waits`: the caller is
         the integrating thread; or the map is past the hard bound), else on this thread alone."""
         store = self.store
+        if self.unarchived:
+            self._archive_waiting()
         if self.max_blocks <= 0 or store.n_blocks <= self.max_blocks or store.n_blocks < self._retry_at_blocks:
             return None
         t0 = time.perf_counter()
@@ -234,11 +240,7 @@ class MapBound:
         # meanwhile. Archived triangles of cells whose corners were all in memory until now (a block came back
         # since the last update) go: the final meshes just made have those cells; what a victim had archived
         # from an earlier eviction, for cells its new mesh cannot have (a corner block still on disk), stays.
-        near = self.archive.held_around(victim_coords)
-        self.archive.prune(near, in_memory, self.voxel_size_m)
-        self.pruned_keys |= near  # the next update shows what is left of them
-        self.archive.add(archived, in_memory, self.voxel_size_m)
-        self.newly_archived.append(archived)
+        self._archive(archived, victim_coords, in_memory)
         self.evicted_blocks += len(victim_coords)
         if in_view:
             if not self.evicted_in_view:
@@ -249,6 +251,39 @@ class MapBound:
                             self.max_blocks, in_view, len(victim_coords), self._frame_blocks)
             self.evicted_in_view += in_view
         return eviction
+
+    def _archive(self, meshes: BlockMeshes, coords: np.ndarray, in_memory: np.ndarray) -> None:
+        """Archive evicted blocks' final meshes (`coords`: the blocks', `in_memory`: the sorted packed
+        keys of the blocks in memory, these among them). Out of memory, they wait in `unarchived`
+        (counted on ~/status, logged) and are tried again at the next eviction check: their voxels
+        already left, so these meshes are all that is left of the blocks until the sensors see them
+        again."""
+        try:
+            near = self.archive.held_around(coords)
+            self.archive.prune(near, in_memory, self.voxel_size_m)
+            self.pruned_keys |= near  # the next update shows what is left of them
+            self.archive.add(meshes, in_memory, self.voxel_size_m)
+        except MemoryError:
+            self.unarchived.append(meshes)
+            self.archive_failures += 1
+            log.error("map bound: out of memory while archiving the final meshes of %d evicted blocks: ~/mesh, "
+                      "~/save_mesh and ~/save_map lack them until an eviction check archives them (tried at "
+                      "each mesh update; counted as unarchived_blocks on ~/status). Lower max_map_blocks or free "
+                      "memory.", len(meshes))
+            return
+        self.newly_archived.append(meshes)
+
+    def _archive_waiting(self) -> None:
+        """Try again to archive the final meshes an earlier eviction could not (`_archive`), less the
+        cells the live mesh has now (their blocks came back)."""
+        with self._data_lock:
+            in_memory = np.sort(self.store.grid.slot_keys[: self.store.n_blocks])
+        waiting, self.unarchived = BlockMeshes.concatenate(self.unarchived), []
+        # (the blocks counted as in memory, as when their eviction archives them)
+        with_them = np.union1d(in_memory, packed_keys(waiting.keys))
+        self._archive(drop_meshable(waiting, in_memory, self.voxel_size_m), waiting.keys, with_them)
+        if not self.unarchived:
+            log.info("map bound: the final meshes of %d evicted blocks are archived after all", len(waiting))
 
     def _final_meshes(self, slots: np.ndarray, coords: np.ndarray, unjudged: np.ndarray,
                       side_by_side: Callable[[], bool]) -> BlockMeshes:

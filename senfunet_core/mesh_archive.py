@@ -45,7 +45,7 @@ class MeshArchive:
         still among them) stays beside them: those cells are in none of the new meshes."""
         if len(meshes) == 0:
             return
-        kept = _drop_meshable(self.chunks.select(packed_keys(meshes.keys)), in_memory, voxel_size_m)
+        kept = drop_meshable(self.chunks.select(packed_keys(meshes.keys)), in_memory, voxel_size_m)
         if len(kept):
             merged = meshes.as_dict()
             for key, mesh in kept.as_dict().items():
@@ -59,7 +59,7 @@ class MeshArchive:
         if not keys:
             return
         held = self.chunks.select(packed_keys(np.array(sorted(keys))))
-        pruned = _drop_meshable(held, in_memory, voxel_size_m)
+        pruned = drop_meshable(held, in_memory, voxel_size_m)
         if pruned is not held:
             emptied = np.setdiff1d(packed_keys(held.keys), packed_keys(pruned.keys))
             self.chunks.put(pruned, removed=emptied)
@@ -71,7 +71,7 @@ class MeshArchive:
         for part in self.chunks.parts():
             near = _next_to(part.keys, in_memory)
             parts += [part.select(np.flatnonzero(~near)),
-                      _drop_meshable(part.select(np.flatnonzero(near)), in_memory, voxel_size_m)]
+                      drop_meshable(part.select(np.flatnonzero(near)), in_memory, voxel_size_m)]
         return BlockMeshes.concatenate(parts)
 
     def select(self, keys: Iterable[BlockKey]) -> BlockMeshes:
@@ -193,7 +193,7 @@ def meshable_faces(vertices_m: np.ndarray, faces: np.ndarray, in_memory: np.ndar
     return meshable
 
 
-def _drop_meshable(meshes: BlockMeshes, in_memory: np.ndarray, voxel_size_m: float) -> BlockMeshes:
+def drop_meshable(meshes: BlockMeshes, in_memory: np.ndarray, voxel_size_m: float) -> BlockMeshes:
     """These block meshes without the triangles `meshable_faces` finds (blocks left empty go), and a
     block that lost some without the vertices only those used: `MeshArchive.add` joins what is kept of
     a block's archived mesh with its new one, so a block evicted again and again beside one that stays

@@ -149,6 +149,11 @@ class BlockSpill:
         """Bytes on disk held by spilled blocks (compressed)."""
         return self._blobs.nbytes
 
+    @property
+    def compact_failures(self) -> int:
+        """Compactions of the file abandoned (a full disk): it keeps the holes of the blocks taken back."""
+        return self._blobs.compact_failures
+
     def holds(self, keys: np.ndarray) -> np.ndarray:
         """Which of these block keys are spilled (bool per key)."""
         index = self._blobs.index

@@ -174,6 +174,43 @@ def test_a_bound_of_one_block_evicts_every_block_and_keeps_the_mesh(caplog):
     assert len(update.changed) > 0 and engine.extract_mesh("fused").n_faces > 1000
 
 
+def test_an_archive_out_of_memory_keeps_the_evicted_meshes_and_archives_them_later(monkeypatch, caplog):
+    """Archiving an eviction's final meshes ran out of memory after the blocks' voxels had left: the
+    MemoryError failed the frame or the update, and those blocks' meshes were gone from ~/mesh and the
+    saved mesh until the sensors saw them again, counted nowhere. They now wait (logged as an error,
+    counted as unarchived_blocks), the updates go on, and the next eviction check archives them: the
+    fused mesh is then the one of a run that never ran out of memory."""
+    from senfunet_core.mesh_archive import MeshArchive
+
+    def run(fail: bool):
+        engine = engine_for_tests(max_blocks=165)
+        integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]])
+        engine.update()
+        add = MeshArchive.add
+        if fail:
+            def out_of_memory(self, *args, **kwargs):
+                raise MemoryError("Unable to allocate 64. MiB for an array (test)")
+            monkeypatch.setattr(MeshArchive, "add", out_of_memory)
+        integrate_views(engine, far_views(2))  # past the hard bound: evicts (does not raise)
+        update = engine.update()
+        waiting = engine.stats()["unarchived_blocks"]
+        monkeypatch.setattr(MeshArchive, "add", add)
+        engine.update()  # archives them
+        return engine, update, waiting
+
+    caplog.set_level(logging.ERROR, logger="senfunet.engine")
+    reference, _, _ = run(False)
+    engine, failed_update, waiting = run(True)
+    assert waiting > 0 and engine.bound.archive_failures >= 1
+    assert any("out of memory while archiving" in r.getMessage() for r in caplog.records)
+    assert engine.frames_integrated == {"tof": 4, "stereo": 4} and len(failed_update.changed) > 0
+    assert engine.stats()["unarchived_blocks"] == 0 and engine.stats()["evicted_blocks"] > 0
+    assert len(engine.archive) == len(reference.archive)
+    mesh, expected = engine.extract_mesh("fused"), reference.extract_mesh("fused")
+    assert mesh.n_faces == expected.n_faces and np.allclose(np.sort(_centroids([mesh]), axis=0),
+                                                            np.sort(_centroids([expected]), axis=0), atol=1e-5)
+
+
 def test_warm_up_under_a_bound_smaller_than_its_frame_leaves_no_eviction_behind(caplog):
     """The node warms its kernels up on a synthetic frame and then resets the map; under max_map_blocks 1 that
     frame was evicted (twice), so ~/status counted evictions that never happened, and the one warning about

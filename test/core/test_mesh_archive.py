@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from senfunet_core.block_mesher import joined
-from senfunet_core.mesh_archive import MeshArchive, _drop_meshable, blocks_around, union
+from senfunet_core.mesh_archive import MeshArchive, drop_meshable, blocks_around, union
 from senfunet_core.mesh_chunks import MeshChunks, packed_keys as packed
 from senfunet_core.mesher import BlockMeshes, Mesh
 
@@ -109,7 +109,7 @@ def test_archive_reads_equal_the_rule_over_the_whole_archive(tmp_path):
         archive.add(BlockMeshes.from_meshes(random_batch(rng, 40, key_range=10)), in_memory, VOXEL)
     assert archive.chunks.bytes_on_disk > 0
     every = archive.meshes()
-    expected = _drop_meshable(every, in_memory, VOXEL).as_dict()
+    expected = drop_meshable(every, in_memory, VOXEL).as_dict()
     visible = archive.visible(in_memory, VOXEL).as_dict()
     assert visible.keys() == expected.keys() and len(expected) < len(every)  # some cells are dropped
     for key in expected:
@@ -137,7 +137,7 @@ def test_archive_prune_and_add_keep_what_cells_still_need(tmp_path, seal_bytes):
     first = random_batch(rng, 80, key_range=6)
     archive.add(BlockMeshes.from_meshes(first), np.zeros(0, np.int64), VOXEL)
     in_memory = np.sort(packed(list(first)[:40] + [(k[0] + 1, k[1] + 1, k[2] + 1) for k in list(first)[:40]]))
-    expected = _drop_meshable(BlockMeshes.from_meshes(first), in_memory, VOXEL).as_dict()
+    expected = drop_meshable(BlockMeshes.from_meshes(first), in_memory, VOXEL).as_dict()
     archive.prune(set(first), in_memory, VOXEL)
     assert set(archive.meshes().as_dict()) == set(expected) and len(expected) < len(first)
     selected = archive.select(expected).as_dict()
@@ -150,7 +150,7 @@ def test_archive_prune_and_add_keep_what_cells_still_need(tmp_path, seal_bytes):
     for key, mesh in again.items():
         held = selected[key]
         old = expected.get(key)
-        kept = _drop_meshable(BlockMeshes.from_meshes({key: old}), in_memory, VOXEL) if old is not None else None
+        kept = drop_meshable(BlockMeshes.from_meshes({key: old}), in_memory, VOXEL) if old is not None else None
         assert held.n_faces == mesh.n_faces + (kept.face_offsets[-1] if kept is not None else 0)
 
 
