@@ -211,6 +211,11 @@ class StatusReport:
                         f"the topic name (parameter {sensor}.{stream}_topic), its message type and QoS"
                         + (" (colour is optional: set it to '' if there is none)" if stream == "color" else ""))
 
+    def map_changed(self) -> None:
+        """The map was reset or replaced: the next status shows its statistics, not the old map's."""
+        with self._engine_stats_lock:
+            self._engine_stats_at = (-1e9, self._engine_stats_at[1])
+
     def refresh_engine_stats(self) -> None:
         """engine.stats() when the last are due, waiting for the map: for the mesh thread, after each
         publication. The status timer does not wait, and under a map bound updates, evictions (seconds

@@ -934,3 +934,32 @@ def test_status_shows_the_engine_statistics_of_now_though_the_map_is_always_held
     finally:
         node.destroy_node()
         rclpy.shutdown(context=context)
+
+
+def test_status_shows_a_reset_or_loaded_maps_statistics_at_once(tmp_path: Path, ros_domain_id: int) -> None:
+    """The engine's statistics are taken at most every few seconds: after ~/reset or ~/load_map,
+    ~/status went on showing the old map's blocks and frames until they were due again."""
+    from types import SimpleNamespace
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros_domain_id)
+    node = FusionNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in {
+        **topic_params("new_map"), "weights": "none", "output_dir": str(tmp_path)}.items()])
+    try:
+        K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+        assert _engine_stat(node.status(), "engine.stats.frames_integrated.tof") == "0"  # taken now, due in seconds
+        node.map_services.save_map(None, SimpleNamespace(success=None, message=None))  # an empty map
+        node.engine.integrate("tof", np.full((48, 64), 1.0, np.float32), K, np.eye(4))
+        node.map_services.reset(None, SimpleNamespace(success=None, message=None))
+        node.engine.integrate("tof", np.full((48, 64), 1.0, np.float32), K, np.eye(4))
+        msg = node.status()
+        assert _engine_stat(msg, "engine.stats.frames_integrated.tof") == "1"
+        assert int(_engine_stat(msg, "engine.stats.blocks") or 0) > 0
+        reply = node.map_services.load_map(None, SimpleNamespace(success=None, message=None))
+        assert reply.success, reply.message
+        msg = node.status()
+        assert _engine_stat(msg, "engine.stats.frames_integrated.tof") == "0"
+        assert _engine_stat(msg, "engine.stats.blocks") == "0"
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
