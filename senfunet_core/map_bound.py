@@ -149,8 +149,14 @@ class MapBound:
         threads side by side while integration waits for it (`integration_waits`: the caller is
         the integrating thread; or the map is past the hard bound), else on this thread alone."""
         store = self.store
-        if self.unarchived:
-            self._archive_waiting()
+        if self.unarchived:  # final meshes an earlier eviction could not archive (`_archive`), less the
+            # cells of blocks that came back since (the live mesh has them); theirs counted as in memory, as
+            # when an eviction archives its victims
+            with self._data_lock:
+                in_memory = np.sort(store.grid.slot_keys[: store.n_blocks])
+            waiting, self.unarchived = BlockMeshes.concatenate(self.unarchived), []
+            self._archive(drop_meshable(waiting, in_memory, self.voxel_size_m), waiting.keys,
+                          np.union1d(in_memory, packed_keys(waiting.keys)))
         if self.max_blocks <= 0 or store.n_blocks <= self.max_blocks or store.n_blocks < self._retry_at_blocks:
             return None
         t0 = time.perf_counter()
@@ -272,18 +278,6 @@ class MapBound:
                       "memory.", len(meshes))
             return
         self.newly_archived.append(meshes)
-
-    def _archive_waiting(self) -> None:
-        """Try again to archive the final meshes an earlier eviction could not (`_archive`), less the
-        cells the live mesh has now (their blocks came back)."""
-        with self._data_lock:
-            in_memory = np.sort(self.store.grid.slot_keys[: self.store.n_blocks])
-        waiting, self.unarchived = BlockMeshes.concatenate(self.unarchived), []
-        # (the blocks counted as in memory, as when their eviction archives them)
-        with_them = np.union1d(in_memory, packed_keys(waiting.keys))
-        self._archive(drop_meshable(waiting, in_memory, self.voxel_size_m), waiting.keys, with_them)
-        if not self.unarchived:
-            log.info("map bound: the final meshes of %d evicted blocks are archived after all", len(waiting))
 
     def _final_meshes(self, slots: np.ndarray, coords: np.ndarray, unjudged: np.ndarray,
                       side_by_side: Callable[[], bool]) -> BlockMeshes:

@@ -281,7 +281,7 @@ class FusionNode(Node):
         logger = self.get_logger()
         self.pipeline = Pipeline(make_engine(s, logger), ingest, on_time_jump=s.on_time_jump,
                                  log=lambda level, text: getattr(logger, level)(text),
-                                 on_integrated=self._integrated, on_new_map=self._new_map)
+                                 on_integrated=self._integrated, on_new_map=self.camera_colors.clear)
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.ledger.counters()
         # 3. subscriptions: they only enqueue; the status reports their health
@@ -455,12 +455,6 @@ class FusionNode(Node):
     def engine(self) -> Any:
         """The engine (`~/load_map` replaces it)."""
         return self.pipeline.engine
-
-    def _new_map(self) -> None:
-        """The map was emptied or replaced (the pipeline's lock held; callbacks run only once the node
-        spins, after __init__): what is derived from the old one goes."""
-        self.camera_colors.clear()
-        self.status_report.map_changed()
 
     def publish_mesh(self, weights: bool | None = None) -> None:
         """What the mesh timer does, now (`MeshPublisher.publish`), then the engine's statistics for

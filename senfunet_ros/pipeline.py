@@ -87,6 +87,7 @@ class Pipeline:
         self.frames_failed = 0  # the engine rejected them (the map is untouched)
         self.frames_unfinished = 0  # taken from the queues but not integrated because the process stopped
         self.time_jumps = 0
+        self.maps = 1  # maps the engine has held: a reset or a load_map starts the next
         self.integrate_s = 0.0
         self.engine_errors: list[str] = []  # the first few, for stats.json and the status
         self.stopping = False
@@ -134,8 +135,13 @@ class Pipeline:
                   f"{'reset' if reset else 'kept'} (parameter on_time_jump)")
         if reset:
             self.engine.reset()
-            self._on_new_map()
+            self._new_map()
         self.latest_stamp_ns = jump.to_ns
+
+    def _new_map(self) -> None:
+        """The map was emptied or replaced (the lock held)."""
+        self.maps += 1
+        self._on_new_map()
 
     def _frame_done(self, frame: Frame, error: Exception | None, seconds: float) -> None:
         self.integrate_s += seconds
@@ -167,7 +173,7 @@ class Pipeline:
         with self.lock:
             self.engine.reset()
             self.ingest.ledger.discard_waiting("map_reset")
-            self._on_new_map()
+            self._new_map()
 
     def save_meshes(self, out_dir: str | Path, *, sensors: Iterable[str], tsdf_fusion: bool,
                     then_reset: bool = False) -> dict[str, SavedMesh]:
@@ -193,7 +199,7 @@ class Pipeline:
                     mesh = engine.extract_mesh(name, then_reset=then_reset and name == which[-1])
                     meshes[MESH_FILES.get(name, name)] = (mesh, time.perf_counter() - t0)
             if then_reset:
-                self._on_new_map()
+                self._new_map()
         saved = {}
         for stem, (mesh, seconds) in meshes.items():
             path = out / f"{stem}.ply"
@@ -236,7 +242,7 @@ class Pipeline:
         with self.lock:
             self.engine = engine
             self.ingest.ledger.discard_waiting("map_reset")
-            self._on_new_map()
+            self._new_map()
         return engine
 
 

@@ -141,7 +141,8 @@ class StatusReport:
         self.hardware_id = hardware_id
         self._warn = warn
         self._logger = logger
-        self._engine_stats_at: tuple[float, dict[str, Any]] = (-1e9, {})  # (monotonic time, engine.stats())
+        # (monotonic time, engine.stats(), of which of the pipeline's maps)
+        self._engine_stats_at: tuple[float, dict[str, Any], int] = (-1e9, {}, 0)
         self._engine_stats_lock = threading.Lock()
         self._silent_warned: set[tuple[str, str]] = set()
 
@@ -211,11 +212,6 @@ class StatusReport:
                         f"the topic name (parameter {sensor}.{stream}_topic), its message type and QoS"
                         + (" (colour is optional: set it to '' if there is none)" if stream == "color" else ""))
 
-    def map_changed(self) -> None:
-        """The map was reset or replaced: the next status shows its statistics, not the old map's."""
-        with self._engine_stats_lock:
-            self._engine_stats_at = (-1e9, self._engine_stats_at[1])
-
     def refresh_engine_stats(self) -> None:
         """engine.stats() when the last are due, waiting for the map: for the mesh thread, after each
         publication. The status timer does not wait, and under a map bound updates, evictions (seconds
@@ -228,9 +224,10 @@ class StatusReport:
         the status timer and the mesh thread: the lock guards the last statistics, not the engine call
         (which may wait for the map), so neither thread holds the other up."""
         now = time.monotonic()
+        maps = self.pipeline.maps  # a reset or load_map since: the new map's, now
         with self._engine_stats_lock:
-            at, last = self._engine_stats_at
-        if now - at < ENGINE_STATS_PERIOD_S:
+            at, last, of_map = self._engine_stats_at
+        if now - at < ENGINE_STATS_PERIOD_S and of_map == maps:
             return last
         try:
             stats = self.pipeline.engine.stats(wait=wait)
@@ -240,5 +237,5 @@ class StatusReport:
         if stats is None:  # a save or extraction holds the map: the last ones, tried again next time
             return last
         with self._engine_stats_lock:
-            self._engine_stats_at = (now, stats)
+            self._engine_stats_at = (now, stats, maps)
         return stats
