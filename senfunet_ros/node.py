@@ -403,7 +403,7 @@ class FusionNode(Node):
                                           ("mesh_rate_hz", self._mesh_timer, mesh_period_s(new.mesh_rate_hz)),
                                           ("status_rate_hz", self._status_timer, 1.0 / new.status_rate_hz)):
                 if getattr(new, name) != getattr(old, name):
-                    timer.timer_period_ns = int(1e9 * period_s)
+                    set_timer_period(timer, period_s)
             tf = self.ingest.config.tf
             if hasattr(tf, "max_gap_ns"):  # our own TF buffer interpolates within pose_tolerance_s
                 tf.max_gap_ns = int(new.pose_tolerance_s * 1e9)
@@ -480,6 +480,16 @@ class FusionNode(Node):
         self.mesh_publisher.close()
         logging.getLogger("senfunet").removeHandler(self._engine_log)
         super().destroy_node()
+
+
+def set_timer_period(timer: Any, period_s: float) -> None:
+    """A timer's new period, in force at once: rcl keeps the next call the old period scheduled (a
+    rate raised from 0.01 Hz would take effect up to 100 s later), so a timer due later than one new
+    period from now is restarted on the new one."""
+    period_ns = int(1e9 * period_s)
+    timer.timer_period_ns = period_ns
+    if (timer.time_until_next_call() or 0) > period_ns:
+        timer.reset()
 
 
 def subscribe(node: Node, settings: P.Settings, *, callback: Callable[[str, Stream], Callable[[Any], None]]

@@ -967,3 +967,22 @@ def test_diagnostics_values_of_engine_statistics_are_plain_numbers() -> None:
     values = {kv.key: kv.value for kv in status.values}
     assert values["engine.stats.frames_integrated.tof"] == "56" and values["engine.stats.blocks"] == "5"
     assert "engine.stats.frames_integrated" not in values
+
+
+def test_a_rate_raised_at_run_time_takes_effect_at_once(ros, tmp_path: Path) -> None:
+    """`ros2 param set /senfunet status_rate_hz 5` on a node started at 0.002 Hz: rcl keeps the next call the
+    old period scheduled, so ~/status stayed silent for up to 500 s after the change (and the mesh timer
+    likewise for mesh_rate_hz)."""
+    run = Running("rates_rt", {**topic_params("rates_rt"), **SMALL, "status_rate_hz": 0.002, "mesh_rate_hz": 0.002},
+                  tmp_path)
+    got: list[DiagnosticArray] = []
+    try:
+        run.helper.create_subscription(DiagnosticArray, f"{run.prefix}/status", got.append, 10)
+        time.sleep(1.0)  # discovery; no status is due for 500 s
+        assert not got and run.node.timings["update"].count == 0
+        (r_status, r_mesh) = _set(run, status_rate_hz=5.0, mesh_rate_hz=5.0)
+        assert r_status.successful and r_mesh.successful
+        wait_for(lambda: len(got) >= 2, 20, "~/status at the new rate")
+        wait_for(lambda: run.node.timings["update"].count >= 2, 20, "mesh updates at the new rate")
+    finally:
+        run.close()
