@@ -31,7 +31,7 @@ import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import rclpy
@@ -251,7 +251,8 @@ class _ClockWatch:
 class FusionNode(Node):
     """SenFuNet as a ROS 2 node. See the module docstring for its interface."""
 
-    def __init__(self, node_name: str = P.NODE_NAME, **kwargs: Any) -> None:
+    def __init__(self, node_name: str = P.NODE_NAME, *, argv: Sequence[str] = (), **kwargs: Any) -> None:
+        """argv: the process's command line (`main`), whose parameter files are checked like `cli_args`'."""
         super().__init__(node_name, **kwargs)
         self._engine_log = _EngineLogToRos(self.get_logger())
         engine_logger = logging.getLogger("senfunet")
@@ -268,6 +269,9 @@ class FusionNode(Node):
         for name in P.unknown_parameters(getattr(self, "_parameter_overrides", {}), self.settings.sensor_names):
             self.get_logger().warning(f"parameter {name} is not one of this node's and is ignored; see "
                                       "config/default.yaml for the names")
+        # ... and a parameter file none of whose sections reaches the node (renamed, or in a namespace)
+        for problem in unread_params_files([*argv, *(kwargs.get("cli_args") or ())], self.get_fully_qualified_name()):
+            self.get_logger().error(problem)
         # 2. engine and ingest (the engine is thread-safe: integration and mesh updates overlap)
         s = self.settings
         self.timings = {name: _Timing() for name in ("integrate", "update", "alpha", "weights", "encode", "publish")}
@@ -480,6 +484,35 @@ class FusionNode(Node):
         self.mesh_publisher.close()
         logging.getLogger("senfunet").removeHandler(self._engine_log)
         super().destroy_node()
+
+
+def params_files(argv: Sequence[str]) -> list[str]:
+    """The files of the `--params-file FILE` arguments among the ROS arguments of a command line (those
+    after `--ros-args`, up to a `--`)."""
+    files, in_ros_args = [], False
+    for arg, following in zip(argv, [*argv[1:], None]):
+        if arg in ("--ros-args", "--"):
+            in_ros_args = arg == "--ros-args"
+        elif in_ros_args and arg == "--params-file" and following is not None:
+            files.append(following)
+    return files
+
+
+def unread_params_files(argv: Sequence[str], node_fqn: str) -> list[str]:
+    """Why each parameter file of `argv` gives the node `node_fqn` nothing (none of its sections reaches
+    it, as rcl matches them): rcl skips such a file silently, and the node would run with its defaults,
+    e.g. config/default.yaml's 'senfunet' section under `-r __ns:=/robot1` or `-r __node:=front`."""
+    from pathlib import Path
+
+    from senfunet_ros.replay import _read_params_file
+
+    out = []
+    for path in params_files(argv):
+        try:
+            _read_params_file(Path(path), node_sections_only=True, node_fqn=node_fqn)
+        except ValueError as err:
+            out.append(f"{err}; the node runs without this file's parameters")
+    return out
 
 
 def set_timer_period(timer: Any, period_s: float) -> None:
@@ -713,7 +746,7 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     node: FusionNode | None = None
     try:
-        node = FusionNode()
+        node = FusionNode(argv=sys.argv if args is None else args)
         spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

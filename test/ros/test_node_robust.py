@@ -986,3 +986,35 @@ def test_a_rate_raised_at_run_time_takes_effect_at_once(ros, tmp_path: Path) -> 
         wait_for(lambda: run.node.timings["update"].count >= 2, 20, "mesh updates at the new rate")
     finally:
         run.close()
+
+
+def test_a_parameter_file_with_no_section_for_the_node_is_named_at_start(ros, tmp_path: Path, capfd) -> None:
+    """`ros2 run senfunet_ros fusion_node --ros-args -r __ns:=/robot1 --params-file config/default.yaml` (or a
+    launch file in a namespace, or `-r __node:=front`): rcl gives the node none of the file's 'senfunet'
+    section, and the node ran with its defaults (other topics, rates, ...) without a word."""
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+
+    plain = tmp_path / "plain.yaml"
+    plain.write_text("senfunet:\n  ros__parameters:\n    mesh_rate_hz: 3.0\n")
+    wildcard = tmp_path / "wildcard.yaml"
+    wildcard.write_text("/**:\n  ros__parameters:\n    status_rate_hz: 3.0\n")
+    overrides = [Parameter(k, value=v) for k, v in {**topic_params("paramfile"), **SMALL,
+                                                    "output_dir": str(tmp_path / "out")}.items()]
+    for namespace, remap, fqn in (("paramfile", [], "/paramfile/senfunet"), ("", ["-r", "__node:=front"], "/front")):
+        capfd.readouterr()
+        node = FusionNode(namespace=namespace, parameter_overrides=overrides,
+                          cli_args=["--ros-args", *remap, "--params-file", str(plain), "--params-file", str(wildcard)])
+        try:
+            err = capfd.readouterr().err
+            assert node.get_fully_qualified_name() == fqn
+            assert node.settings.status_rate_hz == 3.0  # the wildcard section reaches it: not named
+            assert f"{plain}:" in err and fqn in err and "runs without this file's parameters" in err, err
+            assert f"{wildcard}:" not in err, err
+        finally:
+            node.destroy_node()
+    from senfunet_ros.node import params_files
+
+    assert params_files(["fusion_node", "--params-file", "x", "--ros-args", "-r", "a:=b", "--params-file", "y.yaml",
+                         "--", "--params-file", "z"]) == ["y.yaml"]
