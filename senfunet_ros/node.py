@@ -292,8 +292,12 @@ class FusionNode(Node):
         self._subscriptions_keep, self.health = subscribe(self, s, callback=self._guard)
         # under use_sim_time, /clock going back is a restart: followed as use_sim_time is set, at start or later
         self._clock_watch = _ClockWatch(self, self.ingest, lambda: self.settings.time_jump_s, self._warn)
-        topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in sensor_streams(sensor, s.pose_type)}
+        # the names the subscriptions have, expanded in the namespace and remapped (`-r /tof/depth:=/cam/depth`): the
+        # warnings name the topics to check, not the parameters' values
+        topics = {sensor.name: {stream.value: topic and self.resolve_topic_name(topic)
+                                for stream, _, topic, _ in sensor_streams(sensor, s.pose_type)}
                   for sensor in s.sensors}
+        self._topics = topics
         self.status_report = StatusReport(self.pipeline, self.health, self.timings, self.latency, topics=topics,
                                           hardware_id=self.get_fully_qualified_name(), warn=self._warn,
                                           logger=self.get_logger())
@@ -440,7 +444,7 @@ class FusionNode(Node):
 
             self.pipeline.drain(ready())
             counters = self.ingest.ledger.counters()
-            for key, message in counter_warnings(self._last_counters, counters, self.settings):
+            for key, message in counter_warnings(self._last_counters, counters, self.settings, self._topics):
                 self._warn(key, message)
             self._last_counters = counters
         except Exception as err:  # never let the timer die

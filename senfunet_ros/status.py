@@ -8,6 +8,7 @@ named in the log once.
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable
@@ -57,13 +58,18 @@ DROP_HINTS: dict[str, str] = {
 }
 
 
-def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str, Any]], settings: P.Settings
-                     ) -> list[tuple[tuple[str, ...], str]]:
+def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str, Any]], settings: P.Settings,
+                     resolved: dict[str, dict[str, str]] | None = None) -> list[tuple[tuple[str, ...], str]]:
     """(key, message) of each warning that Ingest's counters `now` call for since `before`: new drops,
     by reason (the error, else the reason's hint), a distorted camera_info, frames without colour
-    and frames set aside. The caller rate-limits them by key."""
+    and frames set aside. The caller rate-limits them by key. resolved: sensor -> stream -> the topic
+    as subscribed (namespace, remapping), named instead of the parameter's value."""
     out: list[tuple[tuple[str, ...], str]] = []
-    topics = {sensor.name: sensor for sensor in settings.sensors}
+    topics = {}
+    for given in settings.sensors:
+        subscribed = (resolved or {}).get(given.name, {})
+        names: dict[str, Any] = {f"{stream}_topic": topic for stream, topic in subscribed.items()}
+        topics[given.name] = dataclasses.replace(given, **names)
     for sensor, counters in now.items():
         last = before.get(sensor, {})
         for reason, count in counters["dropped"].items():

@@ -1018,3 +1018,31 @@ def test_a_parameter_file_with_no_section_for_the_node_is_named_at_start(ros, tm
 
     assert params_files(["fusion_node", "--params-file", "x", "--ros-args", "-r", "a:=b", "--params-file", "y.yaml",
                          "--", "--params-file", "z"]) == ["y.yaml"]
+
+
+def test_warnings_name_the_topics_as_subscribed_under_a_remapping(ros, tmp_path: Path, capfd) -> None:
+    """`--ros-args -r /tof/depth:=/cam/depth`: the node subscribes to /cam/depth, but its warnings named
+    the parameter's /tof/depth ("nothing received on /tof/depth"), a topic the user had remapped away."""
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+    from senfunet_ros.node import FusionNode
+    from senfunet_ros.status import counter_warnings
+
+    overrides = {**topic_params("remap"), **SMALL, "diagnostics_window_s": 0.2, "output_dir": str(tmp_path / "out")}
+    node = FusionNode(namespace="remap", parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
+                      cli_args=["--ros-args", "-r", "/remap/tof/depth:=/cam/depth"])
+    try:
+        time.sleep(0.5)  # longer than a window: every topic is silent
+        capfd.readouterr()
+        node.status()
+        err = capfd.readouterr().err
+        assert "tof: nothing received on /cam/depth" in err, err
+        assert "/remap/tof/depth" not in err, err
+        before = Ingest(IngestConfig(sensors=node.settings.sensor_names)).ledger.counters()
+        now = {name: {**c, "dropped": dict(c["dropped"]), "errors": {}} for name, c in before.items()}
+        now["tof"]["dropped"]["duplicate"] = 1  # its hint names the depth topic
+        (warning,) = counter_warnings(before, now, node.settings, node._topics)
+        assert "/cam/depth" in warning[1], warning
+    finally:
+        node.destroy_node()
