@@ -300,7 +300,7 @@ class FusionNode(Node):
         self._topics = topics
         self.status_report = StatusReport(self.pipeline, self.health, self.timings, self.latency, topics=topics,
                                           hardware_id=self.get_fully_qualified_name(), warn=self._warn,
-                                          logger=self.get_logger())
+                                          logger=self.get_logger(), name=self.get_name())
         # 4. timers, each in its own group so a long mesh update never stalls integration. They run
         # on the steady clock: with use_sim_time, /clock stops when a bag ends, and queued frames
         # must still be integrated and meshed.

@@ -138,8 +138,11 @@ class StatusReport:
 
     def __init__(self, pipeline: Pipeline, health: HealthMonitor, timings: dict[str, Any], latency: Any, *,
                  topics: dict[str, dict[str, str]], hardware_id: str, warn: Callable[[tuple[str, ...], str], None],
-                 logger: Any) -> None:
+                 logger: Any, name: str = P.NODE_NAME) -> None:
         self.pipeline = pipeline
+        # each status is named "<node name>: <part>", as diagnostic_updater does: two fusion nodes (`-r __node:=front`)
+        # must not share names, which the aggregator and rqt_robot_monitor key their entries by
+        self.name = name
         self.health = health
         self.timings = timings
         self.latency = latency
@@ -177,7 +180,7 @@ class StatusReport:
             values += [KeyValue(key=f"error.{reason}", value=why) for reason, why in c["errors"].items()]
             summary = (f"{report.message}; {c['integrated']} of {c['received']} frames integrated, "
                        f"{sum(c['dropped'].values())} messages dropped in all")
-            msg.status.append(DiagnosticStatus(level=bytes([int(report.level)]), name=f"senfunet: {sensor}",
+            msg.status.append(DiagnosticStatus(level=bytes([int(report.level)]), name=f"{self.name}: {sensor}",
                                                message=summary, hardware_id=self.hardware_id, values=values))
         values = [KeyValue(key=f"{stage}_ms", value=f"{t.last_ms:.1f} (mean {t.mean_ms:.1f})")
                   for stage, t in self.timings.items()]
@@ -193,7 +196,7 @@ class StatusReport:
         values += [KeyValue(key=f"engine.{k}_ms", value=f"{v * 1e3:.1f}")
                    for k, v in dict(getattr(engine, "timings_s", {})).items()]
         values += [KeyValue(key=k, value=v) for k, v in _flat("engine.stats.", self._engine_stats())]
-        msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name="senfunet: pipeline",
+        msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name=f"{self.name}: pipeline",
                                            message=f"{counters_engine.get('meshed_blocks', 0)} mesh blocks",
                                            hardware_id=self.hardware_id, values=values))
         return msg

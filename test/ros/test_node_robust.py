@@ -1046,3 +1046,24 @@ def test_warnings_name_the_topics_as_subscribed_under_a_remapping(ros, tmp_path:
         assert "/cam/depth" in warning[1], warning
     finally:
         node.destroy_node()
+
+
+def test_two_renamed_nodes_report_under_their_own_names(ros, tmp_path: Path) -> None:
+    """Two fusion nodes on one robot (`-r __node:=front`, `-r __node:=rear`) both named their statuses
+    "senfunet: tof", "senfunet: pipeline": the diagnostic aggregator and rqt_robot_monitor key entries by
+    name, so one node's STALE camera showed as the other's, or hid it."""
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+
+    names = []
+    for name in ("front", "rear"):
+        overrides = {**topic_params(name), **SMALL, "output_dir": str(tmp_path / name)}
+        node = FusionNode(parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
+                          cli_args=["--ros-args", "-r", f"__node:={name}"])
+        try:
+            names.append({status.name for status in node.status().status})
+        finally:
+            node.destroy_node()
+    assert names[0] == {"front: tof", "front: stereo", "front: pipeline"}, names
+    assert names[1] == {"rear: tof", "rear: stereo", "rear: pipeline"}, names
