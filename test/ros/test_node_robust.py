@@ -1067,3 +1067,25 @@ def test_two_renamed_nodes_report_under_their_own_names(ros, tmp_path: Path) -> 
             node.destroy_node()
     assert names[0] == {"front: tof", "front: stereo", "front: pipeline"}, names
     assert names[1] == {"rear: tof", "rear: stereo", "rear: pipeline"}, names
+
+
+def test_a_diagnostics_window_widened_at_run_time_keeps_the_rates_right() -> None:
+    """`ros2 param set /senfunet diagnostics_window_s 10` from 1 s: the arrivals kept covered the last
+    second only, but the rate divided them by 10 s, so a 10 Hz camera showed 1 Hz for the next 9 s."""
+    from senfunet_ros.health import HealthMonitor
+
+    now = [0.0]
+    health = HealthMonitor({"tof": ("depth",)}, window_s=1.0, stale_after_s=2.0, clock=lambda: now[0])
+
+    def stream(seconds: float) -> float:  # depth at 10 Hz; the rate then reported
+        for _ in range(round(seconds * 10)):
+            now[0] += 0.1
+            health.received("tof", "depth")
+        return health.report()["tof"].streams["depth"].rate_hz
+
+    assert stream(20.0) == pytest.approx(10.0, rel=0.15)
+    health.window_s = 10.0  # what the node's parameter callback sets
+    assert stream(0.5) == pytest.approx(10.0, rel=0.15)
+    assert stream(12.0) == pytest.approx(10.0, rel=0.15)  # then over the whole new window
+    health.window_s = 2.0  # narrowed: the arrivals beyond it expire
+    assert stream(0.5) == pytest.approx(10.0, rel=0.15)
