@@ -7,6 +7,7 @@ diagnostic_msgs. Times are `time.monotonic()` seconds (wall time: sim time may s
 from __future__ import annotations
 
 import enum
+import math
 import threading
 import time
 from collections import deque
@@ -60,14 +61,29 @@ class HealthMonitor:
     def __init__(self, sensors: dict[str, tuple[str, ...]], *, window_s: float, stale_after_s: float,
                  clock: Callable[[], float] = time.monotonic) -> None:
         """`sensors`: sensor -> the streams it subscribes to (those a report covers)."""
-        self.window_s = window_s
+        self._window_s = window_s
         self.stale_after_s = stale_after_s
         self._clock = clock
         now = clock()
+        # arrivals are kept from this time on (a wider window set at run time holds only the narrower one's)
+        self._kept_since_s = -math.inf
         self._lock = threading.Lock()
         self._streams = {(s, stream): _Stream(now) for s, streams in sensors.items() for stream in streams}
         self._drops: dict[str, deque[tuple[float, str, int]]] = {s: deque() for s in sensors}
         self._last_dropped: dict[str, dict[str, int]] = {s: {} for s in sensors}
+
+    @property
+    def window_s(self) -> float:
+        return self._window_s
+
+    @window_s.setter
+    def window_s(self, value: float) -> None:
+        """A new window (parameter diagnostics_window_s at run time): rates over a wider one are taken over
+        the arrivals kept so far until it has passed, not as if it had none before (10x too low)."""
+        with self._lock:
+            if value > self._window_s:
+                self._kept_since_s = max(self._kept_since_s, self._clock() - self._window_s)
+            self._window_s = value
 
     def received(self, sensor: str, stream: str) -> None:
         now = self._clock()
@@ -111,7 +127,7 @@ class HealthMonitor:
                     if s != sensor:
                         continue
                     self._expire(state.arrivals, now)
-                    span = min(self.window_s, max(now - state.subscribed_s, 1e-9))
+                    span = min(self.window_s, max(now - max(state.subscribed_s, self._kept_since_s), 1e-9))
                     silent = now - (state.last_s if state.last_s is not None else state.subscribed_s)
                     streams[stream] = StreamReport(
                         rate_hz=len(state.arrivals) / span, received=state.received, silent_s=silent,

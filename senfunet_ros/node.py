@@ -31,7 +31,7 @@ import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import rclpy
@@ -251,7 +251,8 @@ class _ClockWatch:
 class FusionNode(Node):
     """SenFuNet as a ROS 2 node. See the module docstring for its interface."""
 
-    def __init__(self, node_name: str = P.NODE_NAME, **kwargs: Any) -> None:
+    def __init__(self, node_name: str = P.NODE_NAME, *, argv: Sequence[str] = (), **kwargs: Any) -> None:
+        """argv: the process's command line (`main`), whose parameter files are checked like `cli_args`'."""
         super().__init__(node_name, **kwargs)
         self._engine_log = _EngineLogToRos(self.get_logger())
         engine_logger = logging.getLogger("senfunet")
@@ -268,6 +269,9 @@ class FusionNode(Node):
         for name in P.unknown_parameters(getattr(self, "_parameter_overrides", {}), self.settings.sensor_names):
             self.get_logger().warning(f"parameter {name} is not one of this node's and is ignored; see "
                                       "config/default.yaml for the names")
+        # ... and a parameter file none of whose sections reaches the node (renamed, or in a namespace)
+        for problem in unread_params_files([*argv, *(kwargs.get("cli_args") or ())], self.get_fully_qualified_name()):
+            self.get_logger().error(problem)
         # 2. engine and ingest (the engine is thread-safe: integration and mesh updates overlap)
         s = self.settings
         self.timings = {name: _Timing() for name in ("integrate", "update", "alpha", "weights", "encode", "publish")}
@@ -288,11 +292,15 @@ class FusionNode(Node):
         self._subscriptions_keep, self.health = subscribe(self, s, callback=self._guard)
         # under use_sim_time, /clock going back is a restart: followed as use_sim_time is set, at start or later
         self._clock_watch = _ClockWatch(self, self.ingest, lambda: self.settings.time_jump_s, self._warn)
-        topics = {sensor.name: {stream.value: topic for stream, _, topic, _ in sensor_streams(sensor, s.pose_type)}
+        # the names the subscriptions have, expanded in the namespace and remapped (`-r /tof/depth:=/cam/depth`): the
+        # warnings name the topics to check, not the parameters' values
+        topics = {sensor.name: {stream.value: topic and self.resolve_topic_name(topic)
+                                for stream, _, topic, _ in sensor_streams(sensor, s.pose_type)}
                   for sensor in s.sensors}
+        self._topics = topics
         self.status_report = StatusReport(self.pipeline, self.health, self.timings, self.latency, topics=topics,
                                           hardware_id=self.get_fully_qualified_name(), warn=self._warn,
-                                          logger=self.get_logger())
+                                          logger=self.get_logger(), name=self.get_name())
         # 4. timers, each in its own group so a long mesh update never stalls integration. They run
         # on the steady clock: with use_sim_time, /clock stops when a bag ends, and queued frames
         # must still be integrated and meshed.
@@ -403,7 +411,7 @@ class FusionNode(Node):
                                           ("mesh_rate_hz", self._mesh_timer, mesh_period_s(new.mesh_rate_hz)),
                                           ("status_rate_hz", self._status_timer, 1.0 / new.status_rate_hz)):
                 if getattr(new, name) != getattr(old, name):
-                    timer.timer_period_ns = int(1e9 * period_s)
+                    set_timer_period(timer, period_s)
             tf = self.ingest.config.tf
             if hasattr(tf, "max_gap_ns"):  # our own TF buffer interpolates within pose_tolerance_s
                 tf.max_gap_ns = int(new.pose_tolerance_s * 1e9)
@@ -436,7 +444,7 @@ class FusionNode(Node):
 
             self.pipeline.drain(ready())
             counters = self.ingest.ledger.counters()
-            for key, message in counter_warnings(self._last_counters, counters, self.settings):
+            for key, message in counter_warnings(self._last_counters, counters, self.settings, self._topics):
                 self._warn(key, message)
             self._last_counters = counters
         except Exception as err:  # never let the timer die
@@ -480,6 +488,45 @@ class FusionNode(Node):
         self.mesh_publisher.close()
         logging.getLogger("senfunet").removeHandler(self._engine_log)
         super().destroy_node()
+
+
+def params_files(argv: Sequence[str]) -> list[str]:
+    """The files of the `--params-file FILE` arguments among the ROS arguments of a command line (those
+    after `--ros-args`, up to a `--`)."""
+    files, in_ros_args = [], False
+    for arg, following in zip(argv, [*argv[1:], None]):
+        if arg in ("--ros-args", "--"):
+            in_ros_args = arg == "--ros-args"
+        elif in_ros_args and arg == "--params-file" and following is not None:
+            files.append(following)
+    return files
+
+
+def unread_params_files(argv: Sequence[str], node_fqn: str) -> list[str]:
+    """Why each parameter file of `argv` gives the node `node_fqn` nothing (none of its sections reaches
+    it, as rcl matches them): rcl skips such a file silently, and the node would run with its defaults,
+    e.g. config/default.yaml's 'senfunet' section under `-r __ns:=/robot1` or `-r __node:=front`."""
+    from pathlib import Path
+
+    from senfunet_ros.replay import _read_params_file
+
+    out = []
+    for path in params_files(argv):
+        try:
+            _read_params_file(Path(path), node_sections_only=True, node_fqn=node_fqn)
+        except ValueError as err:
+            out.append(f"{err}; the node runs without this file's parameters")
+    return out
+
+
+def set_timer_period(timer: Any, period_s: float) -> None:
+    """A timer's new period, in force at once: rcl keeps the next call the old period scheduled (a
+    rate raised from 0.01 Hz would take effect up to 100 s later), so a timer due later than one new
+    period from now is restarted on the new one."""
+    period_ns = int(1e9 * period_s)
+    timer.timer_period_ns = period_ns
+    if (timer.time_until_next_call() or 0) > period_ns:
+        timer.reset()
 
 
 def subscribe(node: Node, settings: P.Settings, *, callback: Callable[[str, Stream], Callable[[Any], None]]
@@ -703,7 +750,7 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     node: FusionNode | None = None
     try:
-        node = FusionNode()
+        node = FusionNode(argv=sys.argv if args is None else args)
         spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

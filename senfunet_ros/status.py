@@ -8,6 +8,7 @@ named in the log once.
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable
@@ -57,13 +58,18 @@ DROP_HINTS: dict[str, str] = {
 }
 
 
-def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str, Any]], settings: P.Settings
-                     ) -> list[tuple[tuple[str, ...], str]]:
+def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str, Any]], settings: P.Settings,
+                     resolved: dict[str, dict[str, str]] | None = None) -> list[tuple[tuple[str, ...], str]]:
     """(key, message) of each warning that Ingest's counters `now` call for since `before`: new drops,
     by reason (the error, else the reason's hint), a distorted camera_info, frames without colour
-    and frames set aside. The caller rate-limits them by key."""
+    and frames set aside. The caller rate-limits them by key. resolved: sensor -> stream -> the topic
+    as subscribed (namespace, remapping), named instead of the parameter's value."""
     out: list[tuple[tuple[str, ...], str]] = []
-    topics = {sensor.name: sensor for sensor in settings.sensors}
+    topics = {}
+    for given in settings.sensors:
+        subscribed = (resolved or {}).get(given.name, {})
+        names: dict[str, Any] = {f"{stream}_topic": topic for stream, topic in subscribed.items()}
+        topics[given.name] = dataclasses.replace(given, **names)
     for sensor, counters in now.items():
         last = before.get(sensor, {})
         for reason, count in counters["dropped"].items():
@@ -132,8 +138,11 @@ class StatusReport:
 
     def __init__(self, pipeline: Pipeline, health: HealthMonitor, timings: dict[str, Any], latency: Any, *,
                  topics: dict[str, dict[str, str]], hardware_id: str, warn: Callable[[tuple[str, ...], str], None],
-                 logger: Any) -> None:
+                 logger: Any, name: str = P.NODE_NAME) -> None:
         self.pipeline = pipeline
+        # each status is named "<node name>: <part>", as diagnostic_updater does: two fusion nodes (`-r __node:=front`)
+        # must not share names, which the aggregator and rqt_robot_monitor key their entries by
+        self.name = name
         self.health = health
         self.timings = timings
         self.latency = latency
@@ -172,7 +181,7 @@ class StatusReport:
             values += [KeyValue(key=f"error.{reason}", value=why) for reason, why in c["errors"].items()]
             summary = (f"{report.message}; {c['integrated']} of {c['received']} frames integrated, "
                        f"{sum(c['dropped'].values())} messages dropped in all")
-            msg.status.append(DiagnosticStatus(level=bytes([int(report.level)]), name=f"senfunet: {sensor}",
+            msg.status.append(DiagnosticStatus(level=bytes([int(report.level)]), name=f"{self.name}: {sensor}",
                                                message=summary, hardware_id=self.hardware_id, values=values))
         values = [KeyValue(key=f"{stage}_ms", value=f"{t.last_ms:.1f} (mean {t.mean_ms:.1f})")
                   for stage, t in self.timings.items()]
@@ -188,7 +197,7 @@ class StatusReport:
         values += [KeyValue(key=f"engine.{k}_ms", value=f"{v * 1e3:.1f}")
                    for k, v in dict(getattr(engine, "timings_s", {})).items()]
         values += [KeyValue(key=k, value=v) for k, v in _flat("engine.stats.", self._engine_stats())]
-        msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name="senfunet: pipeline",
+        msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name=f"{self.name}: pipeline",
                                            message=f"{counters_engine.get('meshed_blocks', 0)} mesh blocks",
                                            hardware_id=self.hardware_id, values=values))
         return msg

@@ -967,3 +967,125 @@ def test_diagnostics_values_of_engine_statistics_are_plain_numbers() -> None:
     values = {kv.key: kv.value for kv in status.values}
     assert values["engine.stats.frames_integrated.tof"] == "56" and values["engine.stats.blocks"] == "5"
     assert "engine.stats.frames_integrated" not in values
+
+
+def test_a_rate_raised_at_run_time_takes_effect_at_once(ros, tmp_path: Path) -> None:
+    """`ros2 param set /senfunet status_rate_hz 5` on a node started at 0.002 Hz: rcl keeps the next call the
+    old period scheduled, so ~/status stayed silent for up to 500 s after the change (and the mesh timer
+    likewise for mesh_rate_hz)."""
+    run = Running("rates_rt", {**topic_params("rates_rt"), **SMALL, "status_rate_hz": 0.002, "mesh_rate_hz": 0.002},
+                  tmp_path)
+    got: list[DiagnosticArray] = []
+    try:
+        run.helper.create_subscription(DiagnosticArray, f"{run.prefix}/status", got.append, 10)
+        time.sleep(1.0)  # discovery; no status is due for 500 s
+        assert not got and run.node.timings["update"].count == 0
+        (r_status, r_mesh) = _set(run, status_rate_hz=5.0, mesh_rate_hz=5.0)
+        assert r_status.successful and r_mesh.successful
+        wait_for(lambda: len(got) >= 2, 20, "~/status at the new rate")
+        wait_for(lambda: run.node.timings["update"].count >= 2, 20, "mesh updates at the new rate")
+    finally:
+        run.close()
+
+
+def test_a_parameter_file_with_no_section_for_the_node_is_named_at_start(ros, tmp_path: Path, capfd) -> None:
+    """`ros2 run senfunet_ros fusion_node --ros-args -r __ns:=/robot1 --params-file config/default.yaml` (or a
+    launch file in a namespace, or `-r __node:=front`): rcl gives the node none of the file's 'senfunet'
+    section, and the node ran with its defaults (other topics, rates, ...) without a word."""
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+
+    plain = tmp_path / "plain.yaml"
+    plain.write_text("senfunet:\n  ros__parameters:\n    mesh_rate_hz: 3.0\n")
+    wildcard = tmp_path / "wildcard.yaml"
+    wildcard.write_text("/**:\n  ros__parameters:\n    status_rate_hz: 3.0\n")
+    overrides = [Parameter(k, value=v) for k, v in {**topic_params("paramfile"), **SMALL,
+                                                    "output_dir": str(tmp_path / "out")}.items()]
+    for namespace, remap, fqn in (("paramfile", [], "/paramfile/senfunet"), ("", ["-r", "__node:=front"], "/front")):
+        capfd.readouterr()
+        node = FusionNode(namespace=namespace, parameter_overrides=overrides,
+                          cli_args=["--ros-args", *remap, "--params-file", str(plain), "--params-file", str(wildcard)])
+        try:
+            err = capfd.readouterr().err
+            assert node.get_fully_qualified_name() == fqn
+            assert node.settings.status_rate_hz == 3.0  # the wildcard section reaches it: not named
+            assert f"{plain}:" in err and fqn in err and "runs without this file's parameters" in err, err
+            assert f"{wildcard}:" not in err, err
+        finally:
+            node.destroy_node()
+    from senfunet_ros.node import params_files
+
+    assert params_files(["fusion_node", "--params-file", "x", "--ros-args", "-r", "a:=b", "--params-file", "y.yaml",
+                         "--", "--params-file", "z"]) == ["y.yaml"]
+
+
+def test_warnings_name_the_topics_as_subscribed_under_a_remapping(ros, tmp_path: Path, capfd) -> None:
+    """`--ros-args -r /tof/depth:=/cam/depth`: the node subscribes to /cam/depth, but its warnings named
+    the parameter's /tof/depth ("nothing received on /tof/depth"), a topic the user had remapped away."""
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+    from senfunet_ros.node import FusionNode
+    from senfunet_ros.status import counter_warnings
+
+    overrides = {**topic_params("remap"), **SMALL, "diagnostics_window_s": 0.2, "output_dir": str(tmp_path / "out")}
+    node = FusionNode(namespace="remap", parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
+                      cli_args=["--ros-args", "-r", "/remap/tof/depth:=/cam/depth"])
+    try:
+        time.sleep(0.5)  # longer than a window: every topic is silent
+        capfd.readouterr()
+        node.status()
+        err = capfd.readouterr().err
+        assert "tof: nothing received on /cam/depth" in err, err
+        assert "/remap/tof/depth" not in err, err
+        before = Ingest(IngestConfig(sensors=node.settings.sensor_names)).ledger.counters()
+        now = {name: {**c, "dropped": dict(c["dropped"]), "errors": {}} for name, c in before.items()}
+        now["tof"]["dropped"]["duplicate"] = 1  # its hint names the depth topic
+        (warning,) = counter_warnings(before, now, node.settings, node._topics)
+        assert "/cam/depth" in warning[1], warning
+    finally:
+        node.destroy_node()
+
+
+def test_two_renamed_nodes_report_under_their_own_names(ros, tmp_path: Path) -> None:
+    """Two fusion nodes on one robot (`-r __node:=front`, `-r __node:=rear`) both named their statuses
+    "senfunet: tof", "senfunet: pipeline": the diagnostic aggregator and rqt_robot_monitor key entries by
+    name, so one node's STALE camera showed as the other's, or hid it."""
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+
+    names = []
+    for name in ("front", "rear"):
+        overrides = {**topic_params(name), **SMALL, "output_dir": str(tmp_path / name)}
+        node = FusionNode(parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
+                          cli_args=["--ros-args", "-r", f"__node:={name}"])
+        try:
+            names.append({status.name for status in node.status().status})
+        finally:
+            node.destroy_node()
+    assert names[0] == {"front: tof", "front: stereo", "front: pipeline"}, names
+    assert names[1] == {"rear: tof", "rear: stereo", "rear: pipeline"}, names
+
+
+def test_a_diagnostics_window_widened_at_run_time_keeps_the_rates_right() -> None:
+    """`ros2 param set /senfunet diagnostics_window_s 10` from 1 s: the arrivals kept covered the last
+    second only, but the rate divided them by 10 s, so a 10 Hz camera showed 1 Hz for the next 9 s."""
+    from senfunet_ros.health import HealthMonitor
+
+    now = [0.0]
+    health = HealthMonitor({"tof": ("depth",)}, window_s=1.0, stale_after_s=2.0, clock=lambda: now[0])
+
+    def stream(seconds: float) -> float:  # depth at 10 Hz; the rate then reported
+        for _ in range(round(seconds * 10)):
+            now[0] += 0.1
+            health.received("tof", "depth")
+        return health.report()["tof"].streams["depth"].rate_hz
+
+    assert stream(20.0) == pytest.approx(10.0, rel=0.15)
+    health.window_s = 10.0  # what the node's parameter callback sets
+    assert stream(0.5) == pytest.approx(10.0, rel=0.15)
+    assert stream(12.0) == pytest.approx(10.0, rel=0.15)  # then over the whole new window
+    health.window_s = 2.0  # narrowed: the arrivals beyond it expire
+    assert stream(0.5) == pytest.approx(10.0, rel=0.15)
