@@ -85,7 +85,8 @@ def bag_frames(bag: Path, limit: int | None = None) -> list:
     the stamp, colour matched), in the order Ingest releases them; at most `limit`."""
     from senfunet_ros.bagio import open_bag
     from senfunet_ros.ingest import Frame, Ingest
-    from senfunet_ros.replay import TopicRouter, ingest_config, load_settings
+    from senfunet_ros.replay import TopicRouter, ingest_config
+    from senfunet_ros.params_file import load_settings
 
     settings = load_settings(None)
     frames: list = []

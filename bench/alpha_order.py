@@ -51,7 +51,7 @@ def run(frames: list, order: str, blocks_per_update: int) -> dict:
     import senfunet_core.engine as engine_module
     from senfunet_core.engine import SenFuNet
     from senfunet_ros.params import engine_config
-    from senfunet_ros.replay import load_settings
+    from senfunet_ros.params_file import load_settings
 
     clock = _Clock()
     saved = engine_module.time, scheduler_module.time

@@ -100,7 +100,8 @@ def main() -> None:
     frames, source = load_frames(Path(args.bag), args.frames, args.seed)
     try:
         from senfunet_ros.node import limit_malloc
-        from senfunet_ros.replay import engine_config, engine_weights, load_settings
+        from senfunet_ros.replay import engine_config, engine_weights
+        from senfunet_ros.params_file import load_settings
 
         settings = load_settings(None)
         base, weights = engine_config(settings), engine_weights(settings)

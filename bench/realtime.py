@@ -59,7 +59,8 @@ def bag_messages(path: Path, max_seconds: float) -> Iterator[tuple[Iterator, obj
     """(messages, router, seconds): the bag's routed messages, read as they are needed (a bag held
     in memory would count in the peak RSS), up to max_seconds after the first (0 = all)."""
     from senfunet_ros.bagio import open_bag
-    from senfunet_ros.replay import TopicRouter, load_settings
+    from senfunet_ros.replay import TopicRouter
+    from senfunet_ros.params_file import load_settings
 
     with open_bag(path) as bag:
         router = TopicRouter(load_settings(None), bag.topics, path)
@@ -307,7 +308,8 @@ def run_open3d(args: argparse.Namespace) -> dict | str:
         return f"not available ({type(err).__name__}: pip install -r bench/requirements.txt)"
     from senfunet_core.engine import SenFuNet
     from senfunet_ros.ingest import Frame, Ingest
-    from senfunet_ros.replay import engine_config, ingest_config, load_settings
+    from senfunet_ros.replay import engine_config, ingest_config
+    from senfunet_ros.params_file import load_settings
 
     settings = load_settings(None)
     ingest = Ingest(ingest_config(settings))

@@ -51,7 +51,8 @@ def open3d_child(bag: Path, out: Path) -> None:
 
     from senfunet_ros.bagio import open_bag
     from senfunet_ros.ingest import Frame, Ingest
-    from senfunet_ros.replay import TopicRouter, ingest_config, load_settings
+    from senfunet_ros.replay import TopicRouter, ingest_config
+    from senfunet_ros.params_file import load_settings
 
     settings = load_settings(None)
     device = o3c.Device("CPU:0")

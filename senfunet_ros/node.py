@@ -508,12 +508,12 @@ def unread_params_files(argv: Sequence[str], node_fqn: str) -> list[str]:
     e.g. config/default.yaml's 'senfunet' section under `-r __ns:=/robot1` or `-r __node:=front`."""
     from pathlib import Path
 
-    from senfunet_ros.replay import _read_params_file
+    from senfunet_ros.params_file import read_params_file
 
     out = []
     for path in params_files(argv):
         try:
-            _read_params_file(Path(path), node_sections_only=True, node_fqn=node_fqn)
+            read_params_file(Path(path), node_sections_only=True, node_fqn=node_fqn)
         except ValueError as err:
             out.append(f"{err}; the node runs without this file's parameters")
     return out

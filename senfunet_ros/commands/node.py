@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         path = Path(args.params)
         if not path.is_file():
             return _error(f"parameter file {path} not found; pass e.g. --params config/default.yaml")
-        from senfunet_ros.replay import load_settings
+        from senfunet_ros.params_file import load_settings
 
         try:  # the node would take the file's sections for it and ignore what it does not know: refuse it here
             load_settings(path, node_sections_only=True, node_fqn=node_fqn(args.ros_args or ()))

@@ -193,7 +193,8 @@ def test_a_topic_recorded_with_two_types_fuses_the_type_the_node_takes_and_says_
     them, the others left out and named."""
     import json
 
-    from senfunet_ros.replay import TopicRouter, load_settings
+    from senfunet_ros.replay import TopicRouter
+    from senfunet_ros.params_file import load_settings
 
     compressed = "sensor_msgs/msg/CompressedImage"
     mixed = tmp_path / "mixed.mcap"
@@ -248,7 +249,8 @@ def test_a_split_recording_without_metadata_or_with_a_part_cut_short_reads_its_f
 
 def test_write_sequence_bag_round_trip(tmp_path: Path):
     from senfunet_core.learning import simulator as sim
-    from senfunet_ros.replay import TopicRouter, ingest_config, load_settings
+    from senfunet_ros.replay import TopicRouter, ingest_config
+    from senfunet_ros.params_file import load_settings
     from senfunet_ros.ingest import Frame, Ingest
 
     scene = sim.make_scene(5)
@@ -353,7 +355,8 @@ def test_bag_without_expected_topics(prefix: Path, tmp_path: Path, tiny_params: 
 def test_missing_topics_name_the_parameters_to_set(prefix: Path):
     """A topic the parameters name that the bag lacks: the error names the parameter to change, and
     with pose_type tf on a bag of pose topics, says the bag has no /tf and which pose topics it has."""
-    from senfunet_ros.replay import TopicRouter, load_settings
+    from senfunet_ros.replay import TopicRouter
+    from senfunet_ros.params_file import load_settings
 
     with open_bag(prefix) as reader:
         topics = dict(reader.topics)
@@ -395,7 +398,8 @@ def test_unknown_message_type(prefix: Path, tmp_path: Path, tiny_params: Path):
 
 
 def test_wrong_pose_type_names_the_parameter(prefix: Path, tmp_path: Path):
-    from senfunet_ros.replay import TopicRouter, load_settings
+    from senfunet_ros.replay import TopicRouter
+    from senfunet_ros.params_file import load_settings
 
     with open_bag(prefix) as reader:
         topics = dict(reader.topics)

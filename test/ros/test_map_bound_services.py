@@ -24,7 +24,8 @@ from senfunet_ros import params as P  # noqa: E402
 from senfunet_ros.ingest import Ingest  # noqa: E402
 from senfunet_ros.map_services import MapServices  # noqa: E402
 from senfunet_ros.pipeline import Pipeline  # noqa: E402
-from senfunet_ros.replay import ingest_config, load_settings  # noqa: E402
+from senfunet_ros.replay import ingest_config  # noqa: E402
+from senfunet_ros.params_file import load_settings  # noqa: E402
 from test_engine import SPHERE_C, SPHERE_VIEWS, far_views, integrate_views  # noqa: E402
 
 

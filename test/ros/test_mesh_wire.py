@@ -19,7 +19,8 @@ def test_sample_room_snapshot_is_small_and_saved_mesh_full(capsys: pytest.Captur
     from senfunet_ros import params as P
     from senfunet_ros.ingest import Ingest
     from senfunet_ros.pipeline import Pipeline
-    from senfunet_ros.replay import _fuse, load_settings
+    from senfunet_ros.replay import _fuse
+    from senfunet_ros.params_file import load_settings
 
     settings = load_settings()  # the node's defaults
     engine = SenFuNet(P.engine_config(settings, alpha_dtype="float32"), weights=P.engine_weights(settings))

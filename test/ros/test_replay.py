@@ -14,7 +14,8 @@ import pytest
 from senfunet_ros.bagio import copy_bag, open_bag
 from senfunet_ros.cli import build_parser
 from senfunet_ros.commands.replay import _stale_meshes
-from senfunet_ros.replay import ReplayResult, load_settings, replay_bag
+from senfunet_ros.replay import ReplayResult, replay_bag
+from senfunet_ros.params_file import load_settings
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / "bags" / "sim_room"
@@ -210,7 +211,7 @@ def test_replay_says_that_parameter_tsdf_fusion_takes_compare(prefix: Path, work
 
 def test_settings_from_file_match_the_node_defaults(tmp_path: Path):
     from senfunet_ros import params as P
-    from senfunet_ros.replay import load_settings
+    from senfunet_ros.params_file import load_settings
 
     defaults = load_settings()
     from_file = load_settings(REPO / "config" / "default.yaml")
@@ -238,7 +239,7 @@ def test_node_engine_config_runs_on_the_cpu_when_cuda_is_asked_for_and_absent(tm
     import torch
 
     from senfunet_ros import params as P
-    from senfunet_ros.replay import load_settings
+    from senfunet_ros.params_file import load_settings
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     file = tmp_path / "cuda.yaml"
@@ -251,7 +252,7 @@ def test_node_engine_config_runs_on_the_cpu_when_cuda_is_asked_for_and_absent(tm
 def test_weights_parameter_takes_a_shipped_name_or_a_path_and_refuses_the_rest(tmp_path: Path):
     from senfunet_core.networks import NAMED_WEIGHTS, weights_tsdf_input
     from senfunet_ros import params as P
-    from senfunet_ros.replay import load_settings
+    from senfunet_ros.params_file import load_settings
 
     paper = P.engine_weights(load_settings(None, {"weights": "paper"}))
     assert paper == str(NAMED_WEIGHTS["paper"]) and not weights_tsdf_input(paper)  # the 12-input G

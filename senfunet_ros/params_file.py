@@ -1,0 +1,91 @@
+"""ROS 2 parameter files without a node: which sections reach a node (as rcl matches them), and
+the node's checked settings from a file, for `senfunet replay`, `senfunet node --params` and the
+node's own check of the `--params-file` arguments it was started with."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+from senfunet_ros import params as P
+
+__all__ = ["load_settings", "node_section_applies", "read_params_file"]
+
+
+def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def node_section_applies(key: str, node_fqn: str) -> bool:
+    """Whether a parameter file's section `key` reaches the node `node_fqn` ("/robot1/senfunet") as rcl
+    matches them: a key without a leading '/' is absolute ("senfunet" is "/senfunet", which a node in
+    a namespace does not get), '*' stands for one name and '/**' for any number of namespaces."""
+    pattern = re.escape(key if key.startswith("/") else "/" + key)
+    return re.fullmatch(pattern.replace(r"/\*\*", "(/[^/]+)*").replace(r"\*", "[^/]*"), node_fqn) is not None
+
+
+def read_params_file(path: Path, *, node_sections_only: bool = False, node_fqn: str = f"/{P.NODE_NAME}"
+                      ) -> dict[str, Any]:
+    """The `ros__parameters` of a ROS 2 parameter file, flattened: those of every section that reaches the
+    node `node_fqn` (later ones override earlier ones, as in rcl), else its only section unless
+    `node_sections_only` (ROS gives the node only its own)."""
+    import yaml
+
+    from senfunet_core.files import yaml_error_text
+
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as err:
+        raise ValueError(f"{path}: cannot read the parameter file: {err.strerror}") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file; pass a YAML parameter file such as config/default.yaml") from None
+    except yaml.YAMLError as err:
+        raise ValueError(f"{path}: {yaml_error_text(err)}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected '{P.NODE_NAME}: ros__parameters: ...' at the top")
+    nodes = {str(k): v for k, v in doc.items() if isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict)}
+    ours = [section for key, section in nodes.items() if node_section_applies(key, node_fqn)]
+    if ours:
+        return {name: value for section in ours for name, value in _flatten(section["ros__parameters"]).items()}
+    if len(nodes) == 1 and not node_sections_only:
+        return _flatten(next(iter(nodes.values()))["ros__parameters"])
+    name = node_fqn.rsplit("/", 1)[-1]
+    if node_fqn != f"/{name}" and any(node_section_applies(key, f"/{name}") for key in nodes):
+        # the usual file (config/default.yaml) with the node started in a namespace: rcl would give it none
+        raise ValueError(f"{path}: its section for '{name}' is for the node without a namespace; the node "
+                         f"{node_fqn} would ignore it and run with the defaults: name the section "
+                         f"'/**/{name}' (any namespace) or '{node_fqn}'")
+    raise ValueError(f"{path}: no '{name}: ros__parameters:' section" + (
+        f" (its sections {sorted(nodes)} are for other nodes: the node, named '{node_fqn}', would ignore them)"
+        if nodes else ""))
+
+
+def load_settings(params_file: str | Path | None = None, overrides: dict[str, Any] | None = None, *,
+                  node_sections_only: bool = False, node_fqn: str = f"/{P.NODE_NAME}") -> P.Settings:
+    """The node's parameters from a parameter file (or the defaults), checked like the node does.
+
+    Unknown names are refused (a typo would otherwise be ignored silently), and with
+    `node_sections_only` a file without a section for the node `node_fqn` (its namespace and name,
+    as remapped). ValueError on bad values.
+    """
+    given: dict[str, Any] = {}
+    if params_file is not None:
+        given.update(read_params_file(Path(params_file), node_sections_only=node_sections_only, node_fqn=node_fqn))
+    given.update(overrides or {})
+    sensors = [str(s) for s in given.get("sensors", P.GLOBAL_PARAMS[0].default)]
+    table = P.expanded_defaults(sensors)
+    unknown = P.unknown_parameters(given, sensors)
+    if unknown:
+        where = f" in {params_file}" if params_file else ""
+        raise ValueError(f"unknown parameter(s){where}: {', '.join(unknown)}; see config/default.yaml for the names")
+    given = {name: value for name, value in given.items() if name in table}
+    values = {name: P.coerce(name, given.get(name, default), default) for name, (default, _) in table.items()}
+    P.check(values)
+    return P.Settings.from_values(values)
