@@ -294,7 +294,10 @@ def check(values: dict[str, Any]) -> None:
     for sensor in sensors:
         lo, hi = values[f"{sensor}.depth_min_m"], values[f"{sensor}.depth_max_m"]
         if not 0 <= lo < hi:
-            raise ValueError(f"{sensor}: depth range [{lo}, {hi}] m is empty; set depth_min_m < depth_max_m")
+            # (at run time one `ros2 param set` at a time: moving the range past the other end needs that end first)
+            raise ValueError(f"{sensor}: depth range [{lo}, {hi}] m is empty; set {sensor}.depth_min_m < "
+                             f"{sensor}.depth_max_m (to move the range at run time, set the end it moves towards "
+                             "first, or both in one set_parameters_atomically call)")
         extrinsic = values[f"{sensor}.T_body_camera"]
         if len(extrinsic) != 7:
             raise ValueError(f"parameter '{sensor}.T_body_camera' needs 7 numbers (x y z qx qy qz qw), "

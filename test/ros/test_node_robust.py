@@ -191,6 +191,9 @@ def test_parameters_typed_ranged_read_only_and_applied(ros, tmp_path: Path) -> N
         assert not r.successful and "read-only" in r.reason
         (r,) = _set(run, **{"tof.depth_max_m": 0.05})  # below depth_min_m: an empty range
         assert not r.successful and "depth" in r.reason
+        # moving the range above its maximum one parameter at a time: the reply says which to set first
+        (r,) = _set(run, **{"tof.depth_min_m": 4.0})
+        assert not r.successful and "tof.depth_max_m" in r.reason and "first" in r.reason, r.reason
         assert run.node.settings.mesh_rate_hz == 2.0 and run.node.get_parameter("mesh_rate_hz").value == 2.0
         (r,) = _set(run, mesh_rate_hz=4)  # an integer for a float parameter is fine
         assert r.successful, r.reason
