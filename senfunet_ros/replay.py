@@ -41,6 +41,8 @@ __all__ = [
     "ReplayResult",
     "replay_bag",
     "MESH_FILES",
+    "drop_summary",
+    "DISTORTED_NOTE",
 ]
 
 _IMAGES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -351,8 +353,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
         result.error = (f"{bag}: only {run.read} of the {run.total} recorded messages on the fused topics could be "
                         "read; the file is damaged")
     if n_integrated == 0 and result.error is None:
-        dropped = "; ".join(f"{s}: " + (", ".join(f"{n} {r}" for r, n in c["dropped"].items() if n) or "no frames")
-                            for s, c in counters.items())
+        dropped = "; ".join(f"{s}: " + (drop_summary(c) or "no frames") for s, c in counters.items())
         result.error = f"{bag}: no frame could be fused ({dropped}); see {out / 'stats.json'}"
     # what needs the map is read before its last mesh: the map's memory goes as that mesh is made. The
     # live node's mesh-update statistics (meshed blocks, how long they waited for the net) mean nothing
@@ -382,6 +383,18 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     os.chmod(out / "stats.json", FILE_MODE)
     result.files["stats"] = out / "stats.json"
     return result
+
+
+def drop_summary(sensor: dict[str, Any]) -> str:
+    """A sensor's drops by reason, each with what its last such message had wrong when known:
+    "8 bad_camera_info (camera_info K has no positive finite focal lengths ...)"."""
+    errors = sensor.get("errors", {})
+    return ", ".join(f"{n} {reason}" + (f" ({errors[reason]})" if errors.get(reason) else "")
+                     for reason, n in sensor["dropped"].items() if n)
+
+
+DISTORTED_NOTE = ("its camera_info has non-zero distortion coefficients, which are not applied: the depth images are "
+                  "taken as rectified (pinhole K); record the driver's rectified depth topic")
 
 
 def _prepare_out(out: Path) -> None:
@@ -500,6 +513,12 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
             "pending_at_end": c["queue_depth"],  # frames still waiting (for a pose or camera_info) when the bag ended
             "color_received": c["color_received"], "pose_received": c["pose_received"],
             "time_jumps": c["time_jumps"],
+            # what the counts alone do not say: what the last dropped message of each reason had wrong (a
+            # camera_info without K, an image too small for the border...), frames fused without their colour,
+            # and a camera_info whose distortion replay does not apply
+            "errors": dict(c["errors"]),
+            "without_color": c["without_color"],
+            "distorted": c["distorted"],
         }
     router = run.router
     return {

@@ -1,0 +1,39 @@
+"""Sensor set-ups other than the sample's (image sizes, intrinsics, encodings, camera_info, voxel
+sizes), each a small bag written with rosbags (`sensor_bags`) and replayed: the mesh lies on the
+scene's surfaces, or what went wrong is said, counted and explained."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from replays import replay_in_process
+from sensor_bags import Camera, params_file, two, write_bag
+
+
+def _replay(tmp_path: Path, recording, **params):
+    """(the command's output, stats.json, the fused mesh's vertices) of the recording's replay."""
+    from senfunet_core.ply import read_ply
+
+    bag = write_bag(recording, tmp_path / "bag")
+    proc = replay_in_process(bag, tmp_path / "out", params_file(tmp_path / "params.yaml", recording, **params))
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    mesh = tmp_path / "out" / "mesh.ply"
+    vertices = np.asarray(read_ply(mesh).vertices) if mesh.exists() else np.zeros((0, 3))
+    return proc, stats, vertices
+
+
+def test_replay_says_why_frames_were_dropped_and_that_distortion_is_not_applied(tmp_path: Path):
+    """An uncalibrated camera_info (K all zero) and a distorted one: stats.json and the command's
+    output say what was wrong, not only the reason's name, and that the distortion is not applied."""
+    recording = two(Camera("tof", rate_hz=15.0, info_k=(0.0,) * 9),
+                    Camera("stereo", x_m=0.05, color="rgb8", distortion_model="equidistant", d=(0.1, 0.01, 0.0, 0.0)))
+    proc, stats, vertices = _replay(tmp_path, recording)
+    assert proc.returncode == 0, proc.stderr
+    tof, stereo = stats["sensors"]["tof"], stats["sensors"]["stereo"]
+    assert tof["integrated"] == 0 and tof["dropped"]["bad_camera_info"] > 0
+    assert "no positive finite focal lengths" in tof["errors"]["bad_camera_info"]
+    assert "no positive finite focal lengths" in proc.stdout
+    assert stereo["distorted"] is True and tof["distorted"] is False
+    assert "stereo: note: its camera_info has non-zero distortion coefficients" in proc.stdout
