@@ -62,8 +62,9 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           choices=tuple(p.value for p in PoseType)),
     Param("fixed_frame", "map", "frame the poses are given in; frame_id of every output"),
     Param("voxel_size_m", 0.01, "voxel side length in metres", lo=0.001, hi=10.0),
-    Param("band_m", 0.1, "length of the ray segment integrated around each depth measurement, metres", lo=0.001,
-          hi=10.0),
+    Param("band_m", 0.1, "length of the ray segment integrated around each depth measurement, metres (sampled "
+          "at most a voxel apart: 11 samples, more for voxels finer than band_m / 10)",
+          lo=0.001, hi=10.0),
     Param("working_width", 256, "images are resized to this width (K scaled); 0 = native", lo=0, hi=8192),
     Param("working_height", 0,
           "images are resized to this height; 0 = native, or keep the aspect ratio if the width is set",
@@ -450,10 +451,12 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
     import dataclasses
 
     from senfunet_core.engine import EngineConfig
+    from senfunet_core.integrator import samples_along_band
     from senfunet_core.networks import choose_device
 
     s = settings
     device = str(choose_device(s.device, cpu_fallback=True).device)
+    n_samples, n_samples_behind = samples_along_band(s.voxel_size_m, s.band_m)
     config = EngineConfig(
         sensors=s.sensor_names,
         sensor_uses_rgb=tuple(name in s.rgb_sensors for name in s.sensor_names),
@@ -461,6 +464,8 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
         depth_max_m=tuple(sensor.depth_max_m for sensor in s.sensors),
         voxel_size_m=s.voxel_size_m,
         band_m=s.band_m,
+        n_samples=n_samples,  # at most a voxel apart, whatever the voxel size
+        n_samples_behind=n_samples_behind,
         device=device,
         alpha_voxels="surface",  # the exact fused mesh for the least weighting-net work
         alpha_threads=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1,

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from replays import replay_in_process
-from sensor_bags import Camera, params_file, two, write_bag
+from sensor_bags import Camera, params_file, surface_distance_m, two, write_bag
 
 
 def _replay(tmp_path: Path, recording, **params):
@@ -37,3 +37,17 @@ def test_replay_says_why_frames_were_dropped_and_that_distortion_is_not_applied(
     assert "no positive finite focal lengths" in proc.stdout
     assert stereo["distorted"] is True and tof["distorted"] is False
     assert "stereo: note: its camera_info has non-zero distortion coefficients" in proc.stdout
+
+
+def test_voxels_finer_than_the_sample_step_still_mesh_the_surface(tmp_path: Path):
+    """5 mm voxels under the default 10 cm band: the paper's 11 samples lie 1 cm apart, two voxels, and
+    skipped every other voxel along each ray; no cell had its 8 corners observed and the mesh was empty.
+    The samples now stay a voxel apart (more of them): the mesh covers the surfaces seen."""
+    dense = dict(width=128, height=96, fx=450.0, fy=450.0)  # pixels ~4 mm apart on the wall, below a voxel
+    recording = two(Camera("tof", rate_hz=15.0, **dense), Camera("stereo", x_m=0.05, color="rgb8", **dense),
+                    duration_s=0.3)
+    proc, stats, vertices = _replay(tmp_path, recording, voxel_size_m=0.005)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert len(vertices) > 1000, stats["meshes"]
+    assert np.quantile(surface_distance_m(vertices), 0.99) < 0.01
+
