@@ -62,8 +62,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           choices=tuple(p.value for p in PoseType)),
     Param("fixed_frame", "map", "frame the poses are given in; frame_id of every output"),
     Param("voxel_size_m", 0.01, "voxel side length in metres", lo=0.001, hi=10.0),
-    Param("band_m", 0.1, "length of the ray segment integrated around each depth measurement, metres (sampled "
-          "at most a voxel apart: 11 samples, more for voxels finer than band_m / 10)",
+    Param("band_m", 0.1, "length of the ray segment integrated around each depth measurement, metres; at least "
+          "two voxels (sampled at most a voxel apart: 11 samples, more for voxels finer than band_m / 10)",
           lo=0.001, hi=10.0),
     Param("working_width", 256, "images are resized to this width (K scaled); 0 = native", lo=0, hi=8192),
     Param("working_height", 0,
@@ -292,6 +292,12 @@ def check(values: dict[str, Any]) -> None:
     from senfunet_core.networks import resolve_weights
 
     resolve_weights(values["weights"] or "none")  # InputError (a ValueError) naming the choices
+    if values["band_m"] < 2 * values["voxel_size_m"]:
+        # the samples in front of a surface and those behind it must reach different voxels, or no cell
+        # holds both signs and nothing is meshed
+        raise ValueError(f"band_m ({values['band_m']} m) must be at least two voxels (2 x voxel_size_m = "
+                         f"{2 * values['voxel_size_m']:g} m): a narrower one seldom reaches the voxels on both "
+                         "sides of a surface, so little or nothing is meshed; raise band_m (the paper: 10 voxels)")
     for sensor in sensors:
         lo, hi = values[f"{sensor}.depth_min_m"], values[f"{sensor}.depth_max_m"]
         if not 0 <= lo < hi:

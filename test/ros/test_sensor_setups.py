@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from replays import replay_in_process
 from sensor_bags import Camera, params_file, surface_distance_m, two, write_bag
@@ -51,3 +52,10 @@ def test_voxels_finer_than_the_sample_step_still_mesh_the_surface(tmp_path: Path
     assert len(vertices) > 1000, stats["meshes"]
     assert np.quantile(surface_distance_m(vertices), 0.99) < 0.01
 
+
+def test_a_band_narrower_than_two_voxels_is_refused_with_the_reason():
+    from senfunet_ros.replay import load_settings
+
+    with pytest.raises(ValueError, match=r"band_m \(0.015 m\) must be at least two voxels"):
+        load_settings(overrides={"voxel_size_m": 0.01, "band_m": 0.015})
+    load_settings(overrides={"voxel_size_m": 0.01, "band_m": 0.02})
