@@ -59,3 +59,21 @@ def test_a_band_narrower_than_two_voxels_is_refused_with_the_reason():
     with pytest.raises(ValueError, match=r"band_m \(0.015 m\) must be at least two voxels"):
         load_settings(overrides={"voxel_size_m": 0.01, "band_m": 0.015})
     load_settings(overrides={"voxel_size_m": 0.01, "band_m": 0.02})
+
+
+def test_a_camera_info_of_another_resolution_is_scaled_to_the_image_and_another_aspect_refused(tmp_path: Path):
+    """The contract: camera_info's K, other resolutions resized and K scaled. A driver that decimates its
+    depth (96x72) next to the full-resolution camera_info (192x144) had every frame dropped as
+    size_mismatch; its K is now scaled to the image. A camera_info of another aspect ratio (a crop,
+    another camera) cannot give the image's K: still dropped, saying so."""
+    full = (120.0, 0.0, 95.5, 0.0, 120.0, 71.5, 0.0, 0.0, 1.0)  # the Camera's K (fx 60, centred) at twice the size
+    recording = two(Camera("tof", rate_hz=15.0, info_size=(192, 144), info_k=full))
+    proc, stats, vertices = _replay(tmp_path / "resized", recording)
+    tof = stats["sensors"]["tof"]
+    assert tof["integrated"] == tof["received"] > 0 and tof["dropped"]["size_mismatch"] == 0, proc.stdout
+    assert len(vertices) > 1000 and np.quantile(surface_distance_m(vertices), 0.99) < 0.02
+    cropped = two(Camera("tof", rate_hz=15.0, info_size=(192, 108), info_k=full))
+    proc, stats, _ = _replay(tmp_path / "cropped", cropped)
+    tof = stats["sensors"]["tof"]
+    assert tof["integrated"] == 0 and tof["dropped"]["size_mismatch"] == tof["received"] > 0
+    assert "another aspect ratio" in tof["errors"]["size_mismatch"]
