@@ -77,3 +77,15 @@ def test_a_camera_info_of_another_resolution_is_scaled_to_the_image_and_another_
     tof = stats["sensors"]["tof"]
     assert tof["integrated"] == 0 and tof["dropped"]["size_mismatch"] == tof["received"] > 0
     assert "another aspect ratio" in tof["errors"]["size_mismatch"]
+
+
+def test_sensors_in_another_order_than_the_weights_are_refused_in_one_line_saying_why(tmp_path: Path):
+    """The shipped weights take sensor 1 as depth only, sensor 2 with colour. Sensors listed the other way
+    round (stereo first, still the colour one) failed on a tensor shape deep in torch, over two lines."""
+    recording = two(Camera("stereo", color="rgb8"), Camera("tof", x_m=0.05, rate_hz=15.0))
+    bag = write_bag(recording, tmp_path / "bag")
+    proc = replay_in_process(bag, tmp_path / "out",
+                             params_file(tmp_path / "params.yaml", recording, rgb_sensors=["stereo"]))
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "trained with sensor 1 depth only, sensor 2 depth and colour" in proc.stderr
+    assert "this engine has sensor 1 depth and colour, sensor 2 depth only" in proc.stderr
