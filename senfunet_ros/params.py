@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass
 from typing import Any
 from collections.abc import Iterable, Sequence
@@ -20,6 +21,9 @@ __all__ = ["Param", "GLOBAL_PARAMS", "SENSOR_PARAMS", "NODE_NAME", "expanded_def
            "validate", "param_table"]
 
 NODE_NAME = "senfunet"
+# meshes the engine and the files name besides the sensors' (senfunet_core.block_mesher FUSED and TSDF_FUSION,
+# the fused mesh's file stem): a sensor of that name would lose its mesh to theirs
+RESERVED_SENSOR_NAMES = ("fused", "mesh", "tsdf_fusion")
 ON_TIME_JUMP = ("keep", "reset", "ignore")  # ignore: the older spelling of keep
 INF = math.inf
 
@@ -286,6 +290,15 @@ def check(values: dict[str, Any]) -> None:
     sensors = values["sensors"]
     if len(sensors) != 2 or len(set(sensors)) != 2:
         raise ValueError(f"parameter 'sensors' needs two distinct names, got {sensors}")
+    for sensor in sensors:
+        # a name goes into topics (/<name>/depth), parameter names and file names (<name>.ply)
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", sensor):
+            raise ValueError(f"parameter 'sensors': {sensor!r} is not a usable sensor name: use letters, digits and "
+                             "'_', not a digit first (it names the sensor's topics /<name>/depth..., its parameters "
+                             "<name>.* and its mesh file <name>.ply)")
+        if sensor in RESERVED_SENSOR_NAMES:
+            raise ValueError(f"parameter 'sensors': '{sensor}' names an output (the fused mesh is mesh.ply, the "
+                             "baseline tsdf_fusion.ply): one would overwrite the other; choose another name")
     table = param_table(sensors)
     for name, p in table.items():
         p.check(name, values[name])

@@ -89,3 +89,29 @@ def test_sensors_in_another_order_than_the_weights_are_refused_in_one_line_sayin
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "trained with sensor 1 depth only, sensor 2 depth and colour" in proc.stderr
     assert "this engine has sensor 1 depth and colour, sensor 2 depth only" in proc.stderr
+
+
+@pytest.mark.parametrize("name, reason", [("mesh", "names an output"), ("tsdf_fusion", "names an output"),
+                                          ("front cam", "not a usable sensor name"), ("", "not a usable sensor name"),
+                                          ("cam/front", "not a usable sensor name")])
+def test_a_sensor_name_that_cannot_name_its_topics_and_files_is_refused(ros, name: str, reason: str):
+    """Sensor names from a parameter file: 'mesh' lost its mesh to the fused mesh (save_mesh and replay
+    --compare wrote one mesh.ply for both); 'front cam' or '' crashed the live node on a topic name
+    rclpy refuses (InvalidTopicNameException, a traceback). Both paths now refuse them saying why."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+    from senfunet_ros.replay import load_settings
+
+    with pytest.raises(ValueError, match=reason):
+        load_settings(overrides={"sensors": [name, "stereo"]})
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros)
+    try:
+        with pytest.raises(ValueError, match=reason):
+            FusionNode(context=context, parameter_overrides=[Parameter("sensors", value=[name, "stereo"]),
+                                                             Parameter("weights", value="none")])
+    finally:
+        rclpy.try_shutdown(context=context)
+    load_settings(overrides={"sensors": ["front_cam", "stereo"]})  # letters, digits and '_' are fine
