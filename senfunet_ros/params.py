@@ -311,6 +311,7 @@ def check(values: dict[str, Any]) -> None:
         raise ValueError(f"band_m ({values['band_m']} m) must be at least two voxels (2 x voxel_size_m = "
                          f"{2 * values['voxel_size_m']:g} m): a narrower one seldom reaches the voxels on both "
                          "sides of a surface, so little or nothing is meshed; raise band_m (the paper: 10 voxels)")
+    _check_topics(values)
     for sensor in sensors:
         lo, hi = values[f"{sensor}.depth_min_m"], values[f"{sensor}.depth_max_m"]
         if not 0 <= lo < hi:
@@ -330,6 +331,24 @@ def check(values: dict[str, Any]) -> None:
         raise ValueError(f"time_jump_s ({values['time_jump_s']} s) must be at least pose_max_wait_s "
                          f"({values['pose_max_wait_s']} s): poses that lag the images by up to pose_max_wait_s would "
                          "be off the images' timeline and dropped as bad_stamp")
+
+
+def _check_topics(values: dict[str, Any]) -> None:
+    """ValueError naming the parameter of a topic that is no ROS topic name ('/front cam/depth', ''):
+    rclpy would refuse it when the node subscribes, with an exception of its own and a traceback."""
+    from rclpy.validate_topic_name import validate_topic_name
+
+    for sensor in values["sensors"]:
+        for stream in ("depth", "color", "camera_info", "pose"):
+            name = f"{sensor}.{stream}_topic"
+            topic = values[name]
+            if not topic and (stream == "color" or (stream == "pose" and values["pose_type"] == PoseType.TF.value)):
+                continue  # no colour; no pose topic with poses from TF
+            try:
+                validate_topic_name(topic)
+            except Exception as err:  # noqa: BLE001 (rclpy's InvalidTopicNameException, not a ValueError)
+                why = str(err).splitlines()[0].removeprefix("Invalid topic name: ")
+                raise ValueError(f"parameter '{name}' = {topic!r} is not a topic name: {why}") from None
 
 
 def validate(current: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:

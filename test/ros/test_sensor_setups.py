@@ -115,3 +115,26 @@ def test_a_sensor_name_that_cannot_name_its_topics_and_files_is_refused(ros, nam
     finally:
         rclpy.try_shutdown(context=context)
     load_settings(overrides={"sensors": ["front_cam", "stereo"]})  # letters, digits and '_' are fine
+
+
+def test_a_topic_parameter_that_is_no_topic_name_is_refused_naming_the_parameter(ros):
+    """'/front cam/depth' from a parameter file crashed the live node with rclpy's InvalidTopicNameException
+    and a traceback (not the one-line 'cannot start' of bad parameters)."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+    from senfunet_ros.replay import load_settings
+
+    reason = r"parameter 'tof.depth_topic' = '/front cam/depth' is not a topic name"
+    with pytest.raises(ValueError, match=reason):
+        load_settings(overrides={"tof.depth_topic": "/front cam/depth"})
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros)
+    try:
+        with pytest.raises(ValueError, match=reason):
+            FusionNode(context=context, parameter_overrides=[Parameter("tof.depth_topic", value="/front cam/depth"),
+                                                             Parameter("weights", value="none")])
+    finally:
+        rclpy.try_shutdown(context=context)
+    load_settings(overrides={"stereo.color_topic": "", "tof.depth_topic": "camera/depth"})  # none; relative
