@@ -302,6 +302,10 @@ def check(values: dict[str, Any]) -> None:
     table = param_table(sensors)
     for name, p in table.items():
         p.check(name, values[name])
+    unknown_rgb = [name for name in values["rgb_sensors"] if name not in sensors]
+    if unknown_rgb:  # sensors renamed, rgb_sensors left at its default: no feature net would take colour
+        raise ValueError(f"parameter 'rgb_sensors' names {unknown_rgb}, not among sensors {list(sensors)}; list the "
+                         "sensors whose feature net takes colour ([] for none)")
     from senfunet_core.networks import resolve_weights
 
     resolve_weights(values["weights"] or "none")  # InputError (a ValueError) naming the choices

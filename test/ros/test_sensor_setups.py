@@ -138,3 +138,13 @@ def test_a_topic_parameter_that_is_no_topic_name_is_refused_naming_the_parameter
     finally:
         rclpy.try_shutdown(context=context)
     load_settings(overrides={"stereo.color_topic": "", "tof.depth_topic": "camera/depth"})  # none; relative
+
+
+def test_rgb_sensors_naming_no_sensor_is_refused():
+    """Sensors renamed in a parameter file, rgb_sensors left at its default [stereo]: no feature net took
+    colour, silently (with untrained weights; the shipped ones failed on a tensor shape)."""
+    from senfunet_ros.replay import load_settings
+
+    with pytest.raises(ValueError, match=r"'rgb_sensors' names \['stereo'\], not among sensors \['front', 'back'\]"):
+        load_settings(overrides={"sensors": ["front", "back"], "weights": "none"})
+    load_settings(overrides={"sensors": ["front", "back"], "rgb_sensors": ["back"]})
