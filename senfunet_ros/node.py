@@ -268,6 +268,8 @@ class FusionNode(Node):
         for name in P.unknown_parameters(getattr(self, "_parameter_overrides", {}), self.settings.sensor_names):
             self.get_logger().warning(f"parameter {name} is not one of this node's and is ignored; see "
                                       "config/default.yaml for the names")
+        for note in P.colourless_sensors(self.settings):
+            self.get_logger().warning(note)
         # 2. engine and ingest (the engine is thread-safe: integration and mesh updates overlap)
         s = self.settings
         self.timings = {name: _Timing() for name in ("integrate", "update", "alpha", "weights", "encode", "publish")}

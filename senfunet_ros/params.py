@@ -437,6 +437,20 @@ def declare(node: Any) -> Settings:
     return Settings.from_values(values)
 
 
+def colourless_note(settings: Settings, sensor: SensorSettings, why: str) -> str:
+    """What it means that a sensor of rgb_sensors gets no colour (`why`: no colour topic, none in the bag)."""
+    return (f"{sensor.name}'s feature net takes colour (rgb_sensors) but {why}: its frames are fused with black "
+            "colour, not as the weights were trained; set "
+            f"{sensor.name}.color_topic to its colour images, or leave {sensor.name} out of rgb_sensors with "
+            "weights trained that way")
+
+
+def colourless_sensors(settings: Settings) -> list[str]:
+    """Notes for the sensors of rgb_sensors without a colour topic."""
+    return [colourless_note(settings, sensor, f"{sensor.name}.color_topic is empty") for sensor in settings.sensors
+            if sensor.name in settings.rgb_sensors and not sensor.color_topic]
+
+
 def live_lag(settings: Settings) -> dict[str, Any]:
     """The live node's IngestConfig fields for lag: max_lag_s and the set-aside memory (behind_buffer_mb)."""
     return {"max_lag_s": settings.max_lag_s, "set_aside_bytes": int(settings.behind_buffer_mb * 2**20)}

@@ -437,6 +437,11 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
         bag_info = {"path": str(bag), "storage": reader.storage, "messages": reader.message_count,
                     "duration_s": round(reader.duration_s, 6), "start_ns": reader.start_ns, "note": reader.note}
         run = _Run(bag_info, router, total=sum(reader.topics[t].count for t in router.topics))
+        for sensor in settings.sensors:  # a colour net without colour: fused, but not as the weights were trained
+            if sensor.name in settings.rgb_sensors and sensor.color_topic not in router.routes:
+                why = (f"the bag has no messages on {sensor.color_topic}" if sensor.color_topic else
+                       f"{sensor.name}.color_topic is empty")
+                log(f"note: {P.colourless_note(settings, sensor, why)}")
         for topic, others in router.other_types.items():
             left_out = ", ".join(f"{n} {t}" for t, n in others.items())
             log(f"topic {topic} was recorded with several types: its {router.routes[topic].msgtype} messages are "

@@ -148,3 +148,32 @@ def test_rgb_sensors_naming_no_sensor_is_refused():
     with pytest.raises(ValueError, match=r"'rgb_sensors' names \['stereo'\], not among sensors \['front', 'back'\]"):
         load_settings(overrides={"sensors": ["front", "back"], "weights": "none"})
     load_settings(overrides={"sensors": ["front", "back"], "rgb_sensors": ["back"]})
+
+
+def test_a_colour_sensor_without_colour_is_said_in_replay_and_by_the_node(ros, tmp_path: Path, capfd):
+    """The shipped weights' second sensor takes colour: a bag without its colour topic, or the node with
+    its color_topic empty, fused its frames with black colour without a word."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+
+    recording = two(Camera("tof", rate_hz=15.0), Camera("stereo", x_m=0.05, color=""))
+    bag = write_bag(recording, tmp_path / "bag")
+    params = params_file(tmp_path / "params.yaml", recording, **{"stereo.color_topic": "/stereo/color"})
+    proc = replay_in_process(bag, tmp_path / "out", params)
+    assert proc.returncode == 0, proc.stderr
+    assert "note: stereo's feature net takes colour (rgb_sensors) but the bag has no messages on /stereo/color" \
+        in proc.stderr
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros)
+    try:
+        capfd.readouterr()
+        node = FusionNode(context=context, parameter_overrides=[Parameter("stereo.color_topic", value=""),
+                                                                Parameter("weights", value="none"),
+                                                                Parameter("output_dir", value=str(tmp_path))])
+        node.destroy_node()
+        said = capfd.readouterr().err
+        assert "stereo's feature net takes colour (rgb_sensors) but stereo.color_topic is empty" in said
+    finally:
+        rclpy.try_shutdown(context=context)
