@@ -280,6 +280,19 @@ def load_weights(path: str | Path, feature_nets: nn.ModuleList, weighting_net: W
         if len(state["feature_nets"]) != len(feature_nets):
             raise InputError(f"{path} holds {len(state['feature_nets'])} feature nets, "
                              f"the engine has {len(feature_nets)} sensors")
+        trained_rgb = [bool(uses_rgb) for uses_rgb in state.get("sensor_uses_rgb") or []]
+        engine_rgb = [bool(net.uses_rgb) for net in feature_nets]
+        if trained_rgb and trained_rgb != engine_rgb:
+            # the nets are per position (sensor 1 is the one alpha weights): sensors listed in another order, or
+            # another choice of colour sensors, would otherwise fail on a tensor shape deep in torch
+            def inputs(flags: list[bool]) -> str:
+                return ", ".join(f"sensor {i + 1} {'depth and colour' if rgb else 'depth only'}"
+                                 for i, rgb in enumerate(flags))
+
+            raise InputError(f"{path} was trained with {inputs(trained_rgb)} (its sensors, in order: "
+                             f"{state.get('sensors')}), this engine has {inputs(engine_rgb)}: list the sensors in "
+                             "the weights' order and give colour to the same ones (the node's sensors and "
+                             "rgb_sensors), or train weights for this set-up")
         for net, net_state in zip(feature_nets, state["feature_nets"]):
             net.load_state_dict(net_state)
         weighting_net.load_state_dict(state["weighting_net"])

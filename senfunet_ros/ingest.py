@@ -70,7 +70,7 @@ DROP_REASONS: tuple[str, ...] = (
     "no_camera_info",  # no camera_info of its sensor arrived within pose_max_wait_s of the depth image
     "bad_camera_info",  # camera_info without a usable K or size
     "bad_encoding",  # depth or colour encoding unsupported, or the image is malformed
-    "size_mismatch",  # depth size differs from its camera_info size
+    "size_mismatch",  # depth size differs from its camera_info size, and not as a resize of it (another aspect ratio)
     "all_invalid",  # no valid depth pixel at all
     "out_of_range",  # no depth pixel within the sensor's depth range inside the image border (reported by the caller)
     "bad_pose",  # pose message with NaN/inf or a non-unit quaternion
@@ -694,9 +694,10 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
     except ValueError as err:
         return "bad_encoding", f"depth: {err}"
     height, width = depth_m.shape
-    if (width, height) != info_size:
-        return "size_mismatch", (f"depth image {width}x{height}, camera_info {info_size[0]}x{info_size[1]}; "
-                                 "publish the camera_info of this image")
+    try:  # a resize of the camera_info's view (a decimating driver) takes its K scaled, as the contract says
+        K = conv.intrinsics_for_size(K, info_size, (width, height))
+    except ValueError as err:
+        return "size_mismatch", str(err)
     if not np.any(depth_m > 0.0):
         return "all_invalid", ""
     target_width, target_height = working_size

@@ -272,6 +272,8 @@ class FusionNode(Node):
         # ... and a parameter file none of whose sections reaches the node (renamed, or in a namespace)
         for problem in unread_params_files([*argv, *(kwargs.get("cli_args") or ())], self.get_fully_qualified_name()):
             self.get_logger().error(problem)
+        for note in P.colourless_sensors(self.settings):
+            self.get_logger().warning(note)
         # 2. engine and ingest (the engine is thread-safe: integration and mesh updates overlap)
         s = self.settings
         self.timings = {name: _Timing() for name in ("integrate", "update", "alpha", "weights", "encode", "publish")}

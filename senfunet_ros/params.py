@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass
 from typing import Any
 from collections.abc import Iterable, Sequence
@@ -20,6 +21,9 @@ __all__ = ["Param", "GLOBAL_PARAMS", "SENSOR_PARAMS", "NODE_NAME", "expanded_def
            "validate", "param_table"]
 
 NODE_NAME = "senfunet"
+# meshes the engine and the files name besides the sensors' (senfunet_core.block_mesher FUSED and TSDF_FUSION,
+# the fused mesh's file stem): a sensor of that name would lose its mesh to theirs
+RESERVED_SENSOR_NAMES = ("fused", "mesh", "tsdf_fusion")
 ON_TIME_JUMP = ("keep", "reset", "ignore")  # ignore: the older spelling of keep
 INF = math.inf
 
@@ -62,8 +66,9 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           choices=tuple(p.value for p in PoseType)),
     Param("fixed_frame", "map", "frame the poses are given in; frame_id of every output"),
     Param("voxel_size_m", 0.01, "voxel side length in metres", lo=0.001, hi=10.0),
-    Param("band_m", 0.1, "length of the ray segment integrated around each depth measurement, metres", lo=0.001,
-          hi=10.0),
+    Param("band_m", 0.1, "length of the ray segment integrated around each depth measurement, metres; at least "
+          "two voxels (sampled at most a voxel apart: 11 samples, more for voxels finer than band_m / 10)",
+          lo=0.001, hi=10.0),
     Param("working_width", 256, "images are resized to this width (K scaled); 0 = native", lo=0, hi=8192),
     Param("working_height", 0,
           "images are resized to this height; 0 = native, or keep the aspect ratio if the width is set",
@@ -285,12 +290,32 @@ def check(values: dict[str, Any]) -> None:
     sensors = values["sensors"]
     if len(sensors) != 2 or len(set(sensors)) != 2:
         raise ValueError(f"parameter 'sensors' needs two distinct names, got {sensors}")
+    for sensor in sensors:
+        # a name goes into topics (/<name>/depth), parameter names and file names (<name>.ply)
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", sensor):
+            raise ValueError(f"parameter 'sensors': {sensor!r} is not a usable sensor name: use letters, digits and "
+                             "'_', not a digit first (it names the sensor's topics /<name>/depth..., its parameters "
+                             "<name>.* and its mesh file <name>.ply)")
+        if sensor in RESERVED_SENSOR_NAMES:
+            raise ValueError(f"parameter 'sensors': '{sensor}' names an output (the fused mesh is mesh.ply, the "
+                             "baseline tsdf_fusion.ply): one would overwrite the other; choose another name")
     table = param_table(sensors)
     for name, p in table.items():
         p.check(name, values[name])
+    unknown_rgb = [name for name in values["rgb_sensors"] if name not in sensors]
+    if unknown_rgb:  # sensors renamed, rgb_sensors left at its default: no feature net would take colour
+        raise ValueError(f"parameter 'rgb_sensors' names {unknown_rgb}, not among sensors {list(sensors)}; list the "
+                         "sensors whose feature net takes colour ([] for none)")
     from senfunet_core.networks import resolve_weights
 
     resolve_weights(values["weights"] or "none")  # InputError (a ValueError) naming the choices
+    if values["band_m"] < 2 * values["voxel_size_m"]:
+        # the samples in front of a surface and those behind it must reach different voxels, or no cell
+        # holds both signs and nothing is meshed
+        raise ValueError(f"band_m ({values['band_m']} m) must be at least two voxels (2 x voxel_size_m = "
+                         f"{2 * values['voxel_size_m']:g} m): a narrower one seldom reaches the voxels on both "
+                         "sides of a surface, so little or nothing is meshed; raise band_m (the paper: 10 voxels)")
+    _check_topics(values)
     for sensor in sensors:
         lo, hi = values[f"{sensor}.depth_min_m"], values[f"{sensor}.depth_max_m"]
         if not 0 <= lo < hi:
@@ -313,6 +338,24 @@ def check(values: dict[str, Any]) -> None:
         raise ValueError(f"time_jump_s ({values['time_jump_s']} s) must be at least pose_max_wait_s "
                          f"({values['pose_max_wait_s']} s): poses that lag the images by up to pose_max_wait_s would "
                          "be off the images' timeline and dropped as bad_stamp")
+
+
+def _check_topics(values: dict[str, Any]) -> None:
+    """ValueError naming the parameter of a topic that is no ROS topic name ('/front cam/depth', ''):
+    rclpy would refuse it when the node subscribes, with an exception of its own and a traceback."""
+    from rclpy.validate_topic_name import validate_topic_name
+
+    for sensor in values["sensors"]:
+        for stream in ("depth", "color", "camera_info", "pose"):
+            name = f"{sensor}.{stream}_topic"
+            topic = values[name]
+            if not topic and (stream == "color" or (stream == "pose" and values["pose_type"] == PoseType.TF.value)):
+                continue  # no colour; no pose topic with poses from TF
+            try:
+                validate_topic_name(topic)
+            except Exception as err:  # noqa: BLE001 (rclpy's InvalidTopicNameException, not a ValueError)
+                why = str(err).splitlines()[0].removeprefix("Invalid topic name: ")
+                raise ValueError(f"parameter '{name}' = {topic!r} is not a topic name: {why}") from None
 
 
 def validate(current: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
@@ -397,6 +440,20 @@ def declare(node: Any) -> Settings:
     return Settings.from_values(values)
 
 
+def colourless_note(sensor: SensorSettings, why: str) -> str:
+    """What it means that a sensor of rgb_sensors gets no colour (`why`: no colour topic, none in the bag)."""
+    return (f"{sensor.name}'s feature net takes colour (rgb_sensors) but {why}: its frames are fused with black "
+            "colour, not as the weights were trained; set "
+            f"{sensor.name}.color_topic to its colour images, or leave {sensor.name} out of rgb_sensors with "
+            "weights trained that way")
+
+
+def colourless_sensors(settings: Settings) -> list[str]:
+    """Notes for the sensors of rgb_sensors without a colour topic."""
+    return [colourless_note(sensor, f"{sensor.name}.color_topic is empty") for sensor in settings.sensors
+            if sensor.name in settings.rgb_sensors and not sensor.color_topic]
+
+
 def live_lag(settings: Settings) -> dict[str, Any]:
     """The live node's IngestConfig fields for lag: max_lag_s and the set-aside memory (behind_buffer_mb)."""
     return {"max_lag_s": settings.max_lag_s, "set_aside_bytes": int(settings.behind_buffer_mb * 2**20)}
@@ -453,10 +510,12 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
     import dataclasses
 
     from senfunet_core.engine import EngineConfig
+    from senfunet_core.integrator import samples_along_band
     from senfunet_core.networks import choose_device
 
     s = settings
     device = str(choose_device(s.device, cpu_fallback=True).device)
+    n_samples, n_samples_behind = samples_along_band(s.voxel_size_m, s.band_m)
     config = EngineConfig(
         sensors=s.sensor_names,
         sensor_uses_rgb=tuple(name in s.rgb_sensors for name in s.sensor_names),
@@ -464,6 +523,8 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
         depth_max_m=tuple(sensor.depth_max_m for sensor in s.sensors),
         voxel_size_m=s.voxel_size_m,
         band_m=s.band_m,
+        n_samples=n_samples,  # at most a voxel apart, whatever the voxel size
+        n_samples_behind=n_samples_behind,
         device=device,
         alpha_voxels="surface",  # the exact fused mesh for the least weighting-net work
         alpha_threads=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1,

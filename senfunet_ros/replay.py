@@ -40,6 +40,8 @@ __all__ = [
     "ReplayResult",
     "replay_bag",
     "MESH_FILES",
+    "drop_summary",
+    "DISTORTED_NOTE",
 ]
 
 _IMAGES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -267,8 +269,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
         result.error = (f"{bag}: only {run.read} of the {run.total} recorded messages on the fused topics could be "
                         "read; the file is damaged")
     if n_integrated == 0 and result.error is None:
-        dropped = "; ".join(f"{s}: " + (", ".join(f"{n} {r}" for r, n in c["dropped"].items() if n) or "no frames")
-                            for s, c in counters.items())
+        dropped = "; ".join(f"{s}: " + (drop_summary(c) or "no frames") for s, c in counters.items())
         result.error = f"{bag}: no frame could be fused ({dropped}); see {out / 'stats.json'}"
     # what needs the map is read before its last mesh: the map's memory goes as that mesh is made. The
     # live node's mesh-update statistics (meshed blocks, how long they waited for the net) mean nothing
@@ -298,6 +299,18 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     os.chmod(out / "stats.json", FILE_MODE)
     result.files["stats"] = out / "stats.json"
     return result
+
+
+def drop_summary(sensor: dict[str, Any]) -> str:
+    """A sensor's drops by reason, each with what its last such message had wrong when known:
+    "8 bad_camera_info (camera_info K has no positive finite focal lengths ...)"."""
+    errors = sensor.get("errors", {})
+    return ", ".join(f"{n} {reason}" + (f" ({errors[reason]})" if errors.get(reason) else "")
+                     for reason, n in sensor["dropped"].items() if n)
+
+
+DISTORTED_NOTE = ("its camera_info has non-zero distortion coefficients, which are not applied: the depth images are "
+                  "taken as rectified (pinhole K); record the driver's rectified depth topic")
 
 
 def _prepare_out(out: Path) -> None:
@@ -340,6 +353,11 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
         bag_info = {"path": str(bag), "storage": reader.storage, "messages": reader.message_count,
                     "duration_s": round(reader.duration_s, 6), "start_ns": reader.start_ns, "note": reader.note}
         run = _Run(bag_info, router, total=sum(reader.topics[t].count for t in router.topics))
+        for sensor in settings.sensors:  # a colour net without colour: fused, but not as the weights were trained
+            if sensor.name in settings.rgb_sensors and sensor.color_topic not in router.routes:
+                why = (f"the bag has no messages on {sensor.color_topic}" if sensor.color_topic else
+                       f"{sensor.name}.color_topic is empty")
+                log(f"note: {P.colourless_note(sensor, why)}")
         for topic, others in router.other_types.items():
             left_out = ", ".join(f"{n} {t}" for t, n in others.items())
             log(f"topic {topic} was recorded with several types: its {router.routes[topic].msgtype} messages are "
@@ -416,6 +434,12 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
             "pending_at_end": c["queue_depth"],  # frames still waiting (for a pose or camera_info) when the bag ended
             "color_received": c["color_received"], "pose_received": c["pose_received"],
             "time_jumps": c["time_jumps"],
+            # what the counts alone do not say: what the last dropped message of each reason had wrong (a
+            # camera_info without K, an image too small for the border...), frames fused without their colour,
+            # and a camera_info whose distortion replay does not apply
+            "errors": dict(c["errors"]),
+            "without_color": c["without_color"],
+            "distorted": c["distorted"],
         }
     router = run.router
     return {

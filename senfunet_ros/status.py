@@ -32,7 +32,8 @@ DROP_HINTS: dict[str, str] = {
                       "the topic (parameter {s.name}.camera_info_topic) and that its publisher sends more than once",
     "bad_camera_info": "the CameraInfo on {s.camera_info_topic} has no usable K, width or height",
     "bad_encoding": "publish depth on {s.depth_topic} as 32FC1 (metres) or 16UC1 (millimetres)",
-    "size_mismatch": "the depth images on {s.depth_topic} differ in size from the CameraInfo on {s.camera_info_topic}",
+    "size_mismatch": "the depth images on {s.depth_topic} differ in aspect ratio from the CameraInfo on "
+                     "{s.camera_info_topic} (another size of the same aspect ratio is taken, K scaled)",
     "all_invalid": "every pixel of the depth image was 0, negative, NaN or inf",
     "out_of_range": "no depth pixel lay within {s.depth_min_m}..{s.depth_max_m} m inside the image border",
     "bad_pose": "a pose on {s.pose_topic} had NaN/inf or a quaternion of length other than 1",

@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
 
     for sig in (signal.SIGINT, signal.SIGTERM):  # they stop a replay: what was fused is saved
         signal.signal(sig, _interrupt)
-    from senfunet_ros.replay import replay_bag
+    from senfunet_ros.replay import DISTORTED_NOTE, drop_summary, replay_bag
 
     try:
         result = replay_bag(args.bag, args.out, params=args.params, gt=args.gt, progress=not args.no_progress,
@@ -85,13 +85,17 @@ def run(args: argparse.Namespace) -> int:
 
     stats = result.stats
     for sensor, c in stats["sensors"].items():
-        reasons = ", ".join(f"{n} {r}" for r, n in c["dropped"].items() if n)
+        reasons = drop_summary(c)
         line = f"{sensor}: {c['integrated']} of {c['received']} frames fused"
         if reasons:
             line += f"; dropped: {reasons}"
         if c["pending_at_end"]:
             line += f"; {c['pending_at_end']} still waiting for a pose or camera_info at the end"
+        if c["without_color"]:
+            line += f"; {c['without_color']} fused without colour"
         print(line)
+        if c["distorted"]:
+            print(f"{sensor}: note: {DISTORTED_NOTE}")
     for path in result.files.values():
         print(f"wrote {path}")
     stale = _stale_meshes(result, args)

@@ -16,6 +16,7 @@ to do about it.
 """
 from senfunet_ros.conversions.images import (
                                              depth_from_image,
+                                             intrinsics_for_size,
                                              intrinsics_from_camera_info,
                                              resize_depth,
                                              resize_rgb,
@@ -67,6 +68,7 @@ __all__ = [
                                              "block_marker_ids",
                                              "delete_all_marker_array_cdr",
                                              "depth_from_image",
+                                             "intrinsics_for_size",
                                              "intrinsics_from_camera_info",
                                              "marker_array_cdr",
                                              "marker_array_from_cdr",

@@ -13,6 +13,7 @@ from senfunet_ros.conversions.rvl import rvl_decode
 
 __all__ = [
     "depth_from_image",
+    "intrinsics_for_size",
     "intrinsics_from_camera_info",
     "resize_depth",
     "resize_rgb",
@@ -240,6 +241,23 @@ def scale_intrinsics(K: np.ndarray, src_size: tuple[int, int], dst_size: tuple[i
     out[1, 1] *= sy
     out[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
     return out
+
+
+def intrinsics_for_size(K: np.ndarray, info_size: tuple[int, int], image_size: tuple[int, int]) -> np.ndarray:
+    """K of a camera_info of `info_size` (width, height) for an image of `image_size`: the same K when
+    the sizes agree, scaled when the image is the camera_info's view resized (the same aspect ratio, to
+    a pixel: a driver's decimation, a camera_info of the full-resolution stream). ValueError for another
+    aspect ratio: a crop or another camera, whose K cannot be told from this one."""
+    if tuple(image_size) == tuple(info_size):
+        return K
+    (width, height), (info_width, info_height) = image_size, info_size
+    scale_x, scale_y = width / info_width, height / info_height
+    # a resize rounds each side to a whole pixel: its two scales differ by at most that, and by 1% (a tiny image)
+    if abs(scale_x - scale_y) > min(1 / info_width + 1 / info_height, 0.01 * max(scale_x, scale_y)):
+        raise ValueError(f"depth image {width}x{height}, camera_info {info_width}x{info_height}: another aspect "
+                         "ratio (a crop, or another camera's camera_info?); publish the camera_info of this image "
+                         "(a crop's: its roi)")
+    return scale_intrinsics(K, (info_width, info_height), (width, height))
 
 
 def _source_coords(src: int, dst: int) -> np.ndarray:

@@ -304,3 +304,18 @@ def test_spilled_blocks_seen_by_a_frame_that_outgrows_the_grid_come_back_with_th
     assert grew
     assert with_growth.keys() == without_growth.keys()
     assert all(np.array_equal(with_growth[k], without_growth[k]) for k in without_growth)
+
+
+@pytest.mark.parametrize("voxel_size_m, band_m", [(0.01, 0.1), (0.005, 0.1), (0.002, 0.1), (0.05, 0.1), (0.01, 0.3)])
+def test_samples_along_the_band_are_at_most_a_voxel_apart(voxel_size_m: float, band_m: float):
+    """The paper's 11 samples (3 written behind) where they are a voxel apart or closer; more, the same
+    share behind the surface, where they would skip voxels."""
+    from senfunet_core.integrator import samples_along_band
+
+    n_samples, behind = samples_along_band(voxel_size_m, band_m)
+    config = IntegratorConfig(voxel_size_m, band_m, n_samples, behind)
+    assert config.step_m <= voxel_size_m * (1 + 1e-9)
+    assert n_samples >= 11 and n_samples % 2 == 1 and 0 < behind <= (n_samples - 1) // 2
+    assert behind / ((n_samples - 1) // 2) == pytest.approx(0.6, abs=0.05)
+    if band_m / 10 <= voxel_size_m:
+        assert (n_samples, behind) == (11, 3)

@@ -584,7 +584,7 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
         wait_for(lambda: ingest._sensors["tof"].camera_info is not None, 10, "camera_info")
         checks = [
             ("bad_encoding", _image(2 * S, good, encoding="bgr8")),
-            ("size_mismatch", _image(3 * S, np.ones((16, 16), np.float32))),
+            ("size_mismatch", _image(3 * S, np.ones((16, 32), np.float32))),
             ("all_invalid", _image(4 * S, np.full((32, 32), np.nan, np.float32))),
         ]
         for reason, msg in checks:
@@ -629,7 +629,7 @@ def test_bad_inputs_are_counted_and_the_node_survives(ros, tmp_path: Path) -> No
         assert "senfunet: tof" in names and "senfunet: pipeline" in names
         tof = {kv.key: kv.value for kv in status.status[names.index("senfunet: tof")].values}
         assert int(tof["dropped.bad_encoding"]) >= 1 and int(tof["integrated"]) >= 1
-        assert "32FC1" in tof["error.bad_encoding"] and "16x16" in tof["error.size_mismatch"]  # what to fix
+        assert "32FC1" in tof["error.bad_encoding"] and "32x16" in tof["error.size_mismatch"]  # what to fix
     finally:
         pub_node.destroy_node()
         run.close()

@@ -217,9 +217,9 @@ def test_settings_from_file_match_the_node_defaults(tmp_path: Path):
     from_file = load_settings(REPO / "config" / "default.yaml")
     assert from_file.values == defaults.values == {k: v for k, (v, _) in P.expanded_defaults().items()}
     wildcard = tmp_path / "p.yaml"
-    wildcard.write_text("/**:\n  ros__parameters:\n    voxel_size_m: 2\n    tof:\n      depth_topic: /cam/depth\n")
+    wildcard.write_text("/**:\n  ros__parameters:\n    voxel_size_m: 0.02\n    tof:\n      depth_topic: /cam/depth\n")
     settings = load_settings(wildcard)
-    assert settings.voxel_size_m == 2.0 and settings.sensors[0].depth_topic == "/cam/depth"
+    assert settings.voxel_size_m == 0.02 and settings.sensors[0].depth_topic == "/cam/depth"
     typo = tmp_path / "typo.yaml"
     typo.write_text("senfunet:\n  ros__parameters:\n    voxel_sise_m: 0.02\n")
     with pytest.raises(ValueError, match=r"unknown parameter.*voxel_sise_m \(did you mean voxel_size_m\?\)"):

@@ -1,0 +1,179 @@
+"""Sensor set-ups other than the sample's (image sizes, intrinsics, encodings, camera_info, voxel
+sizes), each a small bag written with rosbags (`sensor_bags`) and replayed: the mesh lies on the
+scene's surfaces, or what went wrong is said, counted and explained."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from replays import replay_in_process
+from sensor_bags import Camera, params_file, surface_distance_m, two, write_bag
+
+
+def _replay(tmp_path: Path, recording, **params):
+    """(the command's output, stats.json, the fused mesh's vertices) of the recording's replay."""
+    from senfunet_core.ply import read_ply
+
+    bag = write_bag(recording, tmp_path / "bag")
+    proc = replay_in_process(bag, tmp_path / "out", params_file(tmp_path / "params.yaml", recording, **params))
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    mesh = tmp_path / "out" / "mesh.ply"
+    vertices = np.asarray(read_ply(mesh).vertices) if mesh.exists() else np.zeros((0, 3))
+    return proc, stats, vertices
+
+
+def test_replay_says_why_frames_were_dropped_and_that_distortion_is_not_applied(tmp_path: Path):
+    """An uncalibrated camera_info (K all zero) and a distorted one: stats.json and the command's
+    output say what was wrong, not only the reason's name, and that the distortion is not applied."""
+    recording = two(Camera("tof", rate_hz=15.0, info_k=(0.0,) * 9),
+                    Camera("stereo", x_m=0.05, color="rgb8", distortion_model="equidistant", d=(0.1, 0.01, 0.0, 0.0)))
+    proc, stats, vertices = _replay(tmp_path, recording)
+    assert proc.returncode == 0, proc.stderr
+    tof, stereo = stats["sensors"]["tof"], stats["sensors"]["stereo"]
+    assert tof["integrated"] == 0 and tof["dropped"]["bad_camera_info"] > 0
+    assert "no positive finite focal lengths" in tof["errors"]["bad_camera_info"]
+    assert "no positive finite focal lengths" in proc.stdout
+    assert stereo["distorted"] is True and tof["distorted"] is False
+    assert "stereo: note: its camera_info has non-zero distortion coefficients" in proc.stdout
+
+
+def test_voxels_finer_than_the_sample_step_still_mesh_the_surface(tmp_path: Path):
+    """5 mm voxels under the default 10 cm band: the paper's 11 samples lie 1 cm apart, two voxels, and
+    skipped every other voxel along each ray; no cell had its 8 corners observed and the mesh was empty.
+    The samples now stay a voxel apart (more of them): the mesh covers the surfaces seen."""
+    dense = dict(width=128, height=96, fx=450.0, fy=450.0)  # pixels ~4 mm apart on the wall, below a voxel
+    recording = two(Camera("tof", rate_hz=15.0, **dense), Camera("stereo", x_m=0.05, color="rgb8", **dense),
+                    duration_s=0.3)
+    proc, stats, vertices = _replay(tmp_path, recording, voxel_size_m=0.005)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert len(vertices) > 1000, stats["meshes"]
+    assert np.quantile(surface_distance_m(vertices), 0.99) < 0.01
+
+
+def test_a_band_narrower_than_two_voxels_is_refused_with_the_reason():
+    from senfunet_ros.params_file import load_settings
+
+    with pytest.raises(ValueError, match=r"band_m \(0.015 m\) must be at least two voxels"):
+        load_settings(overrides={"voxel_size_m": 0.01, "band_m": 0.015})
+    load_settings(overrides={"voxel_size_m": 0.01, "band_m": 0.02})
+
+
+def test_a_camera_info_of_another_resolution_is_scaled_to_the_image_and_another_aspect_refused(tmp_path: Path):
+    """The contract: camera_info's K, other resolutions resized and K scaled. A driver that decimates its
+    depth (96x72) next to the full-resolution camera_info (192x144) had every frame dropped as
+    size_mismatch; its K is now scaled to the image. A camera_info of another aspect ratio (a crop,
+    another camera) cannot give the image's K: still dropped, saying so."""
+    full = (120.0, 0.0, 95.5, 0.0, 120.0, 71.5, 0.0, 0.0, 1.0)  # the Camera's K (fx 60, centred) at twice the size
+    recording = two(Camera("tof", rate_hz=15.0, info_size=(192, 144), info_k=full))
+    proc, stats, vertices = _replay(tmp_path / "resized", recording)
+    tof = stats["sensors"]["tof"]
+    assert tof["integrated"] == tof["received"] > 0 and tof["dropped"]["size_mismatch"] == 0, proc.stdout
+    assert len(vertices) > 1000 and np.quantile(surface_distance_m(vertices), 0.99) < 0.02
+    cropped = two(Camera("tof", rate_hz=15.0, info_size=(192, 108), info_k=full))
+    proc, stats, _ = _replay(tmp_path / "cropped", cropped)
+    tof = stats["sensors"]["tof"]
+    assert tof["integrated"] == 0 and tof["dropped"]["size_mismatch"] == tof["received"] > 0
+    assert "another aspect ratio" in tof["errors"]["size_mismatch"]
+
+
+def test_sensors_in_another_order_than_the_weights_are_refused_in_one_line_saying_why(tmp_path: Path):
+    """The shipped weights take sensor 1 as depth only, sensor 2 with colour. Sensors listed the other way
+    round (stereo first, still the colour one) failed on a tensor shape deep in torch, over two lines."""
+    recording = two(Camera("stereo", color="rgb8"), Camera("tof", x_m=0.05, rate_hz=15.0))
+    bag = write_bag(recording, tmp_path / "bag")
+    proc = replay_in_process(bag, tmp_path / "out",
+                             params_file(tmp_path / "params.yaml", recording, rgb_sensors=["stereo"]))
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "trained with sensor 1 depth only, sensor 2 depth and colour" in proc.stderr
+    assert "this engine has sensor 1 depth and colour, sensor 2 depth only" in proc.stderr
+
+
+@pytest.mark.parametrize("name, reason", [("mesh", "names an output"), ("tsdf_fusion", "names an output"),
+                                          ("front cam", "not a usable sensor name"), ("", "not a usable sensor name"),
+                                          ("cam/front", "not a usable sensor name")])
+def test_a_sensor_name_that_cannot_name_its_topics_and_files_is_refused(ros, name: str, reason: str):
+    """Sensor names from a parameter file: 'mesh' lost its mesh to the fused mesh (save_mesh and replay
+    --compare wrote one mesh.ply for both); 'front cam' or '' crashed the live node on a topic name
+    rclpy refuses (InvalidTopicNameException, a traceback). Both paths now refuse them saying why."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+    from senfunet_ros.params_file import load_settings
+
+    with pytest.raises(ValueError, match=reason):
+        load_settings(overrides={"sensors": [name, "stereo"]})
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros)
+    try:
+        with pytest.raises(ValueError, match=reason):
+            FusionNode(context=context, parameter_overrides=[Parameter("sensors", value=[name, "stereo"]),
+                                                             Parameter("weights", value="none")])
+    finally:
+        rclpy.try_shutdown(context=context)
+    load_settings(overrides={"sensors": ["front_cam", "stereo"]})  # letters, digits and '_' are fine
+
+
+def test_a_topic_parameter_that_is_no_topic_name_is_refused_naming_the_parameter(ros):
+    """'/front cam/depth' from a parameter file crashed the live node with rclpy's InvalidTopicNameException
+    and a traceback (not the one-line 'cannot start' of bad parameters)."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+    from senfunet_ros.params_file import load_settings
+
+    reason = r"parameter 'tof.depth_topic' = '/front cam/depth' is not a topic name"
+    with pytest.raises(ValueError, match=reason):
+        load_settings(overrides={"tof.depth_topic": "/front cam/depth"})
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros)
+    try:
+        with pytest.raises(ValueError, match=reason):
+            FusionNode(context=context, parameter_overrides=[Parameter("tof.depth_topic", value="/front cam/depth"),
+                                                             Parameter("weights", value="none")])
+    finally:
+        rclpy.try_shutdown(context=context)
+    load_settings(overrides={"stereo.color_topic": "", "tof.depth_topic": "camera/depth"})  # none; relative
+
+
+def test_rgb_sensors_naming_no_sensor_is_refused():
+    """Sensors renamed in a parameter file, rgb_sensors left at its default [stereo]: no feature net took
+    colour, silently (with untrained weights; the shipped ones failed on a tensor shape)."""
+    from senfunet_ros.params_file import load_settings
+
+    with pytest.raises(ValueError, match=r"'rgb_sensors' names \['stereo'\], not among sensors \['front', 'back'\]"):
+        load_settings(overrides={"sensors": ["front", "back"], "weights": "none"})
+    load_settings(overrides={"sensors": ["front", "back"], "rgb_sensors": ["back"]})
+
+
+def test_a_colour_sensor_without_colour_is_said_in_replay_and_by_the_node(ros, tmp_path: Path, capfd):
+    """The shipped weights' second sensor takes colour: a bag without its colour topic, or the node with
+    its color_topic empty, fused its frames with black colour without a word."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+
+    recording = two(Camera("tof", rate_hz=15.0), Camera("stereo", x_m=0.05, color=""))
+    bag = write_bag(recording, tmp_path / "bag")
+    params = params_file(tmp_path / "params.yaml", recording, **{"stereo.color_topic": "/stereo/color"})
+    proc = replay_in_process(bag, tmp_path / "out", params)
+    assert proc.returncode == 0, proc.stderr
+    assert "note: stereo's feature net takes colour (rgb_sensors) but the bag has no messages on /stereo/color" \
+        in proc.stderr
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros)
+    try:
+        capfd.readouterr()
+        node = FusionNode(context=context, parameter_overrides=[Parameter("stereo.color_topic", value=""),
+                                                                Parameter("weights", value="none"),
+                                                                Parameter("output_dir", value=str(tmp_path))])
+        node.destroy_node()
+        said = capfd.readouterr().err
+        assert "stereo's feature net takes colour (rgb_sensors) but stereo.color_topic is empty" in said
+    finally:
+        rclpy.try_shutdown(context=context)
