@@ -96,6 +96,15 @@ def run(args: argparse.Namespace) -> int:
         print(line)
         if c["distorted"]:
             print(f"{sensor}: note: {DISTORTED_NOTE}")
+    unfused = [sensor for sensor, c in stats["sensors"].items() if not c["integrated"]]
+    if unfused and len(unfused) < len(stats["sensors"]):
+        # one sensor alone: the paper's outlier filter keeps of its surface only what the net trusts
+        # without the other sensor to back it, which may be little or nothing
+        fused = result.meshes.get("mesh")
+        print(f"senfunet replay: note: {', '.join(unfused)} fused no frame (see above), so mesh.ply holds only "
+              "the surface the other sensor saw alone and the weighting net trusts"
+              + (f" ({fused.n_faces} triangles)" if fused is not None else "")
+              + "; --compare also writes each sensor's own mesh", file=sys.stderr)
     for path in result.files.values():
         print(f"wrote {path}")
     stale = _stale_meshes(result, args)

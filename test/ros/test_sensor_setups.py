@@ -27,7 +27,8 @@ def _replay(tmp_path: Path, recording, **params):
 
 def test_replay_says_why_frames_were_dropped_and_that_distortion_is_not_applied(tmp_path: Path):
     """An uncalibrated camera_info (K all zero) and a distorted one: stats.json and the command's
-    output say what was wrong, not only the reason's name, and that the distortion is not applied."""
+    output say what was wrong, not only the reason's name, that the distortion is not applied, and
+    that the fused mesh holds only what the net trusts of the sensor that was fused."""
     recording = two(Camera("tof", rate_hz=15.0, info_k=(0.0,) * 9),
                     Camera("stereo", x_m=0.05, color="rgb8", distortion_model="equidistant", d=(0.1, 0.01, 0.0, 0.0)))
     proc, stats, vertices = _replay(tmp_path, recording)
@@ -38,6 +39,8 @@ def test_replay_says_why_frames_were_dropped_and_that_distortion_is_not_applied(
     assert "no positive finite focal lengths" in proc.stdout
     assert stereo["distorted"] is True and tof["distorted"] is False
     assert "stereo: note: its camera_info has non-zero distortion coefficients" in proc.stdout
+    # one sensor alone: what the outlier filter leaves of it is said, not only an empty or sparse mesh.ply
+    assert "note: tof fused no frame" in proc.stderr and "weighting net trusts" in proc.stderr, proc.stderr
 
 
 def test_voxels_finer_than_the_sample_step_still_mesh_the_surface(tmp_path: Path):
