@@ -310,7 +310,7 @@ def test_a_silent_colour_topic_is_a_warning_only_for_a_sensor_whose_net_takes_co
     engine = SimpleNamespace(counters={}, timings_s={}, stats=lambda wait=True: {},
                              config=SimpleNamespace(sensors=("tof", "stereo"), sensor_uses_rgb=(False, True)))
     pipeline = SimpleNamespace(latest_stamp_ns=0, ingest=SimpleNamespace(ledger=SimpleNamespace(counters=lambda: {})),
-                               time_jumps=0, frames_failed=0, frames_unfinished=0, engine=engine)
+                               time_jumps=0, maps=1, frames_failed=0, frames_unfinished=0, engine=engine)
     health = HealthMonitor({"tof": ("depth", "color"), "stereo": ("depth", "color")}, window_s=0.05,
                            stale_after_s=1.0)
     for sensor in ("tof", "stereo"):
@@ -963,7 +963,7 @@ def test_diagnostics_values_of_engine_statistics_are_plain_numbers() -> None:
     engine = SimpleNamespace(counters={}, timings_s={},
                              stats=lambda wait=True: {"frames_integrated": {"tof": 56, "stereo": 74}, "blocks": 5})
     pipeline = SimpleNamespace(latest_stamp_ns=0, ingest=SimpleNamespace(ledger=SimpleNamespace(counters=lambda: {})),
-                               time_jumps=0, frames_failed=0, frames_unfinished=0, engine=engine)
+                               time_jumps=0, maps=1, frames_failed=0, frames_unfinished=0, engine=engine)
     report = StatusReport(pipeline, HealthMonitor({}, window_s=1.0, stale_after_s=1.0), {}, LatencyStats(), topics={},
                           hardware_id="/senfunet", warn=lambda key, text: None, logger=None)
     (status,) = report.message("map").status

@@ -146,7 +146,7 @@ import sys, time
 import senfunet_ros.node as n
 
 class SlowStart:
-    def __init__(self):
+    def __init__(self, **kwargs):
         import rclpy
         from std_msgs.msg import String
         print("starting", flush=True)
