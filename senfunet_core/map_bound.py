@@ -156,7 +156,7 @@ class MapBound:
                 in_memory = np.sort(store.grid.slot_keys[: store.n_blocks])
             waiting, self.unarchived = BlockMeshes.concatenate(self.unarchived), []
             self._archive(drop_meshable(waiting, in_memory, self.voxel_size_m), waiting.keys,
-                          np.union1d(in_memory, packed_keys(waiting.keys)))
+                          np.union1d(in_memory, packed_keys(waiting.keys)), again=True)
         if self.max_blocks <= 0 or store.n_blocks <= self.max_blocks or store.n_blocks < self._retry_at_blocks:
             return None
         t0 = time.perf_counter()
@@ -258,12 +258,13 @@ class MapBound:
             self.evicted_in_view += in_view
         return eviction
 
-    def _archive(self, meshes: BlockMeshes, coords: np.ndarray, in_memory: np.ndarray) -> None:
+    def _archive(self, meshes: BlockMeshes, coords: np.ndarray, in_memory: np.ndarray, *, again: bool = False
+                 ) -> None:
         """Archive evicted blocks' final meshes (`coords`: the blocks', `in_memory`: the sorted packed
         keys of the blocks in memory, these among them). Out of memory, they wait in `unarchived`
-        (counted on ~/status, logged) and are tried again at the next eviction check: their voxels
-        already left, so these meshes are all that is left of the blocks until the sensors see them
-        again."""
+        (counted on ~/status; logged, but not when tried `again`) and are tried again at the next
+        eviction check: their voxels already left, so these meshes are all that is left of the blocks
+        until the sensors see them again."""
         try:
             near = self.archive.held_around(coords)
             self.archive.prune(near, in_memory, self.voxel_size_m)
@@ -272,10 +273,11 @@ class MapBound:
         except MemoryError:
             self.unarchived.append(meshes)
             self.archive_failures += 1
-            log.error("map bound: out of memory while archiving the final meshes of %d evicted blocks: ~/mesh, "
-                      "~/save_mesh and ~/save_map lack them until an eviction check archives them (tried at "
-                      "each mesh update; counted as unarchived_blocks on ~/status). Lower max_map_blocks or free "
-                      "memory.", len(meshes))
+            log.log(logging.DEBUG if again else logging.ERROR,
+                    "map bound: out of memory while archiving the final meshes of %d evicted blocks: ~/mesh, "
+                    "~/save_mesh and ~/save_map lack them until an eviction check archives them (tried at each "
+                    "mesh update; counted as unarchived_blocks on ~/status). Lower max_map_blocks or free memory.",
+                    len(meshes))
             return
         self.newly_archived.append(meshes)
 
