@@ -262,7 +262,7 @@ class MapBound:
                  ) -> None:
         """Archive evicted blocks' final meshes (`coords`: the blocks', `in_memory`: the sorted packed
         keys of the blocks in memory, these among them). Out of memory, they wait in `unarchived`
-        (counted on ~/status; logged, but not when tried `again`) and are tried again at the next
+        (counted on ~/status; logged once while any wait) and are tried again (`again`) at the next
         eviction check: their voxels already left, so these meshes are all that is left of the blocks
         until the sensors see them again."""
         try:
@@ -271,9 +271,10 @@ class MapBound:
             self.pruned_keys |= near  # the next update shows what is left of them
             self.archive.add(meshes, in_memory, self.voxel_size_m)
         except MemoryError:
+            first = not again and not self.unarchived  # of a spell short of memory: logged once
             self.unarchived.append(meshes)
             self.archive_failures += 1
-            log.log(logging.DEBUG if again else logging.ERROR,
+            log.log(logging.ERROR if first else logging.DEBUG,
                     "map bound: out of memory while archiving the final meshes of %d evicted blocks: ~/mesh, "
                     "~/save_mesh and ~/save_map lack them until an eviction check archives them (tried at each "
                     "mesh update; counted as unarchived_blocks on ~/status). Lower max_map_blocks or free memory.",
