@@ -540,10 +540,51 @@ def subscribe(node: Node, settings: P.Settings, *, callback: Callable[[str, Stre
         streams = [entry for entry in sensor_streams(sensor, settings.pose_type) if entry[2]]  # a topic set
         subscribed[sensor.name] = tuple(stream.value for stream, *_ in streams)
         for stream, msg_type, topic, qos in streams:
-            subscriptions.append(node.create_subscription(msg_type, topic, callback(sensor.name, stream), qos,
-                                                          callback_group=MutuallyExclusiveCallbackGroup()))
+            handler = callback(sensor.name, stream)
+            if stream is Stream.POSE:  # poses come several times as often as images: take all that wait
+                handler = TakingQueued(handler, limit=qos.depth)
+            subscription = node.create_subscription(msg_type, topic, handler, qos,
+                                                    callback_group=MutuallyExclusiveCallbackGroup())
+            if isinstance(handler, TakingQueued):
+                handler.subscription = subscription
+            subscriptions.append(subscription)
     health = HealthMonitor(subscribed, window_s=settings.diagnostics_window_s, stale_after_s=settings.stale_after_s)
     return subscriptions, health
+
+
+class TakingQueued:
+    """A subscription callback that, after its message, takes the messages already queued on its
+    subscription (at most `limit`; `subscription` set once it exists). rclpy's executors take one
+    message per subscription per round: on a node too busy for a round per pose (100 Hz a sensor),
+    the pose streams fell seconds behind the image streams, whose frames then timed out waiting for
+    poses that were queued already (pose_timeout) instead of being set aside as behind."""
+
+    def __init__(self, callback: Callable[[Any], None], *, limit: int) -> None:
+        self._callback = callback
+        self._limit = limit
+        self.subscription: Any = None
+
+    def __call__(self, msg: Any) -> None:
+        self._callback(msg)
+        for _ in range(self._limit):  # what arrived meanwhile is taken next round
+            queued = self._take()
+            if queued is None:
+                return
+            self._callback(queued)
+
+    def _take(self) -> Any:
+        """The next queued message, or None (none, or the subscription is gone). The executor takes
+        its messages this way too; it takes none of this one's while this callback runs (the
+        subscription's mutually exclusive group)."""
+        sub = self.subscription
+        if sub is None:
+            return None
+        try:
+            with sub.handle:
+                taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        except Exception:  # noqa: BLE001 (destroyed under a stop, ...): the executor's next round takes it
+            return None
+        return None if taken is None else taken[0]
 
 
 def sensor_streams(sensor: P.SensorSettings, pose_type: str) -> list[tuple[Stream, type, str, QoSProfile]]:
@@ -582,10 +623,12 @@ def make_tf(node: Node, settings: P.Settings, callback: Callable[[str, Stream], 
                          "topics (pose_type pose_stamped | odometry | transform_stamped)") from None
     from senfunet_ros.tf import TfBuffer
 
-    subscriptions = [node.create_subscription(TFMessage, topic, callback("", stream), qos,
-                                              callback_group=MutuallyExclusiveCallbackGroup())
-                     for topic, stream, qos in (("/tf", Stream.TF, _TF_QOS),
-                                                ("/tf_static", Stream.TF_STATIC, _TF_STATIC_QOS))]
+    subscriptions = []
+    for topic, stream, qos in (("/tf", Stream.TF, _TF_QOS), ("/tf_static", Stream.TF_STATIC, _TF_STATIC_QOS)):
+        handler = TakingQueued(callback("", stream), limit=qos.depth)  # /tf comes as often as poses do
+        handler.subscription = node.create_subscription(TFMessage, topic, handler, qos,
+                                                        callback_group=MutuallyExclusiveCallbackGroup())
+        subscriptions.append(handler.subscription)
     node.get_logger().warning("pose_type tf: tf2_ros cannot be imported; reading /tf and /tf_static with the "
                               "node's own buffer (source a ROS 2 install to use tf2_ros)")
     return TfBuffer(max_gap_s=settings.pose_tolerance_s), subscriptions
