@@ -108,6 +108,9 @@ class IngestConfig:
     # ... unless it fits in this many bytes of frames set aside: those are handed out when the sensors
     # pause or stop (see pop_ready), so a consumer behind for a while loses nothing; 0 = skip at once
     set_aside_bytes: int = 0
+    # time going back resets the consumer's map (on_time_jump: reset): the frames set aside then go too (they
+    # belong to the old map); else they stay, and are integrated into the kept map later
+    reset_on_time_jump: bool = False
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
     # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link), or with tf in its depth
     # images' frame_id (a driver that names camera_link, x forward, not the optical frame); absent = identity
@@ -384,11 +387,12 @@ class _StreamTime:
     back, with a TimeJump to report), then the new timeline's held messages taken. Not thread-safe:
     Ingest calls it under its lock."""
 
-    def __init__(self, config: IngestConfig, sensors: dict[str, _SensorInput]) -> None:
+    def __init__(self, config: IngestConfig, sensors: dict[str, _SensorInput], set_aside: SetAside) -> None:
         self.config = config
         self.timelines = Timelines(config.sensors, **_timeline_limits(config))
         self.jumps: list[TimeJump] = []  # seen since the last pop_ready
         self._sensors = sensors
+        self.set_aside = set_aside
 
     def configure(self, config: IngestConfig) -> None:
         self.config = config
@@ -411,7 +415,8 @@ class _StreamTime:
         self.restarted(self.config.sensors[0], "clock", self.timelines.restart(to_ns))
 
     def restarted(self, sensor: str, stream: str, restart: Restart) -> list[_Undecoded]:
-        """Time restarted. Back: flush everything and report a TimeJump. Ahead (every stream resumed
+        """Time restarted. Back: flush everything (with reset_on_time_jump the frames set aside too) and
+        report a TimeJump. Ahead (every stream resumed
         after a pause longer than time_jump_s): what waits is older and stays. Then the new timeline's
         first messages, dropped as bad_stamp until now, are taken; returns their images, to decode
         outside the lock (a burst of up to a queue's worth per stream)."""
@@ -424,6 +429,9 @@ class _StreamTime:
                 self.config.tf.clear()
             for state in sensors.values():
                 state.drop("time_jump", n=state.flush())
+            if self.config.reset_on_time_jump:
+                for name, n in self.set_aside.clear().items():
+                    sensors[name].drop("time_jump", n=n)
         for (name, _), n in restart.lost.items():  # bad_stamp until now, in fact lost to the restart
             sensors[name].drop("bad_stamp", n=-n)
             sensors[name].drop("time_jump", n=n)
@@ -449,8 +457,8 @@ class Ingest:
         self._config = config
         self._lock = threading.Lock()
         self._sensors = {name: _SensorInput(config) for name in config.sensors}
-        self._time = _StreamTime(config, self._sensors)
         self._set_aside = SetAside(config.sensors)
+        self._time = _StreamTime(config, self._sensors, self._set_aside)
         self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
         self.ledger = IngestLedger(self._lock, self._sensors, self._set_aside)
 

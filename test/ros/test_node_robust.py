@@ -1165,3 +1165,37 @@ def test_poses_queued_behind_the_images_cost_no_frame(ros, tmp_path: Path) -> No
         node.destroy_node()
         pub_node.destroy_node()
         witness.destroy_node()
+
+
+def test_frames_set_aside_before_a_time_jump_that_resets_the_map_stay_out_of_the_new_map(ros, tmp_path: Path
+                                                                                          ) -> None:
+    """on_time_jump: reset, and time goes back (a bag looping) while frames the node fell behind on
+    are set aside: they belong to the map that was reset, and were integrated into the new one once
+    the sensors paused. They are dropped as time_jump, like the frames queued then."""
+    prefix = "asidejump"
+    run = Running(prefix, {**topic_params(prefix), **SMALL, "max_lag_s": 0.01, "behind_buffer_mb": 64.0,
+                           "on_time_jump": "reset"}, tmp_path)
+    try:
+        messages = scene_messages()
+        with run.node.pipeline.lock:  # integration waits meanwhile: the node falls behind on every frame
+            for sensor, stream, msg in messages:
+                run.node.pipeline.dispatch(sensor, stream, msg)
+            for _ in range(2):  # integration ticks that got no frame done: the first poses them, the second sets
+                run.node.ingest.pop_ready(max_frames=0)  # those behind aside
+            set_aside = sum(c["set_aside_now"] for c in run.node.ingest.ledger.counters().values())
+            assert set_aside > 5
+            run.node.ingest.restart(int((BASE_S - 100) * 1e9))  # /clock went back: the map is reset
+
+        def settled() -> bool:
+            return (run.node.pipeline.time_jumps == 1
+                    and all(c["set_aside_now"] == 0 and c["integrated"] + sum(c["dropped"].values()) >= c["received"]
+                            for c in run.node.ingest.ledger.counters().values()))
+
+        wait_for(settled, 30, "the time jump and the frames set aside to be handled")
+        time.sleep(1.0)  # set-aside frames are handed out once no image came for max_lag_s: none may come now
+        counters = run.node.ingest.ledger.counters().values()
+        assert sum(c["integrated"] for c in counters) == 0
+        assert sum(c["dropped"]["time_jump"] for c in counters) == sum(c["received"] for c in counters)
+        assert run.node.engine.extract_mesh("fused").n_faces == 0
+    finally:
+        run.close()
