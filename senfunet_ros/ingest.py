@@ -313,8 +313,20 @@ class _SensorInput:
         if cleared != self.cleared:
             return self.drop(self.cleared_by)
         if len(self.queue) >= config.queue_size:
-            self.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
+            oldest = self.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
             self.drop("queue_full")
+            # what it waited for decides what to do: the consumer (integration is behind), or a pose (the
+            # reason's hint names the pose topic)
+            newest_pose_ns = self.poses.newest_ns()
+            if oldest.T is not None or (config.tf is None and newest_pose_ns is not None
+                                        and newest_pose_ns >= oldest.stamp_ns):
+                self.counters.errors["queue_full"] = (
+                    "integration is behind: the oldest of queue_size images that had their poses and waited to "
+                    "be integrated went; raise queue_size, so that the frames integration falls behind on are "
+                    "set aside (max_lag_s, behind_buffer_mb) and integrated when the sensors pause, or lower the "
+                    "sensors' rates or working_width")
+            else:
+                self.counters.errors.pop("queue_full", None)
         if self.queue and self.queue[-1].stamp_ns > decoded.stamp_ns:  # two threads added this sensor's depth
             bisect.insort(self.queue, decoded, key=lambda pending: pending.stamp_ns)
         else:

@@ -950,3 +950,21 @@ def test_the_images_a_confirmed_restart_takes_are_decoded_outside_the_lock(monke
     c = ingest.ledger.counters()["tof"]
     assert c["dropped"]["bad_stamp"] == 0 and c["dropped"]["time_jump"] == 1 and c["time_jumps"] == 1
     assert c["received"] == 4 and c["queue_depth"] == 0
+
+
+def test_a_full_queue_says_whether_its_frames_waited_for_poses_or_for_integration() -> None:
+    """Under overload the queue fills with frames whose poses are there, waiting for integration: the
+    drop was explained as images waiting for their poses (the warning sent users to the pose topic).
+    A frame that goes while it waits for its pose keeps that explanation (the hint naming the topic)."""
+    ingest = make(queue_size=2)
+    for t_ms in (0, 500):
+        ingest.add_pose("tof", pose_msg(t_ms * MS))
+    for t_ms in (100, 200, 300):  # posable, but the consumer takes none: it is behind
+        ingest.add_depth("tof", depth_msg(t_ms * MS))
+    for t_ms in (100, 200, 300):  # no pose after them yet
+        ingest.add_depth("stereo", depth_msg(t_ms * MS + 1))
+    counters = ingest.ledger.counters()
+    assert counters["tof"]["dropped"]["queue_full"] == counters["stereo"]["dropped"]["queue_full"] == 1
+    why = counters["tof"]["errors"].get("queue_full", "")
+    assert "integration is behind" in why and "queue_size" in why, why
+    assert "queue_full" not in counters["stereo"]["errors"]  # the hint about poses holds
