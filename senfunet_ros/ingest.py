@@ -472,6 +472,7 @@ class Ingest:
         self._set_aside = SetAside(config.sensors)
         self._time = _StreamTime(config, self._sensors, self._set_aside)
         self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
+        self._served_ns: dict[str, int] = {}  # sensor -> stamp of its last frame handed out (pop_ready)
         self.ledger = IngestLedger(self._lock, self._sensors, self._set_aside)
 
     @property
@@ -604,8 +605,9 @@ class Ingest:
 
     def pop_ready(self, max_frames: int | None = None, *, set_aside: bool = True) -> list[Frame | TimeJump]:
         """Time jumps seen since the last call, then the frames that can be posed, in stamp order:
-        all of them, or the `max_frames` oldest (the rest stay queued, where a full queue drops the
-        oldest: a consumer that falls behind sees bounded latency, not a growing backlog). Frames
+        all of them, or `max_frames` of them, each the oldest of the sensor served longest ago (the
+        rest stay queued, where a full queue drops the oldest: a consumer that falls behind sees
+        bounded latency, not a growing backlog, and every sensor's frames). Frames
         the consumer fell behind on (more than max_lag_s) are set aside while set_aside_bytes has
         room, and handed out, oldest first, once no other frame is ready and no depth image arrived
         for max_lag_s (wall time: the sensors paused or stopped; while they stream, a set-aside
@@ -629,13 +631,34 @@ class Ingest:
                 frames = self._set_aside.take_oldest(1 if max_frames is None else max_frames)
             order = {name: i for i, name in enumerate(self.config.sensors)}
             frames.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+            if jumps:  # a new timeline: stamps of the old one say nothing about whom to serve
+                self._served_ns.clear()
             if max_frames is not None and len(frames) > max_frames:
-                frames, back = frames[:max_frames], frames[max_frames:]
+                frames, back = self._fair_share(frames, max_frames, order)
                 for frame in reversed(back):  # back to the front of their queues, newest last
                     self._sensors[frame.sensor].queue.appendleft(
                         _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb,
                                  frame.T_world_camera))
+            for frame in frames:
+                self._served_ns[frame.sensor] = frame.stamp_ns
         return [*jumps, *frames]
+
+    def _fair_share(self, frames: list[Frame], n: int, order: dict[str, int]) -> tuple[list[Frame], list[Frame]]:
+        """n of the ready frames (in stamp order) for a consumer that cannot take them all, and the rest:
+        each the oldest of the sensor served longest ago (by the stamp of its last frame handed out).
+        The oldest frame of all would always be the sensor whose images arrive latest after their
+        stamps, and the other's would fall behind (max_lag_s) and be set aside or dropped."""
+        ready = {name: deque(f for f in frames if f.sensor == name) for name in order}
+        taken: list[Frame] = []
+        while len(taken) < n:
+            name = min((name for name, queue in ready.items() if queue),
+                       key=lambda name: (self._served_ns.get(name, -1), ready[name][0].stamp_ns, order[name]))
+            taken.append(ready[name].popleft())
+            self._served_ns[name] = taken[-1].stamp_ns
+        back = [f for name in order for f in ready[name]]
+        back.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+        taken.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+        return taken, back
 
 
 class IngestLedger:

@@ -968,3 +968,24 @@ def test_a_full_queue_says_whether_its_frames_waited_for_poses_or_for_integratio
     why = counters["tof"]["errors"].get("queue_full", "")
     assert "integration is behind" in why and "queue_size" in why, why
     assert "queue_full" not in counters["stereo"]["errors"]  # the hint about poses holds
+
+
+def test_a_consumer_behind_takes_frames_of_every_sensor() -> None:
+    """A consumer that takes one frame while each sensor sends one (integration behind) was handed the
+    oldest ready frame: always the sensor whose images come later after their stamps (stereo's, 25 ms
+    against ToF's 8 ms in the sample bag), while the other's frames fell behind and were dropped: the
+    live map was built from one sensor. It now takes the sensor it served longest ago."""
+    ingest = make(max_lag_s=0.05)
+    taken = {"tof": 0, "stereo": 0}
+    for s in ("tof", "stereo"):
+        ingest.add_pose(s, pose_msg(0))
+    for i in range(1, 41):
+        for s in ("tof", "stereo"):
+            ingest.add_pose(s, pose_msg(100 * MS * i + 50 * MS))
+        ingest.add_depth("tof", depth_msg(100 * MS * i))
+        ingest.add_depth("stereo", depth_msg(100 * MS * i - 30 * MS))  # stamped earlier, arrives later
+        for frame in frames(ingest.pop_ready(max_frames=1)):
+            taken[frame.sensor] += 1
+    assert min(taken.values()) >= 15, taken
+    counters = ingest.ledger.counters()
+    assert all(c["received"] == taken[s] + c["dropped"]["behind"] + c["queue_depth"] for s, c in counters.items())
