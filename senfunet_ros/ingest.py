@@ -487,6 +487,9 @@ class Ingest:
         with self._lock:
             self._config = config
             self._time.configure(config)
+            # a lowered behind_buffer_mb holds for the frames set aside already too (a robot short of memory)
+            for name, n in self._set_aside.trim(config.set_aside_bytes).items():
+                self._sensors[name].drop("behind", n=n)
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -810,6 +813,17 @@ class SetAside:
             self._nbytes -= _frame_bytes(frame)
             out.append(frame)
         return out
+
+    def trim(self, budget_bytes: int) -> dict[str, int]:
+        """Forget the newest frames, all sensors, until the rest fit in budget_bytes (as `put` keeps the
+        oldest when full); returns how many per sensor."""
+        dropped = {name: 0 for name in self._frames}
+        while self._nbytes > budget_bytes:
+            frames = max((frames for frames in self._frames.values() if frames), key=lambda f: f[-1].stamp_ns)
+            frame = frames.pop()
+            self._nbytes -= _frame_bytes(frame)
+            dropped[frame.sensor] += 1
+        return dropped
 
     def count(self, sensor: str) -> int:
         return len(self._frames[sensor])

@@ -989,3 +989,23 @@ def test_a_consumer_behind_takes_frames_of_every_sensor() -> None:
     assert min(taken.values()) >= 15, taken
     counters = ingest.ledger.counters()
     assert all(c["received"] == taken[s] + c["dropped"]["behind"] + c["queue_depth"] for s, c in counters.items())
+
+
+def test_behind_buffer_lowered_at_run_time_lets_go_of_what_it_no_longer_holds() -> None:
+    """`ros2 param set /senfunet behind_buffer_mb ...` lower than the frames set aside (a robot short
+    of memory) kept them all until the sensors paused: the new bound held only for frames to come.
+    The newest beyond it go at once, counted as behind."""
+    frame_bytes = 8 * 10 * 4  # depth_msg's 8 x 10 float32
+    ingest = make(max_lag_s=0.05, set_aside_bytes=100 * frame_bytes)
+    for t_ms in range(50, 1100, 100):
+        ingest.add_pose("tof", pose_msg(t_ms * MS))
+    for t_ms in range(100, 1100, 100):
+        ingest.add_depth("tof", depth_msg(t_ms * MS))
+    for _ in range(2):  # a consumer that takes nothing: the first pass poses them, the second sets them aside
+        ingest.pop_ready(max_frames=0)
+    before = ingest.ledger.counters()["tof"]
+    assert before["set_aside_now"] >= 5
+    ingest.config = dataclasses.replace(ingest.config, set_aside_bytes=2 * frame_bytes)
+    after = ingest.ledger.counters()["tof"]
+    assert after["set_aside_now"] == 2
+    assert after["dropped"]["behind"] == before["set_aside_now"] - 2
