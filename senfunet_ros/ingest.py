@@ -108,6 +108,9 @@ class IngestConfig:
     # ... unless it fits in this many bytes of frames set aside: those are handed out when the sensors
     # pause or stop (see pop_ready), so a consumer behind for a while loses nothing; 0 = skip at once
     set_aside_bytes: int = 0
+    # time going back resets the consumer's map (on_time_jump: reset): the frames set aside then go too (they
+    # belong to the old map); else they stay, and are integrated into the kept map later
+    reset_on_time_jump: bool = False
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
     # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link), or with tf in its depth
     # images' frame_id (a driver that names camera_link, x forward, not the optical frame); absent = identity
@@ -310,8 +313,20 @@ class _SensorInput:
         if cleared != self.cleared:
             return self.drop(self.cleared_by)
         if len(self.queue) >= config.queue_size:
-            self.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
+            oldest = self.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
             self.drop("queue_full")
+            # what it waited for decides what to do: the consumer (integration is behind), or a pose (the
+            # reason's hint names the pose topic)
+            newest_pose_ns = self.poses.newest_ns()
+            if oldest.T is not None or (config.tf is None and newest_pose_ns is not None
+                                        and newest_pose_ns >= oldest.stamp_ns):
+                self.counters.errors["queue_full"] = (
+                    "integration is behind: the oldest of queue_size images that had their poses and waited to "
+                    "be integrated went; raise queue_size, so that the frames integration falls behind on are "
+                    "set aside (max_lag_s, behind_buffer_mb) and integrated when the sensors pause, or lower the "
+                    "sensors' rates or working_width")
+            else:
+                self.counters.errors.pop("queue_full", None)
         if self.queue and self.queue[-1].stamp_ns > decoded.stamp_ns:  # two threads added this sensor's depth
             bisect.insort(self.queue, decoded, key=lambda pending: pending.stamp_ns)
         else:
@@ -384,11 +399,12 @@ class _StreamTime:
     back, with a TimeJump to report), then the new timeline's held messages taken. Not thread-safe:
     Ingest calls it under its lock."""
 
-    def __init__(self, config: IngestConfig, sensors: dict[str, _SensorInput]) -> None:
+    def __init__(self, config: IngestConfig, sensors: dict[str, _SensorInput], set_aside: SetAside) -> None:
         self.config = config
         self.timelines = Timelines(config.sensors, **_timeline_limits(config))
         self.jumps: list[TimeJump] = []  # seen since the last pop_ready
         self._sensors = sensors
+        self.set_aside = set_aside
 
     def configure(self, config: IngestConfig) -> None:
         self.config = config
@@ -411,7 +427,8 @@ class _StreamTime:
         self.restarted(self.config.sensors[0], "clock", self.timelines.restart(to_ns))
 
     def restarted(self, sensor: str, stream: str, restart: Restart) -> list[_Undecoded]:
-        """Time restarted. Back: flush everything and report a TimeJump. Ahead (every stream resumed
+        """Time restarted. Back: flush everything (with reset_on_time_jump the frames set aside too) and
+        report a TimeJump. Ahead (every stream resumed
         after a pause longer than time_jump_s): what waits is older and stays. Then the new timeline's
         first messages, dropped as bad_stamp until now, are taken; returns their images, to decode
         outside the lock (a burst of up to a queue's worth per stream)."""
@@ -424,6 +441,9 @@ class _StreamTime:
                 self.config.tf.clear()
             for state in sensors.values():
                 state.drop("time_jump", n=state.flush())
+            if self.config.reset_on_time_jump:
+                for name, n in self.set_aside.clear().items():
+                    sensors[name].drop("time_jump", n=n)
         for (name, _), n in restart.lost.items():  # bad_stamp until now, in fact lost to the restart
             sensors[name].drop("bad_stamp", n=-n)
             sensors[name].drop("time_jump", n=n)
@@ -449,9 +469,10 @@ class Ingest:
         self._config = config
         self._lock = threading.Lock()
         self._sensors = {name: _SensorInput(config) for name in config.sensors}
-        self._time = _StreamTime(config, self._sensors)
         self._set_aside = SetAside(config.sensors)
+        self._time = _StreamTime(config, self._sensors, self._set_aside)
         self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
+        self._served_ns: dict[str, int] = {}  # sensor -> stamp of its last frame handed out (pop_ready)
         self.ledger = IngestLedger(self._lock, self._sensors, self._set_aside)
 
     @property
@@ -466,6 +487,9 @@ class Ingest:
         with self._lock:
             self._config = config
             self._time.configure(config)
+            # a lowered behind_buffer_mb holds for the frames set aside already too (a robot short of memory)
+            for name, n in self._set_aside.trim(config.set_aside_bytes).items():
+                self._sensors[name].drop("behind", n=n)
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -584,8 +608,9 @@ class Ingest:
 
     def pop_ready(self, max_frames: int | None = None, *, set_aside: bool = True) -> list[Frame | TimeJump]:
         """Time jumps seen since the last call, then the frames that can be posed, in stamp order:
-        all of them, or the `max_frames` oldest (the rest stay queued, where a full queue drops the
-        oldest: a consumer that falls behind sees bounded latency, not a growing backlog). Frames
+        all of them, or `max_frames` of them, each the oldest of the sensor served longest ago (the
+        rest stay queued, where a full queue drops the oldest: a consumer that falls behind sees
+        bounded latency, not a growing backlog, and every sensor's frames). Frames
         the consumer fell behind on (more than max_lag_s) are set aside while set_aside_bytes has
         room, and handed out, oldest first, once no other frame is ready and no depth image arrived
         for max_lag_s (wall time: the sensors paused or stopped; while they stream, a set-aside
@@ -609,13 +634,34 @@ class Ingest:
                 frames = self._set_aside.take_oldest(1 if max_frames is None else max_frames)
             order = {name: i for i, name in enumerate(self.config.sensors)}
             frames.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+            if jumps:  # a new timeline: stamps of the old one say nothing about whom to serve
+                self._served_ns.clear()
             if max_frames is not None and len(frames) > max_frames:
-                frames, back = frames[:max_frames], frames[max_frames:]
+                frames, back = self._fair_share(frames, max_frames, order)
                 for frame in reversed(back):  # back to the front of their queues, newest last
                     self._sensors[frame.sensor].queue.appendleft(
                         _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb,
                                  frame.T_world_camera))
+            for frame in frames:
+                self._served_ns[frame.sensor] = frame.stamp_ns
         return [*jumps, *frames]
+
+    def _fair_share(self, frames: list[Frame], n: int, order: dict[str, int]) -> tuple[list[Frame], list[Frame]]:
+        """n of the ready frames (in stamp order) for a consumer that cannot take them all, and the rest:
+        each the oldest of the sensor served longest ago (by the stamp of its last frame handed out).
+        The oldest frame of all would always be the sensor whose images arrive latest after their
+        stamps, and the other's would fall behind (max_lag_s) and be set aside or dropped."""
+        ready = {name: deque(f for f in frames if f.sensor == name) for name in order}
+        taken: list[Frame] = []
+        while len(taken) < n:
+            name = min((name for name, queue in ready.items() if queue),
+                       key=lambda name: (self._served_ns.get(name, -1), ready[name][0].stamp_ns, order[name]))
+            taken.append(ready[name].popleft())
+            self._served_ns[name] = taken[-1].stamp_ns
+        back = [f for name in order for f in ready[name]]
+        back.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+        taken.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+        return taken, back
 
 
 class IngestLedger:
@@ -768,6 +814,17 @@ class SetAside:
             self._nbytes -= _frame_bytes(frame)
             out.append(frame)
         return out
+
+    def trim(self, budget_bytes: int) -> dict[str, int]:
+        """Forget the newest frames, all sensors, until the rest fit in budget_bytes (as `put` keeps the
+        oldest when full); returns how many per sensor."""
+        dropped = {name: 0 for name in self._frames}
+        while self._nbytes > budget_bytes:
+            frames = max((frames for frames in self._frames.values() if frames), key=lambda f: f[-1].stamp_ns)
+            frame = frames.pop()
+            self._nbytes -= _frame_bytes(frame)
+            dropped[frame.sensor] += 1
+        return dropped
 
     def count(self, sensor: str) -> int:
         return len(self._frames[sensor])

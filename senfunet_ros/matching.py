@@ -57,6 +57,10 @@ class PoseBuffer:
             del self._poses[:excess]
         return None
 
+    def newest_ns(self) -> int | None:
+        """The newest pose's stamp, or None."""
+        return self._stamps[-1] if self._stamps else None
+
     def at(self, stamp_ns: int, *, tolerance_ns: int, waited_too_long: bool) -> tuple[np.ndarray | None, str | None]:
         """The pose at a depth stamp, interpolated between the poses around it: (T, None); or
         (None, None) when it must wait for a later pose (none yet, or only the newest, too far); or

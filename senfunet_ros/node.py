@@ -541,11 +541,80 @@ def subscribe(node: Node, settings: P.Settings, *, callback: Callable[[str, Stre
     for sensor in settings.sensors:
         streams = [entry for entry in sensor_streams(sensor, settings.pose_type) if entry[2]]  # a topic set
         subscribed[sensor.name] = tuple(stream.value for stream, *_ in streams)
+        # poses come several times as often as images: a pose callback takes all that wait, and so does
+        # the sensor's depth callback before its image (TakingQueued)
+        handlers = {stream: callback(sensor.name, stream) for stream, *_ in streams}
+        poses = (TakingQueued(handlers[Stream.POSE], limit=next(qos.depth for stream, _, _, qos in streams
+                                                               if stream is Stream.POSE))
+                 if Stream.POSE in handlers else None)
+        if poses is not None:
+            handlers[Stream.POSE] = poses
+            if Stream.DEPTH in handlers:
+                handlers[Stream.DEPTH] = _after(poses.take_queued, handlers[Stream.DEPTH])
         for stream, msg_type, topic, qos in streams:
-            subscriptions.append(node.create_subscription(msg_type, topic, callback(sensor.name, stream), qos,
-                                                          callback_group=MutuallyExclusiveCallbackGroup()))
+            subscription = node.create_subscription(msg_type, topic, handlers[stream], qos,
+                                                    callback_group=MutuallyExclusiveCallbackGroup())
+            if stream is Stream.POSE and poses is not None:
+                poses.subscription = subscription
+            subscriptions.append(subscription)
     health = HealthMonitor(subscribed, window_s=settings.diagnostics_window_s, stale_after_s=settings.stale_after_s)
     return subscriptions, health
+
+
+class TakingQueued:
+    """A subscription callback that, after its message, takes the messages already queued on its
+    subscription (at most `limit`; `subscription` set once it exists); `take_queued` takes them from
+    another callback. rclpy's executors take one message per subscription per round: on a node too
+    busy for a round per pose (100 Hz a sensor), the pose streams fell seconds behind the image
+    streams, whose frames then timed out waiting for poses that were queued already (pose_timeout)
+    instead of being set aside as behind. A sensor's depth callback takes its queued poses first, so
+    no frame runs ahead of the poses that arrived before it."""
+
+    def __init__(self, callback: Callable[[Any], None], *, limit: int) -> None:
+        self._callback = callback
+        self._limit = limit
+        self._lock = threading.Lock()  # one taker at a time: poses reach Ingest in arrival order
+        self.subscription: Any = None
+
+    def __call__(self, msg: Any) -> None:
+        with self._lock:
+            self._callback(msg)
+            self._take_all()
+
+    def take_queued(self) -> None:
+        """Hand over the messages queued on the subscription now (from another subscription's callback)."""
+        with self._lock:
+            self._take_all()
+
+    def _take_all(self) -> None:
+        for _ in range(self._limit):  # what arrives meanwhile is taken next time
+            queued = self._take()
+            if queued is None:
+                return
+            self._callback(queued)
+
+    def _take(self) -> Any:
+        """The next queued message, or None (none, or the subscription is gone), taken as the executor
+        takes its messages."""
+        sub = self.subscription
+        if sub is None:
+            return None
+        try:
+            with sub.handle:
+                taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        except Exception:  # noqa: BLE001 (destroyed under a stop, ...): the executor's next round takes it
+            return None
+        return None if taken is None else taken[0]
+
+
+def _after(first: Callable[[], None], callback: Callable[[Any], None]) -> Callable[[Any], None]:
+    """A callback that calls `first()`, then `callback(msg)`."""
+
+    def both(msg: Any) -> None:
+        first()
+        callback(msg)
+
+    return both
 
 
 def sensor_streams(sensor: P.SensorSettings, pose_type: str) -> list[tuple[Stream, type, str, QoSProfile]]:
@@ -584,10 +653,12 @@ def make_tf(node: Node, settings: P.Settings, callback: Callable[[str, Stream], 
                          "topics (pose_type pose_stamped | odometry | transform_stamped)") from None
     from senfunet_ros.tf import TfBuffer
 
-    subscriptions = [node.create_subscription(TFMessage, topic, callback("", stream), qos,
-                                              callback_group=MutuallyExclusiveCallbackGroup())
-                     for topic, stream, qos in (("/tf", Stream.TF, _TF_QOS),
-                                                ("/tf_static", Stream.TF_STATIC, _TF_STATIC_QOS))]
+    subscriptions = []
+    for topic, stream, qos in (("/tf", Stream.TF, _TF_QOS), ("/tf_static", Stream.TF_STATIC, _TF_STATIC_QOS)):
+        handler = TakingQueued(callback("", stream), limit=qos.depth)  # /tf comes as often as poses do
+        handler.subscription = node.create_subscription(TFMessage, topic, handler, qos,
+                                                        callback_group=MutuallyExclusiveCallbackGroup())
+        subscriptions.append(handler.subscription)
     node.get_logger().warning("pose_type tf: tf2_ros cannot be imported; reading /tf and /tf_static with the "
                               "node's own buffer (source a ROS 2 install to use tf2_ros)")
     return TfBuffer(max_gap_s=settings.pose_tolerance_s), subscriptions

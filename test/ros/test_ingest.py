@@ -950,3 +950,62 @@ def test_the_images_a_confirmed_restart_takes_are_decoded_outside_the_lock(monke
     c = ingest.ledger.counters()["tof"]
     assert c["dropped"]["bad_stamp"] == 0 and c["dropped"]["time_jump"] == 1 and c["time_jumps"] == 1
     assert c["received"] == 4 and c["queue_depth"] == 0
+
+
+def test_a_full_queue_says_whether_its_frames_waited_for_poses_or_for_integration() -> None:
+    """Under overload the queue fills with frames whose poses are there, waiting for integration: the
+    drop was explained as images waiting for their poses (the warning sent users to the pose topic).
+    A frame that goes while it waits for its pose keeps that explanation (the hint naming the topic)."""
+    ingest = make(queue_size=2)
+    for t_ms in (0, 500):
+        ingest.add_pose("tof", pose_msg(t_ms * MS))
+    for t_ms in (100, 200, 300):  # posable, but the consumer takes none: it is behind
+        ingest.add_depth("tof", depth_msg(t_ms * MS))
+    for t_ms in (100, 200, 300):  # no pose after them yet
+        ingest.add_depth("stereo", depth_msg(t_ms * MS + 1))
+    counters = ingest.ledger.counters()
+    assert counters["tof"]["dropped"]["queue_full"] == counters["stereo"]["dropped"]["queue_full"] == 1
+    why = counters["tof"]["errors"].get("queue_full", "")
+    assert "integration is behind" in why and "queue_size" in why, why
+    assert "queue_full" not in counters["stereo"]["errors"]  # the hint about poses holds
+
+
+def test_a_consumer_behind_takes_frames_of_every_sensor() -> None:
+    """A consumer that takes one frame while each sensor sends one (integration behind) was handed the
+    oldest ready frame: always the sensor whose images come later after their stamps (stereo's, 25 ms
+    against ToF's 8 ms in the sample bag), while the other's frames fell behind and were dropped: the
+    live map was built from one sensor. It now takes the sensor it served longest ago."""
+    ingest = make(max_lag_s=0.05)
+    taken = {"tof": 0, "stereo": 0}
+    for s in ("tof", "stereo"):
+        ingest.add_pose(s, pose_msg(0))
+    for i in range(1, 41):
+        for s in ("tof", "stereo"):
+            ingest.add_pose(s, pose_msg(100 * MS * i + 50 * MS))
+        ingest.add_depth("tof", depth_msg(100 * MS * i))
+        ingest.add_depth("stereo", depth_msg(100 * MS * i - 30 * MS))  # stamped earlier, arrives later
+        for frame in frames(ingest.pop_ready(max_frames=1)):
+            taken[frame.sensor] += 1
+    assert min(taken.values()) >= 15, taken
+    counters = ingest.ledger.counters()
+    assert all(c["received"] == taken[s] + c["dropped"]["behind"] + c["queue_depth"] for s, c in counters.items())
+
+
+def test_behind_buffer_lowered_at_run_time_lets_go_of_what_it_no_longer_holds() -> None:
+    """`ros2 param set /senfunet behind_buffer_mb ...` lower than the frames set aside (a robot short
+    of memory) kept them all until the sensors paused: the new bound held only for frames to come.
+    The newest beyond it go at once, counted as behind."""
+    frame_bytes = 8 * 10 * 4  # depth_msg's 8 x 10 float32
+    ingest = make(max_lag_s=0.05, set_aside_bytes=100 * frame_bytes)
+    for t_ms in range(50, 1100, 100):
+        ingest.add_pose("tof", pose_msg(t_ms * MS))
+    for t_ms in range(100, 1100, 100):
+        ingest.add_depth("tof", depth_msg(t_ms * MS))
+    for _ in range(2):  # a consumer that takes nothing: the first pass poses them, the second sets them aside
+        ingest.pop_ready(max_frames=0)
+    before = ingest.ledger.counters()["tof"]
+    assert before["set_aside_now"] >= 5
+    ingest.config = dataclasses.replace(ingest.config, set_aside_bytes=2 * frame_bytes)
+    after = ingest.ledger.counters()["tof"]
+    assert after["set_aside_now"] == 2
+    assert after["dropped"]["behind"] == before["set_aside_now"] - 2

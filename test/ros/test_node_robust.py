@@ -23,6 +23,7 @@ from test_node import (BASE_S, MeshCollector, Running, SpinThread, _marker_keys,
                        wait_for)
 
 from senfunet_ros import params as P
+from senfunet_ros.node import stop_executor
 
 SIM = dict(duration_s=2.0, width=96, height=96, tof_rate_hz=6.0, stereo_rate_hz=6.0)
 SMALL = dict(voxel_size_m=0.04, band_m=0.4, working_width=48, queue_size=500, max_lag_s=0.0, integrate_rate_hz=50.0,
@@ -1092,3 +1093,109 @@ def test_a_diagnostics_window_widened_at_run_time_keeps_the_rates_right() -> Non
     assert stream(12.0) == pytest.approx(10.0, rel=0.15)  # then over the whole new window
     health.window_s = 2.0  # narrowed: the arrivals beyond it expire
     assert stream(0.5) == pytest.approx(10.0, rel=0.15)
+
+
+def test_poses_queued_behind_the_images_cost_no_frame(ros, tmp_path: Path) -> None:
+    """A busy node takes one message per subscription per executor round, and poses come at several
+    times the image rate: the images it takes ran seconds ahead of the poses queued for them, and the
+    frames timed out waiting for poses that were already there (pose_timeout, under overload). With
+    every message queued before the node takes them, each frame still gets its pose."""
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+
+    prefix = "poselag"
+    overrides = {"output_dir": str(tmp_path / "out"), **topic_params(prefix), **SMALL, "queue_size": 30}
+    node = FusionNode(namespace=prefix, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+    pub_node, witness = Node("poselag_publisher"), Node("poselag_witness")
+    kinds = {"depth": Image, "color": Image, "camera_info": CameraInfo, "pose": PoseStamped}
+    heard = [0]
+    pubs = {(s, k): pub_node.create_publisher(t, f"/{prefix}/{s}/{k}", 1000) for s in ("tof", "stereo")
+            for k, t in kinds.items()}
+    for s, k in pubs:
+        witness.create_subscription(kinds[k], f"/{prefix}/{s}/{k}", lambda _msg: heard.__setitem__(0, heard[0] + 1),
+                                    1000)
+    witnessing = SpinThread(MultiThreadedExecutor(num_threads=2))
+    witnessing.executor.add_node(witness)
+    executor = MultiThreadedExecutor(num_threads=6)
+    executor.add_node(node)
+    spinning = None
+    try:
+        wait_for(lambda: all(p.get_subscription_count() == 2 for p in pubs.values()), 20, "discovery")
+        time.sleep(1.0)  # the readers' side of discovery
+        messages = scene_messages()
+        firsts = {}  # each stream's first message, taken by the node before the others are queued
+        for sensor, stream, msg in messages:
+            firsts.setdefault((sensor, stream), msg)
+        for (sensor, stream), msg in firsts.items():
+            pubs[(sensor, stream)].publish(msg)
+
+        def took_firsts() -> bool:
+            executor.spin_once(timeout_sec=0.05)
+            c = node.ingest.ledger.counters()
+            return all(c[s]["received"] and c[s]["pose_received"] for s in ("tof", "stereo"))
+
+        wait_for(took_firsts, 20, "the node to take each stream's first message")
+        rest = [(sensor, stream, msg) for sensor, stream, msg in messages if firsts[(sensor, stream)] is not msg]
+        for sensor, stream, msg in rest:
+            pubs[(sensor, stream)].publish(msg)
+        # the node's readers hold them all now, as a reader of the same publishers does, none taken yet
+        wait_for(lambda: heard[0] >= len(messages), 20, "the messages to be delivered")
+        spinning = SpinThread(executor)
+        expected = {s: sum(1 for sensor, stream, _ in messages if (sensor, stream) == (s, "depth"))
+                    for s in ("tof", "stereo")}
+
+        def settled() -> bool:
+            return all(c["integrated"] + sum(c["dropped"].values()) >= expected[s]
+                       for s, c in node.ingest.ledger.counters().items())
+
+        wait_for(settled, 60, "every frame to be integrated or dropped")
+        counters = node.ingest.ledger.counters()
+        drops = str({s: {r: n for r, n in c["dropped"].items() if n} for s, c in counters.items()})
+        assert all(c["dropped"]["pose_timeout"] == 0 for c in counters.values()), drops
+        # the first and last frames of a stream may lack a pose on one side (pose_gap)
+        assert all(c["integrated"] >= expected[s] - 2 for s, c in counters.items()), drops
+    finally:
+        if spinning is not None:
+            spinning.stop()
+        else:
+            stop_executor(executor)
+        witnessing.stop()
+        node.destroy_node()
+        pub_node.destroy_node()
+        witness.destroy_node()
+
+
+def test_frames_set_aside_before_a_time_jump_that_resets_the_map_stay_out_of_the_new_map(ros, tmp_path: Path
+                                                                                          ) -> None:
+    """on_time_jump: reset, and time goes back (a bag looping) while frames the node fell behind on
+    are set aside: they belong to the map that was reset, and were integrated into the new one once
+    the sensors paused. They are dropped as time_jump, like the frames queued then."""
+    prefix = "asidejump"
+    run = Running(prefix, {**topic_params(prefix), **SMALL, "max_lag_s": 0.01, "behind_buffer_mb": 64.0,
+                           "on_time_jump": "reset"}, tmp_path)
+    try:
+        messages = scene_messages()
+        with run.node.pipeline.lock:  # integration waits meanwhile: the node falls behind on every frame
+            for sensor, stream, msg in messages:
+                run.node.pipeline.dispatch(sensor, stream, msg)
+            for _ in range(2):  # integration ticks that got no frame done: the first poses them, the second sets
+                run.node.ingest.pop_ready(max_frames=0)  # those behind aside
+            set_aside = sum(c["set_aside_now"] for c in run.node.ingest.ledger.counters().values())
+            assert set_aside > 5
+            run.node.ingest.restart(int((BASE_S - 100) * 1e9))  # /clock went back: the map is reset
+
+        def settled() -> bool:
+            return (run.node.pipeline.time_jumps == 1
+                    and all(c["set_aside_now"] == 0 and c["integrated"] + sum(c["dropped"].values()) >= c["received"]
+                            for c in run.node.ingest.ledger.counters().values()))
+
+        wait_for(settled, 30, "the time jump and the frames set aside to be handled")
+        time.sleep(1.0)  # set-aside frames are handed out once no image came for max_lag_s: none may come now
+        counters = run.node.ingest.ledger.counters().values()
+        assert sum(c["integrated"] for c in counters) == 0
+        assert sum(c["dropped"]["time_jump"] for c in counters) == sum(c["received"] for c in counters)
+        assert run.node.engine.extract_mesh("fused").n_faces == 0
+    finally:
+        run.close()
