@@ -1,7 +1,10 @@
 """The live fusion node: subscriptions enqueue, timers integrate and publish.
 
 Constructed in one order: parameters, engine, subscriptions, timers, publishers, services.
-Callbacks only hand messages to `Ingest` (bounded queues); the integration timer drains them
+Callbacks only hand messages to `Ingest` (bounded queues); a pose (or /tf) callback also takes the
+messages queued behind it on its subscription, and a depth callback its sensor's queued poses before
+its image (`TakingQueued`: one taker per pose subscription at a time, under its lock, so a frame
+never waits for a pose that arrived before it). The integration timer drains them
 into the engine, oldest first; the slower mesh timer runs `engine.update()`, publishes the
 changed blocks, then gives the weighting net its time budget (`engine.refresh_alpha`; all three
 in `senfunet_ros.mesh_publisher`). Each timer has its own callback group under a
