@@ -652,12 +652,13 @@ class Ingest:
         The oldest frame of all would always be the sensor whose images arrive latest after their
         stamps, and the other's would fall behind (max_lag_s) and be set aside or dropped."""
         ready = {name: deque(f for f in frames if f.sensor == name) for name in order}
+        served = dict(self._served_ns)  # as if each frame taken so far were handed out (pop_ready records them)
         taken: list[Frame] = []
         while len(taken) < n:
             name = min((name for name, queue in ready.items() if queue),
-                       key=lambda name: (self._served_ns.get(name, -1), ready[name][0].stamp_ns, order[name]))
+                       key=lambda name: (served.get(name, -1), ready[name][0].stamp_ns, order[name]))
             taken.append(ready[name].popleft())
-            self._served_ns[name] = taken[-1].stamp_ns
+            served[name] = taken[-1].stamp_ns
         back = [f for name in order for f in ready[name]]
         back.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
         taken.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
