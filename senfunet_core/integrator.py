@@ -64,6 +64,19 @@ def samples_along_band(voxel_size_m: float, band_m: float) -> tuple[int, int]:
     return 2 * half + 1, round(half * PAPER_SAMPLES_BEHIND / PAPER_SAMPLES_HALF)
 
 
+def pixel_spacing_m(depth_m: np.ndarray, K: np.ndarray) -> tuple[float, float]:
+    """(median depth of the valid pixels, the distance between neighbouring pixels' rays at that depth
+    along the coarser image axis), metres; (0, 0) without a valid pixel. Where the spacing exceeds the
+    voxel size, neighbouring rays skip voxels across the surface: those are never observed, and no
+    cell with an unobserved corner is meshed (holes)."""
+    depth = np.asarray(depth_m)
+    valid = depth[np.isfinite(depth) & (depth > 0)]
+    if valid.size == 0:
+        return 0.0, 0.0
+    median_m = float(np.median(valid))
+    return median_m, median_m / float(min(K[0, 0], K[1, 1]))
+
+
 @dataclass
 class FrameSamples:
     """One frame's ray samples, aggregated per voxel (sorted by voxel key)."""

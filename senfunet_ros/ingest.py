@@ -111,6 +111,9 @@ class IngestConfig:
     # time going back resets the consumer's map (on_time_jump: reset): the frames set aside then go too (they
     # belong to the old map); else they stay, and are integrated into the kept map later
     reset_on_time_jump: bool = False
+    # the map's voxel size: a sensor's first frame is checked for pixels further apart than a voxel at its
+    # median depth (holes in the mesh), said once in its notes; 0 = no check
+    voxel_size_m: float = 0.0
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
     # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link), or with tf in its depth
     # images' frame_id (a driver that names camera_link, x forward, not the optical frame); absent = identity
@@ -165,6 +168,12 @@ class SensorCounters:
     without_color: int = 0
     # the latest camera_info has non-zero distortion coefficients: the node takes the images as rectified
     distorted: bool = False
+    # frames fused without colour because the colour images have another aspect ratio than the depth images
+    color_refused: int = 0
+    # what about this sensor's set-up the user should know, said once each (the node warns, replay prints):
+    # "color_size" (colour of another aspect ratio), "camera_info_size" (a K taken as given although the
+    # camera_info's size differs), "pixel_spacing" (pixels further apart than a voxel: holes)
+    notes: dict[str, str] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=lambda: {reason: 0 for reason in DROP_REASONS})
     errors: dict[str, str] = field(default_factory=dict)  # drop reason -> what the last such message had wrong
 
@@ -178,6 +187,8 @@ class SensorCounters:
             "set_aside": self.set_aside,
             "without_color": self.without_color,
             "distorted": self.distorted,
+            "color_refused": self.color_refused,
+            "notes": dict(self.notes),
             "dropped": dict(self.dropped),
             "errors": dict(self.errors),
         }
@@ -192,6 +203,9 @@ class _Pending:
     rgb: np.ndarray | None = None  # set, with T, for a posed frame put back by pop_ready
     T: np.ndarray | None = None
     frame_id: str = ""  # the depth image's optical frame (pose_type tf looks it up)
+    source_size: tuple[int, int] = (0, 0)  # (width, height) of the depth image as published (colour must match)
+    notes: tuple[tuple[str, str], ...] = ()  # (key, text) for SensorCounters.notes
+    spacing_checked: bool = False  # its pixel spacing was checked against the voxel size
 
 
 @dataclass(frozen=True)
@@ -205,6 +219,7 @@ class _Undecoded:
     arrival_s: float  # depth: time.monotonic() when it arrived (statistics only)
     camera_info: tuple[np.ndarray, tuple[int, int]] | None  # depth: (K, (width, height)) to check it against
     working_size: tuple[int, int]  # depth: IngestConfig.working_size
+    voxel_size_m: float  # depth: check its pixel spacing against this voxel size (> 0: its sensor's first frames)
     cleared: int  # its sensor's _SensorInput.cleared when it was taken: a clear meanwhile takes it too
 
 
@@ -213,7 +228,7 @@ def _decode(image: _Undecoded) -> Any:
     if image.stream == "depth":
         assert image.camera_info is not None
         return _decode_depth(image.msg, image.stamp_ns, image.arrival_s, camera_info=image.camera_info,
-                             working_size=image.working_size)
+                             working_size=image.working_size, voxel_size_m=image.voxel_size_m)
     return _decode_color(image.msg)
 
 
@@ -232,6 +247,7 @@ class _SensorInput:
         # Ingest's lock across a clear belonged to what was cleared
         self.cleared = 0
         self.cleared_by = ""
+        self.spacing_checked = False  # a frame's pixel spacing was checked against the voxel size
 
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
@@ -274,7 +290,8 @@ class _SensorInput:
         except (ValueError, AttributeError) as err:
             return self.drop("bad_camera_info", str(err)), []
         waited = [_Undecoded(name, "depth", stamp_ns, depth_msg, arrival_s, self.camera_info, config.working_size,
-                             self.cleared) for depth_msg, stamp_ns, arrival_s in self.awaiting_info]
+                             self.spacing_check(config), self.cleared)
+                  for depth_msg, stamp_ns, arrival_s in self.awaiting_info]
         self.awaiting_info.clear()
         return None, waited
 
@@ -295,7 +312,13 @@ class _SensorInput:
                 self.drop("no_camera_info")
             self.awaiting_info.append((msg, stamp_ns, arrival_s))
             return None
-        return _Undecoded(name, stream, stamp_ns, msg, arrival_s, self.camera_info, config.working_size, self.cleared)
+        return _Undecoded(name, stream, stamp_ns, msg, arrival_s, self.camera_info, config.working_size,
+                          self.spacing_check(config), self.cleared)
+
+    def spacing_check(self, config: IngestConfig) -> float:
+        """The voxel size to check a depth image's pixel spacing against, or 0 once a frame was checked
+        (a median per frame would cost every frame; the first frames tell)."""
+        return 0.0 if self.spacing_checked else config.voxel_size_m
 
     def put(self, image: _Undecoded, decoded: Any, config: IngestConfig) -> str | None:
         """An image `accept` returned, decoded (`_decode`): queued (depth) or buffered (colour) unless
@@ -310,6 +333,9 @@ class _SensorInput:
         reason or None."""
         if not isinstance(decoded, _Pending):
             return self.drop(*decoded)
+        for key, text in decoded.notes:
+            self.counters.notes.setdefault(key, text)
+        self.spacing_checked = self.spacing_checked or decoded.spacing_checked
         if cleared != self.cleared:
             return self.drop(self.cleared_by)
         if len(self.queue) >= config.queue_size:
@@ -386,8 +412,15 @@ class _SensorInput:
                 continue
             if not self.colors.ready(t, last_color_ns, waited_too_long):
                 break
-            rgb = self.colors.match(t, tolerance_ns=int(config.color_tolerance_s * 1e9), shape=pending.depth_m.shape)
-            if rgb is None and self.colors.seen:
+            rgb = self.colors.match(t, tolerance_ns=int(config.color_tolerance_s * 1e9))
+            if rgb is not None:
+                try:
+                    rgb = conv.color_for_depth(rgb, depth_size=pending.source_size, shape=pending.depth_m.shape)
+                except ValueError as err:  # not registered to the depth: fused without colour, said once
+                    rgb = None
+                    self.counters.color_refused += 1
+                    self.counters.notes.setdefault("color_size", str(err))
+            elif self.colors.seen:
                 self.counters.without_color += 1
             self.queue.popleft()
             out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
@@ -731,20 +764,23 @@ def _timeline_limits(config: IngestConfig) -> dict[str, Any]:
 
 
 def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tuple[np.ndarray, tuple[int, int]],
-                  working_size: tuple[int, int]) -> _Pending | tuple[str, str]:
+                  working_size: tuple[int, int], voxel_size_m: float = 0.0) -> _Pending | tuple[str, str]:
     """A depth image decoded, checked against its camera_info (K, (width, height)) and resized to the
     working size (0 in either: keep the aspect ratio; both 0: native): a frame waiting for its
-    pose, or (drop reason, error)."""
+    pose, or (drop reason, error). voxel_size_m > 0: its pixel spacing is checked against it too."""
     K, info_size = camera_info
     try:
         depth_m = conv.depth_from_image(msg)
     except ValueError as err:
         return "bad_encoding", f"depth: {err}"
     height, width = depth_m.shape
+    notes: list[tuple[str, str]] = []
     try:  # a resize of the camera_info's view (a decimating driver) takes its K scaled, as the contract says
-        K = conv.intrinsics_for_size(K, info_size, (width, height))
+        K, note = conv.intrinsics_for_size(K, info_size, (width, height))
     except ValueError as err:
         return "size_mismatch", str(err)
+    if note:
+        notes.append(("camera_info_size", note))
     if not np.any(depth_m > 0.0):
         return "all_invalid", ""
     target_width, target_height = working_size
@@ -756,7 +792,33 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
     if target != (width, height):
         depth_m = conv.resize_depth(depth_m, target)
         K = conv.scale_intrinsics(K, (width, height), target)
-    return _Pending(stamp_ns, depth_m, K, arrival_s, frame_id=str(getattr(msg.header, "frame_id", "")))
+    if voxel_size_m > 0:
+        note = _pixel_spacing_note(depth_m, K, voxel_size_m, native_size=(width, height))
+        if note:
+            notes.append(("pixel_spacing", note))
+    return _Pending(stamp_ns, depth_m, K, arrival_s, frame_id=str(getattr(msg.header, "frame_id", "")),
+                    source_size=(width, height), notes=tuple(notes), spacing_checked=voxel_size_m > 0)
+
+
+def _pixel_spacing_note(depth_m: np.ndarray, K: np.ndarray, voxel_size_m: float, *,
+                        native_size: tuple[int, int]) -> str | None:
+    """What to expect and change when a frame's pixels lie further apart than a voxel at its median
+    depth (neighbouring rays skip voxels: holes in the mesh), or None."""
+    from senfunet_core.integrator import pixel_spacing_m
+
+    median_m, spacing_m = pixel_spacing_m(depth_m, K)
+    if spacing_m <= voxel_size_m:
+        return None
+    height, width = depth_m.shape
+    # the width at which pixels would be a voxel apart there, if the camera has that many
+    needed_width = int(np.ceil(width * spacing_m / voxel_size_m))
+    more = (f"working_width {needed_width} (the images are {native_size[0]}x{native_size[1]}, fused at "
+            f"{width}x{height})" if needed_width <= native_size[0] else
+            f"a camera of at least {needed_width} pixels across (this one gives {native_size[0]})")
+    return (f"its pixels lie {spacing_m * 1000:.1f} mm apart at its median depth {median_m:.2f} m (fx {K[0, 0]:.4g}, "
+            f"fy {K[1, 1]:.4g} px at {width}x{height}), more than the {voxel_size_m * 1000:.1f} mm voxels: the rays "
+            "skip voxels between them, which stay unobserved, so the mesh of surfaces that far and farther will "
+            f"have holes. Use voxels of at least {spacing_m * 1000:.0f} mm (voxel_size_m), or {more}")
 
 
 def _header_stamp(msg: Any, stream: str) -> tuple[int | None, str]:

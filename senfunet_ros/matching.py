@@ -10,7 +10,6 @@ from collections import deque
 
 import numpy as np
 
-from senfunet_ros import conversions as conv
 from senfunet_ros.geometry import interpolate_pose
 
 __all__ = ["ColorBuffer", "PoseBuffer", "pose_conflict"]
@@ -105,9 +104,10 @@ class ColorBuffer:
             return newest_ns is not None and newest_ns >= stamp_ns
         return True
 
-    def match(self, stamp_ns: int, *, tolerance_ns: int, shape: tuple[int, ...]) -> np.ndarray | None:
-        """The colour image nearest the depth stamp within tolerance_ns, resized to the depth's
-        (H, W) `shape`; None if there is none. Images too old for any later frame are forgotten."""
+    def match(self, stamp_ns: int, *, tolerance_ns: int) -> np.ndarray | None:
+        """The colour image nearest the depth stamp within tolerance_ns, as it came (the caller lays
+        it on the depth: `conversions.color_for_depth`); None if there is none. Images too old for
+        any later frame are forgotten."""
         best: tuple[int, np.ndarray] | None = None
         for stamp, rgb in self._images:
             gap = abs(stamp - stamp_ns)
@@ -115,13 +115,7 @@ class ColorBuffer:
                 best = (stamp, rgb)
         while self._images and self._images[0][0] < stamp_ns - tolerance_ns:
             self._images.popleft()
-        if best is None:
-            return None
-        rgb = best[1]
-        height, width = shape
-        if rgb.shape[:2] != (height, width):
-            rgb = conv.resize_rgb(rgb, (width, height))
-        return rgb
+        return None if best is None else best[1]
 
     def clear(self) -> None:
         self._images.clear()

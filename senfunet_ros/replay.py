@@ -440,6 +440,8 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
             "errors": dict(c["errors"]),
             "without_color": c["without_color"],
             "distorted": c["distorted"],
+            "color_refused": c["color_refused"],  # fused without colour: colour of another aspect ratio
+            "notes": dict(c["notes"]),  # what about the sensor's set-up to know (see SensorCounters.notes)
         }
     router = run.router
     return {

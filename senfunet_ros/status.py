@@ -62,9 +62,11 @@ DROP_HINTS: dict[str, str] = {
 def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str, Any]], settings: P.Settings,
                      resolved: dict[str, dict[str, str]] | None = None) -> list[tuple[tuple[str, ...], str]]:
     """(key, message) of each warning that Ingest's counters `now` call for since `before`: new drops,
-    by reason (the error, else the reason's hint), a distorted camera_info, frames without colour
-    and frames set aside. The caller rate-limits them by key. resolved: sensor -> stream -> the topic
-    as subscribed (namespace, remapping), named instead of the parameter's value."""
+    by reason (the error, else the reason's hint), a distorted camera_info, frames without colour,
+    the sensors' notes (each once: colour of another aspect ratio, a camera_info's K taken as given,
+    pixels further apart than a voxel) and frames set aside. The caller rate-limits them by key.
+    resolved: sensor -> stream -> the topic as subscribed (namespace, remapping), named instead of the
+    parameter's value."""
     out: list[tuple[tuple[str, ...], str]] = []
     topics = {}
     for given in settings.sensors:
@@ -93,6 +95,10 @@ def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str,
                    "color_tolerance_s")
             out.append(((sensor, "without_color"), f"{sensor}: {new_without_color} frame(s) integrated without "
                         f"colour: {why} ({counters['without_color']} so far; see ~/status)"))
+        # each said once (colour of another aspect ratio goes on being refused, counted in color_refused)
+        for key, note in counters["notes"].items():
+            if key not in last.get("notes", {}):
+                out.append(((sensor, key), f"{sensor}: {note}"))
         if counters["set_aside"] > last.get("set_aside", 0):
             out.append(((sensor, "set_aside"), f"{sensor}: integration is behind the sensors: images more than "
                         f"max_lag_s behind the newest are set aside ({counters['set_aside_now']} now, "
@@ -172,7 +178,8 @@ class StatusReport:
             report = reports[sensor]
             values = [KeyValue(key=k, value=str(c[k])) for k in
                       ("received", "integrated", "queue_depth", "set_aside", "set_aside_now", "color_received",
-                       "pose_received", "time_jumps", "without_color", "distorted")]
+                       "pose_received", "time_jumps", "without_color", "color_refused", "distorted")]
+            values += [KeyValue(key=f"note.{key}", value=note) for key, note in c["notes"].items()]
             for stream, r in report.streams.items():
                 values += [KeyValue(key=f"rate_hz.{stream}", value=f"{r.rate_hz:.2f}"),
                            KeyValue(key=f"silent_s.{stream}", value=f"{r.silent_s:.1f}")]

@@ -93,9 +93,13 @@ def run(args: argparse.Namespace) -> int:
             line += f"; {c['pending_at_end']} still waiting for a pose or camera_info at the end"
         if c["without_color"]:
             line += f"; {c['without_color']} fused without colour"
+        if c["color_refused"]:
+            line += f"; {c['color_refused']} fused without colour of another aspect ratio"
         print(line)
         if c["distorted"]:
             print(f"{sensor}: note: {DISTORTED_NOTE}")
+        for note in c["notes"].values():
+            print(f"{sensor}: note: {note}")
     unfused = [sensor for sensor, c in stats["sensors"].items() if not c["integrated"]]
     if unfused and len(unfused) < len(stats["sensors"]):
         # one sensor alone: the paper's outlier filter keeps of its surface only what the net trusts

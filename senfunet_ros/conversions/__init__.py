@@ -15,6 +15,7 @@ stamps are integer nanoseconds. Every failure is a `ValueError` saying what was 
 to do about it.
 """
 from senfunet_ros.conversions.images import (
+                                             color_for_depth,
                                              depth_from_image,
                                              intrinsics_for_size,
                                              intrinsics_from_camera_info,
@@ -68,6 +69,7 @@ __all__ = [
                                              "block_marker_ids",
                                              "delete_all_marker_array_cdr",
                                              "depth_from_image",
+                                             "color_for_depth",
                                              "intrinsics_for_size",
                                              "intrinsics_from_camera_info",
                                              "marker_array_cdr",

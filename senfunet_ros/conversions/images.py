@@ -13,7 +13,10 @@ from senfunet_ros.conversions.rvl import rvl_decode
 
 __all__ = [
     "depth_from_image",
+    "color_for_depth",
     "intrinsics_for_size",
+    "principal_point_off_centre",
+    "same_aspect_ratio",
     "intrinsics_from_camera_info",
     "resize_depth",
     "resize_rgb",
@@ -243,21 +246,74 @@ def scale_intrinsics(K: np.ndarray, src_size: tuple[int, int], dst_size: tuple[i
     return out
 
 
-def intrinsics_for_size(K: np.ndarray, info_size: tuple[int, int], image_size: tuple[int, int]) -> np.ndarray:
-    """K of a camera_info of `info_size` (width, height) for an image of `image_size`: the same K when
-    the sizes agree, scaled when the image is the camera_info's view resized (the same aspect ratio, to
-    a pixel: a driver's decimation, a camera_info of the full-resolution stream). ValueError for another
-    aspect ratio: a crop or another camera, whose K cannot be told from this one."""
+def same_aspect_ratio(size: tuple[int, int], other: tuple[int, int]) -> bool:
+    """Whether an image of `size` (width, height) can be one of `other` resized: a resize rounds each
+    side to a whole pixel, so its two scales differ by at most that (and by 1% on a tiny image)."""
+    scale_x, scale_y = size[0] / other[0], size[1] / other[1]
+    return abs(scale_x - scale_y) <= min(1 / other[0] + 1 / other[1], 0.01 * max(scale_x, scale_y))
+
+
+# a camera's principal point lies within this share of the image's width (height) of its centre: a K whose
+# principal point lies further off once scaled than as given was made for the image, not for camera_info's size
+PRINCIPAL_POINT_OFF_CENTRE_MAX = 0.15
+
+
+def principal_point_off_centre(K: np.ndarray, size: tuple[int, int]) -> float:
+    """How far K's principal point lies from the centre of an image of `size` (width, height), as a
+    share of its width or height (the larger of the two)."""
+    width, height = size
+    return max(abs(float(K[0, 2]) - (width - 1) / 2) / width, abs(float(K[1, 2]) - (height - 1) / 2) / height)
+
+
+def _k_text(K: np.ndarray) -> str:
+    return f"fx {K[0, 0]:.4g}, fy {K[1, 1]:.4g}, cx {K[0, 2]:.4g}, cy {K[1, 2]:.4g}"
+
+
+def intrinsics_for_size(K: np.ndarray, info_size: tuple[int, int], image_size: tuple[int, int]
+                        ) -> tuple[np.ndarray, str | None]:
+    """K of a camera_info of `info_size` (width, height) for an image of `image_size`, and a note when
+    the sizes left a choice. The same K when the sizes agree; scaled when the image is the camera_info's
+    view resized (the same aspect ratio, to a pixel: a driver's decimation, a camera_info of the
+    full-resolution stream); but taken as given, with a note saying so, when its principal point lies
+    near the image's centre as given and further off once scaled (a driver that resized its images
+    and K but left width and height: scaling would move the principal point off the image's centre
+    and shrink the focal lengths). ValueError for another aspect ratio: a crop or another camera,
+    whose K cannot be told from this one."""
     if tuple(image_size) == tuple(info_size):
-        return K
+        return K, None
     (width, height), (info_width, info_height) = image_size, info_size
-    scale_x, scale_y = width / info_width, height / info_height
-    # a resize rounds each side to a whole pixel: its two scales differ by at most that, and by 1% (a tiny image)
-    if abs(scale_x - scale_y) > min(1 / info_width + 1 / info_height, 0.01 * max(scale_x, scale_y)):
+    if not same_aspect_ratio(image_size, info_size):
         raise ValueError(f"depth image {width}x{height}, camera_info {info_width}x{info_height}: another aspect "
                          "ratio (a crop, or another camera's camera_info?); publish the camera_info of this image "
                          "(a crop's: its roi)")
-    return scale_intrinsics(K, (info_width, info_height), (width, height))
+    scaled = scale_intrinsics(K, (info_width, info_height), (width, height))
+    as_given = principal_point_off_centre(K, image_size)
+    if as_given <= PRINCIPAL_POINT_OFF_CENTRE_MAX and as_given < principal_point_off_centre(scaled, image_size):
+        centre = f"({(width - 1) / 2:.4g}, {(height - 1) / 2:.4g})"
+        return K, (f"the camera_info says {info_width}x{info_height} but the depth images are {width}x{height} (the "
+                   f"same aspect ratio); its K ({_k_text(K)}) has its principal point near the images' centre "
+                   f"{centre} as given, while scaled to the images it would be {_k_text(scaled)}, off the centre: K "
+                   f"is taken as given, as made for the images, and the camera_info's width and height as wrong. "
+                   f"Fix the driver's camera_info (width {width}, height {height}); if its K is in fact that of "
+                   f"{info_width}x{info_height} images, publish a camera_info of {width}x{height} with K scaled")
+    return scaled, None
+
+
+def color_for_depth(rgb: np.ndarray, *, depth_size: tuple[int, int], shape: tuple[int, int]) -> np.ndarray:
+    """A colour image laid on its depth frame: resized to the frame's (H, W) `shape`. ValueError when
+    its aspect ratio differs from the depth image's (`depth_size`, (width, height) as published: the
+    frame may be resized to a working size of another aspect ratio): no resize lays it on the depth
+    pixels, as it is not registered to them."""
+    height, width = rgb.shape[:2]
+    if not same_aspect_ratio((width, height), depth_size):
+        raise ValueError(f"the colour images are {width}x{height} and the depth images {depth_size[0]}x"
+                         f"{depth_size[1]}, another aspect ratio: stretched onto the depth they would colour each "
+                         "depth pixel with another point's colour, so its frames are fused without colour. Publish "
+                         "colour registered to the depth images (the driver's colour aligned to depth, or depth "
+                         "aligned to colour, e.g. a depth_image_proc register node)")
+    if rgb.shape[:2] != tuple(shape):
+        rgb = resize_rgb(rgb, (shape[1], shape[0]))
+    return rgb
 
 
 def _source_coords(src: int, dst: int) -> np.ndarray:

@@ -13,14 +13,16 @@ from replays import replay_in_process
 from sensor_bags import Camera, params_file, surface_distance_m, two, write_bag
 
 
-def _replay(tmp_path: Path, recording, **params):
-    """(the command's output, stats.json, the fused mesh's vertices) of the recording's replay."""
+def _replay(tmp_path: Path, recording, *, mesh_of: str = "mesh", **params):
+    """(the command's output, stats.json, the vertices of the fused mesh, or with mesh_of a sensor's
+    name of that sensor's mesh) of the recording's replay."""
     from senfunet_core.ply import read_ply
 
     bag = write_bag(recording, tmp_path / "bag")
-    proc = replay_in_process(bag, tmp_path / "out", params_file(tmp_path / "params.yaml", recording, **params))
+    proc = replay_in_process(bag, tmp_path / "out", params_file(tmp_path / "params.yaml", recording, **params),
+                             compare=mesh_of != "mesh")
     stats = json.loads((tmp_path / "out" / "stats.json").read_text())
-    mesh = tmp_path / "out" / "mesh.ply"
+    mesh = tmp_path / "out" / f"{mesh_of}.ply"
     vertices = np.asarray(read_ply(mesh).vertices) if mesh.exists() else np.zeros((0, 3))
     return proc, stats, vertices
 
@@ -180,3 +182,111 @@ def test_a_colour_sensor_without_colour_is_said_in_replay_and_by_the_node(ros, t
         assert "stereo's feature net takes colour (rgb_sensors) but stereo.color_topic is empty" in said
     finally:
         rclpy.try_shutdown(context=context)
+
+
+def test_colour_of_another_aspect_ratio_is_refused_once_with_both_sizes_and_depth_fused_without_it(tmp_path: Path):
+    """A colour camera of another aspect ratio (16:9 colour beside 4:3 depth, not registered to it) was
+    stretched onto the depth without a word: every depth pixel took another point's colour. Now its
+    frames are fused without colour, counted, and a note names both sizes and what to publish; colour
+    of the same aspect ratio (twice the depth's size) is still resized onto the depth."""
+    wide = two(Camera("tof", rate_hz=15.0), Camera("stereo", x_m=0.05, color="rgb8", color_size=(128, 72)))
+    proc, stats, vertices = _replay(tmp_path / "wide", wide)
+    assert proc.returncode == 0, proc.stderr
+    stereo = stats["sensors"]["stereo"]
+    assert stereo["integrated"] > 0 and stereo["color_refused"] == stereo["integrated"], stereo
+    assert stereo["without_color"] == 0
+    note = stereo["notes"]["color_size"]
+    assert "colour images are 128x72 and the depth images 96x72" in note and "registered to the depth" in note
+    assert proc.stdout.count("stereo: note: the colour images are 128x72") == 1, proc.stdout
+    assert "fused without colour of another aspect ratio" in proc.stdout
+    assert len(vertices) > 1000
+    larger = two(Camera("tof", rate_hz=15.0), Camera("stereo", x_m=0.05, color="rgb8", color_size=(192, 144)))
+    proc, stats, _ = _replay(tmp_path / "larger", larger)
+    stereo = stats["sensors"]["stereo"]
+    assert stereo["integrated"] > 0 and stereo["color_refused"] == 0 and "color_size" not in stereo["notes"]
+
+
+def test_a_camera_info_whose_k_fits_the_image_but_not_its_size_keeps_its_k_and_says_so(tmp_path: Path):
+    """A driver that decimates its images and K but leaves width and height at the full resolution
+    (192x144 said, 96x72 sent, K for 96x72): K was scaled to half (fx 30, principal point at a quarter
+    of the image): the ToF's surfaces, placed off the stereo's, were all filtered out of its mesh (0
+    vertices in tof.ply). The principal point tells: as given it is at the image's centre, scaled it is
+    not; K is taken as given and a note names the sizes, both Ks and what to fix. A K that is the full
+    resolution's (the earlier test) is still scaled, silently."""
+    camera = Camera("tof", rate_hz=15.0, info_size=(192, 144))  # info_k: None, the K of the 96x72 images
+    proc, stats, vertices = _replay(tmp_path, two(camera), mesh_of="tof")
+    assert proc.returncode == 0, proc.stderr
+    tof = stats["sensors"]["tof"]
+    assert tof["integrated"] == tof["received"] > 0
+    assert len(vertices) > 1000 and np.quantile(surface_distance_m(vertices), 0.99) < 0.02
+    note = tof["notes"]["camera_info_size"]
+    assert "says 192x144 but the depth images are 96x72" in note
+    assert "fx 60, fy 60, cx 47.5, cy 35.5" in note and "fx 30, fy 30, cx 23.5, cy 17.5" in note
+    assert "Fix the driver's camera_info (width 96, height 72)" in note
+    assert proc.stdout.count("tof: note: the camera_info says 192x144") == 1, proc.stdout
+    full = (120.0, 0.0, 95.5, 0.0, 120.0, 71.5, 0.0, 0.0, 1.0)  # the full resolution's K: scaled, no note
+    proc, stats, _ = _replay(tmp_path / "full", two(Camera("tof", rate_hz=15.0, info_size=(192, 144), info_k=full)))
+    assert stats["sensors"]["tof"]["integrated"] > 0 and "camera_info_size" not in stats["sensors"]["tof"]["notes"]
+
+
+def test_pixels_further_apart_than_a_voxel_are_said_once_per_sensor_with_what_to_change(tmp_path: Path):
+    """96x72 images with fx 60 px see the wall 2 m away with pixels 33 mm apart: under 1 cm voxels the
+    rays skip two voxels in three across the surface, and the mesh has holes, without a word. Each
+    sensor's first frame now says so, with the spacing, the median depth and what to change; 5 cm
+    voxels, coarser than the spacing, say nothing."""
+    proc, stats, _ = _replay(tmp_path / "fine", two(), voxel_size_m=0.01)
+    assert proc.returncode == 0, proc.stderr
+    for sensor in ("tof", "stereo"):
+        note = stats["sensors"][sensor]["notes"]["pixel_spacing"]
+        assert "pixels lie 33.3 mm apart at its median depth 2.00 m" in note, note
+        assert "more than the 10.0 mm voxels" in note and "holes" in note
+        assert "voxels of at least 33 mm (voxel_size_m)" in note and "a camera of at least 320 pixels" in note
+        assert proc.stdout.count(f"{sensor}: note: its pixels lie") == 1, proc.stdout
+    proc, stats, _ = _replay(tmp_path / "coarse", two(), voxel_size_m=0.05, band_m=0.2)
+    assert proc.returncode == 0, proc.stderr
+    assert all("pixel_spacing" not in c["notes"] for c in stats["sensors"].values()), stats["sensors"]
+
+
+def test_the_live_node_warns_once_per_sensor_about_its_set_up(ros, tmp_path: Path, capfd):
+    """The node takes the same messages (the bag's, as rclpy messages) through the same Ingest: colour
+    of another aspect ratio, a camera_info whose K fits the image but not its size, and pixels
+    further apart than a voxel are each warned about once per sensor, however many frames follow."""
+    import rclpy
+    from rclpy.parameter import Parameter
+    from rclpy.serialization import deserialize_message
+
+    from senfunet_ros.bagio import message_class, open_bag
+    from senfunet_ros.node import FusionNode
+
+    recording = two(Camera("tof", rate_hz=15.0, info_size=(192, 144)),
+                    Camera("stereo", x_m=0.05, color="rgb8", color_size=(128, 72)))
+    bag = write_bag(recording, tmp_path / "bag")
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros)
+    try:
+        node = FusionNode(context=context, parameter_overrides=[
+            Parameter("weights", value="none"), Parameter("working_width", value=0),
+            Parameter("voxel_size_m", value=0.01), Parameter("output_dir", value=str(tmp_path))])
+        try:
+            capfd.readouterr()
+            add = {"depth": node.ingest.add_depth, "color": node.ingest.add_color,
+                   "camera_info": node.ingest.add_camera_info, "pose": node.ingest.add_pose}
+            with open_bag(bag) as reader:
+                for i, message in enumerate(reader.messages(None)):
+                    sensor, stream = message.topic.strip("/").split("/")
+                    add[stream](sensor, deserialize_message(message.data, message_class(message.msgtype)))
+                    if i % 10 == 0:
+                        node._integrate_tick()  # the node's integration timer's work
+            node._integrate_tick()
+            counters = node.ingest.ledger.counters()
+            said = capfd.readouterr().err
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    assert counters["stereo"]["color_refused"] == counters["stereo"]["integrated"] > 1
+    assert counters["tof"]["integrated"] > 1
+    assert said.count("stereo: the colour images are 128x72 and the depth images 96x72") == 1, said
+    assert said.count("tof: the camera_info says 192x144 but the depth images are 96x72") == 1, said
+    for sensor in ("tof", "stereo"):
+        assert said.count(f"{sensor}: its pixels lie 33.3 mm apart") == 1, said
