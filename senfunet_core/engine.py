@@ -147,8 +147,10 @@ class EngineConfig:
     #   its ray samples land; samples in blocks not allocated are dropped and counted (counters
     #   "sparse_dropped_samples", "sparse_dropped_blocks"); blocks already in the map take every sample. 0 = allocate
     #   every touched block. The default was chosen on the validation rooms (bench/allocation_policy.py): one
-    #   isolated ray writes fewer samples than that (at most (n_samples - 1) / 2 + n_samples_behind + 1), so a new
-    #   block needs two rays or more; larger thresholds started to lose far surfaces (mean F fell), smaller ones kept
+    #   isolated ray leaves fewer samples than that in a block (at most (n_samples - 1) / 2 + n_samples_behind + 1,
+    #   9 at 1 cm voxels; with finer voxels, more samples along the band, but a voxel apart they cross a block along
+    #   at most 8 * sqrt(3) ~ 14 voxels: test_integrator.py), so a new block needs two rays or more; larger
+    #   thresholds started to lose far surfaces (mean F fell), smaller ones kept
     #   far more nearly empty blocks at no gain in F
     weighting_tsdf_input: bool = False  # the weighting net also reads the sensors' TSDFs (a departure from the
     #   paper, networks.WeightingNet); set from the weights file when it records it

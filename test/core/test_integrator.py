@@ -319,3 +319,47 @@ def test_samples_along_the_band_are_at_most_a_voxel_apart(voxel_size_m: float, b
     assert behind / ((n_samples - 1) // 2) == pytest.approx(0.6, abs=0.05)
     if band_m / 10 <= voxel_size_m:
         assert (n_samples, behind) == (11, 3)
+
+
+@pytest.mark.parametrize("voxel_size_m", [0.01, 0.005, 0.0025])
+def test_the_allocation_threshold_keeps_lone_rays_out_and_surfaces_in_at_fine_voxels(voxel_size_m: float):
+    """min_new_block_samples (16) was chosen at 1 cm voxels, where one ray writes at most 9 samples. Finer
+    voxels take more samples along the band (samples_along_band: 17 written at 5 mm, 33 at 2.5 mm), but
+    samples a voxel apart cross a block (8 voxels) along at most 8 * sqrt(3) ~ 13.9 voxels: a lone ray
+    (a flying pixel), even along a block's diagonal, still allocates no block, and a surface whose pixels
+    lie up to 3 voxels apart keeps its blocks. The threshold means the same at these voxel sizes."""
+    from senfunet_core.integrator import samples_along_band
+
+    n_samples, behind = samples_along_band(voxel_size_m, 0.1)
+    config = IntegratorConfig(voxel_size_m, 0.1, n_samples, behind, border_px=0, min_new_block_samples=16)
+    assert (n_samples - 1) // 2 + behind + 1 >= (9 if voxel_size_m == 0.01 else 17)
+    channels = ("tsdf0", "weight0", "feat0")
+
+    def blocks(depth: np.ndarray, intrinsics: np.ndarray, T: np.ndarray) -> set[tuple[int, ...]]:
+        grid = BlockGrid({"tsdf0": (), "weight0": (), "feat0": (5,)}, initial_capacity=64,
+                         dtypes={"weight0": torch.float16, "feat0": torch.float16})
+        integrate_frame(grid, depth, np.ones((depth.size, 5), np.float32), intrinsics, T, RANGE, config, channels)
+        return {tuple(c) for c in grid.coords[: grid.n_blocks].tolist()}
+
+    # one valid pixel, its ray along a block's diagonal (the most samples one ray can leave in a block)
+    axis = np.ones(3) / np.sqrt(3)
+    right = np.cross([0.0, 1.0, 0.0], axis)
+    right /= np.linalg.norm(right)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([right, np.cross(axis, right), axis], axis=1)
+    one = np.zeros((5, 5), np.float32)
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        one[2, 2] = rng.uniform(1.0, 1.2)
+        T[:3, 3] = rng.uniform(0.0, BLOCK * voxel_size_m, 3)
+        assert not blocks(one, np.array([[10.0, 0, 2], [0, 10.0, 2], [0, 0, 1]]), T)
+    # a wall with its pixels 3 voxels apart: its surface blocks inside the image's edge are allocated
+    size, focal = 96, 48.0
+    intrinsics = np.array([[focal, 0, (size - 1) / 2], [0, focal, (size - 1) / 2], [0, 0, 1.0]])
+    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
+    wall = 3 * voxel_size_m * focal * (1.0 + 0.002 * u)
+    points = np.stack([(u - intrinsics[0, 2]) / focal * wall, (v - intrinsics[1, 2]) / focal * wall, wall], axis=-1)
+    inner = points[8:-8, 8:-8].reshape(-1, 3)  # blocks at the image's edge are seen in part, at any voxel size
+    surface = {tuple(b) for b in np.floor(inner / (BLOCK * voxel_size_m)).astype(int).tolist()}
+    kept = blocks(wall.astype(np.float32), intrinsics, np.eye(4))
+    assert len(surface & kept) >= 0.99 * len(surface), (len(surface & kept), len(surface))
