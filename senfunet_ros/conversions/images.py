@@ -256,6 +256,9 @@ def same_aspect_ratio(size: tuple[int, int], other: tuple[int, int]) -> bool:
 # a camera's principal point lies within this share of the image's width (height) of its centre: a K whose
 # principal point lies further off once scaled than as given was made for the image, not for camera_info's size
 PRINCIPAL_POINT_OFF_CENTRE_MAX = 0.15
+# ... further off by more than this share: a resize by a few percent moves the principal point by less, and
+# either K is as good (the contract's scaling stands, without a word)
+PRINCIPAL_POINT_MARGIN = 0.05
 
 
 def principal_point_off_centre(K: np.ndarray, size: tuple[int, int]) -> float:
@@ -288,7 +291,8 @@ def intrinsics_for_size(K: np.ndarray, info_size: tuple[int, int], image_size: t
                          "(a crop's: its roi)")
     scaled = scale_intrinsics(K, (info_width, info_height), (width, height))
     as_given = principal_point_off_centre(K, image_size)
-    if as_given <= PRINCIPAL_POINT_OFF_CENTRE_MAX and as_given < principal_point_off_centre(scaled, image_size):
+    scaled_off = principal_point_off_centre(scaled, image_size)
+    if as_given <= PRINCIPAL_POINT_OFF_CENTRE_MAX and scaled_off > as_given + PRINCIPAL_POINT_MARGIN:
         centre = f"({(width - 1) / 2:.4g}, {(height - 1) / 2:.4g})"
         return K, (f"the camera_info says {info_width}x{info_height} but the depth images are {width}x{height} (the "
                    f"same aspect ratio); its K ({_k_text(K)}) has its principal point near the images' centre "

@@ -435,3 +435,23 @@ def test_malformed_rvl_depth_raises_saying_what_is_wrong() -> None:
     # older publishers write plain 'compressedDepth': png
     with pytest.raises(ValueError, match="not a readable png"):
         conv.depth_from_image(_compressed_depth("16UC1; compressedDepth", good))
+
+
+def test_a_camera_info_of_another_size_takes_the_k_its_principal_point_fits() -> None:
+    """K for a 320x240 image from a camera_info of 640x480: a full-resolution K (principal point at the
+    centre of 640x480) is scaled, without a note; a K already made for 320x240 (only width and height
+    left wrong) is taken as given, with a note naming both; a resize by a few percent keeps the
+    contract's scaling without a note, whichever principal point lies nearer the centre (they differ
+    by a pixel or two: a warning would only puzzle)."""
+    full = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+    K, note = conv.intrinsics_for_size(full, (640, 480), (320, 240))
+    np.testing.assert_allclose(K, [[250.0, 0, 159.5], [0, 250.0, 119.5], [0, 0, 1]])
+    assert note is None
+    half = np.array([[250.0, 0, 159.5], [0, 250.0, 119.5], [0, 0, 1]])
+    K, note = conv.intrinsics_for_size(half, (640, 480), (320, 240))
+    np.testing.assert_array_equal(K, half)
+    assert note is not None and "says 640x480 but the depth images are 320x240" in note and "fx 125" in note
+    off_centre = np.array([[500.0, 0, 310.0], [0, 500.0, 236.0], [0, 0, 1]])  # a real camera's principal point
+    K, note = conv.intrinsics_for_size(off_centre, (640, 480), (632, 474))  # a 1.25% resize
+    np.testing.assert_allclose(K, conv.scale_intrinsics(off_centre, (640, 480), (632, 474)))
+    assert note is None
