@@ -816,9 +816,10 @@ def _pixel_spacing_note(depth_m: np.ndarray, K: np.ndarray, voxel_size_m: float,
             f"{width}x{height})" if needed_width <= native_size[0] else
             f"a camera of at least {needed_width} pixels across (this one gives {native_size[0]})")
     return (f"its pixels lie {spacing_m * 1000:.1f} mm apart at its median depth {median_m:.2f} m (fx {K[0, 0]:.4g}, "
-            f"fy {K[1, 1]:.4g} px at {width}x{height}), more than the {voxel_size_m * 1000:.1f} mm voxels: the rays "
-            "skip voxels between them, which stay unobserved, so the mesh of surfaces that far and farther will "
-            f"have holes. Use voxels of at least {spacing_m * 1000:.0f} mm (voxel_size_m), or {more}")
+            f"fy {K[1, 1]:.4g} px at {width}x{height}), more than the {voxel_size_m * 1000:.1f} mm voxels: a frame's "
+            f"rays observe about {(voxel_size_m / spacing_m) ** 2:.0%} of the voxels of a surface facing it there "
+            "(fewer farther); the rest wait for other viewpoints' rays, so where the camera stays still the mesh "
+            f"will have holes. Use voxels of at least {spacing_m * 1000:.1f} mm (voxel_size_m), or {more}")
 
 
 def _header_stamp(msg: Any, stream: str) -> tuple[int | None, str]:

@@ -239,8 +239,9 @@ def test_pixels_further_apart_than_a_voxel_are_said_once_per_sensor_with_what_to
     for sensor in ("tof", "stereo"):
         note = stats["sensors"][sensor]["notes"]["pixel_spacing"]
         assert "pixels lie 33.3 mm apart at its median depth 2.00 m" in note, note
-        assert "more than the 10.0 mm voxels" in note and "holes" in note
-        assert "voxels of at least 33 mm (voxel_size_m)" in note and "a camera of at least 320 pixels" in note
+        assert "more than the 10.0 mm voxels: a frame's rays observe about 9% of the voxels" in note
+        assert "holes" in note
+        assert "voxels of at least 33.3 mm (voxel_size_m)" in note and "a camera of at least 320 pixels" in note
         assert proc.stdout.count(f"{sensor}: note: its pixels lie") == 1, proc.stdout
     proc, stats, _ = _replay(tmp_path / "coarse", two(), voxel_size_m=0.05, band_m=0.2)
     assert proc.returncode == 0, proc.stderr
