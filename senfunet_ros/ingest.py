@@ -111,7 +111,7 @@ class IngestConfig:
     # time going back resets the consumer's map (on_time_jump: reset): the frames set aside then go too (they
     # belong to the old map); else they stay, and are integrated into the kept map later
     reset_on_time_jump: bool = False
-    # the map's voxel size: a sensor's first frame is checked for pixels further apart than a voxel at its
+    # the map's voxel size: a sensor's first frame is checked for pixels further apart than 1.5 voxels at its
     # median depth (holes in the mesh), said once in its notes; 0 = no check
     voxel_size_m: float = 0.0
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
@@ -172,7 +172,7 @@ class SensorCounters:
     color_refused: int = 0
     # what about this sensor's set-up the user should know, said once each (the node warns, replay prints):
     # "color_size" (colour of another aspect ratio), "camera_info_size" (a K taken as given although the
-    # camera_info's size differs), "pixel_spacing" (pixels further apart than a voxel: holes)
+    # camera_info's size differs), "pixel_spacing" (pixels further apart than 1.5 voxels: holes)
     notes: dict[str, str] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=lambda: {reason: 0 for reason in DROP_REASONS})
     errors: dict[str, str] = field(default_factory=dict)  # drop reason -> what the last such message had wrong
@@ -800,14 +800,19 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
                     source_size=(width, height), notes=tuple(notes), spacing_checked=voxel_size_m > 0)
 
 
+# pixels up to this many voxels apart at the median depth are not worth a note: a frame's rays still observe about
+# half of a facing surface's voxels, and any camera motion fills the rest (the sample's are 1.04-1.1 voxels apart)
+PIXEL_SPACING_NOTE_VOXELS = 1.5
+
+
 def _pixel_spacing_note(depth_m: np.ndarray, K: np.ndarray, voxel_size_m: float, *,
                         native_size: tuple[int, int]) -> str | None:
-    """What to expect and change when a frame's pixels lie further apart than a voxel at its median
+    """What to expect and change when a frame's pixels lie further apart than 1.5 voxels at its median
     depth (neighbouring rays skip voxels: holes in the mesh), or None."""
     from senfunet_core.integrator import pixel_spacing_m
 
     median_m, spacing_m = pixel_spacing_m(depth_m, K)
-    if spacing_m <= voxel_size_m:
+    if spacing_m <= PIXEL_SPACING_NOTE_VOXELS * voxel_size_m:
         return None
     height, width = depth_m.shape
     # the width at which pixels would be a voxel apart there, if the camera has that many
