@@ -483,7 +483,7 @@ def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.
         T_body_camera=sensor_extrinsics(s),
         fixed_frame=s.fixed_frame,  # where TF lookups go, the node's own TF lookup (tf=) too
         reset_on_time_jump=s.on_time_jump == "reset",
-        voxel_size_m=s.voxel_size_m,  # a sensor's pixels further apart than a voxel are said (holes)
+        voxel_size_m=s.voxel_size_m,  # a sensor's pixels further apart than 1.5 voxels are said (holes)
     )
     if PoseType(s.pose_type) is PoseType.TF and "tf" not in overrides:  # replay: /tf and /tf_static from the bag
         from senfunet_ros.tf import TfBuffer
