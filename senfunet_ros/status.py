@@ -64,7 +64,7 @@ def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str,
     """(key, message) of each warning that Ingest's counters `now` call for since `before`: new drops,
     by reason (the error, else the reason's hint), a distorted camera_info, frames without colour,
     the sensors' notes (each once: colour of another aspect ratio, a camera_info's K taken as given,
-    pixels further apart than a voxel) and frames set aside. The caller rate-limits them by key.
+    pixels further apart than 1.5 voxels) and frames set aside. The caller rate-limits them by key.
     resolved: sensor -> stream -> the topic as subscribed (namespace, remapping), named instead of the
     parameter's value."""
     out: list[tuple[tuple[str, ...], str]] = []

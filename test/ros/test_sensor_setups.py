@@ -252,7 +252,7 @@ def test_pixels_further_apart_than_a_voxel_are_said_once_per_sensor_with_what_to
 def test_the_live_node_warns_once_per_sensor_about_its_set_up(ros, tmp_path: Path, capfd):
     """The node takes the same messages (the bag's, as rclpy messages) through the same Ingest: colour
     of another aspect ratio, a camera_info whose K fits the image but not its size, and pixels
-    further apart than a voxel are each warned about once per sensor, however many frames follow."""
+    further apart than 1.5 voxels are each warned about once per sensor, however many frames follow."""
     import rclpy
     from rclpy.parameter import Parameter
     from rclpy.serialization import deserialize_message
