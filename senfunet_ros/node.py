@@ -348,12 +348,16 @@ class FusionNode(Node):
             f"fusing {list(s.sensor_names)} into '{s.fixed_frame}' with weights: {self.engine.weights_source}")
 
     # -- set-up and stop -------------------------------------------------------------------------
-    def finish(self, abandon: threading.Event | None = None) -> dict[str, int]:
-        """After the executor stopped: integrate the frames that are ready, count the ones still
-        waiting (for a pose, a colour image, a camera_info) as dropped at shutdown. `abandon` set
-        (a second Ctrl-C): the ready frames not started yet are dropped too, once the frame under
-        way is integrated. Returns the counts."""
+    def finish(self, abandon: threading.Event | None = None) -> dict[str, Any]:
+        """After the executor stopped: the streams ended (`Ingest.end_streams`: frames newer than
+        their sensor's newest pose are posed by extrapolation within pose_tolerance_s, or dropped as
+        pose_timeout); integrate the frames that are ready, count the ones still waiting (for a
+        camera_info, or set aside) as dropped at shutdown. `abandon` set (a second Ctrl-C): the
+        ready frames not started yet are dropped too, once the frame under way is integrated.
+        Returns the counts, and under "ends" the (level, line)s of `Pipeline.stream_ends` (for the
+        caller to print: the node's log may be shut down)."""
         self.pipeline.stopping = True
+        self.ingest.end_streams()
         ready = self.ingest.pop_ready(set_aside=False)
         left: list[Frame | TimeJump] = []
 
@@ -370,7 +374,7 @@ class FusionNode(Node):
                 self.ingest.ledger.mark_dropped(item.sensor, "shutdown")
         waiting = self.ingest.ledger.discard_waiting("shutdown")
         return {"integrated": integrated, "discarded": waiting + sum(isinstance(item, Frame) for item in left),
-                "interrupted": self.pipeline.frames_unfinished}
+                "interrupted": self.pipeline.frames_unfinished, "ends": self.pipeline.stream_ends()}
 
     # -- warnings -------------------------------------------------------------------------------
 
@@ -439,6 +443,12 @@ class FusionNode(Node):
         next frame is taken (and its feature net started) before the current one is integrated."""
         try:
             deadline = time.monotonic() + _INTEGRATE_SLICE_S
+            # a sensor silent for pose_max_wait_s has ended its streams: no pose will come for what waits.
+            # Its message count is read first, so that a message arriving meanwhile keeps it going
+            counts = self.ingest.message_counts()
+            quiet = self.health.quiet_sensors(self.settings.pose_max_wait_s)
+            if quiet:
+                self.ingest.end_streams(quiet, counts=counts)
 
             def ready() -> Iterator[Frame | TimeJump]:
                 while time.monotonic() < deadline:
@@ -448,6 +458,8 @@ class FusionNode(Node):
                     yield from items
 
             self.pipeline.drain(ready())
+            for level, line in self.pipeline.stream_ends():
+                getattr(self.get_logger(), level)(line)
             counters = self.ingest.ledger.counters()
             for key, message in counter_warnings(self._last_counters, counters, self.settings, self._topics):
                 self._warn(key, message)
@@ -885,6 +897,8 @@ def stop_node(node: FusionNode) -> None:
     try:
         try:
             done = node.finish(abandon)
+            for _, line in done["ends"]:
+                print(f"senfunet: {line}", flush=True)
             print(f"senfunet: stopped; at the stop {done['integrated']} ready frame(s) integrated, "
                   f"{done['discarded']} still waiting and {done['interrupted']} being integrated were dropped "
                   "(counted as shutdown)", flush=True)

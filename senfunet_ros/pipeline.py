@@ -127,6 +127,27 @@ class Pipeline:
             integrate_ready(self.engine, items, self._time_jump, self._frame_done)
             return self.frames_integrated - before
 
+    def stream_ends(self) -> list[tuple[str, str]]:
+        """(level, line) per sensor whose streams' end (`Ingest.end_streams`) posed frames by extrapolation
+        or dropped them since the last call: how many, and how far past the newest pose. Not logged here:
+        the node's stop prints them (its log may be gone by then), replay prints them."""
+        lines = []
+        for sensor, end in self.ingest.take_stream_ends().items():
+            parts = []
+            if end.extrapolated:
+                parts.append(f"{end.extrapolated} frame(s) newer than its newest pose posed by continuing the two "
+                             f"newest poses' motion (constant velocity) up to {end.extrapolated_max_ns * 1e-6:.0f} ms "
+                             "past it (counted as extrapolated)")
+            if end.timed_out:
+                far = (f" (up to {end.timed_out_max_ns * 1e-6:.0f} ms past the newest pose)"
+                       if end.timed_out_max_ns else "")
+                parts.append(f"{end.timed_out} frame(s) dropped as pose_timeout{far}: more than pose_tolerance_s "
+                             f"({self.ingest.config.pose_tolerance_s:g} s) past the newest pose, or too few poses; "
+                             "a pose stream that ends later than the depth stream keeps them")
+            lines.append(("warning" if end.timed_out else "info",
+                          f"{sensor}: its streams ended with frames waiting for a pose: " + "; ".join(parts)))
+        return lines
+
     def _time_jump(self, jump: TimeJump) -> None:
         self.time_jumps += 1
         reset = self.on_time_jump is TimeJumpAction.RESET
