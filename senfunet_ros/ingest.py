@@ -696,6 +696,12 @@ class Ingest:
                        for image, result in zip(images, decoded)]
         return reasons[-1] if isinstance(taken, _Undecoded) else taken
 
+    def restart_pending(self) -> bool:
+        """Whether stamps off their streams' timelines (dropped as bad_stamp so far) may yet turn out
+        to start a new one: a restart not yet confirmed, or strays."""
+        with self._lock:
+            return self._time.timelines.pending()
+
     # -- the end of a stream ----------------------------------------------------------------
 
     def message_counts(self) -> dict[str, int]:

@@ -66,6 +66,9 @@ from senfunet_ros.status import StatusReport, ThrottledWarnings, counter_warning
 __all__ = ["FusionNode", "main"]
 
 _WARN_PERIOD_S = 5.0  # one warning per cause per this many seconds
+# drops a restart of time causes (flushed queues, messages of the old timeline in flight and of the new one
+# before it is confirmed): counted, and told by the restart's line rather than warned per stream
+_RESTART_DROPS = ("time_jump", "bad_stamp")
 _INTEGRATE_SLICE_S = 0.5  # an integration tick returns after this long, so the executor stays responsive
 
 # Best effort + volatile subscriptions match both reliable and best-effort publishers (and
@@ -244,9 +247,7 @@ class _ClockWatch:
             with self._last_lock:
                 last, self._last_ns = self._last_ns, now_ns
             if last is not None and now_ns < last - int(self._time_jump_s() * 1e9):
-                self._node.get_logger().info(
-                    f"/clock went back from {last * 1e-9:.3f} s to {now_ns * 1e-9:.3f} s: time restarted")
-                self._ingest.restart(now_ns)
+                self._ingest.restart(now_ns)  # the pipeline says so, once, as it handles the restart
         except Exception as err:
             self._warn(("clock",), f"/clock message ignored: {err!r}")
 
@@ -293,6 +294,7 @@ class FusionNode(Node):
                                  on_integrated=self._integrated, on_new_map=self.camera_colors.clear)
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.ledger.counters()
+        self._time_jumps_seen, self._time_jump_at_s = 0, -float("inf")  # the latest restart the warnings saw
         # 3. subscriptions: they only enqueue; the status reports their health
         self._subscriptions_keep, self.health = subscribe(self, s, callback=self._guard)
         # under use_sim_time, /clock going back is a restart: followed as use_sim_time is set, at start or later
@@ -460,9 +462,24 @@ class FusionNode(Node):
             self.pipeline.drain(ready())
             for level, line in self.pipeline.stream_ends():
                 getattr(self.get_logger(), level)(line)
+            pending = self.ingest.restart_pending()
             counters = self.ingest.ledger.counters()
+            pending = pending or self.ingest.restart_pending()
+            jumps = sum(c["time_jumps"] for c in counters.values())  # read with the drops it caused
+            if jumps != self._time_jumps_seen:
+                self._time_jumps_seen, self._time_jump_at_s = jumps, time.monotonic()
+            # a restart's own line tells of the messages it cost (a looping bag: every pass), not one per stream;
+            # while one may be under way, its drops wait: warned later if it turns out to be strays
+            restarting = time.monotonic() - self._time_jump_at_s < _WARN_PERIOD_S
+            deferred = []
             for key, message in counter_warnings(self._last_counters, counters, self.settings, self._topics):
+                if key[-1] in _RESTART_DROPS and (restarting or pending):
+                    if not restarting:
+                        deferred.append(key)
+                    continue
                 self._warn(key, message)
+            for sensor, reason in deferred:  # compared again next time
+                counters[sensor]["dropped"][reason] = self._last_counters[sensor]["dropped"][reason]
             self._last_counters = counters
         except Exception as err:  # never let the timer die
             self._warn(("integrate_tick",), f"integration step failed: {err!r}")

@@ -151,9 +151,13 @@ class Pipeline:
     def _time_jump(self, jump: TimeJump) -> None:
         self.time_jumps += 1
         reset = self.on_time_jump is TimeJumpAction.RESET
-        self._log("warning", f"time jumped back on {jump.sensor} {jump.stream}: {jump.from_ns * 1e-9:.3f} s -> "
-                  f"{jump.to_ns * 1e-9:.3f} s (a bag restarting?); queued frames flushed, map "
-                  f"{'reset' if reset else 'kept'} (parameter on_time_jump)")
+        # one line a restart, whatever stream showed it (a looping bag says so every pass); the messages
+        # the restart cost are counted per stream on ~/status (time_jump, bad_stamp)
+        where = "/clock" if jump.stream == "clock" else f"{jump.sensor} {jump.stream}"
+        self._log("warning", f"time restarted, pass {self.time_jumps + 1} (a bag looping or restarting?): {where} went "
+                  f"back from {jump.from_ns * 1e-9:.3f} s to {jump.to_ns * 1e-9:.3f} s; queued frames flushed, map "
+                  f"{'reset' if reset else 'kept'} (parameter on_time_jump); messages it cost are counted on "
+                  "~/status (time_jump, bad_stamp)")
         if reset:
             self.engine.reset()
             self._new_map()

@@ -1263,3 +1263,46 @@ def test_frames_after_the_last_pose_are_integrated_once_the_sensor_falls_silent(
     log = capfd.readouterr().err
     ended = [line for line in log.splitlines() if "streams ended" in line]
     assert len(ended) == 2 and all("1 frame(s)" in line and "extrapolated" in line for line in ended), log[-3000:]
+
+
+def test_a_looping_bag_gets_one_line_per_pass_with_the_pass_and_the_map(ros, tmp_path: Path, capfd) -> None:
+    """A bag played with --loop restarts time every pass: each restart is one warning that names the pass
+    and what became of the map (on_time_jump), not a line per stream for the messages it cost (those are
+    counted on ~/status)."""
+    run = Running("looping", {**topic_params("looping"), **SMALL}, tmp_path)
+    try:
+        messages = scene_messages()
+        for _ in range(3):  # three passes of the same 2 s recording
+            fuse_in_process(run, messages)
+            time.sleep(0.3)  # the integration tick's warnings
+        wait_for(lambda: run.node.pipeline.time_jumps == 2, 20, "two restarts")
+        time.sleep(0.5)
+    finally:
+        run.close()
+    log = capfd.readouterr().err
+    restarts = [line for line in log.splitlines() if "time restarted" in line]
+    assert len(restarts) == 2, log[-3000:]
+    for line, n in zip(restarts, (2, 3)):
+        assert f"pass {n}" in line and "map kept (parameter on_time_jump)" in line, line
+    per_stream = [line for line in log.splitlines() if ": time_jump:" in line or ": bad_stamp:" in line]
+    assert not per_stream, per_stream
+
+
+def test_a_stray_stamp_is_still_warned_once_it_turns_out_no_restart(ros, tmp_path: Path, capfd) -> None:
+    """While stamps off the timeline may yet start a new one, their bad_stamp drops wait; a stray, the
+    stream going on on its timeline, is warned about after all."""
+    run = Running("stray", {**topic_params("stray"), **SMALL}, tmp_path)
+    try:
+        for i in range(40):  # poses at 20 Hz for 2 s, one of them stamped 50 s ahead
+            msg = PoseStamped()
+            msg.pose.orientation.w = 1.0
+            _stamp(msg, 10.0 + 0.05 * i + (50.0 if i == 5 else 0.0))
+            run.node.pipeline.dispatch("tof", "pose", msg)
+            time.sleep(0.02)
+        wait_for(lambda: not run.node.ingest.restart_pending(), 10, "the stray's episode to end")
+        time.sleep(0.5)  # the integration tick's warnings
+        assert run.node.pipeline.time_jumps == 0
+    finally:
+        run.close()
+    log = capfd.readouterr().err
+    assert len([line for line in log.splitlines() if "tof: dropped 1 message(s): bad_stamp" in line]) == 1, log[-3000:]
