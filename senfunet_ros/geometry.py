@@ -12,6 +12,7 @@ import numpy as np
 
 __all__ = [
     "QUATERNION_NORM_TOLERANCE",
+    "extrapolate_pose",
     "interpolate_pose",
     "invert_transform",
     "matrix_from_quat",
@@ -121,3 +122,38 @@ def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
     T[:3, :3] = matrix_from_quat(q / np.linalg.norm(q))
     T[:3, 3] = (1 - s) * T0[:3, 3] + s * T1[:3, 3]
     return T
+
+
+def extrapolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
+    """Pose at fraction s >= 1 along the motion from T0 to T1 continued at constant velocity: the
+    translation linear, the rotation on about the same axis at the same rate (axis-angle of
+    R1 R0^T, scaled; exact at small angles, where `interpolate_pose` lerps). For a frame stamped after
+    the newest pose when no later pose will come (a stream ended)."""
+    if s < 1.0:
+        raise ValueError(f"extrapolate_pose takes s >= 1 (past T1), got {s}; use interpolate_pose within T0..T1")
+    R0, R1 = np.asarray(T0, np.float64)[:3, :3], np.asarray(T1, np.float64)[:3, :3]
+    step = _rotvec_from_matrix(R1 @ R0.T)  # the world-frame turn from T0 to T1
+    T = np.eye(4)
+    T[:3, :3] = _matrix_from_rotvec((s - 1.0) * step) @ R1
+    T[:3, 3] = T1[:3, 3] + (s - 1.0) * (T1[:3, 3] - T0[:3, 3])
+    return T
+
+
+def _rotvec_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> axis * angle (radians), through the quaternion (stable at 0 and near pi)."""
+    x, y, z, w = quat_from_matrix(R)
+    if w < 0:  # the short way round
+        x, y, z, w = -x, -y, -z, -w
+    sin_half = float(np.sqrt(x * x + y * y + z * z))
+    angle = 2.0 * np.arctan2(sin_half, w)
+    scale = angle / sin_half if sin_half > 1e-12 else 2.0  # angle / sin(angle / 2) -> 2 at 0
+    return np.array([x, y, z]) * scale
+
+
+def _matrix_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
+    """Axis * angle (radians) -> rotation matrix."""
+    angle = float(np.linalg.norm(rotvec))
+    half = 0.5 * angle
+    scale = np.sin(half) / angle if angle > 1e-12 else 0.5
+    x, y, z = rotvec * scale
+    return matrix_from_quat(np.array([x, y, z, np.cos(half)]))

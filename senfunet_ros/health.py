@@ -96,6 +96,19 @@ class HealthMonitor:
             state.last_s = now
             self._expire(state.arrivals, now)
 
+    def quiet_sensors(self, quiet_s: float) -> list[str]:
+        """Sensors whose data streams (all but camera_info, which a driver may latch or keep sending)
+        have all been silent for quiet_s, one of them having spoken: their streams ended (the node then
+        poses what waits by extrapolation, `Ingest.end_streams`)."""
+        now = self._clock()
+        spoke: dict[str, bool] = {}
+        with self._lock:
+            for (sensor, stream), state in self._streams.items():
+                if stream == "camera_info" or state.last_s is None:
+                    continue
+                spoke[sensor] = spoke.get(sensor, True) and now - state.last_s >= quiet_s
+        return [sensor for sensor, quiet in spoke.items() if quiet]
+
     def _expire(self, arrivals: deque, now: float) -> None:
         while arrivals and (arrivals[0] if isinstance(arrivals[0], float) else arrivals[0][0]) < now - self.window_s:
             arrivals.popleft()

@@ -20,6 +20,11 @@ Per sensor:
   (or dynamic TF transform) for a stamp already given keeps the first; a different one is dropped
   as `pose_conflict` (frames may have been posed with the first: keeping it, what the consumer gets
   does not depend on when it asked).
+- when a sensor's streams have ended (`end_streams`: a bag's end, the node stopping, or its streams
+  silent for pose_max_wait_s), no later pose will come: its frames newer than its newest pose are posed
+  by continuing the two newest poses' motion at constant velocity when within `pose_tolerance_s` past
+  it (counted as `extrapolated`), else dropped as `pose_timeout`; what it did is reported once
+  (`take_stream_ends`). A message on any of its streams starts them again.
 
 Counters per sensor (`Ingest.ledger`, which also takes the consumer's reports): `received` (depth
 images), `integrated` (reported back by the caller with `ledger.mark_integrated`), `dropped[reason]`
@@ -63,8 +68,8 @@ from senfunet_ros.matching import ColorBuffer, PoseBuffer
 from senfunet_ros.tf import TfAdded, TfWait
 from senfunet_ros.timeline import Restart, Timelines
 
-__all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "Ingest", "IngestLedger",
-           "NoDepthInRange", "integrate_ready"]
+__all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "StreamEnd", "Ingest",
+           "IngestLedger", "NoDepthInRange", "integrate_ready"]
 
 DROP_REASONS: tuple[str, ...] = (
     "no_camera_info",  # no camera_info of its sensor arrived within pose_max_wait_s of the depth image
@@ -164,6 +169,8 @@ class SensorCounters:
     pose_received: int = 0
     time_jumps: int = 0  # time jumps first seen on this sensor's streams
     set_aside: int = 0  # frames set aside because the consumer fell behind (integrated later, or dropped)
+    # frames newer than the newest pose when the sensor's streams ended, posed by extrapolating (Ingest.end_streams)
+    extrapolated: int = 0
     # frames handed out without colour although the sensor's colour stream spoke: none within color_tolerance_s
     without_color: int = 0
     # the latest camera_info has non-zero distortion coefficients: the node takes the images as rectified
@@ -185,6 +192,7 @@ class SensorCounters:
             "pose_received": self.pose_received,
             "time_jumps": self.time_jumps,
             "set_aside": self.set_aside,
+            "extrapolated": self.extrapolated,
             "without_color": self.without_color,
             "distorted": self.distorted,
             "color_refused": self.color_refused,
@@ -192,6 +200,20 @@ class SensorCounters:
             "dropped": dict(self.dropped),
             "errors": dict(self.errors),
         }
+
+
+@dataclass
+class StreamEnd:
+    """What the end of a sensor's streams (`Ingest.end_streams`) did to its frames that no pose came
+    after: posed by extrapolation (within pose_tolerance_s past the newest pose) or dropped."""
+
+    extrapolated: int = 0
+    extrapolated_max_ns: int = 0  # the furthest of them past the newest pose
+    timed_out: int = 0  # dropped as pose_timeout: further past it, fewer than two poses, or (tf) none
+    timed_out_max_ns: int = 0  # the furthest of them past the newest pose (0 when there was none)
+
+    def __bool__(self) -> bool:
+        return bool(self.extrapolated or self.timed_out)
 
 
 @dataclass
@@ -248,6 +270,10 @@ class _SensorInput:
         self.cleared = 0
         self.cleared_by = ""
         self.spacing_checked = False  # a frame's pixel spacing was checked against the voxel size
+        # the streams ended (Ingest.end_streams): no later pose will come for what waits; a message clears it
+        self.ended = False
+        self.end = StreamEnd()  # what the end did, since the last Ingest.take_stream_ends
+        self.messages = 0  # depth, colour and pose messages received (Ingest.message_counts)
 
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
@@ -278,6 +304,7 @@ class _SensorInput:
         self.awaiting_info.clear()
         self.colors.clear()
         self.poses.clear()
+        self.ended = False
         self.cleared, self.cleared_by = self.cleared + 1, "time_jump"
         return n
 
@@ -369,6 +396,30 @@ class _SensorInput:
         self.colors.add(stamp_ns, decoded)
         return None
 
+    def pose_at_end(self, stamp_ns: int, config: IngestConfig) -> tuple[np.ndarray | None, str | None, str]:
+        """The pose of a frame newer than the newest pose once the streams ended, as `PoseBuffer.at`
+        answers with the reason's error: extrapolated within pose_tolerance_s past the newest pose,
+        else pose_timeout. Counted in `end` (and `counters.extrapolated`)."""
+        newest_ns = self.poses.newest_ns()
+        past_ns = 0 if newest_ns is None else stamp_ns - newest_ns
+        T = self.poses.extrapolate(stamp_ns, tolerance_ns=int(config.pose_tolerance_s * 1e9))
+        if T is not None:
+            self.counters.extrapolated += 1
+            self.end.extrapolated += 1
+            self.end.extrapolated_max_ns = max(self.end.extrapolated_max_ns, past_ns)
+            return T, None, ""
+        self.end.timed_out += 1
+        self.end.timed_out_max_ns = max(self.end.timed_out_max_ns, past_ns)
+        if newest_ns is None:
+            why = "no pose had come at all"
+        elif past_ns > int(config.pose_tolerance_s * 1e9):
+            why = (f"it is {past_ns * 1e-6:.0f} ms past the newest pose, more than pose_tolerance_s "
+                   f"({config.pose_tolerance_s:g} s) to extrapolate its pose")
+        else:
+            why = "only one pose had come, too few to extrapolate from"
+        return None, "pose_timeout", (f"pose: the streams ended with the frame at {stamp_ns * 1e-9:.3f} s still "
+                                      f"waiting for a pose: {why}")
+
     def pop(self, name: str, config: IngestConfig, *, now_ns: int | None, newest_depth_ns: int | None,
             last_color_ns: int | None, set_aside: SetAside) -> list[Frame]:
         """The queued frames that can be posed (and coloured) now, oldest first; those that waited too
@@ -395,15 +446,20 @@ class _SensorInput:
                 else:
                     out.append(frame)
                 continue
-            waited_too_long = now_ns is not None and now_ns - t > max_wait_ns
+            # the streams ended: nothing more will come for it, a pose nor a colour image
+            waited_too_long = self.ended or (now_ns is not None and now_ns - t > max_wait_ns)
             if config.tf is not None:
                 T, reason, error = _tf_pose(config.tf, config.fixed_frame, pending, waited_too_long)
                 if T is not None and name in config.T_body_camera:  # the frame_id is not the optical frame
                     T = T @ config.T_body_camera[name]
+                if self.ended and reason == "pose_timeout":
+                    self.end.timed_out += 1
             else:
                 T, reason = self.poses.at(t, tolerance_ns=int(config.pose_tolerance_s * 1e9),
                                           waited_too_long=waited_too_long)
                 error = ""
+                if self.ended and reason == "pose_timeout":  # no pose at or after it, and none will come
+                    T, reason, error = self.pose_at_end(t, config)
             if T is None:
                 if reason is None:
                     break  # not yet: later frames are newer, they wait too
@@ -547,6 +603,7 @@ class Ingest:
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.received += 1
+            state.ended, state.messages = False, state.messages + 1
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
             self._last_depth_arrival_s = arrival_s = time.monotonic()
@@ -560,6 +617,7 @@ class Ingest:
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.color_received += 1
+            state.ended, state.messages = False, state.messages + 1
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
             reason, held = self._time.on_time(sensor, "color", stamp_ns, msg)
@@ -609,6 +667,7 @@ class Ingest:
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.pose_received += 1
+            state.ended, state.messages = False, state.messages + 1
             stamp_ns, stamp_error = _header_stamp(msg, "pose")  # before the parser, whose error says bad_pose
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
@@ -636,6 +695,41 @@ class Ingest:
             reasons = [self._sensors[image.sensor].put(image, result, self.config)
                        for image, result in zip(images, decoded)]
         return reasons[-1] if isinstance(taken, _Undecoded) else taken
+
+    def restart_pending(self) -> bool:
+        """Whether stamps off their streams' timelines (dropped as bad_stamp so far) may yet turn out
+        to start a new one: a restart not yet confirmed, or strays."""
+        with self._lock:
+            return self._time.timelines.pending()
+
+    # -- the end of a stream ----------------------------------------------------------------
+
+    def message_counts(self) -> dict[str, int]:
+        """Per sensor, the depth, colour and pose messages received so far (for `end_streams`)."""
+        with self._lock:
+            return {name: state.messages for name, state in self._sensors.items()}
+
+    def end_streams(self, sensors: Iterable[str] | None = None, *, counts: dict[str, int] | None = None) -> None:
+        """The streams of `sensors` (default: all) ended: a bag's end, the node stopping, or their
+        silence for pose_max_wait_s. From the next `pop_ready` on, their frames newer than their
+        newest pose are posed by extrapolation within pose_tolerance_s, the rest dropped as
+        pose_timeout, and none waits for a colour image. `counts`: `message_counts()` when the
+        sensors were found silent; one that received a message since is left as it is (it spoke
+        again). A message on a sensor's streams starts them again."""
+        with self._lock:
+            for name in self.config.sensors if sensors is None else sensors:
+                state = _sensor_input(self._sensors, name)
+                if counts is None or counts.get(name) == state.messages:
+                    state.ended = True
+
+    def take_stream_ends(self) -> dict[str, StreamEnd]:
+        """What the ends of streams did to the frames waiting for a pose, per sensor, since the last
+        call (only sensors where it did something)."""
+        with self._lock:
+            out = {name: state.end for name, state in self._sensors.items() if state.end}
+            for name in out:
+                self._sensors[name].end = StreamEnd()
+            return out
 
     # -- outputs --------------------------------------------------------------------------
 

@@ -10,7 +10,7 @@ from collections import deque
 
 import numpy as np
 
-from senfunet_ros.geometry import interpolate_pose
+from senfunet_ros.geometry import extrapolate_pose, interpolate_pose
 
 __all__ = ["ColorBuffer", "PoseBuffer", "pose_conflict"]
 
@@ -79,6 +79,17 @@ class PoseBuffer:
             return None, (None if i == len(stamps) - 1 and not waited_too_long else "pose_gap")
         s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
         return interpolate_pose(self._poses[i - 1], self._poses[i], s), None
+
+    def extrapolate(self, stamp_ns: int, *, tolerance_ns: int) -> np.ndarray | None:
+        """The pose at a depth stamp after the newest pose, continuing the two newest poses' motion at
+        constant velocity (`extrapolate_pose`), when it lies within tolerance_ns past the newest; None
+        when it lies further, there are fewer than two poses, or a pose at or after it exists. Only for
+        frames no later pose will come for (the stream ended): a later pose gives a better one."""
+        stamps = self._stamps
+        if len(stamps) < 2 or stamp_ns <= stamps[-1] or stamp_ns - stamps[-1] > tolerance_ns:
+            return None
+        s = (stamp_ns - stamps[-2]) / (stamps[-1] - stamps[-2])
+        return extrapolate_pose(self._poses[-2], self._poses[-1], s)
 
     def clear(self) -> None:
         self._stamps.clear()

@@ -66,6 +66,9 @@ from senfunet_ros.status import StatusReport, ThrottledWarnings, counter_warning
 __all__ = ["FusionNode", "main"]
 
 _WARN_PERIOD_S = 5.0  # one warning per cause per this many seconds
+# drops a restart of time causes (flushed queues, messages of the old timeline in flight and of the new one
+# before it is confirmed): counted, and told by the restart's line rather than warned per stream
+_RESTART_DROPS = ("time_jump", "bad_stamp")
 _INTEGRATE_SLICE_S = 0.5  # an integration tick returns after this long, so the executor stays responsive
 
 # Best effort + volatile subscriptions match both reliable and best-effort publishers (and
@@ -244,9 +247,7 @@ class _ClockWatch:
             with self._last_lock:
                 last, self._last_ns = self._last_ns, now_ns
             if last is not None and now_ns < last - int(self._time_jump_s() * 1e9):
-                self._node.get_logger().info(
-                    f"/clock went back from {last * 1e-9:.3f} s to {now_ns * 1e-9:.3f} s: time restarted")
-                self._ingest.restart(now_ns)
+                self._ingest.restart(now_ns)  # the pipeline says so, once, as it handles the restart
         except Exception as err:
             self._warn(("clock",), f"/clock message ignored: {err!r}")
 
@@ -293,6 +294,7 @@ class FusionNode(Node):
                                  on_integrated=self._integrated, on_new_map=self.camera_colors.clear)
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.ledger.counters()
+        self._time_jumps_seen, self._time_jump_at_s = 0, -float("inf")  # the latest restart the warnings saw
         # 3. subscriptions: they only enqueue; the status reports their health
         self._subscriptions_keep, self.health = subscribe(self, s, callback=self._guard)
         # under use_sim_time, /clock going back is a restart: followed as use_sim_time is set, at start or later
@@ -348,12 +350,16 @@ class FusionNode(Node):
             f"fusing {list(s.sensor_names)} into '{s.fixed_frame}' with weights: {self.engine.weights_source}")
 
     # -- set-up and stop -------------------------------------------------------------------------
-    def finish(self, abandon: threading.Event | None = None) -> dict[str, int]:
-        """After the executor stopped: integrate the frames that are ready, count the ones still
-        waiting (for a pose, a colour image, a camera_info) as dropped at shutdown. `abandon` set
-        (a second Ctrl-C): the ready frames not started yet are dropped too, once the frame under
-        way is integrated. Returns the counts."""
+    def finish(self, abandon: threading.Event | None = None) -> dict[str, Any]:
+        """After the executor stopped: the streams ended (`Ingest.end_streams`: frames newer than
+        their sensor's newest pose are posed by extrapolation within pose_tolerance_s, or dropped as
+        pose_timeout); integrate the frames that are ready, count the ones still waiting (for a
+        camera_info, or set aside) as dropped at shutdown. `abandon` set (a second Ctrl-C): the
+        ready frames not started yet are dropped too, once the frame under way is integrated.
+        Returns the counts, and under "ends" the (level, line)s of `Pipeline.stream_ends` (for the
+        caller to print: the node's log may be shut down)."""
         self.pipeline.stopping = True
+        self.ingest.end_streams()
         ready = self.ingest.pop_ready(set_aside=False)
         left: list[Frame | TimeJump] = []
 
@@ -370,7 +376,7 @@ class FusionNode(Node):
                 self.ingest.ledger.mark_dropped(item.sensor, "shutdown")
         waiting = self.ingest.ledger.discard_waiting("shutdown")
         return {"integrated": integrated, "discarded": waiting + sum(isinstance(item, Frame) for item in left),
-                "interrupted": self.pipeline.frames_unfinished}
+                "interrupted": self.pipeline.frames_unfinished, "ends": self.pipeline.stream_ends()}
 
     # -- warnings -------------------------------------------------------------------------------
 
@@ -439,6 +445,12 @@ class FusionNode(Node):
         next frame is taken (and its feature net started) before the current one is integrated."""
         try:
             deadline = time.monotonic() + _INTEGRATE_SLICE_S
+            # a sensor silent for pose_max_wait_s has ended its streams: no pose will come for what waits.
+            # Its message count is read first, so that a message arriving meanwhile keeps it going
+            counts = self.ingest.message_counts()
+            quiet = self.health.quiet_sensors(self.settings.pose_max_wait_s)
+            if quiet:
+                self.ingest.end_streams(quiet, counts=counts)
 
             def ready() -> Iterator[Frame | TimeJump]:
                 while time.monotonic() < deadline:
@@ -448,9 +460,26 @@ class FusionNode(Node):
                     yield from items
 
             self.pipeline.drain(ready())
+            for level, line in self.pipeline.stream_ends():
+                getattr(self.get_logger(), level)(line)
+            pending = self.ingest.restart_pending()
             counters = self.ingest.ledger.counters()
+            pending = pending or self.ingest.restart_pending()
+            jumps = sum(c["time_jumps"] for c in counters.values())  # read with the drops it caused
+            if jumps != self._time_jumps_seen:
+                self._time_jumps_seen, self._time_jump_at_s = jumps, time.monotonic()
+            # a restart's own line tells of the messages it cost (a looping bag: every pass), not one per stream;
+            # while one may be under way, its drops wait: warned later if it turns out to be strays
+            restarting = time.monotonic() - self._time_jump_at_s < _WARN_PERIOD_S
+            deferred = []
             for key, message in counter_warnings(self._last_counters, counters, self.settings, self._topics):
+                if key[-1] in _RESTART_DROPS and (restarting or pending):
+                    if not restarting:
+                        deferred.append(key)
+                    continue
                 self._warn(key, message)
+            for sensor, reason in deferred:  # compared again next time
+                counters[sensor]["dropped"][reason] = self._last_counters[sensor]["dropped"][reason]
             self._last_counters = counters
         except Exception as err:  # never let the timer die
             self._warn(("integrate_tick",), f"integration step failed: {err!r}")
@@ -885,6 +914,8 @@ def stop_node(node: FusionNode) -> None:
     try:
         try:
             done = node.finish(abandon)
+            for _, line in done["ends"]:
+                print(f"senfunet: {line}", flush=True)
             print(f"senfunet: stopped; at the stop {done['integrated']} ready frame(s) integrated, "
                   f"{done['discarded']} still waiting and {done['interrupted']} being integrated were dropped "
                   "(counted as shutdown)", flush=True)

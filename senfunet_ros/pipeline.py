@@ -127,12 +127,37 @@ class Pipeline:
             integrate_ready(self.engine, items, self._time_jump, self._frame_done)
             return self.frames_integrated - before
 
+    def stream_ends(self) -> list[tuple[str, str]]:
+        """(level, line) per sensor whose streams' end (`Ingest.end_streams`) posed frames by extrapolation
+        or dropped them since the last call: how many, and how far past the newest pose. Not logged here:
+        the node's stop prints them (its log may be gone by then), replay prints them."""
+        lines = []
+        for sensor, end in self.ingest.take_stream_ends().items():
+            parts = []
+            if end.extrapolated:
+                parts.append(f"{end.extrapolated} frame(s) newer than its newest pose posed by continuing the two "
+                             f"newest poses' motion (constant velocity) up to {end.extrapolated_max_ns * 1e-6:.0f} ms "
+                             "past it (counted as extrapolated)")
+            if end.timed_out:
+                far = (f" (up to {end.timed_out_max_ns * 1e-6:.0f} ms past the newest pose)"
+                       if end.timed_out_max_ns else "")
+                parts.append(f"{end.timed_out} frame(s) dropped as pose_timeout{far}: more than pose_tolerance_s "
+                             f"({self.ingest.config.pose_tolerance_s:g} s) past the newest pose, or too few poses; "
+                             "a pose stream that ends later than the depth stream keeps them")
+            lines.append(("warning" if end.timed_out else "info",
+                          f"{sensor}: its streams ended with frames waiting for a pose: " + "; ".join(parts)))
+        return lines
+
     def _time_jump(self, jump: TimeJump) -> None:
         self.time_jumps += 1
         reset = self.on_time_jump is TimeJumpAction.RESET
-        self._log("warning", f"time jumped back on {jump.sensor} {jump.stream}: {jump.from_ns * 1e-9:.3f} s -> "
-                  f"{jump.to_ns * 1e-9:.3f} s (a bag restarting?); queued frames flushed, map "
-                  f"{'reset' if reset else 'kept'} (parameter on_time_jump)")
+        # one line a restart, whatever stream showed it (a looping bag says so every pass); the messages
+        # the restart cost are counted per stream on ~/status (time_jump, bad_stamp)
+        where = "/clock" if jump.stream == "clock" else f"{jump.sensor} {jump.stream}"
+        self._log("warning", f"time restarted, pass {self.time_jumps + 1} (a bag looping or restarting?): {where} went "
+                  f"back from {jump.from_ns * 1e-9:.3f} s to {jump.to_ns * 1e-9:.3f} s; queued frames flushed, map "
+                  f"{'reset' if reset else 'kept'} (parameter on_time_jump); messages it cost are counted on "
+                  "~/status (time_jump, bad_stamp)")
         if reset:
             self.engine.reset()
             self._new_map()

@@ -363,6 +363,17 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
             log(f"topic {topic} was recorded with several types: its {router.routes[topic].msgtype} messages are "
                 f"fused, the others left out ({left_out})")
         t_loop = time.perf_counter()
+        # the live node's rule for a sensor's streams ending (silent for pose_max_wait_s: Ingest.end_streams),
+        # on the recording's clock, so that a bag gives the same frames live and replayed
+        quiet_ns = int(settings.pose_max_wait_s * 1e9)
+        spoke_ns: dict[str, int] = {}  # sensor -> log time of its last depth, colour or pose message
+
+        def end_streams(sensors: list[str] | None) -> None:
+            ingest.end_streams(sensors)
+            pipeline.drain(ingest.pop_ready())
+            for _, line in pipeline.stream_ends():
+                log(line)
+
         with tqdm(total=run.total, unit="msg", desc="replay", disable=not progress, dynamic_ncols=True,
                   mininterval=0.5) as bar:
             try:
@@ -375,6 +386,13 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                     if decoded is None:
                         continue
                     route, message = decoded
+                    quiet = [name for name, t_ns in spoke_ns.items() if msg.log_time_ns - t_ns >= quiet_ns]
+                    if quiet:
+                        for name in quiet:
+                            del spoke_ns[name]
+                        end_streams(quiet)
+                    if route.stream in (Stream.DEPTH, Stream.COLOR, Stream.POSE):
+                        spoke_ns[route.sensor] = msg.log_time_ns
                     try:
                         pipeline.dispatch(route.sensor, route.stream, message)
                     except ValueError:  # a malformed message: Ingest refuses it like the node's callback
@@ -386,7 +404,7 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                 run.error = str(err)
             except KeyboardInterrupt:
                 run.interrupted = True
-            pipeline.drain(ingest.pop_ready())
+            end_streams(None)  # the bag ended (or the replay was stopped): no pose will come for what waits
         run.read_s = time.perf_counter() - t_loop
         for topic, n in router.undecodable.items():
             log(f"{n} message(s) on {topic} could not be decoded as {router.routes[topic].msgtype} and were left out")
@@ -434,6 +452,9 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
             "pending_at_end": c["queue_depth"],  # frames still waiting (for a pose or camera_info) when the bag ended
             "color_received": c["color_received"], "pose_received": c["pose_received"],
             "time_jumps": c["time_jumps"],
+            # frames newer than their sensor's newest pose when its streams ended (the bag's end, or silent for
+            # pose_max_wait_s), posed by extrapolating the two newest poses' motion (within pose_tolerance_s)
+            "extrapolated": c["extrapolated"],
             # what the counts alone do not say: what the last dropped message of each reason had wrong (a
             # camera_info without K, an image too small for the border...), frames fused without their colour,
             # and a camera_info whose distortion replay does not apply

@@ -177,8 +177,8 @@ class StatusReport:
         for sensor, c in counters.items():
             report = reports[sensor]
             values = [KeyValue(key=k, value=str(c[k])) for k in
-                      ("received", "integrated", "queue_depth", "set_aside", "set_aside_now", "color_received",
-                       "pose_received", "time_jumps", "without_color", "color_refused", "distorted")]
+                      ("received", "integrated", "extrapolated", "queue_depth", "set_aside", "set_aside_now",
+                       "color_received", "pose_received", "time_jumps", "without_color", "color_refused", "distorted")]
             values += [KeyValue(key=f"note.{key}", value=note) for key, note in c["notes"].items()]
             for stream, r in report.streams.items():
                 values += [KeyValue(key=f"rate_hz.{stream}", value=f"{r.rate_hz:.2f}"),

@@ -172,6 +172,10 @@ class Timelines:
         self._last_ns[key] = stamp_ns
         return Verdict()
 
+    def pending(self) -> bool:
+        """Whether off-timeline stamps wait to be confirmed as a restart (or found to be strays)."""
+        return any(self._candidates.values())
+
     def restart(self, to_ns: int | None) -> Restart:
         """Time restarted at `to_ns` (None: unknown), known from outside (the /clock went back): every
         timeline is forgotten and the streams start again from `to_ns`, so that messages of the old

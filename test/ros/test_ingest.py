@@ -126,6 +126,71 @@ def test_a_pose_stamped_ahead_by_a_glitch_costs_no_frame() -> None:
     assert ingest.pop_ready() == [] and ingest.ledger.counters()["tof"]["dropped"]["pose_gap"] == 1
 
 
+def test_extrapolate_pose_continues_the_motion_that_interpolate_pose_follows() -> None:
+    """The pose halfway from T0 to T2 (slerp, lerp), extrapolated from T0 through it to twice as far,
+    is T2: the same axis and rate of turn, a generic one well beyond the small-angle case."""
+    from senfunet_ros.geometry import extrapolate_pose, transform_from_tq
+
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    T0 = transform_from_tq([0.1, 0.2, 0.3], [0.0, 0.0, 0.0, 1.0], "T0")
+    half = math.radians(70) / 2
+    T2 = transform_from_tq([1.1, -0.4, 0.7], [*(axis * math.sin(half)), math.cos(half)], "T2")
+    T1 = interpolate_pose(T0, T2, 0.5)
+    np.testing.assert_allclose(extrapolate_pose(T0, T1, 2.0), T2, atol=1e-9)
+    np.testing.assert_allclose(extrapolate_pose(T0, T1, 1.0), T1, atol=1e-12)
+    with pytest.raises(ValueError, match="s >= 1"):
+        extrapolate_pose(T0, T1, 0.5)
+
+
+def test_at_the_end_of_a_stream_a_frame_past_the_newest_pose_is_posed_by_extrapolation() -> None:
+    """The pose stream stops before the depth stream: the last frames, newer than the newest pose, waited
+    for a pose that never comes (left in the queue, then dropped at the stop). Once the streams ended, a
+    frame within pose_tolerance_s past the newest pose is posed by continuing the poses' motion at
+    constant velocity (counted as extrapolated), one further is dropped as pose_timeout."""
+    ingest = make(pose_max_wait_s=1.0, pose_tolerance_s=0.1)
+    speed_m_s, turn_rad_s = 0.5, 1.0  # constant velocity: the extrapolation is exact
+    for k in range(11):  # poses at 100 Hz up to 100 ms
+        t_s = 0.01 * k
+        ingest.add_pose("tof", pose_msg(10 * k * MS, x=speed_m_s * t_s, yaw_rad=turn_rad_s * t_s))
+    ingest.add_depth("tof", depth_msg(130 * MS))  # 30 ms past the newest pose
+    ingest.add_depth("tof", depth_msg(250 * MS))  # 150 ms past it: beyond pose_tolerance_s
+    assert ingest.pop_ready() == [] and ingest.ledger.queue_depths()["tof"] == 2  # waiting for a later pose
+    ingest.end_streams()
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.stamp_ns == 130 * MS
+    T = frame.T_world_camera
+    assert np.linalg.norm(T[:3, 3] - [speed_m_s * 0.13, 0, 0]) < 1e-3  # right to 1 mm
+    assert math.atan2(T[1, 0], T[0, 0]) == pytest.approx(turn_rad_s * 0.13, abs=1e-6)
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["extrapolated"] == 1 and counters["dropped"]["pose_timeout"] == 1
+    assert "150 ms past the newest pose" in counters["errors"]["pose_timeout"]
+    assert ingest.ledger.queue_depths()["tof"] == 0
+    (sensor, end), = ingest.take_stream_ends().items()  # reported once
+    assert sensor == "tof" and (end.extrapolated, end.timed_out) == (1, 1)
+    assert (end.extrapolated_max_ns, end.timed_out_max_ns) == (30 * MS, 150 * MS)
+    assert ingest.take_stream_ends() == {}
+
+
+def test_a_stream_that_speaks_again_after_its_end_waits_for_its_poses_again() -> None:
+    """The end holds until a message comes on the sensor's streams; `counts` taken when the sensor was
+    found silent leaves one that spoke since as it is (a frame that arrived meanwhile waits for its pose)."""
+    ingest = make(pose_tolerance_s=0.1)
+    for k in range(3):
+        ingest.add_pose("tof", pose_msg(10 * k * MS, x=0.01 * k))
+    counts = ingest.message_counts()
+    ingest.add_depth("tof", depth_msg(25 * MS))  # arrived after the silence was judged
+    ingest.end_streams(["tof"], counts=counts)
+    assert ingest.pop_ready() == [] and ingest.ledger.queue_depths()["tof"] == 1
+    ingest.end_streams(["tof"])
+    ingest.add_pose("tof", pose_msg(30 * MS, x=0.03))  # it speaks again: the frame takes the pose that came
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.T_world_camera[0, 3] == pytest.approx(0.025)
+    ingest.add_depth("tof", depth_msg(35 * MS))
+    assert ingest.pop_ready() == []  # the streams go on: it waits for a later pose
+    assert ingest.ledger.counters()["tof"]["extrapolated"] == 0
+
+
 @pytest.mark.parametrize("case", ["bad_encoding", "size_mismatch", "all_invalid", "bad_pose", "bad_camera_info"])
 def test_bad_inputs_are_counted(case: str) -> None:
     ingest = Ingest(IngestConfig(sensors=("tof", "stereo")))

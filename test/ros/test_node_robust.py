@@ -1199,3 +1199,110 @@ def test_frames_set_aside_before_a_time_jump_that_resets_the_map_stay_out_of_the
         assert run.node.engine.extract_mesh("fused").n_faces == 0
     finally:
         run.close()
+
+
+def test_frames_after_the_last_pose_are_integrated_once_the_sensor_falls_silent(ros, tmp_path: Path, capfd) -> None:
+    """The pose streams stop 50 ms before the depth streams (a robot's localisation stopping first): the
+    last frame of each sensor lies past its newest pose and waited for a pose that never came, until
+    the stop dropped it. Once the sensor has been silent for pose_max_wait_s, it is posed by
+    extrapolating the poses' motion and integrated; ~/status counts it as extrapolated and the log
+    says so once."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    def stamp_s(msg: Any) -> float:
+        return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+    messages = scene_messages()
+    last_depth_s = {s: max(stamp_s(m) for sensor, stream, m in messages if (sensor, stream) == (s, "depth"))
+                    for s in ("tof", "stereo")}
+    # poses stamped up to 50 ms before each sensor's last depth image, no later
+    messages = [(s, stream, m) for s, stream, m in messages
+                if stream != "pose" or stamp_s(m) <= last_depth_s[s] - 0.05]
+    name = "streamend"
+    with _posing_run(name, tmp_path, pose_max_wait_s=1.0, pose_tolerance_s=0.1) as (run, _, got):
+        kinds = {"depth": Image, "color": Image, "camera_info": CameraInfo, "pose": PoseStamped}
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        pub_node = Node(f"{name}_streams")
+        try:
+            pubs = {(s, k): pub_node.create_publisher(t, f"/{name}/{s}/{k}", qos) for s in ("tof", "stereo")
+                    for k, t in kinds.items()}
+            wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20, "discovery")
+            time.sleep(1.0)  # the node's side of discovery
+            for sensor, stream, msg in messages:  # a stream in stamp order, a little faster than real time
+                pubs[(sensor, stream)].publish(msg)
+                time.sleep(0.003)
+            received = {s: sum(1 for sensor, stream, _ in messages if (sensor, stream) == (s, "depth"))
+                        for s in ("tof", "stereo")}
+
+            def sensor_values() -> dict[str, dict[str, str]]:
+                out: dict[str, dict[str, str]] = {}
+                for msg in reversed(got[-5:]):
+                    for status in msg.status:
+                        sensor = status.name.removeprefix("senfunet: ")
+                        if sensor in received and sensor not in out:
+                            out[sensor] = {kv.key: kv.value for kv in status.values}
+                return out
+
+            def settled() -> bool:  # every frame received, decided (integrated or dropped), none waiting
+                values = sensor_values()
+                return all(s in values and int(values[s]["received"]) == n and values[s]["queue_depth"] == "0"
+                           and int(values[s]["integrated"]) + sum(int(v) for k, v in values[s].items()
+                                                                  if k.startswith("dropped.")) == n
+                           for s, n in received.items())
+
+            wait_for(settled, 60, "the last frames to be integrated once the sensors fell silent")
+            values = sensor_values()
+            drops = {s: {k: v for k, v in sensor.items() if k.startswith("dropped.") and v != "0"}
+                     for s, sensor in values.items()}
+            for s in received:
+                assert values[s]["extrapolated"] == "1", (s, values[s].get("extrapolated"), drops)
+                assert values[s]["dropped.pose_timeout"] == "0", drops
+            time.sleep(0.3)  # the log line of the integration tick
+        finally:
+            pub_node.destroy_node()
+    log = capfd.readouterr().err
+    ended = [line for line in log.splitlines() if "streams ended" in line]
+    assert len(ended) == 2 and all("1 frame(s)" in line and "extrapolated" in line for line in ended), log[-3000:]
+
+
+def test_a_looping_bag_gets_one_line_per_pass_with_the_pass_and_the_map(ros, tmp_path: Path, capfd) -> None:
+    """A bag played with --loop restarts time every pass: each restart is one warning that names the pass
+    and what became of the map (on_time_jump), not a line per stream for the messages it cost (those are
+    counted on ~/status)."""
+    run = Running("looping", {**topic_params("looping"), **SMALL}, tmp_path)
+    try:
+        messages = scene_messages()
+        for _ in range(3):  # three passes of the same 2 s recording
+            fuse_in_process(run, messages)
+            time.sleep(0.3)  # the integration tick's warnings
+        wait_for(lambda: run.node.pipeline.time_jumps == 2, 20, "two restarts")
+        time.sleep(0.5)
+    finally:
+        run.close()
+    log = capfd.readouterr().err
+    restarts = [line for line in log.splitlines() if "time restarted" in line]
+    assert len(restarts) == 2, log[-3000:]
+    for line, n in zip(restarts, (2, 3)):
+        assert f"pass {n}" in line and "map kept (parameter on_time_jump)" in line, line
+    per_stream = [line for line in log.splitlines() if ": time_jump:" in line or ": bad_stamp:" in line]
+    assert not per_stream, per_stream
+
+
+def test_a_stray_stamp_is_still_warned_once_it_turns_out_no_restart(ros, tmp_path: Path, capfd) -> None:
+    """While stamps off the timeline may yet start a new one, their bad_stamp drops wait; a stray, the
+    stream going on on its timeline, is warned about after all."""
+    run = Running("stray", {**topic_params("stray"), **SMALL}, tmp_path)
+    try:
+        for i in range(40):  # poses at 20 Hz for 2 s, one of them stamped 50 s ahead
+            msg = PoseStamped()
+            msg.pose.orientation.w = 1.0
+            _stamp(msg, 10.0 + 0.05 * i + (50.0 if i == 5 else 0.0))
+            run.node.pipeline.dispatch("tof", "pose", msg)
+            time.sleep(0.02)
+        wait_for(lambda: not run.node.ingest.restart_pending(), 10, "the stray's episode to end")
+        time.sleep(0.5)  # the integration tick's warnings
+        assert run.node.pipeline.time_jumps == 0
+    finally:
+        run.close()
+    log = capfd.readouterr().err
+    assert len([line for line in log.splitlines() if "tof: dropped 1 message(s): bad_stamp" in line]) == 1, log[-3000:]

@@ -38,8 +38,11 @@ def _wait_for_text(path: Path, text: str, proc: subprocess.Popen, timeout_s: flo
 
 
 def _start(cmd: list[str], log: Path) -> subprocess.Popen:
+    """cmd run in log's folder, its output into log; this checkout's packages first on its path (the
+    folder is not the checkout, whose sources `python -m` would otherwise take, not an installed copy's)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p)}
     with log.open("w") as out:
-        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=log.parent)
+        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=log.parent, env=env)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
@@ -66,6 +69,43 @@ def _node_stopped_by_sigterm(tmp_path: Path, output_dir: Path) -> str:
     text = log.read_text()
     assert "Traceback" not in text
     return text
+
+
+# what a stop in the wrong order prints: a log call after rclpy's context or the node is gone, a handle
+# used after its destruction, a timer or callback that outlived its node
+_SHUTDOWN_TROUBLE = ("Error", "Traceback", "failed to publish", "InvalidHandle", "[ERROR]", "Exception")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_node_fusing_a_stream_stops_cleanly(prefix: Path, tmp_path: Path, ros_domain_id: int,
+                                              sig: signal.Signals) -> None:
+    """A node stopped by SIGINT or SIGTERM while a bag plays to it (its timers integrating and meshing):
+    timers and worker threads stop, the queued frames are finished and counted, the meshes saved, and
+    only then is the node destroyed and rclpy shut down. Exit code 0 and nothing in its output that a
+    wrong order prints (a log line after the context is shut down, an invalid handle, a traceback)."""
+    log = tmp_path / "node.log"
+    node = _start([*CLI, "node", "--use-sim-time", "--", "-p", "voxel_size_m:=0.04", "-p", "working_width:=64",
+                   "-p", "save_on_shutdown:=true", "-p", f"output_dir:={tmp_path / 'out'}"], log)
+    play = None
+    try:
+        _wait_for_text(log, "fusing", node, 180)
+        play_log = tmp_path / "play.log"
+        play = _start([*CLI, "play", str(prefix), "--loop", "--rate", "1"], play_log)
+        _wait_for_text(play_log, "playing", play, 60)
+        time.sleep(5.0)  # several passes of the bag: frames integrated, mesh updates under way
+        assert node.poll() is None, log.read_text()
+        node.send_signal(sig)
+        assert node.wait(60) == 0, log.read_text()
+    finally:
+        if node.poll() is None:
+            node.kill()
+        if play is not None:
+            play.send_signal(signal.SIGINT)
+            play.wait(30)
+    text = log.read_text(errors="replace")
+    assert "senfunet: stopped" in text and (tmp_path / "out" / "mesh.ply").is_file(), text[-3000:]
+    trouble = [line for line in text.splitlines() if any(word in line for word in _SHUTDOWN_TROUBLE)]
+    assert not trouble, text[-3000:]
 
 
 def test_node_sigterm_finishes_and_exits_zero(tmp_path: Path, ros_domain_id: int) -> None:
