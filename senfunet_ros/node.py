@@ -295,6 +295,7 @@ class FusionNode(Node):
         self.ingest = self.pipeline.ingest
         self._last_counters = self.ingest.ledger.counters()
         self._time_jumps_seen, self._time_jump_at_s = 0, -float("inf")  # the latest restart the warnings saw
+        self._drops_held_since: dict[tuple[str, ...], float] = {}  # drops held while a restart may be under way
         # 3. subscriptions: they only enqueue; the status reports their health
         self._subscriptions_keep, self.health = subscribe(self, s, callback=self._guard)
         # under use_sim_time, /clock going back is a restart: followed as use_sim_time is set, at start or later
@@ -462,27 +463,34 @@ class FusionNode(Node):
             self.pipeline.drain(ready())
             for level, line in self.pipeline.stream_ends():
                 getattr(self.get_logger(), level)(line)
-            pending = self.ingest.restart_pending()
-            counters = self.ingest.ledger.counters()
-            pending = pending or self.ingest.restart_pending()
-            jumps = sum(c["time_jumps"] for c in counters.values())  # read with the drops it caused
-            if jumps != self._time_jumps_seen:
-                self._time_jumps_seen, self._time_jump_at_s = jumps, time.monotonic()
-            # a restart's own line tells of the messages it cost (a looping bag: every pass), not one per stream;
-            # while one may be under way, its drops wait: warned later if it turns out to be strays
-            restarting = time.monotonic() - self._time_jump_at_s < _WARN_PERIOD_S
-            deferred = []
-            for key, message in counter_warnings(self._last_counters, counters, self.settings, self._topics):
-                if key[-1] in _RESTART_DROPS and (restarting or pending):
-                    if not restarting:
-                        deferred.append(key)
-                    continue
-                self._warn(key, message)
-            for sensor, reason in deferred:  # compared again next time
-                counters[sensor]["dropped"][reason] = self._last_counters[sensor]["dropped"][reason]
-            self._last_counters = counters
+            self._say_counter_changes()
         except Exception as err:  # never let the timer die
             self._warn(("integrate_tick",), f"integration step failed: {err!r}")
+
+    def _say_counter_changes(self) -> None:
+        """Warn of what Ingest's counters show since the last integration tick. A restart of time's own
+        line tells of the messages it cost (a looping bag: every pass), so those drops are not warned
+        per stream for a warning period after it; while a restart may be under way, they wait, at most
+        a warning period (a driver whose stamps are always off keeps a restart pending: its drops are
+        warned all the same)."""
+        pending = self.ingest.restart_pending()
+        counters = self.ingest.ledger.counters()
+        pending = pending or self.ingest.restart_pending()
+        now_s = time.monotonic()
+        jumps = sum(c["time_jumps"] for c in counters.values())  # read with the drops it caused
+        if jumps != self._time_jumps_seen:
+            self._time_jumps_seen, self._time_jump_at_s = jumps, now_s
+        restarting = now_s - self._time_jump_at_s < _WARN_PERIOD_S
+        for key, message in counter_warnings(self._last_counters, counters, self.settings, self._topics):
+            if key[-1] in _RESTART_DROPS and not restarting and pending:
+                if now_s - self._drops_held_since.setdefault(key, now_s) < _WARN_PERIOD_S:
+                    sensor, reason = key  # compared again next time
+                    counters[sensor]["dropped"][reason] = self._last_counters[sensor]["dropped"][reason]
+                    continue
+            self._drops_held_since.pop(key, None)
+            if not (key[-1] in _RESTART_DROPS and restarting):
+                self._warn(key, message)
+        self._last_counters = counters
 
     def _integrated(self, frame: Frame, seconds: float) -> None:
         self.timings["integrate"].add(seconds)

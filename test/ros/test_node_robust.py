@@ -1306,3 +1306,25 @@ def test_a_stray_stamp_is_still_warned_once_it_turns_out_no_restart(ros, tmp_pat
         run.close()
     log = capfd.readouterr().err
     assert len([line for line in log.splitlines() if "tof: dropped 1 message(s): bad_stamp" in line]) == 1, log[-3000:]
+
+
+def test_a_sensor_whose_stamps_are_always_off_is_warned_while_a_restart_stays_pending(ros, tmp_path: Path,
+                                                                                      capfd) -> None:
+    """A driver whose clock runs 100 s behind the others keeps a restart pending (its stamps build a new
+    timeline the other sensor never joins): its bad_stamp drops wait at most a warning period, then are
+    warned, not held for as long as it goes on."""
+    run = Running("offclock", {**topic_params("offclock"), **SMALL}, tmp_path)
+    try:
+        for i in range(200):  # 20 Hz for 10 s; stereo's clock 100 s behind tof's
+            for sensor, offset_s in (("tof", 0.0), ("stereo", -100.0)):
+                msg = PoseStamped()
+                msg.pose.orientation.w = 1.0
+                _stamp(msg, 200.0 + 0.05 * i + offset_s)
+                run.node.pipeline.dispatch(sensor, "pose", msg)
+            time.sleep(0.05)
+        assert run.node.pipeline.time_jumps == 0
+    finally:
+        run.close()
+    log = capfd.readouterr().err
+    assert any("stereo: dropped" in line and "bad_stamp" in line for line in log.splitlines()), log[-3000:]
+
