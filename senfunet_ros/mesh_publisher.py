@@ -45,6 +45,11 @@ MESH_PERIOD_MARGIN = 0.05  # the mesh timer runs this much faster than mesh_rate
 # the net's turn while frames come, however long the update took (if alpha_budget_s allows): short, since
 # an update that took the whole period already delays the next
 MIN_TURN_S = 0.05
+# the share of the mesh period an update may spend re-meshing (the blocks beyond it go first in the next
+# updates): encoding, publishing and the net's turn take the rest, so that a burst of changed blocks
+# (frames arriving faster than they are integrated, a backlog of set-aside frames) never stretches the
+# refresh past its period
+MESH_BUDGET_SHARE = 0.5
 
 
 def mesh_period_s(mesh_rate_hz: float) -> float:
@@ -179,7 +184,8 @@ class MeshPublisher:
             # frame coming meanwhile still goes first (the mesh thread's lower priority, which its
             # helper threads share)
             update = engine.update(alpha_budget_s=0.0,
-                                   mesh_threads=1 if self._frame_waiting() else engine.config.alpha_threads)
+                                   mesh_threads=1 if self._frame_waiting() else engine.config.alpha_threads,
+                                   mesh_budget_s=MESH_BUDGET_SHARE * mesh_period_s(s.mesh_rate_hz))
             if self._resend.is_set():  # cleared before the map is read: a later request gets the next one
                 self._resend.clear()
                 served = (0, 0)
