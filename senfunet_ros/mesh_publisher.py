@@ -149,6 +149,9 @@ class MeshPublisher:
         self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
         # an idle turn of the net runs on this thread while `publish`'s thread encodes and publishes
         self._turns = ThreadPoolExecutor(1, thread_name_prefix="senfunet-net-turn", initializer=thread_setup)
+        # how far the last turn while frames came ran past its budget (its first batch always runs): the next
+        # turn ends that much sooner, so that update, publication and turn end within the mesh period
+        self._turn_overrun_s = 0.0
 
     def resend_all(self) -> None:
         """The next publication sends the whole map (a loaded map replaced what readers hold, or they
@@ -311,7 +314,10 @@ class MeshPublisher:
         elif idle:
             engine.refresh_alpha(max(period_left_s, s.alpha_budget_s), until_frame=True)
         else:
-            engine.refresh_alpha(min(s.alpha_budget_s, max(period_left_s, MIN_TURN_S)))
+            budget_s = min(s.alpha_budget_s, max(period_left_s - self._turn_overrun_s, MIN_TURN_S))
+            start = time.perf_counter()
+            engine.refresh_alpha(budget_s)
+            self._turn_overrun_s = max(0.0, time.perf_counter() - start - budget_s)
 
     def display(self, meshes: Any) -> Any:
         """The display mesh of a batch of block meshes (parameter mesh_display_cell_m)."""
