@@ -227,7 +227,8 @@ def caught_up_after(engine, settled, stream_end: float, *, timeout_s: float) -> 
     store = engine.store
     while time.monotonic() < stream_end + timeout_s:
         n = store.n_blocks
-        if settled() and not store.stale[:n].any() and not store.mesh_pending[:n].any():
+        if (settled() and not store.stale[:n].any() and not store.mesh_pending[:n].any()
+                and not store.mesh_due[:n].any()):
             return time.monotonic() - stream_end
         time.sleep(0.05)
     return float("nan")

@@ -55,13 +55,16 @@ class BlockStore:
       changes reach it (NaN: never made stale), so that the scheduler knows how long alpha has
       waited there since the block's last change;
     - mesh_pending: TSDF or alpha changed since it was meshed;
+    - mesh_due: a block to re-mesh (its cells read a change) that an update with a meshing budget left
+      for a later one: the number of the update that first left it (0: none), so the oldest go first;
     - meshed: its fused mesh had triangles when last meshed;
     - surface_voxels: its voxels near a sensor's surface when last counted (`alpha.near_surface_voxels`),
       -1 when made stale since: how much surface judging it may show, where it has no mesh."""
 
     _FLAGS = {"alpha_pending": bool, "reach_changed": np.int32, "reach_renewed": np.int32, "stale": np.int8,
               "evaluated": bool, "no_targets": bool, "last_reached": np.int64, "touched_s": np.float64,
-              "last_change_s": np.float64, "mesh_pending": bool, "meshed": bool, "surface_voxels": np.int16}
+              "last_change_s": np.float64, "mesh_pending": bool, "mesh_due": np.int64, "meshed": bool,
+              "surface_voxels": np.int16}
     _FILL = {"touched_s": np.nan, "last_change_s": np.nan, "surface_voxels": -1}  # the others start at 0 (False)
 
     alpha_pending: np.ndarray
@@ -74,6 +77,7 @@ class BlockStore:
     touched_s: np.ndarray
     last_change_s: np.ndarray
     mesh_pending: np.ndarray
+    mesh_due: np.ndarray
     meshed: np.ndarray
     surface_voxels: np.ndarray
 

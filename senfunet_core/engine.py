@@ -83,6 +83,8 @@ from .spill import BlockSpill
 from .stage_times import StageTimes
 from .update_lock import UpdateLock
 
+_MIN_MESH_BLOCKS = 64  # blocks an update with a meshing budget re-meshes at least (and measures its time per block on)
+_FIRST_MESH_BLOCKS = 256  # ... at most, before any time per block was measured
 _MIN_THREAD_BLOCKS = 256  # blocks per meshing thread, at least: fewer cost more to hand over than they save
 log = logging.getLogger("senfunet.engine")
 
@@ -315,11 +317,13 @@ class SenFuNet:
                               voxel_size_m=config.voxel_size_m, alpha_batch_blocks=config.alpha_batch_blocks)
         self.archive: MeshArchive = self.bound.archive  # final meshes of evicted blocks (owned by the update lock)
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0, "sparse_dropped_samples": 0,
-                         "sparse_dropped_blocks": 0}
+                         "sparse_dropped_blocks": 0, "mesh_backlog_blocks": 0}
         self.frames_integrated = {name: 0 for name in config.sensors}
         self._meshed = np.zeros(0, np.int64)  # sorted block keys of the blocks with a live mesh
         self._evicted_shown: list[np.ndarray] = []  # keys of evicted blocks that had a live mesh (see _evict)
         self._cleared = False  # reset since the last mesh update
+        self._mesh_round = 0  # updates so far: the order of the blocks a meshing budget leaves (BlockStore.mesh_due)
+        self._mesh_s_per_block: dict[int, float] = {}  # meshing threads -> recent seconds per block meshed
 
     # -- verbs ------------------------------------------------------------------------------------
     @torch.inference_mode()
@@ -366,7 +370,8 @@ class SenFuNet:
         return update.voxels_updated
 
     @torch.inference_mode()
-    def update(self, alpha_budget_s: float | None = None, *, mesh_threads: int = 1) -> MeshUpdate:
+    def update(self, alpha_budget_s: float | None = None, *, mesh_threads: int = 1,
+               mesh_budget_s: float | None = None) -> MeshUpdate:
         """Alpha, fusion and meshing over the blocks changed since the last update.
 
         alpha_budget_s: at most about this long re-evaluating alpha; the blocks left over keep their
@@ -376,7 +381,11 @@ class SenFuNet:
         geometry is shown sooner, and its alpha comes with the next update.
         mesh_threads: mesh on up to this many of the alpha threads at once (at most `alpha_threads`),
         for a caller that knows no frame waits for the cores (the live node, whenever none is queued:
-        once its sensors pause, the blocks of the frames it set aside are meshed sooner)."""
+        once its sensors pause, the blocks of the frames it set aside are meshed sooner).
+        mesh_budget_s: re-mesh about as many blocks as take this long (judged by the last updates'
+        time per block); the others stay due (`BlockStore.mesh_due`) and go first in the next updates,
+        the longest-waiting first, so nothing is lost and, once they are all meshed, the mesh is what
+        unbudgeted updates give. None: every block due (exact); `mesh_backlog_blocks` counts the rest."""
         with self.update_lock.held():
             t0 = time.perf_counter()
             self._evict()
@@ -386,7 +395,8 @@ class SenFuNet:
             with self.data_lock:
                 pending = np.flatnonzero(self.store.mesh_pending[: self.grid.n_blocks])
                 self.store.mesh_pending[pending] = False
-                slots = self.mesher.mesh_readers(pending)
+                threads = min(mesh_threads, self.config.alpha_threads)
+                slots = self._mesh_share(self.mesher.mesh_readers(pending), mesh_budget_s, threads)
                 # blocks in memory that have an archived mesh near these: their markers show both, and
                 # the archived part shrinks as neighbours come back (see below)
                 pruned = self.bound.take_pruned()  # by evictions since the last update
@@ -400,7 +410,15 @@ class SenFuNet:
             result = MeshUpdate(cleared=self._cleared)
             self._cleared = False
             evictions = self.bound.evictions
-            live = self._block_meshes(slots, coords, threads=min(mesh_threads, self.config.alpha_threads))
+            t_mesh = time.perf_counter()
+            live = self._block_meshes(slots, coords, threads=threads)
+            if len(slots) >= _MIN_MESH_BLOCKS:  # fewer say more about the call's overhead than a block's cost
+                per_block_s = (time.perf_counter() - t_mesh) / len(slots)
+                # up at once, down halfway: a core taken by integration shows at once, a free one counts
+                # only once it stays free (a budget overrun delays the refresh, a shortfall only this share)
+                last = self._mesh_s_per_block.get(threads)
+                self._mesh_s_per_block[threads] = (per_block_s if last is None or per_block_s > last
+                                                   else 0.5 * (last + per_block_s))
             live_keys, changed_keys = (block_keys(torch.from_numpy(c)).numpy() for c in (live.keys, coords))
             # the evicted blocks' final meshes: subscribers keep showing them, a block's marker with its
             # live mesh, less the triangles of cells whose 8 corners are all in memory again (the live
@@ -517,6 +535,7 @@ class SenFuNet:
             self.frames_integrated = {name: 0 for name in self.config.sensors}
             self._meshed = np.zeros(0, np.int64)
             self._evicted_shown = []
+            self.counters["mesh_backlog_blocks"] = 0  # the due flags went with the blocks
             self._cleared = report_cleared
 
     def stats(self, *, wait: bool = True) -> dict | None:
@@ -593,6 +612,30 @@ class SenFuNet:
             self._meshed = np.setdiff1d(self._meshed, eviction.dropped_keys)
             self.update_lock.evicted()
         return eviction
+
+    def _mesh_share(self, readers: np.ndarray, budget_s: float | None, threads: int) -> np.ndarray:
+        """The blocks this update re-meshes (sorted slots; call under the data lock): those earlier updates
+        left (the longest-waiting first), then `readers`, as many as take about `budget_s` (None: all);
+        the rest are marked due for the next updates (`BlockStore.mesh_due`)."""
+        due = self.store.mesh_due
+        self._mesh_round += 1
+        left = np.flatnonzero(due[: self.grid.n_blocks])
+        if budget_s is None and not len(left):
+            self.counters["mesh_backlog_blocks"] = 0
+            return readers
+        left = left[np.argsort(due[left], kind="stable")]
+        order = np.concatenate([left, np.setdiff1d(readers, left)])
+        take = len(order)
+        if budget_s is not None:
+            per_block_s = self._mesh_s_per_block.get(threads)
+            # no time per block measured yet: a first share small enough for any machine
+            take = _FIRST_MESH_BLOCKS if per_block_s is None else int(budget_s / max(per_block_s, 1e-9))
+            take = max(take, _MIN_MESH_BLOCKS)  # every update makes progress
+        chosen, rest = order[:take], order[take:]
+        due[chosen] = 0
+        due[rest[due[rest] == 0]] = self._mesh_round
+        self.counters["mesh_backlog_blocks"] = len(rest)
+        return np.sort(chosen)
 
     def _block_meshes(self, slots: np.ndarray, coords: np.ndarray, *, threads: int = 1) -> BlockMeshes:
         """Fused, filtered meshes of the given blocks (coords: their block keys), batch by batch

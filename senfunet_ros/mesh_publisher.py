@@ -45,6 +45,11 @@ MESH_PERIOD_MARGIN = 0.05  # the mesh timer runs this much faster than mesh_rate
 # the net's turn while frames come, however long the update took (if alpha_budget_s allows): short, since
 # an update that took the whole period already delays the next
 MIN_TURN_S = 0.05
+# the share of the mesh period an update may spend re-meshing (the blocks beyond it go first in the next
+# updates): encoding, publishing and the net's turn take the rest, so that a burst of changed blocks
+# (frames arriving faster than they are integrated, a backlog of set-aside frames) never stretches the
+# refresh past its period
+MESH_BUDGET_SHARE = 0.5
 
 
 def mesh_period_s(mesh_rate_hz: float) -> float:
@@ -144,6 +149,9 @@ class MeshPublisher:
         self._next_weights_s = 0.0  # monotonic time of the next ~/weights cloud
         # an idle turn of the net runs on this thread while `publish`'s thread encodes and publishes
         self._turns = ThreadPoolExecutor(1, thread_name_prefix="senfunet-net-turn", initializer=thread_setup)
+        # how far the last turn while frames came ran past its budget (its first batch always runs): the next
+        # turn ends that much sooner, so that update, publication and turn end within the mesh period
+        self._turn_overrun_s = 0.0
 
     def resend_all(self) -> None:
         """The next publication sends the whole map (a loaded map replaced what readers hold, or they
@@ -179,7 +187,8 @@ class MeshPublisher:
             # frame coming meanwhile still goes first (the mesh thread's lower priority, which its
             # helper threads share)
             update = engine.update(alpha_budget_s=0.0,
-                                   mesh_threads=1 if self._frame_waiting() else engine.config.alpha_threads)
+                                   mesh_threads=1 if self._frame_waiting() else engine.config.alpha_threads,
+                                   mesh_budget_s=MESH_BUDGET_SHARE * mesh_period_s(s.mesh_rate_hz))
             if self._resend.is_set():  # cleared before the map is read: a later request gets the next one
                 self._resend.clear()
                 served = (0, 0)
@@ -305,7 +314,10 @@ class MeshPublisher:
         elif idle:
             engine.refresh_alpha(max(period_left_s, s.alpha_budget_s), until_frame=True)
         else:
-            engine.refresh_alpha(min(s.alpha_budget_s, max(period_left_s, MIN_TURN_S)))
+            budget_s = min(s.alpha_budget_s, max(period_left_s - self._turn_overrun_s, MIN_TURN_S))
+            start = time.perf_counter()
+            engine.refresh_alpha(budget_s)
+            self._turn_overrun_s = max(0.0, time.perf_counter() - start - budget_s)
 
     def display(self, meshes: Any) -> Any:
         """The display mesh of a batch of block meshes (parameter mesh_display_cell_m)."""

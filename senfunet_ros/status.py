@@ -200,6 +200,7 @@ class StatusReport:
         engine = pipeline.engine
         counters_engine = dict(getattr(engine, "counters", {}))
         values += [KeyValue(key="alpha_backlog_blocks", value=str(counters_engine.get("alpha_backlog_blocks", 0))),
+                   KeyValue(key="mesh_backlog_blocks", value=str(counters_engine.get("mesh_backlog_blocks", 0))),
                    KeyValue(key="mesh_blocks", value=str(counters_engine.get("meshed_blocks", 0)))]
         values += [KeyValue(key=f"engine.counters.{k}", value=str(v)) for k, v in counters_engine.items()]
         values += [KeyValue(key=f"engine.{k}_ms", value=f"{v * 1e3:.1f}")

@@ -291,7 +291,7 @@ class _Demo:
 
 
     def _save_live_mesh(self, node, tick_clock) -> None:  # noqa: ANN001 - rclpy Node, callable
-        """Wait until the weighting net has judged every block and the mesh was updated after that,
+        """Wait until the weighting net has judged every block and the mesh updates meshed them all,
         then join ~/mesh as a late subscriber (the node sends its whole mesh) and write what arrives
         as live_mesh.ply."""
         import numpy as np
@@ -311,8 +311,9 @@ class _Demo:
                 tick_clock()
                 rclpy.spin_once(node, timeout_sec=0.05)
                 self._check("while the weighting net catches up")
-            backlog = self.pipeline_values.get("alpha_backlog_blocks", "1")
-            caught_up = caught_up + 1 if backlog == "0" else 0
+            # every block judged, and meshed: a meshing budget leaves blocks for the next updates
+            backlogs = [self.pipeline_values.get(key, "1") for key in ("alpha_backlog_blocks", "mesh_backlog_blocks")]
+            caught_up = caught_up + 1 if backlogs == ["0", "0"] else 0
         markers: dict[tuple[str, int], np.ndarray] = {}
         last_message = [time.monotonic()]
 

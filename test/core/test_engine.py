@@ -1738,3 +1738,52 @@ def test_a_frame_that_fails_after_the_grid_grew_leaves_the_map_usable(monkeypatc
     engine.update()
     engine.integrate("stereo", render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
     assert engine.update().changed
+
+
+def test_a_meshing_budget_leaves_the_rest_due_oldest_first_and_ends_at_the_unbudgeted_mesh(monkeypatch):
+    """update(mesh_budget_s=...): each update re-meshes a bounded share, the blocks it leaves go first
+    in the next updates (before those changed since), and once none is left the blocks shown equal
+    what unbudgeted updates show."""
+    import senfunet_core.engine as engine_module
+
+    monkeypatch.setattr(engine_module, "_FIRST_MESH_BLOCKS", 32)
+    monkeypatch.setattr(engine_module, "_MIN_MESH_BLOCKS", 16)
+    exact, budgeted = engine_for_tests(), engine_for_tests()
+    shown_exact: dict = {}
+    shown: dict = {}
+
+    def show(into: dict, update) -> None:
+        for key in update.removed:
+            into.pop(key)
+        into.update(update.changed)
+
+    left_before: set = set()
+    for T in SPHERE_VIEWS[:3]:
+        depth = render_sphere(SPHERE_C, SPHERE_R, SPHERE_K, T)
+        for engine in (exact, budgeted):
+            engine.integrate("tof", depth, SPHERE_K, T)
+            engine.integrate("stereo", depth + 0.004, SPHERE_K, T)
+        show(shown_exact, exact.update())
+        update = budgeted.update(mesh_budget_s=1e-9)  # the least share: every update makes some progress
+        meshed = budgeted.counters["mesh_blocks_last"]
+        assert 0 < meshed <= 32 and budgeted.counters["mesh_backlog_blocks"] > 0
+        if left_before:  # the blocks earlier updates left, before those this frame changed
+            keys = {tuple(key) for key in budgeted.grid.coords[np.flatnonzero(
+                budgeted.store.mesh_due[: budgeted.grid.n_blocks])].tolist()}
+            if meshed <= len(left_before):
+                assert set(update.changed) <= left_before
+            else:
+                assert not left_before & keys
+        left_before = {tuple(key) for key in budgeted.grid.coords[np.flatnonzero(
+            budgeted.store.mesh_due[: budgeted.grid.n_blocks])].tolist()}
+        show(shown, update)
+    assert len(shown) < len(shown_exact)
+    for _ in range(1000):
+        if not budgeted.counters["mesh_backlog_blocks"]:
+            break
+        show(shown, budgeted.update(mesh_budget_s=1e-9))
+    assert budgeted.counters["mesh_backlog_blocks"] == 0 and not budgeted.store.mesh_due.any()
+    assert shown.keys() == shown_exact.keys() and len(shown) > 64
+    for key, mesh in shown_exact.items():
+        np.testing.assert_array_equal(shown[key].vertices, mesh.vertices)
+        np.testing.assert_array_equal(shown[key].faces, mesh.faces)
