@@ -184,6 +184,11 @@ class SensorCounters:
     dropped: dict[str, int] = field(default_factory=lambda: {reason: 0 for reason in DROP_REASONS})
     errors: dict[str, str] = field(default_factory=dict)  # drop reason -> what the last such message had wrong
 
+    @property
+    def messages_received(self) -> int:
+        """Depth, colour and pose messages received (a sensor that speaks again moves it: `Ingest.end_streams`)."""
+        return self.received + self.color_received + self.pose_received
+
     def as_dict(self) -> dict[str, Any]:
         return {
             "received": self.received,
@@ -273,7 +278,6 @@ class _SensorInput:
         # the streams ended (Ingest.end_streams): no later pose will come for what waits; a message clears it
         self.ended = False
         self.end = StreamEnd()  # what the end did, since the last Ingest.take_stream_ends
-        self.messages = 0  # depth, colour and pose messages received (Ingest.message_counts)
 
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
@@ -603,7 +607,7 @@ class Ingest:
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.received += 1
-            state.ended, state.messages = False, state.messages + 1
+            state.ended = False
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
             self._last_depth_arrival_s = arrival_s = time.monotonic()
@@ -617,7 +621,7 @@ class Ingest:
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.color_received += 1
-            state.ended, state.messages = False, state.messages + 1
+            state.ended = False
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
             reason, held = self._time.on_time(sensor, "color", stamp_ns, msg)
@@ -667,7 +671,7 @@ class Ingest:
         with self._lock:
             state = _sensor_input(self._sensors, sensor)
             state.counters.pose_received += 1
-            state.ended, state.messages = False, state.messages + 1
+            state.ended = False
             stamp_ns, stamp_error = _header_stamp(msg, "pose")  # before the parser, whose error says bad_pose
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
@@ -707,7 +711,7 @@ class Ingest:
     def message_counts(self) -> dict[str, int]:
         """Per sensor, the depth, colour and pose messages received so far (for `end_streams`)."""
         with self._lock:
-            return {name: state.messages for name, state in self._sensors.items()}
+            return {name: state.counters.messages_received for name, state in self._sensors.items()}
 
     def end_streams(self, sensors: Iterable[str] | None = None, *, counts: dict[str, int] | None = None) -> None:
         """The streams of `sensors` (default: all) ended: a bag's end, the node stopping, or their
@@ -719,7 +723,7 @@ class Ingest:
         with self._lock:
             for name in self.config.sensors if sensors is None else sensors:
                 state = _sensor_input(self._sensors, name)
-                if counts is None or counts.get(name) == state.messages:
+                if counts is None or counts.get(name) == state.counters.messages_received:
                     state.ended = True
 
     def take_stream_ends(self) -> dict[str, StreamEnd]:

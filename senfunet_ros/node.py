@@ -473,6 +473,8 @@ class FusionNode(Node):
         per stream for a warning period after it; while a restart may be under way, they wait, at most
         a warning period (a driver whose stamps are always off keeps a restart pending: its drops are
         warned all the same)."""
+        # asked before and after the counters are read: drops they hold may come from candidates of a new
+        # timeline that appeared, or were confirmed as a restart (time_jumps), between the two reads
         pending = self.ingest.restart_pending()
         counters = self.ingest.ledger.counters()
         pending = pending or self.ingest.restart_pending()
