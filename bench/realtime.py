@@ -17,7 +17,9 @@ in its own process so that peak RSS is that run's:
   frame-to-mesh latency per frame (a depth image's arrival -> publication of the first mesh update
   begun after it was integrated, as the node itself reports on ~/status), frames dropped, weighting-net
   backlog; 5 s after the stream, the map's mesh as ~/mesh gives a subscriber then, scored against
-  `senfunet replay`'s mesh.ply of the same bag (F at 2 cm; the replay runs after the node is gone).
+  `senfunet replay`'s mesh.ply of the same bag (F at 2 cm; the replay runs after the node is gone,
+  once per case). Run `--repeats` times (3): on a shared 2-core machine one run's share of frames
+  integrated on arrival swings widely, so the table shows the median run and the spread follows it.
 
 Open3D's VoxelBlockGrid TSDF integration (1 cm voxels, 8^3 blocks, same truncation; the fast CPU
 fusion a user would otherwise pick) is timed on the same frames when `open3d` is importable
@@ -33,6 +35,7 @@ import os
 import resource
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -284,13 +287,18 @@ def live_vs_replay_scores(args: argparse.Namespace, live: LiveMap) -> dict[str, 
     from scipy.spatial import cKDTree
 
     from senfunet_core.metrics import mesh_metrics
+    from senfunet_core.ply import read_ply
     from senfunet_ros.replay import replay_bag
 
-    with tempfile.TemporaryDirectory() as out:
-        replayed = replay_bag(bag_path(args, args.case), out, progress=False)
-    if not replayed.ok:
-        raise RuntimeError(f"replay of the {args.case} bag failed: {replayed.error}")
-    replay_vertices = replayed.meshes["mesh"].vertices
+    kept = Path(args.replay_dir) / "mesh.ply" if args.replay_dir else None
+    if kept is not None and kept.is_file():  # an earlier run of this invocation replayed the same bag
+        replay_vertices = read_ply(kept).vertices
+    else:
+        with tempfile.TemporaryDirectory() as out:
+            replayed = replay_bag(bag_path(args, args.case), args.replay_dir or out, progress=False)
+            if not replayed.ok:
+                raise RuntimeError(f"replay of the {args.case} bag failed: {replayed.error}")
+            replay_vertices = replayed.meshes["mesh"].vertices
     scores = mesh_metrics(live.vertices, replay_vertices, tau_m=0.02)
     lacks = np.ones(len(replay_vertices), bool)
     if len(live.vertices):
@@ -354,7 +362,45 @@ def run_open3d(args: argparse.Namespace) -> dict | str:
             "open3d_ms": 1e3 * float(np.median(theirs[skip:])), "ours_ms": 1e3 * float(np.median(ours[skip:]))}
 
 
-def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str:
+def on_arrival_share(run: dict) -> float:
+    """The share of the depth frames sent that were integrated on arrival (not set aside)."""
+    return (run["frames_integrated"] - run["frames_set_aside"]) / max(run["frames_sent"], 1)
+
+
+def median_run(runs: list[dict]) -> dict:
+    """The run in the middle by frames integrated on arrival (a run, not a mix of runs: its figures fit
+    together); the upper middle of an even number."""
+    return sorted(runs, key=on_arrival_share)[len(runs) // 2]
+
+
+def spread_lines(realtime_runs: dict[str, list[dict]]) -> list[str]:
+    """Per case, the realtime runs' figures from run to run (each the same command on the same bag)."""
+    if not any(len(runs) > 1 for runs in realtime_runs.values()):
+        return []
+    lines = ["", "Run to run (the `realtime` columns above show the median run by frames integrated on arrival; "
+             "each run is the same command on the same bag, in its own process, one after the other):"]
+
+    def spread(values: list[float], fmt: str) -> str:
+        values = sorted(values)
+        return " / ".join(fmt.format(v) for v in (values[0], float(np.median(values)), values[-1]))
+
+    for case, runs in realtime_runs.items():
+        parts = [f"frames integrated on arrival {spread([100 * on_arrival_share(r) for r in runs], '{:.0f}%')}",
+                 f"latency median {spread([r['latency_s']['median'] for r in runs], '{:.2f} s')}",
+                 f"mesh update interval median {spread([r['update_interval_s']['median'] for r in runs], '{:.2f} s')}",
+                 f"meshed blocks waiting more than 3 s for the net when the last frame was integrated "
+                 f"{spread([r['unjudged_over_3s'] for r in runs], '{:.0f}')}",
+                 "process CPU per frame "
+                 + spread([1e3 * r["process_cpu_s"] / max(r["frames_integrated"], 1) for r in runs], "{:.1f} ms")]
+        if all("live_vs_replay_f" in r for r in runs):
+            parts.append("F against replay 5 s after the stream "
+                         + spread([r["live_vs_replay_f"] for r in runs], "{:.1f}"))
+        lines.append(f"- {case}, {len(runs)} runs, min / median / max: " + "; ".join(parts))
+    return lines
+
+
+def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
+           realtime_runs: dict[str, list[dict]] | None = None) -> str:
     from senfunet_ros.mesh_publisher import MIN_TURN_S
     from senfunet_ros.params import GLOBAL_PARAMS
 
@@ -440,6 +486,7 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
                          f"ours / Open3D = {o['ours_ms'] / o['open3d_ms']:.1f}x.")
         elif o is not None:
             lines.append(f"Open3D, {case}: {o}.")
+    lines += spread_lines(realtime_runs or {})
     goal_lines = ["", "Goals of issue 6:"]
     for case in cases:
         t, r = results[case].get("throughput"), results[case].get("realtime")
@@ -452,13 +499,12 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
                               f"(max {r['update_interval_s']['max']:.2f} s); frame-to-mesh latency under 3 s: "
                               f"{'met' if r['latency_s']['max'] < 3 else 'NOT met'} "
                               f"(max {r['latency_s']['max']:.2f} s)")
-    goal_lines += ["", "Goals of issue 13 (live at the sensors' rate, at the recorded rate):"]
+    goal_lines += ["", "Goals of issue 13 (live at the sensors' rate, at the recorded rate; the median run):"]
     for case in cases:
         r = results[case].get("realtime")
         if not r:
             continue
-        # on arrival: not set aside (those came late, after the stream or a pause)
-        share = (r["frames_integrated"] - r["frames_set_aside"]) / max(r["frames_sent"], 1)
+        share = on_arrival_share(r)  # not set aside (those came late, after the stream or a pause)
         rate_hz = 1.0 / r["update_interval_s"]["median"]
         goal_lines.append(
             f"- {case}: frames integrated on arrival >= 95%: {'met' if share >= 0.95 else 'NOT met'} "
@@ -481,7 +527,9 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace) -> str
                           f"({'met' if ratio <= 1.25 else 'NOT met'}, goal <= 1.25x)")
     for case in cases:
         if case == "large":
-            rss = max(r["peak_rss_bytes"] for r in results[case].values() if isinstance(r, dict) and "case" in r)
+            every_run = [r for r in results[case].values() if isinstance(r, dict) and "case" in r]
+            every_run += (realtime_runs or {}).get(case, [])
+            rss = max(r["peak_rss_bytes"] for r in every_run)  # the highest of every run
             goal_lines.append(f"- peak RSS on the large room under 2 GB: {'met' if rss < 2e9 else 'NOT met'} "
                               f"({rss / 1e9:.2f} GB)")
     return "\n".join(lines + goal_lines)
@@ -503,11 +551,16 @@ def main() -> None:
     ap.add_argument("--no-write", dest="write", action="store_false")
     ap.add_argument("--no-replay-check", dest="replay_check", action="store_false",
                     help="skip replaying each bag to compare the live mesh with replay's (realtime mode)")
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="realtime mode: runs per case (the table shows the median run, the spread follows it)")
     ap.add_argument("--case", help=argparse.SUPPRESS)
+    ap.add_argument("--replay-dir", help=argparse.SUPPRESS)
     ap.add_argument("--mode", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.rate <= 0:
         ap.error("--rate must be positive")
+    if args.repeats < 1:
+        ap.error("--repeats must be at least 1")
     if args.write and args.rate != 1.0:
         ap.error("docs/performance.md holds the recorded rate's figures: add --no-write to --rate")
     if args.case:  # child process: one case in one mode, JSON on the last line
@@ -515,15 +568,25 @@ def main() -> None:
         print(json.dumps(result), flush=True)
         return
     results: dict[str, dict] = {}
-    for case in args.cases:
-        bag_path(args, case)  # simulate the large room once, before anything is timed
-        results[case] = {}
-        for mode in list(args.modes) + (["open3d"] if args.open3d_frames > 0 else []):
-            child = [sys.executable, __file__, *sys.argv[1:], "--case", case, "--mode", mode]
-            out = subprocess.run(child, check=True, stdout=subprocess.PIPE, text=True).stdout
-            results[case][mode] = json.loads(out.strip().splitlines()[-1])
-            print(f"{case} {mode}: {json.dumps(results[case][mode])}", flush=True)
-    text = report(results, args)
+    realtime_runs: dict[str, list[dict]] = {}
+    with tempfile.TemporaryDirectory() as replays:
+        for case in args.cases:
+            bag_path(args, case)  # simulate the large room once, before anything is timed
+            results[case] = {}
+            for mode in list(args.modes) + (["open3d"] if args.open3d_frames > 0 else []):
+                # one replay per case for the runs' live-vs-replay scores: the same code and bag give the same mesh
+                child = [sys.executable, __file__, *sys.argv[1:], "--case", case, "--mode", mode,
+                         "--replay-dir", str(Path(replays) / case)]
+                runs = []
+                for run in range(args.repeats if mode == "realtime" else 1):
+                    out = subprocess.run(child, check=True, stdout=subprocess.PIPE, text=True).stdout
+                    runs.append(json.loads(out.strip().splitlines()[-1]))
+                    print(f"{case} {mode} (run {run + 1}): {json.dumps(runs[-1])}", flush=True)
+                if mode == "realtime":
+                    realtime_runs[case] = runs
+                    runs = [median_run(runs)]
+                results[case][mode] = runs[0]
+    text = report(results, args, realtime_runs)
     print(text)
     if args.write:
         write_section("Real time", text)
