@@ -2,7 +2,7 @@
 
 oneDNN is built for many channels; with the feature nets' 4 it spends most of a frame's feature
 time on layout and dispatch, and torch's tanh (or sigmoid) is another pass over the image per
-layer. Here each output row is one pass per input channel and pair of output channels with the
+layer. Here each output row is one pass per input row and group of four output channels with the
 taps as scalars, which the compiler vectorises over the row, and the tanh is applied to the row
 while it is in cache, from a float32 exp written in plain arithmetic (a libm exp per value would
 not vectorise). The last pass normalises each pixel's features and writes them, with the depth,
@@ -45,7 +45,8 @@ def _tanh(z: float) -> np.float32:
     p = np.float32(1.0 / 5040.0)
     for c in (1.0 / 720.0, 1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0):
         p = p * r + np.float32(c)
-    e = p * _f32_of_bits((np.int64(n) + 127) << 23)
+    # int32, not int64: AVX2 converts float32 vectors to int32 only (an int64 conversion is scalar)
+    e = p * _f32_of_bits((np.int32(n) + np.int32(127)) << np.int32(23))
     t = (np.float32(1.0) - e) / (np.float32(1.0) + e)
     return t if z >= 0 else -t
 
@@ -61,40 +62,33 @@ def conv3x3_tanh(x_padded: np.ndarray, weight: np.ndarray, bias: np.ndarray, res
     h, w = h_padded - 2, w_padded - 2
     n_out = weight.shape[0]
     acc = np.empty((n_out, w), np.float32)
+    n_quads = n_out // 4 * 4
     for y in range(h):
         for co in range(n_out):
             acc[co, :] = bias[co]
         for ci in range(n_in):
-            # one pass over the row per input channel and pair of output channels, with the 9 taps
-            # of both as scalars: the loop over x vectorises, and the two accumulators share each
-            # loaded input (a pass per output channel loads every input once more)
-            r0, r1, r2 = x_padded[ci, y], x_padded[ci, y + 1], x_padded[ci, y + 2]
-            for co in range(0, n_out - 1, 2):
-                k00, k01, k02 = weight[co, ci, 0, 0], weight[co, ci, 0, 1], weight[co, ci, 0, 2]
-                k10, k11, k12 = weight[co, ci, 1, 0], weight[co, ci, 1, 1], weight[co, ci, 1, 2]
-                k20, k21, k22 = weight[co, ci, 2, 0], weight[co, ci, 2, 1], weight[co, ci, 2, 2]
-                m00, m01, m02 = weight[co + 1, ci, 0, 0], weight[co + 1, ci, 0, 1], weight[co + 1, ci, 0, 2]
-                m10, m11, m12 = weight[co + 1, ci, 1, 0], weight[co + 1, ci, 1, 1], weight[co + 1, ci, 1, 2]
-                m20, m21, m22 = weight[co + 1, ci, 2, 0], weight[co + 1, ci, 2, 1], weight[co + 1, ci, 2, 2]
-                a, b = acc[co], acc[co + 1]
-                for x in range(w):
-                    v00, v01, v02 = r0[x], r0[x + 1], r0[x + 2]
-                    v10, v11, v12 = r1[x], r1[x + 1], r1[x + 2]
-                    v20, v21, v22 = r2[x], r2[x + 1], r2[x + 2]
-                    a[x] += (k00 * v00 + k01 * v01 + k02 * v02 + k10 * v10 + k11 * v11 + k12 * v12
-                             + k20 * v20 + k21 * v21 + k22 * v22)
-                    b[x] += (m00 * v00 + m01 * v01 + m02 * v02 + m10 * v10 + m11 * v11 + m12 * v12
-                             + m20 * v20 + m21 * v21 + m22 * v22)
-            if n_out % 2:  # an odd last output channel: its pass alone
-                co = n_out - 1
-                k00, k01, k02 = weight[co, ci, 0, 0], weight[co, ci, 0, 1], weight[co, ci, 0, 2]
-                k10, k11, k12 = weight[co, ci, 1, 0], weight[co, ci, 1, 1], weight[co, ci, 1, 2]
-                k20, k21, k22 = weight[co, ci, 2, 0], weight[co, ci, 2, 1], weight[co, ci, 2, 2]
-                a = acc[co]
-                for x in range(w):
-                    a[x] += (k00 * r0[x] + k01 * r0[x + 1] + k02 * r0[x + 2]
-                             + k10 * r1[x] + k11 * r1[x + 1] + k12 * r1[x + 2]
-                             + k20 * r2[x] + k21 * r2[x + 1] + k22 * r2[x + 2])
+            for dy in range(3):
+                # one pass over an input row per group of four output channels, with the row's 3 taps
+                # of each as scalars: the loop over x vectorises, the four accumulators share each
+                # loaded input, and the 12 taps stay in registers (all 9 taps of four channels would not)
+                r = x_padded[ci, y + dy]
+                for co in range(0, n_quads, 4):
+                    k00, k01, k02 = weight[co, ci, dy, 0], weight[co, ci, dy, 1], weight[co, ci, dy, 2]
+                    k10, k11, k12 = weight[co + 1, ci, dy, 0], weight[co + 1, ci, dy, 1], weight[co + 1, ci, dy, 2]
+                    k20, k21, k22 = weight[co + 2, ci, dy, 0], weight[co + 2, ci, dy, 1], weight[co + 2, ci, dy, 2]
+                    k30, k31, k32 = weight[co + 3, ci, dy, 0], weight[co + 3, ci, dy, 1], weight[co + 3, ci, dy, 2]
+                    a0, a1, a2, a3 = acc[co], acc[co + 1], acc[co + 2], acc[co + 3]
+                    for x in range(w):
+                        v0, v1, v2 = r[x], r[x + 1], r[x + 2]
+                        a0[x] += k00 * v0 + k01 * v1 + k02 * v2
+                        a1[x] += k10 * v0 + k11 * v1 + k12 * v2
+                        a2[x] += k20 * v0 + k21 * v1 + k22 * v2
+                        a3[x] += k30 * v0 + k31 * v1 + k32 * v2
+                for co in range(n_quads, n_out):  # the output channels beyond the last group of four
+                    k0, k1, k2 = weight[co, ci, dy, 0], weight[co, ci, dy, 1], weight[co, ci, dy, 2]
+                    a = acc[co]
+                    for x in range(w):
+                        a[x] += k0 * r[x] + k1 * r[x + 1] + k2 * r[x + 2]
         for co in range(n_out):
             out = out_padded[co, y + 1]
             a = acc[co]

@@ -114,9 +114,9 @@ def test_pixel_feature_rows_are_the_training_forward_per_pixel(uses_rgb: bool) -
     np.testing.assert_allclose(networks.pixel_feature_rows(Wrapped(), depth, rgb), want, rtol=0, atol=1e-5)
 
 
-@pytest.mark.parametrize("n_out", [1, 3, 4])
+@pytest.mark.parametrize("n_out", [1, 3, 4, 6])
 def test_feature_conv_kernel_equals_torch_for_any_number_of_output_channels(n_out: int) -> None:
-    """The kernel takes output channels in pairs: an odd last one runs alone."""
+    """The kernel takes output channels in groups of four: those beyond the last group run alone."""
     from senfunet_core.feature_conv import conv3x3_tanh
 
     g = torch.Generator().manual_seed(n_out)
