@@ -65,7 +65,7 @@ import numpy as np
 
 from senfunet_ros import conversions as conv
 from senfunet_ros.matching import ColorBuffer, PoseBuffer
-from senfunet_ros.tf import TfAdded, TfWait
+from senfunet_ros.tf import TfAdded, TfWait, extrapolate_tf
 from senfunet_ros.timeline import Restart, Timelines
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "StreamEnd", "Ingest",
@@ -124,7 +124,8 @@ class IngestConfig:
     # images' frame_id (a driver that names camera_link, x forward, not the optical frame); absent = identity
     T_body_camera: dict[str, np.ndarray] = field(default_factory=dict)
     # poses from TF instead of pose topics: an object with lookup(target, source, stamp_ns) -> 4x4 that
-    # raises senfunet_ros.tf.TfWait (not yet) or TfError (never); each depth image's frame_id in fixed_frame
+    # raises senfunet_ros.tf.TfWait (not yet) or TfError (never), and newest_common_ns(target, source) (see
+    # senfunet_ros.tf.TfBuffer); each depth image's frame_id in fixed_frame
     tf: Any = None
     fixed_frame: str = "map"
 
@@ -400,13 +401,24 @@ class _SensorInput:
         self.colors.add(stamp_ns, decoded)
         return None
 
-    def pose_at_end(self, stamp_ns: int, config: IngestConfig) -> tuple[np.ndarray | None, str | None, str]:
+    def pose_at_end(self, name: str, pending: _Pending, config: IngestConfig
+                    ) -> tuple[np.ndarray | None, str | None, str]:
         """The pose of a frame newer than the newest pose once the streams ended, as `PoseBuffer.at`
-        answers with the reason's error: extrapolated within pose_tolerance_s past the newest pose,
-        else pose_timeout. Counted in `end` (and `counters.extrapolated`)."""
-        newest_ns = self.poses.newest_ns()
+        answers with the reason's error: extrapolated within pose_tolerance_s past the newest pose
+        (with TF: past the newest stamp the frame's transforms share, `tf.extrapolate_tf`), else
+        pose_timeout. Counted in `end` (and `counters.extrapolated`)."""
+        stamp_ns, tolerance_ns = pending.stamp_ns, int(config.pose_tolerance_s * 1e9)
+        if config.tf is not None:
+            newest_ns = config.tf.newest_common_ns(config.fixed_frame, pending.frame_id)
+            T = extrapolate_tf(config.tf, config.fixed_frame, pending.frame_id, stamp_ns, tolerance_ns=tolerance_ns)
+            if T is not None and name in config.T_body_camera:  # the frame_id is not the optical frame
+                T = T @ config.T_body_camera[name]
+            too_few = "the transforms did not reach back far enough to extrapolate from"
+        else:
+            newest_ns = self.poses.newest_ns()
+            T = self.poses.extrapolate(stamp_ns, tolerance_ns=tolerance_ns)
+            too_few = "only one pose had come, too few to extrapolate from"
         past_ns = 0 if newest_ns is None else stamp_ns - newest_ns
-        T = self.poses.extrapolate(stamp_ns, tolerance_ns=int(config.pose_tolerance_s * 1e9))
         if T is not None:
             self.counters.extrapolated += 1
             self.end.extrapolated += 1
@@ -416,11 +428,11 @@ class _SensorInput:
         self.end.timed_out_max_ns = max(self.end.timed_out_max_ns, past_ns)
         if newest_ns is None:
             why = "no pose had come at all"
-        elif past_ns > int(config.pose_tolerance_s * 1e9):
+        elif past_ns > tolerance_ns:
             why = (f"it is {past_ns * 1e-6:.0f} ms past the newest pose, more than pose_tolerance_s "
                    f"({config.pose_tolerance_s:g} s) to extrapolate its pose")
         else:
-            why = "only one pose had come, too few to extrapolate from"
+            why = too_few
         return None, "pose_timeout", (f"pose: the streams ended with the frame at {stamp_ns * 1e-9:.3f} s still "
                                       f"waiting for a pose: {why}")
 
@@ -456,14 +468,12 @@ class _SensorInput:
                 T, reason, error = _tf_pose(config.tf, config.fixed_frame, pending, waited_too_long)
                 if T is not None and name in config.T_body_camera:  # the frame_id is not the optical frame
                     T = T @ config.T_body_camera[name]
-                if self.ended and reason == "pose_timeout":
-                    self.end.timed_out += 1
             else:
                 T, reason = self.poses.at(t, tolerance_ns=int(config.pose_tolerance_s * 1e9),
                                           waited_too_long=waited_too_long)
                 error = ""
-                if self.ended and reason == "pose_timeout":  # no pose at or after it, and none will come
-                    T, reason, error = self.pose_at_end(t, config)
+            if self.ended and reason == "pose_timeout":  # no pose at or after it, and none will come
+                T, reason, error = self.pose_at_end(name, pending, config)
             if T is None:
                 if reason is None:
                     break  # not yet: later frames are newer, they wait too

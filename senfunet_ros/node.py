@@ -187,6 +187,18 @@ class _Tf2Lookup:
         return conv.transform_from_msg(tf.transform.translation, tf.transform.rotation,
                                        f"transform {target} -> {source}")
 
+    def newest_common_ns(self, target: str, source: str) -> int | None:
+        """The stamp of the newest transform tf2 can give between the frames (its latest common time);
+        None when it has none, or only static ones (a lookup then holds at any stamp)."""
+        from rclpy.time import Time
+
+        try:
+            tf = self._buffer.lookup_transform(target.lstrip("/"), source.lstrip("/"), Time())
+        except self._tf2.TransformException:
+            return None
+        stamp_ns = conv.stamp_to_ns(tf.header.stamp)
+        return stamp_ns or None
+
     def clear(self) -> None:
         self._buffer.clear()
 

@@ -28,10 +28,10 @@ import numpy as np
 
 from senfunet_ros.conversions.poses import transform_from_msg
 from senfunet_ros.conversions.stamps import stamp_to_ns
-from senfunet_ros.geometry import interpolate_pose, invert_transform
+from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, invert_transform
 from senfunet_ros.matching import pose_conflict
 
-__all__ = ["REPARENT_AFTER_S", "TfAdded", "TfBuffer", "TfError", "TfWait"]
+__all__ = ["REPARENT_AFTER_S", "TfAdded", "TfBuffer", "TfError", "TfWait", "extrapolate_tf"]
 
 
 class TfError(ValueError):
@@ -180,6 +180,22 @@ class TfBuffer:
         s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
         return interpolate_pose(link.transforms[i - 1], link.transforms[i], s)
 
+    def newest_common_ns(self, target: str, source: str) -> int | None:
+        """The newest stamp at which every dynamic link between the two frames has a transform (the
+        oldest of their newest stamps); None when the frames are not connected, a dynamic link has no
+        transform, or every link is static (a lookup then holds at any stamp)."""
+        target, source = target.lstrip("/"), source.lstrip("/")
+        with self._lock:
+            up_source, up_target = self._chain(source), self._chain(target)
+            common = next((f for f in up_source if f in up_target), None)
+            if common is None:
+                return None
+            links = [self._links[child] for chain in (up_source, up_target) for child in chain[: chain.index(common)]]
+        dynamic = [link for link in links if link.static is None]
+        if not dynamic or any(not link.stamps for link in dynamic):
+            return None
+        return min(link.stamps[-1] for link in dynamic)
+
     def _chain(self, frame: str) -> list[str]:
         chain = [frame]
         while chain[-1] in self._links and len(chain) < 100:
@@ -208,3 +224,25 @@ class TfBuffer:
             T_common_source = self._to_ancestor(up_source, common, stamp_ns)
             T_common_target = self._to_ancestor(up_target, common, stamp_ns)
         return invert_transform(T_common_target) @ T_common_source
+
+
+# extrapolation continues the motion between the newest common stamp and this much before it
+EXTRAPOLATION_BASE_NS = 50_000_000
+
+
+def extrapolate_tf(tf: Any, target: str, source: str, stamp_ns: int, *, tolerance_ns: int) -> np.ndarray | None:
+    """T_target_source at a stamp past the newest one the frames' transforms share, for a frame no later
+    transform will come for (its streams ended): the motion between the newest common stamp and
+    EXTRAPOLATION_BASE_NS before it, continued at constant velocity (`extrapolate_pose`), as pose
+    topics are (`PoseBuffer.extrapolate`). None when the stamp lies more than tolerance_ns past the
+    newest common stamp, or not past it, or the transforms do not reach back that far. `tf`: a
+    `TfBuffer` or anything with its `lookup` and `newest_common_ns`."""
+    newest_ns = tf.newest_common_ns(target, source)
+    if newest_ns is None or not 0 < stamp_ns - newest_ns <= tolerance_ns:
+        return None
+    base_ns = newest_ns - EXTRAPOLATION_BASE_NS
+    try:
+        T0, T1 = tf.lookup(target, source, base_ns), tf.lookup(target, source, newest_ns)
+    except TfError:
+        return None
+    return extrapolate_pose(T0, T1, (stamp_ns - base_ns) / EXTRAPOLATION_BASE_NS)

@@ -454,3 +454,94 @@ def test_an_image_frame_id_that_is_not_an_optical_frame_is_warned_about_once() -
     assert warnings("camera_depth_optical_frame", tf=TfBuffer()) == []
     assert warnings("camera_link", tf=TfBuffer(), T_body_camera={"tof": np.eye(4)}) == []
     assert warnings("camera_link") == []
+
+
+class _Tf2OverTfBuffer:
+    """tf2_ros.Buffer's answers (what `_Tf2Lookup` reads of them) from a TfBuffer: tf2_ros is not in the
+    test environment. A lookup at Time() (0) gives the latest common transform, stamped; a stamp past
+    it raises ExtrapolationException ("... into the future")."""
+
+    class TransformException(Exception):
+        pass
+
+    class ExtrapolationException(TransformException):
+        pass
+
+    LookupException = ConnectivityException = TransformException
+
+    def __init__(self, tf: TfBuffer) -> None:
+        self.tf = tf
+
+    def lookup_transform(self, target: str, source: str, time: object):  # noqa: ANN201 (a message)
+        from types import SimpleNamespace
+
+        stamp_ns = time.nanoseconds or self.tf.newest_common_ns(target, source)  # type: ignore[attr-defined]
+        try:
+            T = self.tf.lookup(target, source, stamp_ns)
+        except TfWait as err:
+            raise self.ExtrapolationException(f"Lookup would require extrapolation into the future: {err}") from None
+        sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+        q = quat_from_matrix(T[:3, :3])
+        return SimpleNamespace(
+            header=SimpleNamespace(stamp=SimpleNamespace(sec=sec, nanosec=nanosec)),
+            transform=SimpleNamespace(translation=SimpleNamespace(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+                                      rotation=SimpleNamespace(x=q[0], y=q[1], z=q[2], w=q[3])))
+
+
+@pytest.mark.parametrize("lookup", ["own buffer", "tf2"])
+def test_at_the_end_of_a_stream_a_frame_past_the_newest_transform_is_posed_by_extrapolation(lookup: str) -> None:
+    """With poses from TF, the frames after the newest transform were always dropped as pose_timeout at
+    a stream's end (the lookups do not extrapolate). As with pose topics, one within pose_tolerance_s
+    past the newest stamp its transforms share is now posed by continuing their motion at constant
+    velocity (counted as extrapolated); one further is dropped as pose_timeout."""
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+    from senfunet_ros.node import _Tf2Lookup
+
+    MS = 1_000_000
+    t0_ns = 10_000 * MS
+    speed_m_s, turn_rad_s = 0.5, 1.0  # constant velocity: the extrapolation is exact
+    buffer = TfBuffer(max_gap_s=0.1)
+    buffer.add("base", "cam", 0, _rot_z(0.0, (0.0, 0.0, 0.5)), static=True)
+    for k in range(11):  # map -> base at 100 Hz for 100 ms
+        t_s = 0.01 * k
+        buffer.add("map", "base", t0_ns + 10 * k * MS, _rot_z(turn_rad_s * t_s, (speed_m_s * t_s, 0, 0)), static=False)
+    if lookup == "tf2":
+        tf2 = _Tf2OverTfBuffer(buffer)
+        tf = _Tf2Lookup(tf2, tf2)
+    else:
+        tf = buffer
+    assert tf.newest_common_ns("map", "cam") == t0_ns + 100 * MS
+    ingest = Ingest(IngestConfig(sensors=("tof",), tf=tf, fixed_frame="map", pose_tolerance_s=0.1))
+    ingest.add_camera_info("tof", info_msg())
+    for past_ms in (30, 150):  # 150 ms: beyond pose_tolerance_s
+        msg = depth_msg(t0_ns + (100 + past_ms) * MS)
+        msg.header.frame_id = "cam"
+        assert ingest.add_depth("tof", msg) is None
+    assert ingest.pop_ready() == [] and ingest.ledger.queue_depths()["tof"] == 2  # waiting for transforms
+    ingest.end_streams()
+    (frame,) = ingest.pop_ready()
+    assert frame.stamp_ns == t0_ns + 130 * MS
+    T = frame.T_world_camera
+    assert np.linalg.norm(T[:3, 3] - [speed_m_s * 0.13, 0, 0.5]) < 1e-3  # right to 1 mm
+    assert math.atan2(T[1, 0], T[0, 0]) == pytest.approx(turn_rad_s * 0.13, abs=1e-6)
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["extrapolated"] == 1 and counters["dropped"]["pose_timeout"] == 1
+    assert "150 ms past the newest pose" in counters["errors"]["pose_timeout"]
+    (end,) = ingest.take_stream_ends().values()
+    assert (end.extrapolated, end.timed_out) == (1, 1)
+
+
+def test_newest_common_stamp_is_the_oldest_newest_of_the_dynamic_links() -> None:
+    """Between two frames, the newest stamp every dynamic link has a transform for; None for frames
+    not connected or linked by static transforms alone."""
+    tf = TfBuffer(max_gap_s=0.1)
+    tf.add("map", "odom", 5, np.eye(4), static=False)
+    tf.add("odom", "base", 9, np.eye(4), static=False)
+    tf.add("base", "cam", 0, np.eye(4), static=True)
+    tf.add("base", "lidar", 0, np.eye(4), static=True)
+    assert tf.newest_common_ns("map", "cam") == 5
+    assert tf.newest_common_ns("odom", "/cam") == 9
+    assert tf.newest_common_ns("lidar", "cam") is None  # static alone: a lookup holds at any stamp
+    assert tf.newest_common_ns("map", "elsewhere") is None
