@@ -191,10 +191,10 @@ class TfBuffer:
             if common is None:
                 return None
             links = [self._links[child] for chain in (up_source, up_target) for child in chain[: chain.index(common)]]
-        dynamic = [link for link in links if link.static is None]
-        if not dynamic or any(not link.stamps for link in dynamic):
-            return None
-        return min(link.stamps[-1] for link in dynamic)
+            dynamic = [link for link in links if link.static is None]
+            if not dynamic or any(not link.stamps for link in dynamic):
+                return None
+            return min(link.stamps[-1] for link in dynamic)
 
     def _chain(self, frame: str) -> list[str]:
         chain = [frame]
