@@ -401,8 +401,7 @@ class _SensorInput:
         self.colors.add(stamp_ns, decoded)
         return None
 
-    def pose_at_end(self, name: str, pending: _Pending, config: IngestConfig
-                    ) -> tuple[np.ndarray | None, str | None, str]:
+    def pose_at_end(self, pending: _Pending, config: IngestConfig) -> tuple[np.ndarray | None, str | None, str]:
         """The pose of a frame newer than the newest pose once the streams ended, as `PoseBuffer.at`
         answers with the reason's error: extrapolated within pose_tolerance_s past the newest pose
         (with TF: past the newest stamp the frame's transforms share, `tf.extrapolate_tf`), else
@@ -410,9 +409,8 @@ class _SensorInput:
         stamp_ns, tolerance_ns = pending.stamp_ns, int(config.pose_tolerance_s * 1e9)
         if config.tf is not None:
             newest_ns = config.tf.newest_common_ns(config.fixed_frame, pending.frame_id)
-            T = extrapolate_tf(config.tf, config.fixed_frame, pending.frame_id, stamp_ns, tolerance_ns=tolerance_ns)
-            if T is not None and name in config.T_body_camera:  # the frame_id is not the optical frame
-                T = T @ config.T_body_camera[name]
+            T = extrapolate_tf(config.tf, config.fixed_frame, pending.frame_id, stamp_ns, newest_ns=newest_ns,
+                               tolerance_ns=tolerance_ns)
             too_few = "the transforms did not reach back far enough to extrapolate from"
         else:
             newest_ns = self.poses.newest_ns()
@@ -466,14 +464,14 @@ class _SensorInput:
             waited_too_long = self.ended or (now_ns is not None and now_ns - t > max_wait_ns)
             if config.tf is not None:
                 T, reason, error = _tf_pose(config.tf, config.fixed_frame, pending, waited_too_long)
-                if T is not None and name in config.T_body_camera:  # the frame_id is not the optical frame
-                    T = T @ config.T_body_camera[name]
             else:
                 T, reason = self.poses.at(t, tolerance_ns=int(config.pose_tolerance_s * 1e9),
                                           waited_too_long=waited_too_long)
                 error = ""
             if self.ended and reason == "pose_timeout":  # no pose at or after it, and none will come
-                T, reason, error = self.pose_at_end(name, pending, config)
+                T, reason, error = self.pose_at_end(pending, config)
+            if T is not None and config.tf is not None and name in config.T_body_camera:
+                T = T @ config.T_body_camera[name]  # the image's frame_id is not the optical frame
             if T is None:
                 if reason is None:
                     break  # not yet: later frames are newer, they wait too

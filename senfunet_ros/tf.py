@@ -230,14 +230,14 @@ class TfBuffer:
 EXTRAPOLATION_BASE_NS = 50_000_000
 
 
-def extrapolate_tf(tf: Any, target: str, source: str, stamp_ns: int, *, tolerance_ns: int) -> np.ndarray | None:
+def extrapolate_tf(tf: Any, target: str, source: str, stamp_ns: int, *, newest_ns: int | None,
+                   tolerance_ns: int) -> np.ndarray | None:
     """T_target_source at a stamp past the newest one the frames' transforms share, for a frame no later
     transform will come for (its streams ended): the motion between the newest common stamp and
     EXTRAPOLATION_BASE_NS before it, continued at constant velocity (`extrapolate_pose`), as pose
     topics are (`PoseBuffer.extrapolate`). None when the stamp lies more than tolerance_ns past the
-    newest common stamp, or not past it, or the transforms do not reach back that far. `tf`: a
-    `TfBuffer` or anything with its `lookup` and `newest_common_ns`."""
-    newest_ns = tf.newest_common_ns(target, source)
+    newest common stamp, or not past it, or the transforms do not reach back that far. newest_ns: the
+    frames' newest common stamp (`TfBuffer.newest_common_ns`); `tf`: anything with TfBuffer's `lookup`."""
     if newest_ns is None or not 0 < stamp_ns - newest_ns <= tolerance_ns:
         return None
     base_ns = newest_ns - EXTRAPOLATION_BASE_NS
