@@ -194,9 +194,9 @@ class _Tf2Lookup:
 
         try:
             tf = self._buffer.lookup_transform(target.lstrip("/"), source.lstrip("/"), Time())
-        except self._tf2.TransformException:
+            stamp_ns = conv.stamp_to_ns(tf.header.stamp)
+        except (self._tf2.TransformException, ValueError):  # no transform, or a stamp that is no time
             return None
-        stamp_ns = conv.stamp_to_ns(tf.header.stamp)
         return stamp_ns or None
 
     def clear(self) -> None:
