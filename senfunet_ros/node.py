@@ -532,7 +532,8 @@ class FusionNode(Node):
             self.status_pub.publish(msg)
             self.diagnostics_pub.publish(msg)
         except Exception as err:
-            self._warn(("status_tick",), f"status failed: {err!r}")
+            if self.context.ok():  # else the node is stopping: its publishers may be gone under this tick
+                self._warn(("status_tick",), f"status failed: {err!r}")
 
     def status(self) -> DiagnosticArray:
         """~/status and /diagnostics now (`senfunet_ros.status.StatusReport`)."""
