@@ -99,7 +99,7 @@ class HealthMonitor:
     def quiet_sensors(self, quiet_s: float) -> list[str]:
         """Sensors whose data streams (all but camera_info, which a driver may latch or keep sending)
         have all been silent for quiet_s, one of them having spoken: their streams ended (the node then
-        poses what waits by extrapolation, `Ingest.end_streams`)."""
+        poses what waits by extrapolation, `Ingest.stream_ends.end`)."""
         now = self._clock()
         spoke: dict[str, bool] = {}
         with self._lock:

@@ -20,11 +20,11 @@ Per sensor:
   (or dynamic TF transform) for a stamp already given keeps the first; a different one is dropped
   as `pose_conflict` (frames may have been posed with the first: keeping it, what the consumer gets
   does not depend on when it asked).
-- when a sensor's streams have ended (`end_streams`: a bag's end, the node stopping, or its streams
+- when a sensor's streams have ended (`Ingest.stream_ends.end`: a bag's end, the node stopping, or its streams
   silent for pose_max_wait_s), no later pose will come: its frames newer than its newest pose are posed
   by continuing the two newest poses' motion at constant velocity when within `pose_tolerance_s` past
   it (counted as `extrapolated`), else dropped as `pose_timeout`; what it did is reported once
-  (`take_stream_ends`). A message on any of its streams starts them again.
+  (`Ingest.stream_ends.take`). A message on any of its streams starts them again.
 
 Counters per sensor (`Ingest.ledger`, which also takes the consumer's reports): `received` (depth
 images), `integrated` (reported back by the caller with `ledger.mark_integrated`), `dropped[reason]`
@@ -170,7 +170,7 @@ class SensorCounters:
     pose_received: int = 0
     time_jumps: int = 0  # time jumps first seen on this sensor's streams
     set_aside: int = 0  # frames set aside because the consumer fell behind (integrated later, or dropped)
-    # frames newer than the newest pose when the sensor's streams ended, posed by extrapolating (Ingest.end_streams)
+    # frames newer than the newest pose when the sensor's streams ended, posed by extrapolating (Ingest.stream_ends.end)
     extrapolated: int = 0
     # frames handed out without colour although the sensor's colour stream spoke: none within color_tolerance_s
     without_color: int = 0
@@ -187,7 +187,7 @@ class SensorCounters:
 
     @property
     def messages_received(self) -> int:
-        """Depth, colour and pose messages received (a sensor that speaks again moves it: `Ingest.end_streams`)."""
+        """Depth, colour and pose messages received (a sensor that speaks again moves it: `Ingest.stream_ends.end`)."""
         return self.received + self.color_received + self.pose_received
 
     def as_dict(self) -> dict[str, Any]:
@@ -210,7 +210,7 @@ class SensorCounters:
 
 @dataclass
 class StreamEnd:
-    """What the end of a sensor's streams (`Ingest.end_streams`) did to its frames that no pose came
+    """What the end of a sensor's streams (`Ingest.stream_ends.end`) did to its frames that no pose came
     after: posed by extrapolation (within pose_tolerance_s past the newest pose) or dropped."""
 
     extrapolated: int = 0
@@ -276,9 +276,9 @@ class _SensorInput:
         self.cleared = 0
         self.cleared_by = ""
         self.spacing_checked = False  # a frame's pixel spacing was checked against the voxel size
-        # the streams ended (Ingest.end_streams): no later pose will come for what waits; a message clears it
+        # the streams ended (Ingest.stream_ends.end): no later pose will come for what waits; a message clears it
         self.ended = False
-        self.end = StreamEnd()  # what the end did, since the last Ingest.take_stream_ends
+        self.end = StreamEnd()  # what the end did, since the last Ingest.stream_ends.take
 
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
@@ -563,7 +563,7 @@ class _StreamTime:
 
 class Ingest:
     """Messages in, frames out; thread-safe (callbacks add, a timer pops). One lock guards all of it,
-    shared with `ledger` (the counters and the consumer's reports); images are decoded with it
+    shared with `ledger` (the counters and the consumer's reports) and `stream_ends`; images are decoded with it
     released (`_SensorInput.cleared` says whether what they were meant for was cleared meanwhile)."""
 
     def __init__(self, config: IngestConfig) -> None:
@@ -575,6 +575,7 @@ class Ingest:
         self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
         self._served_ns: dict[str, int] = {}  # sensor -> stamp of its last frame handed out (pop_ready)
         self.ledger = IngestLedger(self._lock, self._sensors, self._set_aside)
+        self.stream_ends = StreamEnds(self._lock, self._sensors)
 
     @property
     def config(self) -> IngestConfig:
@@ -714,35 +715,6 @@ class Ingest:
         with self._lock:
             return self._time.timelines.pending()
 
-    # -- the end of a stream ----------------------------------------------------------------
-
-    def message_counts(self) -> dict[str, int]:
-        """Per sensor, the depth, colour and pose messages received so far (for `end_streams`)."""
-        with self._lock:
-            return {name: state.counters.messages_received for name, state in self._sensors.items()}
-
-    def end_streams(self, sensors: Iterable[str] | None = None, *, counts: dict[str, int] | None = None) -> None:
-        """The streams of `sensors` (default: all) ended: a bag's end, the node stopping, or their
-        silence for pose_max_wait_s. From the next `pop_ready` on, their frames newer than their
-        newest pose are posed by extrapolation within pose_tolerance_s, the rest dropped as
-        pose_timeout, and none waits for a colour image. `counts`: `message_counts()` when the
-        sensors were found silent; one that received a message since is left as it is (it spoke
-        again). A message on a sensor's streams starts them again."""
-        with self._lock:
-            for name in self.config.sensors if sensors is None else sensors:
-                state = _sensor_input(self._sensors, name)
-                if counts is None or counts.get(name) == state.counters.messages_received:
-                    state.ended = True
-
-    def take_stream_ends(self) -> dict[str, StreamEnd]:
-        """What the ends of streams did to the frames waiting for a pose, per sensor, since the last
-        call (only sensors where it did something)."""
-        with self._lock:
-            out = {name: state.end for name, state in self._sensors.items() if state.end}
-            for name in out:
-                self._sensors[name].end = StreamEnd()
-            return out
-
     # -- outputs --------------------------------------------------------------------------
 
     def pop_ready(self, max_frames: int | None = None, *, set_aside: bool = True) -> list[Frame | TimeJump]:
@@ -776,7 +748,7 @@ class Ingest:
             if jumps:  # a new timeline: stamps of the old one say nothing about whom to serve
                 self._served_ns.clear()
             if max_frames is not None and len(frames) > max_frames:
-                frames, back = self._fair_share(frames, max_frames, order)
+                frames, back = _fair_share(frames, max_frames, order, self._served_ns)
                 for frame in reversed(back):  # back to the front of their queues, newest last
                     self._sensors[frame.sensor].queue.appendleft(
                         _Pending(frame.stamp_ns, frame.depth_m, frame.K, frame.arrival_s, frame.rgb,
@@ -784,25 +756,6 @@ class Ingest:
             for frame in frames:
                 self._served_ns[frame.sensor] = frame.stamp_ns
         return [*jumps, *frames]
-
-    def _fair_share(self, frames: list[Frame], n: int, order: dict[str, int]) -> tuple[list[Frame], list[Frame]]:
-        """n of the ready frames (in stamp order) for a consumer that cannot take them all, and the rest:
-        each the oldest of the sensor served longest ago (by the stamp of its last frame handed out).
-        The oldest frame of all would always be the sensor whose images arrive latest after their
-        stamps, and the other's would fall behind (max_lag_s) and be set aside or dropped."""
-        ready = {name: deque(f for f in frames if f.sensor == name) for name in order}
-        served = dict(self._served_ns)  # as if each frame taken so far were handed out (pop_ready records them)
-        taken: list[Frame] = []
-        while len(taken) < n:
-            name = min((name for name, queue in ready.items() if queue),
-                       key=lambda name: (served.get(name, -1), ready[name][0].stamp_ns, order[name]))
-            taken.append(ready[name].popleft())
-            served[name] = taken[-1].stamp_ns
-        back = [f for name in order for f in ready[name]]
-        back.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
-        taken.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
-        return taken, back
-
 
 class IngestLedger:
     """What became of each sensor's messages: the counters and queue depths, and what the consumer
@@ -853,6 +806,62 @@ class IngestLedger:
             for state in self._sensors.values():
                 n += state.discard(reason)
             return n
+
+
+class StreamEnds:
+    """When a sensor's streams have ended (a bag's end, the node stopping, or their silence for
+    pose_max_wait_s) and what that did to its frames waiting for a pose. Thread-safe, under Ingest's
+    lock (`Ingest.stream_ends`)."""
+
+    def __init__(self, lock: threading.Lock, sensors: dict[str, _SensorInput]) -> None:
+        self._lock = lock
+        self._sensors = sensors
+
+    def message_counts(self) -> dict[str, int]:
+        """Per sensor, the depth, colour and pose messages received so far (for `end`)."""
+        with self._lock:
+            return {name: state.counters.messages_received for name, state in self._sensors.items()}
+
+    def end(self, sensors: Iterable[str] | None = None, *, counts: dict[str, int] | None = None) -> None:
+        """The streams of `sensors` (default: all) ended. From the next `Ingest.pop_ready` on, their
+        frames newer than their newest pose are posed by extrapolation within pose_tolerance_s, the
+        rest dropped as pose_timeout, and none waits for a colour image. `counts`: `message_counts()`
+        when the sensors were found silent; one that received a message since is left as it is (it
+        spoke again). A message on a sensor's streams starts them again."""
+        with self._lock:
+            for name in self._sensors if sensors is None else sensors:
+                state = _sensor_input(self._sensors, name)
+                if counts is None or counts.get(name) == state.counters.messages_received:
+                    state.ended = True
+
+    def take(self) -> dict[str, StreamEnd]:
+        """What the ends of streams did to the frames waiting for a pose, per sensor, since the last
+        call (only sensors where it did something)."""
+        with self._lock:
+            out = {name: state.end for name, state in self._sensors.items() if state.end}
+            for name in out:
+                self._sensors[name].end = StreamEnd()
+            return out
+
+
+def _fair_share(frames: list[Frame], n: int, order: dict[str, int], served_ns: dict[str, int]
+                ) -> tuple[list[Frame], list[Frame]]:
+    """n of the ready frames (in stamp order) for a consumer that cannot take them all, and the rest:
+    each the oldest of the sensor served longest ago (`served_ns`: the stamp of its last frame handed out).
+    The oldest frame of all would always be the sensor whose images arrive latest after their
+    stamps, and the other's would fall behind (max_lag_s) and be set aside or dropped."""
+    ready = {name: deque(f for f in frames if f.sensor == name) for name in order}
+    served = dict(served_ns)  # as if each frame taken so far were handed out (pop_ready records them)
+    taken: list[Frame] = []
+    while len(taken) < n:
+        name = min((name for name, queue in ready.items() if queue),
+                   key=lambda name: (served.get(name, -1), ready[name][0].stamp_ns, order[name]))
+        taken.append(ready[name].popleft())
+        served[name] = taken[-1].stamp_ns
+    back = [f for name in order for f in ready[name]]
+    back.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+    taken.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
+    return taken, back
 
 
 def _sensor_input(sensors: dict[str, _SensorInput], sensor: str) -> _SensorInput:

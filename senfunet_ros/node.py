@@ -364,7 +364,7 @@ class FusionNode(Node):
 
     # -- set-up and stop -------------------------------------------------------------------------
     def finish(self, abandon: threading.Event | None = None) -> dict[str, Any]:
-        """After the executor stopped: the streams ended (`Ingest.end_streams`: frames newer than
+        """After the executor stopped: the streams ended (`Ingest.stream_ends.end`: frames newer than
         their sensor's newest pose are posed by extrapolation within pose_tolerance_s, or dropped as
         pose_timeout); integrate the frames that are ready, count the ones still waiting (for a
         camera_info, or set aside) as dropped at shutdown. `abandon` set (a second Ctrl-C): the
@@ -372,7 +372,7 @@ class FusionNode(Node):
         Returns the counts, and under "ends" the (level, line)s of `Pipeline.stream_ends` (for the
         caller to print: the node's log may be shut down)."""
         self.pipeline.stopping = True
-        self.ingest.end_streams()
+        self.ingest.stream_ends.end()
         ready = self.ingest.pop_ready(set_aside=False)
         left: list[Frame | TimeJump] = []
 
@@ -460,10 +460,10 @@ class FusionNode(Node):
             deadline = time.monotonic() + _INTEGRATE_SLICE_S
             # a sensor silent for pose_max_wait_s has ended its streams: no pose will come for what waits.
             # Its message count is read first, so that a message arriving meanwhile keeps it going
-            counts = self.ingest.message_counts()
+            counts = self.ingest.stream_ends.message_counts()
             quiet = self.health.quiet_sensors(self.settings.pose_max_wait_s)
             if quiet:
-                self.ingest.end_streams(quiet, counts=counts)
+                self.ingest.stream_ends.end(quiet, counts=counts)
 
             def ready() -> Iterator[Frame | TimeJump]:
                 while time.monotonic() < deadline:

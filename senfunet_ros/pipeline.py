@@ -128,11 +128,11 @@ class Pipeline:
             return self.frames_integrated - before
 
     def stream_ends(self) -> list[tuple[str, str]]:
-        """(level, line) per sensor whose streams' end (`Ingest.end_streams`) posed frames by extrapolation
+        """(level, line) per sensor whose streams' end (`Ingest.stream_ends.end`) posed frames by extrapolation
         or dropped them since the last call: how many, and how far past the newest pose. Not logged here:
         the node's stop prints them (its log may be gone by then), replay prints them."""
         lines = []
-        for sensor, end in self.ingest.take_stream_ends().items():
+        for sensor, end in self.ingest.stream_ends.take().items():
             parts = []
             if end.extrapolated:
                 parts.append(f"{end.extrapolated} frame(s) newer than its newest pose posed by continuing the two "

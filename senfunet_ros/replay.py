@@ -363,13 +363,13 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
             log(f"topic {topic} was recorded with several types: its {router.routes[topic].msgtype} messages are "
                 f"fused, the others left out ({left_out})")
         t_loop = time.perf_counter()
-        # the live node's rule for a sensor's streams ending (silent for pose_max_wait_s: Ingest.end_streams),
+        # the live node's rule for a sensor's streams ending (silent for pose_max_wait_s: Ingest.stream_ends.end),
         # on the recording's clock, so that a bag gives the same frames live and replayed
         quiet_ns = int(settings.pose_max_wait_s * 1e9)
         spoke_ns: dict[str, int] = {}  # sensor -> log time of its last depth, colour or pose message
 
         def end_streams(sensors: list[str] | None) -> None:
-            ingest.end_streams(sensors)
+            ingest.stream_ends.end(sensors)
             pipeline.drain(ingest.pop_ready())
             for _, line in pipeline.stream_ends():
                 log(line)

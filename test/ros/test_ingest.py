@@ -155,7 +155,7 @@ def test_at_the_end_of_a_stream_a_frame_past_the_newest_pose_is_posed_by_extrapo
     ingest.add_depth("tof", depth_msg(130 * MS))  # 30 ms past the newest pose
     ingest.add_depth("tof", depth_msg(250 * MS))  # 150 ms past it: beyond pose_tolerance_s
     assert ingest.pop_ready() == [] and ingest.ledger.queue_depths()["tof"] == 2  # waiting for a later pose
-    ingest.end_streams()
+    ingest.stream_ends.end()
     (frame,) = frames(ingest.pop_ready())
     assert frame.stamp_ns == 130 * MS
     T = frame.T_world_camera
@@ -166,10 +166,10 @@ def test_at_the_end_of_a_stream_a_frame_past_the_newest_pose_is_posed_by_extrapo
     assert counters["extrapolated"] == 1 and counters["dropped"]["pose_timeout"] == 1
     assert "150 ms past the newest pose" in counters["errors"]["pose_timeout"]
     assert ingest.ledger.queue_depths()["tof"] == 0
-    (sensor, end), = ingest.take_stream_ends().items()  # reported once
+    (sensor, end), = ingest.stream_ends.take().items()  # reported once
     assert sensor == "tof" and (end.extrapolated, end.timed_out) == (1, 1)
     assert (end.extrapolated_max_ns, end.timed_out_max_ns) == (30 * MS, 150 * MS)
-    assert ingest.take_stream_ends() == {}
+    assert ingest.stream_ends.take() == {}
 
 
 def test_a_stream_that_speaks_again_after_its_end_waits_for_its_poses_again() -> None:
@@ -178,11 +178,11 @@ def test_a_stream_that_speaks_again_after_its_end_waits_for_its_poses_again() ->
     ingest = make(pose_tolerance_s=0.1)
     for k in range(3):
         ingest.add_pose("tof", pose_msg(10 * k * MS, x=0.01 * k))
-    counts = ingest.message_counts()
+    counts = ingest.stream_ends.message_counts()
     ingest.add_depth("tof", depth_msg(25 * MS))  # arrived after the silence was judged
-    ingest.end_streams(["tof"], counts=counts)
+    ingest.stream_ends.end(["tof"], counts=counts)
     assert ingest.pop_ready() == [] and ingest.ledger.queue_depths()["tof"] == 1
-    ingest.end_streams(["tof"])
+    ingest.stream_ends.end(["tof"])
     ingest.add_pose("tof", pose_msg(30 * MS, x=0.03))  # it speaks again: the frame takes the pose that came
     (frame,) = frames(ingest.pop_ready())
     assert frame.T_world_camera[0, 3] == pytest.approx(0.025)

@@ -520,7 +520,7 @@ def test_at_the_end_of_a_stream_a_frame_past_the_newest_transform_is_posed_by_ex
         msg.header.frame_id = "cam"
         assert ingest.add_depth("tof", msg) is None
     assert ingest.pop_ready() == [] and ingest.ledger.queue_depths()["tof"] == 2  # waiting for transforms
-    ingest.end_streams()
+    ingest.stream_ends.end()
     (frame,) = ingest.pop_ready()
     assert frame.stamp_ns == t0_ns + 130 * MS
     T = frame.T_world_camera
@@ -529,7 +529,7 @@ def test_at_the_end_of_a_stream_a_frame_past_the_newest_transform_is_posed_by_ex
     counters = ingest.ledger.counters()["tof"]
     assert counters["extrapolated"] == 1 and counters["dropped"]["pose_timeout"] == 1
     assert "150 ms past the newest pose" in counters["errors"]["pose_timeout"]
-    (end,) = ingest.take_stream_ends().values()
+    (end,) = ingest.stream_ends.take().values()
     assert (end.extrapolated, end.timed_out) == (1, 1)
 
 
