@@ -10,7 +10,7 @@ setup(
     version="0.1.0",
     description="Online learned two-sensor depth fusion (SenFuNet) as a ROS 2 node",
     packages=find_packages(include=["senfunet_core", "senfunet_core.*", "senfunet_ros", "senfunet_ros.*"]),
-    package_data={"senfunet_core": ["weights/*.pt"], "senfunet_ros": ["fastdds_profile.xml"]},
+    package_data={"senfunet_core": ["weights/*.pt", "weights/*.int8.json"], "senfunet_ros": ["fastdds_profile.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

@@ -81,23 +81,7 @@ def simulated_bag(cache: Path, *, name: str, seed: int, room: tuple[float, float
 
 
 def bag_frames(bag: Path, limit: int | None = None) -> list:
-    """The bag's depth frames as the node's Ingest makes them (`senfunet_ros.ingest.Frame`: pose at
-    the stamp, colour matched), in the order Ingest releases them; at most `limit`."""
-    from senfunet_ros.bagio import open_bag
-    from senfunet_ros.ingest import Frame, Ingest
-    from senfunet_ros.replay import TopicRouter, ingest_config
-    from senfunet_ros.params_file import load_settings
+    """`senfunet_ros.replay.bag_frames`, imported when a bench reads a bag."""
+    from senfunet_ros.replay import bag_frames as frames
 
-    settings = load_settings(None)
-    frames: list = []
-    with open_bag(bag) as reader:
-        router = TopicRouter(settings, reader.topics, bag)
-        ingest = Ingest(ingest_config(settings))
-        for msg in reader.messages(router.topics):
-            decoded = router.decode(msg)
-            if decoded is not None:
-                router.dispatch(ingest, *decoded)
-                frames += [f for f in ingest.pop_ready() if isinstance(f, Frame)]
-            if limit is not None and len(frames) >= limit:
-                break
-    return frames[:limit]
+    return frames(bag, limit)

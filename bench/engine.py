@@ -13,6 +13,7 @@ node can use (see docs/performance.md and test/core/test_equivalence.py).
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 from dataclasses import replace
@@ -86,12 +87,20 @@ def peak_flop_per_s(dtype_name: str, threads: int) -> float:
     import torch
 
     torch.set_num_threads(threads)
-    dtype = getattr(torch, dtype_name)
-    a, b = torch.randn(1024, 1024).to(dtype), torch.randn(1024, 1024).to(dtype)
+    if dtype_name == "int8":  # oneDNN's int8 product, through the quantized modules G's int8 form uses
+        import torch.ao.nn.quantized as nnq
+
+        torch.backends.quantized.engine = "onednn"
+        linear = nnq.Linear(1024, 1024)
+        x = torch.quantize_per_tensor(torch.rand(1024, 1024), 1.0 / 255, 0, torch.quint8)
+        product = functools.partial(linear, x)
+    else:
+        dtype = getattr(torch, dtype_name)
+        product = functools.partial(torch.mm, torch.randn(1024, 1024).to(dtype), torch.randn(1024, 1024).to(dtype))
     best = float("inf")
     for _ in range(8):
         t0 = time.perf_counter()
-        torch.mm(a, b)
+        product()
         best = min(best, time.perf_counter() - t0)
     return 2 * 1024**3 / best
 
@@ -126,11 +135,16 @@ def main() -> None:
                                                      torch_threads=args.threads),
         f"node (alpha_voxels=surface, {base.alpha_dtype})":
             replace(base, alpha_voxels="surface", torch_threads=args.threads),
-        f"voxels (alpha_voxels=surface_voxels, {base.alpha_dtype})":
-            replace(base, alpha_voxels="surface_voxels", torch_threads=args.threads),
+        # int8 runs G on whole blocks only: surface_voxels' matrix products stay float32
+        f"voxels (alpha_voxels=surface_voxels, {base.alpha_dtype.replace('int8', 'float32')})":
+            replace(base, alpha_voxels="surface_voxels", torch_threads=args.threads,
+                    alpha_dtype=base.alpha_dtype.replace("int8", "float32")),
     }
     results = {name: measure(frames, cfg, weights, args.update_every) for name, cfg in configs.items()}
-    peaks = {dtype: peak_flop_per_s(dtype, args.threads) for dtype in ("float32", "bfloat16")}
+    from senfunet_core.weighting_int8 import int8_available
+
+    peaks = {dtype: peak_flop_per_s(dtype, args.threads)
+             for dtype in ("float32", "bfloat16", *(("int8",) if int8_available() else ()))}
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
              f"Frames: the first {len(frames)} depth frames (256x256, both sensors, arrival order) of {source}; "
              f"update() every {args.update_every} frames; torch threads {args.threads}; {malloc}; medians over frames "
@@ -156,7 +170,7 @@ def main() -> None:
     row("meshing per block (ms)", lambda r: f"{r['mesh_ms_per_block']:.3f} ({r['mesh_blocks']} blocks)")
     row("blocks / observed voxels", lambda r: f"{r['blocks']} / {r['observed']}")
     row("bytes per observed voxel", lambda r: f"{r['bytes_per_observed_voxel']:.0f}")
-    # the CPU's peak: its fastest arithmetic here (bfloat16 where it has bfloat16 units, else float32)
+    # the CPU's peak: its fastest arithmetic here (int8, or bfloat16 where it has bfloat16 units, else float32)
     peak_dtype = max(peaks, key=peaks.__getitem__)
     node = results[next(name for name in results if name.startswith("node"))]
     fraction = node["alpha_flop_per_s"] / peaks[peak_dtype]

@@ -42,6 +42,7 @@ from pathlib import Path
 from collections.abc import Iterator
 
 import numpy as np
+import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench._common import ROOT, command, machine, simulated_bag, write_section  # noqa: E402
@@ -89,6 +90,9 @@ def run_node_case(args: argparse.Namespace) -> dict:
     if args.mode == "throughput":  # nothing may expire or be skipped while the feeder waits on the node
         # (the ranges allowed; a restart is a jump longer than the pose wait, time_jump_s >= pose_max_wait_s)
         overrides.update(pose_max_wait_s=600.0, time_jump_s=600.0, pose_buffer_size=100_000, max_lag_s=0.0)
+    for given in args.param:
+        name, _, value = given.partition("=")
+        overrides[name] = yaml.safe_load(value)
     node = FusionNode(namespace="bench", parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
     spinner = threading.Thread(target=spin, args=(node,), daemon=True)
     spinner.start()
@@ -174,6 +178,7 @@ def run_node_case(args: argparse.Namespace) -> dict:
     caught_up_s = caught_up_after(engine, settled, stream_end, timeout_s=_CATCH_UP_TIMEOUT_S)
     result = {
         "case": args.case, "mode": args.mode, "bag_seconds": bag_s, "wall_seconds": wall_s,
+        "alpha_arithmetic": "int8" if engine.alpha.evaluator.int8_net is not None else engine.config.alpha_dtype,
         "frames_sent": frames_sent, "frames_integrated": frames, "dropped": dropped,
         "frames_set_aside": sum(c["set_aside"] for c in counters.values()),
         "ingest_fps": frames / wall_s, "peak_queue_frames": peak_queue, "process_cpu_s": cpu_s,
@@ -424,7 +429,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
              "integrated; they are wall "
              "times, so threads waiting for a core count too. The process CPU time (user + system, every thread, "
              "the feeder's deserialisation included) from the first message until every frame was integrated or "
-             "dropped, divided by the frames integrated, is what the node's work costs the cores.", ""]
+             "dropped, divided by the frames integrated, is what the node's work costs the cores."
+             + (f" Parameters set otherwise: {', '.join(args.param)}." if args.param else ""), ""]
     head = "| | " + " | ".join(f"{c} ({m})" for c in cases for m in results[c]) + " |"
     lines += [head, "|---" * (1 + sum(len(results[c]) for c in cases)) + "|"]
     runs = [results[c][m] for c in cases for m in results[c]]
@@ -434,6 +440,7 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
 
     row("bag", lambda r: f"{r['bag_seconds']:.1f} s, {r['frames_sent']} depth frames")
+    row("weighting net arithmetic (alpha_precision)", lambda r: r.get("alpha_arithmetic", "-"))
     row("frames integrated (of them set aside while behind, integrated later) / dropped",
         lambda r: f"{r['frames_integrated']} ({r['frames_set_aside']}) / "
         + (", ".join(f"{k} {v}" for k, v in r["dropped"].items()) or "0"))
@@ -553,6 +560,8 @@ def main() -> None:
                     help="skip replaying each bag to compare the live mesh with replay's (realtime mode)")
     ap.add_argument("--repeats", type=int, default=3,
                     help="realtime mode: runs per case (the table shows the median run, the spread follows it)")
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                    help="a node parameter other than its default (YAML value), e.g. alpha_precision=float32")
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--replay-dir", help=argparse.SUPPRESS)
     ap.add_argument("--mode", help=argparse.SUPPRESS)

@@ -59,48 +59,64 @@ def window_channels(features_1: np.ndarray, weight_1: np.ndarray, tsdf_1: np.nda
     return 2 * (features_per_voxel(features_1, weight_1.shape[0]) + 1) + (2 if tsdf_1.shape[0] > 0 else 0)
 
 
+def window_value_ranges(n_features: int, *, with_tsdf: bool, depth_max_m: float) -> np.ndarray:
+    """Per channel of the windows (`weighting_windows`' order), the range its values lie in (C x 2):
+    learned features -1..1, depth 0..depth_max_m, tanh(weight) 0..1, the scaled TSDFs -1..1 (what
+    8-bit windows code, `grid.as_stored`)."""
+    per_sensor = [(-1.0, 1.0)] * (n_features - 1) + [(0.0, depth_max_m), (0.0, 1.0)]
+    return np.array(per_sensor * 2 + [(-1.0, 1.0)] * (2 if with_tsdf else 0), np.float64)
+
+
 def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray, features_2: np.ndarray,
                       weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray, tsdf_scale: float, *,
-                      out: np.ndarray | None = None) -> np.ndarray:
+                      out: np.ndarray | None = None, depth_max_m: float = 1.0) -> np.ndarray:
     """B x 12^3 x C weighting-net inputs of each block with its 2-voxel halo (channels last), zero
     where no block exists: [F_1 (5), tanh(W_1), F_2 (5), tanh(W_2)] (C = 12) and, unless tsdf_1 and
     tsdf_2 are empty, [V_1, V_2] * tsdf_scale (C = 14, the inputs of WeightingNet.tsdf_input).
     features_i: flat feature-pool views (`grid.load_feature`); weights and TSDFs: the grid's float16
     pools as int16 bits (`grid.kernel_view`). out: a flat buffer of at least
     B * 12^3 * C entries to write them to (reused between batches: a fresh array of this size costs
-    its page faults), float32, or uint16 for bfloat16 bits (what the net computes in; no
-    conversion pass); default a new float32 array."""
+    its page faults), float32, uint16 for bfloat16 bits, or uint8 for 8-bit codes (`grid.as_stored`
+    in `window_value_ranges` with this depth_max_m; what the net computes in, no conversion pass);
+    default a new float32 array."""
     shape = (neighbours.shape[0], WINDOW, WINDOW, WINDOW, window_channels(features_1, weight_1, tsdf_1))
     size = int(np.prod(shape))
     out = np.empty(size, np.float32) if out is None else out[:size]
     n_voxels = weight_1.shape[0]
+    tables = _window_tables(out.dtype, float(tsdf_scale), features_per_voxel(features_1, n_voxels),
+                            tsdf_1.shape[0] > 0, float(depth_max_m))
     _fill_windows(out, neighbours, packed_words(features_1, n_voxels), weight_1, packed_words(features_2, n_voxels),
-                  weight_2, tsdf_1, tsdf_2, *_window_tables(out.dtype, float(tsdf_scale)))
+                  weight_2, tsdf_1, tsdf_2, *tables)
     return out.reshape(shape)
 
 
 @functools.lru_cache(maxsize=8)
-def _window_tables(dtype: np.dtype, tsdf_scale: float) -> tuple[np.ndarray, ...]:
+def _window_tables(dtype: np.dtype, tsdf_scale: float, n_features: int, with_tsdf: bool, depth_max_m: float
+                   ) -> tuple[np.ndarray, ...]:
     """The values the windows take from lookups, as a buffer of this dtype stores them (bfloat16
-    bits: no conversion or rounding per value): a packed feature code's, a depth code's, and per
-    float16 bit pattern the tanh of the weight count it holds and the TSDF it holds times tsdf_scale
-    (computed in float32, as the net's inputs are)."""
+    bits or 8-bit codes: no conversion or rounding per value): a packed feature code's, a depth code's,
+    per float16 bit pattern the tanh of the weight count it holds and the TSDF it holds times
+    tsdf_scale (computed in float32, as the net's inputs are), and a voxel's channels where no block
+    exists (all 0)."""
     counts = np.clip(np.nan_to_num(F16_VALUES, nan=0.0, posinf=0.0, neginf=0.0), 0, len(TANH_OF_COUNT) - 1)
     with np.errstate(invalid="ignore", over="ignore"):
         tsdf = F16_VALUES * np.float32(tsdf_scale)
-    return (*feature_code_tables(dtype), as_stored(TANH_OF_COUNT[counts.astype(np.int64)], dtype),
-            as_stored(tsdf, dtype))
+    ranges = window_value_ranges(n_features, with_tsdf=with_tsdf, depth_max_m=depth_max_m)
+    absent = np.concatenate([as_stored(np.zeros(1), dtype, value_range=tuple(r)) for r in ranges])
+    return (*feature_code_tables(dtype, depth_range_m=tuple(ranges[n_features - 1])),
+            as_stored(TANH_OF_COUNT[counts.astype(np.int64)], dtype, value_range=tuple(ranges[n_features])),
+            as_stored(tsdf, dtype), absent)
 
 
 @numba.njit(cache=True, nogil=True)
 def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray,
                   features_2: np.ndarray, weight_2: np.ndarray, tsdf_1: np.ndarray, tsdf_2: np.ndarray,
                   feature_of_code: np.ndarray, depth_of_code: np.ndarray, tanh_of_weight: np.ndarray,
-                  scaled_tsdf: np.ndarray) -> None:
+                  scaled_tsdf: np.ndarray, absent: np.ndarray) -> None:
     """`weighting_windows`' kernel: every entry of out written (out may hold an earlier batch). Each
     window row along z is three runs of consecutive voxels (local z -2..-1 in the block below, 0..7,
     8..9 in the block above): one neighbour lookup per run. Weights and TSDFs (float16 bits) are
-    looked up by their bits (`_window_tables`)."""
+    looked up by their bits (`_window_tables`); `absent`: a voxel's channels where no block exists."""
     n_features = features_per_voxel(features_1, weight_1.shape[0])
     with_tsdf = tsdf_1.shape[0] > 0
     first_tsdf = 2 * (n_features + 1)
@@ -113,8 +129,9 @@ def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarra
                     first_z, length = (8 - HALO, HALO) if run == 0 else ((0, 8) if run == 1 else (0, HALO))
                     slot = neighbours[b, (x >> 3) * 9 + (y >> 3) * 3 + run]
                     if slot < 0:
-                        out[i:i + length * channels] = 0
-                        i += length * channels
+                        for _ in range(length):
+                            out[i:i + channels] = absent
+                            i += channels
                         continue
                     first = slot * 512 + (x & 7) * 64 + (y & 7) * 8 + first_z
                     for v in range(first, first + length):

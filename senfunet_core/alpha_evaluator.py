@@ -7,6 +7,7 @@ model in `engine`), so that the alpha threads evaluate batches side by side; the
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,8 +18,9 @@ from .alpha import WINDOW, evaluate_gathers, holds_surface_targets, surface_targ
 from .block_store import BlockStore
 from .grid import BLOCK, encode_alpha
 from .scratch import ThreadScratch
+from .weighting_int8 import Int8WeightingNet
 
-__all__ = ["AlphaBatch", "AlphaEvaluator", "weighting_net_flops"]
+__all__ = ["AlphaBatch", "AlphaEvaluator", "surface_windows", "weighting_net_flops"]
 
 
 @dataclass
@@ -36,9 +38,13 @@ class AlphaEvaluator:
     """The weighting net over a `BlockStore`'s grid (see the module docstring)."""
 
     def __init__(self, store: BlockStore, net: Any, *, alpha_voxels: str, alpha_dtype: str, tsdf_input: bool,
-                 band_m: float, device: torch.device) -> None:
+                 band_m: float, device: torch.device,
+                 int8_net: Int8WeightingNet | None = None) -> None:
+        """int8_net: G in int8 (`weighting_int8.Int8WeightingNet`), used for whole blocks on the CPU
+        (alpha_dtype "int8"; surface_voxels' matrix products stay float32)."""
         self.store = store
         self.net = net
+        self.int8_net = int8_net
         self.alpha_voxels = alpha_voxels
         self.dtype = torch.bfloat16 if alpha_dtype == "bfloat16" else torch.float32
         self.tsdf_input = tsdf_input
@@ -72,12 +78,15 @@ class AlphaEvaluator:
             return AlphaBatch(slots, holds, voxels, self._as_stored(alpha), flops)
         slots_holding = slots[holds]
         if self.device.type == "cpu":  # the inputs written in the net's dtype, to this thread's buffer
-            bfloat16 = self.dtype == torch.bfloat16
+            bfloat16 = self.dtype == torch.bfloat16 and self.int8_net is None
+            stored = np.uint8 if self.int8_net is not None else np.uint16 if bfloat16 else np.float32
             windows = weighting_windows(neighbours[holds], *self.inputs(), out=self._scratch.array(
-                "windows", len(slots_holding) * WINDOW**3 * self.net.conv1.in_channels,
-                np.uint16 if bfloat16 else np.float32))
+                "windows", len(slots_holding) * WINDOW**3 * self.net.conv1.in_channels, stored),
+                depth_max_m=self.int8_net.depth_max_m if self.int8_net is not None else 1.0)
             x = torch.from_numpy(windows.view(np.int16)).view(torch.bfloat16) if bfloat16 else torch.from_numpy(windows)
-            alpha = self.net.infer(x.permute(0, 4, 1, 2, 3), self.dtype).reshape(-1).numpy()  # channels last
+            x = x.permute(0, 4, 1, 2, 3)  # channels last
+            out = self.int8_net(x) if self.int8_net is not None else self.net.infer(x, self.dtype)
+            alpha = out.reshape(-1).numpy()
         else:
             windows = self.windows(neighbours[holds])
             x = torch.from_numpy(windows).permute(0, 4, 1, 2, 3).to(self.device)  # B x C x 12^3, channels last
@@ -109,6 +118,18 @@ class AlphaEvaluator:
         else:
             tsdf = [np.zeros(0, np.int16), np.zeros(0, np.int16)]  # float16 bits, as the pools
         return (*self.store.views("feat0", "weight0", "feat1", "weight1"), *tsdf, self.tsdf_scale)
+
+
+def surface_windows(evaluator: AlphaEvaluator, *, batch_blocks: int = 64) -> Iterator[torch.Tensor]:
+    """G's float32 input windows (B x C x 12^3, channels last) of every block in the grid that holds
+    voxels alpha matters for ("surface"), batch by batch: what int8 calibration measures G on."""
+    store = evaluator.store
+    slots = np.arange(store.grid.n_blocks)
+    for start in range(0, len(slots), batch_blocks):
+        neighbours = store.neighbours(slots[start:start + batch_blocks])
+        holds = holds_surface_targets(neighbours, *store.views("tsdf0", "weight0", "tsdf1", "weight1"))
+        if holds.any():
+            yield torch.from_numpy(evaluator.windows(neighbours[holds])).permute(0, 4, 1, 2, 3)
 
 
 def weighting_net_flops(net: Any, *, layer_1_positions: int, voxels: int, inputs: int) -> int:

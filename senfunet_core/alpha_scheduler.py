@@ -28,6 +28,7 @@ import torch
 from .alpha import near_surface_voxels, reach_levels
 from .alpha_evaluator import AlphaBatch, AlphaEvaluator
 from .block_store import BlockStore, Eviction
+from .weighting_int8 import Int8WeightingNet
 
 __all__ = ["AlphaScheduler", "Refresh"]
 
@@ -56,10 +57,11 @@ class AlphaScheduler:
     def __init__(self, store: BlockStore, net: Any, data_lock: threading.RLock, *, alpha_voxels: str,
                  alpha_dtype: str, tsdf_input: bool, band_m: float, voxel_size_m: float,
                  device: torch.device, batch_blocks: int, threads: int, alpha_order: str,
-                 worker_setup: Callable[[], object] | None = None) -> None:
+                 worker_setup: Callable[[], object] | None = None,
+                 int8_net: Int8WeightingNet | None = None) -> None:
         self.store = store
         self.evaluator = AlphaEvaluator(store, net, alpha_voxels=alpha_voxels, alpha_dtype=alpha_dtype,
-                                        tsdf_input=tsdf_input, band_m=band_m, device=device)
+                                        tsdf_input=tsdf_input, band_m=band_m, device=device, int8_net=int8_net)
         self._data_lock = data_lock
         self.voxel_size_m = voxel_size_m
         self.batch_blocks = batch_blocks

@@ -82,6 +82,7 @@ from .mesher import BlockMeshes, Mesh, StreamingWeld
 from .spill import BlockSpill
 from .stage_times import StageTimes
 from .update_lock import UpdateLock
+from .weighting_int8 import Int8WeightingNet, input_ranges, int8_available, load_calibration
 
 _MIN_MESH_BLOCKS = 64  # blocks an update with a meshing budget re-meshes at least (and measures its time per block on)
 _FIRST_MESH_BLOCKS = 256  # ... at most, before any time per block was measured
@@ -136,8 +137,10 @@ class EngineConfig:
     #   "latest" (those the latest frames reached); see AlphaScheduler.order. Chosen with bench/alpha_order.py on a
     #   validation room: fewer meshed blocks wait more than 3 s for the net after their last change, and more are
     #   judged, for the same budget (docs/performance.md)
-    alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", or "bfloat16" (faster on CPUs with
-    #                               bfloat16 instructions, alpha close to float32's; see test_equivalence.py)
+    alpha_dtype: str = "float32"  # weighting-net arithmetic: "float32", "bfloat16" (faster on CPUs with
+    #                               bfloat16 instructions, alpha close to float32's; see test_equivalence.py) or
+    #                               "int8" (faster elsewhere; weighting_int8, needs the weights' calibration:
+    #                               float32 without it, said in the log)
     feature_dtype: str = "float32"  # feature-net arithmetic: "float32", or "bfloat16" (faster on CPUs with bfloat16
     #                                 instructions; features close to float32's, see test_equivalence.py)
     max_blocks: int = 0  # memory bound: past this many blocks, each update evicts the blocks farthest from the
@@ -190,8 +193,8 @@ class EngineConfig:
             raise InputError("n_samples_behind must be between 0 and (n_samples - 1) / 2")
         if self.w_max > 2048:
             raise InputError("w_max must be at most 2048 (weight counters are float16, exact up to 2048)")
-        if self.alpha_dtype not in ("float32", "bfloat16"):
-            raise InputError(f"alpha_dtype must be 'float32' or 'bfloat16', got '{self.alpha_dtype}'")
+        if self.alpha_dtype not in ("float32", "bfloat16", "int8"):
+            raise InputError(f"alpha_dtype must be 'float32', 'bfloat16' or 'int8', got '{self.alpha_dtype}'")
         if self.alpha_order not in ("latest", "longest_waiting"):
             raise InputError(f"alpha_order must be 'latest' or 'longest_waiting', got '{self.alpha_order}'")
         if self.feature_dtype not in ("float32", "bfloat16"):
@@ -310,7 +313,8 @@ class SenFuNet:
                                     tsdf_input=config.weighting_tsdf_input, band_m=config.band_m,
                                     voxel_size_m=config.voxel_size_m, device=self.device,
                                     batch_blocks=config.alpha_batch_blocks, threads=config.alpha_threads,
-                                    alpha_order=config.alpha_order, worker_setup=worker_setup)
+                                    alpha_order=config.alpha_order, worker_setup=worker_setup,
+                                    int8_net=int8_weighting(self.weighting_net, weights, config))
         self.mesher = BlockMesher(self.store, sensors=config.sensors, voxel_size_m=config.voxel_size_m,
                                   mesh_batch_blocks=config.mesh_batch_blocks, times=self.times)
         self.bound = MapBound(self.store, self.alpha, self.mesher, self.data_lock, max_blocks=self.max_blocks,
@@ -396,11 +400,21 @@ class SenFuNet:
                 pending = np.flatnonzero(self.store.mesh_pending[: self.grid.n_blocks])
                 self.store.mesh_pending[pending] = False
                 threads = min(mesh_threads, self.config.alpha_threads)
-                slots = self._mesh_share(self.mesher.mesh_readers(pending), mesh_budget_s, threads)
+                self._mesh_round += 1
+                max_blocks = None
+                if mesh_budget_s is not None:
+                    per_block_s = self._mesh_s_per_block.get(threads)
+                    # no time per block measured yet: a first share small enough for any machine; at least
+                    # _MIN_MESH_BLOCKS: every update makes progress
+                    max_blocks = max(_MIN_MESH_BLOCKS, _FIRST_MESH_BLOCKS if per_block_s is None
+                                     else int(mesh_budget_s / max(per_block_s, 1e-9)))
+                slots, self.counters["mesh_backlog_blocks"] = mesh_share(
+                    self.store.mesh_due, self.grid.n_blocks, self.mesher.mesh_readers(pending),
+                    mesh_round=self._mesh_round, max_blocks=max_blocks)
                 # blocks in memory that have an archived mesh near these: their markers show both, and
                 # the archived part shrinks as neighbours come back (see below)
                 pruned = self.bound.take_pruned()  # by evictions since the last update
-                near = self.archive.held_around(self.grid.coords[slots].numpy()) | pruned
+                near = self.archive.held(self.grid.coords[slots].numpy(), around=True) | pruned
                 if near:
                     found = self.grid.lookup(torch.tensor(sorted(near), dtype=torch.int64)).numpy()
                     slots = np.union1d(slots, found[found >= 0])
@@ -613,30 +627,6 @@ class SenFuNet:
             self.update_lock.evicted()
         return eviction
 
-    def _mesh_share(self, readers: np.ndarray, budget_s: float | None, threads: int) -> np.ndarray:
-        """The blocks this update re-meshes (sorted slots; call under the data lock): those earlier updates
-        left (the longest-waiting first), then `readers`, as many as take about `budget_s` (None: all);
-        the rest are marked due for the next updates (`BlockStore.mesh_due`)."""
-        due = self.store.mesh_due
-        self._mesh_round += 1
-        left = np.flatnonzero(due[: self.grid.n_blocks])
-        if budget_s is None and not len(left):
-            self.counters["mesh_backlog_blocks"] = 0
-            return readers
-        left = left[np.argsort(due[left], kind="stable")]
-        order = np.concatenate([left, np.setdiff1d(readers, left)])
-        take = len(order)
-        if budget_s is not None:
-            per_block_s = self._mesh_s_per_block.get(threads)
-            # no time per block measured yet: a first share small enough for any machine
-            take = _FIRST_MESH_BLOCKS if per_block_s is None else int(budget_s / max(per_block_s, 1e-9))
-            take = max(take, _MIN_MESH_BLOCKS)  # every update makes progress
-        chosen, rest = order[:take], order[take:]
-        due[chosen] = 0
-        due[rest[due[rest] == 0]] = self._mesh_round
-        self.counters["mesh_backlog_blocks"] = len(rest)
-        return np.sort(chosen)
-
     def _block_meshes(self, slots: np.ndarray, coords: np.ndarray, *, threads: int = 1) -> BlockMeshes:
         """Fused, filtered meshes of the given blocks (coords: their block keys), batch by batch
         (`threads` > 1: that many at once, in equal shares on the alpha threads), evicting between
@@ -665,6 +655,40 @@ class SenFuNet:
             gone = np.isin(block_keys(torch.from_numpy(meshes.keys)).numpy(), np.concatenate(evicted))
             meshes = meshes.select(np.flatnonzero(~gone))
         return meshes
+
+
+def mesh_share(due: np.ndarray, n_blocks: int, readers: np.ndarray, *, mesh_round: int, max_blocks: int | None
+               ) -> tuple[np.ndarray, int]:
+    """The blocks an update re-meshes (sorted slots) and how many are left for later: those earlier
+    updates left (`due`: per slot, the round that left it, 0: none; the longest-waiting first), then
+    `readers`, at most max_blocks of them (None: all). The rest are marked due in `due` with this
+    `mesh_round` (`BlockStore.mesh_due`; call under the engine's data lock)."""
+    left = np.flatnonzero(due[:n_blocks])
+    if max_blocks is None and not len(left):
+        return readers, 0
+    left = left[np.argsort(due[left], kind="stable")]
+    order = np.concatenate([left, np.setdiff1d(readers, left)])
+    chosen, rest = (order, order[:0]) if max_blocks is None else (order[:max_blocks], order[max_blocks:])
+    due[chosen] = 0
+    due[rest[due[rest] == 0]] = mesh_round
+    return np.sort(chosen), len(rest)
+
+
+def int8_weighting(net: networks.WeightingNet, weights: str | Path | None, config: EngineConfig
+                   ) -> Int8WeightingNet | None:
+    """G in int8 for config.alpha_dtype "int8" on the CPU, or None (float32) with a warning that says
+    why when it cannot be: no calibration for these weights, or no int8 convolutions in this torch."""
+    if config.alpha_dtype != "int8":
+        return None
+    calibration, why = (None, "untrained weights have no int8 calibration") if weights is None else (
+        load_calibration(weights))
+    if calibration is not None and not int8_available():
+        calibration, why = None, "this torch or CPU has no working oneDNN int8 convolutions"
+    if calibration is None or networks.choose_device(config.device, cpu_fallback=False).device.type != "cpu":
+        log.warning("alpha_dtype int8: %s; the weighting net runs in float32", why or "int8 is for the CPU")
+        return None
+    log.info("weighting net in int8 (calibrated on %s)", calibration.calibrated_on)
+    return Int8WeightingNet(net, calibration, input_ranges(net, config.depth_max_m))
 
 
 def prepare_frame(engine: SenFuNet, sensor: str, depth_m: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray,

@@ -706,14 +706,28 @@ def packed_words(features: np.ndarray, n_voxels: int) -> np.ndarray:
     return features
 
 
-def feature_code_tables(dtype: np.dtype | type) -> tuple[np.ndarray, np.ndarray]:
-    """`copy_features`' tables for an out of this dtype: float32 values, or bfloat16 bits (uint16)."""
-    return as_stored(_FEATURE_OF_CODE, dtype), as_stored(DEPTH_OF_CODE, dtype)
+def feature_code_tables(dtype: np.dtype | type, *, depth_range_m: tuple[float, float] = (-1.0, 1.0)
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """`copy_features`' tables for an out of this dtype: float32 values, bfloat16 bits (uint16), or
+    8-bit codes (uint8, `as_stored`: the learned features' range -1..1, the depths' depth_range_m)."""
+    return as_stored(_FEATURE_OF_CODE, dtype), as_stored(DEPTH_OF_CODE, dtype, value_range=depth_range_m)
 
 
-def as_stored(values: np.ndarray, dtype: np.dtype | type) -> np.ndarray:
-    """float32 values as an array of this dtype stores them (`store_f32`): float32, or bfloat16
-    bits (uint16, rounded to nearest even)."""
+# an 8-bit code (`as_stored` to uint8) of a value v in the range (low, high):
+# (v - centre) / half = (code - INT8_ZERO) * INT8_STEP, centre and half the range's middle and half its width
+INT8_STEP = 1.0 / 127.0
+INT8_ZERO = 128
+
+
+def as_stored(values: np.ndarray, dtype: np.dtype | type, *, value_range: tuple[float, float] = (-1.0, 1.0)
+              ) -> np.ndarray:
+    """float32 values as an array of this dtype stores them (`store_f32`): float32, bfloat16 bits
+    (uint16, rounded to nearest even), or uint8 codes of their place in value_range (INT8_STEP,
+    INT8_ZERO; rounded, saturated outside it; NaN and inf as the range's middle)."""
+    if np.dtype(dtype) == np.uint8:
+        centre, half = 0.5 * (value_range[0] + value_range[1]), 0.5 * (value_range[1] - value_range[0])
+        shares = np.nan_to_num((np.asarray(values, np.float64) - centre) / half, nan=0.0, posinf=0.0, neginf=0.0)
+        return np.clip(np.rint(shares / INT8_STEP) + INT8_ZERO, 0, 255).astype(np.uint8)
     if np.dtype(dtype) == np.uint16:
         bits = torch.from_numpy(np.asarray(values, np.float32)).to(torch.bfloat16).view(torch.int16)
         return bits.numpy().view(np.uint16)

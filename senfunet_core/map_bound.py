@@ -266,7 +266,7 @@ class MapBound:
         eviction check: their voxels already left, so these meshes are all that is left of the blocks
         until the sensors see them again."""
         try:
-            near = self.archive.held_around(coords)
+            near = self.archive.held(coords, around=True)
             self.archive.prune(near, in_memory, self.voxel_size_m)
             self.pruned_keys |= near  # the next update shows what is left of them
             self.archive.add(meshes, in_memory, self.voxel_size_m)

@@ -78,20 +78,16 @@ class MeshArchive:
         """The archived meshes of those of these blocks that have one."""
         return self.chunks.select(packed_keys(_as_coords(keys)))
 
-    def held(self, keys: Iterable[BlockKey] | np.ndarray) -> set[BlockKey]:
-        """Those of these blocks (keys, or B x 3 coordinates) that have an archived mesh."""
-        coords = _as_coords(keys)
+    def held(self, keys: Iterable[BlockKey] | np.ndarray, *, around: bool = False) -> set[BlockKey]:
+        """Those of these blocks (keys, or B x 3 coordinates), and with `around` of their 26 neighbours
+        too, that have an archived mesh (with nothing archived, no bound reached: found at once)."""
+        if not len(self.chunks):
+            return set()
+        coords = blocks_around(_as_coords(keys)) if around else _as_coords(keys)
         hits = np.zeros(len(coords), bool)
         for _, found, _ in self.chunks.find(packed_keys(coords)):
             hits |= found
         return set(map(tuple, coords[hits].tolist()))
-
-    def held_around(self, coords: np.ndarray) -> set[BlockKey]:
-        """Those of these blocks (B x 3 coordinates) and of their 26 neighbours that have an archived
-        mesh; with nothing archived (no bound reached), found without looking at the neighbours."""
-        if not len(self.chunks):
-            return set()
-        return self.held(blocks_around(coords))
 
     def meshes(self) -> BlockMeshes:
         """Every archived block mesh (read-only)."""

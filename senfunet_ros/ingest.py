@@ -238,7 +238,8 @@ class _Pending:
 
 @dataclass(frozen=True)
 class _Undecoded:
-    """An image on time, to decode outside Ingest's lock (`_decode`), then `_SensorInput.put`."""
+    """An image on time, to decode outside Ingest's lock (`_decode`), then queue (`_SensorInput.enqueue`
+    or `take_color`)."""
 
     sensor: str
     stream: str  # "depth" or "color"
@@ -315,7 +316,7 @@ class _SensorInput:
 
     def set_camera_info(self, name: str, msg: Any, config: IngestConfig) -> tuple[str | None, list[_Undecoded]]:
         """Cache K and the image size of sensor `name`. Returns the drop reason (or None when it was
-        cached) and the depth images that waited for it, to decode outside Ingest's lock and `put`."""
+        cached) and the depth images that waited for it, to decode outside Ingest's lock and queue."""
         try:
             self.camera_info = conv.intrinsics_from_camera_info(msg)
             self.counters.distorted = bool(np.any(np.asarray(getattr(msg, "d", ()), np.float64) != 0))
@@ -331,7 +332,7 @@ class _SensorInput:
                ) -> str | _Undecoded | None:
         """Take a message of sensor `name` whose stamp is on time: a pose (4x4) is stored, a depth image
         ((msg, arrival time)) before the sensor's first camera_info waits for it; an image to decode is
-        returned (`_Undecoded`: the caller decodes it outside Ingest's lock, then `put`s it). Returns
+        returned (`_Undecoded`: the caller decodes it outside Ingest's lock, then Ingest queues it). Returns
         the drop reason (counted), or what to decode, or None."""
         if stream == "pose":
             conflict = self.poses.add(stamp_ns, message, keep=config.pose_buffer_size)
@@ -351,13 +352,6 @@ class _SensorInput:
         """The voxel size to check a depth image's pixel spacing against, or 0 once a frame was checked
         (a median per frame would cost every frame; the first frames tell)."""
         return 0.0 if self.spacing_checked else config.voxel_size_m
-
-    def put(self, image: _Undecoded, decoded: Any, config: IngestConfig) -> str | None:
-        """An image `accept` returned, decoded (`_decode`): queued (depth) or buffered (colour) unless
-        its decoding failed or what it was meant for was cleared meanwhile. Returns the drop reason."""
-        if image.stream == "depth":
-            return self.enqueue(decoded, config, cleared=image.cleared)
-        return self.take_color(image.stamp_ns, decoded, cleared=image.cleared)
 
     def enqueue(self, decoded: _Pending | tuple[str, str], config: IngestConfig, *, cleared: int) -> str | None:
         """Queue a decoded depth image (`_decode_depth`), in stamp order, unless its decoding failed or
@@ -704,8 +698,10 @@ class Ingest:
             return None if isinstance(taken, _Undecoded) else taken
         # other streams' messages and the integration go on meanwhile
         decoded = [_decode(image) for image in images]
-        with self._lock:
-            reasons = [self._sensors[image.sensor].put(image, result, self.config)
+        with self._lock:  # queued (depth) or buffered (colour) unless decoding failed or what it was for was cleared
+            reasons = [self._sensors[image.sensor].enqueue(result, self.config, cleared=image.cleared)
+                       if image.stream == "depth" else
+                       self._sensors[image.sensor].take_color(image.stamp_ns, result, cleared=image.cleared)
                        for image, result in zip(images, decoded)]
         return reasons[-1] if isinstance(taken, _Undecoded) else taken
 

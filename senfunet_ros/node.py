@@ -61,14 +61,13 @@ from senfunet_ros.ingest import Frame, Ingest, TimeJump
 from senfunet_ros.map_services import MapServices
 from senfunet_ros.mesh_publisher import MeshPublisher, MeshWorker, mesh_period_s
 from senfunet_ros.pipeline import Pipeline, Stream, TimeJumpAction
-from senfunet_ros.status import StatusReport, ThrottledWarnings, counter_warnings
+from senfunet_ros.status import CounterWarnings, StatusReport, ThrottledWarnings
 
 __all__ = ["FusionNode", "main"]
 
 _WARN_PERIOD_S = 5.0  # one warning per cause per this many seconds
 # drops a restart of time causes (flushed queues, messages of the old timeline in flight and of the new one
 # before it is confirmed): counted, and told by the restart's line rather than warned per stream
-_RESTART_DROPS = ("time_jump", "bad_stamp")
 _INTEGRATE_SLICE_S = 0.5  # an integration tick returns after this long, so the executor stays responsive
 
 # Best effort + volatile subscriptions match both reliable and best-effort publishers (and
@@ -305,9 +304,7 @@ class FusionNode(Node):
                                  log=lambda level, text: getattr(logger, level)(text),
                                  on_integrated=self._integrated, on_new_map=self.camera_colors.clear)
         self.ingest = self.pipeline.ingest
-        self._last_counters = self.ingest.ledger.counters()
-        self._time_jumps_seen, self._time_jump_at_s = 0, -float("inf")  # the latest restart the warnings saw
-        self._drops_held_since: dict[tuple[str, ...], float] = {}  # drops held while a restart may be under way
+        self._counter_warnings = CounterWarnings(self.ingest, hold_s=_WARN_PERIOD_S)
         # 3. subscriptions: they only enqueue; the status reports their health
         self._subscriptions_keep, self.health = subscribe(self, s, callback=self._guard)
         # under use_sim_time, /clock going back is a restart: followed as use_sim_time is set, at start or later
@@ -475,36 +472,10 @@ class FusionNode(Node):
             self.pipeline.drain(ready())
             for level, line in self.pipeline.stream_ends():
                 getattr(self.get_logger(), level)(line)
-            self._say_counter_changes()
+            for key, message in self._counter_warnings.since_last(self.settings, self._topics):
+                self._warn(key, message)
         except Exception as err:  # never let the timer die
             self._warn(("integrate_tick",), f"integration step failed: {err!r}")
-
-    def _say_counter_changes(self) -> None:
-        """Warn of what Ingest's counters show since the last integration tick. A restart of time's own
-        line tells of the messages it cost (a looping bag: every pass), so those drops are not warned
-        per stream for a warning period after it; while a restart may be under way, they wait, at most
-        a warning period (a driver whose stamps are always off keeps a restart pending: its drops are
-        warned all the same)."""
-        # asked before and after the counters are read: drops they hold may come from candidates of a new
-        # timeline that appeared, or were confirmed as a restart (time_jumps), between the two reads
-        pending = self.ingest.restart_pending()
-        counters = self.ingest.ledger.counters()
-        pending = pending or self.ingest.restart_pending()
-        now_s = time.monotonic()
-        jumps = sum(c["time_jumps"] for c in counters.values())  # read with the drops it caused
-        if jumps != self._time_jumps_seen:
-            self._time_jumps_seen, self._time_jump_at_s = jumps, now_s
-        restarting = now_s - self._time_jump_at_s < _WARN_PERIOD_S
-        for key, message in counter_warnings(self._last_counters, counters, self.settings, self._topics):
-            if key[-1] in _RESTART_DROPS and not restarting and pending:
-                if now_s - self._drops_held_since.setdefault(key, now_s) < _WARN_PERIOD_S:
-                    sensor, reason = key  # compared again next time
-                    counters[sensor]["dropped"][reason] = self._last_counters[sensor]["dropped"][reason]
-                    continue
-            self._drops_held_since.pop(key, None)
-            if not (key[-1] in _RESTART_DROPS and restarting):
-                self._warn(key, message)
-        self._last_counters = counters
 
     def _integrated(self, frame: Frame, seconds: float) -> None:
         self.timings["integrate"].add(seconds)

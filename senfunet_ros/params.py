@@ -123,7 +123,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "camera colour was seen)", choices=("weighting", "camera"), runtime=True),
     _rate("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
-          "instructions, else float32) | float32 | bfloat16", choices=("auto", "float32", "bfloat16")),
+          "instructions, else int8 where torch has oneDNN's int8 convolutions, else float32) | float32 | bfloat16 | "
+          "int8 (needs the weights' calibration, see README)", choices=("auto", "float32", "bfloat16", "int8")),
     Param("feature_precision", "float32", "feature-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
           "instructions, else float32) | float32 | bfloat16", choices=("auto", "float32", "bfloat16")),
     _rate("status_rate_hz", 1.0, "rate of /diagnostics and ~/status"),
@@ -530,7 +531,7 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
         device=device,
         alpha_voxels="surface",  # the exact fused mesh for the least weighting-net work
         alpha_threads=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1,
-        alpha_dtype=alpha_dtype(s.alpha_precision, device),
+        alpha_dtype=alpha_dtype(s.alpha_precision, device, int8=True),
         alpha_order=s.alpha_order,
         feature_dtype=alpha_dtype(s.feature_precision, device),
         tsdf_fusion=s.tsdf_fusion,
@@ -549,16 +550,23 @@ def configure_engine(engine: Any, settings: Settings) -> None:
                                         depth_max_m=tuple(sensor.depth_max_m for sensor in settings.sensors))
 
 
-def alpha_dtype(precision: str, device: str) -> str:
+def alpha_dtype(precision: str, device: str, *, int8: bool = False) -> str:
     """The engine's alpha_dtype (or feature_dtype) for parameter alpha_precision (feature_precision):
-    'auto' picks bfloat16 on CPUs with native bfloat16 (oneDNN's check), float32 elsewhere (and on
+    'auto' picks bfloat16 on CPUs with native bfloat16 (oneDNN's check); elsewhere on the CPU int8
+    where `int8` (the weighting net) and torch has working int8 convolutions; float32 else (and on
     CUDA, where it is cheap anyway)."""
     if precision != "auto":
         return precision
     import torch
 
     native = device == "cpu" and torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
-    return "bfloat16" if native else "float32"
+    if native:
+        return "bfloat16"
+    if int8 and device == "cpu":
+        from senfunet_core.weighting_int8 import int8_available
+
+        return "int8" if int8_available() else "float32"
+    return "float32"
 
 
 def engine_weights(settings: Settings) -> str | None:

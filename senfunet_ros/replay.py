@@ -28,11 +28,12 @@ from senfunet_ros.params import engine_config, engine_weights, ingest_config
 from senfunet_ros.bagio import (BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype,
                                 open_bag)
 from senfunet_ros.conversions import PoseType
-from senfunet_ros.ingest import Ingest
+from senfunet_ros.ingest import Frame, Ingest
 from senfunet_ros.params_file import load_settings
 from senfunet_ros.pipeline import FILE_MODE, MESH_FILES, Pipeline, Stream
 
 __all__ = [
+    "bag_frames",
     "ingest_config",
     "engine_config",
     "Route",
@@ -498,3 +499,21 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, tuple):
         return list(value)
     return str(value)
+
+
+def bag_frames(bag: str | Path, limit: int | None = None) -> list[Frame]:
+    """The bag's depth frames as the node's Ingest makes them (`senfunet_ros.ingest.Frame`: pose at
+    the stamp, colour matched), in the order Ingest releases them; at most `limit`."""
+    settings = load_settings(None)
+    frames: list[Frame] = []
+    with open_bag(bag) as reader:
+        router = TopicRouter(settings, reader.topics, bag)
+        ingest = Ingest(ingest_config(settings))
+        for msg in reader.messages(router.topics):
+            decoded = router.decode(msg)
+            if decoded is not None:
+                router.dispatch(ingest, *decoded)
+                frames += [f for f in ingest.pop_ready() if isinstance(f, Frame)]
+            if limit is not None and len(frames) >= limit:
+                break
+    return frames[:limit]

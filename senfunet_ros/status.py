@@ -19,8 +19,11 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
 from senfunet_ros.health import HealthMonitor
-from senfunet_ros.ingest import DROP_REASONS
+from senfunet_ros.ingest import DROP_REASONS, Ingest
 from senfunet_ros.pipeline import Pipeline
+
+# drops a restart of time causes itself (`CounterWarnings`)
+_RESTART_DROPS = ("time_jump", "bad_stamp")
 
 ENGINE_STATS_PERIOD_S = 5.0  # engine.stats() takes the engine's locks and sums the grid: at most this often
 
@@ -104,6 +107,47 @@ def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str,
                         f"max_lag_s behind the newest are set aside ({counters['set_aside_now']} now, "
                         f"{counters['set_aside']} so far) and integrated once the sensors pause"))
     return out
+
+
+class CounterWarnings:
+    """The warnings Ingest's counters call for since the last call (`counter_warnings`), with a restart
+    of time in mind: a restart tells of the messages it cost itself (a looping bag: every pass), so
+    those drops are not warned per stream for `hold_s` after it; while a restart may be under way
+    they wait, at most `hold_s` (a driver whose stamps are always off keeps a restart pending: its
+    drops are warned all the same). Called from one thread (the node's integration tick)."""
+
+    def __init__(self, ingest: Ingest, *, hold_s: float) -> None:
+        self._ingest = ingest
+        self._hold_s = hold_s
+        self._last = ingest.ledger.counters()
+        self._time_jumps_seen, self._time_jump_at_s = 0, -float("inf")  # the latest restart seen
+        self._held_since: dict[tuple[str, ...], float] = {}  # drops held while a restart may be under way
+
+    def since_last(self, settings: P.Settings, resolved: dict[str, dict[str, str]] | None = None
+                   ) -> list[tuple[tuple[str, ...], str]]:
+        """(key, message) of each warning due now (`counter_warnings`' arguments)."""
+        # asked before and after the counters are read: drops they hold may come from candidates of a new
+        # timeline that appeared, or were confirmed as a restart (time_jumps), between the two reads
+        pending = self._ingest.restart_pending()
+        counters = self._ingest.ledger.counters()
+        pending = pending or self._ingest.restart_pending()
+        now_s = time.monotonic()
+        jumps = sum(c["time_jumps"] for c in counters.values())  # read with the drops it caused
+        if jumps != self._time_jumps_seen:
+            self._time_jumps_seen, self._time_jump_at_s = jumps, now_s
+        restarting = now_s - self._time_jump_at_s < self._hold_s
+        due = []
+        for key, message in counter_warnings(self._last, counters, settings, resolved):
+            if key[-1] in _RESTART_DROPS and not restarting and pending:
+                if now_s - self._held_since.setdefault(key, now_s) < self._hold_s:
+                    sensor, reason = key  # compared again next time
+                    counters[sensor]["dropped"][reason] = self._last[sensor]["dropped"][reason]
+                    continue
+            self._held_since.pop(key, None)
+            if not (key[-1] in _RESTART_DROPS and restarting):
+                due.append((key, message))
+        self._last = counters
+        return due
 
 
 class ThrottledWarnings:

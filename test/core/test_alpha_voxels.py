@@ -118,10 +118,10 @@ def test_packed_rows_read_as_words_give_the_windows_of_the_rows_read_byte_by_byt
     inputs = engine.alpha.evaluator.inputs()
     features_1, weight_1, features_2, weight_2, tsdf_1, tsdf_2, tsdf_scale = inputs
     assert packed_words(features_1, len(weight_1)).dtype == np.uint32  # the engine's packing is read as words
-    for dtype in (np.float32, np.uint16):
-        by_words = weighting_windows(nb, *inputs, out=np.empty(nb.shape[0] * 12**3 * 14, dtype))
-        by_bytes = np.full(by_words.size, 12345, dtype)
+    for dtype in (np.float32, np.uint16, np.uint8):
+        by_words = weighting_windows(nb, *inputs, out=np.empty(nb.shape[0] * 12**3 * 14, dtype), depth_max_m=5.0)
+        by_bytes = np.full(by_words.size, 123, dtype)
         alpha._fill_windows(by_bytes, nb, features_1, weight_1, features_2, weight_2, tsdf_1, tsdf_2,
-                            *alpha._window_tables(np.dtype(dtype), tsdf_scale))
+                            *alpha._window_tables(np.dtype(dtype), tsdf_scale, 5, True, 5.0))
         assert (by_words != 0).mean() > 0.1
         np.testing.assert_array_equal(by_bytes.reshape(by_words.shape), by_words)

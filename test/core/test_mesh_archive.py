@@ -116,8 +116,8 @@ def test_archive_reads_equal_the_rule_over_the_whole_archive(tmp_path):
         assert_same(visible[key], expected[key])
     coords = rng.integers(-10, 10, (20, 3))
     around = {tuple((c + np.array(d) - 1).tolist()) for c in coords for d in np.ndindex(3, 3, 3)}
-    assert archive.held(blocks_around(coords)) == archive.held_around(coords) == around & set(every.as_dict())
-    assert not MeshArchive().held_around(coords)
+    assert archive.held(blocks_around(coords)) == archive.held(coords, around=True) == around & set(every.as_dict())
+    assert not MeshArchive().held(coords, around=True)
     live = BlockMeshes.from_meshes(random_batch(rng, 50, key_range=10))
     joined = union(live, every).as_dict()
     live_d, every_d = live.as_dict(), every.as_dict()
