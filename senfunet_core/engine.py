@@ -82,7 +82,7 @@ from .mesher import BlockMeshes, Mesh, StreamingWeld
 from .spill import BlockSpill
 from .stage_times import StageTimes
 from .update_lock import UpdateLock
-from .weighting_int8 import Int8WeightingNet, input_ranges, int8_available, load_calibration
+from .weighting_int8 import Int8Calibration, Int8WeightingNet, input_ranges, int8_available, load_calibration
 
 _MIN_MESH_BLOCKS = 64  # blocks an update with a meshing budget re-meshes at least (and measures its time per block on)
 _FIRST_MESH_BLOCKS = 256  # ... at most, before any time per block was measured
@@ -314,7 +314,7 @@ class SenFuNet:
                                     voxel_size_m=config.voxel_size_m, device=self.device,
                                     batch_blocks=config.alpha_batch_blocks, threads=config.alpha_threads,
                                     alpha_order=config.alpha_order, worker_setup=worker_setup,
-                                    int8_net=int8_weighting(self.weighting_net, weights, config))
+                                    int8_net=int8_weighting(self.weighting_net, config, weights=weights))
         self.mesher = BlockMesher(self.store, sensors=config.sensors, voxel_size_m=config.voxel_size_m,
                                   mesh_batch_blocks=config.mesh_batch_blocks, times=self.times)
         self.bound = MapBound(self.store, self.alpha, self.mesher, self.data_lock, max_blocks=self.max_blocks,
@@ -674,14 +674,17 @@ def mesh_share(due: np.ndarray, n_blocks: int, readers: np.ndarray, *, mesh_roun
     return np.sort(chosen), len(rest)
 
 
-def int8_weighting(net: networks.WeightingNet, weights: str | Path | None, config: EngineConfig
-                   ) -> Int8WeightingNet | None:
-    """G in int8 for config.alpha_dtype "int8" on the CPU, or None (float32) with a warning that says
-    why when it cannot be: no calibration for these weights, or no int8 convolutions in this torch."""
+def int8_weighting(net: networks.WeightingNet, config: EngineConfig, *, weights: str | Path | None = None,
+                   calibration: Int8Calibration | None = None) -> Int8WeightingNet | None:
+    """G in int8 for config.alpha_dtype "int8" on the CPU, with this calibration or else the weights
+    file's, or None (float32) with a warning that says why when it cannot be: no calibration, or no
+    int8 convolutions in this torch."""
     if config.alpha_dtype != "int8":
         return None
-    calibration, why = (None, "untrained weights have no int8 calibration") if weights is None else (
-        load_calibration(weights))
+    why = ""
+    if calibration is None:
+        calibration, why = (None, "untrained weights have no int8 calibration") if weights is None else (
+            load_calibration(weights))
     if calibration is not None and not int8_available():
         calibration, why = None, "this torch or CPU has no working oneDNN int8 convolutions"
     if calibration is None or networks.choose_device(config.device, cpu_fallback=False).device.type != "cpu":

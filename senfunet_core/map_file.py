@@ -17,12 +17,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from .engine import EngineConfig, SenFuNet
+from .engine import EngineConfig, SenFuNet, int8_weighting
 from .errors import InputError
 from .files import atomic_file
 from .grid import BlockGrid, block_keys, decode_saved_features, encode_alpha, encode_features, keys_to_coords
 from .integrator import REACH_ALL
 from .spill import BlockSpill, spilled_rows
+from .weighting_int8 import Int8Calibration
 
 __all__ = ["save_map", "load_map"]
 
@@ -48,6 +49,8 @@ def save_map(engine: SenFuNet, path: str | Path) -> None:
                 "evictions": {**engine.bound.tallies(),
                               "restored_blocks": engine.grid.spill.restored if engine.grid.spill is not None else 0},
             }
+            if engine.alpha.evaluator.int8_net is not None:  # its calibration goes with G's weights
+                state["int8_calibration"] = asdict(engine.alpha.evaluator.int8_net.calibration)
             if engine.grid.spill is not None:
                 state["spill"] = {k: torch.from_numpy(v) for k, v in engine.grid.spill.state_dict().items()}
     with atomic_file(path) as file:
@@ -103,10 +106,17 @@ def load_map(path: str | Path, device: str | None = None, *,
         config = replace(config, device=device)
     if max_blocks is not None:
         config = replace(config, max_blocks=max_blocks)
-    engine = SenFuNet(config, weights=None, worker_setup=worker_setup)
+    # G's int8 form is built once its weights are loaded, from the calibration saved with them
+    engine = SenFuNet(replace(config, alpha_dtype="float32") if config.alpha_dtype == "int8" else config,
+                      weights=None, worker_setup=worker_setup)
     for net, net_state in zip(engine.feature_nets, state["feature_nets"]):
         net.load_state_dict(net_state)
     engine.weighting_net.load_state_dict(state["weighting_net"])
+    if config.alpha_dtype == "int8":
+        saved = state.get("int8_calibration")
+        engine.alpha.evaluator.int8_net = int8_weighting(engine.weighting_net, config, calibration=(
+            Int8Calibration(**saved) if isinstance(saved, dict) else None))
+        engine.config = replace(engine.config, alpha_dtype="int8")
     engine.weights_source = f"{path} (saved state)"
     grid_state, spill_loads = _grid_state_for(engine.grid, path, state)
     _load_grid_state(engine.grid, grid_state)

@@ -1,7 +1,7 @@
 """The weighting net G in 8-bit integer arithmetic (oneDNN's int8 convolutions), for the live node.
 
 G's two 3x3x3 convolutions take most of its time; on a CPU without bfloat16 units their int8
-form runs about twice as fast as float32 (`bench/engine.py` measures it). What is quantized:
+form runs faster than float32 (`bench/engine.py` measures G both ways). What is quantized:
 - the weights: per output channel, symmetric, 8 bits;
 - G's input: per channel its value range mapped to -1..1 (folded into the first layer's weights and
   bias), then 8 bits with one step 1/127, written so by the windows' kernel (`alpha.weighting_windows`);
@@ -33,8 +33,8 @@ from .alpha import window_value_ranges
 from .grid import INT8_STEP, INT8_ZERO
 from .networks import N_FEATURES, WeightingNet
 
+# torch warns of its quantized tensors' deprecation on first use; the pinned torch has them (`int8_available`)
 warnings.filterwarnings("ignore", message=r".*quantize_per_tensor.*deprecated", category=UserWarning)
-
 
 
 @dataclass(frozen=True)
@@ -104,6 +104,7 @@ class Int8WeightingNet:
         import torch.ao.nn.intrinsic.quantized as nniq
 
         torch.backends.quantized.engine = "onednn"
+        self.calibration = calibration
         self.depth_max_m = float(ranges[N_FEATURES - 1, 1])  # what the windows' depth codes span
         low, high = torch.from_numpy(ranges[:, 0]).float(), torch.from_numpy(ranges[:, 1]).float()
         self._centre = (0.5 * (low + high)).view(1, -1, 1, 1, 1)

@@ -98,3 +98,18 @@ def test_the_node_picks_int8_for_the_weighting_net_alone_where_the_cpu_has_no_bf
     assert alpha_dtype("auto", "cpu") == ("bfloat16" if native else "float32")  # the feature nets: never int8
     assert alpha_dtype("float32", "cpu", int8=True) == "float32"
     assert alpha_dtype("auto", "cuda", int8=True) == "float32"
+
+
+@needs_int8
+def test_a_saved_map_keeps_g_in_int8_with_its_calibration(sample_engine, tmp_path, caplog):
+    """A map's weights have no calibration file beside them: the map carries it."""
+    from senfunet_core.map_file import load_map, save_map
+
+    save_map(sample_engine, tmp_path / "map.pt")
+    with caplog.at_level(logging.WARNING, logger="senfunet"):
+        loaded = load_map(tmp_path / "map.pt")
+    assert loaded.config.alpha_dtype == "int8" and "float32" not in caplog.text
+    assert loaded.alpha.evaluator.int8_net.calibration == sample_engine.alpha.evaluator.int8_net.calibration
+    x = next(surface_windows(loaded.alpha.evaluator))
+    with torch.inference_mode():
+        torch.testing.assert_close(loaded.alpha.evaluator.int8_net(x), sample_engine.alpha.evaluator.int8_net(x))
