@@ -78,7 +78,7 @@ class AlphaEvaluator:
             return AlphaBatch(slots, holds, voxels, self._as_stored(alpha), flops)
         slots_holding = slots[holds]
         if self.device.type == "cpu":  # the inputs written in the net's dtype, to this thread's buffer
-            bfloat16 = self.dtype == torch.bfloat16 and self.int8_net is None
+            bfloat16 = self.dtype == torch.bfloat16
             stored = np.uint8 if self.int8_net is not None else np.uint16 if bfloat16 else np.float32
             windows = weighting_windows(neighbours[holds], *self.inputs(), out=self._scratch.array(
                 "windows", len(slots_holding) * WINDOW**3 * self.net.conv1.in_channels, stored),
