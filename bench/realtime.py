@@ -196,7 +196,10 @@ def run_node_case(args: argparse.Namespace) -> dict:
             "publishing": timings["publish"],
         },
         "mesh_updates": len(updates),
-        "update_interval_s": {"median": float(np.median(intervals)), "max": float(np.max(intervals))},
+        "update_interval_s": {"median": float(np.median(intervals)), "max": float(np.max(intervals)),
+                              # where the longest gap ended, in seconds after the stream (negative: during it)
+                              "max_ends_s": (float(updates[int(np.argmax(intervals)) + 1][0] - stream_end)
+                                             if len(updates) > 1 else float("nan"))},
         "latency_s": median_max(latencies),
         "latency_set_aside_s": median_max(late),
         "alpha_blocks": alpha_counters["alpha_blocks"],
@@ -452,7 +455,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
     row("process CPU time per frame, all threads (ms)",
         lambda r: f"{1e3 * r['process_cpu_s'] / max(r['frames_integrated'], 1):.1f}")
     row("mesh updates; interval median / max (s)", lambda r: f"{r['mesh_updates']}; "
-        f"{r['update_interval_s']['median']:.2f} / {r['update_interval_s']['max']:.2f}")
+        f"{r['update_interval_s']['median']:.2f} / {r['update_interval_s']['max']:.2f} (ending "
+        f"{r['update_interval_s'].get('max_ends_s', float('nan')):+.1f} s after the stream)")
     row("frame-to-mesh latency over frames not set aside, median / max (s)",
         lambda r: f"{r['latency_s']['median']:.2f} / {r['latency_s']['max']:.2f}")
     row("... over the frames set aside, median / max (s)", lambda r: "-" if not r["frames_set_aside"]
