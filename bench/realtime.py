@@ -178,7 +178,7 @@ def run_node_case(args: argparse.Namespace) -> dict:
     caught_up_s = caught_up_after(engine, settled, stream_end, timeout_s=_CATCH_UP_TIMEOUT_S)
     result = {
         "case": args.case, "mode": args.mode, "bag_seconds": bag_s, "wall_seconds": wall_s,
-        "alpha_arithmetic": "int8" if engine.alpha.evaluator.int8_net is not None else engine.config.alpha_dtype,
+        "alpha_arithmetic": stats["alpha_arithmetic"],
         "frames_sent": frames_sent, "frames_integrated": frames, "dropped": dropped,
         "frames_set_aside": sum(c["set_aside"] for c in counters.values()),
         "ingest_fps": frames / wall_s, "peak_queue_frames": peak_queue, "process_cpu_s": cpu_s,
@@ -454,9 +454,12 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
         lambda r: f"{1e3 * sum(r['stage_s'].values()) / max(r['frames_integrated'], 1):.1f}")
     row("process CPU time per frame, all threads (ms)",
         lambda r: f"{1e3 * r['process_cpu_s'] / max(r['frames_integrated'], 1):.1f}")
+    def gap_end(seconds: float) -> str:
+        return f"{abs(seconds):.1f} s {'after' if seconds >= 0 else 'before'} the stream's end"
+
     row("mesh updates; interval median / max (s)", lambda r: f"{r['mesh_updates']}; "
         f"{r['update_interval_s']['median']:.2f} / {r['update_interval_s']['max']:.2f} (ending "
-        f"{r['update_interval_s'].get('max_ends_s', float('nan')):+.1f} s after the stream)")
+        f"{gap_end(r['update_interval_s'].get('max_ends_s', float('nan')))})")
     row("frame-to-mesh latency over frames not set aside, median / max (s)",
         lambda r: f"{r['latency_s']['median']:.2f} / {r['latency_s']['max']:.2f}")
     row("... over the frames set aside, median / max (s)", lambda r: "-" if not r["frames_set_aside"]

@@ -578,6 +578,9 @@ class SenFuNet:
         return {"blocks": self.grid.n_blocks, "observed_voxels": observed, "grid_bytes": nbytes,
                 "bytes_per_observed_voxel": nbytes / max(observed, 1),
                 "frames_integrated": dict(self.frames_integrated),
+                # what G computes in (int8 asked for but unavailable runs float32)
+                "alpha_arithmetic": ("int8" if self.alpha.evaluator.int8_net is not None
+                                     else self.config.alpha_dtype.replace("int8", "float32")),
                 "max_blocks": self.max_blocks, "evicted_blocks": self.bound.evicted_blocks,
                 "evicted_in_view_blocks": self.bound.evicted_in_view,
                 "sparse_dropped_samples": self.counters["sparse_dropped_samples"],

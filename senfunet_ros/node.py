@@ -66,8 +66,6 @@ from senfunet_ros.status import CounterWarnings, StatusReport, ThrottledWarnings
 __all__ = ["FusionNode", "main"]
 
 _WARN_PERIOD_S = 5.0  # one warning per cause per this many seconds
-# drops a restart of time causes (flushed queues, messages of the old timeline in flight and of the new one
-# before it is confirmed): counted, and told by the restart's line rather than warned per stream
 _INTEGRATE_SLICE_S = 0.5  # an integration tick returns after this long, so the executor stays responsive
 
 # Best effort + volatile subscriptions match both reliable and best-effort publishers (and

@@ -22,7 +22,8 @@ from senfunet_ros.health import HealthMonitor
 from senfunet_ros.ingest import DROP_REASONS, Ingest
 from senfunet_ros.pipeline import Pipeline
 
-# drops a restart of time causes itself (`CounterWarnings`)
+# drops a restart of time causes (flushed queues, messages of the old timeline in flight and of the new one
+# before it is confirmed): counted, and told by the restart's line rather than warned per stream (`CounterWarnings`)
 _RESTART_DROPS = ("time_jump", "bad_stamp")
 
 ENGINE_STATS_PERIOD_S = 5.0  # engine.stats() takes the engine's locks and sums the grid: at most this often

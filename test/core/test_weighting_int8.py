@@ -60,7 +60,7 @@ def test_8_bit_windows_are_the_float_windows_coded(sample_engine):
 def test_int8_alpha_is_close_to_float32_on_the_shipped_model(sample_engine):
     """On the sample's first frames, G in int8 against float32 on every block alpha matters for."""
     engine = sample_engine
-    assert engine.alpha.evaluator.int8_net is not None
+    assert engine.alpha.evaluator.int8_net is not None and engine.stats()["alpha_arithmetic"] == "int8"
     diffs = []
     with torch.inference_mode():
         for x in surface_windows(engine.alpha.evaluator):
@@ -76,7 +76,8 @@ def test_int8_without_a_calibration_runs_float32_and_says_why(tmp_path, caplog):
     shutil.copy(NAMED_WEIGHTS["default"], weights)
     config = EngineConfig(alpha_dtype="int8", max_blocks=0)
     with caplog.at_level(logging.WARNING, logger="senfunet"):
-        assert SenFuNet(config, weights=weights).alpha.evaluator.int8_net is None
+        engine = SenFuNet(config, weights=weights)
+    assert engine.alpha.evaluator.int8_net is None and engine.stats()["alpha_arithmetic"] == "float32"
     assert "no int8 calibration mine.int8.json" in caplog.text and "runs in float32" in caplog.text
     # a calibration of other weights is refused too
     shutil.copy(calibration_path(NAMED_WEIGHTS["paper"]), calibration_path(weights))
