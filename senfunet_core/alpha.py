@@ -59,12 +59,17 @@ def window_channels(features_1: np.ndarray, weight_1: np.ndarray, tsdf_1: np.nda
     return 2 * (features_per_voxel(features_1, weight_1.shape[0]) + 1) + (2 if tsdf_1.shape[0] > 0 else 0)
 
 
+# the ranges the windows' values lie in, by kind (what 8-bit windows code, `grid.as_stored`)
+_LEARNED_RANGE = (-1.0, 1.0)
+_TANH_RANGE = (0.0, 1.0)
+_TSDF_RANGE = (-1.0, 1.0)  # scaled by 2 / band
+
+
 def window_value_ranges(n_features: int, *, with_tsdf: bool, depth_max_m: float) -> np.ndarray:
     """Per channel of the windows (`weighting_windows`' order), the range its values lie in (C x 2):
-    learned features -1..1, depth 0..depth_max_m, tanh(weight) 0..1, the scaled TSDFs -1..1 (what
-    8-bit windows code, `grid.as_stored`)."""
-    per_sensor = [(-1.0, 1.0)] * (n_features - 1) + [(0.0, depth_max_m), (0.0, 1.0)]
-    return np.array(per_sensor * 2 + [(-1.0, 1.0)] * (2 if with_tsdf else 0), np.float64)
+    learned features -1..1, depth 0..depth_max_m, tanh(weight) 0..1, the scaled TSDFs -1..1."""
+    per_sensor = [_LEARNED_RANGE] * (n_features - 1) + [(0.0, depth_max_m), _TANH_RANGE]
+    return np.array(per_sensor * 2 + [_TSDF_RANGE] * (2 if with_tsdf else 0), np.float64)
 
 
 def weighting_windows(neighbours: np.ndarray, features_1: np.ndarray, weight_1: np.ndarray, features_2: np.ndarray,
@@ -103,9 +108,9 @@ def _window_tables(dtype: np.dtype, tsdf_scale: float, n_features: int, with_tsd
         tsdf = F16_VALUES * np.float32(tsdf_scale)
     ranges = window_value_ranges(n_features, with_tsdf=with_tsdf, depth_max_m=depth_max_m)
     absent = np.concatenate([as_stored(np.zeros(1), dtype, value_range=tuple(r)) for r in ranges])
-    return (*feature_code_tables(dtype, depth_range_m=tuple(ranges[n_features - 1])),
-            as_stored(TANH_OF_COUNT[counts.astype(np.int64)], dtype, value_range=tuple(ranges[n_features])),
-            as_stored(tsdf, dtype), absent)
+    return (*feature_code_tables(dtype, depth_range_m=(0.0, depth_max_m)),
+            as_stored(TANH_OF_COUNT[counts.astype(np.int64)], dtype, value_range=_TANH_RANGE),
+            as_stored(tsdf, dtype, value_range=_TSDF_RANGE), absent)
 
 
 @numba.njit(cache=True, nogil=True)
