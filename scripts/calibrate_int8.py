@@ -13,16 +13,14 @@ import argparse
 from pathlib import Path
 
 import torch
-from tqdm import tqdm
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def main() -> None:
-    from senfunet_core.alpha_evaluator import surface_windows
-    from senfunet_core.engine import SenFuNet
+    from senfunet_core.learning.int8_calibration import calibrate_weights_file
     from senfunet_core.networks import NAMED_WEIGHTS
-    from senfunet_core.weighting_int8 import calibrate, calibration_path, file_sha256
+    from senfunet_core.weighting_int8 import calibration_path
     from senfunet_ros.params_file import load_settings
     from senfunet_ros.replay import bag_frames, engine_config
 
@@ -34,13 +32,7 @@ def main() -> None:
     frames = bag_frames(Path(args.bag))
     config = engine_config(load_settings(None), alpha_dtype="float32", max_blocks=0)
     for weights in args.weights:
-        engine = SenFuNet(config, weights=weights)
-        for frame in tqdm(frames, desc=f"fusing {Path(args.bag).name} with {Path(weights).name}", unit="frame"):
-            engine.integrate(frame.sensor, frame.depth_m, frame.K, frame.T_world_camera, frame.rgb)
-        calibration = calibrate(engine.weighting_net, surface_windows(engine.alpha.evaluator),
-                                weights_sha256=file_sha256(weights),
-                                calibrated_on=f"{Path(args.bag).name}, {len(frames)} frames")
-        calibration.save(calibration_path(weights))
+        calibration = calibrate_weights_file(weights, frames, config, source=Path(args.bag).name)
         print(f"{calibration_path(weights)}: hidden layers' largest outputs {calibration.layer_1_max:.3f}, "
               f"{calibration.layer_2_max:.3f}")
 

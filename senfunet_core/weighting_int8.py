@@ -6,8 +6,8 @@ form runs faster than float32 (`bench/engine.py` measures G both ways). What is 
 - G's input: per channel its value range mapped to -1..1 (folded into the first layer's weights and
   bias), then 8 bits with one step 1/127, written so by the windows' kernel (`alpha.weighting_windows`);
 - the two hidden layers' outputs (after the ReLU): 0 to a maximum measured once per weights file
-  on the bundled sample (`Int8Calibration`, `scripts/calibrate_int8.py`), 8 bits. A value above it
-  saturates there.
+  on the bundled sample (`Int8Calibration`; `scripts/calibrate_int8.py`, and `senfunet train` for
+  the weights it writes), 8 bits. A value above it saturates there.
 The 1x1 output layer and the sigmoid stay float32. The fused mesh stays close to float32's
 (`test_equivalence.py`); replay always runs G in float32.
 

@@ -16,15 +16,11 @@ import sys
 import time
 from pathlib import Path
 
+from . import SAMPLE_BAG, sample_bag
+
 HELP = "fuse the sample bag live: node + play over DDS, save the mesh, render a PNG of it"
 
 NODE = "senfunet"  # the node's name: its services and topics live under /senfunet/
-SAMPLE_BAG = "sim_room"
-
-
-def _default_bag() -> Path:
-    here = Path(__file__).resolve().parents[2] / "bags" / SAMPLE_BAG  # a clone (editable install)
-    return here if here.exists() else Path.cwd() / "bags" / SAMPLE_BAG
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -98,7 +94,7 @@ def _interrupt(signum: int, frame: object) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    bag = Path(args.bag) if args.bag else _default_bag()
+    bag = Path(args.bag) if args.bag else sample_bag()
     if not bag.exists():
         _say(f"bag {bag} not found; regenerate the sample with `bash scripts/make_sample_bag.sh` or pass --bag")
         return 2

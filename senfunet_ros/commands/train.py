@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 DEFAULT_OUT = "runs/tof_stereo.pt"  # runs/ is git-ignored: a training run never overwrites the shipped model by default
 HELP = "train SenFuNet on simulated two-sensor scenes (progress bar, periodic validation, best checkpoint)"
@@ -37,6 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--feature-pretrain-steps", type=int, default=None, metavar="N",
                         help="per-pixel pretraining steps of each feature net before the block phase (overrides the "
                              "config; 0 = none, the feature nets stay at their seeded initialisation)")
+    parser.add_argument("--calibration-bag", default=None, metavar="BAG",
+                        help="bag whose frames measure the trained weights' int8 calibration (<out>.int8.json, "
+                             "without which the node runs the weighting net in float32; default: the sample bag "
+                             "of this clone; '' = none)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
 
 
@@ -44,7 +49,6 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
     import json
     import time
-    from pathlib import Path
 
     from senfunet_core import networks
     from senfunet_core.errors import InputError
@@ -100,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
           f"{best.get('F', float('nan')):.2f}, {best.get('margin', float('nan')):+.2f} over the better sensor, at "
           f"frame {best.get('step')} -> {out}")
     print("seconds per stage: " + ", ".join(f"{k} {v:.0f}" for k, v in summary["timings_s"].items()))
+    calibrated = _calibrate(out, args.calibration_bag, progress=not args.no_progress)
     history = out.with_suffix(".history.json")
     record = {k: summary[k] for k in ("history", "best", "frames", "optimizer_steps", "seconds", "paused_s", "wall_s",
                                       "timings_s", "mean_terms")}
@@ -107,4 +112,36 @@ def run(args: argparse.Namespace) -> int:
         history.write_text(json.dumps(record, indent=1))
     else:
         print(json.dumps(record, indent=1))
-    return 0
+    return 0 if calibrated else 2
+
+
+def _calibrate(weights: Path, bag_arg: str | None, *, progress: bool) -> bool:
+    """The int8 calibration of the trained weights, measured on a bag's frames at the node's default
+    settings and written beside them; False (with a message saying what to do) when it cannot be."""
+    from senfunet_core.errors import InputError
+    from senfunet_core.learning.int8_calibration import calibrate_weights_file
+    from senfunet_core.weighting_int8 import calibration_path
+
+    from ..params_file import load_settings
+    from ..replay import bag_frames, engine_config
+    from . import sample_bag
+
+    if bag_arg == "":
+        print(f"senfunet train: no int8 calibration (--calibration-bag ''): the node runs the weighting net of "
+              f"{weights} in float32 until scripts/calibrate_int8.py --weights {weights} measures one")
+        return True
+    bag = Path(bag_arg) if bag_arg else sample_bag()
+    try:
+        frames = bag_frames(bag)
+        if not frames:
+            raise InputError("it holds no depth frame the node's default topics and poses give")
+        calibration = calibrate_weights_file(weights, frames, engine_config(
+            load_settings(None), alpha_dtype="float32", max_blocks=0), source=bag.name, progress=progress)
+    except (InputError, ValueError, OSError) as err:
+        _error(f"the weights are written, but their int8 calibration on {bag} failed: {err}; run "
+               f"scripts/calibrate_int8.py --weights {weights} --bag BAG with a bag of the node's topics")
+        return False
+    print(f"senfunet train: int8 calibration of the weighting net on {calibration.calibrated_on} -> "
+          f"{calibration_path(weights)} (hidden layers' largest outputs {calibration.layer_1_max:.3f}, "
+          f"{calibration.layer_2_max:.3f})")
+    return True

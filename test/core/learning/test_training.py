@@ -11,6 +11,7 @@ from senfunet_core.learning import block_phase
 from senfunet_core.learning import trainer as trainer_module
 from senfunet_core.learning import training as tr
 from senfunet_core.learning.training import load_config
+from senfunet_core.weighting_int8 import calibration_path, load_calibration
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -357,7 +358,7 @@ def test_train_command_overrides_seed_and_block_steps(tmp_path, sim_cache, monke
     config.write_text(yaml.safe_dump(values))
     out = tmp_path / "seed3.pt"
     argv = ["train", "--config", str(config), "--seed", "3", "--block-steps", "3", "--steps", "0", "--out", str(out),
-            "--no-progress"]
+            "--no-progress", "--calibration-bag", ""]
     assert cli.main(argv) == 0
     meta = torch.load(out, map_location="cpu", weights_only=True)["meta"]
     assert meta["ran"]["block_steps"] == 3 and meta["optimizer_steps"] == 3
@@ -368,7 +369,8 @@ def test_train_command_overrides_seed_and_block_steps(tmp_path, sim_cache, monke
 
     shipped = DEFAULT_WEIGHTS.read_bytes()
     monkeypatch.chdir(tmp_path)
-    assert cli.main(["train", "--config", str(config), "--block-steps", "1", "--steps", "0", "--no-progress"]) == 0
+    assert cli.main(["train", "--config", str(config), "--block-steps", "1", "--steps", "0", "--no-progress",
+                     "--calibration-bag", ""]) == 0
     assert (tmp_path / "runs" / "tof_stereo.pt").is_file() and (tmp_path / "runs" / "tof_stereo.history.json").is_file()
     assert DEFAULT_WEIGHTS.read_bytes() == shipped
 
@@ -445,6 +447,10 @@ def test_train_command_pretrains_the_feature_nets(tmp_path, sim_cache):
     argv = ["train", "--config", str(config), "--feature-pretrain-steps", "4", "--steps", "0", "--out", str(out),
             "--no-progress"]
     assert cli.main(argv) == 0
+    # the weights come with their int8 calibration, measured on the sample bag: the node runs G in int8
+    calibration, why = load_calibration(out)
+    assert calibration is not None, why
+    assert "sim_room, 140 frames" == calibration.calibrated_on and 0 < calibration.layer_1_max < 1e3
     state = torch.load(out, map_location="cpu", weights_only=True)
     pre = state["meta"]["ran"]["feature_pretrain"]
     assert pre["steps"] == 4 and set(pre) >= {"tof", "stereo"}
@@ -460,7 +466,7 @@ def test_train_command_pretrains_the_feature_nets(tmp_path, sim_cache):
     assert cli.main(["train", "--config", str(config), "--feature-pretrain-steps", "-1"]) == 2
 
 
-def test_train_command_from_init_weights_skips_the_pretraining_the_config_asks_for(tmp_path, sim_cache):
+def test_train_command_from_init_weights_skips_the_pretraining_the_config_asks_for(tmp_path, sim_cache, capsys):
     """`senfunet train --config C --init-weights W` with a config that pretrains the feature nets (as
     config/train_tof_stereo.yaml does, whose comment gives this command for the online phase): W's
     networks had that pretraining and block phase, so both are skipped, not refused."""
@@ -480,8 +486,12 @@ def test_train_command_from_init_weights_skips_the_pretraining_the_config_asks_f
     networks.save_weights(start, ("tof", "stereo"), feature_nets, g, {"config": {"val_scenes": [7]}})
     out = tmp_path / "online.pt"
     argv = ["train", "--config", str(config), "--init-weights", str(start), "--steps", "0", "--out", str(out),
-            "--no-progress"]
-    assert cli.main(argv) == 0
+            "--no-progress", "--calibration-bag", str(tmp_path / "no_such_bag")]
+    # a calibration bag that cannot be read: the weights are written all the same, the exit code says it failed
+    assert cli.main(argv) == 2
+    assert out.is_file() and not calibration_path(out).exists()
+    err = capsys.readouterr().err
+    assert "int8 calibration on" in err and "no_such_bag" in err and "scripts/calibrate_int8.py --weights" in err
     state = torch.load(out, map_location="cpu", weights_only=True)
     assert "feature_pretrain" not in state["meta"].get("ran", {})
     for net, saved in zip(feature_nets, state["feature_nets"]):
