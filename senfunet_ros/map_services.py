@@ -14,7 +14,7 @@ from typing import Any
 
 from senfunet_core.errors import InputError
 from senfunet_ros import params as P
-from senfunet_ros.mesh_publisher import MeshPublisher
+from senfunet_ros.mesh_publisher import MeshPublisher, mesh_period_s
 from senfunet_ros.pipeline import Pipeline
 
 
@@ -83,13 +83,32 @@ class MapServices:
     def _save_mesh(self) -> str:
         # the weighting net first judges what it has not reached: on a large map during a stream that is
         # many seconds, which the caller (and the services queued behind it) should not wait for unexplained
-        self.logger.info(f"~/save_mesh: judging what the weighting net has not reached yet (mesh updates wait for it), "
-                         f"then writing the meshes into {Path(self.settings().output_dir).expanduser().absolute()}")
+        self.logger.info(f"~/save_mesh: judging what the weighting net has not reached yet (in turns, mesh updates "
+                         f"between them), then writing the meshes into "
+                         f"{Path(self.settings().output_dir).expanduser().absolute()}")
+        self._judge_between_updates()
         spill = getattr(self.pipeline.engine.grid, "spill", None)
         on_disk = len(spill) if spill is not None else 0
         note = (f" (the per-sensor meshes leave out the {on_disk} blocks the map bound evicted; mesh.ply has them)"
                 if on_disk else "")
         return "wrote " + ", ".join(str(p) for p in self.save_meshes()) + note
+
+    def _judge_between_updates(self) -> None:
+        """The weighting net's catch-up before the meshes are made, in turns of half a mesh period with
+        a mesh update after each: the meshes hold the map from their own catch-up to the last triangle,
+        and the live mesh would stand still that long (a minute on a large map during a stream); they
+        now find only what changed since the last turn. Ends when nothing is left to judge, or when a
+        turn left no less than the one before (frames change the map as fast as the net judges it)."""
+        engine = self.pipeline.engine
+        period_s = mesh_period_s(self.settings().mesh_rate_hz)
+        left_before = None
+        while engine is self.pipeline.engine:  # not replaced meanwhile (~/load_map)
+            engine.refresh_alpha(0.5 * period_s)
+            left = engine.counters["alpha_backlog_blocks"]
+            if left == 0 or (left_before is not None and left >= left_before):
+                return
+            left_before = left
+            self.mesh_publisher.updates.wait_next(timeout_s=2.0 * period_s)  # none (failing, or none due): go on
 
     def _load_map(self) -> str:
         path = self.map_path()

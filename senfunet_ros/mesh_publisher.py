@@ -108,6 +108,27 @@ class MeshWorker:
         self._pool.shutdown(wait=True)
 
 
+class UpdateSignal:
+    """Mesh updates as they end, for a thread that waits for the next one (`~/save_mesh` lets them
+    come between its turns of the weighting net): `ended` from the publishing thread, `wait_next`
+    from any other."""
+
+    def __init__(self) -> None:
+        self._ended = threading.Condition()
+        self._count = 0  # updates ended so far (guarded by the condition's lock)
+
+    def ended(self) -> None:
+        with self._ended:
+            self._count += 1
+            self._ended.notify_all()
+
+    def wait_next(self, timeout_s: float) -> bool:
+        """Until an update ends after this call (True), or timeout_s passes (False)."""
+        with self._ended:
+            count = self._count
+            return self._ended.wait_for(lambda: self._count != count, timeout=timeout_s)
+
+
 class MeshPublisher:
     """The node's ~/mesh and ~/weights publishers and what the mesh timer does with them.
 
@@ -128,6 +149,7 @@ class MeshPublisher:
         self._frame_waiting = frame_waiting
         self._warn = warn
         self.lock = threading.Lock()  # one publication at a time (timer vs. reset and load_map services)
+        self.updates = UpdateSignal()  # each publication's end (one that fails: a waiter's timeout)
         self._matched = 0  # mesh readers matched so far (written by the matched event's callback only)
         try:
             self.mesh_pub = node.create_publisher(MarkerArray, "~/mesh", MESH_QOS,
@@ -229,6 +251,7 @@ class MeshPublisher:
                 t_alpha = time.perf_counter()
                 self.weighting_net_turn(idle=False, period_left_s=period_s - (t_alpha - start))
             self._timings["alpha"].add(time.perf_counter() - t_alpha)
+        self.updates.ended()
 
     @staticmethod
     def _weight_cloud(engine: Any, s: P.Settings) -> Any:

@@ -9,6 +9,7 @@ import os
 import struct
 import sys
 import threading
+import time
 import zipfile
 from pathlib import Path
 from types import SimpleNamespace
@@ -23,6 +24,7 @@ from senfunet_core.map_file import save_map  # noqa: E402
 from senfunet_ros import params as P  # noqa: E402
 from senfunet_ros.ingest import Ingest  # noqa: E402
 from senfunet_ros.map_services import MapServices  # noqa: E402
+from senfunet_ros.mesh_publisher import UpdateSignal  # noqa: E402
 from senfunet_ros.pipeline import Pipeline  # noqa: E402
 from senfunet_ros.replay import ingest_config  # noqa: E402
 from senfunet_ros.params_file import load_settings  # noqa: E402
@@ -41,7 +43,8 @@ def test_load_map_keeps_the_nodes_map_bound(tmp_path):
     integrate_views(saved, [(SPHERE_C, SPHERE_VIEWS[0])])
     save_map(saved, tmp_path / "map.pt")
     pipeline = Pipeline(SenFuNet(P.engine_config(settings), weights=None), Ingest(ingest_config(settings)))
-    services = MapServices(pipeline, lambda: settings, SimpleNamespace(lock=threading.Lock(), resend_all=lambda: None),
+    services = MapServices(pipeline, lambda: settings, SimpleNamespace(lock=threading.Lock(), resend_all=lambda: None,
+                                                                    updates=UpdateSignal()),
                            logging.getLogger("test"))
     reply = services.load_map(None, SimpleNamespace(success=None, message=None))
     assert reply.success, reply.message
@@ -66,11 +69,57 @@ def test_save_mesh_says_the_per_sensor_meshes_leave_out_evicted_blocks(tmp_path)
     integrate_views(pipeline.engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]] + far_views(2))
     pipeline.engine.update()
     assert len(pipeline.engine.grid.spill) > 0
-    services = MapServices(pipeline, lambda: settings, SimpleNamespace(lock=threading.Lock(), resend_all=lambda: None),
+    services = MapServices(pipeline, lambda: settings, SimpleNamespace(lock=threading.Lock(), resend_all=lambda: None,
+                                                                    updates=UpdateSignal()),
                            logging.getLogger("test"))
     reply = services.save_mesh(None, SimpleNamespace(success=None, message=None))
     assert reply.success and "evicted" in reply.message
     assert any(level == "warning" and "tof.ply" in text and "evicted" in text for level, text in logged)
+
+
+def test_save_mesh_lets_mesh_updates_through_while_the_net_catches_up(tmp_path):
+    """~/save_mesh on a map the weighting net has not judged yet: it judges in turns of half a mesh
+    period with a mesh update after each (before, the updates waited for the whole catch-up: a minute on
+    a large map during a stream), and writes the exact fused mesh all the same."""
+    from senfunet_core.ply import read_ply
+
+    params = tmp_path / "p.yaml"
+    params.write_text("senfunet:\n  ros__parameters:\n    weights: none\n    mesh_rate_hz: 20.0\n"
+                      f"    output_dir: {tmp_path}\n    rgb_sensors: []\n    tof:\n      depth_min_m: 0.05\n"
+                      "    stereo:\n      depth_min_m: 0.05\n")
+    settings = load_settings(params)
+    pipeline = Pipeline(SenFuNet(P.engine_config(settings, alpha_threads=1), weights=None),
+                        Ingest(ingest_config(settings)))
+    engine = pipeline.engine
+    integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS] + far_views(4))
+    mesh_timer = SimpleNamespace(lock=threading.Lock(), resend_all=lambda: None, updates=UpdateSignal())
+    services = MapServices(pipeline, lambda: settings, mesh_timer, logging.getLogger("test"))
+    saving = threading.Event()
+    stop = threading.Event()
+    updates_while_saving = []
+
+    def mesh_updates() -> None:  # the node's mesh timer: an update without the net's turn, its end signalled
+        while not stop.wait(0.05):
+            engine.update(alpha_budget_s=0.0)
+            if saving.is_set():
+                updates_while_saving.append(time.monotonic())
+            mesh_timer.updates.ended()
+
+    timer = threading.Thread(target=mesh_updates)
+    timer.start()
+    try:
+        saving.set()
+        reply = services.save_mesh(None, SimpleNamespace(success=None, message=None))
+        saving.clear()
+    finally:
+        stop.set()
+        timer.join()
+    assert reply.success, reply.message
+    assert engine.counters["alpha_blocks"] > 3 * engine.config.alpha_batch_blocks  # several turns' worth
+    assert len(updates_while_saving) >= 3
+    saved = read_ply(tmp_path / "mesh.ply")
+    exact = engine.extract_mesh("fused")
+    assert saved.n_faces == exact.n_faces > 0 and np.allclose(saved.vertices, exact.vertices, atol=1e-6)
 
 
 def _services(tmp_path: Path, **values: object) -> tuple[MapServices, Pipeline, list[str]]:
@@ -85,7 +134,8 @@ def _services(tmp_path: Path, **values: object) -> tuple[MapServices, Pipeline, 
     integrate_views(pipeline.engine, [(SPHERE_C, SPHERE_VIEWS[0])])
     errors: list[str] = []
     logger = SimpleNamespace(info=lambda text: None, warning=errors.append, error=errors.append)
-    services = MapServices(pipeline, lambda: settings, SimpleNamespace(lock=threading.Lock(), resend_all=lambda: None),
+    services = MapServices(pipeline, lambda: settings, SimpleNamespace(lock=threading.Lock(), resend_all=lambda: None,
+                                                                    updates=UpdateSignal()),
                            logger)
     return services, pipeline, errors
 
