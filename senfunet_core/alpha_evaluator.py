@@ -62,12 +62,11 @@ class AlphaEvaluator:
         neighbours = self.store.neighbours(slots)
         holds = np.ones(len(slots), bool)
         if self.alpha_voxels != "all":
-            sensor_tsdfs = self.store.views("tsdf0", "weight0", "tsdf1", "weight1")
             if self.alpha_voxels == "surface_voxels":
-                targets = surface_targets(neighbours, *sensor_tsdfs)
+                targets = surface_targets(neighbours, *self.store.views("tsdf0", "weight0", "tsdf1", "weight1"))
                 holds = targets.any(axis=1)
             else:  # whole blocks: whether each holds a target is enough
-                holds = holds_surface_targets(neighbours, *sensor_tsdfs)
+                holds = self.holds_surface(neighbours)
             if not holds.any():
                 return AlphaBatch(slots, holds, np.zeros(0, np.int64), np.zeros(0, np.float32))
         if self.alpha_voxels == "surface_voxels":
@@ -97,6 +96,11 @@ class AlphaEvaluator:
                                     voxels=len(voxels), inputs=27 * windows.shape[-1])
         return AlphaBatch(slots, holds, voxels, self._as_stored(alpha), flops)
 
+    def holds_surface(self, neighbours: np.ndarray) -> np.ndarray:
+        """Per block (`BlockStore.neighbours` rows), whether it holds voxels alpha matters for
+        (`alpha.holds_surface_targets`)."""
+        return holds_surface_targets(neighbours, *self.store.views("tsdf0", "weight0", "tsdf1", "weight1"))
+
     def _as_stored(self, alpha: np.ndarray) -> np.ndarray:
         """Alpha as the pool stores it: encoded here, by the evaluating thread, not by the scheduler's
         `write` under the data lock that integration waits for."""
@@ -123,11 +127,10 @@ class AlphaEvaluator:
 def surface_windows(evaluator: AlphaEvaluator, *, batch_blocks: int = 64) -> Iterator[torch.Tensor]:
     """G's float32 input windows (B x C x 12^3, channels last) of every block in the grid that holds
     voxels alpha matters for ("surface"), batch by batch: what int8 calibration measures G on."""
-    store = evaluator.store
-    slots = np.arange(store.grid.n_blocks)
+    slots = np.arange(evaluator.store.grid.n_blocks)
     for start in range(0, len(slots), batch_blocks):
-        neighbours = store.neighbours(slots[start:start + batch_blocks])
-        holds = holds_surface_targets(neighbours, *store.views("tsdf0", "weight0", "tsdf1", "weight1"))
+        neighbours = evaluator.store.neighbours(slots[start:start + batch_blocks])
+        holds = evaluator.holds_surface(neighbours)
         if holds.any():
             yield torch.from_numpy(evaluator.windows(neighbours[holds])).permute(0, 4, 1, 2, 3)
 
