@@ -96,8 +96,8 @@ class MapServices:
     def _judge_between_updates(self) -> None:
         """The weighting net's catch-up before the meshes are made, in turns of half a mesh period with
         a mesh update after each: the meshes hold the map from their own catch-up to the last triangle,
-        and the live mesh would stand still that long (a minute on a large map during a stream); they
-        now find only what changed since the last turn. Ends when nothing is left to judge, or when a
+        and the live mesh would stand still that long (on a large map during a stream, the whole
+        backlog); they now find only what changed since the last turn. Ends when nothing is left to judge, or when a
         turn left no less than the one before (frames change the map as fast as the net judges it)."""
         engine = self.pipeline.engine
         period_s = mesh_period_s(self.settings().mesh_rate_hz)

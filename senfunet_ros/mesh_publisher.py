@@ -224,8 +224,8 @@ class MeshPublisher:
             t_cloud = time.perf_counter()
             readers = (self.mesh_pub.get_subscription_count(), self._matched)
             caught_up = self._parts_unacknowledged and self.mesh_pub.wait_for_all_acked(_NO_WAIT)
-            messages = self._mesh_messages(engine, update, s, stamp_ns,
-                                           whole=readers[0] > served[0] or readers[1] > served[1] or caught_up)
+            whole = readers[0] > served[0] or readers[1] > served[1] or caught_up
+            messages = self._mesh_messages(engine, update, s, stamp_ns, whole=whole)
             # the net's turn ends with this mesh period (less a margin for the updates' jitter): the next
             # update is not to wait for it
             period_s = (1.0 - MESH_PERIOD_MARGIN) * mesh_period_s(s.mesh_rate_hz)
@@ -237,8 +237,10 @@ class MeshPublisher:
             t_alpha = time.perf_counter()
             turn = (self._turns.submit(self.weighting_net_turn, idle=True, period_left_s=period_s - (t_alpha - start))
                     if idle else None)
+            t_sent = t_cloud
             try:
                 unacknowledged = self._send(messages, cloud, s, stamp_ns, t_cloud=t_cloud)
+                t_sent = time.perf_counter()
                 self._latency.published(contained)
                 self._parts_unacknowledged = unacknowledged or (self._parts_unacknowledged and not caught_up)
                 self._served = readers
@@ -250,7 +252,15 @@ class MeshPublisher:
             else:  # frames come: the net's turn after publishing, on this thread (integration needs the other core)
                 t_alpha = time.perf_counter()
                 self.weighting_net_turn(idle=False, period_left_s=period_s - (t_alpha - start))
-            self._timings["alpha"].add(time.perf_counter() - t_alpha)
+            end = time.perf_counter()
+            self._timings["alpha"].add(end - t_alpha)
+            if end - start > 2.0 * mesh_period_s(s.mesh_rate_hz):  # the refresh stalls: say where the time went
+                self._warn(("mesh_update_slow",), f"a mesh update took {end - start:.1f} s, over twice the mesh period "
+                           f"(mesh_rate_hz {s.mesh_rate_hz:g}): engine.update {t_update - start:.2f} s "
+                           f"({len(update.meshes)} block meshes), weights cloud {t_cloud - t_update:.2f} s, encoding "
+                           f"and publishing {'the whole map' if whole else 'the changed blocks'} "
+                           f"{t_sent - t_cloud:.2f} s, then the weighting net's turn {end - t_sent:.2f} s "
+                           f"({'idle, beside the publication' if turn is not None else 'frames coming'})")
         self.updates.ended()
 
     @staticmethod

@@ -342,6 +342,32 @@ def test_a_camera_info_that_came_once_is_not_stale_while_its_depth_comes() -> No
     assert report.level == Level.STALE and "camera_info, depth" in report.message
 
 
+def test_a_stalled_mesh_update_says_where_its_time_went(ros, tmp_path: Path, monkeypatch) -> None:
+    """A mesh update that takes over twice the mesh period (here the map is held by another thread for a
+    second, as an eviction or a save can hold it) is warned about with the time of each of its stages,
+    so that a stalled refresh tells whether the map, the publication or the weighting net held it."""
+    import re
+
+    run = Running("slow_update", {**topic_params("slow_update"), **SMALL, "mesh_rate_hz": 5.0}, tmp_path)
+    warned: list[tuple[tuple[str, ...], str]] = []
+    try:
+        fuse_in_process(run, scene_messages())
+        monkeypatch.setattr(run.node.mesh_publisher, "_warn", lambda key, text: warned.append((key, text)))
+        with run.node.engine.update_lock.held():
+            time.sleep(1.0)
+        wait_for(lambda: any(key == ("mesh_update_slow",) for key, _ in warned), 30, "the slow update's warning")
+    finally:
+        run.close()
+    pattern = (r"took ([\d.]+) s, over twice the mesh period .*engine\.update ([\d.]+) s.*encoding and publishing "
+               r".* ([\d.]+) s, then the weighting net's turn ([\d.]+) s")
+    stalls = [(float(m.group(1)), float(m.group(2)), float(m.group(4)), text) for key, text in warned
+              if key == ("mesh_update_slow",) and (m := re.search(pattern, text))]
+    assert stalls, warned
+    # the update that met the map held above waited in engine.update, or in the net's turn after it
+    total_s, update_s, turn_s, text = max(stalls, key=lambda stall: max(stall[1], stall[2]))
+    assert 1.5 >= max(update_s, turn_s) >= 0.5 and total_s >= max(update_s, turn_s), text
+
+
 def test_save_map_load_map_round_trip_and_file_modes(ros, tmp_path: Path) -> None:
     run = Running("maps", {**topic_params("maps"), **SMALL, "map_file": "room.pt"}, tmp_path)
     old_umask = os.umask(0o077)  # a restrictive umask: the files must still be readable by others
