@@ -79,8 +79,8 @@ def test_save_mesh_says_the_per_sensor_meshes_leave_out_evicted_blocks(tmp_path)
 
 def test_save_mesh_lets_mesh_updates_through_while_the_net_catches_up(tmp_path):
     """~/save_mesh on a map the weighting net has not judged yet: it judges in turns of half a mesh
-    period with a mesh update after each (before, the updates waited for the whole catch-up: a minute on
-    a large map during a stream), and writes the exact fused mesh all the same."""
+    period with a mesh update after each (before, the updates waited for the whole catch-up), and writes
+    the exact fused mesh all the same."""
     from senfunet_core.ply import read_ply
 
     params = tmp_path / "p.yaml"
