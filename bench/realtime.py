@@ -458,6 +458,7 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
     # (the weighting net's judging of what is still stale after the last frame comes on top)
     row(f"... times the bag's frames per second: cores the stream needs (this machine: {len(os.sched_getaffinity(0))})",
         lambda r: f"{r['process_cpu_s'] / max(r['frames_integrated'], 1) * r['frames_sent'] / r['bag_seconds']:.2f}")
+
     def gap_end(seconds: float) -> str:
         return f"{abs(seconds):.1f} s {'after' if seconds >= 0 else 'before'} the stream's end"
 

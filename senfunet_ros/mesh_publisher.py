@@ -255,12 +255,13 @@ class MeshPublisher:
             end = time.perf_counter()
             self._timings["alpha"].add(end - t_alpha)
             if end - start > 2.0 * mesh_period_s(s.mesh_rate_hz):  # the refresh stalls: say where the time went
-                self._warn(("mesh_update_slow",), f"a mesh update took {end - start:.1f} s, over twice the mesh period "
+                self._warn(("mesh_update_slow",), f"a mesh update took {end - start:.2f} s, over twice the mesh period "
                            f"(mesh_rate_hz {s.mesh_rate_hz:g}): engine.update {t_update - start:.2f} s "
                            f"({len(update.meshes)} block meshes), weights cloud {t_cloud - t_update:.2f} s, encoding "
                            f"and publishing {'the whole map' if whole else 'the changed blocks'} "
                            f"{t_sent - t_cloud:.2f} s, then the weighting net's turn {end - t_sent:.2f} s "
-                           f"({'idle, beside the publication' if turn is not None else 'frames coming'})")
+                           f"({'idle, beside the publication' if turn is not None else 'frames coming'}); if this "
+                           "recurs, a lower mesh_rate_hz gives each update more time")
         self.updates.ended()
 
     @staticmethod

@@ -348,7 +348,9 @@ def test_a_stalled_mesh_update_says_where_its_time_went(ros, tmp_path: Path, mon
     so that a stalled refresh tells whether the map, the publication or the weighting net held it."""
     import re
 
-    run = Running("slow_update", {**topic_params("slow_update"), **SMALL, "mesh_rate_hz": 5.0}, tmp_path)
+    # a short net's turn: a turn that waited for the map then works at most the rest of its period, not 0.5 s
+    run = Running("slow_update", {**topic_params("slow_update"), **SMALL, "mesh_rate_hz": 5.0, "alpha_budget_s": 0.05},
+                  tmp_path)
     warned: list[tuple[tuple[str, ...], str]] = []
     try:
         fuse_in_process(run, scene_messages())
