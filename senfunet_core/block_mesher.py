@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from .block_store import BlockStore
-from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, fuse, mesh_windows
+from .fusion import WINDOW_BASE, WINDOW_FUSED, WINDOW_SENSOR, blocks_with_observed, fuse, mesh_windows
 from .grid import BLOCK, block_keys, decode_alpha, keys_to_coords
 from .mesher import BlockMeshes, BlockTriangles, Mesh, block_mesh_arrays, marching_cubes_blocks, to_mesh
 from .scratch import ThreadScratch
@@ -102,22 +102,25 @@ class BlockMesher:
     def triangles(self, slots: np.ndarray, which: str, filtered: bool) -> BlockTriangles:
         """Marching cubes over the given blocks of `which`, in one batch."""
         t0 = time.perf_counter()
-        neighbours = self.store.neighbours(slots, MESH_READ_CODES)  # what the mesh windows read
         if which == FUSED:
             mode, names = WINDOW_FUSED, ("tsdf0", "weight0", "tsdf1", "weight1", "alpha")
         else:
             mode = WINDOW_BASE if which == TSDF_FUSION else WINDOW_SENSOR
             tsdf, weight = self.channels(which)
             names = (tsdf, weight, tsdf, weight, "alpha")
-        size = len(slots) * 9**3
+        views = self.store.views(*names)
+        # only the blocks that can have triangles get a window (most of those an update re-meshes have none)
+        meshable = np.flatnonzero(blocks_with_observed(slots, mode, filtered, views[1], views[3], views[4]))
+        neighbours = self.store.neighbours(slots[meshable], MESH_READ_CODES)  # what the mesh windows read
+        size = len(meshable) * 9**3
         out = (self._scratch.array("tsdf", size, np.float32), self._scratch.array("observed", size, np.bool_),
                self._scratch.array("alpha", size, np.float32))  # kept per thread between batches
-        tsdf_m, observed, alpha = mesh_windows(neighbours, mode, filtered, *self.store.views(*names), out=out)
-        origins = self.store.grid.coords[slots].numpy() * BLOCK
+        tsdf_m, observed, alpha = mesh_windows(neighbours, mode, filtered, *views, out=out)
+        origins = self.store.grid.coords[slots[meshable]].numpy() * BLOCK
         t1 = time.perf_counter()
         triangles = marching_cubes_blocks(tsdf_m, observed, origins, alpha if which == FUSED else None)
         self.times.add(fusion=t1 - t0, marching_cubes=time.perf_counter() - t1)
-        return triangles
+        return triangles.spread(meshable, len(slots))
 
     def release_buffers(self) -> None:
         """Let go of every thread's window buffers (after a bulk extraction)."""

@@ -106,13 +106,50 @@ def _fill_mesh_windows(neighbours: np.ndarray, which: int, apply_filter: bool, t
                                 v = row + z
                                 seen_1, seen_2 = weight_1[v] > 0, weight_2[v] > 0
                                 a = load_alpha(alpha, v)
-                                unknown = a != a  # NaN: not evaluated yet
-                                a = np.float32(0.5) if unknown else a
+                                observed_row[z] = _fused_observed(seen_1, seen_2, a, apply_filter)
+                                a = np.float32(0.5) if a != a else a  # NaN: not evaluated yet
                                 alpha_row[z] = a
                                 tsdf_a, tsdf_b = load_f32(tsdf_1, v), load_f32(tsdf_2, v)
                                 blended = np.float32(a * tsdf_a + (1.0 - a) * tsdf_b)
                                 tsdf_row[z] = (blended if seen_1 & seen_2
                                                else tsdf_a if seen_1 else tsdf_b if seen_2 else np.float32(0.0))
-                                keep_1 = not (apply_filter & ((a < 0.5) | unknown))
-                                keep_2 = not (apply_filter & ((a > 0.5) | unknown))
-                                observed_row[z] = (seen_1 & seen_2) | (seen_1 & keep_1) | (seen_2 & keep_2)
+
+
+@numba.njit(inline="always")
+def _fused_observed(seen_1: bool, seen_2: bool, alpha: np.float32, apply_filter: bool) -> bool:
+    """Whether a voxel counts as observed in the fused surface (`fuse`'s rule; alpha NaN: not
+    evaluated yet, so the filter holds its C1 and C2 voxels back)."""
+    unknown = alpha != alpha
+    a = np.float32(0.5) if unknown else alpha
+    keep_1 = not (apply_filter & ((a < 0.5) | unknown))
+    keep_2 = not (apply_filter & ((a > 0.5) | unknown))
+    return (seen_1 & seen_2) | (seen_1 & keep_1) | (seen_2 & keep_2)
+
+
+def blocks_with_observed(slots: np.ndarray, which: int, apply_filter: bool, weight_1: np.ndarray,
+                         weight_2: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Per block, whether any of its own 8^3 voxels is observed as `mesh_windows` marks them (its
+    arguments as there). Every marching-cubes cell of a block's window has its least corner among
+    the block's own voxels, and only cells whose 8 corners are observed make triangles: a block
+    without an observed voxel has no triangles, and its window need not be filled. A scan of three
+    rows of the block costs a small part of filling its window."""
+    out = np.empty(len(slots), np.bool_)
+    _blocks_with_observed(np.ascontiguousarray(slots, np.int64), which, apply_filter, weight_1, weight_2, alpha, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _blocks_with_observed(slots: np.ndarray, which: int, apply_filter: bool, weight_1: np.ndarray,
+                          weight_2: np.ndarray, alpha: np.ndarray, out: np.ndarray) -> None:
+    for b in range(slots.shape[0]):
+        base = slots[b] * 512
+        found = False
+        for v in range(base, base + 512):
+            seen_1 = weight_1[v] > 0
+            if which != WINDOW_FUSED:
+                found = seen_1
+            else:
+                found = _fused_observed(seen_1, weight_2[v] > 0, load_alpha(alpha, v), apply_filter)
+            if found:
+                break
+        out[b] = found

@@ -77,6 +77,18 @@ class BlockTriangles:
     vertex_offsets: np.ndarray  # B+1 int64
     face_offsets: np.ndarray  # B+1 int64
 
+    def spread(self, blocks: np.ndarray, n_blocks: int) -> BlockTriangles:
+        """This batch's triangles as those of a batch of n_blocks blocks in which its block i is block
+        blocks[i] (increasing) and the others have none."""
+        if len(blocks) == n_blocks:
+            return self
+        offsets = []
+        for own in (self.vertex_offsets, self.face_offsets):
+            counts = np.zeros(n_blocks, np.int64)
+            counts[blocks] = np.diff(own)
+            offsets.append(np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
+        return BlockTriangles(self.vertices_vox, self.faces, self.vertex_values, *offsets)
+
     @functools.cached_property
     def vertex_block(self) -> np.ndarray:
         """V int64: the block (index in the batch) of each vertex, non-decreasing."""

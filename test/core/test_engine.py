@@ -1613,6 +1613,44 @@ def test_mesh_windows_written_to_reused_buffers_equal_fresh_ones(sphere_engine):
         assert fresh[1].any() and not fresh[1].all()
 
 
+def test_meshing_skips_blocks_without_an_observed_voxel_and_makes_the_triangles_of_every_window():
+    """`BlockMesher.triangles` fills windows only for blocks with an observed voxel of their own
+    (`blocks_with_observed`, which must agree with the windows' own voxels) and gives, block for
+    block, the triangles marching cubes makes of every block's window."""
+    from senfunet_core.block_mesher import FUSED, MESH_READ_CODES
+    from senfunet_core.fusion import WINDOW_FUSED, WINDOW_SENSOR, blocks_with_observed, mesh_windows
+    from senfunet_core.grid import ALPHA_UNKNOWN
+    from senfunet_core.mesher import marching_cubes_blocks
+
+    engine = engine_for_tests()
+    for i, T in enumerate(SPHERE_VIEWS):  # the second sensor sees half the views: C1 voxels, and C12
+        depth = render_sphere(SPHERE_C, SPHERE_R, SPHERE_K, T)
+        for sensor in engine.config.sensors[: 1 + i % 2]:
+            engine.integrate(sensor, depth, SPHERE_K, T)
+    store, n = engine.store, engine.grid.n_blocks
+    # alpha per block: not evaluated, for sensor 1, for sensor 2, or exactly one half
+    codes = np.array([ALPHA_UNKNOWN, 200, 50, 127], np.uint8)[np.arange(n) % 4]
+    alpha_pool = engine.grid.pools["alpha"]
+    alpha_pool[:n] = torch.from_numpy(np.repeat(codes, 512).reshape(n, *alpha_pool.shape[1:]))
+    slots = np.arange(n)
+    fused = ("tsdf0", "weight0", "tsdf1", "weight1", "alpha")
+    # (unfiltered, every block has a voxel a sensor saw: none is skipped)
+    cases = [(FUSED, WINDOW_FUSED, fused, True, True), (FUSED, WINDOW_FUSED, fused, False, False),
+             (engine.config.sensors[1], WINDOW_SENSOR, ("tsdf1", "weight1", "tsdf1", "weight1", "alpha"), True, True)]
+    for which, mode, names, filtered, some_skipped in cases:
+        views = store.views(*names)
+        tsdf, observed, alpha = mesh_windows(store.neighbours(slots, MESH_READ_CODES), mode, filtered, *views)
+        has_observed = blocks_with_observed(slots, mode, filtered, views[1], views[3], views[4])
+        np.testing.assert_array_equal(has_observed, observed[:, :8, :8, :8].reshape(n, -1).any(axis=1))
+        assert 0 < has_observed.sum() < n if some_skipped else has_observed.all(), (which, filtered)
+        want = marching_cubes_blocks(tsdf, observed, engine.grid.coords[slots].numpy() * 8,
+                                     alpha if which == FUSED else None)
+        got = engine.mesher.triangles(slots, which, filtered)
+        assert len(want.faces) > 0
+        for field in ("vertices_vox", "faces", "vertex_values", "vertex_offsets", "face_offsets"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(want, field), err_msg=f"{which} {field}")
+
+
 def test_each_alpha_thread_runs_torch_on_one_thread_and_the_worker_setup_and_a_failing_one_leaves_it_working(caplog):
     import threading
 
