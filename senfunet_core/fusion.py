@@ -131,8 +131,8 @@ def blocks_with_observed(slots: np.ndarray, which: int, apply_filter: bool, weig
     """Per block, whether any of its own 8^3 voxels is observed as `mesh_windows` marks them (its
     arguments as there). Every marching-cubes cell of a block's window has its least corner among
     the block's own voxels, and only cells whose 8 corners are observed make triangles: a block
-    without an observed voxel has no triangles, and its window need not be filled. A scan of three
-    rows of the block costs a small part of filling its window."""
+    without an observed voxel has no triangles, and its window need not be filled. The scan reads
+    the block's own weights and alpha, a small part of what filling its window reads."""
     out = np.empty(len(slots), np.bool_)
     _blocks_with_observed(np.ascontiguousarray(slots, np.int64), which, apply_filter, weight_1, weight_2, alpha, out)
     return out
