@@ -281,9 +281,8 @@ class PublishedMesh:
         encode = publisher._mesh_messages
 
         def taking(engine, update, *args, whole: bool, **kwargs):  # noqa: ANN001, ANN202
-            published.take(update)
-            if whole:  # this update sends the whole map instead (a reader joined): what readers then hold
-                published.take(MeshUpdate(meshes=engine.block_meshes(), cleared=True))
+            # `whole`: this update sends the whole map instead of its changes (a reader joined)
+            published.take(MeshUpdate(meshes=engine.block_meshes(), cleared=True) if whole else update)
             return encode(engine, update, *args, whole=whole, **kwargs)
 
         publisher._mesh_messages = taking
