@@ -80,6 +80,17 @@ def simulated_bag(cache: Path, *, name: str, seed: int, room: tuple[float, float
     return path
 
 
+# bench/realtime.py's large room (bench/engine.py takes frames from it too)
+LARGE_ROOM_SEED, LARGE_ROOM_M, LARGE_ROOM_SECONDS = 4243, (12.0, 8.0, 2.8), 30.0
+
+
+def large_room_bag(cache: Path, *, seed: int = LARGE_ROOM_SEED, room_m: tuple[float, ...] = LARGE_ROOM_M,
+                   seconds: float = LARGE_ROOM_SECONDS) -> Path:
+    """The large simulated room's bag (ToF at 15 Hz, stereo at 20 Hz), made once under `cache`."""
+    return simulated_bag(cache, name="large", seed=seed, room=(room_m[0], room_m[1], room_m[2]), seconds=seconds,
+                         tof_rate_hz=15, stereo_rate_hz=20)
+
+
 def bag_frames(bag: Path, limit: int | None = None) -> list:
     """`senfunet_ros.replay.bag_frames`, imported when a bench reads a bag."""
     from senfunet_ros.replay import bag_frames as frames

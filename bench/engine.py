@@ -6,9 +6,13 @@ throughput, meshing time per block, bytes per observed voxel.
     .venv/bin/python bench/engine.py --frames 40 --no-write
 
 Frames come from the sample bag through the node's Ingest (as `senfunet replay` reads them) or,
-without a bag, from `senfunet_core.learning.simulator`. The alpha figures are given for the exact
+without a bag, from `senfunet_core.learning.simulator`; the node's configuration also runs on the
+first as many frames of bench/realtime.py's large room. The alpha figures are given for the exact
 configuration (alpha_voxels="all": every voxel within 2 voxels of a change) and for the ones the
-node can use (see docs/performance.md and test/core/test_equivalence.py).
+node can use (see docs/performance.md and test/core/test_equivalence.py). The node's configuration
+runs `--repeats` times, each set against the CPU's peak measured just before and after it: on a
+shared machine the speed drifts within seconds, and one run against a peak measured minutes apart
+can be off by half.
 """
 from __future__ import annotations
 
@@ -22,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench._common import ROOT, bag_frames, command, machine, write_section  # noqa: E402
+from bench._common import ROOT, bag_frames, command, large_room_bag, machine, write_section  # noqa: E402
 
 
 def load_frames(bag: Path, n: int, seed: int):
@@ -69,6 +73,7 @@ def measure(frames, config, weights, update_every: int) -> dict:
         pixel_feature_rows(net, depth, rgb)
         feature_cpu.setdefault(sensor, []).append(time.thread_time() - t0)
     return {
+        "frames": len(frames),
         "feature_cpu_ms": {s: 1e3 * float(np.median(v)) for s, v in feature_cpu.items()},
         "integrate_ms": {s: 1e3 * float(np.median(v[1:] if len(v) > 1 else v)) for s, v in per_sensor.items()},
         "feature_ms": {s: 1e3 * float(np.median(v[1:] if len(v) > 1 else v)) for s, v in feature.items()},
@@ -83,7 +88,7 @@ def measure(frames, config, weights, update_every: int) -> dict:
 
 def peak_flop_per_s(dtype_name: str, threads: int) -> float:
     """The CPU's practical peak in this process: a large square matrix product (the best case for
-    the hardware's multiply-add units), best of several, on `threads` threads."""
+    the hardware's multiply-add units), the best of a second of them, on `threads` threads."""
     import torch
 
     torch.set_num_threads(threads)
@@ -97,21 +102,27 @@ def peak_flop_per_s(dtype_name: str, threads: int) -> float:
     else:
         dtype = getattr(torch, dtype_name)
         product = functools.partial(torch.mm, torch.randn(1024, 1024).to(dtype), torch.randn(1024, 1024).to(dtype))
-    best = float("inf")
-    for _ in range(8):
+    best, spent, runs = float("inf"), 0.0, 0
+    while runs < 8 or spent < 1.0:  # a second of them: the best of a few can miss the CPU's fast moments
         t0 = time.perf_counter()
         product()
-        best = min(best, time.perf_counter() - t0)
+        took = time.perf_counter() - t0
+        best, spent, runs = min(best, took), spent + took, runs + 1
     return 2 * 1024**3 / best
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--bag", default=str(ROOT / "bags" / "sim_room"))
-    ap.add_argument("--frames", type=int, default=36, help="frames of both sensors, in arrival order")
+    ap.add_argument("--frames", type=int, default=36, help="frames of both sensors, in arrival order (each room)")
     ap.add_argument("--update-every", type=int, default=12, help="engine.update() after this many frames")
     ap.add_argument("--seed", type=int, default=4242, help="simulated room when there is no bag")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="runs of the node's configuration, each between two measurements of the peak")
+    ap.add_argument("--no-large", dest="large", action="store_false",
+                    help="skip the node's configuration on bench/realtime.py's large room")
+    ap.add_argument("--cache", default=str(ROOT / "bench" / ".cache"), help="where the large room's bag is made")
     ap.add_argument("--no-write", dest="write", action="store_false")
     args = ap.parse_args()
     from senfunet_core.engine import EngineConfig
@@ -130,25 +141,51 @@ def main() -> None:
         base, weights, malloc = EngineConfig(), "default", "glibc malloc unchanged"
     # G on as many threads as the peak is measured with (the node's config evaluates idle catch-ups on every core)
     base = replace(base, alpha_threads=args.threads)
-    configs = {
-        "exact (alpha_voxels=all, float32)": replace(base, alpha_voxels="all", alpha_dtype="float32",
-                                                     torch_threads=args.threads),
-        f"node (alpha_voxels=surface, {base.alpha_dtype})":
-            replace(base, alpha_voxels="surface", torch_threads=args.threads),
+    node_cfg = replace(base, alpha_voxels="surface", torch_threads=args.threads)
+    cases = {  # name: (configuration, frames); the node's configuration on both rooms
+        "exact (alpha_voxels=all, float32)": (replace(base, alpha_voxels="all", alpha_dtype="float32",
+                                                      torch_threads=args.threads), frames),
+        f"node (alpha_voxels=surface, {base.alpha_dtype})": (node_cfg, frames),
         # int8 runs G on whole blocks only: surface_voxels' matrix products stay float32
         f"voxels (alpha_voxels=surface_voxels, {base.alpha_dtype.replace('int8', 'float32')})":
-            replace(base, alpha_voxels="surface_voxels", torch_threads=args.threads,
-                    alpha_dtype=base.alpha_dtype.replace("int8", "float32")),
+            (replace(base, alpha_voxels="surface_voxels", torch_threads=args.threads,
+                     alpha_dtype=base.alpha_dtype.replace("int8", "float32")), frames),
     }
-    results = {name: measure(frames, cfg, weights, args.update_every) for name, cfg in configs.items()}
+    large_source = ""
+    if args.large:
+        large_frames, large_source = load_frames(large_room_bag(Path(args.cache)), args.frames, args.seed)
+        cases[f"node, large room ({base.alpha_dtype})"] = (node_cfg, large_frames)
     from senfunet_core.weighting_int8 import int8_available
 
     peaks = {dtype: peak_flop_per_s(dtype, args.threads)
              for dtype in ("float32", "bfloat16", *(("int8",) if int8_available() else ()))}
+    # the CPU's peak: its fastest arithmetic here (int8, or bfloat16 where it has bfloat16 units, else float32)
+    peak_dtype = max(peaks, key=peaks.__getitem__)
+    results, repeated = {}, {}
+    for name, (cfg, case_frames) in cases.items():
+        if not name.startswith("node"):
+            results[name] = measure(case_frames, cfg, weights, args.update_every)
+            continue
+        # A shared machine's speed drifts within seconds: each run of the node's configuration is
+        # set against the peak measured just before and just after it (the higher of the two), and
+        # the table shows the run with the median fraction.
+        runs = []
+        for _ in range(max(args.repeats, 1)):
+            before = peak_flop_per_s(peak_dtype, args.threads)
+            run = measure(case_frames, cfg, weights, args.update_every)
+            run["peak_around"] = max(before, peak_flop_per_s(peak_dtype, args.threads))
+            run["fraction"] = run["alpha_flop_per_s"] / run["peak_around"]
+            runs.append(run)
+        runs.sort(key=lambda run: run["fraction"])
+        results[name], repeated[name] = runs[len(runs) // 2], runs
+    # the peaks of the table: the higher of their measurements at the start and at the end
+    peaks = {dtype: max(peak, peak_flop_per_s(dtype, args.threads)) for dtype, peak in peaks.items()}
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
-             f"Frames: the first {len(frames)} depth frames (256x256, both sensors, arrival order) of {source}; "
-             f"update() every {args.update_every} frames; torch threads {args.threads}; {malloc}; medians over frames "
-             "(first frame of each sensor excluded).", "",
+             f"Frames: the first {len(frames)} depth frames (256x256, both sensors, arrival order) of {source}"
+             + (f"; the large room's column: the first {args.frames} of {large_source} (bench/realtime.py's room)"
+                if large_source else "")
+             + f"; update() every {args.update_every} frames; torch threads {args.threads}; {malloc}; medians over "
+             "frames (first frame of each sensor excluded).", "",
              "| | " + " | ".join(results) + " |", "|---" * (len(results) + 1) + "|"]
 
     def row(name, fn):
@@ -161,22 +198,30 @@ def main() -> None:
         lambda r: ", ".join(f"{s} {v:.1f}" for s, v in r["feature_cpu_ms"].items()))
     row("alpha: voxels evaluated / time", lambda r: f"{r['alpha_voxels']} in {r['alpha_s']:.2f} s")
     row("alpha throughput (voxels/s)", lambda r: f"{r['alpha_vox_per_s']:.3g}")
-    row("alpha time per frame (ms)", lambda r: f"{1e3 * r['alpha_s'] / len(frames):.1f}")
+    row("alpha time per frame (ms)", lambda r: f"{1e3 * r['alpha_s'] / r['frames']:.1f}")
     row("G FLOPs per evaluated voxel", lambda r: f"{r['alpha_flops_per_voxel']:.3g}")
     row("G FLOP/s (incl. gathering the inputs)", lambda r: f"{r['alpha_flop_per_s']:.3g}")
     for dtype, peak in peaks.items():
-        row(f"- fraction of the {dtype} peak ({peak:.3g} FLOP/s, 1024^2 matrix product)",
+        row(f"- fraction of the {dtype} peak ({peak:.3g} FLOP/s, 1024^2 matrix product, the higher of the start "
+            "and the end)",
             lambda r, peak=peak: f"{r['alpha_flop_per_s'] / peak:.2f}")
+    row(f"- fraction of the {peak_dtype} peak measured just before and just after the run (the higher)",
+        lambda r: f"{r['fraction']:.2f}" if "fraction" in r else "-")
     row("meshing per block (ms)", lambda r: f"{r['mesh_ms_per_block']:.3f} ({r['mesh_blocks']} blocks)")
     row("blocks / observed voxels", lambda r: f"{r['blocks']} / {r['observed']}")
     row("bytes per observed voxel", lambda r: f"{r['bytes_per_observed_voxel']:.0f}")
-    # the CPU's peak: its fastest arithmetic here (int8, or bfloat16 where it has bfloat16 units, else float32)
-    peak_dtype = max(peaks, key=peaks.__getitem__)
-    node = results[next(name for name in results if name.startswith("node"))]
-    fraction = node["alpha_flop_per_s"] / peaks[peak_dtype]
-    lines += ["", "Goal of issue 13 (G at half of the CPU's peak or more, the node's configuration against the CPU's "
-              f"fastest arithmetic, {peak_dtype} here; the node computes G in {base.alpha_dtype}): "
-              f"{'met' if fraction >= 0.5 else 'NOT met'} ({fraction:.2f})"]
+    lines.append("")
+    for name, runs in repeated.items():
+        lines.append(f"- {name}: {len(runs)} runs (the column shows the median), G's fraction of the {peak_dtype} peak "
+                     f"around each min / median / max " + " / ".join(
+                         f"{run['fraction']:.2f}" for run in (runs[0], runs[len(runs) // 2], runs[-1]))
+                     + f"; the peaks {min(run['peak_around'] for run in runs):.3g} to "
+                     f"{max(run['peak_around'] for run in runs):.3g} FLOP/s")
+    lines += ["", "Goal of issue 13 (G at half of the CPU's peak or more: the node's configuration against the CPU's "
+              f"fastest arithmetic, {peak_dtype} here, in the median run; the node computes G in {base.alpha_dtype}):"]
+    for name in repeated:
+        fraction = results[name]["fraction"]
+        lines.append(f"- {name}: {'met' if fraction >= 0.5 else 'NOT met'} ({fraction:.2f})")
     text = "\n".join(lines)
     print(text)
     if args.write:

@@ -46,7 +46,8 @@ import numpy as np
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench._common import ROOT, command, machine, simulated_bag, write_section  # noqa: E402
+from bench._common import (LARGE_ROOM_M, LARGE_ROOM_SECONDS, LARGE_ROOM_SEED, ROOT, command,  # noqa: E402
+                           large_room_bag, machine, write_section)
 
 if TYPE_CHECKING:
     from senfunet_core.engine import MeshUpdate
@@ -58,8 +59,8 @@ _BACKLOG_FRAMES = 4  # throughput mode: the feeder waits while this many frames 
 def bag_path(args: argparse.Namespace, case: str) -> Path:
     if case == "sample":
         return Path(args.bag)
-    return simulated_bag(Path(args.cache), name="large", seed=args.large_seed, room=tuple(args.large_room),
-                         seconds=args.large_seconds, tof_rate_hz=15, stereo_rate_hz=20)
+    return large_room_bag(Path(args.cache), seed=args.large_seed, room_m=tuple(args.large_room),
+                          seconds=args.large_seconds)
 
 
 @contextlib.contextmanager
@@ -614,9 +615,9 @@ def main() -> None:
     ap.add_argument("--bag", default=str(ROOT / "bags" / "sim_room"))
     ap.add_argument("--cases", nargs="+", default=["sample", "large"], choices=["sample", "large"])
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
-    ap.add_argument("--large-room", type=float, nargs=3, default=[12.0, 8.0, 2.8], metavar=("X", "Y", "Z"))
-    ap.add_argument("--large-seconds", type=float, default=30.0)
-    ap.add_argument("--large-seed", type=int, default=4243)
+    ap.add_argument("--large-room", type=float, nargs=3, default=list(LARGE_ROOM_M), metavar=("X", "Y", "Z"))
+    ap.add_argument("--large-seconds", type=float, default=LARGE_ROOM_SECONDS)
+    ap.add_argument("--large-seed", type=int, default=LARGE_ROOM_SEED)
     ap.add_argument("--cache", default=str(ROOT / "bench" / ".cache"))
     ap.add_argument("--max-seconds", type=float, default=0.0, help="only the first seconds of each bag (0 = all)")
     ap.add_argument("--open3d-frames", type=int, default=60, help="frames for the Open3D comparison (0 = skip it)")
