@@ -80,6 +80,14 @@ def simulated_bag(cache: Path, *, name: str, seed: int, room: tuple[float, float
     return path
 
 
+def min_median_max(values: list[float], fmt: str) -> str:
+    """Runs' figures from run to run: "min / median / max", each in `fmt`."""
+    import numpy as np
+
+    values = sorted(values)
+    return " / ".join(fmt.format(v) for v in (values[0], float(np.median(values)), values[-1]))
+
+
 # bench/realtime.py's large room (bench/engine.py takes frames from it too)
 LARGE_ROOM_SEED, LARGE_ROOM_M, LARGE_ROOM_SECONDS = 4243, (12.0, 8.0, 2.8), 30.0
 

@@ -48,7 +48,7 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench._common import (LARGE_ROOM_M, LARGE_ROOM_SECONDS, LARGE_ROOM_SEED, ROOT, command,  # noqa: E402
-                           large_room_bag, machine, write_section)
+                           large_room_bag, machine, min_median_max, write_section)
 
 if TYPE_CHECKING:
     from senfunet_core.engine import MeshUpdate
@@ -442,10 +442,7 @@ def spread_lines(realtime_runs: dict[str, list[dict]]) -> list[str]:
         return []
     lines = ["", "Run to run (the `realtime` columns above show the median run by frames integrated on arrival; "
              "each run is the same command on the same bag, in its own process, one after the other):"]
-
-    def spread(values: list[float], fmt: str) -> str:
-        values = sorted(values)
-        return " / ".join(fmt.format(v) for v in (values[0], float(np.median(values)), values[-1]))
+    spread = min_median_max
 
     for case, runs in realtime_runs.items():
         parts = [f"frames integrated on arrival {spread([100 * on_arrival_share(r) for r in runs], '{:.0f}%')}",
@@ -499,11 +496,14 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
         cells = (fn(r) if isinstance(r, dict) and "case" in r else "-" for r in runs)
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
 
+    def frames_per_s(r: dict) -> float:
+        """The depth frames per second handed over: the bag's, at `--rate` in realtime mode."""
+        return r["frames_sent"] / r["bag_seconds"] * (args.rate if r["mode"] == "realtime" else 1.0)
+
     def streamed(r: dict) -> str:
         if args.rate == 1.0 or r["mode"] != "realtime":
             return ""
-        return (f", streamed in {r['bag_seconds'] / args.rate:.1f} s "
-                f"({args.rate * r['frames_sent'] / r['bag_seconds']:.1f} depth frames/s)")
+        return f", streamed in {r['bag_seconds'] / args.rate:.1f} s ({frames_per_s(r):.1f} depth frames/s)"
 
     row("bag", lambda r: f"{r['bag_seconds']:.1f} s, {r['frames_sent']} depth frames{streamed(r)}")
     row("weighting net arithmetic (alpha_precision)", lambda r: r.get("alpha_arithmetic", "-"))
@@ -519,9 +519,6 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
         lambda r: f"{1e3 * r['process_cpu_s'] / max(r['frames_integrated'], 1):.1f}")
     # the cores the stream's work asks for at the rate it was streamed: above the machine's, integration falls
     # behind (the weighting net's judging of what is still stale after the last frame comes on top)
-    def frames_per_s(r: dict) -> float:
-        return r["frames_sent"] / r["bag_seconds"] * (args.rate if r["mode"] == "realtime" else 1.0)
-
     row(f"... times the frames per second streamed (realtime; the bag's, throughput): cores the stream needs "
         f"(this machine: {len(os.sched_getaffinity(0))})",
         lambda r: f"{r['process_cpu_s'] / max(r['frames_integrated'], 1) * frames_per_s(r):.2f}")
