@@ -1,5 +1,6 @@
 """DDS transport: the settings the package brings (Fast DDS, the Jazzy default), and publishing
-large pre-serialized messages without holding the GIL.
+large pre-serialized messages and waiting for readers' acknowledgements without holding the GIL
+(librcl's functions through ctypes, which releases it while they run: rclpy's bindings hold it).
 
 `use_large_shm_profile()` points FASTRTPS_DEFAULT_PROFILES_FILE at `fastdds_profile.xml` (a 64 MB
 shared-memory segment per participant instead of 512 KB; the file says why) unless another RMW is
@@ -42,24 +43,30 @@ class _SerializedMessage(ctypes.Structure):
                 ("zero_allocate", ctypes.c_void_p), ("state", ctypes.c_void_p)]
 
 
-def _rcl_publish() -> Callable | None:
-    """rcl_publish_serialized_message through ctypes (which releases the GIL while it runs), or
-    None when librcl cannot be found."""
-    import rclpy
-
-    candidates = [Path(rclpy.__file__).resolve().parents[3] / "librcl.so", "librcl.so"]
-    for candidate in candidates:
-        try:
-            function = ctypes.CDLL(str(candidate)).rcl_publish_serialized_message
-        except (OSError, AttributeError):
-            continue
-        function.argtypes = (ctypes.c_void_p, ctypes.POINTER(_SerializedMessage), ctypes.c_void_p)
-        function.restype = ctypes.c_int
-        return function
-    return None
+# librcl's functions used here, with their argument types (all return an rcl_ret_t)
+_SIGNATURES = {
+    "rcl_publish_serialized_message": (ctypes.c_void_p, ctypes.POINTER(_SerializedMessage), ctypes.c_void_p),
+    "rcl_publisher_wait_for_all_acked": (ctypes.c_void_p, ctypes.c_int64),  # timeout in ns
+}
+_RCL_RET_OK, _RCL_RET_TIMEOUT, _RCL_RET_UNSUPPORTED = 0, 2, 3
+_RCL: dict[str, Callable | None] = {}  # resolved on first use
 
 
-_PUBLISH: list[Callable | None] = []  # resolved on first use
+def _rcl(name: str) -> Callable | None:
+    """librcl's function `name` through ctypes, or None when librcl cannot be found."""
+    if name not in _RCL:
+        import rclpy
+
+        _RCL[name] = None
+        for candidate in (Path(rclpy.__file__).resolve().parents[3] / "librcl.so", "librcl.so"):
+            try:
+                function = getattr(ctypes.CDLL(str(candidate)), name)
+            except (OSError, AttributeError):
+                continue
+            function.argtypes, function.restype = _SIGNATURES[name], ctypes.c_int
+            _RCL[name] = function
+            break
+    return _RCL[name]
 
 
 def publish_serialized(publisher: Any, data: np.ndarray) -> None:
@@ -67,9 +74,7 @@ def publish_serialized(publisher: Any, data: np.ndarray) -> None:
     (rclpy's publish of bytes holds it for the whole copy into DDS: for a 100 MB mesh message, a
     few hundred milliseconds in which the node's other threads cannot run any Python). Falls back
     to `publisher.publish(bytes)` where librcl is not reachable."""
-    if not _PUBLISH:
-        _PUBLISH.append(_rcl_publish())
-    function = _PUBLISH[0]
+    function = _rcl("rcl_publish_serialized_message")
     data = np.ascontiguousarray(data, np.uint8)
     if function is None:
         publisher.publish(data.tobytes())
@@ -79,6 +84,25 @@ def publish_serialized(publisher: Any, data: np.ndarray) -> None:
         ret = function(publisher.handle.pointer, ctypes.byref(message), None)
     if ret != 0:
         raise RuntimeError(f"rcl_publish_serialized_message failed (rcl_ret_t {ret}) on {publisher.topic_name}")
+
+
+def wait_for_all_acked(publisher: Any, timeout_s: float) -> bool:
+    """Block until every reader of a reliable publisher acknowledged its samples (True) or timeout_s
+    passed (False), without holding the GIL: rclpy's `Publisher.wait_for_all_acked` holds it for as
+    long as it blocks, which stops every other Python thread of the process (integration, the
+    subscriptions). A middleware that cannot tell counts as acknowledged. Falls back to rclpy's wait
+    where librcl is not reachable."""
+    timeout_ns = max(0, int(timeout_s * 1e9))
+    function = _rcl("rcl_publisher_wait_for_all_acked")
+    if function is None:
+        from rclpy.duration import Duration
+
+        return bool(publisher.wait_for_all_acked(Duration(nanoseconds=timeout_ns)))
+    with publisher.handle:  # keeps the publisher alive during the call
+        ret = function(publisher.handle.pointer, timeout_ns)
+    if ret not in (_RCL_RET_OK, _RCL_RET_TIMEOUT, _RCL_RET_UNSUPPORTED):
+        raise RuntimeError(f"rcl_publisher_wait_for_all_acked failed (rcl_ret_t {ret}) on {publisher.topic_name}")
+    return ret != _RCL_RET_TIMEOUT
 
 
 def shut_down_rclpy() -> None:

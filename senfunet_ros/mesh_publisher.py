@@ -20,7 +20,6 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
-from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo, UnsupportedEventTypeError
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -29,7 +28,7 @@ from visualization_msgs.msg import MarkerArray
 
 from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
-from senfunet_ros.dds import publish_serialized
+from senfunet_ros.dds import publish_serialized, wait_for_all_acked
 from senfunet_ros.pipeline import Pipeline
 
 # The map: reliable and kept for late subscribers. Depth > 1 so a burst (delta then snapshot) is
@@ -38,7 +37,6 @@ MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=Reli
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
-_NO_WAIT = Duration(seconds=0)
 _PARTS_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the later parts of one update at most this, in all
 MESH_PERIOD_MARGIN = 0.05  # the mesh timer runs this much faster than mesh_rate_hz, and the weighting net's turn
 #   ends this much before its period: the refresh holds the rate asked for despite the updates' jitter
@@ -223,7 +221,7 @@ class MeshPublisher:
                 self._timings["weights"].add(time.perf_counter() - t_update)
             t_cloud = time.perf_counter()
             readers = (self.mesh_pub.get_subscription_count(), self._matched)
-            caught_up = self._parts_unacknowledged and self.mesh_pub.wait_for_all_acked(_NO_WAIT)
+            caught_up = self._parts_unacknowledged and wait_for_all_acked(self.mesh_pub, 0.0)
             whole = readers[0] > served[0] or readers[1] > served[1] or caught_up
             messages = self._mesh_messages(engine, update, s, stamp_ns, whole=whole)
             # the net's turn ends with this mesh period (less a margin for the updates' jitter): the next
@@ -303,7 +301,7 @@ class MeshPublisher:
         for parts, data in enumerate(messages or (), start=1):
             t_encoded = time.perf_counter()
             # the history holds 2: let readers take the previous part before it can be overwritten
-            if parts > 1 and not self._wait_mesh_acked(ack_deadline):
+            if parts > 1 and not wait_for_all_acked(self.mesh_pub, ack_deadline - time.monotonic()):
                 unacknowledged += 1
             publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
             publish_s += time.perf_counter() - t_encoded
@@ -371,13 +369,3 @@ class MeshPublisher:
             meshes = dataclasses.replace(meshes, colors=colors)
         return meshes
 
-    def _wait_mesh_acked(self, deadline: float) -> bool:
-        """Until every reader acknowledged ~/mesh's samples (True), or time.monotonic() reaches
-        deadline (False). Polled with short sleeps, so the node's other threads run meanwhile:
-        rclpy's Publisher.wait_for_all_acked holds the GIL for as long as it blocks (its binding does
-        not release it), which would stop integration and the subscriptions."""
-        while not self.mesh_pub.wait_for_all_acked(_NO_WAIT):
-            if time.monotonic() >= deadline:
-                return False
-            time.sleep(0.002)
-        return True

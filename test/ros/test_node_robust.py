@@ -778,8 +778,7 @@ def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: 
     import subprocess
     import sys
 
-    from rclpy.duration import Duration
-
+    from senfunet_ros.dds import wait_for_all_acked
 
     run = Running("slowreader", {**topic_params("slowreader"), **SMALL, "mesh_rate_hz": 0.05}, tmp_path)
     reader = subprocess.Popen([sys.executable, "-c", _READER, f"{run.prefix}/mesh"], stdout=subprocess.PIPE, text=True,
@@ -805,8 +804,7 @@ def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: 
         whole_maps = collector.delete_alls
         run.node.publish_mesh()  # nothing new in the engine, and a reader still behind: no message
         reader.send_signal(signal.SIGCONT)
-        wait_for(lambda: run.node.mesh_publisher.mesh_pub.wait_for_all_acked(Duration(seconds=0)), 10,
-                 "the reader to catch up")
+        assert wait_for_all_acked(run.node.mesh_publisher.mesh_pub, 10.0), "the reader did not catch up"
         assert collector.delete_alls == whole_maps
         run.node.publish_mesh()  # nothing new in the engine, every reader caught up
         wait_for(lambda: collector.delete_alls > whole_maps, 10, "the whole map again")
@@ -816,6 +814,59 @@ def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: 
         reader.send_signal(signal.SIGINT)
         reader.wait(10)
         run.close()
+
+
+def test_waiting_for_a_reader_lets_the_other_threads_run(ros) -> None:
+    """dds.wait_for_all_acked, with which the node waits between the parts of a mesh update, blocks
+    without the GIL: while a reader that does not acknowledge (a process stopped with SIGSTOP) keeps
+    it waiting, the process's other Python threads run on. It gives up at its timeout, and says so;
+    once the reader is resumed and takes the message, it says every reader has."""
+    import signal
+    import subprocess
+    import sys
+
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    from senfunet_ros.dds import wait_for_all_acked
+
+    node = Node("ack_wait_test")
+    qos = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    publisher = node.create_publisher(MarkerArray, "/ack_wait_test/mesh", qos)
+    reader = subprocess.Popen([sys.executable, "-c", _READER, "/ack_wait_test/mesh"], stdout=subprocess.PIPE,
+                              text=True, stderr=subprocess.DEVNULL)
+    ticks, stop = [0], threading.Event()
+
+    def count() -> None:  # pure Python: it runs only while it holds the GIL
+        while not stop.is_set():
+            ticks[0] += 1
+
+    counter = threading.Thread(target=count)
+    try:
+        assert reader.stdout is not None and reader.stdout.readline().strip() == "ready"
+        wait_for(lambda: publisher.get_subscription_count() == 1, 20, "the reader")
+        assert wait_for_all_acked(publisher, 0.0)  # nothing published yet
+        reader.send_signal(signal.SIGSTOP)
+        publisher.publish(MarkerArray(markers=[Marker(id=i, ns="test") for i in range(100)]))
+        counter.start()
+        before = ticks[0]
+        time.sleep(1.0)  # what the counter does in a second this thread leaves it
+        in_a_second, started = ticks[0] - before, time.monotonic()
+        acknowledged = wait_for_all_acked(publisher, 1.0)
+        waited_s, during = time.monotonic() - started, ticks[0] - before - in_a_second
+        assert not acknowledged and waited_s >= 0.9
+        # a wait holding the GIL would leave the counter a switch interval or so
+        assert during > 0.3 * in_a_second * waited_s, (during, in_a_second)
+        reader.send_signal(signal.SIGCONT)
+        assert wait_for_all_acked(publisher, 10.0)
+    finally:
+        stop.set()
+        if counter.is_alive():
+            counter.join()
+        reader.send_signal(signal.SIGCONT)
+        reader.send_signal(signal.SIGINT)
+        reader.wait(10)
+        node.destroy_node()
 
 
 def test_the_mesh_part_size_is_a_parameter(ros, tmp_path: Path, monkeypatch) -> None:
