@@ -124,6 +124,8 @@ def main() -> None:
     ap.add_argument("--no-large", dest="large", action="store_false",
                     help="skip the node's configuration on bench/realtime.py's large room")
     ap.add_argument("--cache", default=str(ROOT / "bench" / ".cache"), help="where the large room's bag is made")
+    ap.add_argument("--alpha-batch-blocks", type=int, default=0,
+                    help="blocks per weighting-net batch (default: the node's, EngineConfig.alpha_batch_blocks)")
     ap.add_argument("--no-write", dest="write", action="store_false")
     args = ap.parse_args()
     from senfunet_core.engine import EngineConfig
@@ -141,7 +143,8 @@ def main() -> None:
     except Exception:  # the ROS layer is optional here
         base, weights, malloc = EngineConfig(), "default", "glibc malloc unchanged"
     # G on as many threads as the peak is measured with (the node's config evaluates idle catch-ups on every core)
-    base = replace(base, alpha_threads=args.threads)
+    base = replace(base, alpha_threads=args.threads,
+                   alpha_batch_blocks=args.alpha_batch_blocks or base.alpha_batch_blocks)
     node_cfg = replace(base, alpha_voxels="surface", torch_threads=args.threads)
     cases = {  # name: (configuration, frames); the node's configuration on both rooms
         "exact (alpha_voxels=all, float32)": (replace(base, alpha_voxels="all", alpha_dtype="float32",
@@ -186,7 +189,8 @@ def main() -> None:
              f"Frames: the first {len(frames)} depth frames (256x256, both sensors, arrival order) of {source}"
              + (f"; the large room's column: the first {args.frames} of {large_source} (bench/realtime.py's room)"
                 if large_source else "")
-             + f"; update() every {args.update_every} frames; torch threads {args.threads}; {malloc}; medians over "
+             + f"; update() every {args.update_every} frames; weighting-net batches of {base.alpha_batch_blocks} "
+             f"blocks; torch threads {args.threads}; {malloc}; medians over "
              "frames (first frame of each sensor excluded).", "",
              "| | " + " | ".join(results) + " |", "|---" * (len(results) + 1) + "|"]
 
