@@ -118,11 +118,13 @@ class EngineConfig:
     w_max: float = 500.0  # weight counter clip
     border_px: int = 10  # masked image border
     device: str = "cpu"  # where the networks run: "cpu" or "cuda" (the grids stay in CPU memory)
-    alpha_batch_blocks: int = 128  # blocks per weighting-net batch (memory vs. how long readers hold the grid and
-    #                                a budget's granularity); at 128, an int8 batch's first-layer output (128 x 10^3 x
-    #                                32 bytes) stays under the node's 4 MB mmap threshold (node.limit_malloc): reused
-    #                                from the heap, not mapped and faulted in anew for each batch; and int8 G runs
-    #                                faster per block than in batches of 64 (`bench/engine.py --alpha-batch-blocks`)
+    alpha_batch_blocks: int = 64  # blocks per weighting-net batch (memory vs. how long readers hold the grid and a
+    #                               budget's granularity); at 64, a bfloat16 batch's first-layer output (64 x 10^3 x
+    #                               32 x 2 bytes) stays under the node's 4 MB mmap threshold (node.limit_malloc):
+    #                               reused from the heap, not mapped and faulted in anew for each batch. Batches of
+    #                               128 ran int8 G faster per block (`bench/engine.py --alpha-batch-blocks`) but cost
+    #                               the live node more CPU per frame while frames came (`bench/realtime.py`), CPU
+    #                               that integration lacks
     mesh_batch_blocks: int = 2048  # blocks per marching-cubes call
     seed: int = 0  # initialisation of untrained networks
     torch_threads: int = 1  # torch intra-op threads the engine sets (0: leave torch's setting); 1 fits 2 shared cores

@@ -10,6 +10,7 @@ participant (`rclpy.init`), since Fast DDS reads the profile then.
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 from pathlib import Path
 from typing import Any
@@ -49,24 +50,21 @@ _SIGNATURES = {
     "rcl_publisher_wait_for_all_acked": (ctypes.c_void_p, ctypes.c_int64),  # timeout in ns
 }
 _RCL_RET_OK, _RCL_RET_TIMEOUT, _RCL_RET_UNSUPPORTED = 0, 2, 3
-_RCL: dict[str, Callable | None] = {}  # resolved on first use
 
 
+@functools.cache  # resolved on first use
 def _rcl(name: str) -> Callable | None:
     """librcl's function `name` through ctypes, or None when librcl cannot be found."""
-    if name not in _RCL:
-        import rclpy
+    import rclpy
 
-        _RCL[name] = None
-        for candidate in (Path(rclpy.__file__).resolve().parents[3] / "librcl.so", "librcl.so"):
-            try:
-                function = getattr(ctypes.CDLL(str(candidate)), name)
-            except (OSError, AttributeError):
-                continue
-            function.argtypes, function.restype = _SIGNATURES[name], ctypes.c_int
-            _RCL[name] = function
-            break
-    return _RCL[name]
+    for candidate in (Path(rclpy.__file__).resolve().parents[3] / "librcl.so", "librcl.so"):
+        try:
+            function = getattr(ctypes.CDLL(str(candidate)), name)
+        except (OSError, AttributeError):
+            continue
+        function.argtypes, function.restype = _SIGNATURES[name], ctypes.c_int
+        return function
+    return None
 
 
 def publish_serialized(publisher: Any, data: np.ndarray) -> None:
