@@ -461,7 +461,7 @@ def spread_lines(realtime_runs: dict[str, list[dict]]) -> list[str]:
 
 def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
            realtime_runs: dict[str, list[dict]] | None = None) -> str:
-    from senfunet_ros.mesh_publisher import MIN_TURN_S
+    from senfunet_ros.mesh_publisher import MESH_PERIOD_MARGIN, MIN_TURN_S
     from senfunet_ros.params import GLOBAL_PARAMS
 
     cases = list(results)
@@ -470,7 +470,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
                                                                f"{default['max_map_blocks']} blocks")
     lines = [f"Machine: {machine()}", "", f"Command: `{command()}`", "",
              "The real `FusionNode` with its default parameters (config/default.yaml: mesh updates at "
-             f"{default['mesh_rate_hz']:g} Hz (scheduled 5% more often), weighting-net budget "
+             f"{default['mesh_rate_hz']:g} Hz (scheduled with a period {MESH_PERIOD_MARGIN:.0%} shorter), "
+             "weighting-net budget "
              f"{default['alpha_budget_s']:g} s per update (within the mesh period, at least "
              f"{MIN_TURN_S:g} s), "
              f"alpha on surface blocks, frames more than {default['max_lag_s']:g} s behind set aside (up to "

@@ -220,19 +220,27 @@ def _block_targets(neighbours: np.ndarray, b: int, tsdf_1: np.ndarray, weight_1:
     any_low, any_high = False, False
     for x in range(10):  # the 10^3 window (local -1..8): observed by any sensor, min and max TSDF
         for y in range(10):
-            for z in range(10):
-                v = _neighbour_index(neighbours, b, x - 1, y - 1, z - 1)
-                low, high, observed = np.float32(np.inf), np.float32(-np.inf), False
-                if v >= 0:
-                    if f16_to_f32(weight_1[v]) > 0:
-                        value = load_f32(tsdf_1, v)
-                        low, high, observed = min(low, value), max(high, value), True
-                    if f16_to_f32(weight_2[v]) > 0:
-                        value = load_f32(tsdf_2, v)
-                        low, high, observed = min(low, value), max(high, value), True
-                lo[x, y, z], hi[x, y, z], seen[x, y, z] = low, high, observed
-                any_low = any_low or bool(low <= 0.0)
-                any_high = any_high or bool(high >= 0.0)
+            # a row along z is three runs (local z -1 in the block below, 0..7, 8 in the block above):
+            # one neighbour lookup per run, not per voxel
+            row = ((x + 7) >> 3) * 9 + ((y + 7) >> 3) * 3
+            row_first = ((x + 7) & 7) * 64 + ((y + 7) & 7) * 8
+            for run in range(3):
+                first_z, length, window_z = (7, 1, 0) if run == 0 else ((0, 8, 1) if run == 1 else (0, 1, 9))
+                slot = neighbours[b, row + run]
+                for k in range(length):
+                    low, high, observed = np.float32(np.inf), np.float32(-np.inf), False
+                    if slot >= 0:
+                        v = slot * 512 + row_first + first_z + k
+                        if f16_to_f32(weight_1[v]) > 0:
+                            value = load_f32(tsdf_1, v)
+                            low, high, observed = min(low, value), max(high, value), True
+                        if f16_to_f32(weight_2[v]) > 0:
+                            value = load_f32(tsdf_2, v)
+                            low, high, observed = min(low, value), max(high, value), True
+                    z = window_z + k
+                    lo[x, y, z], hi[x, y, z], seen[x, y, z] = low, high, observed
+                    any_low = any_low or bool(low <= 0.0)
+                    any_high = any_high or bool(high >= 0.0)
     if not (any_low and any_high):  # no sign change near the block (most blocks)
         return False
     found = False

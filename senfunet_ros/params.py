@@ -100,7 +100,7 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           choices=ON_TIME_JUMP, runtime=True),
     _rate("integrate_rate_hz", 30.0, "rate of the timer that integrates queued frames"),
     _rate("mesh_rate_hz", 1.0, "rate of mesh updates (alpha, fusion, meshing of the changed blocks); the node "
-          "schedules them 5% more often, so that their jitter does not take the refresh below this rate"),
+          "schedules them with a period 10% shorter, so that their jitter does not take the refresh below this rate"),
     Param("alpha_budget_s", 0.5, "seconds per mesh update spent re-evaluating the sensor weighting (after the update "
           "is published; the next one shows it); blocks left over wait for the next turn (see alpha_order); "
           "0 = no limit", lo=0.0, hi=600.0, runtime=True),
