@@ -38,7 +38,7 @@ MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=Reli
 CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _PARTS_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the later parts of one update at most this, in all
-MESH_PERIOD_MARGIN = 0.10  # the mesh timer runs this much faster than mesh_rate_hz, and the weighting net's turn
+MESH_PERIOD_MARGIN = 0.10  # the mesh timer's period is this much shorter than 1 / mesh_rate_hz, and the net's turn
 #   ends this much before its period: the refresh holds the rate asked for despite the updates' jitter (with
 #   half this margin, a stream that keeps both cores busy stretched the median interval to the period:
 #   bench/realtime.py, large room)
