@@ -129,14 +129,19 @@ class AlphaScheduler:
         a mesh, the never evaluated ones near a sensor's surface go first, those with the most such
         voxels first (`alpha.near_surface_voxels`, counted then: too costly while frames come). The
         outlier filter holds back the surface one sensor alone saw until the net judged it, so these
-        blocks hold the surface the mesh lacks, the most of it first."""
+        blocks hold the surface the mesh lacks, the most of it first.
+
+        Blocks of equal rank go in the order of their keys (x, then y, then z): a batch's blocks then
+        lie side by side and share the neighbours their windows and surface checks read, which stay
+        in the cache (slot order, the order blocks were allocated in, scatters them)."""
         store = self.store
         with self._data_lock:
             stale = np.flatnonzero(store.stale[: store.n_blocks])
             reached = store.last_reached[stale]
             levels = store.stale[stale].astype(np.int64)
+            keys = store.grid.slot_keys[stale]
             if self.alpha_order == "latest":
-                return stale[np.lexsort((-levels, -reached))]
+                return stale[np.lexsort((keys, -levels, -reached))]
             meshed = store.meshed[stale]
             never_judged = ~meshed & (levels == 3)  # without a mesh
             uncounted = stale[never_judged & (store.surface_voxels[stale] < 0)] if idle else stale[:0]
@@ -154,8 +159,8 @@ class AlphaScheduler:
                 store.surface_voxels[uncounted] = np.concatenate(counts)
                 surface[never_judged] = store.surface_voxels[stale[never_judged]]
         group = np.where(meshed, 0, np.where(surface > 0, 1, 2))  # meshed, surface held back, the rest
-        return stale[np.lexsort((np.where(meshed, -levels, reached), np.where(meshed, reached, -levels), -surface,
-                                 group))]
+        return stale[np.lexsort((keys, np.where(meshed, -levels, reached), np.where(meshed, reached, -levels),
+                                 -surface, group))]
 
     def evaluate(self, slots: np.ndarray) -> AlphaBatch:
         """The weighting net on a batch (`AlphaEvaluator.evaluate`: without the data lock, writing

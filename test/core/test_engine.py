@@ -951,6 +951,22 @@ def test_a_budget_serves_the_blocks_its_order_puts_first(monkeypatch, alpha_orde
         assert evaluated.max() < n_far  # the far sphere's, waiting since the first schedule
 
 
+@pytest.mark.parametrize("alpha_order", ["latest", "longest_waiting"])
+def test_blocks_of_equal_rank_are_judged_in_the_order_of_their_keys(alpha_order):
+    """One frame's blocks, scheduled together, all of one rank: they are judged in key order (side
+    by side in space, so that a batch's windows share their neighbours), not in the slot order
+    they were allocated in."""
+    engine = engine_for_tests(alpha_order=alpha_order)
+    depth = render_sphere(SPHERE_C, SPHERE_R, SPHERE_K, SPHERE_VIEWS[0])
+    engine.integrate("tof", depth, SPHERE_K, SPHERE_VIEWS[0])
+    engine.refresh_alpha(0.0)  # scheduled, nothing judged
+    order = engine.alpha.order()
+    assert sorted(order.tolist()) == list(range(engine.grid.n_blocks))
+    keys = engine.grid.slot_keys[order]
+    assert (np.diff(keys) > 0).all()
+    assert (np.diff(engine.grid.slot_keys[: engine.grid.n_blocks]) < 0).any()  # slot order is another
+
+
 @pytest.mark.parametrize("schedule_s", [0.4, 0.8])
 def test_scheduling_the_changes_counts_in_the_budget(monkeypatch, schedule_s):
     """A budget is seconds from the call: on a large map scheduling the frames' changes takes a
