@@ -46,6 +46,16 @@ def _neighbour_index(neighbours: np.ndarray, b: int, x: int, y: int, z: int) -> 
     return slot * 512 + (x & 7) * 64 + (y & 7) * 8 + (z & 7)
 
 
+@numba.njit(inline="always")
+def _z_run(run: int, halo: int) -> tuple[int, int]:
+    """A window row along z around a block, with `halo` voxels each side, is three runs of
+    consecutive voxels, each in one block: run 0 (the block below, local z 8 - halo..7), 1 (the
+    block, 0..7), 2 (the block above, 0..halo - 1). Returns the run's (first local z, length)."""
+    if run == 0:
+        return 8 - halo, halo
+    return 0, 8 if run == 1 else halo
+
+
 def reach_levels(renewed: np.ndarray, codes: np.ndarray) -> np.ndarray:
     """The level at which a block's change reaches its neighbour `codes` (code 9*(dx+1) + 3*(dy+1)
     + (dz+1)), given the block's renewed reach bits (integrator.REACH_OF_VOXEL) and that the
@@ -131,7 +141,7 @@ def _fill_windows(out: np.ndarray, neighbours: np.ndarray, features_1: np.ndarra
         for x in range(8 - HALO, 8 + 8 + HALO):  # local + 8, so that shifts and masks find the block
             for y in range(8 - HALO, 8 + 8 + HALO):
                 for run in range(3):
-                    first_z, length = (8 - HALO, HALO) if run == 0 else ((0, 8) if run == 1 else (0, HALO))
+                    first_z, length = _z_run(run, HALO)
                     slot = neighbours[b, (x >> 3) * 9 + (y >> 3) * 3 + run]
                     if slot < 0:
                         for _ in range(length):
@@ -220,12 +230,12 @@ def _block_targets(neighbours: np.ndarray, b: int, tsdf_1: np.ndarray, weight_1:
     any_low, any_high = False, False
     for x in range(10):  # the 10^3 window (local -1..8): observed by any sensor, min and max TSDF
         for y in range(10):
-            # a row along z is three runs (local z -1 in the block below, 0..7, 8 in the block above):
-            # one neighbour lookup per run, not per voxel
+            # a row along z is three runs (`_z_run`): one neighbour lookup per run, not per voxel
             row = ((x + 7) >> 3) * 9 + ((y + 7) >> 3) * 3
             row_first = ((x + 7) & 7) * 64 + ((y + 7) & 7) * 8
+            window_z = 0
             for run in range(3):
-                first_z, length, window_z = (7, 1, 0) if run == 0 else ((0, 8, 1) if run == 1 else (0, 1, 9))
+                first_z, length = _z_run(run, 1)
                 slot = neighbours[b, row + run]
                 for k in range(length):
                     low, high, observed = np.float32(np.inf), np.float32(-np.inf), False
@@ -241,6 +251,7 @@ def _block_targets(neighbours: np.ndarray, b: int, tsdf_1: np.ndarray, weight_1:
                     lo[x, y, z], hi[x, y, z], seen[x, y, z] = low, high, observed
                     any_low = any_low or bool(low <= 0.0)
                     any_high = any_high or bool(high >= 0.0)
+                window_z += length
     if not (any_low and any_high):  # no sign change near the block (most blocks)
         return False
     found = False
