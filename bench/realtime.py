@@ -461,8 +461,8 @@ def spread_lines(realtime_runs: dict[str, list[dict]]) -> list[str]:
 
 def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
            realtime_runs: dict[str, list[dict]] | None = None) -> str:
-    from senfunet_ros.mesh_publisher import MESH_PERIOD_MARGIN, MIN_TURN_S
-    from senfunet_ros.params import GLOBAL_PARAMS
+    from senfunet_ros.mesh_publisher import MIN_TURN_S
+    from senfunet_ros.params import GLOBAL_PARAMS, MESH_PERIOD_MARGIN
 
     cases = list(results)
     default = {p.name: p.default for p in GLOBAL_PARAMS}

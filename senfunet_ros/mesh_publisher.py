@@ -28,6 +28,7 @@ from visualization_msgs.msg import MarkerArray
 
 from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
+from senfunet_ros.params import MESH_PERIOD_MARGIN
 from senfunet_ros.dds import publish_serialized, wait_for_all_acked
 from senfunet_ros.pipeline import Pipeline
 
@@ -38,10 +39,6 @@ MESH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=Reli
 CLOUD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _PARTS_ACK_TIMEOUT_S = 1.0  # a stuck reader delays the later parts of one update at most this, in all
-MESH_PERIOD_MARGIN = 0.10  # the mesh timer's period is this much shorter than 1 / mesh_rate_hz, and the net's turn
-#   ends this much before its period: the refresh holds the rate asked for despite the updates' jitter (with
-#   half this margin, a stream that keeps both cores busy stretched the median interval to the period:
-#   bench/realtime.py, large room)
 # the net's turn while frames come, however long the update took (if alpha_budget_s allows): short, since
 # an update that took the whole period already delays the next
 MIN_TURN_S = 0.05
