@@ -172,7 +172,9 @@ class AlphaScheduler:
         batch; while `side_by_side()` says so (integration waits for this: the cores are free), on
         the `threads` alpha threads at once, with as many more queued, else one batch at a time on
         this thread (integration has the other core). Each batch is one thread's, so alpha does not
-        depend on how many. Returns the blocks judged (holding voxels alpha matters for)."""
+        depend on how many. Batches go in the order of the blocks' keys, as `order` breaks its ties.
+        Returns the blocks judged (holding voxels alpha matters for)."""
+        slots = slots[np.argsort(self.store.grid.slot_keys[slots], kind="stable")]
         results: list[AlphaBatch] = []
         evaluating: collections.deque[Future[AlphaBatch]] = collections.deque()
         judged = 0

@@ -967,6 +967,27 @@ def test_blocks_of_equal_rank_are_judged_in_the_order_of_their_keys(alpha_order)
     assert (np.diff(engine.grid.slot_keys[: engine.grid.n_blocks]) < 0).any()  # slot order is another
 
 
+def test_blocks_judged_together_go_in_the_order_of_their_keys(monkeypatch):
+    """The blocks the map bound has judged before an eviction (`AlphaScheduler.judge`) go to the
+    net in key order too, whatever order they are given in, and each is judged once."""
+    engine = engine_for_tests(alpha_batch_blocks=16)
+    depth = render_sphere(SPHERE_C, SPHERE_R, SPHERE_K, SPHERE_VIEWS[0])
+    engine.integrate("tof", depth, SPHERE_K, SPHERE_VIEWS[0])
+    batches: list[np.ndarray] = []
+    evaluate = engine.alpha.evaluate
+
+    def recorded(slots: np.ndarray):
+        batches.append(slots.copy())
+        return evaluate(slots)
+
+    monkeypatch.setattr(engine.alpha, "evaluate", recorded)
+    given = np.random.default_rng(0).permutation(engine.grid.n_blocks)
+    judged = engine.alpha.judge(given, side_by_side=lambda: False)
+    assert len(batches) > 1 and judged > 0
+    keys = engine.grid.slot_keys[np.concatenate(batches)]
+    assert len(keys) == len(given) and (np.diff(keys) > 0).all()
+
+
 @pytest.mark.parametrize("schedule_s", [0.4, 0.8])
 def test_scheduling_the_changes_counts_in_the_budget(monkeypatch, schedule_s):
     """A budget is seconds from the call: on a large map scheduling the frames' changes takes a
