@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     png = None
     if not args.no_render:
         png = out / "mesh.png"
-        _render(out, png)
+        _render(out, png, sensors=_sensor_names(args.params))
     print(f"fused mesh: {mesh_path}")
     if png is not None:
         print(f"rendering:  {png}")
@@ -355,12 +355,22 @@ def _cutaway(mesh):  # noqa: ANN001, ANN202 - Mesh in, Mesh out
     return Mesh(mesh.vertices, mesh.faces[keep], mesh.colors)
 
 
-def _render(out: Path, png: Path) -> None:
+def _sensor_names(params: str | None) -> tuple[str, ...]:
+    """The node's sensors, in order, as the parameter file (or the defaults) names them."""
+    from senfunet_ros.params_file import load_settings
+
+    return tuple(load_settings(params).sensor_names)
+
+
+def _render(out: Path, png: Path, *, sensors: tuple[str, ...]) -> None:
+    """out's fused mesh beside its TSDF Fusion mesh; the fused mesh's colours are the sensor weighting
+    (`mesher.alpha_colors`), which its title spells out."""
     from senfunet_core.ply import read_ply
     from senfunet_core.render import render_mesh_png
 
+    fused = f"SenFuNet, live node: amber = {sensors[0]} trusted, blue = {sensors[1]} trusted"
     meshes, titles = [], []
-    for stem, title in (("mesh", "SenFuNet (live node; colour = sensor weighting)"), ("tsdf_fusion", "TSDF Fusion")):
+    for stem, title in (("mesh", fused), ("tsdf_fusion", "TSDF Fusion of both sensors")):
         path = out / f"{stem}.ply"
         if path.exists():
             meshes.append(_cutaway(read_ply(path)))
