@@ -185,6 +185,11 @@ def rgb_from_image(msg: Any) -> np.ndarray:
 MIN_FOV_DEG, MAX_FOV_DEG = 0.5, 170.0
 
 
+def _row_major(matrix: np.ndarray) -> str:
+    """A matrix's rows for a message: 'a b c, d e f'."""
+    return ", ".join(" ".join(f"{value:g}" for value in row) for row in matrix)
+
+
 def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
     """sensor_msgs/CameraInfo -> (K 3x3 float64, (width, height)) of the images it describes.
 
@@ -199,9 +204,17 @@ def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
     width, height = int(msg.width), int(msg.height)
     if width <= 0 or height <= 0:
         raise ValueError(f"camera_info size {width}x{height} is empty; set width and height in the driver")
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
+    if not np.all(np.isfinite(K)):
+        raise ValueError(f"camera_info K has entries that are not finite numbers ({_row_major(K)}); calibrate "
+                         "the camera")
+    if K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
         raise ValueError(f"camera_info K has no positive finite focal lengths (fx={K[0, 0]}, fy={K[1, 1]}); "
                          "calibrate the camera")
+    if not np.allclose(K[2], (0.0, 0.0, 1.0), rtol=0.0, atol=1e-6):
+        # a transposed K (column-major, the principal point in its last row) would shift every ray
+        raise ValueError(f"camera_info K is not a camera matrix: its last row is {_row_major(K[2:])}, not 0 0 1 "
+                         f"(K = {_row_major(K)}; row-major: fx 0 cx, 0 fy cy, 0 0 1); was it written "
+                         "column-major? fix the driver's camera_info")
     roi = getattr(msg, "roi", None)
     x0, y0, roi_width, roi_height = (int(getattr(roi, name, 0)) for name in ("x_offset", "y_offset", "width",
                                                                                 "height"))

@@ -75,6 +75,13 @@ def test_camera_info() -> None:
     assert size == (640, 480) and K[1, 1] == 510 and K[0, 2] == 320
     with pytest.raises(ValueError, match="focal"):
         conv.intrinsics_from_camera_info(CameraInfo(width=640, height=480))  # all-zero K
+    with pytest.raises(ValueError, match=r"not finite numbers \(500 0 nan, 0 510 240, 0 0 1\)"):
+        conv.intrinsics_from_camera_info(CameraInfo(width=640, height=480, k=[500.0, 0, np.nan, 0, 510, 240, 0, 0, 1]))
+    # written column-major (the principal point in the last row), or with K[2][2] = 0: every ray would
+    # be off, and the frames would be fused into the map where they do not belong
+    for k in ([500.0, 0, 0, 0, 510, 0, 320, 240, 1], [500.0, 0, 320, 0, 510, 240, 0, 0, 0]):
+        with pytest.raises(ValueError, match="last row is .*, not 0 0 1"):
+            conv.intrinsics_from_camera_info(CameraInfo(width=640, height=480, k=k))
     # a placeholder or mis-scaled K would smear each frame over the map: identity, millimetres, absurd
     for fx, fy in ((1.0, 1.0), (1.93, 1.93), (1e308, 500.0), (500.0, 1e-300)):
         with pytest.raises(ValueError, match="field of view"):
