@@ -684,6 +684,9 @@ class Ingest:
                     T = T @ self.config.T_body_camera[sensor]  # T_world_body -> T_world_camera
             except (ValueError, AttributeError) as err:
                 return state.drop("bad_pose", str(err))
+            frame = str(getattr(msg.header, "frame_id", ""))
+            if frame != self.config.fixed_frame and "pose_frame" not in state.counters.notes:
+                state.counters.notes["pose_frame"] = _pose_frame_note(frame, self.config.fixed_frame)
             reason, held = self._time.on_time(sensor, "pose", stamp_ns, T)
             taken = reason or state.accept(sensor, "pose", stamp_ns, T, self.config)
         return self._decode_and_put(held, taken)
@@ -952,6 +955,15 @@ def _decode_color(msg: Any) -> np.ndarray | str:
         return conv.rgb_from_image(msg)
     except ValueError as err:
         return str(err)
+
+
+def _pose_frame_note(frame: str, fixed_frame: str) -> str:
+    """What a sensor's notes say of poses that are not in the fixed frame: the node takes them as given."""
+    given = "have no frame_id" if not frame else f"are in frame '{frame}'"
+    fix = "set the pose source's frame_id" if not frame else f"set fixed_frame to '{frame}'"
+    return (f"its poses {given}, not the fixed frame '{fixed_frame}' (parameter fixed_frame): they are fused as "
+            f"given, as poses in '{fixed_frame}', where the mesh is published; {fix}, or use pose_type tf, "
+            "which looks the camera up in the fixed frame")
 
 
 def _tf_pose(tf: Any, fixed_frame: str, pending: _Pending, waited_too_long: bool

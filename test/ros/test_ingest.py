@@ -250,6 +250,29 @@ def test_a_stamp_whose_nanosec_is_not_below_one_second_is_a_bad_stamp(stream: st
     assert [f.stamp_ns for f in frames(ingest.pop_ready())] == [10 * MS]
 
 
+def test_poses_that_are_not_in_the_fixed_frame_are_fused_as_given_and_said_once() -> None:
+    """A pose source in another frame (odom) or in none: its poses are taken as given, as the contract
+    says, and the sensor's notes (logged once, in ~/status and replay's stats) say so, naming both
+    frames; poses in the fixed frame give no note."""
+    ingest = make(fixed_frame="map")
+    for t_ns, frame in ((0, "odom"), (50_000_000, "base_link"), (100_000_000, "odom")):
+        pose = pose_msg(t_ns)
+        pose.header.frame_id = frame
+        assert ingest.add_pose("tof", pose) is None
+    assert ingest.add_depth("tof", depth_msg(50_000_000)) is None
+    assert len(frames(ingest.pop_ready())) == 1
+    note = ingest.ledger.counters()["tof"]["notes"]["pose_frame"]
+    assert "in frame 'odom', not the fixed frame 'map'" in note and "set fixed_frame to 'odom'" in note
+    unnamed = pose_msg(0)
+    assert ingest.add_pose("stereo", unnamed) is None
+    assert "have no frame_id" in ingest.ledger.counters()["stereo"]["notes"]["pose_frame"]
+    in_map = make(fixed_frame="map")
+    pose = pose_msg(0)
+    pose.header.frame_id = "map"
+    assert in_map.add_pose("tof", pose) is None
+    assert "pose_frame" not in in_map.ledger.counters()["tof"]["notes"]
+
+
 def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
     """Drivers publish camera_info and depth on separate topics, so the first depth image may come
     first: it waits for the camera_info, within the queue size and pose_max_wait_s of stream time."""
