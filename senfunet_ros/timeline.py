@@ -215,7 +215,13 @@ class Timelines:
         lost = {k: len(c) - len(self._held[k]) - (k == key and newest) for k, c in lists.items()}
         held = sorted((m for k in lists for m in self._held[k]), key=lambda m: m.stamp_ns)
         restart = Restart(min(firsts), self.now_ns(), tuple(held), {k: n for k, n in lost.items() if n})
-        return self._move({k: c[-1] for k, c in lists.items()}, restart), newest
+        self._move({k: c[-1] for k, c in lists.items()}, restart)
+        for k, stamps in lists.items():  # the new timeline's depth stamps are taken: a copy that comes again
+            if k[1] == "depth":          # is a duplicate, and an older one out of order
+                self._recent_depth_ns[k].extend(stamps)
+                if len(stamps) > 1:
+                    self._previous_depth_ns[k] = stamps[-2]
+        return restart, newest
 
     def _move(self, timelines: dict[tuple[str, str], int], restart: Restart) -> Restart:
         """Every stream onto the new timeline (its newest candidate, or none yet)."""

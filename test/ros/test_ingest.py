@@ -355,6 +355,27 @@ def test_time_jump_flushes_and_is_reported_first() -> None:
     assert ingest.pop_ready() == []  # reported once
 
 
+def test_a_depth_image_sent_twice_while_a_restart_is_confirmed_is_fused_once() -> None:
+    """The sensors paused and resumed ahead (a driver restarted) with a relay that sends every depth
+    image twice: the copy of the image that confirmed the restart is a duplicate, not fused twice."""
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
+    ingest.add_pose("tof", pose_msg(1000 * MS))
+    ingest.add_depth("tof", depth_msg(1000 * MS))
+    ingest.add_depth("stereo", depth_msg(1000 * MS))
+    assert [f.stamp_ns // MS for f in frames(ingest.pop_ready())] == [1000]
+    verdicts = []
+    for t in range(9000, 9050, 10):  # 8 s later
+        ingest.add_pose("tof", pose_msg(t * MS))
+        ingest.add_pose("stereo", pose_msg(t * MS))
+        ingest.add_depth("stereo", depth_msg(t * MS + 4 * MS))
+        verdicts += [ingest.add_depth("tof", depth_msg(t * MS + 5 * MS)) for _ in range(2)]
+    ingest.add_pose("tof", pose_msg(9050 * MS))
+    ingest.add_pose("stereo", pose_msg(9050 * MS))
+    assert [f.stamp_ns // MS for f in frames(ingest.pop_ready()) if f.sensor == "tof"] == list(range(9005, 9050, 10))
+    # held as candidates of the new timeline (their copies too, unheld), then each copy a duplicate
+    assert verdicts == ["bad_stamp"] * 4 + [None, "duplicate"] * 3
+
+
 def test_a_restart_loses_nothing_when_old_messages_of_one_stream_arrive_late() -> None:
     """A busy reader hands stereo's last depth images of the old time over after the new timeline's
     first messages: they are on the old timeline, and the restart waits for stereo to move too
