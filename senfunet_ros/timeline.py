@@ -23,6 +23,7 @@ Decisions depend on stamps and their order alone, never on the wall clock.
 """
 from __future__ import annotations
 
+import bisect
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -138,9 +139,9 @@ class Timelines:
             error = (f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is {abs(stamp_ns - ref) * 1e-9:.3f} s "
                      f"{'behind' if behind else 'ahead of'} the stream's timeline; check the driver's clock (a restart "
                      f"is recognised once every stream continues on the new timeline)")
-            restart, newest = self._candidate(Held(sensor, stream, stamp_ns, message))
-            if restart is not None and newest:
-                return Verdict(restart=restart)  # the newest message of the new timeline: on time
+            restart, taken = self._candidate(Held(sensor, stream, stamp_ns, message))
+            if restart is not None and taken:
+                return Verdict(restart=restart)  # a message of the new timeline, not held: on time
             return Verdict("bad_stamp", error, restart)
         if any(self._spoke.values()):
             if self._candidates[key]:  # a stream back from the new timeline: what was building up is not a restart
@@ -186,33 +187,37 @@ class Timelines:
 
     def _candidate(self, message: Held) -> tuple[Restart | None, bool]:
         """Remember an off-timeline stamp; move to the new timeline when every stream is on it.
-        Returns the restart (or None) and whether the message is its stream's newest candidate."""
+        Returns the restart (or None) and whether the message was taken as a candidate (not a copy of
+        one); with a restart, such a message is not among the held ones: the caller takes it."""
         key, stamp_ns = (message.sensor, message.stream), message.stamp_ns
         self._spoke[key] = True
         candidates = self._candidates[key]
-        newest = not candidates or stamp_ns > candidates[-1]
-        if candidates and 0 <= stamp_ns - candidates[-1] <= self._far_ns:
-            if newest:
-                candidates.append(stamp_ns)
+        if candidates and abs(stamp_ns - candidates[-1]) <= self._far_ns:
+            # on the new timeline; one older than the newest came late (two threads take a subscription's
+            # messages: its callback, and the depth images' before them): kept in stamp order, each once
+            place = bisect.bisect_left(candidates, stamp_ns)
+            taken = place == len(candidates) or candidates[place] != stamp_ns
+            if taken:
+                candidates.insert(place, stamp_ns)
                 self._held[key].append(message)
         else:  # not consistent with what came before: start over
-            newest = True
+            taken = True
             self._candidates[key] = [stamp_ns]
             self._held[key].clear()
             self._held[key].append(message)
         lists = {k: self._candidates[k] for k, spoke in self._spoke.items() if spoke}
         if any(len(c) < self._confirm_msgs for c in lists.values()):
-            return None, newest
+            return None, taken
         firsts, lasts = [c[0] for c in lists.values()], [c[-1] for c in lists.values()]
         if max(lasts) - min(firsts) < self._confirm_ns or max(lasts) - min(lasts) > self._far_ns:
-            return None, newest
+            return None, taken
         # a stream that spoke on the old timeline meanwhile must have moved too, unless the new timeline went
         # on for longer than time_jump_s since it last spoke (it stopped: a restart it is not part of)
         if any(k not in lists and max(lasts) - heard_ns <= self._far_ns for k, (_, heard_ns) in self._lagging.items()):
-            return None, newest
-        if newest:
-            self._held[key].pop()  # the message being checked: its caller takes it
-        lost = {k: len(c) - len(self._held[k]) - (k == key and newest) for k, c in lists.items()}
+            return None, taken
+        if taken:
+            self._held[key].pop()  # the message being checked, held last: its caller takes it
+        lost = {k: len(c) - len(self._held[k]) - (k == key and taken) for k, c in lists.items()}
         held = sorted((m for k in lists for m in self._held[k]), key=lambda m: m.stamp_ns)
         restart = Restart(min(firsts), self.now_ns(), tuple(held), {k: n for k, n in lost.items() if n})
         self._move({k: c[-1] for k, c in lists.items()}, restart)
@@ -221,7 +226,7 @@ class Timelines:
                 self._recent_depth_ns[k].extend(stamps)
                 if len(stamps) > 1:
                     self._previous_depth_ns[k] = stamps[-2]
-        return restart, newest
+        return restart, taken
 
     def _move(self, timelines: dict[tuple[str, str], int], restart: Restart) -> Restart:
         """Every stream onto the new timeline (its newest candidate, or none yet)."""

@@ -376,6 +376,31 @@ def test_a_depth_image_sent_twice_while_a_restart_is_confirmed_is_fused_once() -
     assert verdicts == ["bad_stamp"] * 4 + [None, "duplicate"] * 3
 
 
+def test_a_restart_ahead_loses_no_pose_that_came_out_of_order() -> None:
+    """The sensors paused and resumed ahead, and two poses of the new timeline came swapped (two
+    threads take a subscription's messages: its callback and the depth images' before them): the
+    older one belongs to the new timeline too. It started the candidates over, which lost the poses
+    held so far, and the frames between them as pose_gap."""
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02, pose_tolerance_s=0.05)
+    ingest.add_pose("tof", pose_msg(1000 * MS))
+    ingest.add_depth("tof", depth_msg(1000 * MS))
+    ingest.add_depth("stereo", depth_msg(1000 * MS))
+    assert len(frames(ingest.pop_ready())) == 1
+    poses = list(range(9000, 9100, 10))
+    poses[2], poses[3] = poses[3], poses[2]
+    for i, t in enumerate(poses):  # 8 s later
+        ingest.add_pose("tof", pose_msg(t * MS, x=t / 1000))
+        if i % 2:
+            ingest.add_depth("tof", depth_msg((9000 + 10 * i - 5) * MS))
+            ingest.add_depth("stereo", depth_msg((9000 + 10 * i - 4) * MS))
+    taken = [f for f in frames(ingest.pop_ready()) if f.sensor == "tof"]
+    assert [f.stamp_ns // MS for f in taken] == list(range(9005, 9090, 20))
+    for frame in taken:  # posed between the poses around its stamp
+        assert frame.T_world_camera[0, 3] == pytest.approx(frame.stamp_ns / 1e9)
+    counters = ingest.ledger.counters()["tof"]
+    assert sum(counters["dropped"].values()) == 0, counters["dropped"]
+
+
 def test_a_restart_loses_nothing_when_old_messages_of_one_stream_arrive_late() -> None:
     """A busy reader hands stereo's last depth images of the old time over after the new timeline's
     first messages: they are on the old timeline, and the restart waits for stereo to move too
