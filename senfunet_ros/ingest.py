@@ -895,6 +895,12 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
         return "size_mismatch", str(err)
     if note:
         notes.append(("camera_info_size", note))
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
+        notes.append(("principal_point", f"the principal point of its camera_info's K (cx {cx:g}, cy {cy:g}) lies "
+                      f"outside the {width}x{height} depth images: the frames are fused as K says, but unless they "
+                      "are a crop (roi) that leaves out the image centre, K is another camera's or resolution's "
+                      "and every ray is off; check the driver's camera_info"))
     if not np.any(depth_m > 0.0):
         return "all_invalid", ""
     target_width, target_height = working_size

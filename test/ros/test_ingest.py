@@ -273,6 +273,22 @@ def test_poses_that_are_not_in_the_fixed_frame_are_fused_as_given_and_said_once(
     assert "pose_frame" not in in_map.ledger.counters()["tof"]["notes"]
 
 
+def test_a_principal_point_outside_the_image_is_fused_as_given_and_said_once() -> None:
+    """A K whose principal point lies far outside its image (another camera's K, or a crop published
+    without its roi) shifts every ray: fused as given, since a crop's can lie there, and said once."""
+    ingest = make()
+    far = CameraInfo(width=10, height=8, k=[10.0, 0, 500.0, 0, 10.0, 3.5, 0, 0, 1])
+    assert ingest.add_camera_info("tof", far) is None
+    for t_ns in (0, 100_000_000):
+        ingest.add_pose("tof", pose_msg(t_ns))
+    assert ingest.add_depth("tof", depth_msg(50_000_000)) is None
+    assert len(frames(ingest.pop_ready())) == 1
+    notes = ingest.ledger.counters()
+    assert "(cx 500, cy 3.5) lies outside the 10x8 depth images" in notes["tof"]["notes"]["principal_point"]
+    assert ingest.add_depth("stereo", depth_msg(50_000_000)) is None  # its K's principal point is the centre
+    assert "principal_point" not in ingest.ledger.counters()["stereo"]["notes"]
+
+
 def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
     """Drivers publish camera_info and depth on separate topics, so the first depth image may come
     first: it waits for the camera_info, within the queue size and pose_max_wait_s of stream time."""
