@@ -253,11 +253,15 @@ class Pipeline:
         queued frames go (they belong to the old map's timeline). `configure` gets the new engine
         before it replaces the old (the caller's run-time settings: no frame is integrated with the
         file's). Returns the new engine."""
+        from senfunet_core.errors import InputError
         from senfunet_core.map_file import load_map
 
         path = Path(path).expanduser()
         if path.is_dir():
             raise IsADirectoryError(f"{path} is a folder, not a map file; set parameter map_file to the map's file")
+        if path.exists() and not path.is_file():  # a FIFO, a device: reading one could block the node
+            raise InputError(f"{path} is not a regular file (a pipe or a device?), not a map file; set parameter "
+                             "map_file to the map's file")
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such map file; set parameter map_file or call ~/save_map first")
         # its alpha threads start as the old engine's did (the node's: at its mesh thread's priority)

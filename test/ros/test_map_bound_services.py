@@ -269,6 +269,17 @@ def test_load_map_of_a_folder_says_it_is_a_folder(tmp_path):
     assert pipeline.engine.grid.n_blocks == blocks
 
 
+def test_load_map_of_a_pipe_says_it_is_not_a_regular_file(tmp_path):
+    """map_file naming a FIFO: the reply said "no such map file" of a path that exists (and opening
+    one to read would wait for a writer)."""
+    services, pipeline, _ = _services(tmp_path, map_file="map.pt")
+    os.mkfifo(tmp_path / "map.pt")
+    blocks = pipeline.engine.grid.n_blocks
+    reply = _call(services.load_map)
+    assert not reply.success and "is not a regular file" in reply.message, reply.message
+    assert "no such" not in reply.message and pipeline.engine.grid.n_blocks == blocks
+
+
 def test_load_map_of_another_version_or_another_torch_file_says_what_to_do(tmp_path):
     """A map a newer version wrote (another format), a tensor, the network weights: each was "not a
     SenFuNet engine state" (a newer map's user learnt neither why nor what to do) or, for a tensor,
