@@ -152,12 +152,12 @@ class Pipeline:
         self.time_jumps += 1
         reset = self.on_time_jump is TimeJumpAction.RESET
         # one line a restart, whatever stream showed it (a looping bag says so every pass); the messages
-        # the restart cost are counted per stream on ~/status (time_jump, bad_stamp)
+        # the restart cost are counted per stream on ~/status (time_jump)
         where = "/clock" if jump.stream == "clock" else f"{jump.sensor} {jump.stream}"
         self._log("warning", f"time restarted, pass {self.time_jumps + 1} (a bag looping or restarting?): {where} went "
                   f"back from {jump.from_ns * 1e-9:.3f} s to {jump.to_ns * 1e-9:.3f} s; queued frames flushed, map "
                   f"{'reset' if reset else 'kept'} (parameter on_time_jump); messages it cost are counted on "
-                  "~/status (time_jump, bad_stamp)")
+                  "~/status (time_jump)")
         if reset:
             self.engine.reset()
             self._new_map()

@@ -22,9 +22,6 @@ from senfunet_ros.health import HealthMonitor
 from senfunet_ros.ingest import DROP_REASONS, Ingest
 from senfunet_ros.pipeline import Pipeline
 
-# drops a restart of time causes (flushed queues, messages of the old timeline in flight and of the new one
-# before it is confirmed): counted, and told by the restart's line rather than warned per stream (`CounterWarnings`)
-_RESTART_DROPS = ("time_jump", "bad_stamp")
 
 ENGINE_STATS_PERIOD_S = 5.0  # engine.stats() takes the engine's locks and sums the grid: at most this often
 
@@ -55,8 +52,8 @@ DROP_HINTS: dict[str, str] = {
     "out_of_order": "a depth stamp on {s.depth_topic} went back in time, behind the sensor's two newest",
     "duplicate": "a depth stamp on {s.depth_topic} came twice",
     "bad_stamp": "a stamp far (time_jump_s) from its stream's timeline, or 0; check the driver's clock",
-    "time_jump": "time restarted (a bag looping?): the queued images were flushed, and messages that showed it "
-                 "beyond a queue's worth went",
+    "time_jump": "time restarted (a bag looping?): the queued images were flushed, messages that showed it "
+                 "beyond a queue's worth went, and messages of the old time handed over after it too",
     "engine_error": "the engine rejected the frame",
     "shutdown": "the node stopped while the frame was being integrated, or had set it aside",
     "map_reset": "the map was reset or replaced while the image waited or was set aside",
@@ -113,9 +110,12 @@ def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str,
 class CounterWarnings:
     """The warnings Ingest's counters call for since the last call (`counter_warnings`), with a restart
     of time in mind: a restart tells of the messages it cost itself (a looping bag: every pass), so
-    those drops are not warned per stream for `hold_s` after it; while a restart may be under way
-    they wait, at most `hold_s` (a driver whose stamps are always off keeps a restart pending: its
-    drops are warned all the same). Called from one thread (the node's integration tick)."""
+    its `time_jump` drops (flushed queues, messages of the old time in flight) are not warned per
+    stream for `hold_s` after it. While a restart may be under way, `bad_stamp` drops wait, at most
+    `hold_s`: a confirmed restart takes the new timeline's first messages back (no longer dropped),
+    or counts them as its loss; those left are bad stamps and are warned (an unset stamp right after
+    a restart too), as are those of a driver whose stamps are always off (it keeps a restart
+    pending). Called from one thread (the node's integration tick)."""
 
     def __init__(self, ingest: Ingest, *, hold_s: float) -> None:
         self._ingest = ingest
@@ -139,13 +139,13 @@ class CounterWarnings:
         restarting = now_s - self._time_jump_at_s < self._hold_s
         due = []
         for key, message in counter_warnings(self._last, counters, settings, resolved):
-            if key[-1] in _RESTART_DROPS and not restarting and pending:
+            if key[-1] == "bad_stamp" and pending:
                 if now_s - self._held_since.setdefault(key, now_s) < self._hold_s:
                     sensor, reason = key  # compared again next time
                     counters[sensor]["dropped"][reason] = self._last[sensor]["dropped"][reason]
                     continue
             self._held_since.pop(key, None)
-            if not (key[-1] in _RESTART_DROPS and restarting):
+            if not (key[-1] == "time_jump" and restarting):
                 due.append((key, message))
         self._last = counters
         return due

@@ -14,7 +14,9 @@ over late), and it must move too before the restart is confirmed (unless the new
 without it for more than `time_jump_s`: it stopped). The candidates' messages, held meanwhile (the
 newest `hold_msgs` per stream), are handed back with the restart, so the new timeline loses none of
 its start. A restart known from outside (`restart`: the /clock went back) starts every timeline
-again from its time, so that old messages still in flight are off it. A depth stamp must be new
+again from its time, so that old messages still in flight are off it. After either, a message of
+the old time that was still in flight (until the new timeline has gone on for `time_jump_s`) is
+rejected as `time_jump`, the restart's loss, not as a bad stamp. A depth stamp must be new
 (not among the stream's latest) and move forward, except one between the stream's two newest: that
 newest was stamped ahead of its place (or two frames crossed), and the stream's time goes back.
 Decisions depend on stamps and their order alone, never on the wall clock.
@@ -65,10 +67,10 @@ class Restart:
 
 @dataclass(frozen=True)
 class Verdict:
-    """What a stamp is: on time (reason None), or rejected with `reason` ("bad_stamp", "duplicate",
-    "out_of_order"; `error` says what was wrong with a bad stamp). A rejected stamp can also have
-    confirmed a restart, which the timelines already moved to; the message that confirmed it is on
-    time (reason None) when it is the newest of its stream."""
+    """What a stamp is: on time (reason None), or rejected with `reason` ("bad_stamp", "time_jump": of the
+    time before a restart, "duplicate", "out_of_order"; `error` says what was wrong with the stamp). A
+    rejected stamp can also have confirmed a restart, which the timelines already moved to; the
+    message that confirmed it is on time (reason None) when it is the newest of its stream."""
 
     reason: str | None = None
     error: str = ""
@@ -99,6 +101,8 @@ class Timelines:
         self._previous_depth_ns: dict[tuple[str, str], int] = {}
         # where time restarted, known from outside (the /clock): the timeline until a stream has one
         self._anchor_ns: int | None = None
+        # after a restart: the old timeline's newest stamp and the new one's when it restarted (`_in_flight`)
+        self._old_time: tuple[int, int] | None = None
 
     def configure(self, *, time_jump_s: float, restart_confirm_msgs: int, restart_confirm_s: float,
                   hold_msgs: Mapping[str, int]) -> None:
@@ -134,6 +138,9 @@ class Timelines:
         if last is None and now is not None and stamp_ns < now - self._far_ns:
             behind = True  # a stream's first message far behind the others
         if behind or ahead:
+            if self._in_flight(stamp_ns):
+                return Verdict("time_jump", f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is of the time before the "
+                                            "restart, handed over after it (a busy reader): lost to the restart")
             ref = last if behind and last is not None else now
             assert ref is not None  # behind or ahead needs a timeline to be off
             error = (f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is {abs(stamp_ns - ref) * 1e-9:.3f} s "
@@ -173,6 +180,17 @@ class Timelines:
         self._last_ns[key] = stamp_ns
         return Verdict()
 
+    def _in_flight(self, stamp_ns: int) -> bool:
+        """Whether an off-timeline stamp is a message of the time before the latest restart that was
+        still in flight: near the old timeline's newest stamp, while the new timeline has gone on for
+        less than time_jump_s. Such a message is the restart's loss (`time_jump`), not a bad stamp, and
+        no candidate: a stamp far from both timelines (an unset stamp 0) stays a bad_stamp."""
+        if self._old_time is None:
+            return False
+        old_ns, restarted_ns = self._old_time
+        now = self.now_ns()
+        return abs(stamp_ns - old_ns) <= self._far_ns and now is not None and now - restarted_ns <= self._far_ns
+
     def pending(self) -> bool:
         """Whether off-timeline stamps wait to be confirmed as a restart (or found to be strays)."""
         return any(self._candidates.values())
@@ -183,6 +201,8 @@ class Timelines:
         time still in flight are off it."""
         restart = self._move({}, Restart(to_ns if to_ns is not None else 0, self.now_ns()))
         self._anchor_ns = to_ns
+        if restart.from_ns is not None and to_ns is not None:
+            self._old_time = (restart.from_ns, to_ns)
         return restart
 
     def _candidate(self, message: Held) -> tuple[Restart | None, bool]:
@@ -237,6 +257,8 @@ class Timelines:
         self._previous_depth_ns.clear()
         self._anchor_ns = None
         self._close_episode()
+        new_ns = max(timelines.values(), default=None)
+        self._old_time = None if restart.from_ns is None or new_ns is None else (restart.from_ns, new_ns)
         return restart
 
     def _close_episode(self) -> None:

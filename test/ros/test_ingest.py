@@ -371,6 +371,56 @@ def test_time_jump_flushes_and_is_reported_first() -> None:
     assert ingest.pop_ready() == []  # reported once
 
 
+def _restarted_from_205_to_100_s(ingest: Ingest) -> None:
+    """tof's depth and poses at 205 s, then on a new timeline from 100 s until a restart is confirmed."""
+    ingest.add_pose("tof", pose_msg(205_000 * MS))
+    ingest.add_depth("tof", depth_msg(205_000 * MS))
+    for t in range(100_000, 100_040, 10):
+        ingest.add_pose("tof", pose_msg(t * MS))
+        ingest.add_depth("tof", depth_msg(t * MS + 5 * MS))
+    assert sum(isinstance(i, TimeJump) for i in ingest.pop_ready()) == 1
+
+
+def test_after_a_restart_old_messages_in_flight_are_its_loss_and_an_unset_stamp_is_a_bad_stamp() -> None:
+    """After a restart, a message of the old time that a busy reader hands over late is the restart's
+    loss (time_jump); a stamp off both timelines (unset: 0) is a bad_stamp. Once the new timeline has
+    gone on for time_jump_s, a message of the old time is a bad_stamp too (a glitch, or a new restart)."""
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
+    _restarted_from_205_to_100_s(ingest)
+    assert ingest.add_depth("tof", depth_msg(205_010 * MS)) == "time_jump"
+    assert ingest.add_pose("tof", pose_msg(204_500 * MS)) == "time_jump"
+    assert ingest.add_depth("tof", depth_msg(0)) == "bad_stamp"
+    dropped = ingest.ledger.counters()["tof"]["dropped"]
+    assert dropped["time_jump"] == 3 and dropped["bad_stamp"] == 1  # the flushed frame, the two in flight; the 0
+    for t in (100_600, 101_100):  # the new timeline goes on for 1.1 s
+        assert ingest.add_pose("tof", pose_msg(t * MS)) is None
+    assert ingest.add_depth("tof", depth_msg(205_020 * MS)) == "bad_stamp"
+
+
+def test_a_restart_warns_none_of_what_it_cost_but_an_unset_stamp_right_after_it() -> None:
+    """The restart's own line tells of what it cost (counted on ~/status as time_jump); a depth image
+    with an unset stamp right after it is a bad stamp of its own and warned, once no restart is
+    pending (it was counted and never logged)."""
+    from senfunet_ros import params as P
+    from senfunet_ros.status import CounterWarnings
+
+    settings = P.Settings.from_values({name: default for name, (default, _) in P.expanded_defaults().items()})
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
+    warnings = CounterWarnings(ingest, hold_s=60.0)
+
+    def stamp_warnings() -> list[tuple[tuple[str, ...], str]]:
+        return [(key, text) for key, text in warnings.since_last(settings) if key[1] in ("time_jump", "bad_stamp")]
+
+    _restarted_from_205_to_100_s(ingest)
+    ingest.add_depth("tof", depth_msg(205_010 * MS))  # of the old time, in flight
+    assert stamp_warnings() == []
+    assert ingest.add_depth("tof", depth_msg(0)) == "bad_stamp"
+    assert stamp_warnings() == []  # it may start a new timeline: held while that is open
+    assert ingest.add_depth("tof", depth_msg(100_050 * MS)) is None  # the stream goes on: it was a stray
+    (warning,) = stamp_warnings()
+    assert warning[0] == ("tof", "bad_stamp") and "dropped 1 message(s): bad_stamp" in warning[1], warning
+
+
 def test_a_depth_image_sent_twice_while_a_restart_is_confirmed_is_fused_once() -> None:
     """The sensors paused and resumed ahead (a driver restarted) with a relay that sends every depth
     image twice: the copy of the image that confirmed the restart is a duplicate, not fused twice."""
@@ -1000,7 +1050,7 @@ def test_a_pause_of_every_stream_keeps_what_waits_and_old_messages_in_flight_aft
     # the frame queued before the pause was not flushed: the poses around it are 5 s apart
     assert counters["dropped"]["pose_gap"] == 1 and "bad_stamp" not in counters["errors"]
     ingest.restart(to_ns=0)  # the /clock went back to 0
-    assert ingest.add_pose("tof", pose_msg(10_040 * MS)) == "bad_stamp"  # in flight from before
+    assert ingest.add_pose("tof", pose_msg(10_040 * MS)) == "time_jump"  # in flight from before: lost to it
     assert ingest.add_pose("tof", pose_msg(5 * MS)) is None
     assert ingest.add_depth("tof", depth_msg(10 * MS)) is None
     ingest.add_pose("tof", pose_msg(15 * MS))
