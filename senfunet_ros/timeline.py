@@ -7,11 +7,12 @@ of all streams, is off it (a glitching driver, one bad message, an unset stamp 0
 every stream that spoke since the first candidate has continued on it for `restart_confirm_msgs`
 messages, spanning `restart_confirm_s`, time has restarted (a bag looping, a robot restarting its
 clock) and the streams move to the new timeline: back (the caller flushes what waits) or ahead
-(every stream resumed after a pause). A stream that speaks on the old timeline meanwhile ends that
-episode if it had moved to the new one (a glitch) or stays on the old one for more than
-`time_jump_s`; otherwise its messages were in flight when time restarted (a busy reader hands them
-over late), and it must move too before the restart is confirmed (unless the new timeline goes on
-without it for more than `time_jump_s`: it stopped). The candidates' messages, held meanwhile (the
+(every stream resumed after a pause; one clock, so a stream yet to speak keeps its timeline). A
+stream that speaks on the old timeline meanwhile ends that episode if it had moved to the new one
+(a glitch) or stays on the old one for more than `time_jump_s`; otherwise its messages were in
+flight when time restarted (a busy reader hands them over late), and it must move too before the
+restart is confirmed (unless the new timeline goes on without it for more than `time_jump_s`: it
+stopped). The candidates' messages, held meanwhile (the
 newest `hold_msgs` per stream), are handed back with the restart, so the new timeline loses none of
 its start. A restart known from outside (`restart`: the /clock went back) starts every timeline
 again from its time, so that old messages still in flight are off it. After either, a message of
@@ -240,7 +241,9 @@ class Timelines:
         lost = {k: len(c) - len(self._held[k]) - (k == key and taken) for k, c in lists.items()}
         held = sorted((m for k in lists for m in self._held[k]), key=lambda m: m.stamp_ns)
         restart = Restart(min(firsts), self.now_ns(), tuple(held), {k: n for k, n in lost.items() if n})
-        self._move({k: c[-1] for k, c in lists.items()}, restart)
+        # ahead (every stream paused, one clock): a stream yet to speak keeps its timeline, so that its first
+        # messages are judged by it, not by how far a burst took the streams that confirmed the restart
+        self._move({k: c[-1] for k, c in lists.items()}, restart, keep_silent=not restart.went_back)
         for k, stamps in lists.items():  # the new timeline's depth stamps are taken: a copy that comes again
             if k[1] == "depth":          # is a duplicate, and an older one out of order
                 self._recent_depth_ns[k].extend(stamps)
@@ -248,10 +251,13 @@ class Timelines:
                     self._previous_depth_ns[k] = stamps[-2]
         return restart, taken
 
-    def _move(self, timelines: dict[tuple[str, str], int], restart: Restart) -> Restart:
-        """Every stream onto the new timeline (its newest candidate, or none yet)."""
+    def _move(self, timelines: dict[tuple[str, str], int], restart: Restart, *, keep_silent: bool = False
+              ) -> Restart:
+        """Every stream onto the new timeline (its newest candidate, or none yet); `keep_silent`: a stream
+        without candidates keeps its own."""
         for key in self._last_ns:
-            self._last_ns[key] = timelines.get(key)
+            if key in timelines or not keep_silent:
+                self._last_ns[key] = timelines.get(key)
         for recent in self._recent_depth_ns.values():
             recent.clear()
         self._previous_depth_ns.clear()

@@ -467,6 +467,47 @@ def test_a_restart_ahead_loses_no_pose_that_came_out_of_order() -> None:
     assert sum(counters["dropped"].values()) == 0, counters["dropped"]
 
 
+@pytest.mark.parametrize("poses_ahead_s", [1.5, 2.5])
+def test_a_burst_after_a_pause_that_brings_the_poses_first_costs_no_frame(poses_ahead_s: float) -> None:
+    """Every stream paused 3 s, then resumed in a burst (a driver catching up, a bag played fast): the
+    node takes all queued poses at once (TakingQueued), so the poses confirmed the restart ahead and
+    ran seconds ahead of the images. The depth streams, not yet heard on the new timeline, had
+    lost their timelines: their first images, more than time_jump_s behind the newest pose, were
+    bad_stamp; beyond that, they became a restart back (a TimeJump) that flushed every pose, and
+    the burst's frames timed out (pose_timeout)."""
+    ingest = make()  # the node's defaults: time_jump_s 1, restart after 5 messages spanning 0.5 s
+    t0_ms = 1_700_000_000_000  # a driver's wall-clock stamps
+
+    def messages(start_ms: int, duration_ms: int) -> list[tuple[int, str, str]]:
+        out = []
+        for sensor, period_ms, phase_ms in (("tof", 67, 3), ("stereo", 50, 7)):
+            out += [(t, sensor, "depth") for t in range(start_ms + phase_ms, start_ms + duration_ms, period_ms)]
+            out += [(t, sensor, "pose") for t in range(start_ms, start_ms + duration_ms + 20, 10)]
+        return sorted(out)
+
+    def add(t_ms: int, sensor: str, stream: str) -> list[Frame | TimeJump]:
+        if stream == "depth":
+            ingest.add_depth(sensor, depth_msg(t_ms * MS))
+        else:
+            ingest.add_pose(sensor, pose_msg(t_ms * MS, x=(t_ms - t0_ms) / 1000))
+        return ingest.pop_ready()
+
+    for message in messages(t0_ms, 1000):
+        add(*message)
+    before = ingest.ledger.counters()
+    burst = messages(t0_ms + 4000, 2500)  # after a pause of 3 s
+    ahead_ms = poses_ahead_s * 1000
+    items = [item for message in sorted(burst, key=lambda m: m[0] - (ahead_ms if m[2] == "pose" else 0))
+             for item in add(*message)]
+    assert not any(isinstance(i, TimeJump) for i in items)
+    for sensor, counters in ingest.ledger.counters().items():
+        taken = [f for f in frames(items) if f.sensor == sensor]
+        assert len(taken) == sum(1 for _, s, stream in burst if (s, stream) == (sensor, "depth"))
+        for frame in taken:  # posed between the poses around its stamp
+            assert frame.T_world_camera[0, 3] == pytest.approx((frame.stamp_ns / MS - t0_ms) / 1000)
+        assert counters["dropped"] == before[sensor]["dropped"], counters["dropped"]
+
+
 def test_a_restart_loses_nothing_when_old_messages_of_one_stream_arrive_late() -> None:
     """A busy reader hands stereo's last depth images of the old time over after the new timeline's
     first messages: they are on the old timeline, and the restart waits for stereo to move too
