@@ -461,7 +461,7 @@ class _SensorInput:
             else:
                 T, reason = self.poses.at(t, tolerance_ns=int(config.pose_tolerance_s * 1e9),
                                           waited_too_long=waited_too_long)
-                error = ""
+                error = "" if reason is None else _pose_drop_error(reason, t, now_ns, self.poses.around(t), config)
             if self.ended and reason == "pose_timeout":  # no pose at or after it, and none will come
                 T, reason, error = self.pose_at_end(pending, config)
             if T is not None and config.tf is not None and name in config.T_body_camera:
@@ -970,6 +970,23 @@ def _pose_frame_note(frame: str, fixed_frame: str) -> str:
     return (f"its poses {given}, not the fixed frame '{fixed_frame}' (parameter fixed_frame): they are fused as "
             f"given, as poses in '{fixed_frame}', where the mesh is published; {fix}, or use pose_type tf, "
             "which looks the camera up in the fixed frame")
+
+
+def _pose_drop_error(reason: str, stamp_ns: int, now_ns: int | None, around_ns: tuple[int | None, int | None],
+                     config: IngestConfig) -> str:
+    """What a frame that gets no pose from the pose topic met (`PoseBuffer.at`'s reason), and what to check."""
+    before_ns, after_ns = around_ns
+    if reason == "pose_timeout":
+        newest = "no pose has come yet" if before_ns is None else f"the newest pose is at {before_ns * 1e-9:.3f} s"
+        now = "" if now_ns is None else f", until the sensor's newest stamp reached {now_ns * 1e-9:.3f} s"
+        return (f"pose: the frame at {stamp_ns * 1e-9:.3f} s waited for a pose at or after its stamp for more than "
+                f"pose_max_wait_s ({config.pose_max_wait_s:g} s) of stream time{now}, and {newest}; check that poses "
+                "arrive and are stamped on the depth images' clock, or raise pose_max_wait_s if they come later")
+    before = "none before it" if before_ns is None else f"{(stamp_ns - before_ns) * 1e-6:.0f} ms before it"
+    after = "none after it" if after_ns is None else f"{(after_ns - stamp_ns) * 1e-6:.0f} ms after it"
+    return (f"pose: the poses nearest the frame at {stamp_ns * 1e-9:.3f} s lie {before} and {after}, farther than "
+            f"pose_tolerance_s ({config.pose_tolerance_s * 1e3:g} ms) on one side; publish poses more often or raise "
+            "pose_tolerance_s")
 
 
 def _tf_pose(tf: Any, fixed_frame: str, pending: _Pending, waited_too_long: bool

@@ -80,6 +80,11 @@ class PoseBuffer:
         s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
         return interpolate_pose(self._poses[i - 1], self._poses[i], s), None
 
+    def around(self, stamp_ns: int) -> tuple[int | None, int | None]:
+        """The stamps of the newest pose before `stamp_ns` and of the oldest at or after it (None: none)."""
+        i = bisect.bisect_left(self._stamps, stamp_ns)
+        return (self._stamps[i - 1] if i else None), (self._stamps[i] if i < len(self._stamps) else None)
+
     def extrapolate(self, stamp_ns: int, *, tolerance_ns: int) -> np.ndarray | None:
         """The pose at a depth stamp after the newest pose, continuing the two newest poses' motion at
         constant velocity (`extrapolate_pose`), when it lies within tolerance_ns past the newest; None

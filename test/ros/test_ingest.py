@@ -97,11 +97,17 @@ def test_pose_timeout_and_gap() -> None:
     ingest.add_depth("tof", depth_msg(0))  # no pose stream at all
     ingest.add_depth("tof", depth_msg(600 * MS))  # stream time moves on past the limit
     assert ingest.pop_ready() == []
-    assert ingest.ledger.counters()["tof"]["dropped"]["pose_timeout"] == 1
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["pose_timeout"] == 1
+    # the error says which frame waited, until when, for what (the hint alone named none of it)
+    error = counters["errors"]["pose_timeout"]
+    assert "frame at 0.000 s" in error and "reached 0.600 s" in error and "no pose has come yet" in error, error
     ingest.add_pose("tof", pose_msg(400 * MS))
     ingest.add_pose("tof", pose_msg(800 * MS))  # both 200 ms from the frame: beyond the tolerance
     assert ingest.pop_ready() == []
-    assert ingest.ledger.counters()["tof"]["dropped"]["pose_gap"] == 1
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["pose_gap"] == 1
+    assert "lie 200 ms before it and 200 ms after it" in counters["errors"]["pose_gap"], counters["errors"]
     assert ingest.ledger.queue_depths()["tof"] == 0
 
 
