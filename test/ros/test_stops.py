@@ -233,3 +233,38 @@ def test_a_shutdown_the_signal_handler_raced_is_a_stop(monkeypatch: pytest.Monke
     monkeypatch.setattr(rclpy, "ok", lambda: True)  # the context still up: a real failure, raised
     with pytest.raises(RCLError):
         shut_down_rclpy()
+
+
+def test_use_sim_time_toggled_through_the_parameter_service_leaves_the_node_running(tmp_path: Path, ros) -> None:
+    """`ros2 param set /senfunet use_sim_time true|false`, again and again: setting it false drops the
+    /clock subscriptions (rclpy's and the node's) in the parameter service's callback while the spin
+    thread may be putting them in its wait set. rclpy raised InvalidHandle there, out of the spin:
+    the node died (exit code 1) after a few toggles."""
+    import rclpy
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    log = tmp_path / "node.log"
+    node = _start([*CLI, "node", "--", "-r", "__ns:=/simtoggle", "-p", "voxel_size_m:=0.04", "-p", "working_width:=64",
+                   "-p", f"output_dir:={tmp_path / 'out'}"], log)
+    client_node = Node("simtoggle_client")
+    try:
+        _wait_for_text(log, "fusing", node, 180)
+        client = client_node.create_client(SetParameters, "/simtoggle/senfunet/set_parameters")
+        assert client.wait_for_service(timeout_sec=30), log.read_text()
+        for i in range(100):
+            request = SetParameters.Request(parameters=[Parameter("use_sim_time", value=i % 2 == 0).to_parameter_msg()])
+            future = client.call_async(request)
+            rclpy.spin_until_future_complete(client_node, future, timeout_sec=20)
+            assert node.poll() is None, f"died after {i + 1} toggles: {log.read_text()[-3000:]}"
+            assert future.done() and future.result().results[0].successful, log.read_text()[-3000:]
+        time.sleep(0.5)
+        assert node.poll() is None, log.read_text()[-3000:]
+        node.send_signal(signal.SIGINT)
+        assert node.wait(60) == 0, log.read_text()[-3000:]
+    finally:
+        client_node.destroy_node()
+        if node.poll() is None:
+            node.kill()
+    assert "Traceback" not in log.read_text(), log.read_text()[-3000:]
