@@ -15,7 +15,7 @@ from typing import Any
 from senfunet_core.errors import InputError
 from senfunet_ros import params as P
 from senfunet_ros.mesh_publisher import MeshPublisher, mesh_period_s
-from senfunet_ros.pipeline import Pipeline
+from senfunet_ros.pipeline import Pipeline, mesh_paths
 
 
 # what the node's parameters fix and a map must share: its sensors and what their grids mean
@@ -28,6 +28,10 @@ def _reason(err: Exception) -> str:
         return (f"out of memory ({err})" if str(err) else "out of memory") + \
             " (free memory, e.g. with a lower max_map_blocks, and call the service again; the map is kept)"
     return str(err) or type(err).__name__
+
+
+class NothingToSave(InputError):
+    """The map is empty, and saving it would replace files an earlier map wrote."""
 
 
 def _plain(value: Any) -> Any:
@@ -47,9 +51,31 @@ class MapServices:
         s = self.settings()
         # absolute: the replies name the files for clients in other processes (other working directories)
         out = Path(output_dir or s.output_dir).expanduser().absolute()
-        saved = self.pipeline.save_meshes(out, sensors=s.sensor_names,
-                                          tsdf_fusion=self.pipeline.engine.config.tsdf_fusion)
+        tsdf_fusion = self.pipeline.engine.config.tsdf_fusion
+        self._keep_earlier_files(list(mesh_paths(out, sensors=s.sensor_names, tsdf_fusion=tsdf_fusion).values()))
+        saved = self.pipeline.save_meshes(out, sensors=s.sensor_names, tsdf_fusion=tsdf_fusion)
         return [saved_mesh.path for saved_mesh in saved.values()]
+
+    def save_map_file(self) -> Path:
+        """The whole map into `map_path`; returns the path."""
+        path = self.map_path()
+        self._keep_earlier_files([path])
+        return self.pipeline.save_map(path)
+
+    def _keep_earlier_files(self, paths: list[Path]) -> None:
+        """Raises NothingToSave when the map is empty (nothing fused since the start, the last ~/reset or
+        a restart with on_time_jump reset) and some of these files exist: empty files would replace what
+        an earlier map saved there (a ~/save_mesh after a ~/reset, or a node stopping with
+        save_on_shutdown before its sensors came)."""
+        engine = self.pipeline.engine
+        if sum(engine.frames_integrated.values()) or engine.grid.n_blocks or len(engine.archive):
+            return
+        existing = [str(path) for path in paths if path.exists()]
+        if existing:
+            raise NothingToSave(f"the map is empty (nothing fused since the node started or the map was reset), so "
+                                f"{', '.join(existing)} {'were' if len(existing) > 1 else 'was'} left as "
+                                f"{'they were' if len(existing) > 1 else 'it was'}; fuse first, call ~/load_map to go "
+                                "on from a saved map, or remove the files to save an empty map there")
 
     def map_path(self) -> Path:
         """Parameter map_file; a relative path is in output_dir (absolute, as the replies name it)."""
@@ -61,7 +87,7 @@ class MapServices:
         return self._reply(response, self._save_mesh, "saving failed: {err}; check parameter output_dir")
 
     def save_map(self, request: Any, response: Any) -> Any:
-        return self._reply(response, lambda: f"wrote {self.pipeline.save_map(self.map_path())}",
+        return self._reply(response, lambda: f"wrote {self.save_map_file()}",
                            "saving the map failed: {err}; check parameters output_dir and map_file")
 
     def load_map(self, request: Any, response: Any) -> Any:

@@ -58,7 +58,7 @@ from senfunet_ros.conversions import PoseType
 from senfunet_ros.dds import shut_down_rclpy
 from senfunet_ros.health import HealthMonitor
 from senfunet_ros.ingest import Frame, Ingest, TimeJump
-from senfunet_ros.map_services import MapServices
+from senfunet_ros.map_services import MapServices, NothingToSave
 from senfunet_ros.mesh_publisher import MeshPublisher, MeshWorker, mesh_period_s
 from senfunet_ros.pipeline import Pipeline, Stream, TimeJumpAction
 from senfunet_ros.status import CounterWarnings, StatusReport, ThrottledWarnings
@@ -934,13 +934,17 @@ def stop_node(node: FusionNode) -> None:
             try:
                 try:
                     paths, saved = node.map_services.save_meshes(), "saved"
+                except NothingToSave as err:  # the files of an earlier run stay
+                    print(f"senfunet: not saved on shutdown: {err}", flush=True)
+                    paths = []
                 except (OSError, InputError) as err:  # output_dir cannot be written (a file there is a folder):
                     # the map would end with the process
                     print(f"senfunet: saving on shutdown into output_dir failed: {err}; check parameter output_dir; "
                           "saving into a new temporary folder instead", file=sys.stderr, flush=True)
                     paths = node.map_services.save_meshes(tempfile.mkdtemp(prefix="senfunet_output_"))
                     saved = "saved instead"
-                print(f"senfunet: {saved} " + ", ".join(str(p) for p in paths), flush=True)
+                if paths:
+                    print(f"senfunet: {saved} " + ", ".join(str(p) for p in paths), flush=True)
             except KeyboardInterrupt:
                 print("senfunet: interrupted again: saving on shutdown stopped (files already written stay, "
                       "the one being written was not replaced)", flush=True)

@@ -28,7 +28,8 @@ from typing import Any
 
 from senfunet_ros.ingest import Frame, Ingest, IngestConfig, NoDepthInRange, TimeJump, integrate_ready
 
-__all__ = ["FILE_MODE", "MESH_FILES", "Pipeline", "SavedMesh", "Stream", "TimeJumpAction", "optical_frame_advice"]
+__all__ = ["FILE_MODE", "MESH_FILES", "Pipeline", "SavedMesh", "Stream", "TimeJumpAction", "mesh_paths",
+           "optical_frame_advice"]
 
 MESH_FILES = {"fused": "mesh"}  # engine mesh name -> file stem (sensors and tsdf_fusion keep their names)
 FILE_MODE = 0o644  # maps and meshes are for other users and tools too (a temporary file would be 0600)
@@ -55,6 +56,13 @@ class TimeJumpAction(str, enum.Enum):
     def parse(cls, value: str) -> TimeJumpAction:
         """'ignore' is the older spelling of 'keep'."""
         return cls.KEEP if value == "ignore" else cls(value)
+
+
+def mesh_paths(out_dir: Path, *, sensors: Iterable[str], tsdf_fusion: bool) -> dict[str, Path]:
+    """Engine mesh name -> the PLY file `Pipeline.save_meshes` writes it to, in the order it makes them
+    (the fused mesh last)."""
+    names = [*sensors] + (["tsdf_fusion"] if tsdf_fusion else []) + ["fused"]
+    return {name: out_dir / f"{MESH_FILES.get(name, name)}.ply" for name in names}
 
 
 @dataclass(frozen=True)
@@ -208,7 +216,8 @@ class Pipeline:
 
         out = Path(out_dir).expanduser()
         out.mkdir(parents=True, exist_ok=True)
-        which = [*sensors] + (["tsdf_fusion"] if tsdf_fusion else []) + ["fused"]
+        paths = mesh_paths(out, sensors=sensors, tsdf_fusion=tsdf_fusion)
+        which = list(paths)
         meshes: dict[str, tuple[Any, float]] = {}
         # the engine is thread-safe: frames keep being integrated while the meshes are made (holding the
         # lock would stop draining the queues, which then overflow); only a reset excludes them
@@ -222,20 +231,20 @@ class Pipeline:
                 for name in which:
                     t0 = time.perf_counter()
                     mesh = engine.extract_mesh(name, then_reset=then_reset and name == which[-1])
-                    meshes[MESH_FILES.get(name, name)] = (mesh, time.perf_counter() - t0)
+                    meshes[name] = (mesh, time.perf_counter() - t0)
             if then_reset:
                 self._new_map()
         saved = {}
-        for stem, (mesh, seconds) in meshes.items():
-            path = out / f"{stem}.ply"
+        for name, (mesh, seconds) in meshes.items():
+            path = paths[name]
             write_ply(path, mesh)
             os.chmod(path, FILE_MODE)
-            saved[stem] = SavedMesh(path, mesh, seconds)
-        partial = [f"{MESH_FILES.get(name, name)}.ply" for name in which if name != "fused"]
+            saved[path.stem] = SavedMesh(path, mesh, seconds)
+        partial = [paths[name].name for name in which if name != "fused"]
         if on_disk and partial:
             self._log("warning", f"{', '.join(partial)} cover only the blocks in memory: the {on_disk} blocks the map "
-                      f"bound (max_map_blocks) evicted to disk are not in them; {MESH_FILES.get('fused', 'fused')}.ply "
-                      "has them (their final fused meshes)")
+                      f"bound (max_map_blocks) evicted to disk are not in them; {paths['fused'].name} has them (their "
+                      "final fused meshes)")
         return saved
 
     def save_map(self, path: str | Path) -> Path:

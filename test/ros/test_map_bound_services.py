@@ -298,3 +298,23 @@ def test_load_map_of_another_version_or_another_torch_file_says_what_to_do(tmp_p
         assert not reply.success and says in reply.message, reply.message
         assert "replay the recording" in reply.message or "set parameter map_file" in reply.message, reply.message
         assert pipeline.engine.grid.n_blocks == blocks
+
+
+def test_an_empty_map_does_not_replace_what_an_earlier_map_saved(tmp_path):
+    """~/reset, then ~/save_mesh and ~/save_map: the empty map's files replaced the earlier map's
+    (mesh.ply of a few hundred bytes, a map.pt of no blocks), with success replies. They are refused,
+    the earlier files kept; into a folder without earlier files the empty map is saved as before."""
+    services, pipeline, errors = _services(tmp_path)
+    assert _call(services.save_mesh).success and _call(services.save_map).success
+    earlier = {path.name: path.read_bytes() for path in tmp_path.glob("*") if path.suffix in (".ply", ".pt")}
+    assert set(earlier) == {"mesh.ply", "tof.ply", "stereo.ply", "map.pt"}, set(earlier)
+    assert _call(services.reset).success
+    for handler, files in ((services.save_mesh, "mesh.ply"), (services.save_map, "map.pt")):
+        reply = _call(handler)
+        assert not reply.success and "the map is empty" in reply.message and files in reply.message, reply.message
+        assert "~/load_map" in reply.message and errors[-1] == reply.message
+    assert {name: (tmp_path / name).read_bytes() for name in earlier} == earlier
+    elsewhere = services.save_meshes(tmp_path / "new")
+    assert sorted(path.name for path in elsewhere) == sorted(name for name in earlier if name.endswith(".ply"))
+    integrate_views(pipeline.engine, [(SPHERE_C, SPHERE_VIEWS[1])])  # fused again: saved over the earlier ones
+    assert _call(services.save_mesh).success and _call(services.save_map).success

@@ -114,6 +114,17 @@ def test_node_sigterm_finishes_and_exits_zero(tmp_path: Path, ros_domain_id: int
     assert "senfunet: stopped" in text and (tmp_path / "out" / "mesh.ply").is_file()
 
 
+def test_a_node_that_fused_nothing_keeps_the_meshes_an_earlier_run_saved(tmp_path: Path, ros_domain_id: int) -> None:
+    """save_on_shutdown on a node that fused nothing (its sensors never came: a topic typo) replaced the
+    earlier run's mesh.ply by an empty one; it is kept, and the log says why."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mesh.ply").write_bytes(b"an earlier run's mesh")
+    text = _node_stopped_by_sigterm(tmp_path, out)
+    assert (out / "mesh.ply").read_bytes() == b"an earlier run's mesh"
+    assert "senfunet: not saved on shutdown: the map is empty" in text and "senfunet: saved" not in text, text
+
+
 def test_node_saving_on_shutdown_into_an_unusable_output_dir_saves_elsewhere_and_says_so(tmp_path: Path,
                                                                                           ros_domain_id: int) -> None:
     blocker = tmp_path / "a_file"
