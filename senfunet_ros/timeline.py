@@ -142,11 +142,7 @@ class Timelines:
             if self._in_flight(stamp_ns):
                 return Verdict("time_jump", f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is of the time before the "
                                             "restart, handed over after it (a busy reader): lost to the restart")
-            ref = last if behind and last is not None else now
-            assert ref is not None  # behind or ahead needs a timeline to be off
-            error = (f"{stream}: stamp {stamp_ns * 1e-9:.3f} s is {abs(stamp_ns - ref) * 1e-9:.3f} s "
-                     f"{'behind' if behind else 'ahead of'} the stream's timeline; check the driver's clock (a restart "
-                     f"is recognised once every stream continues on the new timeline)")
+            error = self._off_timeline_error(sensor, stream, stamp_ns, last if behind else None)
             restart, taken = self._candidate(Held(sensor, stream, stamp_ns, message))
             if restart is not None and taken:
                 return Verdict(restart=restart)  # a message of the new timeline, not held: on time
@@ -180,6 +176,25 @@ class Timelines:
         recent.append(stamp_ns)
         self._last_ns[key] = stamp_ns
         return Verdict()
+
+    def _off_timeline_error(self, sensor: str, stream: str, stamp_ns: int, own_last_ns: int | None) -> str:
+        """What a bad_stamp's error says: off the stream's own timeline (`own_last_ns`: it is behind that),
+        or off the other streams' time while its sensor has no time of its own or keeps to it (its clock
+        differs from theirs)."""
+        now = self.now_ns()
+        assert now is not None  # off needs a timeline
+        t = f"{stream}: stamp {stamp_ns * 1e-9:.3f} s"
+        own_ns = self.sensor_now_ns(sensor)
+        if own_last_ns is None and (own_ns is None or abs(stamp_ns - own_ns) <= self._far_ns):
+            return (f"{t} is {abs(stamp_ns - now) * 1e-9:.3f} s {'behind' if stamp_ns < now else 'ahead of'} the "
+                    f"other sensors' time ({now * 1e-9:.3f} s): {sensor}'s clock differs from theirs, or its driver "
+                    f"restarted on another clock; give every sensor one clock (e.g. PTP or chrony): {sensor}'s "
+                    "messages are dropped until its stamps agree with the others'")
+        ref = own_last_ns if own_last_ns is not None else now
+        return (f"{t} is {abs(stamp_ns - ref) * 1e-9:.3f} s {'behind' if stamp_ns < ref else 'ahead of'} the "
+                f"stream's timeline; check the driver's clock (a restart is recognised once every stream continues on "
+                f"the new timeline; if only {sensor}'s moved, its driver restarted on another clock, and its messages "
+                "are dropped until its stamps agree with the other sensors' again)")
 
     def _in_flight(self, stamp_ns: int) -> bool:
         """Whether an off-timeline stamp is a message of the time before the latest restart that was

@@ -615,6 +615,25 @@ def test_a_stray_stamp_is_dropped_and_does_not_move_the_timeline(stray_s: float)
     assert "stamp" in c["errors"]["bad_stamp"]
 
 
+def test_a_sensor_whose_clock_differs_from_the_others_is_told_so() -> None:
+    """stereo's driver stamps on a clock 3 s behind tof's: its messages are bad stamps, and the error
+    named "the stream's timeline" and a restart that could never be confirmed (tof goes on). It now
+    says that stereo's clock differs from the other sensors'. A stray stamp of a sensor that keeps to
+    the others' time is still one off its stream's timeline."""
+    ingest = make(time_jump_s=1.0)
+    for t in range(5000, 8000, 50):
+        ingest.add_pose("tof", pose_msg(t * MS))
+        ingest.add_depth("tof", depth_msg(t * MS + 5 * MS))
+        assert ingest.add_pose("stereo", pose_msg((t - 3000) * MS)) == "bad_stamp"
+        assert ingest.add_depth("stereo", depth_msg((t - 2995) * MS)) == "bad_stamp"
+    assert not any(isinstance(i, TimeJump) for i in ingest.pop_ready())
+    error = ingest.ledger.counters()["stereo"]["errors"]["bad_stamp"]
+    assert "3.000 s behind the other sensors' time" in error and "stereo's clock differs" in error, error
+    assert ingest.add_depth("tof", depth_msg(0)) == "bad_stamp"
+    error = ingest.ledger.counters()["tof"]["errors"]["bad_stamp"]
+    assert "behind the stream's timeline" in error and "clock differs" not in error, error
+
+
 def test_new_settings_reach_the_timelines() -> None:
     """A new config (the node's parameters changed at run time) changes how far is off the timeline."""
     ingest = make(time_jump_s=1.0)
