@@ -889,6 +889,9 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
         return "bad_encoding", f"depth: {err}"
     height, width = depth_m.shape
     notes: list[tuple[str, str]] = []
+    units = conv.depth_units_note(msg, depth_m)
+    if units:
+        notes.append(("depth_units", units))
     try:  # a resize of the camera_info's view (a decimating driver) takes its K scaled, as the contract says
         K, note = conv.intrinsics_for_size(K, info_size, (width, height))
     except ValueError as err:

@@ -17,6 +17,7 @@ to do about it.
 from senfunet_ros.conversions.images import (
                                              color_for_depth,
                                              depth_from_image,
+                                             depth_units_note,
                                              intrinsics_for_size,
                                              intrinsics_from_camera_info,
                                              resize_depth,
@@ -69,6 +70,7 @@ __all__ = [
                                              "block_marker_ids",
                                              "delete_all_marker_array_cdr",
                                              "depth_from_image",
+                                             "depth_units_note",
                                              "color_for_depth",
                                              "intrinsics_for_size",
                                              "intrinsics_from_camera_info",

@@ -13,6 +13,7 @@ from senfunet_ros.conversions.rvl import rvl_decode
 
 __all__ = [
     "depth_from_image",
+    "depth_units_note",
     "color_for_depth",
     "intrinsics_for_size",
     "principal_point_off_centre",
@@ -161,6 +162,26 @@ def depth_from_image(msg: Any) -> np.ndarray:
     depth_m = raw.astype(np.float32) * np.float32(scale)
     depth_m[~np.isfinite(depth_m) | (depth_m <= 0.0)] = 0.0
     return depth_m
+
+
+def depth_units_note(msg: Any, depth_m: np.ndarray) -> str | None:
+    """What a decoded depth image's deepest value says of its encoding, when it looks wrong: float
+    depths beyond 1 km with is_bigendian set (a little-endian driver that sets the flag), or a
+    millimetre encoding whose values stay below 2 cm (metres written as whole numbers). None when
+    nothing looks wrong (or for compressedDepth, whose codec fixes the units)."""
+    if _is_compressed(msg):
+        return None
+    deepest_m = float(depth_m.max(initial=0.0))  # invalid pixels are 0
+    encoding = str(msg.encoding)
+    if msg.is_bigendian and deepest_m > 1000.0:
+        return (f"its {encoding} depth images have is_bigendian set and decode to depths up to {deepest_m:.3g} m: if "
+                "the driver writes little-endian values (as x86 and ARM machines do), the flag is wrong; fix the "
+                "driver's is_bigendian")
+    if _DEPTH_ENCODINGS[encoding][1] != 1.0 and 0.0 < deepest_m < 0.02:
+        return (f"its {encoding} depth images hold at most {deepest_m * 1000:.0f}, read as millimetres (REP 118): "
+                f"metres written as whole numbers into a {encoding} image? Publish millimetres in 16UC1, or metres "
+                "in 32FC1")
+    return None
 
 
 def rgb_from_image(msg: Any) -> np.ndarray:

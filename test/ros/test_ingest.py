@@ -295,6 +295,29 @@ def test_a_principal_point_outside_the_image_is_fused_as_given_and_said_once() -
     assert "principal_point" not in ingest.ledger.counters()["stereo"]["notes"]
 
 
+def test_depth_images_whose_units_or_byte_order_look_wrong_are_said_once() -> None:
+    """Little-endian depths with is_bigendian set decode to absurd depths, and metres written into a
+    16UC1 image read as a few millimetres: both were dropped as out_of_range with a message about the
+    depth range alone. The sensor's notes now name the flag or the units to fix."""
+    ingest = make()
+    swapped = depth_msg(0)
+    swapped.data = np.linspace(0.5, 4.0, 80, dtype="<f4").tobytes()  # a driver's depths, its flag wrong
+    swapped.is_bigendian = 1
+    assert ingest.add_depth("tof", swapped) is None
+    note = ingest.ledger.counters()["tof"]["notes"]["depth_units"]
+    assert "is_bigendian set" in note and "fix the driver's is_bigendian" in note, note
+    metres = Image(height=8, width=10, encoding="16UC1", step=20)
+    metres.data = np.full((8, 10), 3, "<u2").tobytes()  # 3 m, as a whole number
+    _stamp(metres, 0)
+    assert ingest.add_depth("stereo", metres) is None
+    note = ingest.ledger.counters()["stereo"]["notes"]["depth_units"]
+    assert "hold at most 3, read as millimetres" in note and "metres in 32FC1" in note, note
+    assert ingest.add_depth("stereo", depth_msg(10 * MS)) is None  # metres in 32FC1: nothing to say
+    ingest2 = make()
+    assert ingest2.add_depth("tof", depth_msg(0, value=2.5)) is None
+    assert "depth_units" not in ingest2.ledger.counters()["tof"]["notes"]
+
+
 def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
     """Drivers publish camera_info and depth on separate topics, so the first depth image may come
     first: it waits for the camera_info, within the queue size and pose_max_wait_s of stream time."""
