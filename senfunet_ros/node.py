@@ -316,7 +316,8 @@ class FusionNode(Node):
         self._topics = topics
         self.status_report = StatusReport(self.pipeline, self.health, self.timings, self.latency, topics=topics,
                                           hardware_id=self.get_fully_qualified_name(), warn=self._warn,
-                                          logger=self.get_logger(), name=self.get_name())
+                                          logger=self.get_logger(), name=self.get_name(),
+                                          graph_hint=self._silent_topic_hint)
         # 4. timers, each in its own group so a long mesh update never stalls integration. They run
         # on the steady clock: with use_sim_time, /clock stops when a bag ends, and queued frames
         # must still be integrated and meshed.
@@ -508,6 +509,31 @@ class FusionNode(Node):
     def status(self) -> DiagnosticArray:
         """~/status and /diagnostics now (`senfunet_ros.status.StatusReport`)."""
         return self.status_report.message(self.settings.fixed_frame)
+
+    def _silent_topic_hint(self, topic: str) -> str:
+        """What the ROS graph says of a subscribed topic nothing came on: nobody publishes it, or its
+        publishers' type is not the one subscribed (an amcl pose, a CompressedImage under a raw name)."""
+        wanted = next((sub.msg_type for sub in self._subscriptions_keep if sub.topic_name == topic), None)
+        if wanted is None:
+            return ""
+        try:
+            types = {info.topic_type for info in self.get_publishers_info_by_topic(topic)}
+        except Exception:  # noqa: BLE001 (a graph query failing under a stop): the warning stands without it
+            return ""
+        wanted_type = f"{wanted.__module__.split('.')[0]}/msg/{wanted.__name__}"
+        if not types:
+            return f"; nobody publishes {topic} now"
+        other = sorted(types - {wanted_type})
+        if not other:
+            return (f"; it has publishers of {wanted_type}, yet nothing came: check that they share the node's "
+                    "ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE")
+        hint = f"; it is published as {', '.join(other)}, the node subscribes {wanted_type}"
+        if any(streams.get("pose") == topic for streams in self._topics.values()):
+            matching = [t.value for t in PoseType if t.msgtype in other]
+            hint += (f": set pose_type to {matching[0]}" if matching else
+                     ": pose_type takes " + ", ".join(f"{t.value} ({t.msgtype or '/tf'})" for t in PoseType)
+                     + "; republish the poses as one of those")
+        return hint
 
     def destroy_node(self) -> None:
         self._mesh_timer.cancel()

@@ -186,11 +186,12 @@ class StatusReport:
     """Builds the node's DiagnosticArray from the pipeline and the node's monitors (shared, read
     here): `health`, `timings` (stage -> an object with last_ms, mean_ms) and `latency` (with
     summary()). topics: sensor -> stream -> topic, for the warnings; warn(key, text): the node's
-    throttled warning."""
+    throttled warning; graph_hint(topic): what the ROS graph says of a topic nothing came on (its
+    publishers), to add to that warning."""
 
     def __init__(self, pipeline: Pipeline, health: HealthMonitor, timings: dict[str, Any], latency: Any, *,
                  topics: dict[str, dict[str, str]], hardware_id: str, warn: Callable[[tuple[str, ...], str], None],
-                 logger: Any, name: str = P.NODE_NAME) -> None:
+                 logger: Any, name: str = P.NODE_NAME, graph_hint: Callable[[str], str] = lambda topic: "") -> None:
         self.pipeline = pipeline
         # each status is named "<node name>: <part>", as diagnostic_updater does: two fusion nodes (`-r __node:=front`)
         # must not share names, which the aggregator and rqt_robot_monitor key their entries by
@@ -202,6 +203,7 @@ class StatusReport:
         self.hardware_id = hardware_id
         self._warn = warn
         self._logger = logger
+        self._graph_hint = graph_hint
         # (monotonic time, engine.stats(), of which of the pipeline's maps)
         self._engine_stats_at: tuple[float, dict[str, Any], int] = (-1e9, {}, 0)
         self._engine_stats_lock = threading.Lock()
@@ -273,7 +275,8 @@ class StatusReport:
                     self._logger.warning(
                         f"{sensor}: nothing received on {topic} for {r.silent_s:.0f} s; check "
                         f"the topic name (parameter {sensor}.{stream}_topic), its message type and QoS"
-                        + (" (colour is optional: set it to '' if there is none)" if stream == "color" else ""))
+                        + (" (colour is optional: set it to '' if there is none)" if stream == "color" else "")
+                        + self._graph_hint(topic))
 
     def refresh_engine_stats(self) -> None:
         """engine.stats() when the last are due, waiting for the map: for the mesh thread, after each

@@ -325,6 +325,39 @@ def test_a_silent_colour_topic_is_a_warning_only_for_a_sensor_whose_net_takes_co
     assert [level for level, text in logged if "/stereo/color" in text] == ["warning"]
 
 
+def test_a_silent_topic_published_under_another_type_is_named_with_that_type(ros, tmp_path: Path, capfd) -> None:
+    """amcl's PoseWithCovarianceStamped on the pose topic, where the node subscribes PoseStamped: nothing
+    arrives, and the warning said only "check the topic name, its message type and QoS". It now names
+    the type the topic is published as, what pose_type takes, and, for a topic nobody publishes, that."""
+    import rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    run = Running("othertype", {**topic_params("othertype"), **SMALL, "diagnostics_window_s": 0.5,
+                                "status_rate_hz": 10.0}, tmp_path)
+    # another participant, as another process would be (DDS refuses a second type for a topic in one)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    amcl = Node("amcl_like", context=context)
+    publisher = amcl.create_publisher(PoseWithCovarianceStamped, "/othertype/tof/pose", 10)
+    log = ""
+    try:
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline and "tof: nothing received on /othertype/tof/pose" not in log:
+            publisher.publish(PoseWithCovarianceStamped())
+            time.sleep(0.1)
+            log += capfd.readouterr().err
+    finally:
+        run.close()
+        amcl.destroy_node()
+        rclpy.shutdown(context=context)
+    line = next((x for x in log.splitlines() if "tof: nothing received on /othertype/tof/pose" in x), None)
+    assert line is not None, log[-3000:]
+    assert ("published as geometry_msgs/msg/PoseWithCovarianceStamped, the node subscribes "
+            "geometry_msgs/msg/PoseStamped: pose_type takes pose_stamped" in line), line
+    depth = next((x for x in log.splitlines() if "tof: nothing received on /othertype/tof/depth" in x), "")
+    assert "nobody publishes /othertype/tof/depth now" in depth, log[-3000:]
+
+
 def test_a_camera_info_that_came_once_is_not_stale_while_its_depth_comes() -> None:
     """A driver that publishes camera_info once (latched): its K is cached and the sensor fuses, so
     the sensor is not STALE for that silence; once its depth stops too, both are named."""
