@@ -321,7 +321,8 @@ class _SensorInput:
             self.camera_info = conv.intrinsics_from_camera_info(msg)
             self.counters.distorted = bool(np.any(np.asarray(getattr(msg, "d", ()), np.float64) != 0))
         except (ValueError, AttributeError) as err:
-            return self.drop("bad_camera_info", str(err)), []
+            kept = "" if self.camera_info is None else "; the depth images go on with the last good camera_info's K"
+            return self.drop("bad_camera_info", f"{err}{kept}"), []
         waited = [_Undecoded(name, "depth", stamp_ns, depth_msg, arrival_s, self.camera_info, config.working_size,
                              self.spacing_check(config), self.cleared)
                   for depth_msg, stamp_ns, arrival_s in self.awaiting_info]

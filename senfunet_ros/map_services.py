@@ -59,6 +59,9 @@ class MapServices:
     def save_map_file(self) -> Path:
         """The whole map into `map_path`; returns the path."""
         path = self.map_path()
+        blocker = next((parent for parent in path.parents if parent.exists() and not parent.is_dir()), None)
+        if blocker is not None:  # else the reply were mkdir's "[Errno 17] File exists: <blocker>"
+            raise NotADirectoryError(f"{blocker} is a file, not a folder, so {path} cannot be made")
         self._keep_earlier_files([path])
         return self.pipeline.save_map(path)
 

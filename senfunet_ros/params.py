@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+from pathlib import Path
 import re
 from dataclasses import dataclass
 from typing import Any
@@ -342,6 +343,14 @@ def check(values: dict[str, Any]) -> None:
     if not map_file.strip() or map_file.endswith(("/", os.sep)):
         raise ValueError(f"parameter 'map_file' = {map_file!r} names no file; give a file name such as map.pt "
                          "(relative: in output_dir)")
+    meshes = [f"{stem}.ply" for stem in ("mesh", *values["sensors"], "tsdf_fusion")]  # what ~/save_mesh writes
+    if Path(map_file).name in meshes:
+        raise ValueError(f"parameter 'map_file' = {map_file!r} has the name of a mesh ~/save_mesh writes "
+                         f"({', '.join(meshes)}): the map and that mesh would overwrite each other; name the map "
+                         "e.g. map.pt")
+    if not values["output_dir"].strip():
+        raise ValueError("parameter 'output_dir' is empty; give a folder (relative: in the node's working "
+                         "directory), e.g. senfunet_output")
     if values["time_jump_s"] < values["pose_max_wait_s"]:
         raise ValueError(f"time_jump_s ({values['time_jump_s']} s) must be at least pose_max_wait_s "
                          f"({values['pose_max_wait_s']} s): poses that lag the images by up to pose_max_wait_s would "

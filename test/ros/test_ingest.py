@@ -205,8 +205,14 @@ def test_bad_inputs_are_counted(case: str) -> None:
         msg = pose_msg(0)
         msg.pose.orientation.w = float("nan")
         assert ingest.add_pose("tof", msg) == "bad_pose"
-    elif case == "bad_camera_info":
+    elif case == "bad_camera_info":  # after a good one, which stays in use (and the error says so)
         assert ingest.add_camera_info("tof", CameraInfo(width=10, height=8)) == "bad_camera_info"
+        assert "go on with the last good camera_info's K" in ingest.ledger.counters()["tof"]["errors"][case]
+        assert ingest.add_depth("tof", depth_msg(0)) is None and ingest.ledger.queue_depths()["tof"] == 1
+        assert ingest.add_camera_info("stereo", CameraInfo(width=10, height=8)) == "bad_camera_info"
+        assert "last good" not in ingest.ledger.counters()["stereo"]["errors"][case]  # it has none
+        ingest.add_pose("tof", pose_msg(0))
+        assert len(frames(ingest.pop_ready())) == 1
     else:
         msg = {
             "bad_encoding": depth_msg(0, encoding="rgb8"),

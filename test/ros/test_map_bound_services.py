@@ -318,3 +318,12 @@ def test_an_empty_map_does_not_replace_what_an_earlier_map_saved(tmp_path):
     assert sorted(path.name for path in elsewhere) == sorted(name for name in earlier if name.endswith(".ply"))
     integrate_views(pipeline.engine, [(SPHERE_C, SPHERE_VIEWS[1])])  # fused again: saved over the earlier ones
     assert _call(services.save_mesh).success and _call(services.save_map).success
+
+
+def test_save_map_below_a_file_names_the_file_in_the_way(tmp_path):
+    """map_file /etc/hostname/map.pt: the reply was mkdir's "[Errno 17] File exists: '/etc/hostname'"."""
+    (tmp_path / "a_file").write_text("")
+    services, _, _ = _services(tmp_path, map_file=str(tmp_path / "a_file" / "maps" / "map.pt"))
+    reply = _call(services.save_map)
+    assert not reply.success and f"{tmp_path / 'a_file'} is a file, not a folder" in reply.message, reply.message
+    assert "check parameters output_dir and map_file" in reply.message

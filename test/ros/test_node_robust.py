@@ -1046,6 +1046,19 @@ def test_a_map_file_that_names_no_file_is_refused(map_file: str) -> None:
     assert P.validate(values, {"map_file": "maps/room.pt"})["map_file"] == "maps/room.pt"
 
 
+@pytest.mark.parametrize(("name", "value", "says"), [
+    ("map_file", "mesh.ply", "has the name of a mesh ~/save_mesh writes"),
+    ("map_file", "maps/stereo.ply", "has the name of a mesh ~/save_mesh writes"),
+    ("output_dir", "", "'output_dir' is empty")])
+def test_a_map_file_named_like_a_mesh_or_an_empty_output_dir_is_refused(name: str, value: str, says: str) -> None:
+    """map_file mesh.ply: ~/save_map wrote the map over the fused mesh (and ~/save_mesh the mesh over the
+    map); output_dir '': the files went into whatever folder the node was started in."""
+    values = {key: default for key, (default, _) in P.expanded_defaults().items()}
+    with pytest.raises(ValueError, match=says):
+        P.validate(values, {name: value})
+    assert P.validate(values, {"map_file": "maps/mesh.pt"})["map_file"] == "maps/mesh.pt"
+
+
 def test_service_replies_name_absolute_paths(ros, tmp_path: Path, monkeypatch) -> None:
     """A client in another process (another working directory) must find the files a reply names:
     with the default, relative output_dir they were named relative to the node's working directory."""
