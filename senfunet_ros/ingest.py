@@ -66,7 +66,7 @@ import numpy as np
 from senfunet_ros import conversions as conv
 from senfunet_ros.matching import ColorBuffer, PoseBuffer
 from senfunet_ros.tf import TfAdded, TfWait, extrapolate_tf
-from senfunet_ros.timeline import Restart, Timelines
+from senfunet_ros.timeline import Restart, StreamGaps, Timelines
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "StreamEnd", "Ingest",
            "IngestLedger", "NoDepthInRange", "integrate_ready"]
@@ -174,6 +174,9 @@ class SensorCounters:
     extrapolated: int = 0
     # frames handed out without colour although the sensor's colour stream spoke: none within color_tolerance_s
     without_color: int = 0
+    # depth images missing from the stream's regular stamps (`timeline.StreamGaps`), and where the latest gap was
+    missing_depth: int = 0
+    missing_depth_gap: str = ""
     # the latest camera_info has non-zero distortion coefficients: the node takes the images as rectified
     distorted: bool = False
     # frames fused without colour because the colour images have another aspect ratio than the depth images
@@ -200,6 +203,8 @@ class SensorCounters:
             "set_aside": self.set_aside,
             "extrapolated": self.extrapolated,
             "without_color": self.without_color,
+            "missing_depth": self.missing_depth,
+            "missing_depth_gap": self.missing_depth_gap,
             "distorted": self.distorted,
             "color_refused": self.color_refused,
             "notes": dict(self.notes),
@@ -280,6 +285,7 @@ class _SensorInput:
         # the streams ended (Ingest.stream_ends.end): no later pose will come for what waits; a message clears it
         self.ended = False
         self.end = StreamEnd()  # what the end did, since the last Ingest.stream_ends.take
+        self.depth_gaps = StreamGaps()
 
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
@@ -340,6 +346,11 @@ class _SensorInput:
             return None if conflict is None else self.drop("pose_conflict",
                                                            f"pose: stamp {stamp_ns * 1e-9:.3f} s: {conflict}")
         msg, arrival_s = message if stream == "depth" else (message, 0.0)
+        if stream == "depth" and (gap := self.depth_gaps.add(stamp_ns)) is not None:
+            self.counters.missing_depth += gap.missing
+            self.counters.missing_depth_gap = (f"{gap.from_ns * 1e-9:.3f} s to {gap.to_ns * 1e-9:.3f} s, "
+                                               f"{gap.missing + 1} of the stream's {gap.period_ns * 1e-6:.0f} ms "
+                                               "periods")
         if stream == "depth" and self.camera_info is None:
             if len(self.awaiting_info) >= config.queue_size:
                 self.awaiting_info.popleft()
@@ -529,6 +540,8 @@ class _StreamTime:
         first messages, dropped as bad_stamp until now, are taken; returns their images, to decode
         outside the lock (a burst of up to a queue's worth per stream)."""
         sensors = self._sensors
+        for state in sensors.values():
+            state.depth_gaps.restart()
         if restart.went_back:
             assert restart.from_ns is not None
             self.jumps.append(TimeJump(sensor, stream, restart.from_ns, restart.to_ns))

@@ -463,6 +463,8 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
             "without_color": c["without_color"],
             "distorted": c["distorted"],
             "color_refused": c["color_refused"],  # fused without colour: colour of another aspect ratio
+            # depth images missing from the stream's regular stamps (the recorder or the driver lost them)
+            "missing_depth": c["missing_depth"], "missing_depth_gap": c["missing_depth_gap"],
             "notes": dict(c["notes"]),  # what about the sensor's set-up to know (see SensorCounters.notes)
         }
     router = run.router

@@ -64,6 +64,7 @@ def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str,
                      resolved: dict[str, dict[str, str]] | None = None) -> list[tuple[tuple[str, ...], str]]:
     """(key, message) of each warning that Ingest's counters `now` call for since `before`: new drops,
     by reason (the error, else the reason's hint), a distorted camera_info, frames without colour,
+    depth images missing from the stream's regular stamps,
     the sensors' notes (each once: colour of another aspect ratio, a camera_info's K taken as given,
     pixels further apart than 1.5 voxels) and frames set aside. The caller rate-limits them by key.
     resolved: sensor -> stream -> the topic as subscribed (namespace, remapping), named instead of the
@@ -96,6 +97,13 @@ def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str,
                    "color_tolerance_s")
             out.append(((sensor, "without_color"), f"{sensor}: {new_without_color} frame(s) integrated without "
                         f"colour: {why} ({counters['without_color']} so far; see ~/status)"))
+        new_missing = counters.get("missing_depth", 0) - last.get("missing_depth", 0)
+        if new_missing > 0:
+            out.append(((sensor, "missing_depth"), f"{sensor}: {new_missing} depth image(s) missing on "
+                        f"{topics[sensor].depth_topic} ({counters['missing_depth']} so far; the latest gap "
+                        f"{counters['missing_depth_gap']}): lost before they reached the node (a burst faster than "
+                        "it takes images overflows its subscription's queue; a recorder that dropped them) or "
+                        "skipped by the driver; see ~/status"))
         # each said once (colour of another aspect ratio goes on being refused, counted in color_refused)
         for key, note in counters["notes"].items():
             if key not in last.get("notes", {}):
@@ -225,7 +233,10 @@ class StatusReport:
             report = reports[sensor]
             values = [KeyValue(key=k, value=str(c[k])) for k in
                       ("received", "integrated", "extrapolated", "queue_depth", "set_aside", "set_aside_now",
-                       "color_received", "pose_received", "time_jumps", "without_color", "color_refused", "distorted")]
+                       "color_received", "pose_received", "time_jumps", "without_color", "color_refused", "distorted",
+                       "missing_depth")]
+            if c["missing_depth_gap"]:
+                values.append(KeyValue(key="missing_depth_gap", value=c["missing_depth_gap"]))
             values += [KeyValue(key=f"note.{key}", value=note) for key, note in c["notes"].items()]
             for stream, r in report.streams.items():
                 values += [KeyValue(key=f"rate_hz.{stream}", value=f"{r.rate_hz:.2f}"),

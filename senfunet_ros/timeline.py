@@ -27,15 +27,21 @@ Decisions depend on stamps and their order alone, never on the wall clock.
 from __future__ import annotations
 
 import bisect
+import statistics
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["STREAMS", "Held", "Restart", "Timelines", "Verdict"]
+__all__ = ["STREAMS", "Gap", "Held", "Restart", "StreamGaps", "Timelines", "Verdict"]
 
 STREAMS: tuple[str, ...] = ("depth", "color", "pose")
 _RECENT_DEPTH_STAMPS = 16  # a depth stamp among this many taken lately is a duplicate
+# StreamGaps: an interval of this many of a stream's periods lost images (a camera's jitter stays far below it); the
+# period is the median of the last _PERIOD_INTERVALS intervals, once there are _MIN_INTERVALS
+_GAP_PERIODS = 1.8
+_PERIOD_INTERVALS = 16
+_MIN_INTERVALS = 8
 
 
 @dataclass(frozen=True)
@@ -287,3 +293,45 @@ class Timelines:
             self._candidates[key], self._spoke[key] = [], False
             self._held[key].clear()
         self._lagging.clear()
+
+
+@dataclass(frozen=True)
+class Gap:
+    """Images missing from a stream between two consecutive stamps (`StreamGaps`)."""
+
+    from_ns: int
+    to_ns: int
+    period_ns: int  # the stream's period before it
+    missing: int  # images the gap would have held
+
+
+class StreamGaps:
+    """Images missing from a stream of regular stamps (a depth camera's frames): an interval of
+    `_GAP_PERIODS` or more of the stream's period (the median of its recent intervals) held
+    round(interval / period) - 1 images that never came on time (lost before they reached the
+    node: a burst overflowing a subscription's queue, a recorder that dropped them; or the driver
+    skipped them). Stamps only: the caller feeds the stamps it took on time, in order."""
+
+    def __init__(self) -> None:
+        self._last_ns: int | None = None
+        self._intervals: deque[int] = deque(maxlen=_PERIOD_INTERVALS)
+
+    def restart(self) -> None:
+        """Time restarted, or every stream paused: the next stamp starts anew (the period stays)."""
+        self._last_ns = None
+
+    def add(self, stamp_ns: int) -> Gap | None:
+        """The gap before this stamp, if it ends one; a stamp older than the newest is ignored."""
+        last = self._last_ns
+        if last is not None and stamp_ns <= last:
+            return None
+        self._last_ns = stamp_ns
+        if last is None:
+            return None
+        interval = stamp_ns - last
+        if len(self._intervals) >= _MIN_INTERVALS:
+            period_ns = int(statistics.median(self._intervals))
+            if interval >= _GAP_PERIODS * period_ns:  # kept out of the period
+                return Gap(last, stamp_ns, period_ns, round(interval / period_ns) - 1)
+        self._intervals.append(interval)
+        return None

@@ -95,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
             line += f"; {c['without_color']} fused without colour"
         if c["color_refused"]:
             line += f"; {c['color_refused']} fused without colour of another aspect ratio"
+        if c["missing_depth"]:
+            line += (f"; {c['missing_depth']} depth image(s) missing from the bag's regular stamps (the recorder or "
+                     f"the driver lost them; the latest gap {c['missing_depth_gap']})")
         print(line)
         if c["distorted"]:
             print(f"{sensor}: note: {DISTORTED_NOTE}")

@@ -324,6 +324,35 @@ def test_depth_images_whose_units_or_byte_order_look_wrong_are_said_once() -> No
     assert "depth_units" not in ingest2.ledger.counters()["tof"]["notes"]
 
 
+def test_depth_images_missing_from_a_regular_stream_are_counted_and_warned() -> None:
+    """A burst faster than the node takes images overflows its subscription's queue (DDS keeps the
+    newest 30): the images it lost never reach the node, and nothing counted them. Gaps of several
+    of the stream's periods between consecutive depth stamps are now counted as missing_depth and
+    warned; a camera's jitter is none, and neither is the jump of a restart (a bag looping)."""
+    from senfunet_ros import params as P
+    from senfunet_ros.status import counter_warnings
+
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02, queue_size=500)
+    rng = np.random.default_rng(0)
+    stamps = [1000 + 67 * i + int(rng.integers(-8, 9)) for i in range(40)]  # 15 Hz with 8 ms of jitter
+    stamps = stamps[:20] + stamps[25:]  # 5 lost
+    for t in stamps:
+        assert ingest.add_depth("tof", depth_msg(t * MS)) is None
+    before = ingest.ledger.counters()
+    assert before["tof"]["missing_depth"] == 5, before["tof"]
+    assert before["tof"]["missing_depth_gap"].startswith(f"{stamps[19] / 1000:.3f} s to {stamps[20] / 1000:.3f} s, 6 of")
+    for t in range(100, 1400, 67):  # the bag loops: back to 0.1 s, then on as before
+        ingest.add_depth("tof", depth_msg(t * MS))
+        ingest.add_depth("stereo", depth_msg(t * MS + 5 * MS))
+    now = ingest.ledger.counters()
+    assert now["tof"]["time_jumps"] + now["stereo"]["time_jumps"] == 1
+    assert now["tof"]["missing_depth"] == 5 and now["stereo"]["missing_depth"] == 0
+    settings = P.Settings.from_values({name: default for name, (default, _) in P.expanded_defaults().items()})
+    warnings = dict(counter_warnings({}, before, settings))
+    assert "tof: 5 depth image(s) missing on /tof/depth" in warnings[("tof", "missing_depth")]
+    assert ("stereo", "missing_depth") not in warnings
+
+
 def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
     """Drivers publish camera_info and depth on separate topics, so the first depth image may come
     first: it waits for the camera_info, within the queue size and pose_max_wait_s of stream time."""
