@@ -444,7 +444,7 @@ def test_save_map_load_map_round_trip_and_file_modes(ros, tmp_path: Path) -> Non
 
 
 def test_load_map_of_a_file_that_is_no_map_says_so_and_keeps_the_map(ros, tmp_path: Path) -> None:
-    """~/load_map with map_file naming a PLY (mesh.ply next to the maps), or a map cut short: the reply
+    """~/load_map with map_file naming a PLY (a mesh next to the maps), or a map cut short: the reply
     passed on torch's error, which for the PLY advised loading it with weights_only=False (unsafe) and
     for the cut one said "[Errno 22] Invalid argument"."""
     run = Running("notmap", {**topic_params("notmap"), **SMALL}, tmp_path)
@@ -455,7 +455,9 @@ def test_load_map_of_a_file_that_is_no_map_says_so_and_keeps_the_map(ros, tmp_pa
         out = tmp_path / "out"
         cut = out / "cut.pt"
         cut.write_bytes((out / "map.pt").read_bytes()[:50_000])
-        for path in (out / "mesh.ply", cut):
+        ply = out / "room.ply"  # map_file cannot be mesh.ply itself (a name ~/save_mesh writes): refused
+        ply.write_bytes((out / "mesh.ply").read_bytes())
+        for path in (ply, cut):
             (res,) = _set(run, map_file=str(path))
             assert res.successful
             r = run.call("load_map")
