@@ -346,7 +346,11 @@ class _SensorInput:
             return None if conflict is None else self.drop("pose_conflict",
                                                            f"pose: stamp {stamp_ns * 1e-9:.3f} s: {conflict}")
         msg, arrival_s = message if stream == "depth" else (message, 0.0)
-        if stream == "depth" and (gap := self.depth_gaps.add(stamp_ns)) is not None:
+        gap = self.depth_gaps.add(stamp_ns) if stream == "depth" else None
+        # poses that paused over the gap too (all but an image period at either end) are a sensor that paused (a
+        # driver restarting): no image went missing
+        if gap is not None and (not self.counters.pose_received or self.poses.longest_pause_ns(gap.from_ns, gap.to_ns)
+                                < gap.to_ns - gap.from_ns - 2 * gap.period_ns):
             self.counters.missing_depth += gap.missing
             self.counters.missing_depth_gap = (f"{gap.from_ns * 1e-9:.3f} s to {gap.to_ns * 1e-9:.3f} s, "
                                                f"{gap.missing + 1} of the stream's {gap.period_ns * 1e-6:.0f} ms "

@@ -85,6 +85,16 @@ class PoseBuffer:
         i = bisect.bisect_left(self._stamps, stamp_ns)
         return (self._stamps[i - 1] if i else None), (self._stamps[i] if i < len(self._stamps) else None)
 
+    def longest_pause_ns(self, from_ns: int, to_ns: int) -> int:
+        """The longest interval between consecutive poses over from_ns..to_ns (the poses around its ends
+        included); the whole span when fewer than two poses cover it."""
+        stamps = self._stamps
+        lo, hi = max(bisect.bisect_left(stamps, from_ns) - 1, 0), bisect.bisect_right(stamps, to_ns) + 1
+        window = stamps[lo:hi]
+        if len(window) < 2:
+            return to_ns - from_ns
+        return max(b - a for a, b in zip(window, window[1:]))
+
     def extrapolate(self, stamp_ns: int, *, tolerance_ns: int) -> np.ndarray | None:
         """The pose at a depth stamp after the newest pose, continuing the two newest poses' motion at
         constant velocity (`extrapolate_pose`), when it lies within tolerance_ns past the newest; None

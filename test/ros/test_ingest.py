@@ -352,6 +352,21 @@ def test_depth_images_missing_from_a_regular_stream_are_counted_and_warned() -> 
     warnings = dict(counter_warnings({}, before, settings))
     assert "tof: 5 depth image(s) missing on /tof/depth" in warnings[("tof", "missing_depth")]
     assert ("stereo", "missing_depth") not in warnings
+    # with poses: a gap in the images while the poses went on lost images; the whole sensor pausing (its
+    # poses too, for less than time_jump_s: no restart) lost none
+    for t in range(1400, 3000, 10):
+        if not 2000 < t < 2600:  # the sensor pauses for 0.6 s
+            ingest.add_pose("stereo", pose_msg(t * MS))
+    for t in range(1405, 3000, 67):
+        if not 2000 < t < 2600:
+            ingest.add_depth("stereo", depth_msg(t * MS))
+    assert ingest.ledger.counters()["stereo"]["missing_depth"] == 0
+    for t in range(3000, 4000, 10):
+        ingest.add_pose("stereo", pose_msg(t * MS))
+    for t in range(3005, 4000, 67):
+        if not 3300 < t < 3600:  # the images alone: lost
+            ingest.add_depth("stereo", depth_msg(t * MS))
+    assert ingest.ledger.counters()["stereo"]["missing_depth"] == 4
 
 
 def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
