@@ -160,6 +160,7 @@ class TimeJump:
     stream: str  # "depth", "color" or "pose"
     from_ns: int
     to_ns: int
+    stray_start: bool = False  # the old timeline was only a stray first stamp or few (`timeline.Restart`)
 
 
 @dataclass
@@ -548,7 +549,7 @@ class _StreamTime:
             state.depth_gaps.restart()
         if restart.went_back:
             assert restart.from_ns is not None
-            self.jumps.append(TimeJump(sensor, stream, restart.from_ns, restart.to_ns))
+            self.jumps.append(TimeJump(sensor, stream, restart.from_ns, restart.to_ns, restart.stray_start))
             sensors[sensor].counters.time_jumps += 1
             if self.config.tf is not None and hasattr(self.config.tf, "clear"):
                 self.config.tf.clear()

@@ -157,15 +157,21 @@ class Pipeline:
         return lines
 
     def _time_jump(self, jump: TimeJump) -> None:
-        self.time_jumps += 1
         reset = self.on_time_jump is TimeJumpAction.RESET
-        # one line a restart, whatever stream showed it (a looping bag says so every pass); the messages
-        # the restart cost are counted per stream on ~/status (time_jump)
         where = "/clock" if jump.stream == "clock" else f"{jump.sensor} {jump.stream}"
-        self._log("warning", f"time restarted, pass {self.time_jumps + 1} (a bag looping or restarting?): {where} went "
-                  f"back from {jump.from_ns * 1e-9:.3f} s to {jump.to_ns * 1e-9:.3f} s; queued frames flushed, map "
-                  f"{'reset' if reset else 'kept'} (parameter on_time_jump); messages it cost are counted on "
-                  "~/status (time_jump)")
+        if jump.stray_start:  # no pass of a bag: the first stamps were off, the streams go on from the others
+            self._log("warning", f"the streams' first stamps (up to {jump.from_ns * 1e-9:.3f} s) lay far from those "
+                      f"that followed (from {jump.to_ns * 1e-9:.3f} s, as {where} showed): taken as stray stamps, the "
+                      f"streams go on from there; what waited was flushed, map {'reset' if reset else 'kept'} "
+                      "(parameter on_time_jump); check the drivers' first stamps")
+        else:
+            self.time_jumps += 1
+            # one line a restart, whatever stream showed it (a looping bag says so every pass); the messages
+            # the restart cost are counted per stream on ~/status (time_jump)
+            self._log("warning", f"time restarted, pass {self.time_jumps + 1} (a bag looping or restarting?): {where} "
+                      f"went back from {jump.from_ns * 1e-9:.3f} s to {jump.to_ns * 1e-9:.3f} s; queued frames "
+                      f"flushed, map {'reset' if reset else 'kept'} (parameter on_time_jump); messages it cost are "
+                      "counted on ~/status (time_jump)")
         if reset:
             self.engine.reset()
             self._new_map()

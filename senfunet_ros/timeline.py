@@ -66,6 +66,9 @@ class Restart:
     # (sensor, stream) -> how many more of its messages, rejected as bad_stamp, were the new timeline's
     # start but were not held (past hold_msgs): lost to the restart
     lost: dict[tuple[str, str], int] = field(default_factory=dict)
+    # the old timeline took fewer than restart_confirm_msgs messages: its first stamps were strays (a driver's
+    # first stamp far off), not a time that restarted
+    stray_start: bool = False
 
     @property
     def went_back(self) -> bool:
@@ -110,6 +113,7 @@ class Timelines:
         self._anchor_ns: int | None = None
         # after a restart: the old timeline's newest stamp and the new one's when it restarted (`_in_flight`)
         self._old_time: tuple[int, int] | None = None
+        self._taken = 0  # messages on time since the timelines last moved (`Restart.stray_start`)
 
     def configure(self, *, time_jump_s: float, restart_confirm_msgs: int, restart_confirm_s: float,
                   hold_msgs: Mapping[str, int]) -> None:
@@ -163,9 +167,12 @@ class Timelines:
                 else:
                     self._lagging[key] = (first_ns, max(c[-1] for c in self._candidates.values() if c))
         if stream == "depth":
-            return self._depth_order(key, stamp_ns, last)
-        self._last_ns[key] = stamp_ns if last is None else max(last, stamp_ns)
-        return Verdict()
+            verdict = self._depth_order(key, stamp_ns, last)
+        else:
+            self._last_ns[key] = stamp_ns if last is None else max(last, stamp_ns)
+            verdict = Verdict()
+        self._taken += verdict.reason is None
+        return verdict
 
     def _depth_order(self, key: tuple[str, str], stamp_ns: int, last: int | None) -> Verdict:
         """A depth stamp on its stream's timeline must be new and move forward. One that falls between
@@ -261,7 +268,8 @@ class Timelines:
             self._held[key].pop()  # the message being checked, held last: its caller takes it
         lost = {k: len(c) - len(self._held[k]) - (k == key and taken) for k, c in lists.items()}
         held = sorted((m for k in lists for m in self._held[k]), key=lambda m: m.stamp_ns)
-        restart = Restart(min(firsts), self.now_ns(), tuple(held), {k: n for k, n in lost.items() if n})
+        restart = Restart(min(firsts), self.now_ns(), tuple(held), {k: n for k, n in lost.items() if n},
+                          stray_start=self._taken < self._confirm_msgs)
         # ahead (every stream paused, one clock): a stream yet to speak keeps its timeline, so that its first
         # messages are judged by it, not by how far a burst took the streams that confirmed the restart
         self._move({k: c[-1] for k, c in lists.items()}, restart, keep_silent=not restart.went_back)
@@ -283,6 +291,7 @@ class Timelines:
             recent.clear()
         self._previous_depth_ns.clear()
         self._anchor_ns = None
+        self._taken = 0
         self._close_episode()
         new_ns = max(timelines.values(), default=None)
         self._old_time = None if restart.from_ns is None or new_ns is None else (restart.from_ns, new_ns)

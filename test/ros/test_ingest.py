@@ -501,6 +501,34 @@ def test_a_restart_warns_none_of_what_it_cost_but_an_unset_stamp_right_after_it(
     assert warning[0] == ("tof", "bad_stamp") and "dropped 1 message(s): bad_stamp" in warning[1], warning
 
 
+def test_a_stray_first_stamp_is_said_to_be_one_not_a_restart_of_a_bag() -> None:
+    """A driver's very first pose stamped 1000 s ahead set the timeline, and the stream that followed
+    was confirmed as time going back: the log said "time restarted, pass 2 (a bag looping or
+    restarting?)". The restart still moves the streams, but it is said to be stray first stamps, and
+    no pass is counted; a bag that loops is still a restart."""
+    from senfunet_core.engine import EngineConfig, SenFuNet
+    from senfunet_ros.pipeline import Pipeline
+
+    logged: list[str] = []
+    pipeline = Pipeline(SenFuNet(EngineConfig(), weights=None),
+                        make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02),
+                        log=lambda level, text: logged.append(text))
+    ingest = pipeline.ingest
+    ingest.add_pose("tof", pose_msg(1_001_000_000 * MS))  # the stray
+    for t in range(1000, 3000, 10):
+        ingest.add_pose("tof", pose_msg(t * MS))
+        ingest.add_depth("tof", depth_msg(t * MS + 5 * MS))
+    pipeline.drain(ingest.pop_ready())
+    assert pipeline.time_jumps == 0
+    (line,) = [text for text in logged if "stray" in text or "restarted" in text]
+    assert "first stamps (up to 1001000.000 s)" in line and "taken as stray stamps" in line, line
+    for t in range(500, 700, 10):  # then the recording starts over from 0.5 s: a restart
+        ingest.add_pose("tof", pose_msg(t * MS))
+        ingest.add_depth("tof", depth_msg(t * MS + 5 * MS))
+    pipeline.drain(ingest.pop_ready())
+    assert pipeline.time_jumps == 1 and "time restarted, pass 2" in logged[-1], logged
+
+
 def test_a_depth_image_sent_twice_while_a_restart_is_confirmed_is_fused_once() -> None:
     """The sensors paused and resumed ahead (a driver restarted) with a relay that sends every depth
     image twice: the copy of the image that confirmed the restart is a duplicate, not fused twice."""
