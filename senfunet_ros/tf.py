@@ -8,8 +8,9 @@ the link's typical intervals (a slowly published link), apart; static ones hold 
 What breaks the tree is refused, transform by transform (the rest of its message is kept), with
 an error naming the frames: NaN or a non-unit quaternion, a frame as its own parent or ancestor
 (a cycle), and a second parent for a frame while its first is alive (two publishers of one
-frame; a dynamic link is taken over by another parent only after `REPARENT_AFTER_S` of silence, a
-static one only by another static transform). Of a static and a dynamic transform on the same
+frame, e.g. a URDF and a static_transform_publisher both placing the camera: the first parent
+stays; a dynamic link is taken over by another parent only after `REPARENT_AFTER_S` of silence in
+the stream's stamps, a static link never). Of a static and a dynamic transform on the same
 link, the newest kind holds. A dynamic transform for a stamp its link already has keeps the first
 (`TfAdded.conflicts` says when the second differed).
 
@@ -121,11 +122,15 @@ class TfBuffer:
                                  "tree: fix the publisher of this transform")
             link = self._links.get(child)
             if link is not None and link.parent != parent:
-                alive = (link.static is not None and not static) or (
-                    not static and link.stamps and abs(stamp_ns - link.stamps[-1]) < REPARENT_AFTER_S * 1e9)
+                now_ns = self.newest_ns if static else stamp_ns  # a static transform's stamp tells no time
+                alive = link.static is not None or bool(
+                    link.stamps and now_ns is not None and abs(now_ns - link.stamps[-1]) < REPARENT_AFTER_S * 1e9)
                 if alive:
-                    raise ValueError(f"frame '{child}' has two parents, '{link.parent}' and '{parent}'; TF needs a "
-                                     f"tree: make one publisher stop (the transforms from '{parent}' are left out)")
+                    kind = "static " if static else ""
+                    raise ValueError(f"frame '{child}' has two parents, '{link.parent}' and '{parent}' ({kind}"
+                                     f"{parent} -> {child} came second); TF needs a tree: make one publisher stop (the "
+                                     f"transforms from '{parent}' are left out; if the tree changed for good, restart "
+                                     "the node)")
                 link = None  # the child moved to another parent
             if link is None:
                 link = self._links[child] = _Link(parent)

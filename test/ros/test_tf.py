@@ -278,6 +278,17 @@ def test_what_breaks_the_tree_is_refused_transform_by_transform_and_the_rest_kep
         with pytest.raises(ValueError, match="'arm' has two parents, 'map' and 'rig'"):
             tf.add("rig", "arm", k * S // 30 + S // 60, np.eye(4), static=False)
     assert tf.lookup("map", "arm", S // 4)[0, 3] == pytest.approx(0.5)
+    # nor may a static transform take a frame from its live parent (it did, and the frames were fused
+    # at the static chain's pose without a word: a URDF and a static_transform_publisher both placing
+    # the camera, or a static base_footprint -> base_link beside the odometry's odom -> base_link)
+    with pytest.raises(ValueError, match="'arm' has two parents, 'map' and 'rig' \\(static rig -> arm came second"):
+        tf.add("rig", "arm", 0, np.eye(4), static=True)
+    assert tf.lookup("map", "arm", S // 4)[0, 3] == pytest.approx(0.5)
+    tf.add("mast", "camera", 0, _rot_z(0.0, (0, 0, 0.4)), static=True)
+    with pytest.raises(ValueError, match="'camera' has two parents, 'mast' and 'base'"):
+        tf.add("base", "camera", 0, np.eye(4), static=True)
+    tf.add("map", "mast", 0, np.eye(4), static=True)
+    assert tf.lookup("map", "camera", 0)[2, 3] == pytest.approx(0.4)
     tf.add("rig", "arm", 3 * S, np.eye(4), static=False)  # its parent silent for 2.7 s: it moved
     tf.add("map", "rig", 0, _rot_z(0.0, (0, 2, 0)), static=True)
     assert tf.lookup("map", "arm", 3 * S)[1, 3] == pytest.approx(2.0)
