@@ -164,7 +164,12 @@ class TfBuffer:
         stamps = link.stamps
         i = bisect.bisect_left(stamps, stamp_ns)
         if i == len(stamps):
-            raise TfWait(f"no transform {link.parent} -> {child} at or after {stamp_ns * 1e-9:.3f} s yet")
+            newest = "none has come"
+            if stamps:
+                interval_ns = _typical_interval_ns(stamps, i - 1)
+                newest = f"its newest is at {stamps[-1] * 1e-9:.3f} s" + (
+                    f", and one comes every {interval_ns * 1e-9:.2f} s" if interval_ns else "")
+            raise TfWait(f"no transform {link.parent} -> {child} at or after {stamp_ns * 1e-9:.3f} s yet ({newest})")
         if stamps[i] == stamp_ns:
             return link.transforms[i]
         if i == 0:  # no interval can reach it: more transforms or a tolerance would not help

@@ -39,7 +39,10 @@ def test_buffer_chains_interpolates_waits_and_refuses_gaps() -> None:
     expected = _rot_z(0.0, (1, 0, 0)) @ _rot_z(0.1, (0.25, 0, 0)) @ T_BASE_OPTICAL
     assert np.abs(T - expected).max() < 1e-9
     assert np.abs(tf.lookup("cam", "map", 10 * S) - invert_transform(tf.lookup("map", "cam", 10 * S))).max() < 1e-9
-    with pytest.raises(TfWait):  # nothing at or after it yet: may still come
+    # nothing at or after it yet: may still come (and the wait says where the link stands: a frame that
+    # timed out waiting for it said only "no transform ... yet")
+    with pytest.raises(TfWait, match=r"odom -> base_link at or after 11.000 s yet \(its newest is at 10.050 s, "
+                                     r"and one comes every 0.05 s\)"):
         tf.lookup("map", "cam", 11 * S)
     # before the first transform: said so, not "publish them more often or raise pose_tolerance_s", which
     # could not help (a node started after the images' first stamps told its users to)
@@ -235,6 +238,15 @@ def test_a_transform_stamped_far_ahead_is_left_out_and_does_not_cut_its_link() -
     assert frame.stamp_ns == 10_080 * MS and frame.T_world_camera[0, 3] == pytest.approx(0.8)
     counters = ingest.ledger.counters()["tof"]
     assert counters["dropped"]["bad_stamp"] == 1 and "ahead" in counters["errors"]["bad_stamp"]
+    # a frame that times out waiting for the link (at 10 Hz here, then silent) says where the link stands and
+    # what to change: it said only "no transform map -> cam at or after ... yet"
+    assert ingest.add_depth("tof", depth(10_150 * MS)) is None
+    for t in (10_650, 11_200):  # stream time past pose_max_wait_s (1 s)
+        assert ingest.add_depth("tof", depth(t * MS)) is None
+    assert ingest.pop_ready() == []
+    error = ingest.ledger.counters()["tof"]["errors"]["pose_timeout"]
+    assert "no transform map -> cam at or after 10.150 s yet (its newest is at 10.100 s" in error, error
+    assert "pose_max_wait_s (1 s)" in error and "a fixed_frame below it" in error, error
     assert counters["dropped"]["pose_gap"] == 0
 
 
