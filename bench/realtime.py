@@ -123,7 +123,7 @@ def run_node_case(args: argparse.Namespace) -> dict:
             decoded = router.decode(msg)
             if decoded is not None:
                 router.dispatch(ingest, *decoded)
-                frames_sent += decoded[0].stream == "depth"
+                frames_sent += sum(stream == "depth" for _, stream in decoded[0].targets)
             conversion_s += time.perf_counter() - t
             peak_queue = max(peak_queue, sum(ingest.ledger.queue_depths().values()))
 

@@ -56,8 +56,10 @@ _CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 @dataclass(frozen=True)
 class Route:
     topic: str
-    sensor: str  # "" for /tf and /tf_static (every sensor's)
-    stream: str  # a senfunet_ros.pipeline.Stream value
+    # (sensor, stream) of each input the topic feeds: one topic may feed several sensors (one /odom for both,
+    # as the node subscribes it once per sensor); sensor "" for /tf and /tf_static (every sensor's); stream a
+    # senfunet_ros.pipeline.Stream value
+    targets: tuple[tuple[str, str], ...]
     msgtype: str
     msg_class: type | None  # None: deserialised with rosbags' type store (tf2_msgs has no wheel here)
 
@@ -112,8 +114,14 @@ class TopicRouter:
             if msgtype not in expected:
                 accepted = " or ".join(t for t in expected if t)
                 raise BagError(self._type_error(topic, msgtype, accepted, stream, settings))
+            target = (sensor_name, Stream(stream).value)
+            route = self.routes.get(topic)
+            if route is not None and route.msgtype != msgtype:
+                raise BagError(f"{self.bag_path}: topic {topic} is named for inputs that take different types "
+                               f"({', '.join(f'{s}.{kind}_topic' for s, kind in (*route.targets, target))}); give "
+                               "each its own topic with --params")
             msg_class = None if msgtype == _TF_MSGTYPE else message_class(msgtype)
-            self.routes[topic] = Route(topic, sensor_name, Stream(stream).value, msgtype, msg_class)
+            self.routes[topic] = Route(topic, (*route.targets, target) if route else (target,), msgtype, msg_class)
         if missing:
             have = sorted(topics)
             shown = ", ".join(have[:12]) + (f" (+{len(have) - 12} more)" if len(have) > 12 else "")
@@ -180,8 +188,10 @@ class TopicRouter:
 
     @staticmethod
     def dispatch(ingest: Ingest, route: Route, message: Any) -> str | None:
-        """Hand one message to Ingest as the node's subscription callback does; returns the drop reason."""
-        return Pipeline.dispatch_to(ingest, route.sensor, route.stream, message)
+        """Hand one message to Ingest for each input its topic feeds, as the node's subscription callbacks
+        do; returns a drop reason (the last input's that dropped it), or None."""
+        reasons = [Pipeline.dispatch_to(ingest, sensor, stream, message) for sensor, stream in route.targets]
+        return next((reason for reason in reversed(reasons) if reason is not None), None)
 
 
 # --------------------------------------------------------------------------------------------
@@ -392,14 +402,16 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                         for name in quiet:
                             del spoke_ns[name]
                         end_streams(quiet)
-                    if route.stream in (Stream.DEPTH, Stream.COLOR, Stream.POSE):
-                        spoke_ns[route.sensor] = msg.log_time_ns
+                    for name, stream in route.targets:
+                        if stream in (Stream.DEPTH, Stream.COLOR, Stream.POSE):
+                            spoke_ns[name] = msg.log_time_ns
                     try:
-                        pipeline.dispatch(route.sensor, route.stream, message)
+                        for name, stream in route.targets:
+                            pipeline.dispatch(name, stream, message)
                     except ValueError:  # a malformed message: Ingest refuses it like the node's callback
                         router.undecodable[msg.topic] = router.undecodable.get(msg.topic, 0) + 1
                         continue
-                    if route.stream != "camera_info" and pipeline.drain(ingest.pop_ready()):
+                    if route.targets[0][1] != "camera_info" and pipeline.drain(ingest.pop_ready()):
                         bar.set_postfix(frames=pipeline.frames_integrated, refresh=False)
             except BagBrokenError as err:
                 run.error = str(err)
@@ -478,7 +490,9 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
         "weights": pipeline.engine.weights_source,
         "torch_threads": int(threads),
         "sensors": sensors,
-        "topics": {t: {"type": r.msgtype, "sensor": r.sensor, "stream": r.stream,
+        # sensor and stream: comma-separated when the topic feeds several inputs (one /odom for both sensors)
+        "topics": {t: {"type": r.msgtype, "sensor": ", ".join(dict.fromkeys(sensor for sensor, _ in r.targets)),
+                       "stream": ", ".join(dict.fromkeys(stream for _, stream in r.targets)),
                        "undecodable": router.undecodable.get(t, 0), "other_types": router.other_types.get(t, {})}
                    for t, r in sorted(router.routes.items())},
         "ignored_topics": dict(sorted(router.ignored.items())),

@@ -525,3 +525,30 @@ def test_a_compression_rosbags_cannot_read_is_named_with_what_to_do(prefix: Path
     (bag / "metadata.yaml").write_text(meta.replace("compression_format: zstd", "compression_format: lz4"))
     line = _one_line_error(_replay(bag, tmp_path / "out", tiny_params))
     assert "Compression format 'lz4' is not supported" in line and "convert" in line and "damaged" not in line
+
+
+def test_a_topic_named_for_two_sensors_feeds_both(tmp_path: Path) -> None:
+    """One pose topic for both sensors (one /odom of the robot, each sensor placed by T_body_camera): the
+    router kept one route per topic, so the topic fed the sensor named last and the other fused nothing,
+    with exit code 0 (the live node subscribes it once per sensor)."""
+    from senfunet_core.learning import simulator as sim
+    from senfunet_ros.ingest import Frame, Ingest
+    from senfunet_ros.params_file import load_settings
+    from senfunet_ros.replay import TopicRouter, ingest_config
+
+    seq = sim.simulate_sequence(sim.make_scene(5), 5, duration_s=0.25, tof_rate_hz=15, stereo_rate_hz=20)
+    bag = write_sequence_bag(seq, tmp_path / "bag")
+    params = tmp_path / "params.yaml"
+    params.write_text("senfunet:\n  ros__parameters:\n    stereo:\n      pose_topic: /tof/pose\n")
+    settings = load_settings(params)
+    ingest = Ingest(ingest_config(settings))
+    frames: list[Frame] = []
+    with open_bag(bag) as reader:
+        router = TopicRouter(settings, reader.topics, bag)
+        for msg in reader.messages(router.topics):
+            router.dispatch(ingest, *router.decode(msg))
+            frames += [f for f in ingest.pop_ready() if isinstance(f, Frame)]
+    counters = ingest.ledger.counters()
+    assert counters["tof"]["pose_received"] == counters["stereo"]["pose_received"] > 0
+    for sensor in ("tof", "stereo"):
+        assert sum(f.sensor == sensor for f in frames) == sum(f.sensor == sensor for f in seq.frames) > 0
