@@ -51,6 +51,7 @@ __all__ = [
     "bag_storage_file",
     "message_class",
     "normalize_msgtype",
+    "is_cdr",
     "write_sequence_bag",
     "copy_bag",
     "DEFAULT_START_NS",
@@ -114,6 +115,27 @@ class BagMessage(NamedTuple):
     msgtype: str
     log_time_ns: int
     data: bytes  # CDR, with its 4-byte encapsulation header
+
+
+_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+
+
+def is_cdr(data: bytes) -> bool:
+    """Whether a payload starts as ROS 2's serialised messages do: a CDR encapsulation header (0, then
+    0-3: plain or parameter-list CDR, big or little endian). ROS 1 or JSON payloads do not."""
+    return len(data) >= 4 and data[0] == 0 and data[1] <= 3
+
+
+def _payload(data: bytes) -> bytes:
+    """A message's bytes, a zstd frame decompressed: rosbag2's message compression, read without the
+    metadata.yaml that says so (a bare .mcap/.db3, or a folder whose metadata.yaml is gone); CDR never
+    starts with zstd's magic number."""
+    if data[:4] == _ZSTD_MAGIC:
+        try:
+            return _zstd_decompress(data)
+        except Exception:  # noqa: BLE001 (zstandard.ZstdError): left as it is, and counted where it fails
+            return data
+    return data
 
 
 def normalize_msgtype(msgtype: str) -> str:
@@ -215,7 +237,7 @@ class _RosbagsSource(_Source):
         if not conns:
             return
         for conn, timestamp, data in file.messages(conns):
-            data = data if self._unzip is None else self._unzip(data)
+            data = _payload(data) if self._unzip is None else self._unzip(data)
             yield BagMessage(conn.topic, normalize_msgtype(conn.msgtype), int(timestamp), bytes(data))
 
     def close(self) -> None:
@@ -323,7 +345,7 @@ class _McapStreamSource(_Source):
                 read += 1
                 topic, msgtype = self._channels.get(record.channel_id, ("", ""))
                 if topics is None or topic in topics:
-                    yield BagMessage(topic, msgtype, int(record.log_time), bytes(record.data))
+                    yield BagMessage(topic, msgtype, int(record.log_time), _payload(bytes(record.data)))
         except Exception as err:
             raise BagBrokenError(f"{self.path}: the file breaks after {read} messages ({_describe(err)}); "
                                  "it was truncated or damaged, e.g. a recording that was killed", read) from None

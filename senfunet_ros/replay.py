@@ -25,8 +25,8 @@ import numpy as np
 from senfunet_core.files import atomic_file
 from senfunet_ros import params as P
 from senfunet_ros.params import engine_config, engine_weights, ingest_config
-from senfunet_ros.bagio import (BagBrokenError, BagError, BagMessage, TopicInfo, message_class, normalize_msgtype,
-                                open_bag)
+from senfunet_ros.bagio import (BagBrokenError, BagError, BagMessage, TopicInfo, is_cdr, message_class,
+                                normalize_msgtype, open_bag)
 from senfunet_ros.conversions import PoseType
 from senfunet_ros.ingest import Frame, Ingest
 from senfunet_ros.params_file import load_settings
@@ -79,6 +79,7 @@ class TopicRouter:
         self.bag_path = Path(bag_path)
         self.routes: dict[str, Route] = {}
         self.undecodable: dict[str, int] = {}
+        self.not_cdr: set[str] = set()  # topics with undecodable messages that are not CDR at all
         self.other_types: dict[str, dict[str, int]] = {}  # routed topic -> its other recorded types (left out)
         pose_type = PoseType(settings.pose_type)
         missing: list[str] = []
@@ -184,6 +185,8 @@ class TopicRouter:
             return route, deserialize_message(msg.data, route.msg_class)
         except Exception:
             self.undecodable[msg.topic] = self.undecodable.get(msg.topic, 0) + 1
+            if not is_cdr(msg.data):
+                self.not_cdr.add(msg.topic)
             return None
 
     @staticmethod
@@ -420,7 +423,10 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
             end_streams(None)  # the bag ended (or the replay was stopped): no pose will come for what waits
         run.read_s = time.perf_counter() - t_loop
         for topic, n in router.undecodable.items():
-            log(f"{n} message(s) on {topic} could not be decoded as {router.routes[topic].msgtype} and were left out")
+            why = (" (they are not ROS 2 serialised messages, CDR: ROS 1 or JSON data? convert the bag with "
+                   "rosbags-convert or record it with ros2 bag)" if topic in router.not_cdr else "")
+            log(f"{n} message(s) on {topic} could not be decoded as {router.routes[topic].msgtype} and were left "
+                f"out{why}")
     return run
 
 

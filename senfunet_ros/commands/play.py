@@ -109,11 +109,15 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
             f"at rate {args.rate:g}{' in a loop' if args.loop else ''}")
         total, passes, broken = 0, 0, None
         while True:
-            published, broken = _play_once(reader, publishers, publish_clock, rate=args.rate,
-                                           types={t: topics[t].msgtype for t in publishers})
+            published, broken, not_cdr = _play_once(reader, publishers, publish_clock, rate=args.rate,
+                                                    types={t: topics[t].msgtype for t in publishers})
             total += published
             passes += 1
-            if broken or not args.loop:
+            if passes == 1:
+                for topic, n in sorted(not_cdr.items()):
+                    say(f"{n} message(s) on {topic} are not ROS 2 serialised messages (CDR): ROS 1 or JSON data? "
+                        "They were not published; convert the bag (rosbags-convert) or record it with ros2 bag")
+            if broken or not args.loop or total == 0:
                 break
         # Reliable writers keep what slow readers have not acknowledged; hand it over before exiting.
         from rclpy.duration import Duration
@@ -124,7 +128,7 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         say(f"published {total} messages in {passes} pass(es)")
         if broken:
             return _error(broken)
-        return 0
+        return 0 if total else _error("nothing in the bag could be published (see above)")
     except (KeyboardInterrupt, ExternalShutdownException):
         say("stopped")
         return 0  # stopping is how a looping play ends: not an error
@@ -181,11 +185,12 @@ def _wait_for_subscribers(publishers: dict, timeout_s: float, say) -> None:  # n
 
 
 def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa: ANN001
-               types: dict[str, str]) -> tuple[int, str | None]:
+               types: dict[str, str]) -> tuple[int, str | None, dict[str, int]]:
     """One pass through the bag at `rate`, ticking /clock while it waits: the messages published
-    (of each topic, those of its type in `types`), and where the bag broke (None if it did not).
+    (of each topic, those of its type in `types`), where the bag broke (None if it did not), and per
+    topic the messages left out because they are not CDR (a subscriber could not read them).
     ExternalShutdownException when Ctrl-C or SIGTERM shut rclpy down."""
-    from senfunet_ros.bagio import normalize_msgtype
+    from senfunet_ros.bagio import is_cdr, normalize_msgtype
 
     import rclpy
     from rclpy.executors import ExternalShutdownException
@@ -196,9 +201,13 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa:
     wall0 = time.monotonic()
     publish_clock(start_ns)
     published = 0
+    not_cdr: dict[str, int] = {}
     try:
         for msg in reader.messages(publishers.keys()):
             if normalize_msgtype(msg.msgtype) != types[msg.topic]:
+                continue
+            if not is_cdr(msg.data):
+                not_cdr[msg.topic] = not_cdr.get(msg.topic, 0) + 1
                 continue
             due = wall0 + (msg.log_time_ns - start_ns) * 1e-9 / rate
             while True:  # sleep until due, ticking /clock meanwhile
@@ -215,5 +224,5 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa:
             publishers[msg.topic].publish(msg.data)  # raw CDR straight from the bag
             published += 1
     except BagBrokenError as err:
-        return published, str(err)
-    return published, None
+        return published, str(err), not_cdr
+    return published, None, not_cdr

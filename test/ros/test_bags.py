@@ -552,3 +552,37 @@ def test_a_topic_named_for_two_sensors_feeds_both(tmp_path: Path) -> None:
     assert counters["tof"]["pose_received"] == counters["stereo"]["pose_received"] > 0
     for sensor in ("tof", "stereo"):
         assert sum(f.sensor == sensor for f in frames) == sum(f.sensor == sensor for f in seq.frames) > 0
+
+
+def test_message_compressed_bag_without_its_metadata_is_decompressed_and_non_cdr_data_is_named(tmp_path: Path) -> None:
+    """rosbag2's per-message zstd compression, read without the metadata.yaml that says so (a bare .mcap
+    passed on its own): every message was 'could not be decoded'. Zstd frames are now decompressed (CDR
+    never starts with zstd's magic number). A payload that is not CDR at all (ROS 1 or JSON data) is
+    named as such when it fails to decode."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+    from senfunet_core.learning import simulator as sim
+    from senfunet_ros.bagio import BagMessage
+    from senfunet_ros.params_file import load_settings
+    from senfunet_ros.replay import TopicRouter
+
+    seq = sim.simulate_sequence(sim.make_scene(5), 5, duration_s=0.1, tof_rate_hz=15, stereo_rate_hz=20)
+    plain = write_sequence_bag(seq, tmp_path / "plain")
+    with open_bag(plain) as reader:
+        topics, messages = dict(reader.topics), list(reader.messages())
+    writer = Writer(tmp_path / "compressed", version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
+    with writer:
+        connections = {topic: writer.add_connection(topic, info.msgtype, msgdef=info.msgdef, rihs01=info.digest)
+                       for topic, info in topics.items()}
+        for msg in messages:
+            writer.write(connections[msg.topic], msg.log_time_ns, msg.data)
+    (tmp_path / "compressed" / "metadata.yaml").unlink()
+    (bare,) = (tmp_path / "compressed").glob("*.mcap")
+    with open_bag(bare) as reader:
+        assert [(m.topic, m.data) for m in reader.messages()] == [(m.topic, m.data) for m in messages]
+    router = TopicRouter(load_settings(), topics, plain)
+    pose = next(m for m in messages if m.topic == "/tof/pose")
+    assert router.decode(pose) is not None and not router.undecodable
+    assert router.decode(BagMessage(pose.topic, pose.msgtype, pose.log_time_ns, b'{"pose": {}}')) is None
+    assert router.undecodable == {"/tof/pose": 1} and router.not_cdr == {"/tof/pose"}
