@@ -385,9 +385,10 @@ class _MergedSource(_Source):
             source.close()
 
 
-def _split_files(folder: Path) -> list[Path]:
+def _split_files(folder: Path) -> tuple[list[Path], list[Path]]:
     """The storage files (.mcap or .db3) of a rosbag2 folder in recording order: as metadata.yaml lists
-    them, else by name."""
+    them, then (by name) those it does not list, which a recorder killed after a split leaves out;
+    without a usable metadata.yaml, all by name. Returns (all, the unlisted ones)."""
     files = sorted([*folder.glob("*.mcap"), *folder.glob("*.db3")])
     try:
         from ruamel.yaml import YAML
@@ -395,10 +396,11 @@ def _split_files(folder: Path) -> list[Path]:
         meta = YAML(typ="safe").load((folder / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
         listed = [folder / Path(name).name for name in meta.get("relative_file_paths") or []]
         if listed and all(part.is_file() for part in listed):
-            return listed
+            unlisted = [file for file in files if file not in listed]
+            return listed + unlisted, unlisted
     except Exception:  # noqa: BLE001 (no or unreadable metadata: by name)
         pass
-    return files
+    return files, []
 
 
 def _describe(err: BaseException) -> str:
@@ -447,13 +449,16 @@ def _open_source(path: Path) -> _Source:
     if not path.exists():
         raise BagError(f"{path}: no such bag; pass a rosbag2 folder (with metadata.yaml) or a .mcap file")
     if path.is_dir():
-        parts = _split_files(path)
-        if len(parts) > 1 and (not (path / "metadata.yaml").is_file() or any(map(_mcap_is_unindexed, parts))):
-            # a split recording rosbags cannot take whole (no metadata.yaml, or a part cut short by a
-            # killed recorder): its files together, each as it can be read
+        parts, unlisted = _split_files(path)
+        if len(parts) > 1 and (not (path / "metadata.yaml").is_file() or unlisted
+                               or any(map(_mcap_is_unindexed, parts))):
+            # a split recording rosbags cannot take whole (no metadata.yaml, files it does not list, or a
+            # part cut short by a killed recorder): its files together, each as it can be read
             source: _Source = _MergedSource([_open_rosbags(part) for part in parts])
             names = ", ".join(part.name for part in parts)
-            source.note = f"{path}: reading its {len(parts)} files together, in time order ({names})"
+            source.note = f"{path}: reading its {len(parts)} files together, in time order ({names})" + (
+                f"; its metadata.yaml does not list {', '.join(part.name for part in unlisted)} (a recording cut "
+                "short after a split? `ros2 bag reindex` rewrites it)" if unlisted else "")
             return source
         if (path / "metadata.yaml").is_file():
             return _open_rosbags(path)

@@ -483,6 +483,25 @@ def test_a_split_recording_whose_files_overlap_in_time_is_read_in_time_order(pre
     assert _digest(bag) == _digest(prefix)
 
 
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_split_recording_whose_metadata_lists_only_its_first_file_is_read_whole(prefix: Path, tmp_path: Path,
+                                                                                 storage: str):
+    """A recorder killed after a split leaves a metadata.yaml that lists (and counts) only the first
+    file: the second was skipped without a word (replay fused half the frames, exit code 0). The files
+    metadata.yaml does not list are read too, and the note says so."""
+    from odd_bags import _metadata, _write_metadata, split_overlapping
+
+    bag = split_overlapping(prefix, tmp_path / "split", storage=storage)
+    meta = _metadata(bag)
+    info = meta["rosbag2_bagfile_information"]
+    info["relative_file_paths"], info["files"] = info["relative_file_paths"][:1], info["files"][:1]
+    info["message_count"] = info["files"][0]["message_count"]
+    _write_metadata(bag, meta)
+    with open_bag(bag) as reader:
+        assert reader.note is not None and "does not list" in reader.note and "reindex" in reader.note, reader.note
+    assert _digest(bag) == _digest(prefix)
+
+
 @pytest.mark.parametrize("how", ["mcap-lz4", "mcap-zstd", "db3-file", "db3-message"])
 def test_compressed_bags_read_whole(prefix: Path, tmp_path: Path, how: str):
     from odd_bags import compressed
