@@ -83,6 +83,7 @@ class TopicRouter:
         self.other_types: dict[str, dict[str, int]] = {}  # routed topic -> its other recorded types (left out)
         pose_type = PoseType(settings.pose_type)
         missing: list[str] = []
+        empty: list[str] = []  # of them, those the bag lists, with no message recorded (a latched one missed?)
         missing_params: list[str] = []  # the parameters that name the missing topics
         # sensor, stream, topic, accepted types, required
         wanted: list[tuple[str, Stream, str, tuple[str | None, ...], bool]] = []
@@ -98,10 +99,12 @@ class TopicRouter:
         for sensor_name, stream, topic, expected, required in wanted:
             if not topic:
                 continue
+            topic = topic if topic.startswith("/") else f"/{topic}"  # relative: in the root namespace, as the node's
             info = topics.get(topic)
-            if info is None or (required and info.count == 0):
+            if info is None or info.count == 0:  # an optional topic recorded empty is absent too (colour: said)
                 if required:
                     missing.append(topic)
+                    empty += [topic] if info is not None else []
                     if sensor_name:
                         missing_params.append(f"{sensor_name}.{Stream(stream).value}_topic")
                 continue
@@ -126,7 +129,9 @@ class TopicRouter:
         if missing:
             have = sorted(topics)
             shown = ", ".join(have[:12]) + (f" (+{len(have) - 12} more)" if len(have) > 12 else "")
-            raise BagError(f"{self.bag_path}: no messages on {', '.join(missing)}; the bag has: "
+            listed = (f" ({', '.join(empty)} listed, but recorded without a message: a latched topic published "
+                      "before the recording started?)" if empty else "")
+            raise BagError(f"{self.bag_path}: no messages on {', '.join(missing)}{listed}; the bag has: "
                            f"{shown or 'no topics'}; " + self._missing_hint(missing_params, "/tf" in missing, topics))
         self.ignored = {t: i.msgtype for t, i in topics.items() if t not in self.routes}
         self._typestore: Any = None
@@ -138,6 +143,8 @@ class TopicRouter:
         hints = []
         if params:
             hints.append(f"set {', '.join(params)} to the bag's topics with --params")
+        if "/tf" in topics and any(param.endswith(".pose_topic") for param in params):
+            hints.append("the bag has /tf: for poses from TF, set pose_type: tf with --params")
         if no_tf:
             kinds = {t: PoseType.from_msgtype(normalize_msgtype(i.msgtype)) for t, i in topics.items()}
             pose_topics = sorted(t for t, kind in kinds.items() if kind is not None)

@@ -605,3 +605,31 @@ def test_message_compressed_bag_without_its_metadata_is_decompressed_and_non_cdr
     assert router.decode(pose) is not None and not router.undecodable
     assert router.decode(BagMessage(pose.topic, pose.msgtype, pose.log_time_ns, b'{"pose": {}}')) is None
     assert router.undecodable == {"/tof/pose": 1} and router.not_cdr == {"/tof/pose"}
+
+
+def test_the_router_says_what_an_engineers_bag_and_parameters_lack(prefix: Path, tmp_path: Path) -> None:
+    """A colour topic listed with no message was routed (fused black, no note, as if colour came); a
+    camera_info listed with none was 'no messages on /tof/camera_info; the bag has: ... /tof/camera_info';
+    a relative topic name in the parameters was not found; a bag with /tf but no pose topics did not
+    point at pose_type tf."""
+    import dataclasses
+
+    from senfunet_ros.params_file import load_settings
+    from senfunet_ros.replay import TopicRouter
+
+    with open_bag(prefix) as reader:
+        topics = dict(reader.topics)
+    settings = load_settings()
+    router = TopicRouter(settings, {**topics, "/stereo/color": dataclasses.replace(topics["/stereo/color"], count=0)},
+                         prefix)
+    assert "/stereo/color" not in router.routes and "/tof/depth" in router.routes
+    empty_info = {**topics, "/tof/camera_info": dataclasses.replace(topics["/tof/camera_info"], count=0)}
+    with pytest.raises(BagError, match=r"/tof/camera_info listed, but recorded without a message: a latched"):
+        TopicRouter(settings, empty_info, prefix)
+    params = tmp_path / "relative.yaml"
+    params.write_text("senfunet:\n  ros__parameters:\n    tof:\n      depth_topic: tof/depth\n")
+    assert "/tof/depth" in TopicRouter(load_settings(params), topics, prefix).routes
+    tf = dataclasses.replace(topics["/tof/pose"], name="/tf", msgtype="tf2_msgs/msg/TFMessage", types={})
+    without_poses = {t: info for t, info in topics.items() if not t.endswith("/pose")} | {"/tf": tf}
+    with pytest.raises(BagError, match="the bag has /tf: for poses from TF, set pose_type: tf"):
+        TopicRouter(settings, without_poses, prefix)
