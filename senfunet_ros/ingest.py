@@ -435,7 +435,13 @@ class _SensorInput:
             return T, None, ""
         self.end.timed_out += 1
         self.end.timed_out_max_ns = max(self.end.timed_out_max_ns, past_ns)
-        if newest_ns is None:
+        if newest_ns is None and config.tf is not None:  # the frames are not connected: the lookup says how
+            why = "the camera's frame is not connected to the fixed frame"
+            try:
+                config.tf.lookup(config.fixed_frame, pending.frame_id, stamp_ns)
+            except Exception as err:  # noqa: BLE001 (TfWait, TfError): its text names the chains known
+                why = f"tf: {err}"
+        elif newest_ns is None:
             why = "no pose had come at all"
         elif past_ns > tolerance_ns:
             why = (f"it is {past_ns * 1e-6:.0f} ms past the newest pose, more than pose_tolerance_s "

@@ -568,3 +568,26 @@ def test_newest_common_stamp_is_the_oldest_newest_of_the_dynamic_links() -> None
     assert tf.newest_common_ns("odom", "/cam") == 9
     assert tf.newest_common_ns("lidar", "cam") is None  # static alone: a lookup holds at any stamp
     assert tf.newest_common_ns("map", "elsewhere") is None
+
+
+def test_a_frame_whose_camera_is_not_in_the_tree_at_a_streams_end_says_so() -> None:
+    """A bag with /tf but without /tf_static (the recording started after the mounts were latched): at the
+    stream's end every frame was dropped with "no pose had come at all", though /tf held transforms. The
+    error now says what the lookup found: the camera's frame not connected, and the chains known."""
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+
+    MS = 1_000_000
+    buffer = TfBuffer(max_gap_s=0.1)
+    for k in range(11):  # map -> base at 100 Hz, no base -> cam
+        buffer.add("map", "base", 10_000 * MS + 10 * k * MS, _rot_z(0.0, (0.01 * k, 0, 0)), static=False)
+    ingest = Ingest(IngestConfig(sensors=("tof",), tf=buffer, fixed_frame="map"))
+    ingest.add_camera_info("tof", info_msg())
+    msg = depth_msg(10_050 * MS)
+    msg.header.frame_id = "cam"
+    assert ingest.add_depth("tof", msg) is None
+    ingest.stream_ends.end()
+    assert ingest.pop_ready() == []
+    error = ingest.ledger.counters()["tof"]["errors"]["pose_timeout"]
+    assert "no pose had come at all" not in error and "tf: no transform path" in error, error
