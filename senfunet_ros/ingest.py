@@ -685,6 +685,9 @@ class Ingest:
             drops.append(("bad_stamp", len(added.left_out), (
                 f"tf: a transform stamped {added.left_out[0] * 1e-9:.3f} s, {(added.left_out[0] - now_ns) * 1e-9:.3f} "
                 "s ahead of the newest stamp of the streams and /tf, was left out; check the clock of its publisher")))
+        if added.unstamped:
+            drops.append(("bad_stamp", len(added.unstamped), f"tf: a dynamic {added.unstamped[0]} stamped 0 (unset) "
+                          "was left out; its publisher must stamp its transforms (the clock's now)"))
         if added.refused:
             drops.append(("bad_pose", len(added.refused), f"tf: {added.refused[0]}"))
         if added.conflicts:

@@ -66,10 +66,11 @@ class _Link:
 
 @dataclass(frozen=True)
 class TfAdded:
-    """What `TfBuffer.add_message` left out: dynamic stamps too far ahead, the transforms it refused,
+    """What `TfBuffer.add_message` left out: dynamic stamps too far ahead or unset, the transforms it refused,
     each with the reason, and those that gave a stamp already given another value."""
 
     left_out: list[int] = field(default_factory=list)
+    unstamped: list[str] = field(default_factory=list)  # dynamic transforms stamped 0 (unset): which link
     refused: list[str] = field(default_factory=list)
     # dynamic transforms for a stamp their link already had, with another value (the first is kept):
     # what differs, per transform
@@ -100,6 +101,9 @@ class TfBuffer:
                 stamp_ns = stamp_to_ns(tf.header.stamp)
                 if not static and latest_ns is not None and stamp_ns > latest_ns:
                     added.left_out.append(stamp_ns)
+                    continue
+                if not static and stamp_ns == 0:  # kept, every one would be "another value for the same stamp"
+                    added.unstamped.append(what)
                     continue
                 conflict = self.add(tf.header.frame_id, tf.child_frame_id, stamp_ns, T, static=static)
                 if conflict is not None:

@@ -238,6 +238,13 @@ def test_a_transform_stamped_far_ahead_is_left_out_and_does_not_cut_its_link() -
     assert frame.stamp_ns == 10_080 * MS and frame.T_world_camera[0, 3] == pytest.approx(0.8)
     counters = ingest.ledger.counters()["tof"]
     assert counters["dropped"]["bad_stamp"] == 1 and "ahead" in counters["errors"]["bad_stamp"]
+    # a publisher that leaves its stamps unset (0): each is left out as a bad stamp, not taken at 0 s, where
+    # every next one was "another value for a stamp already given" (pose_conflict: "two publishers?")
+    for x in (0.5, 0.6):
+        assert ingest.add_tf(tf_msg(0, x), static=False) == "bad_stamp"
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["bad_stamp"] == 3 and counters["dropped"]["pose_conflict"] == 0
+    assert "map -> cam stamped 0 (unset) was left out" in counters["errors"]["bad_stamp"]
     # a frame that times out waiting for the link (at 10 Hz here, then silent) says where the link stands and
     # what to change: it said only "no transform map -> cam at or after ... yet"
     assert ingest.add_depth("tof", depth(10_150 * MS)) is None
