@@ -1261,7 +1261,7 @@ def test_a_tf_transform_republished_at_its_stamp_with_another_value_is_counted_a
 
     tf = TfBuffer()
     ingest = Ingest(IngestConfig(sensors=("tof", "stereo"), tf=tf))
-    assert ingest.add_tf(TFMessage([transform(0, 0.0), transform(100 * MS, 1.0)]), static=False) is None
+    assert ingest.add_tf(TFMessage([transform(50 * MS, 0.0), transform(100 * MS, 1.0)]), static=False) is None
     assert ingest.add_tf(TFMessage([transform(100 * MS, 1.0)]), static=False) is None  # the same again
     assert ingest.add_tf(TFMessage([transform(100 * MS, 2.0), transform(200 * MS, 2.0)]), static=False) == \
         "pose_conflict"
