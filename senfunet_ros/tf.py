@@ -3,7 +3,8 @@
 Used by replay (bags carry /tf and /tf_static) and by the live node when tf2_ros cannot be
 imported but tf2_msgs can. The tree is the usual one: each child frame has one parent; dynamic
 links are interpolated at the stamp (lerp + slerp) between transforms at most `max_gap_s`, or 2.5 of
-the link's typical intervals (a slowly published link), apart; static ones hold at any time.
+the link's typical intervals (a slowly published link), apart, but not across a jump (a step far
+larger than the link's usual ones: a localiser relocalising); static ones hold at any time.
 
 What breaks the tree is refused, transform by transform (the rest of its message is kept), with
 an error naming the frames: NaN or a non-unit quaternion, a frame as its own parent or ancestor
@@ -47,6 +48,36 @@ class TfWait(TfError):
 _GAP_INTERVALS = 2.5
 # a dynamic link silent this long (in stamps) may be taken over by another parent
 REPARENT_AFTER_S = 1.0
+
+
+# a step between two transforms of a link this many times its typical step, and at least _JUMP_MIN_M or
+# _JUMP_MIN_DEG, is a jump (a localiser relocalising): no pose is interpolated across it
+_JUMP_STEPS = 10.0
+_JUMP_MIN_M = 0.25
+_JUMP_MIN_DEG = 15.0
+_JUMP_HISTORY = 8  # steps before it that tell the typical one, at least
+
+
+def _step(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """How far a link moved between two of its transforms: metres, degrees."""
+    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
+    return float(np.linalg.norm(b[:3, 3] - a[:3, 3])), float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def _jump(transforms: list[np.ndarray], i: int) -> tuple[float, float] | None:
+    """The step from transform i-1 to i when it is a jump against the link's typical step before it
+    (the median of its last 16), else None (also with too little history to tell)."""
+    if i - 1 < _JUMP_HISTORY:
+        return None
+    metres, degrees = _step(transforms[i - 1], transforms[i])
+    if metres < _JUMP_MIN_M and degrees < _JUMP_MIN_DEG:
+        return None
+    history = [_step(a, b) for a, b in zip(transforms[max(0, i - 17):i - 1], transforms[max(1, i - 16):i])]
+    typical_m, typical_deg = (float(np.median(values)) for values in zip(*history))
+    if (metres >= _JUMP_MIN_M and metres > _JUMP_STEPS * typical_m) or (
+            degrees >= _JUMP_MIN_DEG and degrees > _JUMP_STEPS * typical_deg):
+        return metres, degrees
+    return None
 
 
 def _typical_interval_ns(stamps: list[int], i: int) -> float:
@@ -191,6 +222,12 @@ class TfBuffer:
         if stamp_ns - stamps[i - 1] > max_gap_ns or stamps[i] - stamp_ns > max_gap_ns:
             raise TfError(f"the transforms {link.parent} -> {child} around {stamp_ns * 1e-9:.3f} s are more than "
                           f"{max_gap_ns * 1e-9:g} s from it; publish them more often or raise pose_tolerance_s")
+        jump = _jump(link.transforms, i)
+        if jump is not None:  # interpolated, the frame would lie on a smear between the old and the new place
+            raise TfError(f"{link.parent} -> {child} jumped {jump[0]:.2f} m, {jump[1]:.1f} deg between its transforms "
+                          f"at {stamps[i - 1] * 1e-9:.3f} s and {stamps[i] * 1e-9:.3f} s (a localiser relocalising?), "
+                          f"far more than it moves between transforms otherwise: the frame at {stamp_ns * 1e-9:.3f} s "
+                          "between them is not posed")
         s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
         return interpolate_pose(link.transforms[i - 1], link.transforms[i], s)
 

@@ -598,3 +598,22 @@ def test_a_frame_whose_camera_is_not_in_the_tree_at_a_streams_end_says_so() -> N
     assert ingest.pop_ready() == []
     error = ingest.ledger.counters()["tof"]["errors"]["pose_timeout"]
     assert "no pose had come at all" not in error and "tf: no transform path" in error, error
+
+
+def test_a_link_that_jumps_is_not_interpolated_across_the_jump() -> None:
+    """A localiser relocalising: map -> odom jumps 2 m between two of its transforms. The frames between
+    them were posed on a smear between the old and the new place (up to 1.9 m off at 1 Hz) without a
+    word; they are now refused as a gap that names the jump. Smooth motion, even fast, is interpolated."""
+    tf = TfBuffer(max_gap_s=0.5)
+    S = 1_000_000_000
+    tf.add("odom", "cam", 0, np.eye(4), static=True)
+    for k in range(31):  # 10 Hz: still, then 2 m further at 2.1 s
+        tf.add("map", "odom", 10 * S + k * S // 10, _rot_z(0.0, (2.0 if k >= 21 else 0.0, 0, 0)), static=False)
+    assert tf.lookup("map", "cam", 10 * S + 195 * S // 100)[0, 3] == pytest.approx(0.0)
+    with pytest.raises(TfError, match=r"map -> odom jumped 2.00 m, 0.0 deg between its transforms at 12.000 s and "
+                                      r"12.100 s \(a localiser relocalising\?\)"):
+        tf.lookup("map", "cam", 10 * S + 205 * S // 100)
+    assert tf.lookup("map", "cam", 10 * S + 215 * S // 100)[0, 3] == pytest.approx(2.0)
+    for k in range(31):  # 10 Hz at 3 m/s: 0.3 m a step, every step
+        tf.add("map", "fast", 10 * S + k * S // 10, _rot_z(0.0, (0.3 * k, 0, 0)), static=False)
+    assert tf.lookup("map", "fast", 10 * S + 205 * S // 100)[0, 3] == pytest.approx(6.15)
