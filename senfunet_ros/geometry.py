@@ -16,6 +16,7 @@ __all__ = [
     "interpolate_pose",
     "invert_transform",
     "matrix_from_quat",
+    "pose_difference",
     "quat_from_matrix",
     "tq_from_transform",
     "check_within_map",
@@ -104,6 +105,12 @@ def invert_transform(T: np.ndarray) -> np.ndarray:
     out[:3, :3] = R.T
     out[:3, 3] = -R.T @ np.asarray(T, dtype=np.float64)[:3, 3]
     return out
+
+
+def pose_difference(T0: np.ndarray, T1: np.ndarray) -> tuple[float, float]:
+    """How far apart two poses (4x4) are: metres between their origins, degrees of the rotation between them."""
+    cos = (np.trace(T0[:3, :3].T @ T1[:3, :3]) - 1.0) / 2.0
+    return float(np.linalg.norm(T1[:3, 3] - T0[:3, 3])), float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:

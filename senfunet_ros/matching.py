@@ -10,7 +10,7 @@ from collections import deque
 
 import numpy as np
 
-from senfunet_ros.geometry import extrapolate_pose, interpolate_pose
+from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, pose_difference
 
 __all__ = ["ColorBuffer", "PoseBuffer", "pose_conflict"]
 
@@ -28,9 +28,7 @@ def pose_conflict(first: np.ndarray, again: np.ndarray) -> str | None:
     first, again = np.asarray(first, np.float64), np.asarray(again, np.float64)
     if np.abs(first - again).max() <= _SAME_POSE_TOL:
         return None
-    moved_m = float(np.linalg.norm(again[:3, 3] - first[:3, 3]))
-    cos = (np.trace(first[:3, :3].T @ again[:3, :3]) - 1.0) / 2.0
-    turned_deg = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    moved_m, turned_deg = pose_difference(first, again)
     return (f"another pose for a stamp already given ({moved_m:.3f} m, {turned_deg:.2f} deg from the first, which "
             "is kept); check the driver: two publishers on one topic, or one that rewrites its past poses?")
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from senfunet_ros.conversions.poses import transform_from_msg
 from senfunet_ros.conversions.stamps import stamp_to_ns
-from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, invert_transform
+from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, invert_transform, pose_difference
 from senfunet_ros.matching import pose_conflict
 
 __all__ = ["REPARENT_AFTER_S", "TfAdded", "TfBuffer", "TfError", "TfWait", "extrapolate_tf"]
@@ -58,21 +58,15 @@ _JUMP_MIN_DEG = 15.0
 _JUMP_HISTORY = 8  # steps before it that tell the typical one, at least
 
 
-def _step(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """How far a link moved between two of its transforms: metres, degrees."""
-    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
-    return float(np.linalg.norm(b[:3, 3] - a[:3, 3])), float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
-
-
 def _jump(transforms: list[np.ndarray], i: int) -> tuple[float, float] | None:
     """The step from transform i-1 to i when it is a jump against the link's typical step before it
     (the median of its last 16), else None (also with too little history to tell)."""
     if i - 1 < _JUMP_HISTORY:
         return None
-    metres, degrees = _step(transforms[i - 1], transforms[i])
+    metres, degrees = pose_difference(transforms[i - 1], transforms[i])
     if metres < _JUMP_MIN_M and degrees < _JUMP_MIN_DEG:
         return None
-    history = [_step(a, b) for a, b in zip(transforms[max(0, i - 17):i - 1], transforms[max(1, i - 16):i])]
+    history = [pose_difference(a, b) for a, b in zip(transforms[max(0, i - 17):i - 1], transforms[max(1, i - 16):i])]
     typical_m, typical_deg = (float(np.median(values)) for values in zip(*history))
     if (metres >= _JUMP_MIN_M and metres > _JUMP_STEPS * typical_m) or (
             degrees >= _JUMP_MIN_DEG and degrees > _JUMP_STEPS * typical_deg):
