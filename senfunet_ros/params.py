@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import math
 import os
-from pathlib import Path
 import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 from collections.abc import Iterable, Sequence
 
