@@ -480,8 +480,7 @@ class _SensorInput:
             # the streams ended: nothing more will come for it, a pose nor a colour image
             waited_too_long = self.ended or (now_ns is not None and now_ns - t > max_wait_ns)
             if config.tf is not None:
-                T, reason, error = _tf_pose(config.tf, config.fixed_frame, pending, waited_too_long,
-                                            config.pose_max_wait_s)
+                T, reason, error = _tf_pose(config, pending, waited_too_long=waited_too_long)
             else:
                 T, reason = self.poses.at(t, tolerance_ns=int(config.pose_tolerance_s * 1e9),
                                           waited_too_long=waited_too_long)
@@ -1021,18 +1020,19 @@ def _pose_drop_error(reason: str, stamp_ns: int, now_ns: int | None, around_ns: 
             "pose_tolerance_s")
 
 
-def _tf_pose(tf: Any, fixed_frame: str, pending: _Pending, waited_too_long: bool, max_wait_s: float
+def _tf_pose(config: IngestConfig, pending: _Pending, *, waited_too_long: bool
              ) -> tuple[np.ndarray | None, str | None, str]:
-    """T_world_camera of a queued frame from TF, as `PoseBuffer.at` answers, with the reason's error."""
+    """T_world_camera of a queued frame from TF (config.tf, in config.fixed_frame), as `PoseBuffer.at`
+    answers, with the reason's error."""
     try:
-        return tf.lookup(fixed_frame, pending.frame_id, pending.stamp_ns), None, ""
+        return config.tf.lookup(config.fixed_frame, pending.frame_id, pending.stamp_ns), None, ""
     except TfWait as err:
         if not waited_too_long:
             return None, None, ""
-        return None, "pose_timeout", (f"tf: {err}; the frame waited pose_max_wait_s ({max_wait_s:g} s) of stream "
-                                      "time: a link published less often than that (a localiser's map -> odom) "
-                                      "needs a larger pose_max_wait_s (above its interval and latency) or a "
-                                      "fixed_frame below it (odom); a link whose publisher stopped needs it back")
+        return None, "pose_timeout", (
+            f"tf: {err}; the frame waited pose_max_wait_s ({config.pose_max_wait_s:g} s) of stream time: a link "
+            "published less often than that (a localiser's map -> odom) needs a larger pose_max_wait_s (above its "
+            "interval and latency) or a fixed_frame below it (odom); a link whose publisher stopped needs it back")
     except ValueError as err:  # TfError: a gap, or no frame_id
         return None, "pose_gap", f"tf: {err}"
 

@@ -343,7 +343,9 @@ def check(values: dict[str, Any]) -> None:
     if not map_file.strip() or map_file.endswith(("/", os.sep)):
         raise ValueError(f"parameter 'map_file' = {map_file!r} names no file; give a file name such as map.pt "
                          "(relative: in output_dir)")
-    meshes = [f"{stem}.ply" for stem in ("mesh", *values["sensors"], "tsdf_fusion")]  # what ~/save_mesh writes
+    from senfunet_ros.pipeline import mesh_paths
+
+    meshes = [path.name for path in mesh_paths(Path(), sensors=values["sensors"], tsdf_fusion=True).values()]
     if Path(map_file).name in meshes:
         raise ValueError(f"parameter 'map_file' = {map_file!r} has the name of a mesh ~/save_mesh writes "
                          f"({', '.join(meshes)}): the map and that mesh would overwrite each other; name the map "

@@ -230,8 +230,6 @@ class Timelines:
         time still in flight are off it."""
         restart = self._move({}, Restart(to_ns if to_ns is not None else 0, self.now_ns()))
         self._anchor_ns = to_ns
-        if restart.from_ns is not None and to_ns is not None:
-            self._old_time = (restart.from_ns, to_ns)
         return restart
 
     def _candidate(self, message: Held) -> tuple[Restart | None, bool]:
@@ -293,8 +291,9 @@ class Timelines:
         self._anchor_ns = None
         self._taken = 0
         self._close_episode()
-        new_ns = max(timelines.values(), default=None)
-        self._old_time = None if restart.from_ns is None or new_ns is None else (restart.from_ns, new_ns)
+        # the new timeline's newest stamp, or (/clock) where it restarted
+        new_ns = max(timelines.values(), default=restart.to_ns)
+        self._old_time = None if restart.from_ns is None else (restart.from_ns, new_ns)
         return restart
 
     def _close_episode(self) -> None:

@@ -171,13 +171,16 @@ def depth_units_note(msg: Any, depth_m: np.ndarray) -> str | None:
     nothing looks wrong (or for compressedDepth, whose codec fixes the units)."""
     if _is_compressed(msg):
         return None
-    deepest_m = float(depth_m.max(initial=0.0))  # invalid pixels are 0
     encoding = str(msg.encoding)
+    millimetres = _DEPTH_ENCODINGS[encoding][1] != 1.0
+    if not (msg.is_bigendian or millimetres):  # little-endian metres, the usual: no pass over the image
+        return None
+    deepest_m = float(depth_m.max(initial=0.0))  # invalid pixels are 0
     if msg.is_bigendian and deepest_m > 1000.0:
         return (f"its {encoding} depth images have is_bigendian set and decode to depths up to {deepest_m:.3g} m: if "
                 "the driver writes little-endian values (as x86 and ARM machines do), the flag is wrong; fix the "
                 "driver's is_bigendian")
-    if _DEPTH_ENCODINGS[encoding][1] != 1.0 and 0.0 < deepest_m < 0.02:
+    if millimetres and 0.0 < deepest_m < 0.02:
         return (f"its {encoding} depth images hold at most {deepest_m * 1000:.0f}, read as millimetres (REP 118): "
                 f"metres written as whole numbers into a {encoding} image? Publish millimetres in 16UC1, or metres "
                 "in 32FC1")
