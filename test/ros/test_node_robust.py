@@ -847,7 +847,11 @@ def test_a_reader_too_slow_for_an_update_gets_the_whole_map_next(ros, tmp_path: 
     finally:
         reader.send_signal(signal.SIGCONT)
         reader.send_signal(signal.SIGINT)
-        reader.wait(10)
+        try:
+            reader.wait(10)
+        except subprocess.TimeoutExpired:  # the test's own reader, slow to stop under load: not what is tested;
+            reader.kill()                   # raising here left the node running (run.close() never came)
+            reader.wait()
         run.close()
 
 
