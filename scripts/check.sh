@@ -17,13 +17,14 @@ if [ "$#" -gt 0 ]; then
 fi
 # The core tests, and the ROS tests that run no DDS (bag files, packaging, conversions, ingest, replay, TF, mesh size on
 # the wire, map services), side by side, one file per worker (each is CPU work on one thread; up to 4 workers); then
-# the other ROS tests one at a time: they run live nodes, DDS and processes against the clock.
+# the other ROS tests one at a time: they run live nodes, DDS and processes against the clock. Each run lists its
+# slowest tests (--durations): the suite should stay under 10 minutes.
 offline=(test/ros/test_bags.py test/ros/test_sample_bag.py test/ros/test_packaging.py test/ros/test_conversions.py
          test/ros/test_ingest.py test/ros/test_compressed.py test/ros/test_replay.py test/ros/test_tf.py
          test/ros/test_mesh_wire.py test/ros/test_map_bound_services.py)
 workers=$(nproc 2>/dev/null || echo 2)
 workers=$(( workers < 2 ? 2 : (workers > 4 ? 4 : workers) ))
 status=0
-.venv/bin/python -m pytest -q -n "$workers" --dist loadfile test/core "${offline[@]}" || status=$?
-.venv/bin/python -m pytest -q test/ros "${offline[@]/#/--ignore=}" || status=$?
+.venv/bin/python -m pytest -q --durations=12 -n "$workers" --dist loadfile test/core "${offline[@]}" || status=$?
+.venv/bin/python -m pytest -q --durations=12 test/ros "${offline[@]/#/--ignore=}" || status=$?
 exit "$status"
