@@ -17,6 +17,7 @@ __all__ = [
     "invert_transform",
     "matrix_from_quat",
     "pose_difference",
+    "pose_jump",
     "quat_from_matrix",
     "tq_from_transform",
     "check_within_map",
@@ -111,6 +112,32 @@ def pose_difference(T0: np.ndarray, T1: np.ndarray) -> tuple[float, float]:
     """How far apart two poses (4x4) are: metres between their origins, degrees of the rotation between them."""
     cos = (np.trace(T0[:3, :3].T @ T1[:3, :3]) - 1.0) / 2.0
     return float(np.linalg.norm(T1[:3, 3] - T0[:3, 3])), float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+# a step between two consecutive poses of a stream (or transforms of a TF link) this many times its typical
+# step, and at least JUMP_MIN_M or JUMP_MIN_DEG, is a jump (a localiser relocalising): no pose is interpolated
+# across it, the frame would lie on a smear between the old and the new place
+JUMP_STEPS = 10.0
+JUMP_MIN_M = 0.25
+JUMP_MIN_DEG = 15.0
+JUMP_HISTORY = 8  # steps before it that tell the typical one, at least
+
+
+def pose_jump(poses: Sequence[np.ndarray], i: int) -> tuple[float, float] | None:
+    """The step (metres, degrees) from poses[i-1] to poses[i] (4x4, in stamp order) when it is a jump
+    against the typical step before it (the median of its last 16), else None (also with too little
+    history to tell)."""
+    if i - 1 < JUMP_HISTORY:
+        return None
+    metres, degrees = pose_difference(poses[i - 1], poses[i])
+    if metres < JUMP_MIN_M and degrees < JUMP_MIN_DEG:
+        return None
+    history = [pose_difference(a, b) for a, b in zip(poses[max(0, i - 17):i - 1], poses[max(1, i - 16):i])]
+    typical_m, typical_deg = (float(np.median(values)) for values in zip(*history))
+    if (metres >= JUMP_MIN_M and metres > JUMP_STEPS * typical_m) or (
+            degrees >= JUMP_MIN_DEG and degrees > JUMP_STEPS * typical_deg):
+        return metres, degrees
+    return None
 
 
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:

@@ -484,7 +484,7 @@ class _SensorInput:
             else:
                 T, reason = self.poses.at(t, tolerance_ns=int(config.pose_tolerance_s * 1e9),
                                           waited_too_long=waited_too_long)
-                error = "" if reason is None else _pose_drop_error(reason, t, now_ns, self.poses.around(t), config)
+                error = "" if reason is None else _pose_drop_error(reason, t, now_ns, self.poses, config)
             if self.ended and reason == "pose_timeout":  # no pose at or after it, and none will come
                 T, reason, error = self.pose_at_end(pending, config)
             if T is not None and config.tf is not None and name in config.T_body_camera:
@@ -1003,16 +1003,20 @@ def _pose_frame_note(frame: str, fixed_frame: str) -> str:
             "which looks the camera up in the fixed frame")
 
 
-def _pose_drop_error(reason: str, stamp_ns: int, now_ns: int | None, around_ns: tuple[int | None, int | None],
-                     config: IngestConfig) -> str:
+def _pose_drop_error(reason: str, stamp_ns: int, now_ns: int | None, poses: PoseBuffer, config: IngestConfig) -> str:
     """What a frame that gets no pose from the pose topic met (`PoseBuffer.at`'s reason), and what to check."""
-    before_ns, after_ns = around_ns
+    before_ns, after_ns = poses.around(stamp_ns)
     if reason == "pose_timeout":
         newest = "no pose has come yet" if before_ns is None else f"the newest pose is at {before_ns * 1e-9:.3f} s"
         now = "" if now_ns is None else f", until the sensor's newest stamp reached {now_ns * 1e-9:.3f} s"
         return (f"pose: the frame at {stamp_ns * 1e-9:.3f} s waited for a pose at or after its stamp for more than "
                 f"pose_max_wait_s ({config.pose_max_wait_s:g} s) of stream time{now}, and {newest}; check that poses "
                 "arrive and are stamped on the depth images' clock, or raise pose_max_wait_s if they come later")
+    jump = poses.jump_across(stamp_ns)
+    if jump is not None:
+        return (f"pose: the poses jumped {jump[2]:.2f} m, {jump[3]:.1f} deg between {jump[0] * 1e-9:.3f} s and "
+                f"{jump[1] * 1e-9:.3f} s (a localiser relocalising?), far more than they move between poses otherwise: "
+                f"the frame at {stamp_ns * 1e-9:.3f} s between them is not posed")
     before = "none before it" if before_ns is None else f"{(stamp_ns - before_ns) * 1e-6:.0f} ms before it"
     after = "none after it" if after_ns is None else f"{(after_ns - stamp_ns) * 1e-6:.0f} ms after it"
     return (f"pose: the poses nearest the frame at {stamp_ns * 1e-9:.3f} s lie {before} and {after}, farther than "

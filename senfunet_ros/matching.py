@@ -10,7 +10,7 @@ from collections import deque
 
 import numpy as np
 
-from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, pose_difference
+from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, pose_difference, pose_jump
 
 __all__ = ["ColorBuffer", "PoseBuffer", "pose_conflict"]
 
@@ -62,7 +62,8 @@ class PoseBuffer:
         """The pose at a depth stamp, interpolated between the poses around it: (T, None); or
         (None, None) when it must wait for a later pose (none yet, or only the newest, too far); or
         (None, reason) when it has none: "pose_timeout" (no later pose came in time), "pose_gap" (the
-        poses around it are further than tolerance_ns from it)."""
+        poses around it are further than tolerance_ns from it, or the stream jumped between them:
+        `jump_across`)."""
         stamps = self._stamps
         i = bisect.bisect_left(stamps, stamp_ns)
         if i == len(stamps):  # no pose at or after the frame yet
@@ -75,8 +76,19 @@ class PoseBuffer:
             # the next pose is far but the newest: a nearer one may still come (a pose a glitching driver
             # stamped ahead stays the newest while the stream's poses fill in before it)
             return None, (None if i == len(stamps) - 1 and not waited_too_long else "pose_gap")
+        if pose_jump(self._poses, i) is not None:  # interpolated, the frame would lie on a smear between two places
+            return None, "pose_gap"
         s = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
         return interpolate_pose(self._poses[i - 1], self._poses[i], s), None
+
+    def jump_across(self, stamp_ns: int) -> tuple[int, int, float, float] | None:
+        """When the poses either side of `stamp_ns` are a jump (`geometry.pose_jump`: a localiser
+        relocalising), their stamps and the jump (metres, degrees); else None."""
+        i = bisect.bisect_left(self._stamps, stamp_ns)
+        if i == 0 or i == len(self._stamps):
+            return None
+        jump = pose_jump(self._poses, i)
+        return None if jump is None else (self._stamps[i - 1], self._stamps[i], *jump)
 
     def around(self, stamp_ns: int) -> tuple[int | None, int | None]:
         """The stamps of the newest pose before `stamp_ns` and of the oldest at or after it (None: none)."""

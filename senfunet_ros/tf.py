@@ -30,7 +30,7 @@ import numpy as np
 
 from senfunet_ros.conversions.poses import transform_from_msg
 from senfunet_ros.conversions.stamps import stamp_to_ns
-from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, invert_transform, pose_difference
+from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, invert_transform, pose_jump
 from senfunet_ros.matching import pose_conflict
 
 __all__ = ["REPARENT_AFTER_S", "TfAdded", "TfBuffer", "TfError", "TfWait", "extrapolate_tf"]
@@ -48,30 +48,6 @@ class TfWait(TfError):
 _GAP_INTERVALS = 2.5
 # a dynamic link silent this long (in stamps) may be taken over by another parent
 REPARENT_AFTER_S = 1.0
-
-
-# a step between two transforms of a link this many times its typical step, and at least _JUMP_MIN_M or
-# _JUMP_MIN_DEG, is a jump (a localiser relocalising): no pose is interpolated across it
-_JUMP_STEPS = 10.0
-_JUMP_MIN_M = 0.25
-_JUMP_MIN_DEG = 15.0
-_JUMP_HISTORY = 8  # steps before it that tell the typical one, at least
-
-
-def _jump(transforms: list[np.ndarray], i: int) -> tuple[float, float] | None:
-    """The step from transform i-1 to i when it is a jump against the link's typical step before it
-    (the median of its last 16), else None (also with too little history to tell)."""
-    if i - 1 < _JUMP_HISTORY:
-        return None
-    metres, degrees = pose_difference(transforms[i - 1], transforms[i])
-    if metres < _JUMP_MIN_M and degrees < _JUMP_MIN_DEG:
-        return None
-    history = [pose_difference(a, b) for a, b in zip(transforms[max(0, i - 17):i - 1], transforms[max(1, i - 16):i])]
-    typical_m, typical_deg = (float(np.median(values)) for values in zip(*history))
-    if (metres >= _JUMP_MIN_M and metres > _JUMP_STEPS * typical_m) or (
-            degrees >= _JUMP_MIN_DEG and degrees > _JUMP_STEPS * typical_deg):
-        return metres, degrees
-    return None
 
 
 def _typical_interval_ns(stamps: list[int], i: int) -> float:
@@ -216,7 +192,7 @@ class TfBuffer:
         if stamp_ns - stamps[i - 1] > max_gap_ns or stamps[i] - stamp_ns > max_gap_ns:
             raise TfError(f"the transforms {link.parent} -> {child} around {stamp_ns * 1e-9:.3f} s are more than "
                           f"{max_gap_ns * 1e-9:g} s from it; publish them more often or raise pose_tolerance_s")
-        jump = _jump(link.transforms, i)
+        jump = pose_jump(link.transforms, i)
         if jump is not None:  # interpolated, the frame would lie on a smear between the old and the new place
             raise TfError(f"{link.parent} -> {child} jumped {jump[0]:.2f} m, {jump[1]:.1f} deg between its transforms "
                           f"at {stamps[i - 1] * 1e-9:.3f} s and {stamps[i] * 1e-9:.3f} s (a localiser relocalising?), "

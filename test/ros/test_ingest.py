@@ -111,6 +111,27 @@ def test_pose_timeout_and_gap() -> None:
     assert ingest.ledger.queue_depths()["tof"] == 0
 
 
+def test_a_pose_stream_that_jumps_is_not_interpolated_across_the_jump() -> None:
+    """A localiser relocalising moves its pose topic 0.5 m and 20 degrees in one step. The frame between
+    those two poses was posed halfway across the jump and fused, unsaid; it is now a pose_gap naming
+    the jump (as TF links are: test_tf). Fast smooth motion (5 cm a step) is still interpolated."""
+    ingest = make(pose_tolerance_s=0.05)
+    period, fused = 33 * MS, []
+    for k in range(40):
+        x = 0.05 * k + (0.5 if k >= 20 else 0.0)
+        ingest.add_pose("tof", pose_msg(k * period, x=x, yaw_rad=math.radians(20.0) if k >= 20 else 0.0))
+        if k:  # frame k lies between poses k - 1 and k
+            ingest.add_depth("tof", depth_msg(k * period - 16 * MS))
+        fused += frames(ingest.pop_ready())
+    assert len(fused) == 38 and 20 * period - 16 * MS not in [f.stamp_ns for f in fused]
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["pose_gap"] == 1, counters
+    error = counters["errors"]["pose_gap"]
+    assert "jumped 0.55 m, 20.0 deg between 0.627 s and 0.660 s" in error and "0.644 s" in error, error
+    after = next(f for f in fused if f.stamp_ns == 21 * period - 16 * MS)
+    assert after.T_world_camera[0, 3] == pytest.approx(0.05 * 20.5 + 0.5, abs=0.002)
+
+
 def test_a_pose_stamped_ahead_by_a_glitch_costs_no_frame() -> None:
     """A pose a glitching driver stamped 0.5 s ahead (within time_jump_s, so taken) was the next pose
     of the frames before it: they were dropped as pose_gap at once, though the stream's own poses
