@@ -25,7 +25,13 @@ from .integrator import REACH_ALL
 from .spill import BlockSpill, spilled_rows
 from .weighting_int8 import Int8Calibration
 
-__all__ = ["save_map", "load_map"]
+__all__ = ["RUN_FIELDS", "save_map", "load_map"]
+
+# how an engine runs, not what its grids and networks mean: a map loaded into a running process (the
+# node) runs with the caller's, so that its parameters say what runs
+RUN_FIELDS = ("depth_min_m", "depth_max_m", "device", "alpha_batch_blocks", "mesh_batch_blocks", "torch_threads",
+              "alpha_threads", "alpha_voxels", "alpha_order", "alpha_dtype", "feature_dtype", "max_blocks",
+              "min_new_block_samples")
 
 log = logging.getLogger("senfunet.map_file")
 
@@ -62,11 +68,13 @@ def save_map(engine: SenFuNet, path: str | Path) -> None:
             raise OSError(err.__context__.errno, f"cannot write {path}: {err.__context__.strerror}") from err
 
 
-def load_map(path: str | Path, device: str | None = None, *,
-             worker_setup: Callable[[], object] | None = None, max_blocks: int | None = None) -> SenFuNet:
+def load_map(path: str | Path, *, run_config: EngineConfig | None = None,
+             worker_setup: Callable[[], object] | None = None) -> SenFuNet:
     """An engine with the state `save_map` wrote; the next update re-sends the whole mesh.
-    worker_setup: as for `SenFuNet`. max_blocks: the map bound from now on (the caller's, e.g. the
-    node's max_map_blocks; None: the one the map was saved with)."""
+    worker_setup: as for `SenFuNet`. run_config: the caller's settings, whose RUN_FIELDS (arithmetic,
+    threads, scheduling, the map bound, the allocation policy) the engine takes instead of those the
+    map was saved with; int8 alpha needs the calibration saved with the map (float32 without it,
+    said in the log)."""
     path = Path(path)
     # torch.save writes a zip archive: anything else (a PLY, a file cut short) would get torch's own
     # error, which names weights_only and advises loading the file unsafely, or a bare "[Errno 22]";
@@ -76,8 +84,8 @@ def load_map(path: str | Path, device: str | None = None, *,
             with zipfile.ZipFile(path) as archive:
                 damaged = archive.testzip()
         except (zipfile.BadZipFile, EOFError):
-            raise InputError(f"{path} is not a map (~/save_map and replay write one: a zip archive), or it is "
-                             "damaged (cut short?)") from None
+            raise InputError(f"{path} is not a map (~/save_map writes one: a zip archive), or it is damaged (cut "
+                             "short?)") from None
         if damaged is not None:
             raise InputError(f"{path} is damaged: its part {damaged} fails its checksum (changed since it was "
                              "written: an incomplete copy, a failing disk?); load another copy of the map")
@@ -86,26 +94,32 @@ def load_map(path: str | Path, device: str | None = None, *,
         made = state.get("format") if isinstance(state, dict) else None
         if isinstance(made, str) and made.startswith("senfunet-engine-") and made != "senfunet-engine-1":
             raise InputError(f"{path} is a map of another version of SenFuNet ({made}; this one reads "
-                             "senfunet-engine-1): load it with the version that saved it, or replay the recording")
+                             "senfunet-engine-1): load it with the version that saved it, or fuse the recording again "
+                             "(play it to the node, then ~/save_map)")
         if made != "senfunet-engine-1":  # another torch file (weights, a checkpoint)
-            raise InputError(f"{path} is not a SenFuNet engine state (~/save_map and replay write one); set "
-                             "parameter map_file to such a map")
+            raise InputError(f"{path} is not a SenFuNet engine state (~/save_map writes one); set parameter "
+                             "map_file to such a map")
         missing = [key for key in ("config", "grid", "feature_nets", "weighting_net", "frames_integrated")
                    if key not in state]
         if missing:
             raise InputError(f"{path} is an incomplete engine state (no {', '.join(missing)}); save the map again")
     except (InputError, MemoryError):  # a file too large for the memory left is no damaged file
         raise
-    except Exception as err:
-        raise InputError(f"cannot read engine state {path}: {err}") from err
+    except Exception as err:  # torch's own words (a zip of something else: "[enforce fail at ...]") say neither
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise InputError(f"{path} is not a map ~/save_map wrote, or it is damaged ({reason}); set parameter "
+                         "map_file to a map ~/save_map wrote") from err
     known = {f.name for f in fields(EngineConfig)}
     config_values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
                                      for k, v in state["config"].items() if k in known}
     config = EngineConfig(**config_values)
-    if device is not None:
-        config = replace(config, device=device)
-    if max_blocks is not None:
-        config = replace(config, max_blocks=max_blocks)
+    if run_config is not None:
+        config = replace(config, **{name: getattr(run_config, name) for name in RUN_FIELDS})
+    saved_calibration = state.get("int8_calibration")
+    if config.alpha_dtype == "int8" and not isinstance(saved_calibration, dict):
+        log.warning("%s was saved with the weighting net in %s, without its int8 calibration: the net runs in "
+                    "float32", path, state["config"].get("alpha_dtype", "float32"))
+        config = replace(config, alpha_dtype="float32")
     # G's int8 form is built once its weights are loaded, from the calibration saved with them
     engine = SenFuNet(replace(config, alpha_dtype="float32") if config.alpha_dtype == "int8" else config,
                       weights=None, worker_setup=worker_setup)
@@ -113,10 +127,10 @@ def load_map(path: str | Path, device: str | None = None, *,
         net.load_state_dict(net_state)
     engine.weighting_net.load_state_dict(state["weighting_net"])
     if config.alpha_dtype == "int8":
-        saved = state.get("int8_calibration")
-        engine.alpha.evaluator.int8_net = int8_weighting(engine.weighting_net, config, calibration=(
-            Int8Calibration(**saved) if isinstance(saved, dict) else None))
-        engine.config = replace(engine.config, alpha_dtype="int8")
+        assert isinstance(saved_calibration, dict)
+        int8_net = int8_weighting(engine.weighting_net, config, calibration=Int8Calibration(**saved_calibration))
+        engine.alpha.evaluator.int8_net = int8_net
+        engine.config = replace(engine.config, alpha_dtype="int8" if int8_net is not None else "float32")
     engine.weights_source = f"{path} (saved state)"
     grid_state, spill_loads = _grid_state_for(engine.grid, path, state)
     _load_grid_state(engine.grid, grid_state)

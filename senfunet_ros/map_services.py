@@ -38,6 +38,37 @@ def _plain(value: Any) -> Any:
     return tuple(value) if isinstance(value, (list, tuple)) else value
 
 
+def _loaded_map_notes(engine: Any, want: Any, weights: str | None) -> list[str]:
+    """Where a loaded map runs otherwise than the node's parameters say: what it was saved with rules
+    the networks (its features were made by them) and the TSDF Fusion baseline (a grid of its own)."""
+    import torch
+
+    from senfunet_core.networks import load_weights, make_networks
+
+    notes = []
+    config = engine.config
+    feature_nets, weighting_net = make_networks(config.sensor_uses_rgb, want.seed, config.weighting_tsdf_input)
+    try:
+        if weights is not None:
+            load_weights(weights, feature_nets, weighting_net)
+        same = all(torch.equal(mine, theirs) for net, loaded in zip([*feature_nets, weighting_net],
+                                                                     [*engine.feature_nets, engine.weighting_net])
+                   for mine, theirs in zip(net.state_dict().values(), loaded.state_dict().values()))
+    except InputError:
+        same = False
+    if not same:
+        notes.append(f"it runs with the networks saved in it (its features were made by them), not those of "
+                     f"parameter weights ({weights or 'none: untrained'})")
+    if config.tsdf_fusion != want.tsdf_fusion:
+        notes.append("it keeps a TSDF Fusion baseline, though parameter tsdf_fusion is false: ~/save_mesh writes "
+                     "tsdf_fusion.ply too" if config.tsdf_fusion else
+                     "it was saved without a TSDF Fusion baseline, though parameter tsdf_fusion is true: ~/save_mesh "
+                     "writes no tsdf_fusion.ply for it (one in output_dir is an earlier map's)")
+    if config.alpha_dtype != want.alpha_dtype:
+        notes.append(f"the weighting net runs in {config.alpha_dtype}, not {want.alpha_dtype} (see the log)")
+    return notes
+
+
 @dataclass
 class MapServices:
     pipeline: Pipeline
@@ -48,13 +79,21 @@ class MapServices:
 
     def save_meshes(self, output_dir: str | Path | None = None) -> list[Path]:
         """Fused (filtered), per-sensor and TSDF Fusion meshes as PLY files; returns their paths."""
+        return self._save_meshes(output_dir)[0]
+
+    def _save_meshes(self, output_dir: str | Path | None = None) -> tuple[list[Path], str]:
+        """`save_meshes`, and a note when output_dir holds a mesh file of an earlier map that this map
+        does not replace (a TSDF Fusion mesh, from a map that kept the baseline)."""
         s = self.settings()
         # absolute: the replies name the files for clients in other processes (other working directories)
         out = Path(output_dir or s.output_dir).expanduser().absolute()
         tsdf_fusion = self.pipeline.engine.config.tsdf_fusion
         self._keep_earlier_files(list(mesh_paths(out, sensors=s.sensor_names, tsdf_fusion=tsdf_fusion).values()))
         saved = self.pipeline.save_meshes(out, sensors=s.sensor_names, tsdf_fusion=tsdf_fusion)
-        return [saved_mesh.path for saved_mesh in saved.values()]
+        baseline = mesh_paths(out, sensors=(), tsdf_fusion=True)["tsdf_fusion"]
+        note = (f" ({baseline} is an earlier map's: this map keeps no TSDF Fusion baseline)"
+                if not tsdf_fusion and baseline.exists() else "")
+        return [saved_mesh.path for saved_mesh in saved.values()], note
 
     def save_map_file(self) -> Path:
         """The whole map into `map_path`; returns the path."""
@@ -120,7 +159,8 @@ class MapServices:
         on_disk = len(spill) if spill is not None else 0
         note = (f" (the per-sensor meshes leave out the {on_disk} blocks the map bound evicted; mesh.ply has them)"
                 if on_disk else "")
-        return "wrote " + ", ".join(str(p) for p in self.save_meshes()) + note
+        paths, earlier = self._save_meshes()
+        return "wrote " + ", ".join(str(p) for p in paths) + note + earlier
 
     def _judge_between_updates(self) -> None:
         """The weighting net's catch-up before the meshes are made, in turns of half a mesh period with
@@ -152,13 +192,15 @@ class MapServices:
             P.configure_engine(engine, self.settings())
 
         with self.mesh_publisher.lock:
-            # the node's map bound (max_map_blocks), not the one the map was saved with
-            engine = self.pipeline.load_map(path, device=want.device, max_blocks=want.max_blocks,
-                                            configure=check_and_configure)
+            # it runs as the node's parameters say (arithmetic, threads, map bound, allocation policy), not as
+            # when the map was saved
+            engine = self.pipeline.load_map(path, run_config=want, configure=check_and_configure)
             # a parameter change racing the load reaches the loaded engine too; subscribers get it whole
             P.configure_engine(engine, self.settings())
             self.mesh_publisher.resend_all()
-        return f"loaded {path}: {sum(engine.frames_integrated.values())} frames, {engine.grid.n_blocks} blocks"
+        notes = _loaded_map_notes(engine, want, P.engine_weights(self.settings()))
+        return (f"loaded {path}: {sum(engine.frames_integrated.values())} frames, {engine.grid.n_blocks} blocks"
+                + "".join(f"; {note}" for note in notes))
 
     def _reply(self, response: Any, action: Callable[[], str], failure: str, log: str | None = None) -> Any:
         try:

@@ -262,12 +262,12 @@ class Pipeline:
         os.chmod(path, FILE_MODE)
         return path
 
-    def load_map(self, path: str | Path, *, device: str | None = None, max_blocks: int | None = None,
-                 configure: Callable[[Any], None] | None = None) -> Any:
+    def load_map(self, path: str | Path, *, run_config: Any = None, configure: Callable[[Any], None] | None = None
+                 ) -> Any:
         """Replace the engine by the one saved in `path` (InputError if it is not a saved map); the
-        queued frames go (they belong to the old map's timeline). `configure` gets the new engine
-        before it replaces the old (the caller's run-time settings: no frame is integrated with the
-        file's). Returns the new engine."""
+        queued frames go (they belong to the old map's timeline). run_config: the caller's EngineConfig,
+        whose run-time fields the new engine takes (`map_file.load_map`). `configure` gets the new
+        engine before it replaces the old (a check that may refuse it). Returns the new engine."""
         from senfunet_core.errors import InputError
         from senfunet_core.map_file import load_map
 
@@ -280,7 +280,7 @@ class Pipeline:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such map file; set parameter map_file or call ~/save_map first")
         # its alpha threads start as the old engine's did (the node's: at its mesh thread's priority)
-        engine = load_map(path, device=device, worker_setup=self.engine.alpha.worker_setup, max_blocks=max_blocks)
+        engine = load_map(path, run_config=run_config, worker_setup=self.engine.alpha.worker_setup)
         if configure is not None:
             configure(engine)
         with self.lock:

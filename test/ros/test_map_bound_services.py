@@ -55,6 +55,40 @@ def test_load_map_keeps_the_nodes_map_bound(tmp_path):
     assert engine.grid.n_blocks <= 165 and engine.stats()["evicted_blocks"] > 0
 
 
+def test_a_loaded_map_runs_as_the_nodes_parameters_say_and_what_it_cannot_take_is_said(tmp_path):
+    """A map saved by an engine with other run-time settings (alpha order, allocation policy, arithmetic)
+    and without the TSDF Fusion baseline, loaded by ~/load_map into a node with the defaults and seed-1
+    networks: it took the file's settings and networks, the parameters still said the node's, and
+    ~/save_mesh left an earlier map's tsdf_fusion.ply beside the new meshes without a word. Now the
+    run-time settings are the node's, and the reply says whose networks run and that the map keeps no
+    baseline (the node's parameter asks for one), as ~/save_mesh's reply says that file is an earlier
+    map's."""
+    params = tmp_path / "p.yaml"
+    params.write_text("senfunet:\n  ros__parameters:\n    weights: none\n    alpha_precision: float32\n"
+                      f"    tsdf_fusion: true\n    output_dir: {tmp_path}\n    rgb_sensors: []\n    tof:\n"
+                      "      depth_min_m: 0.05\n    stereo:\n      depth_min_m: 0.05\n")
+    settings = load_settings(params)
+    node_config = P.engine_config(settings)
+    saved = SenFuNet(P.engine_config(settings, alpha_order="latest", min_new_block_samples=0, tsdf_fusion=False,
+                                     alpha_dtype="bfloat16", seed=1), weights=None)
+    integrate_views(saved, [(SPHERE_C, SPHERE_VIEWS[0])])
+    save_map(saved, tmp_path / "map.pt")
+    (tmp_path / "tsdf_fusion.ply").write_bytes(b"an earlier map's")
+    pipeline = Pipeline(SenFuNet(node_config, weights=None), Ingest(ingest_config(settings)))
+    services = MapServices(pipeline, lambda: settings, SimpleNamespace(lock=threading.Lock(), resend_all=lambda: None,
+                                                                    updates=UpdateSignal()),
+                           logging.getLogger("test"))
+    reply = services.load_map(None, SimpleNamespace(success=None, message=None))
+    assert reply.success, reply.message
+    config = pipeline.engine.config
+    assert (config.alpha_order, config.min_new_block_samples, config.alpha_dtype) == (
+        node_config.alpha_order, node_config.min_new_block_samples, "float32")
+    assert pipeline.engine.alpha.alpha_order == node_config.alpha_order
+    assert "networks saved in it" in reply.message and "without a TSDF Fusion baseline" in reply.message, reply.message
+    reply = services.save_mesh(None, SimpleNamespace(success=None, message=None))
+    assert reply.success and f"{tmp_path / 'tsdf_fusion.ply'} is an earlier map's" in reply.message, reply.message
+
+
 def test_save_mesh_says_the_per_sensor_meshes_leave_out_evicted_blocks(tmp_path):
     """~/save_mesh under a bound: the per-sensor PLY files hold only the blocks in memory (the fused one has
     the evicted blocks' final meshes): said in the log and in the service's reply, not silently."""
@@ -296,8 +330,15 @@ def test_load_map_of_another_version_or_another_torch_file_says_what_to_do(tmp_p
         torch.save(saved, tmp_path / "other.pt")
         reply = _call(services.load_map)
         assert not reply.success and says in reply.message, reply.message
-        assert "replay the recording" in reply.message or "set parameter map_file" in reply.message, reply.message
+        assert "fuse the recording again" in reply.message or "set parameter map_file" in reply.message, reply.message
         assert pipeline.engine.grid.n_blocks == blocks
+    # a zip archive of something else: torch's "[enforce fail at inline_container.cc:...] file in archive is not in a
+    # subdirectory" alone said neither what was wrong nor what to do
+    with zipfile.ZipFile(tmp_path / "other.pt", "w") as archive:
+        archive.writestr("readme.txt", "not a map")
+    reply = _call(services.load_map)
+    assert not reply.success and "is not a map ~/save_map wrote" in reply.message, reply.message
+    assert "set parameter map_file" in reply.message and pipeline.engine.grid.n_blocks == blocks
 
 
 def test_an_empty_map_does_not_replace_what_an_earlier_map_saved(tmp_path):
