@@ -295,7 +295,7 @@ class _SensorInput:
         """Count n messages dropped for `reason` (with what the last one had wrong); returns the reason."""
         self.counters.dropped[reason] += n
         if error:
-            self.counters.errors[reason] = error
+            self.counters.errors[reason] = _with_other_stream(self.counters.errors.get(reason, ""), error)
         return reason
 
     def discard(self, reason: str) -> int:
@@ -406,7 +406,7 @@ class _SensorInput:
         """Buffer a decoded colour image (`_decode_color`: RGB, or what was wrong) for matching, unless
         the colours were cleared since `cleared`. Returns the drop reason or None."""
         if isinstance(decoded, str):
-            return self.drop("bad_encoding", f"colour: {decoded}")
+            return self.drop("bad_encoding", _COLOUR + decoded)
         if cleared != self.cleared:
             return self.drop(self.cleared_by)
         self.colors.add(stamp_ns, decoded)
@@ -1001,6 +1001,20 @@ def _pose_frame_note(frame: str, fixed_frame: str) -> str:
     return (f"its poses {given}, not the fixed frame '{fixed_frame}' (parameter fixed_frame): they are fused as "
             f"given, as poses in '{fixed_frame}', where the mesh is published; {fix}, or use pose_type tf, "
             "which looks the camera up in the fixed frame")
+
+
+_COLOUR = "colour: "  # how a colour image's error starts (the others are of depth, pose, camera_info messages)
+
+
+def _with_other_stream(last: str, error: str) -> str:
+    """A reason's error text after `error`: it replaces the last error of its own stream but keeps the
+    colour stream's beside the others' (a sensor whose depth and colour both fail to decode needs both
+    named, not the one that came last)."""
+    parts = last.split("; " + _COLOUR, 1) if not last.startswith(_COLOUR) else ["", last[len(_COLOUR):]]
+    other, colour = parts[0], (_COLOUR + parts[1] if len(parts) > 1 else "")
+    if error.startswith(_COLOUR):
+        return f"{other}; {error}" if other else error
+    return f"{error}; {colour}" if colour else error
 
 
 def _pose_drop_error(reason: str, stamp_ns: int, now_ns: int | None, poses: PoseBuffer, config: IngestConfig) -> str:

@@ -90,8 +90,9 @@ def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str,
         new_without_color = counters["without_color"] - last.get("without_color", 0)
         if new_without_color > 0:
             undecodable = counters["errors"].get("bad_encoding", "")
-            why = (f"the colour images on {topics[sensor].color_topic} cannot be decoded ({undecodable})"
-                   if undecodable.startswith("colour:") else
+            colour_error = undecodable[undecodable.find("colour: "):] if "colour: " in undecodable else ""
+            why = (f"the colour images on {topics[sensor].color_topic} cannot be decoded ({colour_error})"
+                   if colour_error else
                    f"no colour image within color_tolerance_s ({settings.color_tolerance_s:g} s) of their depth "
                    f"stamps, though colour arrives on {topics[sensor].color_topic}; check the stamps or raise "
                    "color_tolerance_s")

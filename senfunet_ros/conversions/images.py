@@ -5,6 +5,7 @@ Every failure is a ValueError saying what was wrong and what to do about it.
 """
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,8 @@ __all__ = [
     "scale_intrinsics",
 ]
 
+# Pillow modes of 16-bit and float images: not colour (an IR or depth image on the colour topic)
+_WIDE_MODES = ("I", "I;16", "I;16B", "I;16L", "I;16N", "F")
 _DEPTH_ENCODINGS: dict[str, tuple[str, float]] = {
     # encoding -> (numpy dtype without byte order, scale to metres)
     "32FC1": ("f4", 1.0),
@@ -80,14 +83,20 @@ def _decode(data: np.ndarray, what: str, *, color: bool) -> np.ndarray:
     try:
         with PilImage.open(io.BytesIO(data.tobytes())) as image:
             image.load()
+            mode = image.mode
             # np.array, not asarray: Pillow's arrays are read-only, and the frame's users may write
-            if color and image.mode != "RGB":
-                return np.array(image.convert("RGB"), np.uint8)
-            return np.array(image)
+            if not color:
+                return np.array(image)
+            if mode not in _WIDE_MODES:
+                return np.array(image.convert("RGB") if mode != "RGB" else image, np.uint8)
     except Exception as err:  # noqa: BLE001 (Pillow raises OSError, SyntaxError, struct.error... on corrupt data)
         reason = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
+        reason = re.sub(r" <_io\.BytesIO object at 0x[0-9a-fA-F]+>", "", reason)  # an address, new in every message
         raise ValueError(f"{what} is not a readable png/jpeg image ({reason}); check the publisher's "
                          "image_transport") from None
+    # converted to RGB, 16-bit or float values are clipped to 255: a nearly white image
+    raise ValueError(f"{what} is a {mode} (16-bit or float) image, not 8-bit colour: publish the colour camera's 8-bit "
+                     "images (rgb8/bgr8/mono8) on the colour topic")
 
 
 def _compressed_depth_codec(fmt: str) -> str:
@@ -180,11 +189,29 @@ def depth_units_note(msg: Any, depth_m: np.ndarray) -> str | None:
         return (f"its {encoding} depth images have is_bigendian set and decode to depths up to {deepest_m:.3g} m: if "
                 "the driver writes little-endian values (as x86 and ARM machines do), the flag is wrong; fix the "
                 "driver's is_bigendian")
+    if msg.is_bigendian and millimetres and _smoother_swapped(_image_rows(msg, 2)):
+        return (f"its {encoding} depth images have is_bigendian set, and read as little-endian they are far smoother "
+                "(neighbouring pixels closer): the flag looks wrong, and the frames are fused as noise; fix the "
+                "driver's is_bigendian")
     if millimetres and 0.0 < deepest_m < 0.02:
         return (f"its {encoding} depth images hold at most {deepest_m * 1000:.0f}, read as millimetres (REP 118): "
                 f"metres written as whole numbers into a {encoding} image? Publish millimetres in 16UC1, or metres "
                 "in 32FC1")
     return None
+
+
+def _smoother_swapped(rows: np.ndarray) -> bool:
+    """Whether 16-bit pixels (rows of bytes) read little-endian are far smoother than read big-endian: the
+    median step between horizontal neighbours (both valid), ten times smaller. Depth is smooth on the
+    whole; its byte-swapped values jump by multiples of 256 from pixel to pixel."""
+    steps = []
+    for order in "<>":
+        values = np.ascontiguousarray(rows).view(order + "u2").astype(np.int32)
+        both = (values[:, 1:] > 0) & (values[:, :-1] > 0)
+        if both.sum() < 100:
+            return False
+        steps.append(float(np.median(np.abs(np.diff(values, axis=1))[both])))
+    return 10.0 * steps[0] < steps[1]
 
 
 def rgb_from_image(msg: Any) -> np.ndarray:
@@ -193,7 +220,8 @@ def rgb_from_image(msg: Any) -> np.ndarray:
         return rgb_from_compressed(msg)
     encoding = str(msg.encoding)
     if encoding not in _COLOR_ENCODINGS:
-        raise ValueError(f"colour encoding '{encoding}' is not supported; publish rgb8, bgr8 or mono8")
+        raise ValueError(f"colour encoding '{encoding}' is not supported; publish rgb8, bgr8, rgba8, bgra8 or mono8 "
+                         "(a Bayer or YUV camera: debayer or convert it first, e.g. with image_proc)")
     channels = _COLOR_ENCODINGS[encoding]
     rows = _image_rows(msg, channels)
     pixels = rows.reshape(rows.shape[0], -1, channels)  # HxWxC

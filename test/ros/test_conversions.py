@@ -394,6 +394,24 @@ def test_compressed_png_and_jpeg_decode_as_published() -> None:
     assert decoded.flags.writeable  # a frame's user may write into it (torch.from_numpy warns otherwise)
 
 
+def test_a_16_bit_png_on_a_colour_topic_is_refused_not_fused_white() -> None:
+    """image_transport's compressed plugin keeps 16 bits in a PNG (an IR camera's mono16): converted to
+    RGB, Pillow clipped its values to 255, and the stereo feature net got a white image, unsaid. A
+    payload Pillow cannot identify named a memory address, new in every message."""
+    import cv2
+    from sensor_msgs.msg import CompressedImage
+
+    ir = (200 + np.arange(24 * 32) * 5).astype(np.uint16).reshape(24, 32)
+    msg = CompressedImage(format="mono16; png compressed mono16")
+    msg.data = cv2.imencode(".png", ir)[1].tobytes()
+    with pytest.raises(ValueError, match="16-bit or float.*not 8-bit colour"):
+        conv.rgb_from_image(msg)
+    msg.data = b"not an image at all"
+    with pytest.raises(ValueError, match="not a readable png/jpeg") as raised:
+        conv.rgb_from_image(msg)
+    assert "0x" not in str(raised.value), raised.value
+
+
 def _compressed_depth(fmt: str, payload: bytes, depth_a: float = 0.0, depth_b: float = 0.0) -> object:
     from sensor_msgs.msg import CompressedImage
 

@@ -248,6 +248,29 @@ def test_bad_inputs_are_counted(case: str) -> None:
         assert len(counters["errors"][case]) > 20
 
 
+def test_depth_and_colour_that_both_fail_to_decode_are_both_named() -> None:
+    """Depth in "32fc1" and colour in "yuv422": both dropped as bad_encoding, but the error (and so the
+    warning and ~/status) named only the colour, which came last; fixing it left a node without a map
+    and no word why."""
+    from senfunet_ros.status import counter_warnings
+
+    ingest = make()
+    before = ingest.ledger.counters()
+    for k in range(3):
+        ingest.add_color("tof", color_msg(k * 10 * MS))
+        ingest.add_depth("tof", depth_msg(k * 10 * MS, encoding="32fc1"))
+        bad_colour = color_msg(k * 10 * MS)
+        bad_colour.encoding = "yuv422"
+        ingest.add_color("tof", bad_colour)
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["bad_encoding"] == 6
+    error = counters["errors"]["bad_encoding"]
+    assert "32fc1" in error and "yuv422" in error and error.index("32fc1") < error.index("colour: "), error
+    from senfunet_ros.params_file import load_settings
+    warnings = dict(counter_warnings(before, ingest.ledger.counters(), load_settings(None)))
+    assert "32fc1" in warnings[("tof", "bad_encoding")], warnings
+
+
 @pytest.mark.parametrize("x_m", [1e6, 1e9, 1e300])
 def test_a_pose_beyond_the_maps_reach_is_refused_and_spoils_no_frame(x_m: float) -> None:
     """A pose kilometres away (a wrong unit, a glitch) was taken into the pose buffer: the good frame
@@ -343,6 +366,17 @@ def test_depth_images_whose_units_or_byte_order_look_wrong_are_said_once() -> No
     ingest2 = make()
     assert ingest2.add_depth("tof", depth_msg(0, value=2.5)) is None
     assert "depth_units" not in ingest2.ledger.counters()["tof"]["notes"]
+    # millimetres with the flag wrong: byte-swapped, 0.8-2.8 m read as noise up to 65 m, fused without a word
+    ramp_mm = np.linspace(800, 2800, 48 * 64).reshape(48, 64)
+    for flag_wrong, order in ((True, "<u2"), (False, ">u2")):
+        millimetres = Image(height=48, width=64, encoding="16UC1", step=128, is_bigendian=1)
+        millimetres.data = ramp_mm.astype(order).tobytes()
+        _stamp(millimetres, 0)
+        ingest3 = Ingest(IngestConfig(sensors=("tof", "stereo")))
+        ingest3.add_camera_info("tof", info_msg((48, 64)))
+        ingest3.add_depth("tof", millimetres)
+        note = ingest3.ledger.counters()["tof"]["notes"].get("depth_units", "")
+        assert ("read as little-endian they are far smoother" in note) == flag_wrong, note
 
 
 def test_depth_images_missing_from_a_regular_stream_are_counted_and_warned() -> None:
