@@ -274,6 +274,7 @@ class _SensorInput:
     def __init__(self, config: IngestConfig) -> None:
         self.counters = SensorCounters()
         self.camera_info: tuple[np.ndarray, tuple[int, int]] | None = None
+        self.camera_info_before: tuple[np.ndarray, tuple[int, int]] | None = None  # the one before the last change
         self.queue: deque[_Pending] = deque()
         self.awaiting_info: deque[tuple[Any, int, float]] = deque()  # (depth msg, stamp_ns, arrival_s)
         self.colors = ColorBuffer(max(4, config.queue_size))
@@ -325,16 +326,36 @@ class _SensorInput:
         """Cache K and the image size of sensor `name`. Returns the drop reason (or None when it was
         cached) and the depth images that waited for it, to decode outside Ingest's lock and queue."""
         try:
-            self.camera_info = conv.intrinsics_from_camera_info(msg)
+            intrinsics = conv.intrinsics_from_camera_info(msg)
             self.counters.distorted = bool(np.any(np.asarray(getattr(msg, "d", ()), np.float64) != 0))
         except (ValueError, AttributeError) as err:
             kept = "" if self.camera_info is None else "; the depth images go on with the last good camera_info's K"
             return self.drop("bad_camera_info", f"{err}{kept}"), []
+        self._note_camera_info_change(intrinsics)
+        self.camera_info = intrinsics
         waited = [_Undecoded(name, "depth", stamp_ns, depth_msg, arrival_s, self.camera_info, config.working_size,
                              self.spacing_check(config), self.cleared)
                   for depth_msg, stamp_ns, arrival_s in self.awaiting_info]
         self.awaiting_info.clear()
         return None, waited
+
+    def _note_camera_info_change(self, intrinsics: tuple[np.ndarray, tuple[int, int]]) -> None:
+        """Say once when the camera_info changes (K or size), and once when it goes back to the one
+        before: two publishers on one topic, each frame taking whichever came last."""
+        now = self.camera_info
+        if now is None or _same_intrinsics(now, intrinsics):
+            return
+        before, self.camera_info_before = self.camera_info_before, now
+        notes = self.counters.notes
+        if before is not None and _same_intrinsics(before, intrinsics):
+            notes.setdefault("camera_info_alternates", (
+                f"its camera_info alternates between {conv.intrinsics_text(now)} and {conv.intrinsics_text(before)}: "
+                "two publishers on one topic (the depth and colour cameras' camera_info remapped onto one?); each "
+                "depth image takes the one that came last, so frames are fused with the wrong K; make one stop"))
+        else:
+            notes.setdefault("camera_info_changed", (
+                f"its camera_info changed from {conv.intrinsics_text(now)} to {conv.intrinsics_text(intrinsics)}; the "
+                "depth images after it take the new one (a driver that changed its resolution or calibration)"))
 
     def accept(self, name: str, stream: str, stamp_ns: int, message: Any, config: IngestConfig
                ) -> str | _Undecoded | None:
@@ -1001,6 +1022,11 @@ def _pose_frame_note(frame: str, fixed_frame: str) -> str:
     return (f"its poses {given}, not the fixed frame '{fixed_frame}' (parameter fixed_frame): they are fused as "
             f"given, as poses in '{fixed_frame}', where the mesh is published; {fix}, or use pose_type tf, "
             "which looks the camera up in the fixed frame")
+
+
+def _same_intrinsics(a: tuple[np.ndarray, tuple[int, int]], b: tuple[np.ndarray, tuple[int, int]]) -> bool:
+    """Whether two camera_infos (K, size) are one (a republished one may differ by float noise)."""
+    return a[1] == b[1] and bool(np.allclose(a[0], b[0], rtol=1e-6, atol=1e-6))
 
 
 _COLOUR = "colour: "  # how a colour image's error starts (the others are of depth, pose, camera_info messages)

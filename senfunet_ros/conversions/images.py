@@ -20,6 +20,7 @@ __all__ = [
     "principal_point_off_centre",
     "same_aspect_ratio",
     "intrinsics_from_camera_info",
+    "intrinsics_text",
     "resize_depth",
     "resize_rgb",
     "rgb_from_image",
@@ -335,6 +336,12 @@ def principal_point_off_centre(K: np.ndarray, size: tuple[int, int]) -> float:
 
 def _k_text(K: np.ndarray) -> str:
     return f"fx {K[0, 0]:.4g}, fy {K[1, 1]:.4g}, cx {K[0, 2]:.4g}, cy {K[1, 2]:.4g}"
+
+
+def intrinsics_text(intrinsics: tuple[np.ndarray, tuple[int, int]]) -> str:
+    """`intrinsics_from_camera_info`'s (K, (width, height)) for a message: 'fx .., fy .., cx .., cy .. (WxH)'."""
+    K, (width, height) = intrinsics
+    return f"{_k_text(K)} ({width}x{height})"
 
 
 def intrinsics_for_size(K: np.ndarray, info_size: tuple[int, int], image_size: tuple[int, int]

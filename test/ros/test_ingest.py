@@ -424,6 +424,23 @@ def test_depth_images_missing_from_a_regular_stream_are_counted_and_warned() -> 
     assert ingest.ledger.counters()["stereo"]["missing_depth"] == 4
 
 
+def test_a_camera_info_that_changes_is_said_and_one_that_alternates_is_two_publishers() -> None:
+    """Two camera_infos alternating on one topic (the depth and colour cameras' remapped onto one): each
+    frame took whichever came last, fused with the wrong K every other time, and nothing said so."""
+    ingest = make()
+    other = info_msg()
+    other.k = [14.0, 0, 4.0, 0, 14.0, 3.0, 0, 0, 1]
+    assert ingest.add_camera_info("tof", info_msg()) is None  # the same again: nothing to say
+    assert ingest.add_camera_info("tof", other) is None
+    notes = ingest.ledger.counters()["tof"]["notes"]
+    assert "fx 10, fy 10, cx 4.5, cy 3.5 (10x8) to fx 14, fy 14, cx 4, cy 3 (10x8)" in notes["camera_info_changed"]
+    assert "camera_info_alternates" not in notes
+    assert ingest.add_camera_info("tof", info_msg()) is None
+    note = ingest.ledger.counters()["tof"]["notes"]["camera_info_alternates"]
+    assert "two publishers on one topic" in note and "fx 14" in note and "fx 10" in note, note
+    assert ingest.ledger.counters()["stereo"]["notes"] == {}
+
+
 def test_depth_before_camera_info_waits_for_it_within_limits() -> None:
     """Drivers publish camera_info and depth on separate topics, so the first depth image may come
     first: it waits for the camera_info, within the queue size and pose_max_wait_s of stream time."""
