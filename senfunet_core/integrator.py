@@ -64,13 +64,15 @@ def samples_along_band(voxel_size_m: float, band_m: float) -> tuple[int, int]:
     return 2 * half + 1, round(half * PAPER_SAMPLES_BEHIND / PAPER_SAMPLES_HALF)
 
 
-def pixel_spacing_m(depth_m: np.ndarray, K: np.ndarray) -> tuple[float, float]:
-    """(median depth of the valid pixels, the distance between neighbouring pixels' rays at that depth
-    along the coarser image axis), metres; (0, 0) without a valid pixel. Where the spacing exceeds the
-    voxel size, neighbouring rays skip voxels across the surface: those are never observed, and no
-    cell with an unobserved corner is meshed (holes)."""
+def pixel_spacing_m(depth_m: np.ndarray, K: np.ndarray, *,
+                    depth_range_m: tuple[float, float] = (0.0, math.inf)) -> tuple[float, float]:
+    """(median depth of the valid pixels within depth_range_m (those that are fused), the distance
+    between neighbouring pixels' rays at that depth along the coarser image axis), metres; (0, 0)
+    without such a pixel. Where the spacing exceeds the voxel size, neighbouring rays skip voxels
+    across the surface: those are never observed, and no cell with an unobserved corner is meshed
+    (holes)."""
     depth = np.asarray(depth_m)
-    valid = depth[np.isfinite(depth) & (depth > 0)]
+    valid = depth[np.isfinite(depth) & (depth > max(depth_range_m[0], 0.0)) & (depth <= depth_range_m[1])]
     if valid.size == 0:
         return 0.0, 0.0
     median_m = float(np.median(valid))

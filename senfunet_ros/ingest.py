@@ -54,6 +54,7 @@ or, with each next frame's feature net overlapping the current frame's integrati
 from __future__ import annotations
 
 import bisect
+import math
 import threading
 import time
 from collections import deque
@@ -119,6 +120,8 @@ class IngestConfig:
     # the map's voxel size: a sensor's first frame is checked for pixels further apart than 1.5 voxels at its
     # median depth (holes in the mesh), said once in its notes; 0 = no check
     voxel_size_m: float = 0.0
+    # sensor -> (depth_min_m, depth_max_m) of what is fused: the pixels that check counts (absent: every depth > 0)
+    depth_range_m: dict[str, tuple[float, float]] = field(default_factory=dict)
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
     # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link), or with tf in its depth
     # images' frame_id (a driver that names camera_link, x forward, not the optical frame); absent = identity
@@ -254,7 +257,9 @@ class _Undecoded:
     arrival_s: float  # depth: time.monotonic() when it arrived (statistics only)
     camera_info: tuple[np.ndarray, tuple[int, int]] | None  # depth: (K, (width, height)) to check it against
     working_size: tuple[int, int]  # depth: IngestConfig.working_size
-    voxel_size_m: float  # depth: check its pixel spacing against this voxel size (> 0: its sensor's first frames)
+    # depth: check its pixel spacing against this voxel size, over its pixels in this depth range (voxel size > 0: its
+    # sensor's first frames; `_SensorInput.spacing_check`)
+    spacing_check: tuple[float, float, float]
     cleared: int  # its sensor's _SensorInput.cleared when it was taken: a clear meanwhile takes it too
 
 
@@ -263,7 +268,7 @@ def _decode(image: _Undecoded) -> Any:
     if image.stream == "depth":
         assert image.camera_info is not None
         return _decode_depth(image.msg, image.stamp_ns, image.arrival_s, camera_info=image.camera_info,
-                             working_size=image.working_size, voxel_size_m=image.voxel_size_m)
+                             working_size=image.working_size, spacing_check=image.spacing_check)
     return _decode_color(image.msg)
 
 
@@ -334,7 +339,7 @@ class _SensorInput:
         self._note_camera_info_change(intrinsics)
         self.camera_info = intrinsics
         waited = [_Undecoded(name, "depth", stamp_ns, depth_msg, arrival_s, self.camera_info, config.working_size,
-                             self.spacing_check(config), self.cleared)
+                             self.spacing_check(config, name), self.cleared)
                   for depth_msg, stamp_ns, arrival_s in self.awaiting_info]
         self.awaiting_info.clear()
         return None, waited
@@ -384,12 +389,14 @@ class _SensorInput:
             self.awaiting_info.append((msg, stamp_ns, arrival_s))
             return None
         return _Undecoded(name, stream, stamp_ns, msg, arrival_s, self.camera_info, config.working_size,
-                          self.spacing_check(config), self.cleared)
+                          self.spacing_check(config, name), self.cleared)
 
-    def spacing_check(self, config: IngestConfig) -> float:
-        """The voxel size to check a depth image's pixel spacing against, or 0 once a frame was checked
-        (a median per frame would cost every frame; the first frames tell)."""
-        return 0.0 if self.spacing_checked else config.voxel_size_m
+    def spacing_check(self, config: IngestConfig, name: str) -> tuple[float, float, float]:
+        """The voxel size to check a depth image's pixel spacing against (0 once a frame was checked: a
+        median per frame would cost every frame; the first frames tell), and the depth range of the
+        pixels that count (the sensor's: a sentinel value, 0xFFFF mm for saturated, is no depth)."""
+        depth_min_m, depth_max_m = config.depth_range_m.get(name, (0.0, math.inf))
+        return 0.0 if self.spacing_checked else config.voxel_size_m, depth_min_m, depth_max_m
 
     def enqueue(self, decoded: _Pending | tuple[str, str], config: IngestConfig, *, cleared: int) -> str | None:
         """Queue a decoded depth image (`_decode_depth`), in stamp order, unless its decoding failed or
@@ -927,10 +934,12 @@ def _timeline_limits(config: IngestConfig) -> dict[str, Any]:
 
 
 def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tuple[np.ndarray, tuple[int, int]],
-                  working_size: tuple[int, int], voxel_size_m: float = 0.0) -> _Pending | tuple[str, str]:
+                  working_size: tuple[int, int], spacing_check: tuple[float, float, float] = (0.0, 0.0, math.inf)
+                  ) -> _Pending | tuple[str, str]:
     """A depth image decoded, checked against its camera_info (K, (width, height)) and resized to the
     working size (0 in either: keep the aspect ratio; both 0: native): a frame waiting for its
-    pose, or (drop reason, error). voxel_size_m > 0: its pixel spacing is checked against it too."""
+    pose, or (drop reason, error). spacing_check (voxel size, depth range): with a voxel size > 0, its
+    pixel spacing is checked against it too, when enough of its pixels lie in the range."""
     K, info_size = camera_info
     try:
         depth_m = conv.depth_from_image(msg)
@@ -964,12 +973,17 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
     if target != (width, height):
         depth_m = conv.resize_depth(depth_m, target)
         K = conv.scale_intrinsics(K, (width, height), target)
-    if voxel_size_m > 0:
-        note = _pixel_spacing_note(depth_m, K, voxel_size_m, native_size=(width, height))
+    voxel_size_m, depth_min_m, depth_max_m = spacing_check
+    # a frame with few pixels in range (a sensor warming up, saturated) tells little: the next one is checked
+    in_range = np.count_nonzero((depth_m > depth_min_m) & (depth_m <= depth_max_m))
+    checked = bool(voxel_size_m > 0 and in_range >= _SPACING_MIN_SHARE * depth_m.size)
+    if checked:
+        note = _pixel_spacing_note(depth_m, K, voxel_size_m, native_size=(width, height),
+                                   depth_range_m=(depth_min_m, depth_max_m))
         if note:
             notes.append(("pixel_spacing", note))
     return _Pending(stamp_ns, depth_m, K, arrival_s, frame_id=str(getattr(msg.header, "frame_id", "")),
-                    source_size=(width, height), notes=tuple(notes), spacing_checked=voxel_size_m > 0)
+                    source_size=(width, height), notes=tuple(notes), spacing_checked=checked)
 
 
 # pixels up to this many voxels apart at the median depth are not worth a note: a frame's rays still observe about
@@ -977,13 +991,17 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
 PIXEL_SPACING_NOTE_VOXELS = 1.5
 
 
-def _pixel_spacing_note(depth_m: np.ndarray, K: np.ndarray, voxel_size_m: float, *,
-                        native_size: tuple[int, int]) -> str | None:
+# a frame is checked for its pixel spacing when at least this share of its pixels lie in the sensor's depth range
+_SPACING_MIN_SHARE = 0.1
+
+
+def _pixel_spacing_note(depth_m: np.ndarray, K: np.ndarray, voxel_size_m: float, *, native_size: tuple[int, int],
+                        depth_range_m: tuple[float, float]) -> str | None:
     """What to expect and change when a frame's pixels lie further apart than 1.5 voxels at its median
-    depth (neighbouring rays skip voxels: holes in the mesh), or None."""
+    depth within depth_range_m (neighbouring rays skip voxels: holes in the mesh), or None."""
     from senfunet_core.integrator import pixel_spacing_m
 
-    median_m, spacing_m = pixel_spacing_m(depth_m, K)
+    median_m, spacing_m = pixel_spacing_m(depth_m, K, depth_range_m=depth_range_m)
     if spacing_m <= PIXEL_SPACING_NOTE_VOXELS * voxel_size_m:
         return None
     height, width = depth_m.shape

@@ -503,6 +503,7 @@ def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.
         fixed_frame=s.fixed_frame,  # where TF lookups go, the node's own TF lookup (tf=) too
         reset_on_time_jump=s.on_time_jump == "reset",
         voxel_size_m=s.voxel_size_m,  # a sensor's pixels further apart than 1.5 voxels are said (holes)
+        depth_range_m={sensor.name: (sensor.depth_min_m, sensor.depth_max_m) for sensor in s.sensors},
     )
     if PoseType(s.pose_type) is PoseType.TF and "tf" not in overrides:  # replay: /tf and /tf_static from the bag
         from senfunet_ros.tf import TfBuffer

@@ -379,6 +379,29 @@ def test_depth_images_whose_units_or_byte_order_look_wrong_are_said_once() -> No
         assert ("read as little-endian they are far smoother" in note) == flag_wrong, note
 
 
+def test_the_pixel_spacing_note_reads_only_the_depths_that_are_fused() -> None:
+    """A ToF's first frame with most pixels at its 0xFFFF "saturated" value: the note said its median
+    depth was 65.54 m and advised voxels of 1.6 m, once and for good. The check now reads the pixels in
+    the sensor's depth range, and a frame with too few of them leaves it to the next."""
+    ingest = make(voxel_size_m=0.01, depth_range_m={"tof": (0.1, 5.0), "stereo": (0.1, 5.0)})
+    first = Image(height=8, width=10, encoding="16UC1", step=20)
+    values = np.full((8, 10), 0xFFFF, "<u2")
+    values[:3] = 2000  # 2 m
+    first.data = values.tobytes()
+    _stamp(first, 0)
+    assert ingest.add_depth("tof", first) is None
+    assert "median depth 2.00 m" in ingest.ledger.counters()["tof"]["notes"]["pixel_spacing"]
+    warming_up = Image(height=8, width=10, encoding="16UC1", step=20)
+    values = np.full((8, 10), 0xFFFF, "<u2")
+    values[0, :4] = 2000  # 4 pixels of 80 in range: too few to tell
+    warming_up.data = values.tobytes()
+    _stamp(warming_up, 0)
+    assert ingest.add_depth("stereo", warming_up) is None
+    assert "pixel_spacing" not in ingest.ledger.counters()["stereo"]["notes"]
+    assert ingest.add_depth("stereo", depth_msg(10 * MS, value=3.0)) is None
+    assert "median depth 3.00 m" in ingest.ledger.counters()["stereo"]["notes"]["pixel_spacing"]
+
+
 def test_depth_images_missing_from_a_regular_stream_are_counted_and_warned() -> None:
     """A burst faster than the node takes images overflows its subscription's queue (DDS keeps the
     newest 30): the images it lost never reach the node, and nothing counted them. Gaps of several
