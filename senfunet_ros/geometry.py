@@ -84,9 +84,9 @@ def transform_from_tq(t: np.ndarray | Sequence[float], q: np.ndarray | Sequence[
         raise ValueError(f"{what} contains NaN or inf; the localisation source lost track, fix it upstream")
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise ValueError(
-            f"{what} orientation quaternion has norm {norm:.4f}, not 1; publish a unit quaternion"
-        )
+        unset = " (all zero: the orientation was never set; a position-only source needs one, e.g. w = 1)" \
+            if norm == 0.0 else ""
+        raise ValueError(f"{what} orientation quaternion has norm {norm:.4f}, not 1{unset}; publish a unit quaternion")
     T = np.eye(4, dtype=np.float64)
     T[:3, :3] = matrix_from_quat(q / norm)
     T[:3, 3] = t

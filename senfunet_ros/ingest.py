@@ -338,6 +338,12 @@ class _SensorInput:
             return self.drop("bad_camera_info", f"{err}{kept}"), []
         self._note_camera_info_change(intrinsics)
         self.camera_info = intrinsics
+        K, (_, height) = intrinsics
+        if abs(K[0, 1]) > 1e-6 * K[0, 0]:
+            self.counters.notes.setdefault("camera_info_skew", (
+                f"its camera_info's K has skew {K[0, 1]:g} (K[0][1]), which the node does not apply (it takes fx, fy, "
+                f"cx, cy): rays are off by up to {abs(K[0, 1]) * height / 2 / K[1, 1]:.2g} pixels at the top and "
+                "bottom edges; calibrate without skew (the usual pinhole model)"))
         waited = [_Undecoded(name, "depth", stamp_ns, depth_msg, arrival_s, self.camera_info, config.working_size,
                              self.spacing_check(config, name), self.cleared)
                   for depth_msg, stamp_ns, arrival_s in self.awaiting_info]
@@ -741,7 +747,8 @@ class Ingest:
             except (ValueError, AttributeError) as err:
                 return state.drop("bad_pose", str(err))
             frame = str(getattr(msg.header, "frame_id", ""))
-            if frame != self.config.fixed_frame and "pose_frame" not in state.counters.notes:
+            # '/map' is 'map' (a ROS 1 habit; tf2 strips the '/' too)
+            if frame.strip().lstrip("/") != self.config.fixed_frame and "pose_frame" not in state.counters.notes:
                 state.counters.notes["pose_frame"] = _pose_frame_note(frame, self.config.fixed_frame)
             reason, held = self._time.on_time(sensor, "pose", stamp_ns, T)
             taken = reason or state.accept(sensor, "pose", stamp_ns, T, self.config)
@@ -1036,7 +1043,7 @@ def _decode_color(msg: Any) -> np.ndarray | str:
 def _pose_frame_note(frame: str, fixed_frame: str) -> str:
     """What a sensor's notes say of poses that are not in the fixed frame: the node takes them as given."""
     given = "have no frame_id" if not frame else f"are in frame '{frame}'"
-    fix = "set the pose source's frame_id" if not frame else f"set fixed_frame to '{frame}'"
+    fix = "set the pose source's frame_id" if not frame else f"set fixed_frame to '{frame.strip().lstrip('/')}'"
     return (f"its poses {given}, not the fixed frame '{fixed_frame}' (parameter fixed_frame): they are fused as "
             f"given, as poses in '{fixed_frame}', where the mesh is published; {fix}, or use pose_type tf, "
             "which looks the camera up in the fixed frame")

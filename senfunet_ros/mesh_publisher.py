@@ -215,7 +215,10 @@ class MeshPublisher:
             self._timings["update"].add(t_update - start)
             cloud = None
             if weights:
-                self._next_weights_s = now + 1.0 / s.weights_rate_hz
+                # a period after the time it was due, not after this tick (else a rate near the mesh updates' skipped
+                # every other tick); after a pause longer than a period, a period from now
+                due = self._next_weights_s + 1.0 / s.weights_rate_hz
+                self._next_weights_s = due if due > now else now + 1.0 / s.weights_rate_hz
                 cloud = self._weight_cloud(engine, s)
                 self._timings["weights"].add(time.perf_counter() - t_update)
             t_cloud = time.perf_counter()

@@ -129,7 +129,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
     Param("mesh_colors", "weighting", "vertex colours of ~/mesh: weighting (amber = sensor 1 trusted, blue = sensor "
           "2) | camera (the colour images, averaged on a grid of twice the voxel size; the weighting where no "
           "camera colour was seen)", choices=("weighting", "camera"), runtime=True),
-    _rate("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update)"),
+    _rate("weights_rate_hz", 0.2, "rate of ~/weights clouds (the whole map: heavier than a mesh update); each goes "
+          "with a mesh update, so at most mesh_rate_hz"),
     Param("alpha_precision", "auto", "weighting-net arithmetic: auto (bfloat16 where the CPU has bfloat16 "
           "instructions, else int8 where torch has oneDNN's int8 convolutions, else float32) | float32 | bfloat16 | "
           "int8 (needs the weights' calibration, see README)", choices=("auto", "float32", "bfloat16", "int8")),
@@ -291,7 +292,8 @@ def coerce(name: str, value: Any, default: Any) -> Any:
             raise ValueError("expected a single value, not a list")
         return str(value)
     except (TypeError, ValueError) as err:
-        raise ValueError(f"parameter '{name}' = {value!r} is not a {type(default).__name__}: {err}") from err
+        kind = type(default).__name__
+        raise ValueError(f"parameter '{name}' = {value!r} is not {_a(kind)} {kind}: {err}") from err
 
 
 def check(values: dict[str, Any]) -> None:
@@ -423,7 +425,8 @@ def type_error(parameters: list[Any], table: dict[str, Param]) -> str | None:
             return f"parameter '{p.name}' cannot be deleted (unset); set a value instead"
         declared = Parameter.Type.from_parameter_value(table[p.name].default)
         if p.type_ is not declared:
-            return f"parameter '{p.name}' is a {declared.name.lower()}, not a {p.type_.name.lower()}"
+            declared_name, given_name = declared.name.lower(), p.type_.name.lower()
+            return f"parameter '{p.name}' is {_a(declared_name)} {declared_name}, not {_a(given_name)} {given_name}"
     return None
 
 
@@ -476,6 +479,11 @@ def colourless_sensors(settings: Settings) -> list[str]:
 def live_lag(settings: Settings) -> dict[str, Any]:
     """The live node's IngestConfig fields for lag: max_lag_s and the set-aside memory (behind_buffer_mb)."""
     return {"max_lag_s": settings.max_lag_s, "set_aside_bytes": int(settings.behind_buffer_mb * 2**20)}
+
+
+def _a(noun: str) -> str:
+    """The indefinite article before `noun`."""
+    return "an" if noun[:1] in "aeiou" else "a"
 
 
 def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.ingest.IngestConfig

@@ -29,8 +29,9 @@ ENGINE_STATS_PERIOD_S = 5.0  # engine.stats() takes the engine's locks and sums 
 # What a drop usually means and what to check, for the reasons whose message gives no detail of
 # its own ({s}: the sensor's SensorSettings).
 DROP_HINTS: dict[str, str] = {
-    "no_camera_info": "no CameraInfo arrived on {s.camera_info_topic} within pose_max_wait_s of the image; check "
-                      "the topic (parameter {s.name}.camera_info_topic) and that its publisher sends more than once",
+    "no_camera_info": "no usable CameraInfo arrived on {s.camera_info_topic} within pose_max_wait_s of the image "
+                      "(see bad_camera_info, if any were refused); check the topic (parameter "
+                      "{s.name}.camera_info_topic) and that its publisher sends more than once",
     "bad_camera_info": "the CameraInfo on {s.camera_info_topic} has no usable K, width or height",
     "bad_encoding": "publish depth on {s.depth_topic} as 32FC1 (metres) or 16UC1 (millimetres)",
     "size_mismatch": "the depth images on {s.depth_topic} differ in aspect ratio from the CameraInfo on "

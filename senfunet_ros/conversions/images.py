@@ -101,8 +101,8 @@ def _decode(data: np.ndarray, what: str, *, color: bool) -> np.ndarray:
 
 
 def _compressed_depth_codec(fmt: str) -> str:
-    """'png' or 'rvl' from a compressedDepth format such as '16UC1; compressedDepth rvl' (plain
-    'compressedDepth' is png, as older publishers write it)."""
+    """'png' or 'rvl' from a compressedDepth format such as '16UC1; compressedDepth rvl' (without a
+    codec, '16UC1; compressedDepth' or 'compressedDepth', png: as older publishers write it)."""
     if "compressedDepth" not in fmt:
         raise ValueError(f"compressed depth format '{fmt}' is not compressedDepth; publish depth through "
                          "image_transport's compressedDepth (png or rvl)")
@@ -121,11 +121,13 @@ def depth_from_compressed(msg: Any) -> np.ndarray:
     data = np.frombuffer(bytes(msg.data), np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8)
     codec = _compressed_depth_codec(fmt)
     encoding = fmt.split(";")[0].strip()
-    if encoding not in ("16UC1", "mono16", "32FC1"):
-        raise ValueError(f"compressedDepth encoding '{encoding}' is not supported; publish 16UC1 or 32FC1")
     if data.size < _COMPRESSED_DEPTH_HEADER.itemsize:
         raise ValueError(f"compressedDepth message has {data.size} B, less than its 12-byte header")
     header = data[:_COMPRESSED_DEPTH_HEADER.itemsize].view(_COMPRESSED_DEPTH_HEADER)[0]
+    if encoding.startswith("compressedDepth"):  # a format without the encoding: the header's quantisation tells
+        encoding = "32FC1" if header["depth_a"] or header["depth_b"] else "16UC1"
+    if encoding not in ("16UC1", "mono16", "32FC1"):
+        raise ValueError(f"compressedDepth encoding '{encoding}' is not supported; publish 16UC1 or 32FC1")
     payload = data[_COMPRESSED_DEPTH_HEADER.itemsize:]
     if codec == "rvl":
         raw = rvl_decode(payload)

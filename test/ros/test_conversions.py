@@ -394,6 +394,16 @@ def test_compressed_png_and_jpeg_decode_as_published() -> None:
     assert decoded.flags.writeable  # a frame's user may write into it (torch.from_numpy warns otherwise)
 
 
+def test_a_compressed_depth_format_without_its_encoding_is_read_by_its_header() -> None:
+    """Format 'compressedDepth' alone (older publishers): refused as "encoding 'compressedDepth'", though
+    the header's quantisation tells 16UC1 (none) from 32FC1."""
+    import cv2
+
+    depth = (1000 + np.arange(24 * 32)).astype(np.uint16).reshape(24, 32)
+    msg = _compressed_depth("compressedDepth", cv2.imencode(".png", depth)[1].tobytes())
+    np.testing.assert_array_equal(conv.depth_from_image(msg), depth.astype(np.float32) * np.float32(1e-3))
+
+
 def test_a_16_bit_png_on_a_colour_topic_is_refused_not_fused_white() -> None:
     """image_transport's compressed plugin keeps 16 bits in a PNG (an IR camera's mono16): converted to
     RGB, Pillow clipped its values to 255, and the stereo feature net got a white image, unsaid. A

@@ -323,10 +323,20 @@ def test_poses_that_are_not_in_the_fixed_frame_are_fused_as_given_and_said_once(
     assert ingest.add_pose("stereo", unnamed) is None
     assert "have no frame_id" in ingest.ledger.counters()["stereo"]["notes"]["pose_frame"]
     in_map = make(fixed_frame="map")
-    pose = pose_msg(0)
-    pose.header.frame_id = "map"
-    assert in_map.add_pose("tof", pose) is None
+    for t_ns, frame in ((0, "map"), (10 * MS, "/map")):  # '/map' is 'map' (a ROS 1 habit): advising it is no help
+        pose = pose_msg(t_ns)
+        pose.header.frame_id = frame
+        assert in_map.add_pose("tof", pose) is None
     assert "pose_frame" not in in_map.ledger.counters()["tof"]["notes"]
+    # an orientation never set says so; a K with skew is said, as the node does not apply it
+    unset = pose_msg(20 * MS)
+    unset.pose.orientation.w = 0.0
+    assert in_map.add_pose("tof", unset) == "bad_pose"
+    assert "all zero: the orientation was never set" in in_map.ledger.counters()["tof"]["errors"]["bad_pose"]
+    skewed = info_msg()
+    skewed.k = [10.0, 0.5, 4.5, 0, 10.0, 3.5, 0, 0, 1]
+    assert in_map.add_camera_info("stereo", skewed) is None
+    assert "skew 0.5" in in_map.ledger.counters()["stereo"]["notes"]["camera_info_skew"]
 
 
 def test_a_principal_point_outside_the_image_is_fused_as_given_and_said_once() -> None:

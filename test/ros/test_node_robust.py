@@ -1040,6 +1040,9 @@ def test_parameters_keep_their_declared_types(ros, tmp_path: Path) -> None:
     table = P.param_table(("tof", "stereo"))  # an integer list for a float list is taken as floats too
     (extrinsic,) = P.as_declared_types([Parameter("tof.T_body_camera", value=[0, 0, 0, 0, 0, 0, 1])], table)
     assert extrinsic.type_ is Parameter.Type.DOUBLE_ARRAY and P.type_error([extrinsic], table) is None
+    # in plain words: "is a integer, not a double" before
+    error = P.type_error([Parameter("queue_size", value=2.5)], table)
+    assert error is not None and "is an integer, not a double" in error, error
 
 
 @pytest.mark.parametrize("map_file", ["", "  ", "maps/", "/tmp/"])
