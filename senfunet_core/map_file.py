@@ -76,10 +76,12 @@ def load_map(path: str | Path, *, run_config: EngineConfig | None = None,
     map was saved with; int8 alpha needs the calibration saved with the map (float32 without it,
     said in the log)."""
     path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such map file (save_map writes one)")
     # torch.save writes a zip archive: anything else (a PLY, a file cut short) would get torch's own
     # error, which names weights_only and advises loading the file unsafely, or a bare "[Errno 22]";
     # torch.load does not check the archive's checksums: a file damaged inside loaded as a wrong map
-    if path.is_file():  # a missing path: torch.load says why; an unreadable one: the OSError here
+    if path.is_file():  # an unreadable one: the OSError here
         try:
             with zipfile.ZipFile(path) as archive:
                 damaged = archive.testzip()
