@@ -76,6 +76,7 @@ from .errors import InputError
 from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, keys_to_coords, warm_up_lookups
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
+from .memory import memory_budget
 from .memory import release_free_memory
 from .mesh_archive import MeshArchive, as_mesh, union
 from .mesher import BlockMeshes, Mesh, StreamingWeld
@@ -297,9 +298,11 @@ class SenFuNet:
         self.grid = self.store.grid
         self.max_blocks = config.max_blocks  # the map bound in force (resolved from memory for -1)
         if config.max_blocks == -1:
-            self.max_blocks = memory_bound_blocks(self.grid.bytes_per_block())
-            log.info("map bound: %d blocks (half of this machine's memory at %d bytes a block)", self.max_blocks,
-                     self.grid.bytes_per_block())
+            budget = memory_budget()
+            self.max_blocks = memory_bound_blocks(self.grid.bytes_per_block(), budget=budget)
+            log.info("map bound: %d blocks (half of %s, %.1f GB, at %d bytes a block)", self.max_blocks,
+                     f"the memory limit of this process's cgroup ({budget.limited_by})" if budget.limited_by else
+                     "this machine's memory", budget.total_bytes / 1e9, self.grid.bytes_per_block())
         if self.max_blocks > 0:  # evicted blocks go to disk, and come back when the sensors reach them again
             self.grid.spill = BlockSpill()
         # Writers of the grid (integration, alpha) hold the data lock; the update's readers do not:

@@ -16,7 +16,6 @@ weighting net judge on the alpha threads side by side while integration waits fo
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from collections import deque
@@ -29,6 +28,7 @@ from .block_mesher import MESH_READ_CODES, MESH_READER_CODES, BlockMesher, with_
 from .block_store import BlockStore, Eviction
 from .mesh_archive import MeshArchive, drop_meshable
 from .mesh_chunks import packed_keys
+from .memory import MemoryBudget, memory_budget
 from .mesher import BlockMeshes
 
 __all__ = ["HARD_BOUND", "MapBound", "memory_bound_blocks"]
@@ -45,20 +45,14 @@ RECENT_FRAMES = 10
 SLICE_OF_BOUND = 0.05
 
 
-def memory_bound_blocks(bytes_per_block: int, *, memory_fraction: float = 0.5) -> int:
-    """How many blocks fit in `memory_fraction` of this machine's memory (at most 80% of what is
-    available now): the default map bound follows the machine, not a fixed count."""
-    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    available = total
-    try:
-        with open("/proc/meminfo") as meminfo:
-            for line in meminfo:
-                if line.startswith("MemAvailable:"):
-                    available = int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    budget = min(memory_fraction * total, 0.8 * available)
-    return max(1024, int(budget // bytes_per_block))
+def memory_bound_blocks(bytes_per_block: int, *, memory_fraction: float = 0.5,
+                        budget: MemoryBudget | None = None) -> int:
+    """How many blocks fit in `memory_fraction` of the memory this process may use (at most 80% of
+    what is available now; `memory.memory_budget`: the machine's, or its container's limit): the
+    default map bound follows the machine, not a fixed count."""
+    budget = budget or memory_budget()
+    usable = min(memory_fraction * budget.total_bytes, 0.8 * budget.available_bytes)
+    return max(1024, int(usable // bytes_per_block))
 
 
 class MapBound:

@@ -154,7 +154,8 @@ GLOBAL_PARAMS: tuple[Param, ...] = (
           "temporary folder, named in the log, if output_dir cannot be written)", runtime=True),
     Param("max_map_blocks", -1, "memory bound in 8^3-voxel blocks: past it, the blocks farthest from the sensor are "
           "evicted: their final meshes stay on ~/mesh and in save_mesh, their voxels go to disk (the temporary "
-          "directory, $TMPDIR) until a sensor sees them again; -1 = half of this machine's memory; 0 = unbounded",
+          "directory, $TMPDIR) until a sensor sees them again; -1 = half of this machine's memory (or of its "
+          "container's limit); 0 = unbounded",
           lo=-1, hi=2**31 - 1),
     Param("min_new_block_samples", 16, "a frame allocates a block the map does not hold yet "
           "only where at least this many of its ray samples land (flying pixels and far noise would otherwise fill "

@@ -1,4 +1,4 @@
-"""senfunet_core.memory: giving freed memory back to the operating system."""
+"""senfunet_core.memory: how much memory the process may use, and giving freed memory back to the OS."""
 from __future__ import annotations
 
 import subprocess
@@ -68,3 +68,46 @@ def test_scratch_arrays_are_reused_per_thread_and_per_dtype_until_released():
     assert not np.shares_memory(theirs[0], mine)  # another thread: its own
     pool.release()
     assert not np.shares_memory(pool.array("w", 50, np.uint16), mine)
+
+
+def _cgroup(tmp_path: Path, membership: str, files: dict[str, str]) -> dict[str, Path]:
+    """A /proc/self/cgroup and a cgroup mount as files, as the kernel shows them."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    (tmp_path / "cgroup").write_text(membership)
+    for name, text in files.items():
+        (tmp_path / "fs" / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "fs" / name).write_text(text + "\n")
+    return {"proc_cgroup": tmp_path / "cgroup", "root": tmp_path / "fs"}
+
+
+def test_a_container_memory_limit_bounds_the_default_map(tmp_path):
+    """In a container (docker --memory 4g) /proc/meminfo and sysconf show the host's memory: the
+    default map bound took half of it, and past the container's limit the kernel kills the node, map
+    and all. The tightest limit over the process's cgroup and its ancestors holds, less what the
+    cgroup already uses; cgroup v2 and v1, with and without a cgroup namespace."""
+    from senfunet_core.map_bound import memory_bound_blocks
+    from senfunet_core.memory import cgroup_memory_limit, memory_budget
+
+    gb = 1 << 30
+    # v2 in a cgroup namespace: the container's cgroup is the mount's root
+    v2 = _cgroup(tmp_path / "v2", "0::/\n", {"memory.max": str(4 * gb), "memory.current": str(gb)})
+    assert cgroup_memory_limit(**v2) == (4 * gb, gb, tmp_path / "v2" / "fs" / "memory.max")
+    # v2, a systemd unit whose slice holds the limit (its own says max)
+    unit = _cgroup(tmp_path / "unit", "0::/robot.slice/senfunet.service\n", {
+        "robot.slice/senfunet.service/memory.max": "max", "robot.slice/senfunet.service/memory.current": str(gb),
+        "robot.slice/memory.max": str(2 * gb), "robot.slice/memory.current": str(gb // 2)})
+    assert cgroup_memory_limit(**unit)[:2] == (2 * gb, gb // 2)
+    # v1, the process's cgroup path as the host names it, under the memory controller
+    v1 = _cgroup(tmp_path / "v1", "5:cpu,cpuacct:/docker/abc\n4:memory:/docker/abc\n0::/\n", {
+        "memory/docker/abc/memory.limit_in_bytes": str(3 * gb), "memory/docker/abc/memory.usage_in_bytes": "0",
+        "memory/memory.limit_in_bytes": "9223372036854771712"})
+    assert cgroup_memory_limit(**v1)[:2] == (3 * gb, 0)
+    # no limit anywhere (v1 writes a huge number, v2 "max"): the machine's memory
+    free = _cgroup(tmp_path / "free", "4:memory:/\n", {"memory/memory.limit_in_bytes": "9223372036854771712",
+                                                       "memory/memory.usage_in_bytes": str(gb)})
+    assert cgroup_memory_limit(**free) is None and memory_budget(**free).limited_by == ""
+    meminfo = tmp_path / "meminfo"
+    meminfo.write_text(f"MemTotal: 1 kB\nMemAvailable: {64 * gb // 1024} kB\n")
+    budget = memory_budget(**v2, meminfo=meminfo)
+    assert (budget.total_bytes, budget.available_bytes) == (4 * gb, 3 * gb) and budget.limited_by.endswith("memory.max")
+    assert memory_bound_blocks(1 << 20, budget=budget) == 2 * 1024  # half of 4 GB at 1 MB a block
