@@ -58,6 +58,7 @@ Threading model (the one place it is described):
 from __future__ import annotations
 
 import logging
+import tempfile
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -73,11 +74,11 @@ from .alpha_scheduler import AlphaScheduler
 from .block_mesher import FUSED, TSDF_FUSION, BlockMesher
 from .block_store import BlockStore, Eviction
 from .errors import InputError
+from .files import memory_filesystem
 from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, keys_to_coords, warm_up_lookups
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
-from .memory import memory_budget
-from .memory import release_free_memory
+from .memory import memory_budget, release_free_memory
 from .mesh_archive import MeshArchive, as_mesh, union
 from .mesher import BlockMeshes, Mesh, StreamingWeld
 from .spill import BlockSpill
@@ -305,6 +306,11 @@ class SenFuNet:
                      "this machine's memory", budget.total_bytes / 1e9, self.grid.bytes_per_block())
         if self.max_blocks > 0:  # evicted blocks go to disk, and come back when the sensors reach them again
             self.grid.spill = BlockSpill()
+            in_memory = memory_filesystem(tempfile.gettempdir())
+            if in_memory:
+                log.warning("map bound: the temporary folder %s, where evicted blocks' voxels and meshes go, is a %s "
+                            "in memory: they still take RAM there (and count against a container's limit); set TMPDIR "
+                            "to a folder on a disk", tempfile.gettempdir(), in_memory)
         # Writers of the grid (integration, alpha) hold the data lock; the update's readers do not:
         # a block integrated while it is read is marked again and re-read by the next update, and
         # pools that grow meanwhile stay valid for whoever still holds the old ones.

@@ -1,4 +1,4 @@
-"""Files written whole or not at all; what a YAML file has wrong, in one line."""
+"""Files written whole or not at all; whether a folder lies in memory; what a YAML file has wrong, in one line."""
 from __future__ import annotations
 
 import contextlib
@@ -34,6 +34,29 @@ def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+_MEMORY_FILESYSTEMS = ("tmpfs", "ramfs")
+
+
+def memory_filesystem(folder: str | Path, *, mounts: Path = Path("/proc/self/mounts")) -> str | None:
+    """The file system type when `folder` lies on one held in RAM (tmpfs, ramfs: /tmp on many
+    distributions), else None (also when the mounts cannot be read). Files there take memory."""
+    try:
+        table = [line.split() for line in mounts.read_text().splitlines()]
+    except OSError:
+        return None
+    real = os.path.realpath(folder)
+    # the longest mount point holding the folder (the last of equal ones: mounted over the others)
+    best: tuple[int, str] | None = None
+    for fields in table:
+        if len(fields) < 3:
+            continue
+        point = fields[1].replace("\\040", " ")
+        inside = real == point or real.startswith(point.rstrip("/") + "/")
+        if inside and (best is None or len(point) >= best[0]):
+            best = (len(point), fields[2])
+    return best[1] if best is not None and best[1] in _MEMORY_FILESYSTEMS else None
 
 
 def yaml_error_text(err: Exception) -> str:

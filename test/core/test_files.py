@@ -1,4 +1,4 @@
-"""Files written whole or not at all (`senfunet_core.files`): maps and meshes."""
+"""`senfunet_core.files`: files written whole or not at all (maps and meshes); folders held in RAM."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from senfunet_core.errors import InputError
-from senfunet_core.files import atomic_file
+from senfunet_core.files import atomic_file, memory_filesystem
 
 
 def test_atomic_file_replaces_the_file_whole_or_leaves_it_and_no_trace(tmp_path: Path) -> None:
@@ -51,3 +51,28 @@ def test_atomic_file_is_on_disk_before_it_takes_the_name(tmp_path: Path, monkeyp
     with pytest.raises(OSError, match="No space left"), atomic_file(target) as file:
         file.write(b"next")
     assert target.read_bytes() == b"whole" and [p.name for p in tmp_path.iterdir()] == ["mesh.ply"]
+
+
+def test_a_folder_on_a_file_system_in_memory_is_told_apart(tmp_path: Path, monkeypatch, caplog) -> None:
+    """/tmp as tmpfs (Debian 13, Fedora, Arch; and /dev/shm everywhere): the map bound's evicted voxels
+    and meshes went there and still took RAM, which the bound is meant to free, unsaid. The folder's
+    file system is the one of the longest mount point holding it."""
+    import logging
+    import tempfile
+
+    from senfunet_core.engine import EngineConfig, SenFuNet
+
+    mounts = tmp_path / "mounts"
+    mounts.write_text("/dev/vda / ext4 rw 0 0\ntmpfs /tmp tmpfs rw 0 0\n/dev/vdb /tmp/disk ext4 rw 0 0\n"
+                      "tmpfs /run/user/1000 tmpfs rw 0 0\n/dev/vdc /mnt/my\\040disk ext4 rw 0 0\n")
+    assert memory_filesystem("/tmp/senfunet", mounts=mounts) == "tmpfs"
+    assert memory_filesystem("/tmp/disk/spill", mounts=mounts) is None
+    assert memory_filesystem("/tmpfoo", mounts=mounts) is None  # a prefix of the name is no mount point
+    assert memory_filesystem("/mnt/my disk/x", mounts=mounts) is None
+    assert memory_filesystem("/home", mounts=mounts) is None
+    if memory_filesystem("/dev/shm") != "tmpfs":
+        pytest.skip("/dev/shm is no tmpfs here")
+    monkeypatch.setattr(tempfile, "tempdir", "/dev/shm")
+    with caplog.at_level(logging.WARNING, logger="senfunet.engine"):
+        SenFuNet(EngineConfig(max_blocks=1000), weights=None)
+    assert any("/dev/shm" in r.getMessage() and "set TMPDIR" in r.getMessage() for r in caplog.records), caplog.text
