@@ -78,7 +78,8 @@ from .files import memory_filesystem
 from .grid import ALPHA_UNKNOWN, BlockGrid, block_keys, keys_to_coords, warm_up_lookups
 from .integrator import REACH_ALL, IntegratorConfig, check_frame, check_key_range, clean_depth, integrate_frame
 from .map_bound import MapBound, memory_bound_blocks
-from .memory import memory_budget, release_free_memory
+from .machine import memory_budget
+from .memory import release_free_memory
 from .mesh_archive import MeshArchive, as_mesh, union
 from .mesher import BlockMeshes, Mesh, StreamingWeld
 from .spill import BlockSpill

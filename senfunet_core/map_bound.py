@@ -28,7 +28,7 @@ from .block_mesher import MESH_READ_CODES, MESH_READER_CODES, BlockMesher, with_
 from .block_store import BlockStore, Eviction
 from .mesh_archive import MeshArchive, drop_meshable
 from .mesh_chunks import packed_keys
-from .memory import MemoryBudget, memory_budget
+from .machine import MemoryBudget, memory_budget
 from .mesher import BlockMeshes
 
 __all__ = ["HARD_BOUND", "MapBound", "memory_bound_blocks"]

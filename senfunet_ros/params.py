@@ -542,6 +542,7 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
 
     from senfunet_core.engine import EngineConfig
     from senfunet_core.integrator import samples_along_band
+    from senfunet_core.machine import usable_cpus
     from senfunet_core.networks import choose_device
 
     s = settings
@@ -558,7 +559,7 @@ def engine_config(settings: Settings, **overrides: Any) -> Any:
         n_samples_behind=n_samples_behind,
         device=device,
         alpha_voxels="surface",  # the exact fused mesh for the least weighting-net work
-        alpha_threads=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1,
+        alpha_threads=usable_cpus(),  # a container's CPU quota too: threads beyond it only wait for each other
         alpha_dtype=alpha_dtype(s.alpha_precision, device, int8=True),
         alpha_order=s.alpha_order,
         feature_dtype=alpha_dtype(s.feature_precision, device),

@@ -1,4 +1,4 @@
-"""senfunet_core.memory: how much memory the process may use, and giving freed memory back to the OS."""
+"""senfunet_core.memory and machine: giving freed memory back to the OS; what the process may use of the machine."""
 from __future__ import annotations
 
 import subprocess
@@ -86,7 +86,7 @@ def test_a_container_memory_limit_bounds_the_default_map(tmp_path):
     and all. The tightest limit over the process's cgroup and its ancestors holds, less what the
     cgroup already uses; cgroup v2 and v1, with and without a cgroup namespace."""
     from senfunet_core.map_bound import memory_bound_blocks
-    from senfunet_core.memory import cgroup_memory_limit, memory_budget
+    from senfunet_core.machine import cgroup_memory_limit, memory_budget
 
     gb = 1 << 30
     # v2 in a cgroup namespace: the container's cgroup is the mount's root
@@ -111,3 +111,20 @@ def test_a_container_memory_limit_bounds_the_default_map(tmp_path):
     budget = memory_budget(**v2, meminfo=meminfo)
     assert (budget.total_bytes, budget.available_bytes) == (4 * gb, 3 * gb) and budget.limited_by.endswith("memory.max")
     assert memory_bound_blocks(1 << 20, budget=budget) == 2 * 1024  # half of 4 GB at 1 MB a block
+
+
+def test_a_container_cpu_quota_bounds_the_threads(tmp_path):
+    """docker --cpus 2 on a host of many cores: the affinity mask names every core, and the node ran as
+    many weighting-net threads, which only waited for each other (and for integration's core)."""
+    import os
+
+    from senfunet_core.machine import usable_cpus
+
+    cores = len(os.sched_getaffinity(0))
+    v2 = _cgroup(tmp_path / "v2", "0::/\n", {"cpu.max": "150000 100000"})
+    assert usable_cpus(**v2) == min(cores, 2)  # 1.5 CPUs: two threads may keep them busy
+    v1 = _cgroup(tmp_path / "v1", "3:cpu,cpuacct:/docker/abc\n", {
+        "cpu,cpuacct/docker/abc/cpu.cfs_quota_us": "100000", "cpu,cpuacct/docker/abc/cpu.cfs_period_us": "100000"})
+    assert usable_cpus(**v1) == 1
+    unlimited = _cgroup(tmp_path / "free", "0::/\n", {"cpu.max": "max 100000"})
+    assert usable_cpus(**unlimited) == cores
