@@ -303,6 +303,7 @@ class _McapStreamSource(_Source):
         self.start_ns, self.end_ns = 0, 0
         self.break_error: str | None = None
         first = True
+        backwards, furthest_back_ns = 0, 0  # log times that go back in file order (a writer that does not sort)
         try:
             for record in self._records():
                 name = type(record).__name__
@@ -310,9 +311,16 @@ class _McapStreamSource(_Source):
                     counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
                     if first:
                         self.start_ns, first = record.log_time, False
+                    if record.log_time < self.end_ns:
+                        backwards += 1
+                        furthest_back_ns = max(furthest_back_ns, self.end_ns - record.log_time)
                     self.end_ns = max(self.end_ns, record.log_time)
         except Exception as err:  # the break: remember it, messages() raises it in order
             self.break_error = _describe(err)
+        if backwards:  # no index to sort them by: said, not sorted behind the reader's back
+            self.note = (f"{path}: its messages' log times go back {backwards} time(s) in file order (by up to "
+                         f"{furthest_back_ns * 1e-9:.3f} s); without an index they are read in file order, as "
+                         "written (sort the file, e.g. with the mcap CLI's mcap sort, to read them in time order)")
         self.message_count = sum(counts.values())
         self.topics = _topic_infos((topic, msgtype, counts.get(cid, 0), self._schema_text.get(cid, ""), "",
                                     _latched(self._qos.get(cid, "")))

@@ -176,6 +176,8 @@ def test_mcap_of_another_writer_without_an_index_or_profile_reads_in_file_order(
     unindexed = tmp_path / "unindexed.mcap"
     written = _mcap_as_another_writer_writes_it(prefix, unindexed)
     assert _digest(unindexed) == written
+    with open_bag(unindexed) as reader:  # read as written, and said (it was unsaid)
+        assert reader.note and "log times go back 1 time(s) in file order" in reader.note, reader.note
     no_profile = tmp_path / "no_profile.mcap"
     written = _mcap_as_another_writer_writes_it(prefix, no_profile, profile="", indexed=True)
     with open_bag(no_profile) as reader:
