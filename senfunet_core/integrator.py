@@ -121,8 +121,14 @@ def check_key_range(max_depth_m: float, K: np.ndarray, T_world_camera: np.ndarra
     h, w = shape
     half_fov = np.hypot(max(K[0, 2], w - K[0, 2]) / K[0, 0], max(K[1, 2], h - K[1, 2]) / K[1, 1])
     reach = float(max_depth_m) * float(np.sqrt(1.0 + half_fov ** 2)) + band_m
-    if np.any(np.abs(np.asarray(T_world_camera)[:3, 3]) + reach > limit_m):
-        raise InputError("points lie more than 5 km from the origin; check the pose's units (metres) and frame")
+    position_m = float(np.abs(np.asarray(T_world_camera)[:3, 3]).max())
+    if position_m + reach > limit_m:
+        if position_m > limit_m / 2:
+            raise InputError(f"points lie more than 5 km from the origin (the camera is {position_m:.4g} m from it); "
+                             "check the pose's units (metres) and frame")
+        raise InputError(f"points lie more than 5 km from the origin: rays up to {max_depth_m:.3g} m deep fan out "
+                         f"{half_fov:.3g} times as wide under K (fx {K[0, 0]:.4g}, fy {K[1, 1]:.4g}, cx {K[0, 2]:.4g}, "
+                         f"cy {K[1, 2]:.4g} for {w}x{h} images); check the camera_info's K")
 
 
 def valid_depth_mask(depth_m: torch.Tensor, border_px: int, min_m: float, max_m: float) -> torch.Tensor:

@@ -363,3 +363,22 @@ def test_the_allocation_threshold_keeps_lone_rays_out_and_surfaces_in_at_fine_vo
     surface = {tuple(b) for b in np.floor(inner / (BLOCK * voxel_size_m)).astype(int).tolist()}
     kept = blocks(wall.astype(np.float32), intrinsics, np.eye(4))
     assert len(surface & kept) >= 0.99 * len(surface), (len(surface & kept), len(surface))
+
+
+def test_a_frame_beyond_the_key_range_blames_the_pose_or_the_intrinsics_whichever_puts_it_there():
+    """A camera_info with its principal point at 1e6 px fans the rays out kilometres wide: the refusal
+    named the pose's units, which were fine."""
+    import pytest
+
+    from senfunet_core.errors import InputError
+    from senfunet_core.integrator import check_key_range
+
+    K_far = np.array([[100.0, 0.0, 1e6], [0.0, 100.0, 1e6], [0.0, 0.0, 1.0]])
+    with pytest.raises(InputError, match="check the camera_info's K") as raised:
+        check_key_range(4.0, K_far, np.eye(4), (48, 64), 0.1)
+    assert "cx 1e+06" in str(raised.value)
+    T_far = np.eye(4)
+    T_far[0, 3] = 6000.0
+    with pytest.raises(InputError, match="the camera is 6000 m from it.*pose's units"):
+        check_key_range(4.0, np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]]), T_far, (48, 64), 0.1)
+    check_key_range(4.0, np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]]), np.eye(4), (48, 64), 0.1)
