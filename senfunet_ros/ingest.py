@@ -574,9 +574,10 @@ class _StreamTime:
             return self._sensors[sensor].drop(verdict.reason, verdict.error), images
         return None, images
 
-    def restart(self, to_ns: int | None) -> None:
-        """Time restarted, known from outside (see Ingest.restart)."""
-        self.restarted(self.config.sensors[0], "clock", self.timelines.restart(to_ns))
+    def restart(self, to_ns: int | None) -> list[_Undecoded]:
+        """Time restarted, known from outside (see Ingest.restart); returns the images of the new time
+        that came before the news, to decode outside the lock."""
+        return self.restarted(self.config.sensors[0], "clock", self.timelines.restart(to_ns))
 
     def restarted(self, sensor: str, stream: str, restart: Restart) -> list[_Undecoded]:
         """Time restarted. Back: flush everything (with reset_on_time_jump the frames set aside too) and
@@ -651,9 +652,11 @@ class Ingest:
     def restart(self, to_ns: int | None = None) -> None:
         """Time restarted, known from outside (the /clock went back to `to_ns`): flush everything, start
         the timelines again from `to_ns` (old messages still in flight are off them) and report a
-        TimeJump."""
+        TimeJump. Messages of the new time that came before it (dropped as bad_stamp until now) are
+        taken."""
         with self._lock:
-            self._time.restart(to_ns)
+            held = self._time.restart(to_ns)
+        self._decode_and_put(held, None)
 
     def add_camera_info(self, sensor: str, msg: Any) -> str | None:
         """Cache K and the image size, and queue the depth images that waited for it. Returns the

@@ -15,7 +15,8 @@ restart is confirmed (unless the new timeline goes on without it for more than `
 stopped). The candidates' messages, held meanwhile (the
 newest `hold_msgs` per stream), are handed back with the restart, so the new timeline loses none of
 its start. A restart known from outside (`restart`: the /clock went back) starts every timeline
-again from its time, so that old messages still in flight are off it. After either, a message of
+again from its time, so that old messages still in flight are off it; the new time's messages that
+came before the news are handed back with it. After either, a message of
 the old time that was still in flight (until the new timeline has gone on for `time_jump_s`) is
 rejected as `time_jump`, the restart's loss, not as a bad stamp. A depth stamp must be new
 (not among the stream's latest) and move forward, except one between the stream's two newest: that
@@ -227,9 +228,25 @@ class Timelines:
     def restart(self, to_ns: int | None) -> Restart:
         """Time restarted at `to_ns` (None: unknown), known from outside (the /clock went back): every
         timeline is forgotten and the streams start again from `to_ns`, so that messages of the old
-        time still in flight are off it."""
-        restart = self._move({}, Restart(to_ns if to_ns is not None else 0, self.now_ns()))
+        time still in flight are off it. Messages of the new time that came before the news (a
+        pose callback ran before the /clock's), held as candidates of a new timeline, are handed
+        back with the restart: the streams go on from them."""
+        near: dict[tuple[str, str], list[int]] = {}
+        held: list[Held] = []
+        lost: dict[tuple[str, str], int] = {}
+        for key, candidates in self._candidates.items():
+            stamps = [t for t in candidates if to_ns is not None and abs(t - to_ns) <= self._far_ns]
+            if stamps:
+                assert to_ns is not None
+                near[key] = stamps
+                kept = [m for m in self._held[key] if abs(m.stamp_ns - to_ns) <= self._far_ns]
+                held += kept
+                if len(stamps) > len(kept):
+                    lost[key] = len(stamps) - len(kept)
+        restart = self._move({key: stamps[-1] for key, stamps in near.items()}, Restart(
+            to_ns if to_ns is not None else 0, self.now_ns(), tuple(sorted(held, key=lambda m: m.stamp_ns)), lost))
         self._anchor_ns = to_ns
+        self._take_depth_stamps(near)
         return restart
 
     def _candidate(self, message: Held) -> tuple[Restart | None, bool]:
@@ -271,12 +288,17 @@ class Timelines:
         # ahead (every stream paused, one clock): a stream yet to speak keeps its timeline, so that its first
         # messages are judged by it, not by how far a burst took the streams that confirmed the restart
         self._move({k: c[-1] for k, c in lists.items()}, restart, keep_silent=not restart.went_back)
-        for k, stamps in lists.items():  # the new timeline's depth stamps are taken: a copy that comes again
-            if k[1] == "depth":          # is a duplicate, and an older one out of order
+        self._take_depth_stamps(lists)
+        return restart, taken
+
+    def _take_depth_stamps(self, candidates: Mapping[tuple[str, str], list[int]]) -> None:
+        """The new timeline's depth stamps are taken: a copy that comes again is a duplicate, and an
+        older one out of order."""
+        for k, stamps in candidates.items():
+            if k[1] == "depth":
                 self._recent_depth_ns[k].extend(stamps)
                 if len(stamps) > 1:
                     self._previous_depth_ns[k] = stamps[-2]
-        return restart, taken
 
     def _move(self, timelines: dict[tuple[str, str], int], restart: Restart, *, keep_silent: bool = False
               ) -> Restart:

@@ -877,6 +877,26 @@ def test_restart_from_outside_the_streams() -> None:
     assert ingest.ledger.counters()["tof"]["dropped"]["time_jump"] == 1
 
 
+def test_messages_of_the_new_time_that_come_before_the_clock_says_it_restarted_are_taken() -> None:
+    """A bag looping under use_sim_time: its first poses (100 Hz) reach the node before the /clock
+    that says time went back (another callback). They were candidates of a new timeline, dropped as
+    bad_stamp (4 per pass, warned every pass) and forgotten when the /clock's restart came. They are
+    the new time's start: taken with the restart, and the frames between them posed."""
+    ingest = make(time_jump_s=1.0)
+    for k in range(5):
+        ingest.add_pose("tof", pose_msg(4000 * MS + k * 10 * MS, x=0.01 * k))
+    ingest.add_depth("tof", depth_msg(4035 * MS))
+    assert len(frames(ingest.pop_ready())) == 1
+    for k in range(4):  # the next pass's first poses, before the /clock
+        assert ingest.add_pose("tof", pose_msg(k * 10 * MS, x=1.0 + 0.01 * k)) == "bad_stamp"
+    ingest.restart(to_ns=0)
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["bad_stamp"] == 0 and "bad_stamp" not in counters["errors"], counters
+    assert ingest.add_depth("tof", depth_msg(15 * MS)) is None
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.stamp_ns == 15 * MS and frame.T_world_camera[0, 3] == pytest.approx(1.015)
+
+
 def test_a_camera_info_with_distortion_is_noted() -> None:
     """The node takes images as rectified: a camera_info with distortion coefficients is noted (and
     warned about by the node), one without clears it."""
