@@ -162,21 +162,30 @@ class CounterWarnings:
 
 
 class ThrottledWarnings:
-    """At most one warning per key per `period_s` (wall time: sim time may stand still); thread-safe."""
+    """At most one warning per key per period (wall time: sim time may stand still); thread-safe. The
+    period starts at `period_s` and doubles each time the cause comes back within twice it, up to
+    `max_period_s` (a robot that runs behind for hours logs a dozen lines an hour about it, not
+    hundreds); a cause quiet for twice its period starts again at `period_s`."""
 
-    def __init__(self, log: Callable[[str], Any], *, period_s: float) -> None:
-        self._log = log
+    def __init__(self, log: Callable[[str], Any], *, period_s: float, max_period_s: float = 300.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self._log, self._clock = log, clock
         self._period_s = period_s
-        self._warned_at: dict[tuple[str, ...], float] = {}
+        self._max_period_s = max(period_s, max_period_s)
+        self._warned: dict[tuple[str, ...], tuple[float, float]] = {}  # key -> (when warned, its period then)
         self._lock = threading.Lock()
 
     def warn(self, key: tuple[str, ...], message: str) -> None:
-        now = time.monotonic()
+        now = self._clock()
         with self._lock:
-            if now - self._warned_at.get(key, -1e9) < self._period_s:
+            last_s, period_s = self._warned.get(key, (-1e9, self._period_s))
+            if now - last_s < period_s:
                 return
-            self._warned_at[key] = now
-        self._log(message)
+            recurring = now - last_s < 2 * period_s
+            period_s = min(2 * period_s, self._max_period_s) if recurring else self._period_s
+            self._warned[key] = (now, period_s)
+        self._log(message + (f" (recurring: said again in {period_s:.0f} s at the earliest; ~/status counts every "
+                             "one)" if recurring else ""))
 
 
 def _short(value: Any) -> str:

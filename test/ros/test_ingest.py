@@ -389,6 +389,27 @@ def test_depth_images_whose_units_or_byte_order_look_wrong_are_said_once() -> No
         assert ("read as little-endian they are far smoother" in note) == flag_wrong, note
 
 
+def test_a_warning_whose_cause_keeps_coming_is_said_less_and_less_often() -> None:
+    """A node behind for hours (or a bag looping) warned every 5 s per cause: over 700 lines an hour
+    into each log, without bound. The period doubles while the cause recurs, up to 5 minutes, and
+    starts again after a quiet spell."""
+    from senfunet_ros.status import ThrottledWarnings
+
+    now = [0.0]
+    said: list[tuple[float, str]] = []
+    warnings = ThrottledWarnings(lambda text: said.append((now[0], text)), period_s=5.0, clock=lambda: now[0])
+    while now[0] < 3600.0:  # a cause that comes every second for an hour
+        warnings.warn(("tof", "behind"), "tof: behind")
+        now[0] += 1.0
+    times = [t for t, _ in said]
+    assert times[:5] == [0.0, 5.0, 15.0, 35.0, 75.0] and len(said) < 25, times
+    assert max(b - a for a, b in zip(times, times[1:])) == 300.0
+    assert said[0][1] == "tof: behind" and "said again in 10 s" in said[1][1]
+    now[0] += 1000.0  # quiet for a while: said at once, and every 5 s again
+    warnings.warn(("tof", "behind"), "tof: behind")
+    assert said[-1] == (now[0], "tof: behind")
+
+
 def test_the_pixel_spacing_note_reads_only_the_depths_that_are_fused() -> None:
     """A ToF's first frame with most pixels at its 0xFFFF "saturated" value: the note said its median
     depth was 65.54 m and advised voxels of 1.6 m, once and for good. The check now reads the pixels in
