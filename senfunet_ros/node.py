@@ -202,15 +202,19 @@ class _Tf2Lookup:
 
 
 class _EngineLogToRos(logging.Handler):
-    """The engine's own log lines (Python logging, e.g. each map-bound eviction) in the node's log."""
+    """The engine's own log lines (Python logging, e.g. each map-bound eviction) in the node's log;
+    once the ROS context has shut down (the node finishing its frames after Ctrl-C), on stderr: the
+    ROS logger would add a "Failed to publish log message to rosout" line to each."""
 
-    def __init__(self, ros_logger: Any) -> None:
+    def __init__(self, ros_logger: Any, context: Any) -> None:
         super().__init__(logging.INFO)
-        self._ros_logger = ros_logger
+        self._ros_logger, self._context = ros_logger, context
 
     def emit(self, record: logging.LogRecord) -> None:
         text = record.getMessage()
-        if record.levelno >= logging.ERROR:
+        if not self._context.ok():
+            print(f"senfunet: {record.levelname.lower()}: {text}", file=sys.stderr, flush=True)
+        elif record.levelno >= logging.ERROR:
             self._ros_logger.error(text)
         elif record.levelno >= logging.WARNING:
             self._ros_logger.warning(text)
@@ -268,7 +272,7 @@ class FusionNode(Node):
     def __init__(self, node_name: str = P.NODE_NAME, *, argv: Sequence[str] = (), **kwargs: Any) -> None:
         """argv: the process's command line (`main`), whose parameter files are checked like `cli_args`'."""
         super().__init__(node_name, **kwargs)
-        self._engine_log = _EngineLogToRos(self.get_logger())
+        self._engine_log = _EngineLogToRos(self.get_logger(), self.context)
         engine_logger = logging.getLogger("senfunet")
         engine_logger.addHandler(self._engine_log)
         engine_logger.setLevel(min(engine_logger.getEffectiveLevel(), logging.INFO))

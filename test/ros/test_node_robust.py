@@ -1462,3 +1462,30 @@ def test_a_sensor_whose_stamps_are_always_off_is_warned_while_a_restart_stays_pe
     log = capfd.readouterr().err
     assert any("stereo: dropped" in line and "bad_stamp" in line for line in log.splitlines()), log[-3000:]
 
+
+
+def test_the_engines_log_lines_after_the_context_shut_down_go_to_stderr_not_to_a_dead_rosout(capfd):
+    """After Ctrl-C the node finishes its queued frames with the ROS context shut down: each engine log
+    line (a map-bound eviction) came with rcl's "Failed to publish log message to rosout: publisher's
+    context is invalid"."""
+    import logging
+
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = FusionNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in SMALL.items()])
+    try:
+        capfd.readouterr()
+        logging.getLogger("senfunet.engine").warning("map bound: evicted 12 blocks (a test line)")
+        assert "map bound: evicted 12 blocks" in capfd.readouterr().err
+        rclpy.shutdown(context=context)
+        logging.getLogger("senfunet.engine").warning("map bound: evicted 34 blocks (after the stop)")
+        err = capfd.readouterr().err
+        assert "senfunet: warning: map bound: evicted 34 blocks" in err and "rosout" not in err, err
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
