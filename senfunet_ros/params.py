@@ -451,7 +451,9 @@ def declare(node: Any) -> Settings:
             value = node.declare_parameter(p.name, p.default, descriptor).value
         except ParameterException as err:  # a value given at start-up (-p, a file) outside the range
             raise ValueError(f"parameter {p.name}: {err}") from None
-        return coerce(p.name, p.default if value is None else value, p.default)
+        if value is None:  # rcl reads an empty list ([] in a file or -p) as a parameter without a value (NOT_SET)
+            value = [] if isinstance(p.default, list) else p.default
+        return coerce(p.name, value, p.default)
 
     values: dict[str, Any] = {}
     for p in GLOBAL_PARAMS:

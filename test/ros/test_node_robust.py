@@ -1489,3 +1489,20 @@ def test_the_engines_log_lines_after_the_context_shut_down_go_to_stderr_not_to_a
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_an_empty_list_given_to_the_node_is_an_empty_list_not_the_default(ros):
+    """rcl reads `rgb_sensors: []` (a file, or -p rgb_sensors:=[]) as a parameter without a value, and the
+    node took the default (['stereo']) without a word: colour went to stereo's feature net while replay,
+    reading the same file, fused without it."""
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+
+    overrides = {**SMALL, "weights": "none"}  # the default weights were trained with colour for stereo
+    node = FusionNode(parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()],
+                      cli_args=["--ros-args", "-p", "rgb_sensors:=[]"])
+    try:
+        assert tuple(node.settings.rgb_sensors) == (), node.settings.rgb_sensors
+    finally:
+        node.destroy_node()
