@@ -890,7 +890,13 @@ def main(args: list[str] | None = None) -> int:
     use_large_shm_profile()  # large mesh messages; set before the participant exists
     prepare_process()  # before the executor's threads exist
     _sigterm_as_interrupt()  # rclpy's handler calls it too: a SIGTERM during start-up stops it like Ctrl-C
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except Exception as err:  # noqa: BLE001 (rcl's own: a parameter file or -p it cannot parse)
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        print(f"senfunet: cannot start: ROS refused the command line's ROS arguments: {reason}; check the "
+              "parameter files and -p/-r arguments", file=sys.stderr, flush=True)
+        return 2
     node: FusionNode | None = None
     try:
         node = FusionNode(argv=sys.argv if args is None else args)

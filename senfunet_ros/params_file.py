@@ -23,6 +23,36 @@ def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def _node_sections(tree: dict[Any, Any], prefix: str = "") -> list[tuple[str, dict[str, Any]]]:
+    """(node name, its ros__parameters) of each section, in file order; nested keys name the
+    namespaces (`robot1: senfunet: ros__parameters:` is robot1/senfunet, `/**: senfunet: ...` is
+    /**/senfunet), as rcl reads them."""
+    out: list[tuple[str, dict[str, Any]]] = []
+    for key, value in tree.items():
+        if not isinstance(value, dict):
+            continue
+        name = f"{prefix}/{str(key).lstrip('/')}" if prefix else str(key)
+        if isinstance(value.get("ros__parameters"), dict):
+            out.append((name, value["ros__parameters"]))
+        elif "ros__parameters" not in value:
+            out += _node_sections(value, name)
+    return out
+
+
+def _check_lists(path: Path, parameters: dict[str, Any]) -> None:
+    """ValueError for a list that mixes types, which rcl refuses for the whole file (the node would not
+    start): integers among decimals, above all (an extrinsic written [0.1, 0, 0, ...])."""
+    for name, value in _flatten(parameters).items():
+        if not isinstance(value, list) or not value:
+            continue
+        kinds = {type(item).__name__ for item in value}
+        if len(kinds) > 1:
+            advice = ("write every number with a decimal point, e.g. [0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]"
+                      if kinds <= {"int", "float"} else "make its items one type")
+            raise ValueError(f"{path}: parameter {name} = {value} mixes {' and '.join(sorted(kinds))} items, which "
+                             f"ROS's parameter file parser refuses (the node would not start); {advice}")
+
+
 def node_section_applies(key: str, node_fqn: str) -> bool:
     """Whether a parameter file's section `key` reaches the node `node_fqn` ("/robot1/senfunet") as rcl
     matches them: a key without a leading '/' is absolute ("senfunet" is "/senfunet", which a node in
@@ -41,21 +71,28 @@ def read_params_file(path: Path, *, node_sections_only: bool = False, node_fqn: 
     from senfunet_core.files import yaml_error_text
 
     try:
-        doc = yaml.safe_load(path.read_text())
+        text = path.read_text()
+        if any(isinstance(event, yaml.AliasEvent) for event in yaml.parse(text)):
+            raise ValueError(f"{path}: uses a YAML alias (*name), which ROS's parameter file parser refuses (the "
+                             "node would not start); write the values out")
+        docs = [doc for doc in yaml.safe_load_all(text) if doc is not None]
     except OSError as err:
         raise ValueError(f"{path}: cannot read the parameter file: {err.strerror}") from None
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a text file; pass a YAML parameter file such as config/default.yaml") from None
     except yaml.YAMLError as err:
         raise ValueError(f"{path}: {yaml_error_text(err)}") from None
-    if not isinstance(doc, dict):
+    if not docs or not all(isinstance(doc, dict) for doc in docs):
         raise ValueError(f"{path}: expected '{P.NODE_NAME}: ros__parameters: ...' at the top")
-    nodes = {str(k): v for k, v in doc.items() if isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict)}
-    ours = [section for key, section in nodes.items() if node_section_applies(key, node_fqn)]
+    sections = [section for doc in docs for section in _node_sections(doc)]  # rcl reads every document in turn
+    for _, parameters in sections:
+        _check_lists(path, parameters)
+    nodes = dict(sections)
+    ours = [parameters for key, parameters in sections if node_section_applies(key, node_fqn)]
     if ours:
-        return {name: value for section in ours for name, value in _flatten(section["ros__parameters"]).items()}
+        return {name: value for parameters in ours for name, value in _flatten(parameters).items()}
     if len(nodes) == 1 and not node_sections_only:
-        return _flatten(next(iter(nodes.values()))["ros__parameters"])
+        return _flatten(next(iter(nodes.values())))
     name = node_fqn.rsplit("/", 1)[-1]
     if node_fqn != f"/{name}" and any(node_section_applies(key, f"/{name}") for key in nodes):
         # the usual file (config/default.yaml) with the node started in a namespace: rcl would give it none

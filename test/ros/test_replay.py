@@ -235,6 +235,43 @@ def test_settings_from_file_match_the_node_defaults(tmp_path: Path):
         assert proc.returncode == 2 and ("voxel_sise_m" in proc.stderr or "senfunet_node" in proc.stderr), proc.stderr
 
 
+def test_parameter_files_are_read_as_ros_reads_them(tmp_path: Path):
+    """What rcl applies, these apply too: sections nested under namespaces (`robot1: senfunet:`, `/**:
+    senfunet:`) and several YAML documents were refused ("no 'senfunet: ros__parameters:' section",
+    and a false error at the node's start). What rcl refuses (the node died in rclpy.init with a
+    traceback) is refused with what to write instead: a list mixing integers and decimals, the
+    natural way to write an extrinsic, and YAML aliases."""
+    from senfunet_ros.params_file import load_settings
+
+    nested = tmp_path / "nested.yaml"
+    nested.write_text("robot1:\n  senfunet:\n    ros__parameters:\n      voxel_size_m: 0.02\n"
+                      "/**:\n  senfunet:\n    ros__parameters:\n      band_m: 0.2\n")
+    settings = load_settings(nested, node_sections_only=True, node_fqn="/robot1/senfunet")
+    assert (settings.voxel_size_m, settings.band_m) == (0.02, 0.2)
+    assert load_settings(nested, node_sections_only=True).voxel_size_m != 0.02  # /senfunet gets only /**'s
+    documents = tmp_path / "documents.yaml"
+    documents.write_text("senfunet:\n  ros__parameters:\n    voxel_size_m: 0.02\n---\n"
+                         "senfunet:\n  ros__parameters:\n    band_m: 0.2\n")
+    assert (load_settings(documents).voxel_size_m, load_settings(documents).band_m) == (0.02, 0.2)
+    mixed = tmp_path / "mixed.yaml"
+    mixed.write_text("senfunet:\n  ros__parameters:\n    tof:\n      T_body_camera: [0.1, 0, 0, 0, 0, 0, 1]\n")
+    with pytest.raises(ValueError, match=r"tof.T_body_camera .* mixes float and int .*decimal point"):
+        load_settings(mixed)
+    alias = tmp_path / "alias.yaml"
+    alias.write_text("senfunet:\n  ros__parameters:\n    tof: &range\n      depth_max_m: 4.0\n    stereo: *range\n")
+    with pytest.raises(ValueError, match="YAML alias"):
+        load_settings(alias)
+    for bad, says in ((mixed, "decimal point"), (alias, "YAML alias")):  # `senfunet node` refuses them, no traceback
+        proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "node", "--params", str(bad)],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    # given to ROS directly, past the check: rcl's refusal, said plainly
+    proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "node", "--", "--ros-args", "--params-file",
+                           str(mixed)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "cannot start: ROS refused" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+
+
 def test_node_engine_config_runs_on_the_cpu_when_cuda_is_asked_for_and_absent(tmp_path: Path, monkeypatch):
     import torch
 
