@@ -12,6 +12,7 @@ Architectures follow the paper (section 3 b, c) and the released checkpoints:
 from __future__ import annotations
 
 import functools
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import cast
@@ -277,6 +278,19 @@ def load_weights(path: str | Path, feature_nets: nn.ModuleList, weighting_net: W
         raise InputError(f"weights file {path} does not exist; pass a trained .pt file or weights=None for random init")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 (torch's words advise loading it unsafely, or say only "101")
+        if not zipfile.is_zipfile(path):
+            reason = "not a zip archive, as torch.save writes"
+        elif "Weights only load failed" in str(err):
+            reason = "it holds Python objects beyond tensors and plain values"
+        else:
+            reason = str(err).strip().splitlines()[0][:200] if str(err).strip() else type(err).__name__
+        raise InputError(f"{path} is not a SenFuNet weights file ({reason}); pass default, paper, none or a .pt file "
+                         "that senfunet train wrote") from None
+    try:
+        if not isinstance(state, dict) or "feature_nets" not in state:
+            raise InputError(f"{path} is a torch file but not SenFuNet weights (no feature_nets); pass default, "
+                             "paper, none or a .pt file that senfunet train wrote")
         if len(state["feature_nets"]) != len(feature_nets):
             raise InputError(f"{path} holds {len(state['feature_nets'])} feature nets, "
                              f"the engine has {len(feature_nets)} sensors")

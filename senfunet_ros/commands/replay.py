@@ -28,11 +28,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _stale_meshes(result, args: argparse.Namespace) -> list[str]:  # noqa: ANN001 - ReplayResult
-    """Comparison meshes in --out that this run did not write (an earlier --compare run's, maybe with
-    other parameters): they sit beside the new mesh.ply and would be compared with it."""
+    """Meshes in --out that this run did not write (an earlier run's, maybe with other parameters):
+    comparison meshes beside the new mesh.ply, which would be compared with it, or a mesh.ply beside
+    the stats.json of a run that fused nothing."""
     from pathlib import Path
 
-    names = {*result.stats.get("sensors", {}), "tsdf_fusion"}
+    names = {*result.stats.get("sensors", {}), "tsdf_fusion", "mesh"}
     written = {Path(p).name for p in result.files.values()}
     return sorted(f"{n}.ply" for n in names if (Path(args.out) / f"{n}.ply").is_file() and f"{n}.ply" not in written)
 
@@ -116,8 +117,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {path}")
     stale = _stale_meshes(result, args)
     if stale:
-        print(f"senfunet replay: note: {', '.join(stale)} in {args.out} are from an earlier run, not this one; "
-              "delete them, or pass --compare to rewrite them", file=sys.stderr)
+        compare = ", or pass --compare to rewrite the comparison meshes" if stale != ["mesh.ply"] else ""
+        print(f"senfunet replay: note: {', '.join(stale)} in {args.out} {'is' if len(stale) == 1 else 'are'} from an "
+              f"earlier run, not this one; delete {'it' if len(stale) == 1 else 'them'}{compare}", file=sys.stderr)
     t = stats["timings"]
     print(f"time: {t['total_s']:.1f} s (integration {t['integrate_s']:.1f} s, "
           f"{t['integrate_per_frame_ms']:.0f} ms per frame)")

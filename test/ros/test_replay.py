@@ -61,6 +61,20 @@ def cli_replay(prefix: Path, small_params: Path, work: Path) -> tuple[subprocess
     return proc, out
 
 
+def test_a_run_that_fuses_nothing_names_the_earlier_runs_mesh_it_leaves(prefix: Path, small_params: Path, work: Path):
+    """A replay into a folder with an earlier run's mesh.ply, with parameters that drop every frame: the
+    new stats.json said no mesh, and the old mesh.ply stayed beside it, unmentioned."""
+    out = work / "fused_nothing"
+    out.mkdir()
+    (out / "mesh.ply").write_bytes(b"an earlier run's mesh")
+    params = work / "drop_all.yaml"
+    params.write_text(small_params.read_text() + "    pose_tolerance_s: 0.000001\n")
+    proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "replay", str(prefix), "--out", str(out),
+                           "--params", str(params)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 2 and (out / "mesh.ply").read_bytes() == b"an earlier run's mesh"
+    assert f"mesh.ply in {out} is from an earlier run, not this one; delete it" in proc.stderr, proc.stderr
+
+
 def test_replay_outputs_stats_and_metrics(cli_replay: tuple[subprocess.CompletedProcess, Path]):
     proc, out = cli_replay
     for name in MESHES:
@@ -297,6 +311,19 @@ def test_weights_parameter_takes_a_shipped_name_or_a_path_and_refuses_the_rest(t
     assert P.engine_weights(load_settings(None, {"weights": paper})) == paper
     with pytest.raises(ValueError, match="default.*paper"):
         load_settings(None, {"weights": str(tmp_path / "missing.pt")})
+    # a file that is no weights file: torch's own words advised loading it unsafely, or said only "101"
+    import torch
+
+    from senfunet_core.errors import InputError
+    from senfunet_core.networks import load_weights, make_networks
+
+    text, other = tmp_path / "notes.pt", tmp_path / "other.pt"
+    text.write_text("not weights")
+    torch.save({"step": 3}, other)
+    for path, says in ((text, "not a zip archive"), (other, "no feature_nets")):
+        with pytest.raises(InputError, match="not SenFuNet weights|not a SenFuNet weights file") as raised:
+            load_weights(path, *make_networks((False, True)))
+        assert says in str(raised.value) and "weights_only" not in str(raised.value), raised.value
 
 
 @pytest.mark.parametrize("value", ["0", "-3", "two"])
