@@ -276,12 +276,18 @@ def coerce(name: str, value: Any, default: Any) -> Any:
                 if text not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
                     raise ValueError("use true or false")
                 return text in ("1", "true", "yes", "on")
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and value not in (0, 1):
+                raise ValueError("use true or false")  # 0.5 or 2 are no switch: a value for another parameter?
             return bool(value)
         if isinstance(default, int):
+            if isinstance(value, str):  # PyYAML reads 2e6 as text; rcl as 2000000.0
+                value = float(value) if not value.strip().lstrip("+-").isdigit() else int(value)
             if isinstance(value, float) and not value.is_integer():
                 raise ValueError("not a whole number")
             return int(value)
         if isinstance(default, float):
+            if isinstance(value, bool):  # true is no number: a value for another parameter?
+                raise ValueError("a number, not true or false")
             return float(value)
         if isinstance(default, list):
             if isinstance(value, (str, bytes)):

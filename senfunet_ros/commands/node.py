@@ -15,8 +15,8 @@ def _error(text: str) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--params", metavar="YAML", help="ROS parameter file (ros__parameters under 'senfunet'), "
-                        "e.g. config/default.yaml")
+    parser.add_argument("--params", "--params-file", dest="params", metavar="YAML",
+                        help="ROS parameter file (ros__parameters under 'senfunet'), e.g. config/default.yaml")
     parser.add_argument("--use-sim-time", action="store_true", help="follow /clock (for `senfunet play`)")
     parser.add_argument("ros_args", nargs=argparse.REMAINDER,
                         help="further ROS arguments after --, e.g. -- --ros-args -p voxel_size_m:=0.02")

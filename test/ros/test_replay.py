@@ -249,6 +249,23 @@ def test_settings_from_file_match_the_node_defaults(tmp_path: Path):
         assert proc.returncode == 2 and ("voxel_sise_m" in proc.stderr or "senfunet_node" in proc.stderr), proc.stderr
 
 
+def test_values_are_read_as_ros_reads_them_and_a_switch_takes_no_number():
+    """PyYAML reads 2e6 as text, rcl as 2000000.0: `max_map_blocks: 2e6` was refused by the check and taken
+    by the node. `tsdf_fusion: 0.5` became true and `voxel_size_m: true` 1 m, unsaid (a value meant for
+    the next line?)."""
+    from senfunet_ros import params as P
+    from senfunet_ros.cli import build_parser
+    from senfunet_ros.params_file import load_settings
+
+    assert load_settings(None, {"max_map_blocks": "2e6"}).max_map_blocks == 2_000_000
+    for name, value in (("tsdf_fusion", 0.5), ("save_on_shutdown", 2), ("voxel_size_m", True)):
+        with pytest.raises(ValueError, match=name):
+            P.coerce(name, value, P.expanded_defaults()[name][0])
+    assert load_settings(None, {"tsdf_fusion": 1}).tsdf_fusion is True
+    # ROS's own spelling of the option works too
+    assert build_parser().parse_args(["node", "--params-file", "config/default.yaml"]).params == "config/default.yaml"
+
+
 def test_parameter_files_are_read_as_ros_reads_them(tmp_path: Path):
     """What rcl applies, these apply too: sections nested under namespaces (`robot1: senfunet:`, `/**:
     senfunet:`) and several YAML documents were refused ("no 'senfunet: ros__parameters:' section",
