@@ -99,6 +99,14 @@ def read_params_file(path: Path, *, node_sections_only: bool = False, node_fqn: 
         raise ValueError(f"{path}: its section for '{name}' is for the node without a namespace; the node "
                          f"{node_fqn} would ignore it and run with the defaults: name the section "
                          f"'/**/{name}' (any namespace) or '{node_fqn}'")
+    near = [f"'{key}' holds {sorted(map(str, value))}" if isinstance(value, dict) else f"'{key}' is empty"
+            for doc in docs for key, value in doc.items()
+            if node_section_applies(str(key), node_fqn) and not (isinstance(value, dict) and
+                                                                  isinstance(value.get("ros__parameters"), dict))]
+    if near:  # a section for the node, but no parameters in it: ros_parameters, a missing level, nothing under it
+        raise ValueError(f"{path}: its section for the node has no parameters under 'ros__parameters:' "
+                         f"({'; '.join(near)}); write '{name}:', then 'ros__parameters:' indented under it, then "
+                         "the parameters indented under that")
     raise ValueError(f"{path}: no '{name}: ros__parameters:' section" + (
         f" (its sections {sorted(nodes)} are for other nodes: the node, named '{node_fqn}', would ignore them)"
         if nodes else ""))
