@@ -107,6 +107,10 @@ def read_params_file(path: Path, *, node_sections_only: bool = False, node_fqn: 
         raise ValueError(f"{path}: its section for the node has no parameters under 'ros__parameters:' "
                          f"({'; '.join(near)}); write '{name}:', then 'ros__parameters:' indented under it, then "
                          "the parameters indented under that")
+    if nodes and not node_sections_only:  # replay: no node to name, and no way to choose among the sections
+        raise ValueError(f"{path}: no '{name}: ros__parameters:' section, and several for other nodes "
+                         f"({sorted(nodes)}): replay reads the section for '{name}' (or '/**'), or a file's only "
+                         "section; copy the one to use into a file of its own")
     raise ValueError(f"{path}: no '{name}: ros__parameters:' section" + (
         f" (its sections {sorted(nodes)} are for other nodes: the node, named '{node_fqn}', would ignore them)"
         if nodes else ""))

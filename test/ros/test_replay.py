@@ -288,6 +288,11 @@ def test_parameter_files_are_read_as_ros_reads_them(tmp_path: Path):
     mixed.write_text("senfunet:\n  ros__parameters:\n    tof:\n      T_body_camera: [0.1, 0, 0, 0, 0, 0, 1]\n")
     with pytest.raises(ValueError, match=r"tof.T_body_camera .* mixes float and int .*decimal point"):
         load_settings(mixed)
+    robots = tmp_path / "robots.yaml"  # replay has no node name: "the node, named '/senfunet', would ignore them"
+    robots.write_text("/robot1/senfunet:\n  ros__parameters:\n    voxel_size_m: 0.02\n"
+                      "/robot2/senfunet:\n  ros__parameters:\n    voxel_size_m: 0.03\n")
+    with pytest.raises(ValueError, match="several for other nodes.*copy the one to use into a file of its own"):
+        load_settings(robots)
     near_miss = tmp_path / "near_miss.yaml"  # said "no 'senfunet: ros__parameters:' section", of a file that has one
     near_miss.write_text("senfunet:\n  ros_parameters:\n    voxel_size_m: 0.02\n")
     with pytest.raises(ValueError, match=r"no parameters under 'ros__parameters:' \('senfunet' holds \['ros_param"):
