@@ -9,7 +9,7 @@ from typing import Any
 
 from senfunet_ros import params as P
 
-__all__ = ["load_settings", "node_section_applies", "read_params_file"]
+__all__ = ["load_settings", "node_section_applies", "read_params_file", "shared_parameter_names"]
 
 
 def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -61,11 +61,9 @@ def node_section_applies(key: str, node_fqn: str) -> bool:
     return re.fullmatch(pattern.replace(r"/\*\*", "(/[^/]+)*").replace(r"\*", "[^/]*"), node_fqn) is not None
 
 
-def read_params_file(path: Path, *, node_sections_only: bool = False, node_fqn: str = f"/{P.NODE_NAME}"
-                      ) -> dict[str, Any]:
-    """The `ros__parameters` of a ROS 2 parameter file, flattened: those of every section that reaches the
-    node `node_fqn` (later ones override earlier ones, as in rcl), else its only section unless
-    `node_sections_only` (ROS gives the node only its own)."""
+def _sections(path: Path) -> tuple[list[dict[Any, Any]], list[tuple[str, dict[str, Any]]]]:
+    """A parameter file's YAML documents and its node sections (`_node_sections`), in file order;
+    ValueError for what rcl would refuse or cannot read."""
     import yaml
 
     from senfunet_core.files import yaml_error_text
@@ -87,6 +85,24 @@ def read_params_file(path: Path, *, node_sections_only: bool = False, node_fqn: 
     sections = [section for doc in docs for section in _node_sections(doc)]  # rcl reads every document in turn
     for _, parameters in sections:
         _check_lists(path, parameters)
+    return docs, sections
+
+
+def shared_parameter_names(path: Path, node_fqn: str = f"/{P.NODE_NAME}") -> set[str]:
+    """The names the node gets from a file's sections for every node ('/**', '/*') alone: there, a name
+    the node does not have may be another node's (robot_name), not a typo."""
+    _, sections = _sections(path)
+    applies = [(key, _flatten(parameters)) for key, parameters in sections if node_section_applies(key, node_fqn)]
+    named = {name for key, values in applies if not key.rstrip("/").endswith("*") for name in values}
+    return {name for key, values in applies if key.rstrip("/").endswith("*") for name in values} - named
+
+
+def read_params_file(path: Path, *, node_sections_only: bool = False, node_fqn: str = f"/{P.NODE_NAME}"
+                      ) -> dict[str, Any]:
+    """The `ros__parameters` of a ROS 2 parameter file, flattened: those of every section that reaches the
+    node `node_fqn` (later ones override earlier ones, as in rcl), else its only section unless
+    `node_sections_only` (ROS gives the node only its own)."""
+    docs, sections = _sections(path)
     nodes = dict(sections)
     ours = [parameters for key, parameters in sections if node_section_applies(key, node_fqn)]
     if ours:
@@ -120,17 +136,22 @@ def load_settings(params_file: str | Path | None = None, overrides: dict[str, An
                   node_sections_only: bool = False, node_fqn: str = f"/{P.NODE_NAME}") -> P.Settings:
     """The node's parameters from a parameter file (or the defaults), checked like the node does.
 
-    Unknown names are refused (a typo would otherwise be ignored silently), and with
+    Unknown names are refused (a typo would otherwise be ignored silently), but for those that only a
+    section for every node ('/**') gives and that are no near miss of ours: another node's (robot_name),
+    which the node ignores; and with
     `node_sections_only` a file without a section for the node `node_fqn` (its namespace and name,
     as remapped). ValueError on bad values.
     """
     given: dict[str, Any] = {}
+    shared: set[str] = set()  # names from sections for every node: another node's there is no typo of ours
     if params_file is not None:
         given.update(read_params_file(Path(params_file), node_sections_only=node_sections_only, node_fqn=node_fqn))
+        shared = shared_parameter_names(Path(params_file), node_fqn) - set(overrides or {})
     given.update(overrides or {})
     sensors = [str(s) for s in given.get("sensors", P.GLOBAL_PARAMS[0].default)]
     table = P.expanded_defaults(sensors)
-    unknown = P.unknown_parameters(given, sensors)
+    unknown = P.unknown_parameters({name for name in given if name not in shared}, sensors) + [
+        name for name in P.unknown_parameters(shared, sensors) if "(did you mean" in name]  # a typo of ours
     if unknown:
         where = f" in {params_file}" if params_file else ""
         raise ValueError(f"unknown parameter(s){where}: {', '.join(unknown)}; see config/default.yaml for the names")

@@ -293,6 +293,12 @@ def test_parameter_files_are_read_as_ros_reads_them(tmp_path: Path):
                       "/robot2/senfunet:\n  ros__parameters:\n    voxel_size_m: 0.03\n")
     with pytest.raises(ValueError, match="several for other nodes.*copy the one to use into a file of its own"):
         load_settings(robots)
+    shared = tmp_path / "shared.yaml"  # a section for every node holds other nodes' parameters too
+    shared.write_text("/**:\n  ros__parameters:\n    robot_name: rover\n    voxel_size_m: 0.02\n")
+    assert load_settings(shared, node_sections_only=True).voxel_size_m == 0.02
+    shared.write_text("/**:\n  ros__parameters:\n    robot_name: rover\n    voxel_sise_m: 0.02\n")
+    with pytest.raises(ValueError, match=r"voxel_sise_m \(did you mean voxel_size_m\?\)"):  # ours: a typo
+        load_settings(shared)
     near_miss = tmp_path / "near_miss.yaml"  # said "no 'senfunet: ros__parameters:' section", of a file that has one
     near_miss.write_text("senfunet:\n  ros_parameters:\n    voxel_size_m: 0.02\n")
     with pytest.raises(ValueError, match=r"no parameters under 'ros__parameters:' \('senfunet' holds \['ros_param"):
