@@ -283,12 +283,19 @@ class FusionNode(Node):
         lines.append(f"  use_sim_time: {self.get_parameter('use_sim_time').value!r}")
         self.get_logger().info("parameters:\n" + "\n".join(lines))
         # rclpy ignores parameters given for the node that it never declared: a misspelt name would
-        # silently leave its parameter at the default
-        for name in P.unknown_parameters(getattr(self, "_parameter_overrides", {}), self.settings.sensor_names):
-            self.get_logger().warning(f"parameter {name} is not one of this node's and is ignored; see "
-                                      "config/default.yaml for the names")
+        # silently leave its parameter at the default (in a section for every node, '/**', a name that is
+        # no near miss of ours is another node's; a near miss comes with its suggestion, so it is warned)
+        command_line = [*argv, *(kwargs.get("cli_args") or ())]
+        shared = shared_file_parameters(command_line, self.get_fully_qualified_name())
+        overrides = set(getattr(self, "_parameter_overrides", {}))
+        for name in P.unknown_parameters(overrides, self.settings.sensor_names):
+            if name in shared:
+                self.get_logger().info(f"parameter {name}, from a section for every node, is another node's: ignored")
+            else:
+                self.get_logger().warning(f"parameter {name} is not one of this node's and is ignored; see "
+                                          "config/default.yaml for the names")
         # ... and a parameter file none of whose sections reaches the node (renamed, or in a namespace)
-        for problem in unread_params_files([*argv, *(kwargs.get("cli_args") or ())], self.get_fully_qualified_name()):
+        for problem in unread_params_files(command_line, self.get_fully_qualified_name()):
             self.get_logger().error(problem)
         for note in P.colourless_sensors(self.settings):
             self.get_logger().warning(note)
@@ -574,6 +581,22 @@ def unread_params_files(argv: Sequence[str], node_fqn: str) -> list[str]:
         except ValueError as err:
             out.append(f"{err}; the node runs without this file's parameters")
     return out
+
+
+def shared_file_parameters(argv: Sequence[str], node_fqn: str) -> set[str]:
+    """The parameter names that only the sections for every node ('/**') of the parameter files of
+    `argv` give the node `node_fqn` (`params_file.shared_parameter_names`)."""
+    from pathlib import Path
+
+    from senfunet_ros.params_file import shared_parameter_names
+
+    shared: set[str] = set()
+    for path in params_files(argv):
+        try:
+            shared |= shared_parameter_names(Path(path), node_fqn)
+        except ValueError:  # unreadable: unread_params_files says so
+            pass
+    return shared
 
 
 def set_timer_period(timer: Any, period_s: float) -> None:

@@ -1506,3 +1506,26 @@ def test_an_empty_list_given_to_the_node_is_an_empty_list_not_the_default(ros):
         assert tuple(node.settings.rgb_sensors) == (), node.settings.rgb_sensors
     finally:
         node.destroy_node()
+
+
+def test_another_nodes_parameter_in_a_section_for_every_node_is_no_warning(ros, tmp_path: Path, capfd) -> None:
+    """A launch set-up's `/**` section holds parameters for every node (robot_name): the node warned that
+    each "is not one of this node's", as for a typo. It says so at info level; a near miss of one of its
+    own names is still a warning."""
+    from rclpy.parameter import Parameter
+
+    from senfunet_ros.node import FusionNode
+
+    shared = tmp_path / "shared.yaml"
+    shared.write_text("/**:\n  ros__parameters:\n    robot_name: rover\n    status_rate_hz: 3.0\n"
+                      "    mesh_rate_hs: 2.0\n")
+    overrides = [Parameter(k, value=v) for k, v in {**SMALL, "output_dir": str(tmp_path / "out")}.items()]
+    capfd.readouterr()
+    node = FusionNode(parameter_overrides=overrides, cli_args=["--ros-args", "--params-file", str(shared)])
+    try:
+        err = capfd.readouterr().err
+        assert node.settings.status_rate_hz == 3.0
+        assert "[INFO]" in err.split("parameter robot_name, from a section for every node")[0].rsplit("\n", 1)[-1], err
+        assert "[WARN]" in err.split("parameter mesh_rate_hs (did you mean mesh_rate_hz?)")[0].rsplit("\n", 1)[-1], err
+    finally:
+        node.destroy_node()
