@@ -49,6 +49,14 @@ MIN_TURN_S = 0.05
 MESH_BUDGET_SHARE = 0.5
 
 
+def next_due_s(due_s: float, now_s: float, period_s: float) -> float:
+    """When a periodic output that was due at `due_s` and went out at `now_s` (at a later tick) is due
+    next: a period after the time it was due, not after the tick (else a rate near the ticks' skips
+    every other tick); after a pause longer than a period, a period from now."""
+    due_s += period_s
+    return due_s if due_s > now_s else now_s + period_s
+
+
 def mesh_period_s(mesh_rate_hz: float) -> float:
     """The mesh timer's period for parameter mesh_rate_hz (a little shorter: see MESH_PERIOD_MARGIN)."""
     return (1.0 - MESH_PERIOD_MARGIN) / mesh_rate_hz
@@ -215,10 +223,7 @@ class MeshPublisher:
             self._timings["update"].add(t_update - start)
             cloud = None
             if weights:
-                # a period after the time it was due, not after this tick (else a rate near the mesh updates' skipped
-                # every other tick); after a pause longer than a period, a period from now
-                due = self._next_weights_s + 1.0 / s.weights_rate_hz
-                self._next_weights_s = due if due > now else now + 1.0 / s.weights_rate_hz
+                self._next_weights_s = next_due_s(self._next_weights_s, now, 1.0 / s.weights_rate_hz)
                 cloud = self._weight_cloud(engine, s)
                 self._timings["weights"].add(time.perf_counter() - t_update)
             t_cloud = time.perf_counter()

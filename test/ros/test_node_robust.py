@@ -1529,3 +1529,18 @@ def test_another_nodes_parameter_in_a_section_for_every_node_is_no_warning(ros, 
         assert "[WARN]" in err.split("parameter mesh_rate_hs (did you mean mesh_rate_hz?)")[0].rsplit("\n", 1)[-1], err
     finally:
         node.destroy_node()
+
+
+def test_weights_clouds_keep_their_rate_on_mesh_ticks_that_come_a_little_late():
+    """~/weights at 2 Hz with mesh updates every 0.45 s: the next cloud was due a period after the tick
+    that sent one, so a tick just short of it skipped, and clouds came at about 1.1 Hz."""
+    from senfunet_ros.mesh_publisher import next_due_s
+
+    due, sent = 0.0, []
+    for k in range(1, 46):  # 20 s of ticks, each a few ms late
+        now = 100.0 + 0.45 * k + 0.003
+        if now >= due:
+            sent.append(now)
+            due = next_due_s(due, now, 0.5)
+    assert len(sent) >= 36, len(sent)  # 2 Hz, less the ticks a cloud falls between
+    assert next_due_s(0.0, 100.0, 0.5) == 100.5  # after a pause (or the first): a period from now
