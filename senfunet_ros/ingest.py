@@ -70,7 +70,7 @@ from senfunet_ros.tf import TfAdded, TfWait, extrapolate_tf
 from senfunet_ros.timeline import Restart, StreamGaps, Timelines
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "StreamEnd", "Ingest",
-           "IngestLedger", "NoDepthInRange", "integrate_ready"]
+           "IngestLedger", "NoDepthInRange", "integrate_ready", "split_stream_errors"]
 
 DROP_REASONS: tuple[str, ...] = (
     "no_camera_info",  # no camera_info of its sensor arrived within pose_max_wait_s of the depth image
@@ -1060,12 +1060,20 @@ def _same_intrinsics(a: tuple[np.ndarray, tuple[int, int]], b: tuple[np.ndarray,
 _COLOUR = "colour: "  # how a colour image's error starts (the others are of depth, pose, camera_info messages)
 
 
+def split_stream_errors(text: str) -> tuple[str, str]:
+    """A reason's error text (`SensorCounters.errors`) as (the depth, pose or camera_info message's
+    part, the colour image's part starting with "colour: "); either may be empty."""
+    if text.startswith(_COLOUR):
+        return "", text
+    other, separator, colour = text.partition("; " + _COLOUR)
+    return other, (_COLOUR + colour if separator else "")
+
+
 def _with_other_stream(last: str, error: str) -> str:
     """A reason's error text after `error`: it replaces the last error of its own stream but keeps the
     colour stream's beside the others' (a sensor whose depth and colour both fail to decode needs both
     named, not the one that came last)."""
-    parts = last.split("; " + _COLOUR, 1) if not last.startswith(_COLOUR) else ["", last[len(_COLOUR):]]
-    other, colour = parts[0], (_COLOUR + parts[1] if len(parts) > 1 else "")
+    other, colour = split_stream_errors(last)
     if error.startswith(_COLOUR):
         return f"{other}; {error}" if other else error
     return f"{error}; {colour}" if colour else error

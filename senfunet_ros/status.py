@@ -19,7 +19,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from senfunet_ros import conversions as conv
 from senfunet_ros import params as P
 from senfunet_ros.health import HealthMonitor
-from senfunet_ros.ingest import DROP_REASONS, Ingest
+from senfunet_ros.ingest import DROP_REASONS, Ingest, split_stream_errors
 from senfunet_ros.pipeline import Pipeline
 
 
@@ -90,8 +90,7 @@ def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str,
                         "as rectified (pinhole K); subscribe to the driver's rectified depth topic"))
         new_without_color = counters["without_color"] - last.get("without_color", 0)
         if new_without_color > 0:
-            undecodable = counters["errors"].get("bad_encoding", "")
-            colour_error = undecodable[undecodable.find("colour: "):] if "colour: " in undecodable else ""
+            colour_error = split_stream_errors(counters["errors"].get("bad_encoding", ""))[1]
             why = (f"the colour images on {topics[sensor].color_topic} cannot be decoded ({colour_error})"
                    if colour_error else
                    f"no colour image within color_tolerance_s ({settings.color_tolerance_s:g} s) of their depth "
