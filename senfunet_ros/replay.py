@@ -11,6 +11,8 @@ with torch pinned to a fixed thread count, the same mesh bytes.
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import threading
@@ -18,7 +20,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -257,6 +259,15 @@ def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | Non
     with open_bag(bag) as reader:
         TopicRouter(settings, reader.topics, bag)  # a BagError comes before the heavy imports
     _prepare_out(out)  # and a bad --out before the fusing, not after it
+    with _out_lock(out):
+        return _replay(bag, out, settings, gt=gt, gt_mesh=gt_mesh, progress=progress, threads=threads,
+                       compare=compare, params=params, log=log, stop=stop, t_start=t_start)
+
+
+def _replay(bag: str | Path, out: Path, settings: P.Settings, *, gt: str | Path | None, gt_mesh: Any,
+            progress: bool, threads: int, compare: bool, params: str | Path | None, log: Callable[[str], None],
+            stop: threading.Event | None, t_start: float) -> ReplayResult:
+    """`replay_bag` once its bag, settings and output folder are known to be usable."""
     if settings.tsdf_fusion and not compare:  # the node's switch; replay's is --compare
         log("note: parameter tsdf_fusion is for the node (~/save_mesh); replay writes tsdf_fusion.ply and each "
             "sensor's mesh with --compare")
@@ -336,8 +347,6 @@ DISTORTED_NOTE = ("its camera_info has non-zero distortion coefficients, which a
 
 def _prepare_out(out: Path) -> None:
     """Create the output folder (ValueError, saying what to pass, when that is impossible)."""
-    import os
-
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; pass a folder for mesh.ply and stats.json")
     try:
@@ -346,6 +355,24 @@ def _prepare_out(out: Path) -> None:
         raise ValueError(f"--out {out}: cannot create the folder ({err.strerror}); pass a writable folder") from None
     if not os.access(out, os.W_OK | os.X_OK):
         raise ValueError(f"--out {out}: the folder is not writable; pass a writable folder")
+
+
+@contextlib.contextmanager
+def _out_lock(out: Path) -> Iterator[None]:
+    """Hold the output folder for one replay: a second replay into it at once would leave one run's
+    mesh.ply beside the other's stats.json. An advisory lock on the folder itself (nothing is written
+    into it; the kernel lets go of it when the process ends, however it ends); ValueError when another
+    replay holds it."""
+    fd = os.open(out, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"--out {out}: another senfunet replay is writing to this folder now; wait for it to "
+                             "end, or pass another --out") from None
+        yield
+    finally:
+        os.close(fd)  # closing lets go of the lock
 
 
 def _read_gt(gt: str | Path | None) -> Any:

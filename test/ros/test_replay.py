@@ -75,6 +75,31 @@ def test_a_run_that_fuses_nothing_names_the_earlier_runs_mesh_it_leaves(prefix: 
     assert f"mesh.ply in {out} is from an earlier run, not this one; delete it" in proc.stderr, proc.stderr
 
 
+def test_a_replay_into_a_folder_another_replay_is_writing_to_is_refused(prefix: Path, small_params: Path,
+                                                                         work: Path):
+    """Two replays into one --out at once left one run's mesh.ply beside the other's stats.json. While
+    another process holds the folder (as a running replay does), `senfunet replay` into it stops before
+    fusing, says why, and writes nothing; once that process has ended, the folder is free."""
+    out = work / "busy"
+    out.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys\nfrom pathlib import Path\nfrom senfunet_ros.replay import _out_lock\n"
+        f"with _out_lock(Path({str(out)!r})):\n    print('held', flush=True)\n    sys.stdin.read()\n")],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        replay = [sys.executable, "-m", "senfunet_ros.cli", "replay", str(prefix), "--out", str(out),
+                  "--params", str(small_params)]
+        proc = subprocess.run(replay, capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 2, proc.stdout + proc.stderr
+        assert "another senfunet replay is writing to this folder now" in proc.stderr, proc.stderr
+        assert list(out.iterdir()) == []
+    finally:
+        holder.communicate(input="", timeout=60)
+    proc = subprocess.run(replay, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0 and (out / "mesh.ply").is_file(), proc.stdout + proc.stderr
+
+
 def test_replay_outputs_stats_and_metrics(cli_replay: tuple[subprocess.CompletedProcess, Path]):
     proc, out = cli_replay
     for name in MESHES:
