@@ -528,7 +528,7 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
         return f"{abs(seconds):.1f} s {'after' if seconds >= 0 else 'before'} the stream's end"
 
     row("mesh updates; interval median / max (s)", lambda r: f"{r['mesh_updates']}; "
-        f"{r['update_interval_s']['median']:.2f} / {r['update_interval_s']['max']:.2f} (ending "
+        f"{r['update_interval_s']['median']:.2f} / {r['update_interval_s']['max']:.2f} (the longest ending "
         f"{gap_end(r['update_interval_s'].get('max_ends_s', float('nan')))})")
     row("frame-to-mesh latency over frames not set aside, median / max (s)",
         lambda r: f"{r['latency_s']['median']:.2f} / {r['latency_s']['max']:.2f}")
