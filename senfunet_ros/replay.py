@@ -274,6 +274,11 @@ def _replay(bag: str | Path, out: Path, settings: P.Settings, *, gt: str | Path 
     import torch  # heavy: only once the bag is known to be usable
 
     from senfunet_core.engine import SenFuNet
+    from senfunet_core.networks import choose_device
+
+    fallback = choose_device(settings.device, cpu_fallback=True).fallback_reason
+    if fallback:  # the parameter's promise: the fall back is said, as the live node says it
+        log(f"note: {fallback}")
 
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))

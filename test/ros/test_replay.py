@@ -355,6 +355,10 @@ def test_node_engine_config_runs_on_the_cpu_when_cuda_is_asked_for_and_absent(tm
     settings = load_settings(file)
     assert settings.device == "cuda"
     assert P.engine_config(settings).device == "cpu"
+    said: list[str] = []  # and replay says so, as the parameter's help promises (it fell back silently)
+    prefix = _prefix(SAMPLE, tmp_path / "prefix", 0.3)
+    replay_bag(prefix, tmp_path / "out", params=file, progress=False, log=said.append)
+    assert "note: device 'cuda' requested but CUDA is not available: using cpu" in said, said
 
 
 def test_weights_parameter_takes_a_shipped_name_or_a_path_and_refuses_the_rest(tmp_path: Path):
