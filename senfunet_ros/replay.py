@@ -368,13 +368,19 @@ def _out_lock(out: Path) -> Iterator[None]:
     mesh.ply beside the other's stats.json. An advisory lock on the folder itself (nothing is written
     into it; the kernel lets go of it when the process ends, however it ends); ValueError when another
     replay holds it."""
-    fd = os.open(out, os.O_RDONLY)
+    try:
+        fd = os.open(out, os.O_RDONLY)
+    except OSError:  # a folder that cannot be opened for reading (write-only): nothing to lock with
+        yield
+        return
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise ValueError(f"--out {out}: another senfunet replay is writing to this folder now; wait for it to "
                              "end, or pass another --out") from None
+        except OSError:  # a file system without locks (some network ones): replay as before, unguarded
+            pass
         yield
     finally:
         os.close(fd)  # closing lets go of the lock

@@ -100,6 +100,22 @@ def test_a_replay_into_a_folder_another_replay_is_writing_to_is_refused(prefix: 
     assert proc.returncode == 0 and (out / "mesh.ply").is_file(), proc.stdout + proc.stderr
 
 
+def test_a_folder_on_a_file_system_without_locks_is_replayed_into_unguarded(prefix: Path, small_params: Path,
+                                                                             work: Path, monkeypatch):
+    """Some network file systems refuse locks (ENOLCK): replay then writes as it did before it held
+    its folder, rather than failing."""
+    import errno
+
+    from senfunet_ros import replay as replay_module
+
+    def no_locks(fd: int, operation: int) -> None:
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(replay_module.fcntl, "flock", no_locks)
+    result = replay_bag(prefix, work / "no_locks", params=small_params, progress=False)
+    assert result.error is None and (work / "no_locks" / "mesh.ply").is_file()
+
+
 def test_replay_outputs_stats_and_metrics(cli_replay: tuple[subprocess.CompletedProcess, Path]):
     proc, out = cli_replay
     for name in MESHES:
