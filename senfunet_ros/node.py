@@ -747,9 +747,8 @@ def make_engine(settings: P.Settings, logger: Any) -> Any:
     # heavy (torch): imported when a node is made, not when this module is
     from senfunet_core import decimate
     from senfunet_core.engine import SenFuNet, warm_up
-    from senfunet_core.networks import choose_device
 
-    fallback = choose_device(settings.device, cpu_fallback=True).fallback_reason
+    fallback = P.device_fallback(settings)
     if fallback:
         logger.warning(fallback)
     weights = P.engine_weights(settings)

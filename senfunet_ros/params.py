@@ -543,6 +543,14 @@ def sensor_extrinsics(settings: Settings) -> dict[str, Any]:
     return out
 
 
+def device_fallback(settings: Settings) -> str | None:
+    """Why the networks do not run on the device parameter `device` names (CUDA asked for and absent:
+    `engine_config` falls back to the cpu), to say to the user; None when they do."""
+    from senfunet_core.networks import choose_device
+
+    return choose_device(settings.device, cpu_fallback=True).fallback_reason
+
+
 def engine_config(settings: Settings, **overrides: Any) -> Any:
     """EngineConfig as the node builds it (device 'cuda' falls back to 'cpu' when there is none);
     `overrides` replace fields (replay keeps the TSDF Fusion baseline and float32 alpha)."""

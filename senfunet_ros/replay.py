@@ -274,9 +274,8 @@ def _replay(bag: str | Path, out: Path, settings: P.Settings, *, gt: str | Path 
     import torch  # heavy: only once the bag is known to be usable
 
     from senfunet_core.engine import SenFuNet
-    from senfunet_core.networks import choose_device
 
-    fallback = choose_device(settings.device, cpu_fallback=True).fallback_reason
+    fallback = P.device_fallback(settings)
     if fallback:  # the parameter's promise: the fall back is said, as the live node says it
         log(f"note: {fallback}")
 
