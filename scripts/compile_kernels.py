@@ -66,9 +66,12 @@ def main() -> None:
 
     logging.getLogger("senfunet").setLevel(logging.ERROR)  # the tiny bound's thrash warning is on purpose here
     settings = Settings.from_values({name: default for name, (default, _) in expanded_defaults().items()})
-    for alpha_voxels in ("surface", "surface_voxels"):  # the node's choice, and the engine's other one
-        engine = SenFuNet(engine_config(settings, alpha_dtype="float32", feature_dtype="float32", max_blocks=4,
-                                        alpha_voxels=alpha_voxels), weights=engine_weights(settings))
+    # the node's configuration (its weighting net's arithmetic: int8 or bfloat16 where the CPU has them,
+    # whose windows' kernels are their own), replay's (float32, with --compare's TSDF Fusion) and the engine's
+    # other evaluation scheme
+    for overrides in ({}, {"alpha_dtype": "float32", "feature_dtype": "float32", "tsdf_fusion": True},
+                      {"alpha_dtype": "float32", "feature_dtype": "float32", "alpha_voxels": "surface_voxels"}):
+        engine = SenFuNet(engine_config(settings, max_blocks=4, **overrides), weights=engine_weights(settings))
         warm_up(engine)
     decimate.warm_up()
     triangle = Mesh(np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], np.float32), np.array([[0, 1, 2]], np.int32),
