@@ -15,10 +15,19 @@ from .errors import InputError
 def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
     """A binary file to write `path` through: a temporary file in the same folder (so that the
     final rename stays on one file system) that replaces `path` when the block ends, once its data is
-    on disk (fsync), and is removed when it raises. InputError when `path` is a folder."""
+    on disk (fsync), and is removed when it raises. A symbolic link's target is written (the link
+    stays). InputError when `path` is a folder, or exists and is no regular file (a pipe, a device:
+    the rename would put a file in its place)."""
     path = Path(path)
-    if path.is_dir():
+    if path.is_dir() or path.name in ("", ".", ".."):
         raise InputError(f"{path} is a folder; give a file path")
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
+        if path.is_dir():
+            raise InputError(f"{path} (where the link points) is a folder; give a file path")
+    if path.exists() and not path.is_file():
+        raise InputError(f"{path} exists and is no regular file (a pipe, a device or a socket?): it is not "
+                         "replaced; give the path of a regular file or of a new one")
     directory = path.parent if str(path.parent) else Path(".")
     directory.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)

@@ -30,6 +30,13 @@ def _reason(err: Exception) -> str:
     return str(err) or type(err).__name__
 
 
+def _refuse_file_in_the_way(folder: Path, path: Path) -> None:
+    """NotADirectoryError when `folder` or a folder above it is a file, so `path` cannot be made there
+    (else the reply were mkdir's "[Errno 17] File exists: <it>")."""
+    blocker = next((part for part in (folder, *folder.parents) if part.exists() and not part.is_dir()), None)
+    if blocker is not None:
+        raise NotADirectoryError(f"{blocker} is a file, not a folder, so {path} cannot be made")
+
 class NothingToSave(InputError):
     """The map is empty, and saving it would replace files an earlier map wrote."""
 
@@ -88,6 +95,7 @@ class MapServices:
         # absolute: the replies name the files for clients in other processes (other working directories)
         out = Path(output_dir or s.output_dir).expanduser().absolute()
         tsdf_fusion = self.pipeline.engine.config.tsdf_fusion
+        _refuse_file_in_the_way(out, out)
         self._keep_earlier_files(list(mesh_paths(out, sensors=s.sensor_names, tsdf_fusion=tsdf_fusion).values()))
         saved = self.pipeline.save_meshes(out, sensors=s.sensor_names, tsdf_fusion=tsdf_fusion)
         baseline = mesh_paths(out, sensors=(), tsdf_fusion=True)["tsdf_fusion"]
@@ -98,9 +106,7 @@ class MapServices:
     def save_map_file(self) -> Path:
         """The whole map into `map_path`; returns the path."""
         path = self.map_path()
-        blocker = next((parent for parent in path.parents if parent.exists() and not parent.is_dir()), None)
-        if blocker is not None:  # else the reply were mkdir's "[Errno 17] File exists: <blocker>"
-            raise NotADirectoryError(f"{blocker} is a file, not a folder, so {path} cannot be made")
+        _refuse_file_in_the_way(path.parent, path)
         self._keep_earlier_files([path])
         return self.pipeline.save_map(path)
 

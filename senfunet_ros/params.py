@@ -349,7 +349,7 @@ def check(values: dict[str, Any]) -> None:
 
         transform_from_tq(extrinsic[:3], extrinsic[3:], f"parameter '{sensor}.T_body_camera'")
     map_file = values["map_file"]
-    if not map_file.strip() or map_file.endswith(("/", os.sep)):
+    if os.path.basename(map_file.strip()) in ("", ".", ".."):  # no name, a folder (".", "..", a trailing "/")
         raise ValueError(f"parameter 'map_file' = {map_file!r} names no file; give a file name such as map.pt "
                          "(relative: in output_dir)")
     from senfunet_ros.pipeline import mesh_paths

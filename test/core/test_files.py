@@ -26,6 +26,37 @@ def test_atomic_file_replaces_the_file_whole_or_leaves_it_and_no_trace(tmp_path:
     assert (tmp_path / "new" / "mesh.ply").read_bytes() == b"ply"
 
 
+
+def test_atomic_file_writes_a_links_target_and_never_replaces_a_pipe_or_a_device(tmp_path: Path) -> None:
+    """A save to a path that is a FIFO, a device or a socket put a regular file in its place (as root, a
+    map_file of /dev/null replaced the machine's /dev/null); a symbolic link was replaced by a file,
+    its target left with the earlier map."""
+    import os
+    import stat
+
+    fifo = tmp_path / "fifo.pt"
+    os.mkfifo(fifo)
+    with pytest.raises(InputError, match="no regular file"), atomic_file(fifo) as file:
+        file.write(b"map")
+    assert stat.S_ISFIFO(fifo.lstat().st_mode) and sorted(p.name for p in tmp_path.iterdir()) == ["fifo.pt"]
+    target = tmp_path / "maps" / "map.pt"
+    target.parent.mkdir()
+    target.write_bytes(b"earlier map")
+    link = tmp_path / "latest.pt"
+    link.symlink_to(target)
+    with atomic_file(link) as file:
+        file.write(b"new map")
+    assert link.is_symlink() and target.read_bytes() == b"new map"
+    dangling = tmp_path / "next.pt"
+    dangling.symlink_to(tmp_path / "maps" / "next_target.pt")
+    with atomic_file(dangling) as file:
+        file.write(b"first")
+    assert dangling.is_symlink() and (tmp_path / "maps" / "next_target.pt").read_bytes() == b"first"
+    for folder_name in (tmp_path / "missing" / "..", tmp_path / "."):
+        with pytest.raises(InputError, match="folder"), atomic_file(folder_name):
+            pass
+    assert not (tmp_path / "missing").exists()
+
 def test_atomic_file_is_on_disk_before_it_takes_the_name(tmp_path: Path, monkeypatch) -> None:
     """The rename came without an fsync: a robot switched off right after a save (save_on_shutdown) could
     find mesh.ply or map.pt empty or half written under its final name (the rename on disk, the data

@@ -368,3 +368,19 @@ def test_save_map_below_a_file_names_the_file_in_the_way(tmp_path):
     reply = _call(services.save_map)
     assert not reply.success and f"{tmp_path / 'a_file'} is a file, not a folder" in reply.message, reply.message
     assert "check parameters output_dir and map_file" in reply.message
+
+
+def test_save_mesh_into_a_file_and_save_map_onto_a_pipe_say_what_is_in_the_way(tmp_path):
+    """output_dir naming a file: ~/save_mesh replied mkdir's bare "[Errno 17] File exists"; map_file naming
+    a FIFO: ~/save_map put a regular file in its place and replied "wrote"."""
+    import os
+    import stat
+
+    (tmp_path / "a_file").write_text("")
+    os.mkfifo(tmp_path / "pipe.pt")
+    services, _, _ = _services(tmp_path, output_dir=str(tmp_path / "a_file"), map_file=str(tmp_path / "pipe.pt"))
+    reply = _call(services.save_mesh)
+    assert not reply.success and f"{tmp_path / 'a_file'} is a file, not a folder" in reply.message, reply.message
+    reply = _call(services.save_map)
+    assert not reply.success and "no regular file" in reply.message, reply.message
+    assert stat.S_ISFIFO((tmp_path / "pipe.pt").lstat().st_mode)

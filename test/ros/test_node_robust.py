@@ -1045,7 +1045,7 @@ def test_parameters_keep_their_declared_types(ros, tmp_path: Path) -> None:
     assert error is not None and "is an integer, not a double" in error, error
 
 
-@pytest.mark.parametrize("map_file", ["", "  ", "maps/", "/tmp/"])
+@pytest.mark.parametrize("map_file", ["", "  ", "maps/", "/tmp/", "..", "maps/.", "maps/.."])
 def test_a_map_file_that_names_no_file_is_refused(map_file: str) -> None:
     """'' resolved to output_dir itself: ~/save_map wrote the map as a file where the mesh folder goes,
     and every ~/save_mesh after it failed with 'File exists'; 'maps/' wrote a file named maps."""
