@@ -980,6 +980,10 @@ def _decode_depth(msg: Any, stamp_ns: int, arrival_s: float, *, camera_info: tup
     elif target_height and not target_width:
         target_width = max(1, round(width * target_height / height))
     target = (target_width or width, target_height or height)
+    if not (working_size[0] and working_size[1]):  # one side given, the other follows the image's aspect ratio
+        target, note = _bounded_working_size(target, (width, height), max(working_size))
+        if note:
+            notes.append(("image_size", note))
     if target != (width, height):
         depth_m = conv.resize_depth(depth_m, target)
         K = conv.scale_intrinsics(K, (width, height), target)
@@ -1003,6 +1007,26 @@ PIXEL_SPACING_NOTE_VOXELS = 1.5
 
 # a frame is checked for its pixel spacing when at least this share of its pixels lie in the sensor's depth range
 _SPACING_MIN_SHARE = 0.1
+
+# an image resized to working_width (or working_height) takes at most this many times that size squared
+# pixels, unless it has more itself: a 2 x 1000 image is no 256 x 128000 frame (131 MB, seconds to fuse)
+_WORKING_PIXELS_PER_SQUARE = 4
+
+
+def _bounded_working_size(target: tuple[int, int], native: tuple[int, int], working_px: int
+                          ) -> tuple[tuple[int, int], str | None]:
+    """The size a frame is resized to (`target`, one side from the working size, the other from the
+    image's aspect ratio) within _WORKING_PIXELS_PER_SQUARE x working_px^2 pixels, or the native
+    size's if larger; and a note when that bound shrank it."""
+    limit = max(_WORKING_PIXELS_PER_SQUARE * working_px * working_px, native[0] * native[1])
+    if target[0] * target[1] <= limit:
+        return target, None
+    scale = (limit / (target[0] * target[1])) ** 0.5
+    bounded = (max(1, int(target[0] * scale)), max(1, int(target[1] * scale)))
+    return bounded, (f"its {native[0]}x{native[1]} depth images would be {target[0]}x{target[1]} at the working "
+                     f"size ({working_px} px): they are fused at {bounded[0]}x{bounded[1]}, to keep a frame "
+                     f"within {_WORKING_PIXELS_PER_SQUARE} x {working_px}^2 pixels; an image this narrow is "
+                     "seldom a depth camera's: check the driver's width and height")
 
 
 def _pixel_spacing_note(depth_m: np.ndarray, K: np.ndarray, voxel_size_m: float, *, native_size: tuple[int, int],

@@ -954,6 +954,28 @@ def test_colour_matched_by_nearest_stamp_and_resized() -> None:
     assert frame.rgb is None and ingest.ledger.counters()["stereo"]["without_color"] == 1  # counted, not silent
 
 
+
+def test_a_narrow_image_is_not_blown_up_to_the_working_width() -> None:
+    """A 2 x 1000 depth image at working_width 256 became a 256 x 128000 frame (131 MB, seconds to fuse,
+    GBs with a queue of them), with nothing said; images of usual shapes keep the working width."""
+    ingest = make(working_size=(16, 0))
+    ingest.add_camera_info("tof", info_msg((200, 2)))
+    ingest.add_pose("tof", pose_msg(0))
+    ingest.add_pose("tof", pose_msg(200 * MS))
+    ingest.add_depth("tof", depth_msg(100 * MS, shape=(200, 2)))
+    (frame,) = frames(ingest.pop_ready())
+    height, width = frame.depth_m.shape
+    assert height * width <= 4 * 16 * 16 and height / width == pytest.approx(100, rel=0.1)
+    assert frame.K[0, 2] == pytest.approx(0.5 * (width - 1), abs=0.6)  # K scaled to the size fused
+    notes = ingest.ledger.counters()["tof"]["notes"]
+    assert "2x200" in notes["image_size"] and f"{width}x{height}" in notes["image_size"], notes
+    ingest.add_camera_info("stereo", info_msg((24, 32)))
+    ingest.add_pose("stereo", pose_msg(0))
+    ingest.add_pose("stereo", pose_msg(200 * MS))
+    ingest.add_depth("stereo", depth_msg(100 * MS, shape=(24, 32)))
+    (frame,) = frames(ingest.pop_ready())
+    assert frame.depth_m.shape == (12, 16) and "image_size" not in ingest.ledger.counters()["stereo"]["notes"]
+
 def test_frames_in_stamp_order_and_deterministic() -> None:
     def run() -> list[tuple[str, int, float]]:
         ingest = make()
