@@ -529,7 +529,13 @@ class _SensorInput:
                 self.queue.popleft()
                 self.drop(reason, error)
                 continue
-            if not self.colors.ready(t, last_color_ns, waited_too_long):
+            # colour is waited for only while it can still come in time: not once the depth stream ran
+            # pose_max_wait_s past the colour stream's newest stamp (it stopped), nor once frames waiting
+            # for it fill half the queue (else a fast sensor's queue overflows first: it drops every frame)
+            colour_gone = (last_color_ns is not None and newest_depth_ns is not None
+                           and newest_depth_ns - last_color_ns > max_wait_ns)
+            crowded = 2 * len(self.queue) >= config.queue_size
+            if not self.colors.ready(t, last_color_ns, waited_too_long or colour_gone or crowded):
                 break
             rgb = self.colors.match(t, tolerance_ns=int(config.color_tolerance_s * 1e9))
             if rgb is not None:

@@ -91,11 +91,15 @@ def counter_warnings(before: dict[str, dict[str, Any]], now: dict[str, dict[str,
         new_without_color = counters["without_color"] - last.get("without_color", 0)
         if new_without_color > 0:
             colour_error = split_stream_errors(counters["errors"].get("bad_encoding", ""))[1]
+            colour_came = counters.get("color_received", 0) > last.get("color_received", 0)
             why = (f"the colour images on {topics[sensor].color_topic} cannot be decoded ({colour_error})"
                    if colour_error else
+                   f"no colour image came on {topics[sensor].color_topic} meanwhile (has its stream stopped?)"
+                   if not colour_came else
                    f"no colour image within color_tolerance_s ({settings.color_tolerance_s:g} s) of their depth "
-                   f"stamps, though colour arrives on {topics[sensor].color_topic}; check the stamps or raise "
-                   "color_tolerance_s")
+                   f"stamps came in time, though colour arrives on {topics[sensor].color_topic}; check the stamps "
+                   "or raise color_tolerance_s (or queue_size, if colour comes late: frames wait for it until it "
+                   "passes them, at most pose_max_wait_s, and only while they fill less than half the queue)")
             out.append(((sensor, "without_color"), f"{sensor}: {new_without_color} frame(s) integrated without "
                         f"colour: {why} ({counters['without_color']} so far; see ~/status)"))
         new_missing = counters.get("missing_depth", 0) - last.get("missing_depth", 0)

@@ -976,6 +976,28 @@ def test_a_narrow_image_is_not_blown_up_to_the_working_width() -> None:
     (frame,) = frames(ingest.pop_ready())
     assert frame.depth_m.shape == (12, 16) and "image_size" not in ingest.ledger.counters()["stereo"]["notes"]
 
+
+@pytest.mark.parametrize("rate_hz", [15, 40])
+def test_frames_go_on_without_colour_once_the_colour_stream_stops(rate_hz: int) -> None:
+    """Colour seen once, every frame waited pose_max_wait_s for colour that stopped: at 40 Hz the queue
+    (queue_size 30) overflowed first, dropping each frame about to go; no frame of the sensor fused."""
+    ingest = make(queue_size=30, pose_max_wait_s=1.0)
+    period_ns = 1_000_000_000 // rate_hz
+    out: list[Frame] = []
+    for i in range(4 * rate_hz):  # 4 s; colour for the first half second only
+        t = i * period_ns
+        ingest.add_pose("stereo", pose_msg(t))
+        if i < rate_hz // 2:
+            ingest.add_color("stereo", color_msg(t, value=7))
+        ingest.add_depth("stereo", depth_msg(t))
+        out += frames(ingest.pop_ready())
+    counters = ingest.ledger.counters()["stereo"]
+    assert sum(counters["dropped"].values()) == 0, counters["dropped"]
+    assert [f.rgb is not None for f in out] == [i < rate_hz // 2 for i in range(len(out))]
+    # once the depth stream ran pose_max_wait_s past the last colour, frames no longer wait: only the
+    # newest few (their pose and colour not yet passed) are still queued
+    assert len(out) >= 4 * rate_hz - 2 and counters["without_color"] == len(out) - rate_hz // 2
+
 def test_frames_in_stamp_order_and_deterministic() -> None:
     def run() -> list[tuple[str, int, float]]:
         ingest = make()

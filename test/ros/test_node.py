@@ -794,8 +794,9 @@ def test_every_drop_reason_has_a_hint_naming_what_to_check() -> None:
 
 
 def test_counter_warnings_name_what_is_new_and_why_colour_is_missing() -> None:
-    """Frames integrated without colour: because the colour images cannot be decoded, or because
-    none came near their stamps; the warning says which (raising a tolerance cannot fix the first)."""
+    """Frames integrated without colour: because the colour images cannot be decoded, because the
+    colour stream stopped, or because none came near their stamps; the warning says which (raising a
+    tolerance cannot fix the first two)."""
     from senfunet_ros.ingest import Ingest, IngestConfig
     from senfunet_ros.status import counter_warnings
 
@@ -803,9 +804,13 @@ def test_counter_warnings_name_what_is_new_and_why_colour_is_missing() -> None:
     before = Ingest(IngestConfig(sensors=settings.sensor_names)).ledger.counters()
     now = {name: {**c, "dropped": dict(c["dropped"]), "errors": dict(c["errors"])} for name, c in before.items()}
     now["stereo"]["without_color"] = 3
-    warnings = dict(counter_warnings(before, now, settings))
+    warnings = dict(counter_warnings(before, now, settings))  # no colour image came meanwhile: it stopped
     assert list(warnings) == [("stereo", "without_color")]
+    assert "stream stopped" in warnings[("stereo", "without_color")]
+    now["stereo"]["color_received"] = 5  # colour comes, but not near the depth stamps
+    warnings = dict(counter_warnings(before, now, settings))
     assert "color_tolerance_s" in warnings[("stereo", "without_color")]
+    assert "stream stopped" not in warnings[("stereo", "without_color")]
     now["stereo"]["dropped"]["bad_encoding"] = 3
     now["stereo"]["errors"]["bad_encoding"] = "colour: colour encoding 'yuv422' is not supported"
     warnings = dict(counter_warnings(before, now, settings))
