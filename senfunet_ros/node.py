@@ -62,6 +62,7 @@ from senfunet_ros.map_services import MapServices, NothingToSave
 from senfunet_ros.mesh_publisher import MeshPublisher, MeshWorker, mesh_period_s
 from senfunet_ros.pipeline import Pipeline, Stream, TimeJumpAction
 from senfunet_ros.status import CounterWarnings, StatusReport, ThrottledWarnings
+from senfunet_ros.timeline import ClockTimeline
 
 __all__ = ["FusionNode", "main"]
 
@@ -224,16 +225,17 @@ class _EngineLogToRos(logging.Handler):
 
 class _ClockWatch:
     """Under use_sim_time: /clock going back by more than time_jump_s is a restart (a bag looping),
-    confirmed at once. /clock is subscribed while use_sim_time is true, set at start or at run time
-    (rclpy's own parameter: its clock follows it at once; the watch must too, else a bag looping after
+    confirmed by the next /clock (`timeline.ClockTimeline`: a single stray one restarts nothing).
+    /clock is subscribed while use_sim_time is true, set at start or at run time (rclpy's own
+    parameter: its clock follows it at once; the watch must too, else a bag looping after
     `ros2 param set ... use_sim_time true` were recognised only from the new timeline, and after
     `false` a /clock still flushed the queues). `on_clock` runs in the subscription's callback,
-    (un)subscribing in the parameter callbacks: the last /clock is under a lock of its own."""
+    (un)subscribing in the parameter callbacks: the /clock timeline is under a lock of its own."""
 
     def __init__(self, node: Node, ingest: Ingest, time_jump_s: Callable[[], float],
                  warn: Callable[[tuple[str, ...], str], None]) -> None:
         self._node, self._ingest, self._time_jump_s, self._warn = node, ingest, time_jump_s, warn
-        self._last_ns: int | None = None
+        self._timeline = ClockTimeline()
         self._last_lock = threading.Lock()
         self._subscription: Any = None
         self.follow(bool(node.get_parameter("use_sim_time").value))
@@ -242,7 +244,7 @@ class _ClockWatch:
         """Subscribe /clock (on; the /clock seen before it was dropped is no reference) or drop it."""
         if on and self._subscription is None:
             with self._last_lock:
-                self._last_ns = None
+                self._timeline.reset()
             self._subscription = self._node.create_subscription(
                 RosClock, "/clock", self.on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup())
         elif not on and self._subscription is not None:
@@ -259,9 +261,13 @@ class _ClockWatch:
         try:
             now_ns = conv.stamp_to_ns(msg.clock)
             with self._last_lock:
-                last, self._last_ns = self._last_ns, now_ns
-            if last is not None and now_ns < last - int(self._time_jump_s() * 1e9):
+                seen = self._timeline.observe(now_ns, int(self._time_jump_s() * 1e9))
+            if seen is not None and seen[0] == "restart":
                 self._ingest.restart(now_ns)  # the pipeline says so, once, as it handles the restart
+            elif seen is not None:
+                self._warn(("clock_stray",), f"/clock went back from {seen[1] * 1e-9:.3f} s to {seen[2] * 1e-9:.3f} s "
+                           f"for one message, then on to {now_ns * 1e-9:.3f} s: a stray /clock (a second publisher "
+                           "of /clock?), not a restart; nothing was flushed and the map is kept")
         except Exception as err:
             self._warn(("clock",), f"/clock message ignored: {err!r}")
 

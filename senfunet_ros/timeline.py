@@ -34,7 +34,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["STREAMS", "Gap", "Held", "Restart", "StreamGaps", "Timelines", "Verdict"]
+__all__ = ["STREAMS", "ClockTimeline", "Gap", "Held", "Restart", "StreamGaps", "Timelines", "Verdict"]
 
 STREAMS: tuple[str, ...] = ("depth", "color", "pose")
 _RECENT_DEPTH_STAMPS = 16  # a depth stamp among this many taken lately is a duplicate
@@ -365,3 +365,33 @@ class StreamGaps:
                 return Gap(last, stamp_ns, period_ns, round(interval / period_ns) - 1)
         self._intervals.append(interval)
         return None
+
+
+class ClockTimeline:
+    """/clock under use_sim_time: a step back by more than the jump (time_jump_s) is a restart once the
+    next /clock goes on from there (a bag looping); one that the next /clock leaves again for the old
+    time was a stray message (a second /clock publisher), which restarts nothing. Not thread-safe: the
+    /clock subscription's callback owns it."""
+
+    def __init__(self) -> None:
+        self.last_ns: int | None = None  # the newest /clock of the current timeline
+        self._back_ns: int | None = None  # a /clock that went back, until the next one tells which it was
+
+    def observe(self, now_ns: int, jump_ns: int) -> tuple[str, int, int] | None:
+        """("restart", from_ns, to_ns) when this /clock confirms a restart to to_ns, ("stray", from_ns,
+        back_ns) when it shows that the one before (back_ns) was a stray, else None."""
+        last, back = self.last_ns, self._back_ns
+        self._back_ns = None
+        if last is not None and now_ns < last - jump_ns:
+            if back is None:  # it went back: the next /clock tells
+                self._back_ns = now_ns
+                return None
+            self.last_ns = now_ns
+            return "restart", last, now_ns
+        self.last_ns = now_ns
+        return None if back is None else ("stray", last if last is not None else now_ns, back)
+
+    def reset(self) -> None:
+        """Forget the timeline (the /clock seen before the watch stopped is no reference)."""
+        self.last_ns = self._back_ns = None
+

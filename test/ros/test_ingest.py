@@ -1567,3 +1567,20 @@ def test_behind_buffer_lowered_at_run_time_lets_go_of_what_it_no_longer_holds() 
     after = ingest.ledger.counters()["tof"]
     assert after["set_aside_now"] == 2
     assert after["dropped"]["behind"] == before["set_aside_now"] - 2
+
+
+def test_one_stray_clock_going_back_restarts_nothing_and_a_loop_restarts_once() -> None:
+    """Under use_sim_time one /clock of 0 (a second /clock publisher) in a running stream was taken as a
+    restart at once: queued frames flushed, the next time_jump_s of frames lost, the map reset with
+    on_time_jump reset. Only a /clock that goes on from where it went back is a restart."""
+    from senfunet_ros.timeline import ClockTimeline
+
+    s = 1_000_000_000
+    clock = ClockTimeline()
+    seen = [clock.observe(t, 1 * s) for t in (100 * s, 101 * s, 0, 102 * s, 103 * s)]
+    assert seen == [None, None, None, ("stray", 101 * s, 0), None]
+    seen = [clock.observe(t, 1 * s) for t in (10 * s, 10 * s + s // 40, 11 * s, 5 * s, 12 * s)]
+    assert seen == [None, ("restart", 103 * s, 10 * s + s // 40), None, None, ("stray", 11 * s, 5 * s)]
+    assert clock.observe(11_500_000_000, 1 * s) is None  # back by less than the jump: the same timeline
+    clock.reset()
+    assert clock.observe(0, 1 * s) is None and clock.last_ns == 0  # no reference after a reset
