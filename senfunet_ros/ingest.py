@@ -761,6 +761,15 @@ class Ingest:
                 state.counters.notes["pose_frame"] = _pose_frame_note(frame, self.config.fixed_frame)
             reason, held = self._time.on_time(sensor, "pose", stamp_ns, T)
             taken = reason or state.accept(sensor, "pose", stamp_ns, T, self.config)
+            # checked every 8th pose (poses come at up to hundreds per second): once, until it is seen
+            if state.counters.pose_received % 8 == 0 and "pose_alternates" not in state.counters.notes:
+                step_m = state.poses.alternation_m()
+                if step_m is not None:
+                    state.counters.notes["pose_alternates"] = (
+                        f"its poses zig-zag: each is about {step_m * 100:.0f} cm from the one before and back where "
+                        "the one two before was, as when two publishers on its pose topic interleave (a localiser "
+                        "and an odometry?): frames are posed between both trajectories and the map smears; make "
+                        "one stop, or give each its own topic")
         return self._decode_and_put(held, taken)
 
     def _decode_and_put(self, held: list[_Undecoded], taken: str | _Undecoded | None) -> str | None:

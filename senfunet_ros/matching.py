@@ -17,6 +17,12 @@ __all__ = ["ColorBuffer", "PoseBuffer", "pose_conflict"]
 # a pose republished at its stamp differs from the first beyond this (metres, and the rotation
 # matrices' entries): float noise of a re-encoded message stays far below
 _SAME_POSE_TOL = 1e-6
+# poses that zig-zag (`PoseBuffer.alternation_m`): over this many of the newest, neighbours typically this far
+# apart (motion between two poses of one stream is far less), each typically within this share of that step of
+# the pose two before it (a stream moving on goes twice the step in two)
+_ALTERNATION_POSES = 12
+_ALTERNATION_MIN_STEP_M = 0.02
+_ALTERNATION_RETURN_SHARE = 0.25
 
 
 def pose_conflict(first: np.ndarray, again: np.ndarray) -> str | None:
@@ -57,6 +63,20 @@ class PoseBuffer:
     def newest_ns(self) -> int | None:
         """The newest pose's stamp, or None."""
         return self._stamps[-1] if self._stamps else None
+
+    def alternation_m(self) -> float | None:
+        """When the newest poses zig-zag (each about where the one two before it was, and the typical
+        step between neighbours at least _ALTERNATION_MIN_STEP_M): that step, in metres; else None.
+        Two publishers on one topic give that (a localiser and an odometry, interleaved): interpolated
+        between them, every frame lies on a smear between two trajectories, and no jump check sees it,
+        as the same step comes every time."""
+        if len(self._poses) < _ALTERNATION_POSES:
+            return None
+        positions = np.array([T[:3, 3] for T in self._poses[-_ALTERNATION_POSES:]], np.float64)
+        step_m = float(np.median(np.linalg.norm(np.diff(positions, axis=0), axis=1)))
+        return_m = float(np.median(np.linalg.norm(positions[2:] - positions[:-2], axis=1)))
+        alternates = step_m >= _ALTERNATION_MIN_STEP_M and return_m < _ALTERNATION_RETURN_SHARE * step_m
+        return step_m if alternates else None
 
     def at(self, stamp_ns: int, *, tolerance_ns: int, waited_too_long: bool) -> tuple[np.ndarray | None, str | None]:
         """The pose at a depth stamp, interpolated between the poses around it: (T, None); or

@@ -4,6 +4,7 @@ from __future__ import annotations
 import dataclasses
 
 import math
+import re
 import threading
 
 import time
@@ -1584,3 +1585,22 @@ def test_one_stray_clock_going_back_restarts_nothing_and_a_loop_restarts_once() 
     assert clock.observe(11_500_000_000, 1 * s) is None  # back by less than the jump: the same timeline
     clock.reset()
     assert clock.observe(0, 1 * s) is None and clock.last_ns == 0  # no reference after a reset
+
+
+def test_poses_of_two_publishers_interleaved_on_one_topic_are_noted() -> None:
+    """A second publisher on a pose topic, its poses 0.3 m off and stamped between the first's: every
+    frame was posed between the two trajectories (72% of the mesh over 5 cm off), with nothing said;
+    one stream moving fast, or standing still and noisy, is no such thing."""
+    rng = np.random.default_rng(0)
+
+    def notes_after(positions_m: list[float]) -> dict[str, str]:
+        ingest = make()
+        for i, x in enumerate(positions_m):
+            ingest.add_pose("tof", pose_msg(i * 10 * MS, x=x))
+        return ingest.ledger.counters()["tof"]["notes"]
+
+    interleaved = [0.01 * i + (0.3 if i % 2 else 0.0) for i in range(40)]
+    note = notes_after(interleaved).get("pose_alternates", "")
+    assert re.search(r"about (29|30|31) cm", note) and "two publishers" in note, note
+    assert "pose_alternates" not in notes_after([0.05 * i for i in range(40)])  # 5 cm a pose: fast, one stream
+    assert "pose_alternates" not in notes_after(list(rng.normal(0, 0.005, 40)))  # still, 5 mm noise
