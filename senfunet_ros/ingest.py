@@ -280,6 +280,7 @@ class _SensorInput:
         self.counters = SensorCounters()
         self.camera_info: tuple[np.ndarray, tuple[int, int]] | None = None
         self.camera_info_before: tuple[np.ndarray, tuple[int, int]] | None = None  # the one before the last change
+        self.camera_info_returns = 0  # changes in a row back to the one before the last change
         self.queue: deque[_Pending] = deque()
         self.awaiting_info: deque[tuple[Any, int, float]] = deque()  # (depth msg, stamp_ns, arrival_s)
         self.colors = ColorBuffer(max(4, config.queue_size))
@@ -352,13 +353,16 @@ class _SensorInput:
 
     def _note_camera_info_change(self, intrinsics: tuple[np.ndarray, tuple[int, int]]) -> None:
         """Say once when the camera_info changes (K or size), and once when it goes back to the one
-        before: two publishers on one topic, each frame taking whichever came last."""
+        before twice (A, B, A, B): two publishers on one topic, each frame taking whichever came last
+        (once is a driver set back to its earlier resolution)."""
         now = self.camera_info
         if now is None or _same_intrinsics(now, intrinsics):
             return
         before, self.camera_info_before = self.camera_info_before, now
         notes = self.counters.notes
-        if before is not None and _same_intrinsics(before, intrinsics):
+        returned = before is not None and _same_intrinsics(before, intrinsics)
+        self.camera_info_returns = self.camera_info_returns + 1 if returned else 0
+        if self.camera_info_returns >= 2:
             notes.setdefault("camera_info_alternates", (
                 f"its camera_info alternates between {conv.intrinsics_text(now)} and {conv.intrinsics_text(before)}: "
                 "two publishers on one topic (the depth and colour cameras' camera_info remapped onto one?); each "

@@ -460,7 +460,8 @@ class FusionNode(Node):
             if new.mesh_colors != old.mesh_colors or new.mesh_display_cell_m != old.mesh_display_cell_m:
                 self.mesh_publisher.resend_all()  # readers get the whole map as it is now shown
             changed = sorted(name for name in values if values[name] != old.values[name])
-            self.get_logger().info("parameters changed: " + ", ".join(f"{n} = {values[n]!r}" for n in changed))
+            if changed:  # a value set again (0.0 as -0.0) changes nothing to say
+                self.get_logger().info("parameters changed: " + ", ".join(f"{n} = {values[n]!r}" for n in changed))
         except Exception as err:  # a post-set callback that raises takes the executor down
             self.get_logger().error(f"parameters accepted but not all applied ({err!r}); set them again")
 

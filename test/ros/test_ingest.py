@@ -481,7 +481,8 @@ def test_depth_images_missing_from_a_regular_stream_are_counted_and_warned() -> 
 
 def test_a_camera_info_that_changes_is_said_and_one_that_alternates_is_two_publishers() -> None:
     """Two camera_infos alternating on one topic (the depth and colour cameras' remapped onto one): each
-    frame took whichever came last, fused with the wrong K every other time, and nothing said so."""
+    frame took whichever came last, fused with the wrong K every other time, and nothing said so. A
+    resolution changed once and back is no such thing."""
     ingest = make()
     other = info_msg()
     other.k = [14.0, 0, 4.0, 0, 14.0, 3.0, 0, 0, 1]
@@ -490,7 +491,9 @@ def test_a_camera_info_that_changes_is_said_and_one_that_alternates_is_two_publi
     notes = ingest.ledger.counters()["tof"]["notes"]
     assert "fx 10, fy 10, cx 4.5, cy 3.5 (10x8) to fx 14, fy 14, cx 4, cy 3 (10x8)" in notes["camera_info_changed"]
     assert "camera_info_alternates" not in notes
-    assert ingest.add_camera_info("tof", info_msg()) is None
+    assert ingest.add_camera_info("tof", info_msg()) is None  # back once: a driver set back, say
+    assert "camera_info_alternates" not in ingest.ledger.counters()["tof"]["notes"]
+    assert ingest.add_camera_info("tof", other) is None  # and again: two publishers
     note = ingest.ledger.counters()["tof"]["notes"]["camera_info_alternates"]
     assert "two publishers on one topic" in note and "fx 14" in note and "fx 10" in note, note
     assert ingest.ledger.counters()["stereo"]["notes"] == {}
