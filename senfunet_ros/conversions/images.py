@@ -6,6 +6,7 @@ Every failure is a ValueError saying what was wrong and what to do about it.
 from __future__ import annotations
 
 import re
+import warnings
 from typing import Any
 
 import numpy as np
@@ -69,6 +70,14 @@ def _is_compressed(msg: Any) -> bool:
 _COMPRESSED_DEPTH_HEADER = np.dtype([("format", "<i4"), ("depth_a", "<f4"), ("depth_b", "<f4")])
 
 
+# a compressed image's pixels at most (from its header, before decoding): 8K video is 33 Mpx
+MAX_COMPRESSED_PIXELS = 64_000_000
+
+
+class _TooLarge(ValueError):
+    """A compressed image whose header gives more than MAX_COMPRESSED_PIXELS."""
+
+
 def _decode(data: np.ndarray, what: str, *, color: bool) -> np.ndarray:
     """A png/jpeg payload -> (H, W) as stored (color=False) or (H, W, 3) RGB uint8 (color=True).
 
@@ -82,7 +91,14 @@ def _decode(data: np.ndarray, what: str, *, color: bool) -> np.ndarray:
     if not data.size:
         raise ValueError(f"{what} is empty; check the publisher's image_transport")
     try:
-        with PilImage.open(io.BytesIO(data.tobytes())) as image:
+        with warnings.catch_warnings():  # Pillow's decompression-bomb warning: the size is checked below
+            warnings.simplefilter("ignore", PilImage.DecompressionBombWarning)
+            image = PilImage.open(io.BytesIO(data.tobytes()))
+        with image:
+            width, height = image.size  # from the header: an image too large for any camera is not decoded
+            if width * height > MAX_COMPRESSED_PIXELS:
+                raise _TooLarge(f"{what} is {width}x{height} pixels, more than any camera's "
+                                f"({MAX_COMPRESSED_PIXELS / 1e6:.0f} Mpx): not decoded; check its publisher")
             image.load()
             mode = image.mode
             # np.array, not asarray: Pillow's arrays are read-only, and the frame's users may write
@@ -90,6 +106,8 @@ def _decode(data: np.ndarray, what: str, *, color: bool) -> np.ndarray:
                 return np.array(image)
             if mode not in _WIDE_MODES:
                 return np.array(image.convert("RGB") if mode != "RGB" else image, np.uint8)
+    except _TooLarge as err:
+        raise ValueError(str(err)) from None
     except Exception as err:  # noqa: BLE001 (Pillow raises OSError, SyntaxError, struct.error... on corrupt data)
         reason = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
         reason = re.sub(r" <_io\.BytesIO object at 0x[0-9a-fA-F]+>", "", reason)  # an address, new in every message

@@ -375,6 +375,33 @@ def test_a_corrupt_png_or_jpeg_payload_prints_nothing_of_its_own(capfd: pytest.C
     assert capfd.readouterr().err == ""
 
 
+
+def test_a_compressed_image_larger_than_any_camera_is_refused_from_its_header(capfd: pytest.CaptureFixture) -> None:
+    """A 144 Mpx png was decoded whole (GBs, seconds) before its size was refused, Pillow printing its
+    decompression-bomb warning; the header's size is checked before decoding."""
+    import struct
+    import warnings
+    import zlib
+
+    import cv2
+    from sensor_msgs.msg import CompressedImage
+
+    png = bytearray(cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes())
+    ihdr = png.index(b"IHDR")
+    png[ihdr + 4:ihdr + 12] = struct.pack(">II", 12000, 12000)  # its header claims 144 Mpx
+    png[ihdr + 17:ihdr + 21] = struct.pack(">I", zlib.crc32(bytes(png[ihdr:ihdr + 17])))
+    msg = CompressedImage(format="rgb8; png compressed bgr8")
+    msg.data = bytes(png)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # Pillow's DecompressionBombWarning would raise here
+        with pytest.raises(ValueError, match="12000x12000 pixels, more than any camera's"):
+            conv.rgb_from_image(msg)
+        msg = CompressedImage(format="16UC1; compressedDepth png")
+        msg.data = bytes(12) + bytes(png)
+        with pytest.raises(ValueError, match="12000x12000 pixels"):
+            conv.depth_from_image(msg)
+    assert capfd.readouterr().err == ""
+
 def test_compressed_png_and_jpeg_decode_as_published() -> None:
     import cv2
     from sensor_msgs.msg import CompressedImage
