@@ -362,7 +362,7 @@ class _SensorInput:
         notes = self.counters.notes
         returned = before is not None and _same_intrinsics(before, intrinsics)
         self.camera_info_returns = self.camera_info_returns + 1 if returned else 0
-        if self.camera_info_returns >= 2:
+        if self.camera_info_returns >= 2 and before is not None:
             notes.setdefault("camera_info_alternates", (
                 f"its camera_info alternates between {conv.intrinsics_text(now)} and {conv.intrinsics_text(before)}: "
                 "two publishers on one topic (the depth and colour cameras' camera_info remapped onto one?); each "
