@@ -37,6 +37,7 @@ def _refuse_file_in_the_way(folder: Path, path: Path) -> None:
     if blocker is not None:
         raise NotADirectoryError(f"{blocker} is a file, not a folder, so {path} cannot be made")
 
+
 class NothingToSave(InputError):
     """The map is empty, and saving it would replace files an earlier map wrote."""
 

@@ -236,14 +236,14 @@ class _ClockWatch:
                  warn: Callable[[tuple[str, ...], str], None]) -> None:
         self._node, self._ingest, self._time_jump_s, self._warn = node, ingest, time_jump_s, warn
         self._timeline = ClockTimeline()
-        self._last_lock = threading.Lock()
+        self._timeline_lock = threading.Lock()
         self._subscription: Any = None
         self.follow(bool(node.get_parameter("use_sim_time").value))
 
     def follow(self, on: bool) -> None:
         """Subscribe /clock (on; the /clock seen before it was dropped is no reference) or drop it."""
         if on and self._subscription is None:
-            with self._last_lock:
+            with self._timeline_lock:
                 self._timeline.reset()
             self._subscription = self._node.create_subscription(
                 RosClock, "/clock", self.on_clock, _CLOCK_QOS, callback_group=MutuallyExclusiveCallbackGroup())
@@ -260,7 +260,7 @@ class _ClockWatch:
     def on_clock(self, msg: Any) -> None:
         try:
             now_ns = conv.stamp_to_ns(msg.clock)
-            with self._last_lock:
+            with self._timeline_lock:
                 seen = self._timeline.observe(now_ns, int(self._time_jump_s() * 1e9))
             if seen is not None and seen[0] == "restart":
                 self._ingest.restart(now_ns)  # the pipeline says so, once, as it handles the restart

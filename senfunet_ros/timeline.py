@@ -370,8 +370,8 @@ class StreamGaps:
 class ClockTimeline:
     """/clock under use_sim_time: a step back by more than the jump (time_jump_s) is a restart once the
     next /clock goes on from there (a bag looping); one that the next /clock leaves again for the old
-    time was a stray message (a second /clock publisher), which restarts nothing. Not thread-safe: the
-    /clock subscription's callback owns it."""
+    time was a stray message (a second /clock publisher), which restarts nothing. Not thread-safe: its
+    owner (the node's /clock watch) calls it under a lock."""
 
     def __init__(self) -> None:
         self.last_ns: int | None = None  # the newest /clock of the current timeline
@@ -394,4 +394,3 @@ class ClockTimeline:
     def reset(self) -> None:
         """Forget the timeline (the /clock seen before the watch stopped is no reference)."""
         self.last_ns = self._back_ns = None
-
