@@ -59,6 +59,13 @@ def block_keys(block_coords: torch.Tensor) -> torch.Tensor:
     return (shifted[:, 0] << (2 * _COORD_BITS)) | (shifted[:, 1] << _COORD_BITS) | shifted[:, 2]
 
 
+def within_key_range(block_coords: np.ndarray) -> np.ndarray:
+    """N bools: whether each of these Nx3 block coordinates (integers, or whole floats of any size) has a
+    key (`block_keys`: within about 5 km of the origin at 1 cm voxels)."""
+    shifted = np.asarray(block_coords) + _COORD_OFFSET
+    return np.asarray(((shifted >= 0) & (shifted <= _COORD_MASK)).all(axis=1))
+
+
 def keys_to_coords(keys: torch.Tensor) -> torch.Tensor:
     a = (keys >> (2 * _COORD_BITS)) & _COORD_MASK
     b = (keys >> _COORD_BITS) & _COORD_MASK

@@ -79,7 +79,8 @@ class TopicRouter:
 
     def __init__(self, settings: P.Settings, topics: dict[str, TopicInfo], bag_path: str | Path) -> None:
         self.bag_path = Path(bag_path)
-        self.routes: dict[str, Route] = {}
+        self.routes: dict[str, Route] = {}  # by absolute topic name
+        self._recorded: dict[str, str] = {}  # a routed topic as the bag names it -> its absolute name
         self.undecodable: dict[str, int] = {}
         self.not_cdr: set[str] = set()  # topics with undecodable messages that are not CDR at all
         self.other_types: dict[str, dict[str, int]] = {}  # routed topic -> its other recorded types (left out)
@@ -95,14 +96,17 @@ class TopicRouter:
                        (sensor.name, Stream.COLOR, sensor.color_topic, _IMAGES, False)]
             if pose_type is not PoseType.TF:
                 wanted.append((sensor.name, Stream.POSE, sensor.pose_topic, (pose_type.msgtype,), True))
-        if pose_type is PoseType.TF:
-            wanted += [("", Stream.TF, "/tf", (_TF_MSGTYPE,), True),
+        # the bag's topics by their absolute names: a recorder may have written 'tof/depth' for /tof/depth
+        recorded_as = {(t if t.startswith("/") else f"/{t}"): t for t in topics}
+        if pose_type is PoseType.TF:  # a fixed rig's whole tree may be static (/tf_static alone)
+            static = topics.get(recorded_as.get("/tf_static", ""))
+            wanted += [("", Stream.TF, "/tf", (_TF_MSGTYPE,), static is None or static.count == 0),
                        ("", Stream.TF_STATIC, "/tf_static", (_TF_MSGTYPE,), False)]
         for sensor_name, stream, topic, expected, required in wanted:
             if not topic:
                 continue
             topic = topic if topic.startswith("/") else f"/{topic}"  # relative: in the root namespace, as the node's
-            info = topics.get(topic)
+            info = topics.get(recorded_as.get(topic, topic))
             if info is None or info.count == 0:  # an optional topic recorded empty is absent too (colour: said)
                 if required:
                     missing.append(topic)
@@ -128,6 +132,7 @@ class TopicRouter:
                                "each its own topic with --params")
             msg_class = None if msgtype == _TF_MSGTYPE else message_class(msgtype)
             self.routes[topic] = Route(topic, (*route.targets, target) if route else (target,), msgtype, msg_class)
+            self._recorded[recorded_as.get(topic, topic)] = topic
         if missing:
             have = sorted(topics)
             shown = ", ".join(have[:12]) + (f" (+{len(have) - 12} more)" if len(have) > 12 else "")
@@ -135,7 +140,7 @@ class TopicRouter:
                       "before the recording started?)" if empty else "")
             raise BagError(f"{self.bag_path}: no messages on {', '.join(missing)}{listed}; the bag has: "
                            f"{shown or 'no topics'}; " + self._missing_hint(missing_params, "/tf" in missing, topics))
-        self.ignored = {t: i.msgtype for t, i in topics.items() if t not in self.routes}
+        self.ignored = {t: i.msgtype for t, i in topics.items() if t not in self._recorded}
         self._typestore: Any = None
 
     @staticmethod
@@ -174,14 +179,15 @@ class TopicRouter:
 
     @property
     def topics(self) -> set[str]:
-        return set(self.routes)
+        """The routed topics as the bag names them."""
+        return set(self._recorded)
 
     def decode(self, msg: BagMessage) -> tuple[Route, Any] | None:
         """(route, message), or None for an unrouted topic or bytes that do not deserialise. Messages
         are rclpy's classes (what a live subscription delivers), TF messages rosbags' own."""
         from rclpy.serialization import deserialize_message
 
-        route = self.routes.get(msg.topic)
+        route = self.routes.get(self._recorded.get(msg.topic, ""))
         if route is None or normalize_msgtype(msg.msgtype) != route.msgtype:  # unrouted, or another type
             return None
         try:
@@ -193,9 +199,9 @@ class TopicRouter:
                 return route, self._typestore.deserialize_cdr(msg.data, route.msgtype)
             return route, deserialize_message(msg.data, route.msg_class)
         except Exception:
-            self.undecodable[msg.topic] = self.undecodable.get(msg.topic, 0) + 1
+            self.undecodable[route.topic] = self.undecodable.get(route.topic, 0) + 1
             if not is_cdr(msg.data):
-                self.not_cdr.add(msg.topic)
+                self.not_cdr.add(route.topic)
             return None
 
     @staticmethod
@@ -289,8 +295,15 @@ def _replay(bag: str | Path, out: Path, settings: P.Settings, *, gt: str | Path 
         engine = SenFuNet(engine_config(settings, tsdf_fusion=compare, alpha_dtype="float32",
                                         feature_dtype="float32", **bound),
                           weights=engine_weights(settings))
+        warnings: list[str] = []  # the pipeline's (a camera frame_id that is no optical frame, a restart...)
+
+        def pipeline_log(level: str, text: str) -> None:
+            if level != "error":
+                warnings.append(text)
+            log(text if level == "error" else f"{level}: {text}")
+
         pipeline = Pipeline(engine, Ingest(ingest_config(settings)), on_time_jump=settings.on_time_jump,
-                            log=lambda level, text: log(text) if level == "error" else None)
+                            log=pipeline_log)
         run = _fuse(bag, settings, pipeline, progress=progress, log=log, stop=stop)
     finally:
         torch.set_num_threads(previous_threads)
@@ -329,7 +342,8 @@ def _replay(bag: str | Path, out: Path, settings: P.Settings, *, gt: str | Path 
     metrics, gt_info = _metrics(gt_vertices, gt, gt_mesh, result.meshes, timings)
     timings["total_s"] = round(time.perf_counter() - t_start, 3)
     result.stats = _stats(result, run, pipeline, settings, counters, params=params, threads=threads,
-                          gt_info=gt_info, metrics=metrics, timings=timings, engine_stats=engine_stats)
+                          gt_info=gt_info, metrics=metrics, timings=timings, engine_stats=engine_stats,
+                          warnings=warnings)
     with atomic_file(out / "stats.json") as file:  # whole or not at all (a full disk), as the meshes
         file.write((json.dumps(result.stats, indent=2, default=_json_default) + "\n").encode())
     os.chmod(out / "stats.json", FILE_MODE)
@@ -456,7 +470,7 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                         for name, stream in route.targets:
                             pipeline.dispatch(name, stream, message)
                     except ValueError:  # a malformed message: Ingest refuses it like the node's callback
-                        router.undecodable[msg.topic] = router.undecodable.get(msg.topic, 0) + 1
+                        router.undecodable[route.topic] = router.undecodable.get(route.topic, 0) + 1
                         continue
                     if route.targets[0][1] != "camera_info" and pipeline.drain(ingest.pop_ready()):
                         bar.set_postfix(frames=pipeline.frames_integrated, refresh=False)
@@ -505,7 +519,7 @@ def _metrics(gt_vertices: Any, gt: str | Path | None, gt_mesh: Any, meshes: dict
 def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Settings,
            counters: dict[str, dict[str, Any]], *, params: str | Path | None, threads: int,
            gt_info: dict[str, Any] | None, metrics: dict[str, Any] | None,
-           timings: dict[str, Any], engine_stats: dict[str, Any]) -> dict[str, Any]:
+           timings: dict[str, Any], engine_stats: dict[str, Any], warnings: list[str]) -> dict[str, Any]:
     sensors = {}
     for name, c in counters.items():
         sensors[name] = {
@@ -547,6 +561,7 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
                    for t, r in sorted(router.routes.items())},
         "ignored_topics": dict(sorted(router.ignored.items())),
         "time_jumps": pipeline.time_jumps,
+        "warnings": warnings,  # what the run warned about (also printed as it came)
         "engine_errors": pipeline.engine_errors,
         "engine": engine_stats,
         "meshes": {stem: {"file": str(result.files[stem]), "vertices": m.n_vertices, "faces": m.n_faces}

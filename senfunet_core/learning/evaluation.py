@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..grid import BLOCK, BLOCK_VOXELS, block_keys
+from ..grid import BLOCK, BLOCK_VOXELS, block_keys, within_key_range
 from ..metrics import grid_metrics, mesh_metrics
 from ..networks import N_FEATURE_CHANNELS
 from ..readout import voxel_values
@@ -60,8 +60,11 @@ ABLATION_LABELS = {
 
 def observed_gt_vertices(engine, gt_vertices: np.ndarray) -> np.ndarray:
     """GT mesh vertices whose nearest voxel was observed by any sensor (a sensor's weight > 0; the same
-    voxels as the TSDF Fusion baseline's weight > 0, which an engine without the baseline lacks)."""
+    voxels as the TSDF Fusion baseline's weight > 0, which an engine without the baseline lacks). A
+    vertex that is NaN or inf, or beyond the map's reach (`grid.within_key_range`), was not observed."""
     v = np.asarray(gt_vertices, np.float64).reshape(-1, 3)
+    v = v[np.isfinite(v).all(axis=1)]
+    v = v[within_key_range(np.floor(np.round(v / engine.config.voxel_size_m) / BLOCK))]
     if len(v) == 0:
         return v.astype(np.float32)
     grid = engine.grid

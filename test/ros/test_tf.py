@@ -90,9 +90,13 @@ def test_a_slow_link_is_interpolated_over_its_interval_and_a_hole_in_a_fast_one_
         tf.lookup("map", "base_link", 2 * S + S // 4)
 
 
-def _tf_only_copy(src: Path, dst: Path) -> None:
+def _tf_only_copy(src: Path, dst: Path, *, static_rig: bool = False, relative_names: bool = False,
+                  camera_frame: str = "{}_optical_frame") -> None:
     """The recording with its pose topics replaced by /tf (map -> odom static, odom -> base_link
-    moving, from each sensor's poses) and /tf_static (the camera mounts on base_link)."""
+    moving, from each sensor's poses) and /tf_static (the camera mounts on base_link). static_rig: no
+    /tf, the base held in /tf_static where the first pose put it (a fixed rig: the frames are posed
+    there); relative_names: topics recorded without their leading '/' ('tof/depth'); camera_frame: the
+    cameras' frame names (format of the sensor's name), in the tree and the depth images' frame_id."""
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -110,33 +114,45 @@ def _tf_only_copy(src: Path, dst: Path) -> None:
                 translation=T_["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
                 rotation=T_["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
 
+    from senfunet_ros.geometry import transform_from_tq
+
+    def T_odom_base(msg: object) -> tuple[object, np.ndarray]:  # a pose message's stamp and base (map = odom)
+        pose = store.deserialize_cdr(msg.data, msg.msgtype)
+        p, o = pose.pose.position, pose.pose.orientation
+        T_world_cam = transform_from_tq([p.x, p.y, p.z], [o.x, o.y, o.z, o.w], "pose")
+        return pose.header.stamp, T_world_cam @ invert_transform(mounts[msg.topic.split("/")[1]])
+
     TFMessage = T_["tf2_msgs/msg/TFMessage"]
     with open_bag(src) as reader, Writer(dst, version=9) as writer:
+        first_base = next(T_odom_base(m)[1] for m in reader.messages() if m.topic.endswith("/pose"))
         conns = {}
         for msg in reader.messages():
             if msg.topic.endswith("/pose"):
-                pose = store.deserialize_cdr(msg.data, msg.msgtype)
-                p, o = pose.pose.position, pose.pose.orientation
-                from senfunet_ros.geometry import transform_from_tq
-
-                T_world_cam = transform_from_tq([p.x, p.y, p.z], [o.x, o.y, o.z, o.w], "pose")
-                sensor = msg.topic.split("/")[1]
-                T_odom_base = T_world_cam @ invert_transform(mounts[sensor])  # map = odom here
-                moving = transform("odom", "base_link", pose.header.stamp, T_odom_base)
-                topic, out = "/tf", TFMessage(transforms=[moving])
+                if static_rig:
+                    continue
+                stamp, T = T_odom_base(msg)
+                topic, out = "/tf", TFMessage(transforms=[transform("odom", "base_link", stamp, T)])
             else:
                 topic, out = msg.topic, None
+            data = msg.data
+            if msg.topic.endswith("/depth") and camera_frame != "{}_optical_frame":
+                image = store.deserialize_cdr(msg.data, msg.msgtype)
+                image.header.frame_id = camera_frame.format(msg.topic.split("/")[1])
+                data = store.serialize_cdr(image, msg.msgtype)
             if "/tf_static" not in conns:  # latched mounts, recorded first
                 stamp = T_["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
-                static = TFMessage(transforms=[transform("map", "odom", stamp, np.eye(4))] + [
-                    transform("base_link", f"{s}_optical_frame", stamp, mounts[s]) for s in mounts])
-                conns["/tf_static"] = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=store)
+                held = [transform("odom", "base_link", stamp, first_base)] if static_rig else []
+                static = TFMessage(transforms=[transform("map", "odom", stamp, np.eye(4))] + held + [
+                    transform("base_link", camera_frame.format(s), stamp, mounts[s]) for s in mounts])
+                conns["/tf_static"] = writer.add_connection("tf_static" if relative_names else "/tf_static",
+                                                            "tf2_msgs/msg/TFMessage", typestore=store)
                 writer.write(conns["/tf_static"], msg.log_time_ns - 1,
                              store.serialize_cdr(static, "tf2_msgs/msg/TFMessage"))
             if topic not in conns:
                 msgtype = "tf2_msgs/msg/TFMessage" if out is not None else msg.msgtype
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
-            data = store.serialize_cdr(out, "tf2_msgs/msg/TFMessage") if out is not None else msg.data
+                recorded = topic.lstrip("/") if relative_names else topic
+                conns[topic] = writer.add_connection(recorded, msgtype, typestore=store)
+            data = store.serialize_cdr(out, "tf2_msgs/msg/TFMessage") if out is not None else data
             writer.write(conns[topic], msg.log_time_ns, data)
 
 
@@ -174,6 +190,37 @@ def test_tf_only_bag_replays_to_the_pose_topic_mesh(tmp_path: Path) -> None:
     # without the mounts the bag cannot be posed: every frame is dropped, and replay says so
     assert broken.returncode == 2 and "no frame could be fused" in broken.stderr
 
+
+
+def test_a_fixed_rigs_static_tree_and_topics_recorded_without_their_slash_replay_and_warnings_are_kept(
+        tmp_path: Path) -> None:
+    """A fixed rig whose whole tree is on /tf_static was refused ("no messages on /tf"); topics a recorder
+    wrote as 'tof/depth' could not be named at all (the parameter became /tof/depth again); the pipeline's
+    warnings (a camera frame that is no optical frame, a restart) never reached replay's output."""
+    import json
+
+    from senfunet_core.learning import simulator as sim
+
+    seq = sim.simulate_sequence(sim.make_scene(7), 7, duration_s=0.5, width=96, height=96, tof_rate_hz=8,
+                                stereo_rate_hz=8)
+    poses_bag = write_sequence_bag(seq, tmp_path / "poses")
+    variants = {"slashes": {}, "static": {"static_rig": True}, "relative": {"relative_names": True},
+                "links": {"camera_frame": "{}_link"}}
+    for name, options in variants.items():
+        _tf_only_copy(poses_bag, tmp_path / name, **options)
+    tf_params = _write(tmp_path / "tf.yaml", PARAMS + "    pose_type: tf\n")
+    runs = {name: replay_in_process(tmp_path / name, tmp_path / f"out_{name}", tf_params) for name in variants}
+    for name, run in runs.items():
+        assert run.returncode == 0, (name, run.stderr)
+    stats = {name: json.loads((tmp_path / f"out_{name}" / "stats.json").read_text()) for name in variants}
+    for name in variants:
+        fused = {s: c["integrated"] for s, c in stats[name]["sensors"].items()}
+        assert fused == {s: c["received"] for s, c in stats[name]["sensors"].items()} and min(fused.values()) > 0
+    assert ((tmp_path / "out_relative" / "mesh.ply").read_bytes()
+            == (tmp_path / "out_slashes" / "mesh.ply").read_bytes())
+    assert stats["slashes"]["warnings"] == [] and "optical" not in runs["slashes"].stderr
+    (warning,) = [w for w in stats["links"]["warnings"] if "'tof_link'" in w]
+    assert "tof.T_body_camera" in warning and "'tof_link'" in runs["links"].stderr
 
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)

@@ -69,6 +69,11 @@ def test_gt_crop_keeps_only_observed_vertices(tsdf_fusion):
     far = np.array([[3.0, 3.0, 3.0]], np.float32)
     kept = ev.observed_gt_vertices(engine, np.concatenate([on_plane, far]))
     assert len(kept) == 2 and np.allclose(kept, on_plane)
+    # a NaN, an inf or a vertex in UTM coordinates, beyond the map's reach, was observed by no sensor: it
+    # raised "points lie more than 5 km from the origin" (blaming the poses), and replay --gt lost its run
+    unusable = np.array([[np.nan, 0.0, 1.0], [np.inf, 0.0, 1.0], [4.5e5, 5.4e6, 30.0], [1e300, 0.0, 0.0]])
+    kept = ev.observed_gt_vertices(engine, np.concatenate([on_plane, unusable]))
+    assert len(kept) == 2 and np.allclose(kept, on_plane)
 
 
 def test_grid_truth_lookup_equals_gt_tsdf_at_the_voxel_centres():
