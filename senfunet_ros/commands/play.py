@@ -8,6 +8,7 @@ import time
 HELP = "publish a recorded bag on its topics with /clock (for nodes using use_sim_time), at a chosen rate"
 
 _CLOCK_PERIOD_S = 0.01  # /clock keeps ticking at this (wall) period while waiting for the next message
+_SKIPPED_GAP_NS = 86_400 * 10**9  # log times a day apart: a recorder's clock error (log time 0), no pause to wait
 # Our writers matching a subscriber (what --wait-subscribers sees) does not mean that its reader has
 # matched our writers yet, and a best-effort reader drops whatever arrives before it has. The other
 # side follows soon, later on a loaded machine (the streamed node test lost its first poses without
@@ -55,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
 def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader, imported lazily
     import rclpy
     from rclpy.executors import ExternalShutdownException
+    from rclpy.exceptions import InvalidTopicNameException
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     from senfunet_ros.bagio import BagError
@@ -78,10 +80,18 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         # transient-local where the recording's publisher was (a latched /tf_static: its subscribers
         # ask for transient-local, which a volatile writer does not match)
         topics = reader.topics
-        publishers = {t: node.create_publisher(cls, t, QoSProfile(
-            history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL if topics[t].latched or t == "/tf_static"
-            else DurabilityPolicy.VOLATILE)) for t, cls in classes.items()}
+        publishers = {}
+        for t, cls in list(classes.items()):
+            try:
+                publishers[t] = node.create_publisher(cls, t, QoSProfile(
+                    history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL if topics[t].latched or t == "/tf_static"
+                    else DurabilityPolicy.VOLATILE))
+            except InvalidTopicNameException as err:  # a name another middleware allowed ('color-raw')
+                del classes[t]
+                reason = str(err).strip().splitlines()[0]
+                say(f"{t} is no valid ROS 2 topic name ({reason}): not published; rename it (ros2 bag convert, "
+                    "or rosbags' tools) to play it")
         for topic in classes:
             if len(topics[topic].types) > 1:
                 others = ", ".join(f"{n} {t}" for t, n in topics[topic].types.items() if t != topics[topic].msgtype)
@@ -109,11 +119,15 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
             f"at rate {args.rate:g}{' in a loop' if args.loop else ''}")
         total, passes, broken = 0, 0, None
         while True:
+            gaps: list[tuple[int, int]] = []
             published, broken, not_cdr = _play_once(reader, publishers, publish_clock, rate=args.rate,
-                                                    types={t: topics[t].msgtype for t in publishers})
+                                                    types={t: topics[t].msgtype for t in publishers}, gaps=gaps)
             total += published
             passes += 1
             if passes == 1:
+                for before_ns, after_ns in gaps:
+                    say(f"the log times jump from {before_ns * 1e-9:.3f} s to {after_ns * 1e-9:.3f} s (a recorder's "
+                        "clock error, such as messages logged at 0?): played without waiting for the gap")
                 for topic, n in sorted(not_cdr.items()):
                     say(f"{n} message(s) on {topic} are not ROS 2 serialised messages (CDR): ROS 1 or JSON data? "
                         "They were not published; convert the bag (rosbags-convert) or record it with ros2 bag")
@@ -185,10 +199,11 @@ def _wait_for_subscribers(publishers: dict, timeout_s: float, say) -> None:  # n
 
 
 def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa: ANN001
-               types: dict[str, str]) -> tuple[int, str | None, dict[str, int]]:
+               types: dict[str, str], gaps: list[tuple[int, int]]) -> tuple[int, str | None, dict[str, int]]:
     """One pass through the bag at `rate`, ticking /clock while it waits: the messages published
     (of each topic, those of its type in `types`), where the bag broke (None if it did not), and per
-    topic the messages left out because they are not CDR (a subscriber could not read them).
+    topic the messages left out because they are not CDR (a subscriber could not read them). A gap
+    of log times longer than _SKIPPED_GAP_NS is not waited through; `gaps` gets its ends.
     ExternalShutdownException when Ctrl-C or SIGTERM shut rclpy down."""
     from senfunet_ros.bagio import is_cdr, normalize_msgtype
 
@@ -202,6 +217,7 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa:
     publish_clock(start_ns)
     published = 0
     not_cdr: dict[str, int] = {}
+    last_ns = start_ns
     try:
         for msg in reader.messages(publishers.keys()):
             if normalize_msgtype(msg.msgtype) != types[msg.topic]:
@@ -209,6 +225,10 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa:
             if not is_cdr(msg.data):
                 not_cdr[msg.topic] = not_cdr.get(msg.topic, 0) + 1
                 continue
+            if msg.log_time_ns - last_ns > _SKIPPED_GAP_NS:  # a clock error (log times of 0), not a pause: skipped
+                gaps.append((last_ns, msg.log_time_ns))
+                start_ns += msg.log_time_ns - last_ns
+            last_ns = max(last_ns, msg.log_time_ns)
             due = wall0 + (msg.log_time_ns - start_ns) * 1e-9 / rate
             while True:  # sleep until due, ticking /clock meanwhile
                 wait = due - time.monotonic()

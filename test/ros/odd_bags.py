@@ -112,3 +112,23 @@ def compressed(src: Path, dst: Path, how: str) -> Path:
             writer.add_message(channels[msg.topic], msg.log_time_ns, msg.data, msg.log_time_ns, i)
         writer.finish()
     return dst
+
+
+def clock_error_and_bad_name(src: Path, dst: Path) -> Path:
+    """`src` as an mcap whose recorder logged a pose topic's first three messages at time 0 (a clock not
+    yet set: the log times then jump by decades) and named the colour topic '/stereo/color-raw', a name
+    that ROS 2 refuses (another middleware's bridge allowed it)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    with open_bag(src) as reader, Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        infos, conns, zeroed = reader.topics, {}, 0
+        for msg in reader.messages():
+            topic = "/stereo/color-raw" if msg.topic == "/stereo/color" else msg.topic
+            if topic not in conns:
+                info = infos[msg.topic]
+                conns[topic] = writer.add_connection(topic, msg.msgtype, msgdef=info.msgdef, rihs01=info.digest)
+            log_time_ns = msg.log_time_ns
+            if msg.topic == "/tof/pose" and zeroed < 3:
+                log_time_ns, zeroed = 0, zeroed + 1
+            writer.write(conns[topic], log_time_ns, msg.data)
+    return dst

@@ -87,6 +87,26 @@ def _play_to(listener: _Listener, bag: Path, counts: dict[str, int], *extra: str
     return proc.returncode, stderr
 
 
+
+def test_play_skips_a_clock_errors_gap_and_a_topic_ros_cannot_name(prefix: Path, tmp_path: Path, ros_domain_id: int):
+    """Three messages logged at time 0 (a recorder whose clock was not yet set): play waited the decades
+    to the next log time; a topic named '/stereo/color-raw' (no valid ROS 2 name): play died with a
+    traceback. Now the gap is played without waiting and said, the topic left out and said."""
+    import odd_bags
+
+    bag = odd_bags.clock_error_and_bad_name(prefix, tmp_path / "bag")
+    with open_bag(prefix) as reader:
+        topics = {t: i.msgtype for t, i in reader.topics.items() if t != "/stereo/color"}
+        counts = {t: i.count for t, i in reader.topics.items() if t != "/stereo/color"}
+    assert len(topics) >= 4
+    listener = _Listener(topics)
+    started = time.monotonic()
+    returncode, stderr = _play_to(listener, bag, counts, "--rate", "4")
+    assert returncode == 0, stderr
+    assert time.monotonic() - started < 45 and listener.counts == counts
+    assert "/stereo/color-raw is no valid ROS 2 topic name" in stderr and "Traceback" not in stderr
+    assert "the log times jump from 0.000 s" in stderr
+
 def test_play_publishes_every_message_with_clock(prefix: Path, ros_domain_id: int):
     with open_bag(prefix) as reader:
         topics = {t: i.msgtype for t, i in reader.topics.items()}
