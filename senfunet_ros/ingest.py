@@ -739,8 +739,14 @@ class Ingest:
         if added.conflicts:
             drops.append(("pose_conflict", len(added.conflicts), f"tf: {added.conflicts[0]}"))
         with self._lock:
+            first = self._sensors[self.config.sensors[0]]
             for reason, count, error in drops:
-                self._sensors[self.config.sensors[0]].drop(reason, error, n=count)
+                first.drop(reason, error, n=count)
+            if added.alternating:  # said on the first sensor too (a transform serves them all)
+                first.counters.notes.setdefault("tf_alternates", (
+                    f"tf: {added.alternating[0]}, back where the one two before was, as when two publishers of "
+                    "one link interleave (an EKF and raw odometry both publishing odom -> base_link?): frames are "
+                    "posed between both and the map smears; make one stop"))
         return drops[0][0] if drops else None
 
     def add_pose(self, sensor: str, msg: Any) -> str | None:

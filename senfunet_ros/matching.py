@@ -12,12 +12,12 @@ import numpy as np
 
 from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, pose_difference, pose_jump
 
-__all__ = ["ColorBuffer", "PoseBuffer", "pose_conflict"]
+__all__ = ["ColorBuffer", "PoseBuffer", "alternation_m", "pose_conflict"]
 
 # a pose republished at its stamp differs from the first beyond this (metres, and the rotation
 # matrices' entries): float noise of a re-encoded message stays far below
 _SAME_POSE_TOL = 1e-6
-# poses that zig-zag (`PoseBuffer.alternation_m`): over this many of the newest, neighbours typically this far
+# poses that zig-zag (`alternation_m`): over this many of the newest, neighbours typically this far
 # apart (motion between two poses of one stream is far less), each typically within this share of that step of
 # the pose two before it (a stream moving on goes twice the step in two)
 _ALTERNATION_POSES = 12
@@ -37,6 +37,21 @@ def pose_conflict(first: np.ndarray, again: np.ndarray) -> str | None:
     moved_m, turned_deg = pose_difference(first, again)
     return (f"another pose for a stamp already given ({moved_m:.3f} m, {turned_deg:.2f} deg from the first, which "
             "is kept); check the driver: two publishers on one topic, or one that rewrites its past poses?")
+
+
+def alternation_m(poses: list[np.ndarray]) -> float | None:
+    """When the newest of these poses (4x4, in stamp order) zig-zag (each about where the one two before
+    it was, and the typical step between neighbours at least _ALTERNATION_MIN_STEP_M): that step, in
+    metres; else None. Two publishers of one pose or TF link give that (a localiser and an odometry,
+    interleaved): interpolated between them, every frame lies on a smear between two trajectories, and
+    no jump check sees it, as the same step comes every time."""
+    if len(poses) < _ALTERNATION_POSES:
+        return None
+    positions = np.array([T[:3, 3] for T in poses[-_ALTERNATION_POSES:]], np.float64)
+    step_m = float(np.median(np.linalg.norm(np.diff(positions, axis=0), axis=1)))
+    return_m = float(np.median(np.linalg.norm(positions[2:] - positions[:-2], axis=1)))
+    alternates = step_m >= _ALTERNATION_MIN_STEP_M and return_m < _ALTERNATION_RETURN_SHARE * step_m
+    return step_m if alternates else None
 
 
 class PoseBuffer:
@@ -65,18 +80,8 @@ class PoseBuffer:
         return self._stamps[-1] if self._stamps else None
 
     def alternation_m(self) -> float | None:
-        """When the newest poses zig-zag (each about where the one two before it was, and the typical
-        step between neighbours at least _ALTERNATION_MIN_STEP_M): that step, in metres; else None.
-        Two publishers on one topic give that (a localiser and an odometry, interleaved): interpolated
-        between them, every frame lies on a smear between two trajectories, and no jump check sees it,
-        as the same step comes every time."""
-        if len(self._poses) < _ALTERNATION_POSES:
-            return None
-        positions = np.array([T[:3, 3] for T in self._poses[-_ALTERNATION_POSES:]], np.float64)
-        step_m = float(np.median(np.linalg.norm(np.diff(positions, axis=0), axis=1)))
-        return_m = float(np.median(np.linalg.norm(positions[2:] - positions[:-2], axis=1)))
-        alternates = step_m >= _ALTERNATION_MIN_STEP_M and return_m < _ALTERNATION_RETURN_SHARE * step_m
-        return step_m if alternates else None
+        """`alternation_m` of the newest poses."""
+        return alternation_m(self._poses)
 
     def at(self, stamp_ns: int, *, tolerance_ns: int, waited_too_long: bool) -> tuple[np.ndarray | None, str | None]:
         """The pose at a depth stamp, interpolated between the poses around it: (T, None); or

@@ -31,7 +31,7 @@ import numpy as np
 from senfunet_ros.conversions.poses import transform_from_msg
 from senfunet_ros.conversions.stamps import stamp_to_ns
 from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, invert_transform, pose_jump
-from senfunet_ros.matching import pose_conflict
+from senfunet_ros.matching import alternation_m, pose_conflict
 
 __all__ = ["REPARENT_AFTER_S", "TfAdded", "TfBuffer", "TfError", "TfWait", "extrapolate_tf"]
 
@@ -63,6 +63,7 @@ class _Link:
         self.static: np.ndarray | None = None
         self.stamps: list[int] = []  # sorted
         self.transforms: list[np.ndarray] = []
+        self.added = 0  # dynamic transforms taken (every 8th, the link is checked for a zig-zag)
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,9 @@ class TfAdded:
     # dynamic transforms for a stamp their link already had, with another value (the first is kept):
     # what differs, per transform
     conflicts: list[str] = field(default_factory=list)
+    # dynamic links found zig-zagging between two places (two publishers interleaved: `matching.alternation_m`),
+    # each said once: what, and the step
+    alternating: list[str] = field(default_factory=list)
 
 
 class TfBuffer:
@@ -89,6 +93,7 @@ class TfBuffer:
         # the newest stamp of a dynamic transform taken: TF goes on while a camera pauses, so its own
         # stamps, not only the images', tell a stamp far ahead (Ingest.add_tf)
         self.newest_ns: int | None = None
+        self._zig_zagging: set[str] = set()  # links found zig-zagging (said once)
 
     def add_message(self, msg: Any, *, static: bool, latest_ns: int | None = None) -> TfAdded:
         """Every transform of a tf2_msgs/TFMessage (duck-typed) that `add` takes, but dynamic ones
@@ -109,6 +114,11 @@ class TfBuffer:
                 conflict = self.add(tf.header.frame_id, tf.child_frame_id, stamp_ns, T, static=static)
                 if conflict is not None:
                     added.conflicts.append(f"{what} at {stamp_ns * 1e-9:.3f} s: {conflict}")
+                elif not static:
+                    step_m = self._zig_zag(tf.child_frame_id.lstrip("/"))
+                    if step_m is not None:
+                        added.alternating.append(f"{what} zig-zags by about {step_m * 100:.0f} cm between "
+                                                 "consecutive transforms")
             except (ValueError, AttributeError, TypeError) as err:
                 added.refused.append(str(err))
         return added
@@ -154,6 +164,21 @@ class TfBuffer:
             if len(link.stamps) > self.history:
                 del link.stamps[0], link.transforms[0]
             return None
+
+    def _zig_zag(self, child: str) -> float | None:
+        """The step of a dynamic link whose transforms zig-zag (`matching.alternation_m`), checked every
+        8th transform and said once per link; else None."""
+        with self._lock:
+            link = self._links.get(child)
+            if link is None or link.static is not None:
+                return None
+            link.added += 1
+            if link.added % 8 or child in self._zig_zagging:
+                return None
+            step_m = alternation_m(link.transforms)
+            if step_m is not None:
+                self._zig_zagging.add(child)
+            return step_m
 
     def clear(self) -> None:
         """Forget the dynamic transforms (time restarted); static ones stay."""

@@ -664,3 +664,30 @@ def test_a_link_that_jumps_is_not_interpolated_across_the_jump() -> None:
     for k in range(31):  # 10 Hz at 3 m/s: 0.3 m a step, every step
         tf.add("map", "fast", 10 * S + k * S // 10, _rot_z(0.0, (0.3 * k, 0, 0)), static=False)
     assert tf.lookup("map", "fast", 10 * S + 205 * S // 100)[0, 3] == pytest.approx(6.15)
+
+
+def test_two_publishers_of_one_link_interleaved_are_noted() -> None:
+    """An EKF and raw odometry both publishing odom -> base_link, 10 cm apart and interleaved: every frame
+    was posed between the two (the mesh 5 cm off) with nothing said; pose topics said so (pose_alternates).
+    One publisher moving fast is no such thing."""
+    from types import SimpleNamespace
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+
+    def tf_msg(t_ns: int, x: float) -> SimpleNamespace:
+        sec, nanosec = divmod(t_ns, 1_000_000_000)
+        return SimpleNamespace(transforms=[SimpleNamespace(
+            header=SimpleNamespace(frame_id="odom", stamp=SimpleNamespace(sec=sec, nanosec=nanosec)),
+            child_frame_id="base_link", transform=SimpleNamespace(
+                translation=SimpleNamespace(x=x, y=0.0, z=0.0), rotation=SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0)))])
+
+    def notes_after(xs: list[float]) -> dict[str, str]:
+        ingest = Ingest(IngestConfig(sensors=("tof", "stereo"), tf=TfBuffer(max_gap_s=0.1), fixed_frame="odom"))
+        for k, x in enumerate(xs):
+            assert ingest.add_tf(tf_msg(10 * S + k * 10 * MS, x), static=False) is None
+        return ingest.ledger.counters()["tof"]["notes"]
+
+    S, MS = 1_000_000_000, 1_000_000
+    note = notes_after([0.005 * k + (0.1 if k % 2 else 0.0) for k in range(40)]).get("tf_alternates", "")
+    assert "odom -> base_link zig-zags by about 10 cm" in note and "two publishers" in note, note
+    assert "tf_alternates" not in notes_after([0.03 * k for k in range(40)])  # 3 m/s at 100 Hz: one publisher
