@@ -786,9 +786,12 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
     gc.collect()
     gc.freeze()
     recent_races_s: deque[float] = deque(maxlen=_MAX_WAIT_SET_RACES)
+    main_thread = threading.current_thread() is threading.main_thread()
     try:
         while True:
             try:
+                if main_thread:
+                    _SPINNING.set()
                 executor.spin()
                 return
             except InvalidHandle as err:
@@ -807,6 +810,7 @@ def spin(node: FusionNode, num_threads: int = 6) -> None:
                     raise
                 return  # SIGINT/SIGTERM shut the context down while the executor was building its wait set: a stop
     finally:
+        _SPINNING.clear()
         stop_executor(executor)
         gc.unfreeze()
 
@@ -918,7 +922,7 @@ def main(args: list[str] | None = None) -> int:
 
     use_large_shm_profile()  # large mesh messages; set before the participant exists
     prepare_process()  # before the executor's threads exist
-    _sigterm_as_interrupt()  # rclpy's handler calls it too: a SIGTERM during start-up stops it like Ctrl-C
+    _signals_as_interrupt()  # rclpy's handler calls it too: a SIGTERM during start-up stops it like Ctrl-C
     try:
         rclpy.init(args=args)
     except Exception as err:  # noqa: BLE001 (rcl's own: a parameter file or -p it cannot parse)
@@ -946,18 +950,28 @@ def main(args: list[str] | None = None) -> int:
     return 0
 
 
-def _sigterm_as_interrupt() -> None:
-    """SIGTERM raises KeyboardInterrupt in the main thread, as SIGINT does (rclpy's own handler, installed
-    by rclpy.init, shuts the context down and then calls this one): without it a SIGTERM during the
-    start-up (kernel warm-up: seconds, a minute on a first start) went unnoticed until a handle failed."""
+# Set while `spin` runs the executor: a SIGINT or SIGTERM then only shuts the context down (rclpy's own
+# handler), which ends the spin. A KeyboardInterrupt raised there can land inside the executor's thread
+# pool while it holds a lock (ThreadPoolExecutor.submit's idle semaphore), which its worker threads then
+# wait for forever, and the node never stopped (1 in 10 stops under test_stops).
+_SPINNING = threading.Event()
+
+
+def _signals_as_interrupt() -> None:
+    """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread, except while it spins (`_SPINNING`).
+    rclpy's own handler, installed by rclpy.init, shuts the context down and then calls this one:
+    without it a SIGTERM during the start-up (kernel warm-up: seconds, a minute on a first start) went
+    unnoticed until a handle failed. Call before rclpy.init, so that rclpy chains to it."""
     import signal
 
     def interrupt(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
+        if not _SPINNING.is_set():
+            raise KeyboardInterrupt
 
     try:
-        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
-            signal.signal(signal.SIGTERM, interrupt)
+        for sig, default in ((signal.SIGINT, signal.default_int_handler), (signal.SIGTERM, signal.SIG_DFL)):
+            if signal.getsignal(sig) is default:
+                signal.signal(sig, interrupt)
     except ValueError:  # not the main thread
         pass
 

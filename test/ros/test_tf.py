@@ -191,7 +191,6 @@ def test_tf_only_bag_replays_to_the_pose_topic_mesh(tmp_path: Path) -> None:
     assert broken.returncode == 2 and "no frame could be fused" in broken.stderr
 
 
-
 def test_a_fixed_rigs_static_tree_and_topics_recorded_without_their_slash_replay_and_warnings_are_kept(
         tmp_path: Path) -> None:
     """A fixed rig whose whole tree is on /tf_static was refused ("no messages on /tf"); topics a recorder
@@ -221,6 +220,7 @@ def test_a_fixed_rigs_static_tree_and_topics_recorded_without_their_slash_replay
     assert stats["slashes"]["warnings"] == [] and "optical" not in runs["slashes"].stderr
     (warning,) = [w for w in stats["links"]["warnings"] if "'tof_link'" in w]
     assert "tof.T_body_camera" in warning and "'tof_link'" in runs["links"].stderr
+
 
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
