@@ -65,7 +65,7 @@ from collections.abc import Callable, Iterable
 import numpy as np
 
 from senfunet_ros import conversions as conv
-from senfunet_ros.matching import ColorBuffer, PoseBuffer
+from senfunet_ros.matching import ALTERNATION_CHECK_EVERY, ColorBuffer, PoseBuffer
 from senfunet_ros.tf import TfAdded, TfWait, extrapolate_tf
 from senfunet_ros.timeline import Restart, StreamGaps, Timelines
 
@@ -771,8 +771,8 @@ class Ingest:
                 state.counters.notes["pose_frame"] = _pose_frame_note(frame, self.config.fixed_frame)
             reason, held = self._time.on_time(sensor, "pose", stamp_ns, T)
             taken = reason or state.accept(sensor, "pose", stamp_ns, T, self.config)
-            # checked every 8th pose (poses come at up to hundreds per second): once, until it is seen
-            if state.counters.pose_received % 8 == 0 and "pose_alternates" not in state.counters.notes:
+            if (state.counters.pose_received % ALTERNATION_CHECK_EVERY == 0
+                    and "pose_alternates" not in state.counters.notes):
                 step_m = state.poses.alternation_m()
                 if step_m is not None:
                     state.counters.notes["pose_alternates"] = (

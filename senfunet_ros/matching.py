@@ -12,7 +12,7 @@ import numpy as np
 
 from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, pose_difference, pose_jump
 
-__all__ = ["ColorBuffer", "PoseBuffer", "alternation_m", "pose_conflict"]
+__all__ = ["ALTERNATION_CHECK_EVERY", "ColorBuffer", "PoseBuffer", "alternation_m", "pose_conflict"]
 
 # a pose republished at its stamp differs from the first beyond this (metres, and the rotation
 # matrices' entries): float noise of a re-encoded message stays far below
@@ -23,6 +23,7 @@ _SAME_POSE_TOL = 1e-6
 _ALTERNATION_POSES = 12
 _ALTERNATION_MIN_STEP_M = 0.02
 _ALTERNATION_RETURN_SHARE = 0.25
+ALTERNATION_CHECK_EVERY = 8  # poses (a link's transforms) checked at every this many: they come by the hundred a second
 
 
 def pose_conflict(first: np.ndarray, again: np.ndarray) -> str | None:

@@ -31,7 +31,7 @@ import numpy as np
 from senfunet_ros.conversions.poses import transform_from_msg
 from senfunet_ros.conversions.stamps import stamp_to_ns
 from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, invert_transform, pose_jump
-from senfunet_ros.matching import alternation_m, pose_conflict
+from senfunet_ros.matching import ALTERNATION_CHECK_EVERY, alternation_m, pose_conflict
 
 __all__ = ["REPARENT_AFTER_S", "TfAdded", "TfBuffer", "TfError", "TfWait", "extrapolate_tf"]
 
@@ -63,7 +63,8 @@ class _Link:
         self.static: np.ndarray | None = None
         self.stamps: list[int] = []  # sorted
         self.transforms: list[np.ndarray] = []
-        self.added = 0  # dynamic transforms taken (every 8th, the link is checked for a zig-zag)
+        self.added = 0  # dynamic transforms taken (at every ALTERNATION_CHECK_EVERY, checked for a zig-zag)
+        self.zig_zag_said = False  # found zig-zagging (said once)
 
 
 @dataclass(frozen=True)
@@ -93,7 +94,6 @@ class TfBuffer:
         # the newest stamp of a dynamic transform taken: TF goes on while a camera pauses, so its own
         # stamps, not only the images', tell a stamp far ahead (Ingest.add_tf)
         self.newest_ns: int | None = None
-        self._zig_zagging: set[str] = set()  # links found zig-zagging (said once)
 
     def add_message(self, msg: Any, *, static: bool, latest_ns: int | None = None) -> TfAdded:
         """Every transform of a tf2_msgs/TFMessage (duck-typed) that `add` takes, but dynamic ones
@@ -166,18 +166,17 @@ class TfBuffer:
             return None
 
     def _zig_zag(self, child: str) -> float | None:
-        """The step of a dynamic link whose transforms zig-zag (`matching.alternation_m`), checked every
-        8th transform and said once per link; else None."""
+        """The step of a dynamic link whose transforms zig-zag (`matching.alternation_m`), checked at every
+        ALTERNATION_CHECK_EVERY transforms and said once per link; else None."""
         with self._lock:
             link = self._links.get(child)
-            if link is None or link.static is not None:
+            if link is None or link.static is not None or link.zig_zag_said:
                 return None
             link.added += 1
-            if link.added % 8 or child in self._zig_zagging:
+            if link.added % ALTERNATION_CHECK_EVERY:
                 return None
             step_m = alternation_m(link.transforms)
-            if step_m is not None:
-                self._zig_zagging.add(child)
+            link.zig_zag_said = step_m is not None
             return step_m
 
     def clear(self) -> None:

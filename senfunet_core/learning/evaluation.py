@@ -64,11 +64,13 @@ def observed_gt_vertices(engine, gt_vertices: np.ndarray) -> np.ndarray:
     vertex that is NaN or inf, or beyond the map's reach (`grid.within_key_range`), was not observed."""
     v = np.asarray(gt_vertices, np.float64).reshape(-1, 3)
     v = v[np.isfinite(v).all(axis=1)]
-    v = v[within_key_range(np.floor(np.round(v / engine.config.voxel_size_m) / BLOCK))]
+    nearest = np.round(v / engine.config.voxel_size_m)  # float: a far vertex's would not fit in int64
+    reachable = within_key_range(np.floor(nearest / BLOCK))
+    v, nearest = v[reachable], nearest[reachable]
     if len(v) == 0:
         return v.astype(np.float32)
     grid = engine.grid
-    vox = torch.from_numpy(np.round(v / engine.config.voxel_size_m).astype(np.int64))
+    vox = torch.from_numpy(nearest.astype(np.int64))
     blocks = torch.div(vox, BLOCK, rounding_mode="floor")
     local = vox - blocks * BLOCK
     slots = grid.lookup(blocks)
