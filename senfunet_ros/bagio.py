@@ -138,8 +138,16 @@ def _payload(data: bytes) -> bytes:
     return data
 
 
+# the DDS type name a writer may record instead of the ROS one: sensor_msgs::msg::dds_::Image_
+_DDS_TYPE_NAME = re.compile(r"^(\w+)::(\w+)::dds_::(\w+)_$")
+
+
 def normalize_msgtype(msgtype: str) -> str:
-    """`pkg/Name` (ROS 1 style) -> `pkg/msg/Name`; ROS 2 names unchanged."""
+    """`pkg/Name` (ROS 1 style) and `pkg::msg::dds_::Name_` (DDS style) -> `pkg/msg/Name`; ROS 2
+    names unchanged."""
+    dds = _DDS_TYPE_NAME.match(msgtype)
+    if dds:
+        return "/".join(dds.groups())
     parts = msgtype.split("/")
     if len(parts) == 2:
         return f"{parts[0]}/msg/{parts[1]}"

@@ -139,16 +139,22 @@ class TopicRouter:
             listed = (f" ({', '.join(empty)} listed, but recorded without a message: a latched topic published "
                       "before the recording started?)" if empty else "")
             raise BagError(f"{self.bag_path}: no messages on {', '.join(missing)}{listed}; the bag has: "
-                           f"{shown or 'no topics'}; " + self._missing_hint(missing_params, "/tf" in missing, topics))
+                           f"{shown or 'no topics'}; " + self._missing_hint(missing_params, "/tf" in missing, topics,
+                                                                              routed=set(self._recorded)))
         self.ignored = {t: i.msgtype for t, i in topics.items() if t not in self._recorded}
         self._typestore: Any = None
 
     @staticmethod
-    def _missing_hint(params: list[str], no_tf: bool, topics: dict[str, TopicInfo]) -> str:
-        """What to do about missing topics: the parameters that name them, and for a bag without /tf
-        under pose_type tf, the pose topics it has instead."""
+    def _missing_hint(params: list[str], no_tf: bool, topics: dict[str, TopicInfo], *, routed: set[str]) -> str:
+        """What to do about missing topics: the parameters that name them, for a bag of one sensor's
+        depth that it needs two, and for a bag without /tf under pose_type tf, the pose topics it has
+        instead. `routed`: the bag's topics already taken."""
         hints = []
-        if params:
+        other_images = [t for t, i in topics.items() if t not in routed and normalize_msgtype(i.msgtype) in _IMAGES]
+        if any(param.endswith(".depth_topic") for param in params) and not other_images:
+            hints.append("the bag holds no other image topic: SenFuNet fuses the depth of two sensors and this "
+                         "recording has one sensor's; record both sensors' topics")
+        elif params:
             hints.append(f"set {', '.join(params)} to the bag's topics with --params")
         if "/tf" in topics and any(param.endswith(".pose_topic") for param in params):
             hints.append("the bag has /tf: for poses from TF, set pose_type: tf with --params")

@@ -137,10 +137,12 @@ def test_folder_without_metadata_reads_its_file(prefix: Path, tmp_path: Path):
 
 
 def _mcap_as_another_writer_writes_it(src: Path, dst: Path, *, extra: list[tuple[str, str, bytes]] = (),
-                                      profile: str = "ros2", indexed: bool = False) -> list[tuple[str, int, str]]:
+                                      profile: str = "ros2", indexed: bool = False, dds_type_names: bool = False
+                                      ) -> list[tuple[str, int, str]]:
     """The bag rewritten with the mcap library (by default without a summary: no index), two
     messages of different topics swapped out of time order, and `extra` (topic, type, data)
-    messages appended; returns what was written, as _digest gives it."""
+    messages appended; returns what was written, as _digest gives it. `dds_type_names`: schemas
+    named as DDS names the types (sensor_msgs::msg::dds_::Image_)."""
     from mcap.writer import IndexType, Writer
 
     with open_bag(src) as reader:
@@ -155,7 +157,9 @@ def _mcap_as_another_writer_writes_it(src: Path, dst: Path, *, extra: list[tuple
 
         def channel(topic: str, msgtype: str, msgdef: str) -> int:
             if (topic, msgtype) not in channels:
-                schema = writer.register_schema(msgtype, "ros2msg", msgdef.encode())
+                package, kind, name = msgtype.split("/")
+                schema = writer.register_schema(f"{package}::{kind}::dds_::{name}_" if dds_type_names else msgtype,
+                                                "ros2msg", msgdef.encode())
                 channels[(topic, msgtype)] = writer.register_channel(topic, "cdr", schema)
             return channels[(topic, msgtype)]
 
@@ -186,6 +190,19 @@ def test_mcap_of_another_writer_without_an_index_or_profile_reads_in_file_order(
     ref, got = _replay(prefix, tmp_path / "ref", tiny_params), _replay(unindexed, tmp_path / "got", tiny_params)
     assert ref.returncode == 0 and got.returncode == 0, got.stderr
     assert ref.stdout.splitlines()[:2] == got.stdout.splitlines()[:2]  # the same frames fused
+
+
+def test_types_recorded_with_their_dds_names_are_the_ros_types(prefix: Path, tmp_path: Path, tiny_params: Path):
+    """A writer that names the types as DDS does (sensor_msgs::msg::dds_::CameraInfo_): the bag
+    reads and replays as the same bag with ROS type names (it was refused, the type 'unknown here')."""
+    dds = tmp_path / "dds.mcap"
+    _mcap_as_another_writer_writes_it(prefix, dds, indexed=True, dds_type_names=True)
+    with open_bag(prefix) as reader:
+        expected = {topic: info.msgtype for topic, info in reader.topics.items()}
+    with open_bag(dds) as reader:
+        assert {topic: info.msgtype for topic, info in reader.topics.items()} == expected
+    ref, got = _replay(prefix, tmp_path / "ref", tiny_params), _replay(dds, tmp_path / "got", tiny_params)
+    assert got.returncode == 0 and ref.stdout.splitlines()[:2] == got.stdout.splitlines()[:2], got.stderr
 
 
 def test_a_topic_recorded_with_two_types_fuses_the_type_the_node_takes_and_says_so(prefix: Path, tmp_path: Path,
@@ -348,10 +365,13 @@ def test_truncated_mcap_raises_broken_error_midway(prefix: Path, tmp_path: Path)
 
 
 def test_bag_without_expected_topics(prefix: Path, tmp_path: Path, tiny_params: Path):
+    """A bag of one sensor: the missing topics, and that SenFuNet needs a second sensor's depth (the
+    error sent the user to name the bag's topics in the parameters, of a bag without them)."""
     tof_only = copy_bag(prefix, tmp_path / "tof_only", topics=["/tof/depth", "/tof/camera_info", "/tof/pose"])
     line = _one_line_error(_replay(tof_only, tmp_path / "out", tiny_params))
     assert "no messages on /stereo/camera_info, /stereo/depth, /stereo/pose" in line
-    assert "--params" in line
+    assert "SenFuNet fuses the depth of two sensors and this recording has one sensor's" in line
+    assert "--params" not in line
 
 
 def test_missing_topics_name_the_parameters_to_set(prefix: Path):
