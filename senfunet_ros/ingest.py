@@ -66,7 +66,7 @@ import numpy as np
 
 from senfunet_ros import conversions as conv
 from senfunet_ros.matching import ALTERNATION_CHECK_EVERY, ColorBuffer, PoseBuffer
-from senfunet_ros.tf import TfAdded, TfWait, extrapolate_tf
+from senfunet_ros.tf import TfAdded, TfNotConnected, TfWait, extrapolate_tf
 from senfunet_ros.timeline import Restart, StreamGaps, Timelines
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "StreamEnd", "Ingest",
@@ -1158,10 +1158,15 @@ def _tf_pose(config: IngestConfig, pending: _Pending, *, waited_too_long: bool
     except TfWait as err:
         if not waited_too_long:
             return None, None, ""
+        waited = f"tf: {err}; the frame waited pose_max_wait_s ({config.pose_max_wait_s:g} s) of stream time"
+        if isinstance(err, TfNotConnected):
+            return None, "pose_timeout", (
+                f"{waited} for transforms that join the two frames: they came later than that or not at all (a "
+                "robot_state_publisher or static_transform_publisher started after the cameras, or not running?)")
         return None, "pose_timeout", (
-            f"tf: {err}; the frame waited pose_max_wait_s ({config.pose_max_wait_s:g} s) of stream time: a link "
-            "published less often than that (a localiser's map -> odom) needs a larger pose_max_wait_s (above its "
-            "interval and latency) or a fixed_frame below it (odom); a link whose publisher stopped needs it back")
+            f"{waited}: a link published less often than that (a localiser's map -> odom) needs a larger "
+            "pose_max_wait_s (above its interval and latency) or a fixed_frame below it (odom); a link whose "
+            "publisher stopped needs it back")
     except ValueError as err:  # TfError: a gap, or no frame_id
         return None, "pose_gap", f"tf: {err}"
 

@@ -166,7 +166,7 @@ class _Tf2Lookup:
     def lookup(self, target: str, source: str, stamp_ns: int) -> np.ndarray:
         from rclpy.time import Time
 
-        from senfunet_ros.tf import TfError, TfWait
+        from senfunet_ros.tf import TfError, TfNotConnected, TfWait
 
         # tf2 strips a leading '/' from the frames it is sent (a ROS 1 habit some drivers keep) but refuses
         # one in a lookup (InvalidArgumentException): strip it here too, as the node's own buffer does
@@ -180,7 +180,7 @@ class _Tf2Lookup:
                 raise TfWait(str(err)) from None
             raise TfError(str(err)) from None
         except (self._tf2.LookupException, self._tf2.ConnectivityException) as err:
-            raise TfWait(str(err)) from None
+            raise TfNotConnected(str(err)) from None
         except self._tf2.TransformException as err:  # an invalid frame id, ...: this frame cannot be posed
             raise TfError(f"{type(err).__name__}: {err}") from None
         return conv.transform_from_msg(tf.transform.translation, tf.transform.rotation,

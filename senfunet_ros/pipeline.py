@@ -140,6 +140,7 @@ class Pipeline:
         or dropped them since the last call: how many, and how far past the newest pose. Not logged here:
         the node's stop prints them (its log may be gone by then), replay prints them."""
         lines = []
+        poses = "a /tf stream" if self.ingest.config.tf is not None else "a pose stream"
         for sensor, end in self.ingest.stream_ends.take().items():
             parts = []
             if end.extrapolated:
@@ -151,7 +152,7 @@ class Pipeline:
                        if end.timed_out_max_ns else "")
                 parts.append(f"{end.timed_out} frame(s) dropped as pose_timeout{far}: more than pose_tolerance_s "
                              f"({self.ingest.config.pose_tolerance_s:g} s) past the newest pose, or too few poses; "
-                             "a pose stream that ends later than the depth stream keeps them")
+                             f"{poses} that ends later than the depth stream keeps them")
             lines.append(("warning" if end.timed_out else "info",
                           f"{sensor}: its streams ended with frames waiting for a pose: " + "; ".join(parts)))
         return lines

@@ -33,7 +33,7 @@ from senfunet_ros.conversions.stamps import stamp_to_ns
 from senfunet_ros.geometry import extrapolate_pose, interpolate_pose, invert_transform, pose_jump
 from senfunet_ros.matching import ALTERNATION_CHECK_EVERY, alternation_m, pose_conflict
 
-__all__ = ["REPARENT_AFTER_S", "TfAdded", "TfBuffer", "TfError", "TfWait", "extrapolate_tf"]
+__all__ = ["REPARENT_AFTER_S", "TfAdded", "TfBuffer", "TfError", "TfNotConnected", "TfWait", "extrapolate_tf"]
 
 
 class TfError(ValueError):
@@ -42,6 +42,10 @@ class TfError(ValueError):
 
 class TfWait(TfError):
     """Not yet: a link has no transform at or after the stamp (it may still come)."""
+
+
+class TfNotConnected(TfWait):
+    """Not yet: no transforms join the two frames (those that would may still come)."""
 
 
 # a link's transforms may be this many of its typical intervals apart around a lookup
@@ -247,6 +251,17 @@ class TfBuffer:
             chain.append(self._links[chain[-1]].parent)
         return chain
 
+    def _no_path(self, target: str, up_source: list[str], up_target: list[str]) -> str:
+        """Why target and source are not connected (yet): their chains, and what to set when the target
+        (the fixed frame) is no frame of the tree the source hangs in."""
+        text = (f"no transform path between '{target}' and '{up_source[0]}' (yet): known chains "
+                f"{' -> '.join(up_source)} and {' -> '.join(up_target)}")
+        known = target in self._links or any(link.parent == target for link in self._links.values())
+        if not known and len(up_source) > 1:
+            text += (f"; no transform names '{target}' (fixed_frame): set fixed_frame to the root of the source's "
+                     f"tree, '{up_source[-1]}', or another frame of its chain")
+        return text
+
     def _to_ancestor(self, chain: list[str], ancestor: str, stamp_ns: int) -> np.ndarray:
         """T_ancestor_frame for chain[0], walking up to `ancestor`."""
         T = np.eye(4)
@@ -264,8 +279,7 @@ class TfBuffer:
             up_source, up_target = self._chain(source), self._chain(target)
             common = next((f for f in up_source if f in up_target), None)
             if common is None:
-                raise TfWait(f"no transform path between '{target}' and '{source}' (yet): known chains "
-                             f"{' -> '.join(up_source)} and {' -> '.join(up_target)}")
+                raise TfNotConnected(self._no_path(target, up_source, up_target))
             T_common_source = self._to_ancestor(up_source, common, stamp_ns)
             T_common_target = self._to_ancestor(up_target, common, stamp_ns)
         return invert_transform(T_common_target) @ T_common_source

@@ -48,8 +48,17 @@ def test_buffer_chains_interpolates_waits_and_refuses_gaps() -> None:
     # could not help (a node started after the images' first stamps told its users to)
     with pytest.raises(TfError, match="before the first transform odom -> base_link held"):
         tf.lookup("map", "cam", 9 * S)
-    with pytest.raises(TfWait, match="no transform path"):
+    with pytest.raises(TfWait, match="no transform path") as waited:
         tf.lookup("map", "other_cam", 10 * S)
+    assert "set fixed_frame" not in str(waited.value)  # a camera not in the tree (yet): fixed_frame is right
+    # a fixed frame no transform names: the tree's root is named (the chains alone left it to the reader)
+    with pytest.raises(TfWait, match=r"no transform names 'world' \(fixed_frame\): set fixed_frame to the root "
+                                     r"of the source's tree, 'map', or another frame of its chain"):
+        tf.lookup("world", "cam", 10 * S)
+    with pytest.raises(TfWait) as waited:  # a frame some transform names, in another tree: no such advice
+        tf.add("robot2", "cam2", 0, np.eye(4), static=True)
+        tf.lookup("robot2", "cam", 10 * S)
+    assert "set fixed_frame" not in str(waited.value)
 
 
 def test_a_transform_stamped_ahead_by_a_glitch_costs_no_frame() -> None:
@@ -645,6 +654,32 @@ def test_a_frame_whose_camera_is_not_in_the_tree_at_a_streams_end_says_so() -> N
     assert ingest.pop_ready() == []
     error = ingest.ledger.counters()["tof"]["errors"]["pose_timeout"]
     assert "no pose had come at all" not in error and "tf: no transform path" in error, error
+
+
+def test_a_camera_the_tree_does_not_join_for_pose_max_wait_s_is_not_blamed_on_a_slow_link() -> None:
+    """A camera whose static transforms come late (a robot_state_publisher started after the drivers):
+    its frames that waited pose_max_wait_s were dropped with advice for a slow localiser link; the
+    error now says no transforms joined the frames."""
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+
+    MS = 1_000_000
+    buffer = TfBuffer(max_gap_s=0.1)
+    ingest = Ingest(IngestConfig(sensors=("tof",), tf=buffer, fixed_frame="map", pose_max_wait_s=0.5))
+    ingest.add_camera_info("tof", info_msg())
+    for k in range(150):  # map -> base at 100 Hz for 1.5 s, a frame every 100 ms, no base -> cam
+        buffer.add("map", "base", 10_000 * MS + 10 * k * MS, _rot_z(0.0, (0.01 * k, 0, 0)), static=False)
+        if k % 10 == 5:
+            msg = depth_msg(10_000 * MS + 10 * k * MS)
+            msg.header.frame_id = "cam"
+            assert ingest.add_depth("tof", msg) is None
+            assert ingest.pop_ready() == []
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["pose_timeout"] >= 5, counters
+    error = counters["errors"]["pose_timeout"]
+    assert "for transforms that join the two frames: they came later than that or not at all" in error, error
+    assert "a link published less often" not in error
 
 
 def test_a_link_that_jumps_is_not_interpolated_across_the_jump() -> None:
