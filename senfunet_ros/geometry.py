@@ -6,6 +6,7 @@ conversions pass plain numbers in.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -65,32 +66,35 @@ def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     return quat / np.linalg.norm(quat)
 
 
-def matrix_from_quat(q: np.ndarray) -> np.ndarray:
+def matrix_from_quat(q: np.ndarray | Sequence[float]) -> np.ndarray:
     """Unit quaternion (x, y, z, w) -> 3x3 rotation matrix."""
-    x, y, z, w = q
-    return np.array([
+    return np.array(_rotation_rows(*(float(v) for v in q)))
+
+
+def _rotation_rows(x: float, y: float, z: float, w: float) -> list[list[float]]:
+    return [
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    ]
 
 
 def transform_from_tq(t: np.ndarray | Sequence[float], q: np.ndarray | Sequence[float], what: str) -> np.ndarray:
     """Translation (3,) and quaternion (x, y, z, w) -> 4x4 transform. ValueError, naming `what`, for
-    NaN/inf or a quaternion whose norm is not 1 (within QUATERNION_NORM_TOLERANCE)."""
-    t = np.asarray(t, dtype=np.float64)
-    q = np.asarray(q, dtype=np.float64)
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
+    NaN/inf or a quaternion whose norm is not 1 (within QUATERNION_NORM_TOLERANCE). Scalar maths:
+    a robot's TF tree brings thousands of transforms a second, and numpy's per-call cost on 4 numbers
+    is most of the time."""
+    tx, ty, tz = (float(v) for v in t)
+    x, y, z, w = (float(v) for v in q)
+    if not all(math.isfinite(v) for v in (tx, ty, tz, x, y, z, w)):
         raise ValueError(f"{what} contains NaN or inf; the localisation source lost track, fix it upstream")
-    norm = float(np.linalg.norm(q))
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
     if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
         unset = " (all zero: the orientation was never set; a position-only source needs one, e.g. w = 1)" \
             if norm == 0.0 else ""
         raise ValueError(f"{what} orientation quaternion has norm {norm:.4f}, not 1{unset}; publish a unit quaternion")
-    T = np.eye(4, dtype=np.float64)
-    T[:3, :3] = matrix_from_quat(q / norm)
-    T[:3, 3] = t
-    return T
+    r = _rotation_rows(x / norm, y / norm, z / norm, w / norm)
+    return np.array([[*r[0], tx], [*r[1], ty], [*r[2], tz], [0.0, 0.0, 0.0, 1.0]])
 
 
 def tq_from_transform(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

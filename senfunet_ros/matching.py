@@ -6,6 +6,8 @@ Not thread-safe: their owner (`ingest.Ingest`) calls them under its lock.
 from __future__ import annotations
 
 import bisect
+import math
+import statistics
 from collections import deque
 
 import numpy as np
@@ -48,9 +50,10 @@ def alternation_m(poses: list[np.ndarray]) -> float | None:
     no jump check sees it, as the same step comes every time."""
     if len(poses) < _ALTERNATION_POSES:
         return None
-    positions = np.array([T[:3, 3] for T in poses[-_ALTERNATION_POSES:]], np.float64)
-    step_m = float(np.median(np.linalg.norm(np.diff(positions, axis=0), axis=1)))
-    return_m = float(np.median(np.linalg.norm(positions[2:] - positions[:-2], axis=1)))
+    # scalar maths: checked on every TF link, numpy's per-call cost on 12 points would be most of the time
+    positions = [(float(T[0, 3]), float(T[1, 3]), float(T[2, 3])) for T in poses[-_ALTERNATION_POSES:]]
+    step_m = statistics.median(math.dist(a, b) for a, b in zip(positions, positions[1:]))
+    return_m = statistics.median(math.dist(a, b) for a, b in zip(positions, positions[2:]))
     alternates = step_m >= _ALTERNATION_MIN_STEP_M and return_m < _ALTERNATION_RETURN_SHARE * step_m
     return step_m if alternates else None
 

@@ -135,11 +135,12 @@ class TfBuffer:
         if not parent or not child:
             raise ValueError(f"transform '{parent}' -> '{child}' has an empty frame id; name both frames")
         with self._lock:
-            if child in self._chain(parent):
+            link = self._links.get(child)
+            # a link the tree already has cannot close a loop: the walk up is for a new one
+            if (link is None or link.parent != parent) and child in self._chain(parent):
                 relation = "parent" if parent == child else f"ancestor ({' -> '.join(self._chain(parent))})"
                 raise ValueError(f"transform {parent} -> {child} would make '{child}' its own {relation}; TF needs a "
                                  "tree: fix the publisher of this transform")
-            link = self._links.get(child)
             if link is not None and link.parent != parent:
                 now_ns = self.newest_ns if static else stamp_ns  # a static transform's stamp tells no time
                 alive = link.static is not None or bool(

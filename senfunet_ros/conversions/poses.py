@@ -26,9 +26,8 @@ __all__ = [
 
 def transform_from_msg(translation: Any, rotation: Any, what: str) -> np.ndarray:
     """geometry_msgs Point/Vector3 and Quaternion -> 4x4; ValueError naming `what` if unusable."""
-    t = np.array([translation.x, translation.y, translation.z], dtype=np.float64)
-    q = np.array([rotation.x, rotation.y, rotation.z, rotation.w], dtype=np.float64)
-    return transform_from_tq(t, q, what)
+    return transform_from_tq((translation.x, translation.y, translation.z),
+                             (rotation.x, rotation.y, rotation.z, rotation.w), what)
 
 
 def pose_from_pose_stamped(msg: Any) -> tuple[int, np.ndarray]:
