@@ -280,14 +280,11 @@ class PublishedMesh:
         from senfunet_core.engine import MeshUpdate
 
         published = cls()
-        encode = publisher._mesh_messages
 
-        def taking(engine, update, *args, whole: bool, **kwargs):  # noqa: ANN001, ANN202
-            # `whole`: this update sends the whole map instead of its changes (a reader joined)
+        def taking(engine, update, whole: bool) -> None:  # noqa: ANN001 (the engine and its MeshUpdate)
             published.take(MeshUpdate(meshes=engine.block_meshes(), cleared=True) if whole else update)
-            return encode(engine, update, *args, whole=whole, **kwargs)
 
-        publisher._mesh_messages = taking
+        publisher.taps.append(taking)
         return published
 
     def take(self, update: MeshUpdate) -> None:

@@ -155,6 +155,9 @@ class MeshPublisher:
         self._warn = warn
         self.lock = threading.Lock()  # one publication at a time (timer vs. reset and load_map services)
         self.updates = UpdateSignal()  # each publication's end (one that fails: a waiter's timeout)
+        # called on the mesh thread with (engine, update, whole) as each update is published, `whole` when it
+        # sends the whole map instead of the update's changes (a reader joined): what a subscriber holds
+        self.taps: list[Callable[[Any, Any, bool], None]] = []
         self._matched = 0  # mesh readers matched so far (written by the matched event's callback only)
         try:
             self.mesh_pub = node.create_publisher(MarkerArray, "~/mesh", MESH_QOS,
@@ -230,6 +233,8 @@ class MeshPublisher:
             readers = (self.mesh_pub.get_subscription_count(), self._matched)
             caught_up = self._parts_unacknowledged and wait_for_all_acked(self.mesh_pub, 0.0)
             whole = readers[0] > served[0] or readers[1] > served[1] or caught_up
+            for tap in self.taps:
+                tap(engine, update, whole)
             messages = self._mesh_messages(engine, update, s, stamp_ns, whole=whole)
             # the net's turn ends with this mesh period (less a margin for the updates' jitter): the next
             # update is not to wait for it
