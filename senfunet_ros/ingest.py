@@ -59,6 +59,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import Any
 from collections.abc import Callable, Iterable
 
@@ -333,7 +334,13 @@ class _SensorInput:
         cached) and the depth images that waited for it, to decode outside Ingest's lock and queue."""
         try:
             intrinsics = conv.intrinsics_from_camera_info(msg)
-            self.counters.distorted = bool(np.any(np.asarray(getattr(msg, "d", ()), np.float64) != 0))
+            rectified = conv.rectified_matrix(msg) is not None
+            self.counters.distorted = not rectified and bool(np.any(np.asarray(getattr(msg, "d", ()), np.float64) != 0))
+            if rectified:
+                self.counters.notes.setdefault("rectified_p", (
+                    "its camera_info carries distortion coefficients and a projection matrix P other than K, as "
+                    "image_proc publishes rectified images: the depth images are taken as rectified, with P's "
+                    "intrinsics (as image_geometry and depth_image_proc read them)"))
         except (ValueError, AttributeError) as err:
             kept = "" if self.camera_info is None else "; the depth images go on with the last good camera_info's K"
             return self.drop("bad_camera_info", f"{err}{kept}"), []
@@ -556,6 +563,10 @@ class _SensorInput:
         return out
 
 
+# transforms held while a clock that stepped ahead is confirmed (`_StreamTime.tf_held`): seconds of a robot's tree
+_TF_HELD = 10_000
+
+
 class _StreamTime:
     """The streams' timelines, and what a restart does to the sensors' inputs: flushed (time went
     back, with a TimeJump to report), then the new timeline's held messages taken. Not thread-safe:
@@ -567,6 +578,10 @@ class _StreamTime:
         self.jumps: list[TimeJump] = []  # seen since the last pop_ready
         self._sensors = sensors
         self.set_aside = set_aside
+        # dynamic transforms left out as stamped ahead of the timelines (`Ingest.add_tf`), the newest
+        # _TF_HELD: a clock that stepped ahead sends them before the images confirm the new timeline, which
+        # takes them then
+        self.tf_held: deque[Any] = deque(maxlen=_TF_HELD)
 
     def configure(self, config: IngestConfig) -> None:
         self.config = config
@@ -583,6 +598,20 @@ class _StreamTime:
         if verdict.reason is not None:
             return self._sensors[sensor].drop(verdict.reason, verdict.error), images
         return None, images
+
+    def _take_tf_held(self, to_ns: int) -> None:
+        """Time stepped ahead to to_ns: the held transforms of the new timeline (from time_jump_s before it
+        on) go to the TF buffer, no longer counted as bad_stamp; older ones were strays and stay counted."""
+        jump_ns = int(self.config.time_jump_s * 1e9)
+        now_ns = self.timelines.now_ns()
+        latest_ns = None if now_ns is None else max(now_ns, to_ns) + jump_ns
+        new = [tf for tf in self.tf_held if conv.stamp_to_ns(tf.header.stamp) >= to_ns - jump_ns]
+        self.tf_held.clear()
+        if not new or self.config.tf is None or not hasattr(self.config.tf, "add_message"):
+            return
+        added = self.config.tf.add_message(SimpleNamespace(transforms=new), static=False, latest_ns=latest_ns)
+        self.tf_held.extend(added.ahead)
+        self._sensors[self.config.sensors[0]].drop("bad_stamp", n=-(len(new) - len(added.ahead)))
 
     def restart(self, to_ns: int | None) -> list[_Undecoded]:
         """Time restarted, known from outside (see Ingest.restart); returns the images of the new time
@@ -604,11 +633,14 @@ class _StreamTime:
             sensors[sensor].counters.time_jumps += 1
             if self.config.tf is not None and hasattr(self.config.tf, "clear"):
                 self.config.tf.clear()
+            self.tf_held.clear()
             for state in sensors.values():
                 state.drop("time_jump", n=state.flush())
             if self.config.reset_on_time_jump:
                 for name, n in self.set_aside.clear().items():
                     sensors[name].drop("time_jump", n=n)
+        else:
+            self._take_tf_held(restart.to_ns)
         for (name, _), n in restart.lost.items():  # bad_stamp until now, in fact lost to the restart
             sensors[name].drop("bad_stamp", n=-n)
             sensors[name].drop("time_jump", n=n)
@@ -739,6 +771,7 @@ class Ingest:
         if added.conflicts:
             drops.append(("pose_conflict", len(added.conflicts), f"tf: {added.conflicts[0]}"))
         with self._lock:
+            self._time.tf_held.extend(added.ahead)
             first = self._sensors[self.config.sensors[0]]
             for reason, count, error in drops:
                 first.drop(reason, error, n=count)

@@ -77,6 +77,7 @@ class TfAdded:
     each with the reason, and those that gave a stamp already given another value."""
 
     left_out: list[int] = field(default_factory=list)
+    ahead: list[Any] = field(default_factory=list)  # those transforms (geometry_msgs/TransformStamped), as sent
     unstamped: list[str] = field(default_factory=list)  # dynamic transforms stamped 0 (unset): which link
     refused: list[str] = field(default_factory=list)
     # dynamic transforms for a stamp their link already had, with another value (the first is kept):
@@ -111,6 +112,7 @@ class TfBuffer:
                 stamp_ns = stamp_to_ns(tf.header.stamp)
                 if not static and latest_ns is not None and stamp_ns > latest_ns:
                     added.left_out.append(stamp_ns)
+                    added.ahead.append(tf)
                     continue
                 if not static and stamp_ns == 0:  # kept, every one would be "another value for the same stamp"
                     added.unstamped.append(what)

@@ -21,6 +21,7 @@ __all__ = [
     "principal_point_off_centre",
     "same_aspect_ratio",
     "intrinsics_from_camera_info",
+    "rectified_matrix",
     "intrinsics_text",
     "resize_depth",
     "resize_rgb",
@@ -263,8 +264,27 @@ def _row_major(matrix: np.ndarray) -> str:
     return ", ".join(" ".join(f"{value:g}" for value in row) for row in matrix)
 
 
+def rectified_matrix(msg: Any) -> np.ndarray | None:
+    """The intrinsics (3x3) of P, the projection matrix, when a camera_info describes rectified images
+    with them: its distortion coefficients are not all zero and P's left 3x3 is a camera matrix other
+    than K (image_proc's and stereo_image_proc's rectified images carry their raw camera's K and D,
+    and P for themselves, which image_geometry and depth_image_proc read). Else None: K holds."""
+    d = np.asarray(getattr(msg, "d", ()), np.float64)
+    p = np.asarray(getattr(msg, "p", ()), np.float64)
+    k = np.asarray(getattr(msg, "k", ()), np.float64)
+    if not np.any(d != 0) or p.size != 12 or k.size != 9:
+        return None
+    P = p.reshape(3, 4)[:, :3].copy()
+    is_camera_matrix = (np.all(np.isfinite(P)) and P[0, 0] > 0 and P[1, 1] > 0
+                        and np.allclose(P[2], (0.0, 0.0, 1.0), rtol=0.0, atol=1e-6))
+    if not is_camera_matrix or np.allclose(P, k.reshape(3, 3), rtol=1e-6, atol=1e-9):
+        return None
+    return P
+
+
 def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
-    """sensor_msgs/CameraInfo -> (K 3x3 float64, (width, height)) of the images it describes.
+    """sensor_msgs/CameraInfo -> (K 3x3 float64, (width, height)) of the images it describes: K, or P's
+    intrinsics for rectified images (`rectified_matrix`).
 
     K, width and height are the calibrated (full, unbinned) camera's; a region of interest (`roi`,
     in full-resolution pixels; all zero = the whole image) and binning (`binning_x`, `binning_y`;
@@ -288,6 +308,8 @@ def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
         raise ValueError(f"camera_info K is not a camera matrix: its last row is {_row_major(K[2:])}, not 0 0 1 "
                          f"(K = {_row_major(K)}; row-major: fx 0 cx, 0 fy cy, 0 0 1); was it written "
                          "column-major? fix the driver's camera_info")
+    rectified = rectified_matrix(msg)
+    K = K if rectified is None else rectified
     roi = getattr(msg, "roi", None)
     x0, y0, roi_width, roi_height = (int(getattr(roi, name, 0)) for name in ("x_offset", "y_offset", "width",
                                                                                 "height"))

@@ -938,6 +938,27 @@ def test_a_camera_info_with_distortion_is_noted() -> None:
     assert ingest.ledger.counters()["tof"]["distorted"] is False
 
 
+def test_a_rectified_images_camera_info_gives_the_projection_matrix_intrinsics() -> None:
+    """image_proc's rectified images carry their raw camera's K and D, and P for themselves: P's
+    intrinsics are the images' (the raw K projected a recorded stereo stream's rectified depth, and its
+    mesh lost 10 points of F, with advice to record the rectified topic it was). Without distortion
+    coefficients, or with a P that is K or unset, K holds."""
+    ingest = make()
+    info = info_msg()
+    info.distortion_model, info.d = "plumb_bob", [0.1, -0.05, 0.0, 0.0, 0.0]
+    info.p = [12.0, 0.0, 4.0, 0.0, 0.0, 12.5, 3.5, 0.0, 0.0, 0.0, 1.0, 0.0]
+    K, _ = conv.intrinsics_from_camera_info(info)
+    np.testing.assert_array_equal(K, [[12.0, 0, 4.0], [0, 12.5, 3.5], [0, 0, 1]])
+    assert ingest.add_camera_info("tof", info) is None
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["distorted"] is False and "P's intrinsics" in counters["notes"]["rectified_p"]
+    for d, p in (([0.0] * 5, info.p), (info.d, [0.0] * 12), (info.d, [*info_msg().k[:3], 0.0, *info_msg().k[3:6], 0.0,
+                                                                      *info_msg().k[6:], 0.0])):
+        other = info_msg()
+        other.d, other.p = d, p
+        np.testing.assert_array_equal(conv.intrinsics_from_camera_info(other)[0], np.reshape(info_msg().k, (3, 3)))
+
+
 def test_colour_matched_by_nearest_stamp_and_resized() -> None:
     ingest = make(color_tolerance_s=0.02, working_size=(5, 0))
     ingest.add_pose("stereo", pose_msg(0))

@@ -3,6 +3,7 @@ plus /tf_static (the camera mounts) replays to the mesh of the same recording wi
 from __future__ import annotations
 
 import math
+from typing import Any
 import subprocess
 import sys
 from pathlib import Path
@@ -680,6 +681,48 @@ def test_a_camera_the_tree_does_not_join_for_pose_max_wait_s_is_not_blamed_on_a_
     error = counters["errors"]["pose_timeout"]
     assert "for transforms that join the two frames: they came later than that or not at all" in error, error
     assert "a link published less often" not in error
+
+
+def test_transforms_of_a_clock_that_stepped_ahead_are_taken_once_the_images_confirm_it() -> None:
+    """The robot's clock steps 3 s ahead (chrony's makestep): /tf comes on the new time before the images
+    confirm it, and every such transform was left out for good as bad_stamp, with the frames needing
+    them (0.7 s of frames in a recorded case). They are now held and taken with the confirmed restart;
+    a stray far ahead still stays out."""
+    from test_ingest import depth_msg, info_msg
+
+    from senfunet_ros.ingest import Ingest, IngestConfig
+
+    S, MS = 1_000_000_000, 1_000_000
+    ingest = Ingest(IngestConfig(sensors=("tof",), tf=TfBuffer(max_gap_s=0.1), fixed_frame="map", time_jump_s=1.0,
+                                 restart_confirm_msgs=5, restart_confirm_s=0.5))
+    ingest.add_camera_info("tof", info_msg())
+    stray = _tf_message(10 * S + 60 * S, 0.0)  # a glitch, a minute ahead
+    posed = []
+    for k in range(200):  # /tf at 100 Hz, an image every 50 ms, the clock 3 s ahead from 1 s on
+        t_ns = 10 * S + k * 10 * MS + (3 * S if k >= 100 else 0)
+        ingest.add_tf(_tf_message(t_ns, 0.01 * k), static=False)
+        if k == 150:
+            ingest.add_tf(stray, static=False)
+        if k % 5 == 2:
+            msg = depth_msg(t_ns)
+            msg.header.frame_id = "cam"
+            ingest.add_depth("tof", msg)
+        posed += [frame.stamp_ns for frame in ingest.pop_ready()]
+    after_step = [t for t in posed if t > 13 * S]
+    assert len(after_step) >= 18, (len(after_step), ingest.ledger.counters()["tof"])  # 20 images after the step
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["bad_stamp"] == 1, counters  # the stray alone
+
+
+def _tf_message(t_ns: int, x: float) -> Any:
+    """A TFMessage (duck-typed) of map -> cam at t_ns, x metres along x."""
+    from types import SimpleNamespace
+
+    sec, nanosec = divmod(t_ns, 1_000_000_000)
+    return SimpleNamespace(transforms=[SimpleNamespace(
+        header=SimpleNamespace(frame_id="map", stamp=SimpleNamespace(sec=sec, nanosec=nanosec)), child_frame_id="cam",
+        transform=SimpleNamespace(translation=SimpleNamespace(x=x, y=0.0, z=0.0),
+                                  rotation=SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0)))])
 
 
 def test_a_link_that_jumps_is_not_interpolated_across_the_jump() -> None:
