@@ -20,7 +20,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=1.0, metavar="R", help="playback speed factor (default 1.0)")
     parser.add_argument("--loop", action="store_true", help="start over when the bag ends (until Ctrl-C)")
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="publish only these topics")
-    parser.add_argument("--no-clock", action="store_true", help="do not publish /clock")
+    parser.add_argument("--no-clock", action="store_true",
+                        help="do not publish /clock (neither play's own nor a recorded one)")
     parser.add_argument("--wait-subscribers", type=float, default=0.0, metavar="S",
                         help="wait up to S seconds until every topic has a subscriber before starting, then "
                         f"{_MATCH_SETTLE_S:g} s more for their side of discovery (default 0: no wait)")
@@ -82,6 +83,9 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         topics = reader.topics
         publishers = {}
         for t, cls in list(classes.items()):
+            if t == "/clock" and args.no_clock:  # a recorded clock too
+                del classes[t]
+                continue
             try:
                 publishers[t] = node.create_publisher(cls, t, QoSProfile(
                     history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
@@ -98,7 +102,9 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
                 say(f"{topic} was recorded with several types: playing its {topics[topic].msgtype} messages, "
                     f"leaving out {others}")
         clock_pub = None
-        if not args.no_clock:
+        if "/clock" in publishers and not args.no_clock:  # a second clock would make time jump to and fro
+            say("the bag has /clock (a simulation's recorded clock): playing it, and no /clock of play's own")
+        elif not args.no_clock:
             from rosgraph_msgs.msg import Clock
 
             clock_pub = node.create_publisher(Clock, "/clock",

@@ -132,3 +132,29 @@ def clock_error_and_bad_name(src: Path, dst: Path) -> Path:
                 log_time_ns, zeroed = 0, zeroed + 1
             writer.write(conns[topic], log_time_ns, msg.data)
     return dst
+
+
+def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int) -> Path:
+    """`src` as a simulation's recording: a /clock topic (every 10 ms of log time) of the simulated
+    time, which starts at sim_start_ns where the log times start (a Gazebo run recorded with its clock)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    Clock, Time = store.types["rosgraph_msgs/msg/Clock"], store.types["builtin_interfaces/msg/Time"]
+    with open_bag(src) as reader, Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        infos, conns = reader.topics, {}
+        clock = writer.add_connection("/clock", "rosgraph_msgs/msg/Clock", typestore=store)
+        next_tick_ns = reader.start_ns
+        for msg in reader.messages():
+            while next_tick_ns <= msg.log_time_ns:
+                sec, nanosec = divmod(sim_start_ns + next_tick_ns - reader.start_ns, 1_000_000_000)
+                writer.write(clock, next_tick_ns, store.serialize_cdr(Clock(clock=Time(sec=sec, nanosec=nanosec)),
+                                                                     "rosgraph_msgs/msg/Clock"))
+                next_tick_ns += 10_000_000
+            if msg.topic not in conns:
+                info = infos[msg.topic]
+                conns[msg.topic] = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef,
+                                                         rihs01=info.digest)
+            writer.write(conns[msg.topic], msg.log_time_ns, msg.data)
+    return dst
