@@ -515,15 +515,17 @@ class SenFuNet:
         return union(live, archived)
 
     @torch.inference_mode()
-    def extract_mesh(self, which: str = FUSED, filtered: bool = True, *, then_reset: bool = False) -> Mesh:
+    def extract_mesh(self, which: str = FUSED, filtered: bool = True, *, then_reset: bool = False,
+                     judge: bool = True) -> Mesh:
         """The whole mesh of `which`: "fused", a sensor name, or "tsdf_fusion" (the baseline). The
         fused mesh includes the archived meshes of blocks the map bound evicted (`archive`); the
         others cover the blocks in memory. `then_reset`: for a caller done with the map (replay's
         last mesh), `reset` once every block is meshed, so that the map's memory is free before the
-        weld, extraction's peak."""
+        weld, extraction's peak. `judge`: the weighting net first judges what it has not reached (else
+        the fused mesh is the map as it stands, as the live mesh shows it: a caller in a hurry)."""
         self.config.check_mesh_name(which)
         with self.update_lock.held():
-            if which == FUSED:
+            if which == FUSED and judge:
                 self._refresh_alpha()
                 self.alpha.evaluator.release_buffers()
                 release_free_memory()  # the net's temporaries: the mesh's peak comes on top otherwise

@@ -8,6 +8,7 @@ earlier version of the format wrote it.
 from __future__ import annotations
 
 import logging
+import time
 import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, fields, replace
@@ -38,10 +39,14 @@ log = logging.getLogger("senfunet.map_file")
 
 def save_map(engine: SenFuNet, path: str | Path) -> None:
     """The whole engine state (config, grids, networks, archive, spill) in one file, written
-    atomically; thread-safe, as frames keep being integrated (alpha is brought up to date first)."""
+    atomically; thread-safe, as frames keep being integrated. Alpha is saved as it stands, with the
+    blocks the weighting net still owes (`alpha_stale`): the loaded map judges them. (Judging them
+    first held the map from mesh updates and the other services for the whole backlog: tens of
+    seconds on a room during a stream.)"""
     with engine.update_lock.held():
-        engine.refresh_alpha()
+        engine.alpha.schedule()  # the changes integrated since the last schedule: stale blocks too
         with engine.data_lock:
+            n = engine.grid.n_blocks
             state = {
                 "format": "senfunet-engine-1",
                 "config": asdict(engine.config),
@@ -49,6 +54,9 @@ def save_map(engine: SenFuNet, path: str | Path) -> None:
                 "feature_nets": [net.state_dict() for net in engine.feature_nets],
                 "weighting_net": engine.weighting_net.state_dict(),
                 "frames_integrated": dict(engine.frames_integrated),
+                # what the net owes, per block in the grid's order: its stale level, whether it ever judged it
+                "alpha_stale": torch.from_numpy(engine.store.stale[:n].copy()),
+                "alpha_evaluated": torch.from_numpy(engine.store.evaluated[:n].copy()),
                 "archive": {k: torch.from_numpy(np.ascontiguousarray(v))
                             for k, v in engine.archive.state_dict().items()},
                 # what evictions did, beside what they left (archive, spill): ~/status counts on
@@ -153,6 +161,11 @@ def load_map(path: str | Path, *, run_config: EngineConfig | None = None,
         engine.bound.newly_archived = [engine.archive.meshes()]  # re-sent with the whole mesh
     engine.store.grow_flags()
     engine.store.evaluated[: engine.grid.n_blocks] = True  # alpha is part of the saved state
+    if "alpha_stale" in state:  # what the net still owed when the map was saved (maps before this: nothing)
+        owed = state["alpha_stale"].numpy()
+        engine.store.stale[: len(owed)] = np.maximum(engine.store.stale[: len(owed)], owed)
+        engine.store.evaluated[: len(owed)] = state["alpha_evaluated"].numpy()
+        engine.store.last_change_s[np.flatnonzero(owed)] = time.monotonic()  # its wait starts with the load
     engine.store.mesh_pending[: engine.grid.n_blocks] = True
     return engine
 

@@ -18,6 +18,8 @@ from typing import Any
 __all__ = ["HealthMonitor", "Level", "SensorReport", "StreamReport"]
 
 
+# depth images received before its rate is held against camera_info's (a stream that just began is no loss)
+_SHORT_AFTER = 10
 _OPTIONAL = ("color",)  # a colour topic nobody publishes is logged once, it does not hold the sensor at WARN
 
 
@@ -45,6 +47,7 @@ class SensorReport:
     message: str
     streams: dict[str, StreamReport] = field(default_factory=dict)
     recent_drops: dict[str, int] = field(default_factory=dict)  # reason -> drops within the window
+    recent_missing: int = 0  # depth images missing within the window (gaps in the stream's stamps)
 
 
 class _Stream:
@@ -71,6 +74,8 @@ class HealthMonitor:
         self._streams = {(s, stream): _Stream(now) for s, streams in sensors.items() for stream in streams}
         self._drops: dict[str, deque[tuple[float, str, int]]] = {s: deque() for s in sensors}
         self._last_dropped: dict[str, dict[str, int]] = {s: {} for s in sensors}
+        self._missing: dict[str, deque[tuple[float, int]]] = {s: deque() for s in sensors}
+        self._last_missing: dict[str, int] = {s: 0 for s in sensors}
 
     @property
     def window_s(self) -> float:
@@ -114,7 +119,8 @@ class HealthMonitor:
             arrivals.popleft()
 
     def counters(self, counters: dict[str, dict[str, Any]]) -> None:
-        """Ingest's counters (sensor -> {"dropped": {reason: n}}): new drops enter the window."""
+        """Ingest's counters (sensor -> {"dropped": {reason: n}, "missing_depth": n}): new drops and depth
+        images found missing enter the window."""
         now = self._clock()
         with self._lock:
             for sensor, c in counters.items():
@@ -125,6 +131,10 @@ class HealthMonitor:
                     if n > before.get(reason, 0):
                         self._drops[sensor].append((now, reason, n - before.get(reason, 0)))
                 self._last_dropped[sensor] = dict(c["dropped"])
+                missing = int(c.get("missing_depth", 0))
+                if missing > self._last_missing[sensor]:
+                    self._missing[sensor].append((now, missing - self._last_missing[sensor]))
+                self._last_missing[sensor] = missing
 
     def report(self) -> dict[str, SensorReport]:
         now = self._clock()
@@ -135,6 +145,8 @@ class HealthMonitor:
                 recent: dict[str, int] = {}
                 for _, reason, n in drops:
                     recent[reason] = recent.get(reason, 0) + n
+                self._expire(self._missing[sensor], now)
+                missing = sum(n for _, n in self._missing[sensor])
                 streams = {}
                 for (s, stream), state in self._streams.items():
                     if s != sensor:
@@ -146,11 +158,11 @@ class HealthMonitor:
                         rate_hz=len(state.arrivals) / span, received=state.received, silent_s=silent,
                         stale=state.last_s is not None and silent > self.stale_after_s,
                         never=state.last_s is None and silent > self.window_s)
-                out[sensor] = self._judge(streams, recent)
+                out[sensor] = self._judge(streams, recent, missing)
         return out
 
     @staticmethod
-    def _judge(streams: dict[str, StreamReport], recent: dict[str, int]) -> SensorReport:
+    def _judge(streams: dict[str, StreamReport], recent: dict[str, int], missing: int) -> SensorReport:
         # camera_info may come once (a latched publisher): its silence while depth comes is no stop
         depth_live = "depth" in streams and not streams["depth"].stale and not streams["depth"].never
         stale = sorted(name for name, r in streams.items() if r.stale and not (name == "camera_info" and depth_live))
@@ -158,15 +170,29 @@ class HealthMonitor:
         if stale:
             level = Level.STALE
             message = f"no messages on {', '.join(stale)} for {max(streams[n].silent_s for n in stale):.1f} s"
-        elif never or recent:
+        elif never or recent or missing or _depth_short(streams):
             level = Level.WARN
             parts = []
             if never:
                 parts.append(f"nothing received yet on {', '.join(never)}")
             if recent:
                 parts.append("recently dropped: " + ", ".join(f"{n} {r}" for r, n in sorted(recent.items())))
+            if _depth_short(streams):
+                parts.append(f"depth {streams['depth'].rate_hz:.1f} Hz against camera_info "
+                             f"{streams['camera_info'].rate_hz:.1f} Hz: most depth images are lost on the way (large "
+                             "images over best-effort QoS, or the transport's shared memory too small?)")
+            elif missing:
+                parts.append(f"recently missing: {missing} depth image(s) (gaps in the depth stamps)")
             message = "; ".join(parts)
         else:
             level = Level.OK
             message = ", ".join(f"{name} {r.rate_hz:.1f} Hz" for name, r in streams.items() if not r.never) or "ok"
-        return SensorReport(level, message, streams, recent)
+        return SensorReport(level, message, streams, recent, missing)
+
+
+def _depth_short(streams: dict[str, StreamReport]) -> bool:
+    """Depth arriving at under half the rate of its camera_info (which drivers publish with every image,
+    a small message the transport rarely loses), both live."""
+    depth, info = streams.get("depth"), streams.get("camera_info")
+    return (depth is not None and info is not None and not depth.stale and not info.stale
+            and depth.received >= _SHORT_AFTER and info.rate_hz >= 1.0 and depth.rate_hz < 0.5 * info.rate_hz)

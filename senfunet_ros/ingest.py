@@ -880,6 +880,12 @@ class Ingest:
                 self._served_ns[frame.sensor] = frame.stamp_ns
         return [*jumps, *frames]
 
+    def pop_set_aside(self) -> list[Frame]:
+        """Every frame set aside, oldest first (the node stopping, to save them with the map)."""
+        with self._lock:
+            return self._set_aside.take_oldest(sum(self._set_aside.count(name) for name in self.config.sensors))
+
+
 class IngestLedger:
     """What became of each sensor's messages: the counters and queue depths, and what the consumer
     reports of the frames it took (integrated, dropped, the map reset under the frames still

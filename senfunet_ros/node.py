@@ -377,17 +377,18 @@ class FusionNode(Node):
             f"fusing {list(s.sensor_names)} into '{s.fixed_frame}' with weights: {self.engine.weights_source}")
 
     # -- set-up and stop -------------------------------------------------------------------------
-    def finish(self, abandon: threading.Event | None = None) -> dict[str, Any]:
+    def finish(self, abandon: threading.Event | None = None, *, set_aside: bool = False) -> dict[str, Any]:
         """After the executor stopped: the streams ended (`Ingest.stream_ends.end`: frames newer than
         their sensor's newest pose are posed by extrapolation within pose_tolerance_s, or dropped as
-        pose_timeout); integrate the frames that are ready, count the ones still waiting (for a
-        camera_info, or set aside) as dropped at shutdown. `abandon` set (a second Ctrl-C): the
-        ready frames not started yet are dropped too, once the frame under way is integrated.
+        pose_timeout); integrate the frames that are ready, and with `set_aside` (the map is saved
+        next) the frames set aside, count the ones still waiting (for a camera_info, or set aside) as
+        dropped at shutdown. `abandon` set (a second Ctrl-C): the frames not started yet are dropped
+        too, once the frame under way is integrated.
         Returns the counts, and under "ends" the (level, line)s of `Pipeline.stream_ends` (for the
         caller to print: the node's log may be shut down)."""
         self.pipeline.stopping = True
         self.ingest.stream_ends.end()
-        ready = self.ingest.pop_ready(set_aside=False)
+        ready = self.ingest.pop_ready(set_aside=False) + (self.ingest.pop_set_aside() if set_aside else [])
         left: list[Frame | TimeJump] = []
 
         def until_abandoned() -> Iterator[Frame | TimeJump]:
@@ -976,21 +977,44 @@ def _signals_as_interrupt() -> None:
         pass
 
 
+def _judge_before_saving(engine: Any, hurry: threading.Event) -> None:
+    """The weighting net's backlog judged in short turns until none is left or `hurry` is set (then said,
+    with what is left: the meshes show it as it stands)."""
+    engine.refresh_alpha(0.25)  # its first turn also counts the blocks that integration left to judge
+    if engine.counters["alpha_backlog_blocks"]:
+        print(f"senfunet: saving on shutdown: the weighting net first judges the "
+              f"{engine.counters['alpha_backlog_blocks']} blocks it has not reached (Ctrl-C: write the meshes as "
+              "they stand)", flush=True)
+    while engine.counters["alpha_backlog_blocks"] and not hurry.is_set():
+        engine.refresh_alpha(0.25)
+    if engine.counters["alpha_backlog_blocks"]:
+        print(f"senfunet: {engine.counters['alpha_backlog_blocks']} blocks not judged: the meshes leave out the "
+              "surface one sensor alone saw there", flush=True)
+
+
 def stop_node(node: FusionNode) -> None:
     """What `main` does once the executor stopped: integrate the ready frames (`finish`), save the
-    meshes (parameter save_on_shutdown), destroy the node. Ctrl-C meanwhile (someone in a hurry)
-    shortens it without losing the map: while frames are integrated, the ones not started yet are
-    dropped; while saving, the saving stops (each file is written whole or not at all, see
+    meshes (parameter save_on_shutdown: the weighting net first judges what it has not reached),
+    destroy the node. Ctrl-C or SIGTERM meanwhile (someone in a hurry, or ros2 launch's SIGTERM after
+    its sigterm_timeout) shortens it without losing the map: while frames are integrated, the ones not
+    started yet are dropped; while the net judges, it stops and the meshes are written as they stand;
+    while they are written, the writing stops (each file is written whole or not at all, see
     `write_ply`); the node is destroyed either way."""
     import signal
     import tempfile
 
-    abandon = threading.Event()
-    saving = False
+    abandon = threading.Event()  # drop the frames not integrated yet
+    hurry = threading.Event()  # the net stops judging; the meshes are written as they stand
+    phase = "finish"  # then "judge", then "write"
 
     def interrupted(signum: int, frame: Any) -> None:
-        if saving:
+        if phase == "write":
             raise KeyboardInterrupt
+        if phase == "judge":
+            hurry.set()
+            print("senfunet: interrupted again: the weighting net stops judging; the meshes are written as they "
+                  "stand", flush=True)
+            return
         abandon.set()
         print("senfunet: interrupted again: the frames not integrated yet are dropped", flush=True)
 
@@ -1000,7 +1024,7 @@ def stop_node(node: FusionNode) -> None:
         previous = None
     try:
         try:
-            done = node.finish(abandon)
+            done = node.finish(abandon, set_aside=node.settings.save_on_shutdown)
             for _, line in done["ends"]:
                 print(f"senfunet: {line}", flush=True)
             print(f"senfunet: stopped; at the stop {done['integrated']} ready frame(s) integrated, "
@@ -1009,10 +1033,12 @@ def stop_node(node: FusionNode) -> None:
         except Exception as err:
             print(f"senfunet: finishing the queued frames failed: {err}", file=sys.stderr, flush=True)
         if node.settings.save_on_shutdown:
-            saving = True
+            phase = "judge"
+            _judge_before_saving(node.pipeline.engine, hurry)
+            phase = "write"
             try:
                 try:
-                    paths, saved = node.map_services.save_meshes(), "saved"
+                    paths, saved = node.map_services.save_meshes(judge=not hurry.is_set()), "saved"
                 except NothingToSave as err:  # the files of an earlier run stay
                     print(f"senfunet: not saved on shutdown: {err}", flush=True)
                     paths = []
@@ -1020,7 +1046,8 @@ def stop_node(node: FusionNode) -> None:
                     # the map would end with the process
                     print(f"senfunet: saving on shutdown into output_dir failed: {err}; check parameter output_dir; "
                           "saving into a new temporary folder instead", file=sys.stderr, flush=True)
-                    paths = node.map_services.save_meshes(tempfile.mkdtemp(prefix="senfunet_output_"))
+                    paths = node.map_services.save_meshes(tempfile.mkdtemp(prefix="senfunet_output_"),
+                                                          judge=not hurry.is_set())
                     saved = "saved instead"
                 if paths:
                     print(f"senfunet: {saved} " + ", ".join(str(p) for p in paths), flush=True)

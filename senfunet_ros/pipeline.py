@@ -216,9 +216,10 @@ class Pipeline:
             self._new_map()
 
     def save_meshes(self, out_dir: str | Path, *, sensors: Iterable[str], tsdf_fusion: bool,
-                    then_reset: bool = False) -> dict[str, SavedMesh]:
+                    then_reset: bool = False, judge: bool = True) -> dict[str, SavedMesh]:
         """Fused (filtered), per-sensor and, if kept, TSDF Fusion meshes as PLY files (mode 0644).
-        `then_reset`: the map is forgotten as the last mesh is made (`SenFuNet.extract_mesh`)."""
+        `then_reset`: the map is forgotten as the last mesh is made; `judge`: the weighting net judges
+        what it has not reached first (`SenFuNet.extract_mesh`)."""
         from senfunet_core.ply import write_ply
 
         out = Path(out_dir).expanduser()
@@ -237,7 +238,7 @@ class Pipeline:
                 on_disk = len(spill) if spill is not None else 0  # evicted blocks: only their fused meshes are kept
                 for name in which:
                     t0 = time.perf_counter()
-                    mesh = engine.extract_mesh(name, then_reset=then_reset and name == which[-1])
+                    mesh = engine.extract_mesh(name, then_reset=then_reset and name == which[-1], judge=judge)
                     meshes[name] = (mesh, time.perf_counter() - t0)
             if then_reset:
                 self._new_map()

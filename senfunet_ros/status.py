@@ -258,6 +258,7 @@ class StatusReport:
             values += [KeyValue(key=f"dropped.{reason}", value=str(c["dropped"][reason])) for reason in DROP_REASONS]
             values += [KeyValue(key=f"recent_dropped.{reason}", value=str(n))
                        for reason, n in report.recent_drops.items()]
+            values.append(KeyValue(key="recent_missing_depth", value=str(report.recent_missing)))
             values += [KeyValue(key=f"error.{reason}", value=why) for reason, why in c["errors"].items()]
             summary = (f"{report.message}; {c['integrated']} of {c['received']} frames integrated, "
                        f"{sum(c['dropped'].values())} messages dropped in all")

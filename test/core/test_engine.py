@@ -434,6 +434,23 @@ def test_running_average_and_weight_clip():
     assert tsdf[probe] == pytest.approx(expected, abs=1e-5)
 
 
+def test_a_map_saved_before_the_net_judged_it_is_judged_once_loaded(tmp_path):
+    """~/save_map judged the weighting net's whole backlog first, holding the map from mesh updates and
+    the other services for tens of seconds on a room during a stream. The map is now saved as it stands,
+    with what the net owes, and the loaded map judges it: the same mesh as judging before saving."""
+    engine = engine_for_tests()
+    integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:6]])
+    judged_before = engine.counters.get("alpha_voxels", 0)
+    save_map(engine, tmp_path / "map.pt")
+    assert engine.counters.get("alpha_voxels", 0) == judged_before  # nothing judged by the save
+    loaded = load_map(tmp_path / "map.pt")
+    assert (loaded.store.stale[: loaded.grid.n_blocks] > 0).sum() > 0
+    want, got = engine.extract_mesh("fused"), loaded.extract_mesh("fused")
+    assert want.n_faces > 0
+    np.testing.assert_array_equal(want.vertices, got.vertices)
+    np.testing.assert_array_equal(want.faces, got.faces)
+
+
 def test_save_and_load_give_identical_meshes(sphere_engine, tmp_path):
     path = tmp_path / "state.pt"
     save_map(sphere_engine, path)

@@ -375,6 +375,35 @@ def test_a_camera_info_that_came_once_is_not_stale_while_its_depth_comes() -> No
     assert report.level == Level.STALE and "camera_info, depth" in report.message
 
 
+def test_depth_images_lost_on_the_way_warn() -> None:
+    """1280x720 depth over best-effort DDS with a small shared memory: a quarter of the images came,
+    camera_info all of them, and ~/status stayed OK. Depth at under half camera_info's rate, or depth
+    images found missing (gaps in the stamps), now warn; the warning clears when they end."""
+    from senfunet_ros.health import HealthMonitor, Level
+
+    now = [0.0]
+    health = HealthMonitor({"tof": ("camera_info", "depth")}, window_s=1.0, stale_after_s=2.0, clock=lambda: now[0])
+    for k in range(40):  # camera_info at 10 Hz, every fourth depth image
+        now[0] += 0.1
+        health.received("tof", "camera_info")
+        if k % 4 == 0:
+            health.received("tof", "depth")
+    report = health.report()["tof"]
+    assert report.level == Level.WARN and "depth 2.0 Hz against camera_info 10.0 Hz" in report.message, report
+    for _ in range(20):  # all of them again
+        now[0] += 0.1
+        health.received("tof", "camera_info")
+        health.received("tof", "depth")
+    assert health.report()["tof"].level == Level.OK
+    health.counters({"tof": {"dropped": {}, "missing_depth": 3}})
+    report = health.report()["tof"]
+    assert report.level == Level.WARN and "recently missing: 3 depth image(s)" in report.message
+    now[0] += 1.5
+    health.received("tof", "camera_info")
+    health.received("tof", "depth")
+    assert health.report()["tof"].level == Level.OK
+
+
 def test_a_stalled_mesh_update_says_where_its_time_went(ros, tmp_path: Path, monkeypatch) -> None:
     """A mesh update that takes over twice the mesh period (here the map is held by another thread for a
     second, as an eviction or a save can hold it) is warned about with the time of each of its stages,
@@ -743,9 +772,9 @@ def test_ctrl_c_during_the_stop_drops_the_queued_frames_and_the_saving_not_the_n
         drain, save = run.node.pipeline.drain, run.node.map_services.save_meshes
 
         def interrupted(action: Any) -> Any:
-            def call(*args: Any) -> Any:
+            def call(*args: Any, **kwargs: Any) -> Any:
                 signal.raise_signal(signal.SIGINT)
-                return action(*args)
+                return action(*args, **kwargs)
             return call
 
         monkeypatch.setattr(run.node.pipeline, "drain", interrupted(drain))

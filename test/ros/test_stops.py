@@ -108,6 +108,35 @@ def test_a_node_fusing_a_stream_stops_cleanly(prefix: Path, tmp_path: Path, ros_
     assert not trouble, text[-3000:]
 
 
+def test_a_second_signal_while_the_net_judges_for_the_shutdown_save_writes_the_meshes_as_they_stand(
+        tmp_path: Path, ros_domain_id: int) -> None:
+    """ros2 launch stops a node with SIGINT, then SIGTERM after its sigterm_timeout: a node saving on
+    shutdown with the weighting net's backlog to judge first (seconds, on a room) took the SIGTERM for
+    "stop saving" and wrote nothing. The net now stops judging and the meshes are written as they stand."""
+    log = tmp_path / "node.log"
+    node = _start([*CLI, "node", "--use-sim-time", "--", "-p", "save_on_shutdown:=true",
+                   "-p", f"output_dir:={tmp_path / 'out'}"], log)
+    play = None
+    try:
+        _wait_for_text(log, "fusing", node, 180)
+        play_log = tmp_path / "play.log"
+        play = _start([*CLI, "play", str(SAMPLE), "--wait-subscribers", "30"], play_log)
+        assert play.wait(120) == 0, play_log.read_text()
+        node.send_signal(signal.SIGINT)
+        _wait_for_text(log, "the weighting net first judges", node, 60)
+        node.send_signal(signal.SIGTERM)
+        assert node.wait(60) == 0, log.read_text()
+    finally:
+        for proc in (node, play):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+    text = log.read_text(errors="replace")
+    assert "the weighting net stops judging; the meshes are written as they stand" in text, text[-3000:]
+    assert "blocks not judged" in text and (tmp_path / "out" / "mesh.ply").is_file(), text[-3000:]
+    # the frames set aside while the node was behind are in the saved map, not dropped at the stop
+    assert "0 still waiting" in text, text[-3000:]
+
+
 def test_node_sigterm_finishes_and_exits_zero(tmp_path: Path, ros_domain_id: int) -> None:
     text = _node_stopped_by_sigterm(tmp_path, tmp_path / "out")
     assert "rejected by the engine" not in text
