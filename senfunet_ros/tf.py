@@ -211,7 +211,8 @@ class TfBuffer:
         if i == 0:  # no interval can reach it: more transforms or a tolerance would not help
             raise TfError(f"{stamp_ns * 1e-9:.3f} s is before the first transform {link.parent} -> {child} held "
                           f"({stamps[0] * 1e-9:.3f} s): frames stamped before a link's publisher started (or before "
-                          "the node heard it) cannot be posed")
+                          "the node heard it, or before the first stamp of a publisher that stamps ahead, as nav2's "
+                          "amcl does by its transform_tolerance) cannot be posed")
         # a link published slowly (a localisation's map -> odom at 1 Hz) is interpolated over its own
         # interval: a gap is a missing transform, measured against the link's rate
         max_gap_ns = max(self.max_gap_ns, _GAP_INTERVALS * _typical_interval_ns(stamps, i))
