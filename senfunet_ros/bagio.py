@@ -138,13 +138,14 @@ def _payload(data: bytes) -> bytes:
     return data
 
 
-# the DDS type name a writer may record instead of the ROS one: sensor_msgs::msg::dds_::Image_
-_DDS_TYPE_NAME = re.compile(r"^(\w+)::(\w+)::dds_::(\w+)_$")
+# the DDS or C++ type name a writer may record instead of the ROS one: sensor_msgs::msg::dds_::Image_,
+# sensor_msgs::msg::Image
+_DDS_TYPE_NAME = re.compile(r"^(\w+)::(\w+)::(?:dds_::)?([A-Za-z0-9]+)_?$")
 
 
 def normalize_msgtype(msgtype: str) -> str:
-    """`pkg/Name` (ROS 1 style) and `pkg::msg::dds_::Name_` (DDS style) -> `pkg/msg/Name`; ROS 2
-    names unchanged."""
+    """`pkg/Name` (ROS 1 style), `pkg::msg::dds_::Name_` (DDS) and `pkg::msg::Name` (C++) -> `pkg/msg/Name`;
+    ROS 2 names unchanged."""
     dds = _DDS_TYPE_NAME.match(msgtype)
     if dds:
         return "/".join(dds.groups())

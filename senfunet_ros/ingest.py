@@ -600,8 +600,9 @@ class _StreamTime:
         return None, images
 
     def _take_tf_held(self, to_ns: int) -> None:
-        """Time stepped ahead to to_ns: the held transforms of the new timeline (from time_jump_s before it
-        on) go to the TF buffer, no longer counted as bad_stamp; older ones were strays and stay counted."""
+        """Time restarted at to_ns: the held transforms of the new timeline (from time_jump_s before it on)
+        go to the TF buffer, no longer counted as bad_stamp; those still ahead stay held, older ones were
+        strays and stay counted."""
         jump_ns = int(self.config.time_jump_s * 1e9)
         now_ns = self.timelines.now_ns()
         latest_ns = None if now_ns is None else max(now_ns, to_ns) + jump_ns
@@ -609,9 +610,11 @@ class _StreamTime:
         self.tf_held.clear()
         if not new or self.config.tf is None or not hasattr(self.config.tf, "add_message"):
             return
-        added = self.config.tf.add_message(SimpleNamespace(transforms=new), static=False, latest_ns=latest_ns)
+        added = self.config.tf.add_message(SimpleNamespace(transforms=new), static=False, latest_ns=latest_ns,
+                                           behind_ns=jump_ns)
         self.tf_held.extend(added.ahead)
-        self._sensors[self.config.sensors[0]].drop("bad_stamp", n=-(len(new) - len(added.ahead)))
+        taken = len(new) - len(added.ahead) - len(added.behind)
+        self._sensors[self.config.sensors[0]].drop("bad_stamp", n=-taken)
 
     def restart(self, to_ns: int | None) -> list[_Undecoded]:
         """Time restarted, known from outside (see Ingest.restart); returns the images of the new time
@@ -633,14 +636,12 @@ class _StreamTime:
             sensors[sensor].counters.time_jumps += 1
             if self.config.tf is not None and hasattr(self.config.tf, "clear"):
                 self.config.tf.clear()
-            self.tf_held.clear()
             for state in sensors.values():
                 state.drop("time_jump", n=state.flush())
             if self.config.reset_on_time_jump:
                 for name, n in self.set_aside.clear().items():
                     sensors[name].drop("time_jump", n=n)
-        else:
-            self._take_tf_held(restart.to_ns)
+        self._take_tf_held(restart.to_ns)
         for (name, _), n in restart.lost.items():  # bad_stamp until now, in fact lost to the restart
             sensors[name].drop("bad_stamp", n=-n)
             sensors[name].drop("time_jump", n=n)
@@ -754,7 +755,8 @@ class Ingest:
             now_ns = max(now_ns, tf_newest_ns)
         latest_ns = None if now_ns is None else now_ns + int(self.config.time_jump_s * 1e9)
         try:
-            added = self.config.tf.add_message(msg, static=static, latest_ns=latest_ns)
+            added = self.config.tf.add_message(msg, static=static, latest_ns=latest_ns,
+                                               behind_ns=int(self.config.time_jump_s * 1e9))
         except AttributeError as err:  # not a TFMessage
             added = TfAdded(refused=[str(err)])
         drops = []
@@ -762,7 +764,14 @@ class Ingest:
             assert now_ns is not None
             drops.append(("bad_stamp", len(added.left_out), (
                 f"tf: a transform stamped {added.left_out[0] * 1e-9:.3f} s, {(added.left_out[0] - now_ns) * 1e-9:.3f} "
-                "s ahead of the newest stamp of the streams and /tf, was left out; check the clock of its publisher")))
+                "s ahead of the newest stamp of the streams and /tf, was left out; check the clock of its publisher (a "
+                "localiser that stamps ahead, nav2's amcl by its transform_tolerance, needs time_jump_s above that)")))
+        if added.behind:
+            behind = added.behind[0]
+            drops.append(("bad_stamp", len(added.behind), (
+                f"tf: a transform {behind.header.frame_id} -> {behind.child_frame_id} stamped "
+                f"{conv.stamp_to_ns(behind.header.stamp) * 1e-9:.3f} s, more than time_jump_s before the link's "
+                "newest, was left out (held: taken if the streams confirm that time went back)")))
         if added.unstamped:
             drops.append(("bad_stamp", len(added.unstamped), f"tf: a dynamic {added.unstamped[0]} stamped 0 (unset) "
                           "was left out; its publisher must stamp its transforms (the clock's now)"))
@@ -771,7 +780,7 @@ class Ingest:
         if added.conflicts:
             drops.append(("pose_conflict", len(added.conflicts), f"tf: {added.conflicts[0]}"))
         with self._lock:
-            self._time.tf_held.extend(added.ahead)
+            self._time.tf_held.extend([*added.ahead, *added.behind])
             first = self._sensors[self.config.sensors[0]]
             for reason, count, error in drops:
                 first.drop(reason, error, n=count)
@@ -1198,6 +1207,8 @@ def _tf_pose(config: IngestConfig, pending: _Pending, *, waited_too_long: bool
         if not waited_too_long:
             return None, None, ""
         waited = f"tf: {err}; the frame waited pose_max_wait_s ({config.pose_max_wait_s:g} s) of stream time"
+        if isinstance(err, TfNotConnected) and err.unknown_frame == config.fixed_frame.lstrip("/"):
+            return None, "pose_timeout", waited  # the error says what to set
         if isinstance(err, TfNotConnected):
             return None, "pose_timeout", (
                 f"{waited} for transforms that join the two frames: they came later than that or not at all (a "

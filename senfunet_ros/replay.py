@@ -151,9 +151,10 @@ class TopicRouter:
         instead. `routed`: the bag's topics already taken."""
         hints = []
         other_images = [t for t, i in topics.items() if t not in routed and normalize_msgtype(i.msgtype) in _IMAGES]
-        if any(param.endswith(".depth_topic") for param in params) and not other_images:
-            hints.append("the bag holds no other image topic: SenFuNet fuses the depth of two sensors and this "
-                         "recording has one sensor's; record both sensors' topics")
+        depthless = [param.removesuffix(".depth_topic") for param in params if param.endswith(".depth_topic")]
+        if depthless and not other_images:
+            hints.append(f"the bag holds no other image topic to take as {' and '.join(depthless)}'s depth: "
+                         "SenFuNet fuses the depth of two sensors; record both sensors' depth images")
         elif params:
             hints.append(f"set {', '.join(params)} to the bag's topics with --params")
         if "/tf" in topics and any(param.endswith(".pose_topic") for param in params):

@@ -22,6 +22,7 @@ optical frame, that is `T_world_camera`).
 from __future__ import annotations
 
 import bisect
+import math
 import threading
 from dataclasses import dataclass, field
 from typing import Any
@@ -45,7 +46,12 @@ class TfWait(TfError):
 
 
 class TfNotConnected(TfWait):
-    """Not yet: no transforms join the two frames (those that would may still come)."""
+    """Not yet: no transforms join the two frames (those that would may still come). `unknown_frame`: one
+    of them that no transform names (a typo, or a mount never published), when known."""
+
+    def __init__(self, message: str, unknown_frame: str = "") -> None:
+        super().__init__(message)
+        self.unknown_frame = unknown_frame
 
 
 # a link's transforms may be this many of its typical intervals apart around a lookup
@@ -78,6 +84,8 @@ class TfAdded:
 
     left_out: list[int] = field(default_factory=list)
     ahead: list[Any] = field(default_factory=list)  # those transforms (geometry_msgs/TransformStamped), as sent
+    # dynamic transforms stamped more than `behind_ns` before their link's newest (time went back?), as sent
+    behind: list[Any] = field(default_factory=list)
     unstamped: list[str] = field(default_factory=list)  # dynamic transforms stamped 0 (unset): which link
     refused: list[str] = field(default_factory=list)
     # dynamic transforms for a stamp their link already had, with another value (the first is kept):
@@ -100,10 +108,12 @@ class TfBuffer:
         # stamps, not only the images', tell a stamp far ahead (Ingest.add_tf)
         self.newest_ns: int | None = None
 
-    def add_message(self, msg: Any, *, static: bool, latest_ns: int | None = None) -> TfAdded:
+    def add_message(self, msg: Any, *, static: bool, latest_ns: int | None = None,
+                    behind_ns: int | None = None) -> TfAdded:
         """Every transform of a tf2_msgs/TFMessage (duck-typed) that `add` takes, but dynamic ones
-        stamped after `latest_ns`: a stamp far in the future would stay its link's newest, and every
-        lookup until then would find a gap."""
+        stamped after `latest_ns` (a stamp far in the future would stay its link's newest, and every
+        lookup until then would find a gap) or more than `behind_ns` before their link's newest (a
+        clock that went back: mixed into the old time's transforms, they would be cleared with them)."""
         added = TfAdded()
         for tf in msg.transforms:
             try:
@@ -116,6 +126,9 @@ class TfBuffer:
                     continue
                 if not static and stamp_ns == 0:  # kept, every one would be "another value for the same stamp"
                     added.unstamped.append(what)
+                    continue
+                if not static and behind_ns is not None and stamp_ns < self._newest_of(tf.child_frame_id) - behind_ns:
+                    added.behind.append(tf)
                     continue
                 conflict = self.add(tf.header.frame_id, tf.child_frame_id, stamp_ns, T, static=static)
                 if conflict is not None:
@@ -171,6 +184,12 @@ class TfBuffer:
             if len(link.stamps) > self.history:
                 del link.stamps[0], link.transforms[0]
             return None
+
+    def _newest_of(self, child: str) -> float:
+        """The stamp of a dynamic link's newest transform (-inf for none)."""
+        with self._lock:
+            link = self._links.get(child.lstrip("/"))
+            return link.stamps[-1] if link is not None and link.static is None and link.stamps else -math.inf
 
     def _zig_zag(self, child: str) -> float | None:
         """The step of a dynamic link whose transforms zig-zag (`matching.alternation_m`), checked at every
@@ -255,16 +274,25 @@ class TfBuffer:
             chain.append(self._links[chain[-1]].parent)
         return chain
 
-    def _no_path(self, target: str, up_source: list[str], up_target: list[str]) -> str:
-        """Why target and source are not connected (yet): their chains, and what to set when the target
-        (the fixed frame) is no frame of the tree the source hangs in."""
-        text = (f"no transform path between '{target}' and '{up_source[0]}' (yet): known chains "
+    def _no_path(self, target: str, up_source: list[str], up_target: list[str]) -> TfNotConnected:
+        """Why target (the fixed frame) and source (a camera's frame) are not connected (yet): their
+        chains, and a frame no transform names (what to set), or the two trees' roots."""
+        source = up_source[0]
+        text = (f"no transform path between '{target}' and '{source}' (yet): known chains "
                 f"{' -> '.join(up_source)} and {' -> '.join(up_target)}")
-        known = target in self._links or any(link.parent == target for link in self._links.values())
-        if not known and len(up_source) > 1:
-            text += (f"; no transform names '{target}' (fixed_frame): set fixed_frame to the root of the source's "
-                     f"tree, '{up_source[-1]}', or another frame of its chain")
-        return text
+        named = {frame for child, link in self._links.items() for frame in (child, link.parent)}
+        if target not in named and len(up_source) > 1:
+            return TfNotConnected(f"{text}; no transform names '{target}' (fixed_frame): set fixed_frame to the "
+                                  f"root of the source's tree, '{up_source[-1]}', or another frame of its chain",
+                                  target)
+        if source not in named:
+            return TfNotConnected(f"{text}; no transform names '{source}' (the depth image's header.frame_id): "
+                                  "publish the camera's mount (a static transform from its parent frame), or set the "
+                                  "driver's frame_id to the camera's frame in the tree", source)
+        if target in named:
+            text += (f"; they hang in two trees, whose roots are '{up_source[-1]}' and '{up_target[-1]}': a "
+                     "transform joining them is missing")
+        return TfNotConnected(text)
 
     def _to_ancestor(self, chain: list[str], ancestor: str, stamp_ns: int) -> np.ndarray:
         """T_ancestor_frame for chain[0], walking up to `ancestor`."""
@@ -283,7 +311,7 @@ class TfBuffer:
             up_source, up_target = self._chain(source), self._chain(target)
             common = next((f for f in up_source if f in up_target), None)
             if common is None:
-                raise TfNotConnected(self._no_path(target, up_source, up_target))
+                raise self._no_path(target, up_source, up_target)
             T_common_source = self._to_ancestor(up_source, common, stamp_ns)
             T_common_target = self._to_ancestor(up_target, common, stamp_ns)
         return invert_transform(T_common_target) @ T_common_source

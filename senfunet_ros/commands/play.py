@@ -83,7 +83,7 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         topics = reader.topics
         publishers = {}
         for t, cls in list(classes.items()):
-            if t == "/clock" and args.no_clock:  # a recorded clock too
+            if _is_clock(t) and args.no_clock:  # a recorded clock too
                 del classes[t]
                 continue
             try:
@@ -102,7 +102,7 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
                 say(f"{topic} was recorded with several types: playing its {topics[topic].msgtype} messages, "
                     f"leaving out {others}")
         clock_pub = None
-        if "/clock" in publishers and not args.no_clock:  # a second clock would make time jump to and fro
+        if any(map(_is_clock, publishers)) and not args.no_clock:  # a second clock would make time jump to and fro
             say("the bag has /clock (a simulation's recorded clock): playing it, and no /clock of play's own")
         elif not args.no_clock:
             from rosgraph_msgs.msg import Clock
@@ -163,6 +163,11 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         shut_down_rclpy()
 
 
+def _is_clock(topic: str) -> bool:
+    """/clock, or `clock` as a recorder may name it (relative: the same topic)."""
+    return topic.lstrip("/") == "clock"
+
+
 def _message_classes(reader, topics: list[str] | None, say) -> dict[str, type]:  # noqa: ANN001
     """Topic -> message class of the topics to play (all, or `topics`); topics whose type is not
     installed here are skipped with a note. BagError when a topic is missing or none can be played."""
@@ -173,7 +178,8 @@ def _message_classes(reader, topics: list[str] | None, say) -> dict[str, type]: 
         missing = [t for t in topics if t not in infos]
         if missing:
             raise BagError(f"{reader.path}: no topic {', '.join(missing)}; the bag has {', '.join(sorted(infos))}")
-        infos = {t: infos[t] for t in topics}
+        # a recorded clock is the time of the topics chosen (a simulation's stamps): it goes with them
+        infos = {t: info for t, info in infos.items() if t in topics or _is_clock(t)}
     classes: dict[str, type] = {}
     unknown: dict[str, str] = {}
     for topic, info in sorted(infos.items()):

@@ -279,7 +279,10 @@ def rectified_matrix(msg: Any) -> np.ndarray | None:
                         and np.allclose(P[2], (0.0, 0.0, 1.0), rtol=0.0, atol=1e-6))
     if not is_camera_matrix or np.allclose(P, k.reshape(3, 3), rtol=1e-6, atol=1e-9):
         return None
-    return P
+    # a placeholder P (identity, focal lengths in mm) describes no image: K holds
+    width, height = int(getattr(msg, "width", 0)), int(getattr(msg, "height", 0))
+    fovs_deg = np.degrees(2.0 * np.arctan2(np.array([width, height]) / 2.0, np.array([P[0, 0], P[1, 1]])))
+    return P if np.all((MIN_FOV_DEG <= fovs_deg) & (fovs_deg <= MAX_FOV_DEG)) else None
 
 
 def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:

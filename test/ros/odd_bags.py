@@ -134,9 +134,10 @@ def clock_error_and_bad_name(src: Path, dst: Path) -> Path:
     return dst
 
 
-def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int) -> Path:
-    """`src` as a simulation's recording: a /clock topic (every 10 ms of log time) of the simulated
-    time, which starts at sim_start_ns where the log times start (a Gazebo run recorded with its clock)."""
+def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int, topic: str = "/clock") -> Path:
+    """`src` as a simulation's recording: a /clock topic (named `topic`; every 10 ms of log time) of the
+    simulated time, which starts at sim_start_ns where the log times start (a Gazebo run recorded with its
+    clock)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -144,7 +145,7 @@ def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int) -> Path:
     Clock, Time = store.types["rosgraph_msgs/msg/Clock"], store.types["builtin_interfaces/msg/Time"]
     with open_bag(src) as reader, Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         infos, conns = reader.topics, {}
-        clock = writer.add_connection("/clock", "rosgraph_msgs/msg/Clock", typestore=store)
+        clock = writer.add_connection(topic, "rosgraph_msgs/msg/Clock", typestore=store)
         next_tick_ns = reader.start_ns
         for msg in reader.messages():
             while next_tick_ns <= msg.log_time_ns:

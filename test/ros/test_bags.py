@@ -13,7 +13,7 @@ import pytest
 
 from replays import replay_commands, replay_in_process
 
-from senfunet_ros.bagio import BagBrokenError, BagError, copy_bag, open_bag, write_sequence_bag
+from senfunet_ros.bagio import BagBrokenError, BagError, copy_bag, normalize_msgtype, open_bag, write_sequence_bag
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / "bags" / "sim_room"
@@ -203,6 +203,8 @@ def test_types_recorded_with_their_dds_names_are_the_ros_types(prefix: Path, tmp
         assert {topic: info.msgtype for topic, info in reader.topics.items()} == expected
     ref, got = _replay(prefix, tmp_path / "ref", tiny_params), _replay(dds, tmp_path / "got", tiny_params)
     assert got.returncode == 0 and ref.stdout.splitlines()[:2] == got.stdout.splitlines()[:2], got.stderr
+    for spelling in ("sensor_msgs::msg::dds_::Image_", "sensor_msgs::msg::dds_::Image", "sensor_msgs::msg::Image"):
+        assert normalize_msgtype(spelling) == "sensor_msgs/msg/Image"
 
 
 def test_a_topic_recorded_with_two_types_fuses_the_type_the_node_takes_and_says_so(prefix: Path, tmp_path: Path,
@@ -370,7 +372,7 @@ def test_bag_without_expected_topics(prefix: Path, tmp_path: Path, tiny_params: 
     tof_only = copy_bag(prefix, tmp_path / "tof_only", topics=["/tof/depth", "/tof/camera_info", "/tof/pose"])
     line = _one_line_error(_replay(tof_only, tmp_path / "out", tiny_params))
     assert "no messages on /stereo/camera_info, /stereo/depth, /stereo/pose" in line
-    assert "SenFuNet fuses the depth of two sensors and this recording has one sensor's" in line
+    assert "no other image topic to take as stereo's depth: SenFuNet fuses the depth of two sensors" in line
     assert "--params" not in line
 
 

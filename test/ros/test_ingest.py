@@ -952,8 +952,12 @@ def test_a_rectified_images_camera_info_gives_the_projection_matrix_intrinsics()
     assert ingest.add_camera_info("tof", info) is None
     counters = ingest.ledger.counters()["tof"]
     assert counters["distorted"] is False and "P's intrinsics" in counters["notes"]["rectified_p"]
-    for d, p in (([0.0] * 5, info.p), (info.d, [0.0] * 12), (info.d, [*info_msg().k[:3], 0.0, *info_msg().k[3:6], 0.0,
-                                                                      *info_msg().k[6:], 0.0])):
+    # an identity P (no image has it: a 179 degree view): K holds, not refused
+    placeholder = CameraInfo(width=640, height=480, k=[500.0, 0, 320, 0, 500, 240, 0, 0, 1], d=info.d,
+                             p=[1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+    np.testing.assert_array_equal(conv.intrinsics_from_camera_info(placeholder)[0], np.reshape(placeholder.k, (3, 3)))
+    for d, p in (([0.0] * 5, info.p), (info.d, [0.0] * 12),
+                 (info.d, [*info_msg().k[:3], 0.0, *info_msg().k[3:6], 0.0, *info_msg().k[6:], 0.0])):
         other = info_msg()
         other.d, other.p = d, p
         np.testing.assert_array_equal(conv.intrinsics_from_camera_info(other)[0], np.reshape(info_msg().k, (3, 3)))

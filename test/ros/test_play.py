@@ -107,16 +107,19 @@ def test_play_skips_a_clock_errors_gap_and_a_topic_ros_cannot_name(prefix: Path,
     assert "/stereo/color-raw is no valid ROS 2 topic name" in stderr and "Traceback" not in stderr
     assert "the log times jump from 0.000 s" in stderr
 
-def test_a_bags_recorded_clock_is_the_only_clock_play_publishes(prefix: Path, tmp_path: Path, ros_domain_id: int):
-    """A simulation's recording holds /clock: play published it and a /clock of its own from the log
-    times, and every use_sim_time subscriber saw time jump to and fro (400 times a pass)."""
+@pytest.mark.parametrize("clock_topic", ["/clock", "clock"])
+def test_a_bags_recorded_clock_is_the_only_clock_play_publishes(prefix: Path, tmp_path: Path, ros_domain_id: int,
+                                                                 clock_topic: str):
+    """A simulation's recording holds /clock (or `clock`, the same topic): play published it and a /clock
+    of its own from the log times, and every use_sim_time subscriber saw time jump to and fro (400 times
+    a pass)."""
     import odd_bags
 
-    bag = odd_bags.with_recorded_clock(prefix, tmp_path / "bag", sim_start_ns=100_000_000_000)
+    bag = odd_bags.with_recorded_clock(prefix, tmp_path / "bag", sim_start_ns=100_000_000_000, topic=clock_topic)
     with open_bag(bag) as reader:
-        topics = {t: i.msgtype for t, i in reader.topics.items() if t != "/clock"}
-        counts = {t: i.count for t, i in reader.topics.items() if t != "/clock"}
-        recorded = reader.topics["/clock"].count
+        topics = {t: i.msgtype for t, i in reader.topics.items() if t != clock_topic}
+        counts = {t: i.count for t, i in reader.topics.items() if t != clock_topic}
+        recorded = reader.topics[clock_topic].count
     listener = _Listener(topics)
     returncode, stderr = _play_to(listener, bag, counts, "--rate", "2")
     assert returncode == 0, stderr

@@ -51,7 +51,9 @@ def test_buffer_chains_interpolates_waits_and_refuses_gaps() -> None:
         tf.lookup("map", "cam", 9 * S)
     with pytest.raises(TfWait, match="no transform path") as waited:
         tf.lookup("map", "other_cam", 10 * S)
-    assert "set fixed_frame" not in str(waited.value)  # a camera not in the tree (yet): fixed_frame is right
+    # a camera not in the tree (yet): fixed_frame is right, the camera's frame is named
+    assert "set fixed_frame" not in str(waited.value)
+    assert "no transform names 'other_cam' (the depth image's header.frame_id)" in str(waited.value)
     # a fixed frame no transform names: the tree's root is named (the chains alone left it to the reader)
     with pytest.raises(TfWait, match=r"no transform names 'world' \(fixed_frame\): set fixed_frame to the root "
                                      r"of the source's tree, 'map', or another frame of its chain"):
@@ -60,6 +62,7 @@ def test_buffer_chains_interpolates_waits_and_refuses_gaps() -> None:
         tf.add("robot2", "cam2", 0, np.eye(4), static=True)
         tf.lookup("robot2", "cam", 10 * S)
     assert "set fixed_frame" not in str(waited.value)
+    assert "they hang in two trees, whose roots are 'map' and 'robot2'" in str(waited.value)
 
 
 def test_a_transform_stamped_ahead_by_a_glitch_costs_no_frame() -> None:
@@ -683,14 +686,15 @@ def test_a_camera_the_tree_does_not_join_for_pose_max_wait_s_is_not_blamed_on_a_
     assert "a link published less often" not in error
 
 
-def test_transforms_of_a_clock_that_stepped_ahead_are_taken_once_the_images_confirm_it() -> None:
-    """The robot's clock steps 3 s ahead (chrony's makestep): /tf comes on the new time before the images
-    confirm it, and every such transform was left out for good as bad_stamp, with the frames needing
-    them (0.7 s of frames in a recorded case). They are now held and taken with the confirmed restart;
-    a stray far ahead still stays out."""
+@pytest.mark.parametrize("step_s", [3, -3])
+def test_transforms_of_a_clock_that_stepped_are_taken_once_the_images_confirm_it(step_s: int) -> None:
+    """The robot's clock steps 3 s ahead (chrony's makestep) or back: /tf comes on the new time before the
+    images confirm it. Ahead, every such transform was left out for good as bad_stamp, with the frames
+    needing them (0.7 s of frames in a recorded case); back, they were cleared with the old time's (0.55 s
+    of frames). They are now held and taken with the confirmed restart; a stray far ahead stays out."""
     from test_ingest import depth_msg, info_msg
 
-    from senfunet_ros.ingest import Ingest, IngestConfig
+    from senfunet_ros.ingest import Frame, Ingest, IngestConfig
 
     S, MS = 1_000_000_000, 1_000_000
     ingest = Ingest(IngestConfig(sensors=("tof",), tf=TfBuffer(max_gap_s=0.1), fixed_frame="map", time_jump_s=1.0,
@@ -698,8 +702,9 @@ def test_transforms_of_a_clock_that_stepped_ahead_are_taken_once_the_images_conf
     ingest.add_camera_info("tof", info_msg())
     stray = _tf_message(10 * S + 60 * S, 0.0)  # a glitch, a minute ahead
     posed = []
-    for k in range(200):  # /tf at 100 Hz, an image every 50 ms, the clock 3 s ahead from 1 s on
-        t_ns = 10 * S + k * 10 * MS + (3 * S if k >= 100 else 0)
+    stepped = set()
+    for k in range(200):  # /tf at 100 Hz, an image every 50 ms, the clock stepped from 1 s on
+        t_ns = 10 * S + k * 10 * MS + (step_s * S if k >= 100 else 0)
         ingest.add_tf(_tf_message(t_ns, 0.01 * k), static=False)
         if k == 150:
             ingest.add_tf(stray, static=False)
@@ -707,8 +712,9 @@ def test_transforms_of_a_clock_that_stepped_ahead_are_taken_once_the_images_conf
             msg = depth_msg(t_ns)
             msg.header.frame_id = "cam"
             ingest.add_depth("tof", msg)
-        posed += [frame.stamp_ns for frame in ingest.pop_ready()]
-    after_step = [t for t in posed if t > 13 * S]
+            stepped |= {t_ns} if k >= 100 else set()
+        posed += [frame.stamp_ns for frame in ingest.pop_ready() if isinstance(frame, Frame)]
+    after_step = stepped & set(posed)
     assert len(after_step) >= 18, (len(after_step), ingest.ledger.counters()["tof"])  # 20 images after the step
     counters = ingest.ledger.counters()["tof"]
     assert counters["dropped"]["bad_stamp"] == 1, counters  # the stray alone
