@@ -27,6 +27,8 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument("rviz", default_value="false", description="also start RViz with config/senfunet.rviz"),
         DeclareLaunchArgument("sigterm_timeout", default_value="30",
                               description="seconds from SIGINT to SIGTERM when the launch stops (save_on_shutdown)"),
+        DeclareLaunchArgument("sigkill_timeout", default_value="30",
+                              description="seconds from SIGTERM to SIGKILL when the launch stops (save_on_shutdown)"),
         Node(
             package="senfunet_ros",
             executable="fusion_node",
@@ -34,9 +36,11 @@ def generate_launch_description() -> LaunchDescription:
             output="screen",
             emulate_tty=True,
             parameters=[params, {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
-            # launch's default of 5 s between SIGINT and SIGTERM cuts a save_on_shutdown short (the weighting
-            # net's backlog, then the files): SIGTERM after this many seconds stops the judging, not the files
+            # launch's default of 5 s between SIGINT, SIGTERM and SIGKILL cuts a save_on_shutdown short (the
+            # weighting net's backlog, then the files): SIGTERM stops the judging and leaves the fused mesh to
+            # write, which SIGKILL would cut
             sigterm_timeout=LaunchConfiguration("sigterm_timeout"),
+            sigkill_timeout=LaunchConfiguration("sigkill_timeout"),
         ),
         Node(
             package="rviz2",

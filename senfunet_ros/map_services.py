@@ -85,21 +85,23 @@ class MapServices:
     mesh_publisher: MeshPublisher
     logger: Any  # the node's logger
 
-    def save_meshes(self, output_dir: str | Path | None = None, *, judge: bool = True) -> list[Path]:
-        """Fused (filtered), per-sensor and TSDF Fusion meshes as PLY files; returns their paths.
-        `judge`: the weighting net judges what it has not reached first."""
-        return self._save_meshes(output_dir, judge=judge)[0]
+    def save_meshes(self, output_dir: str | Path | None = None, *, hurry: bool = False) -> list[Path]:
+        """Fused (filtered), per-sensor and TSDF Fusion meshes as PLY files; returns their paths. The
+        weighting net first judges what it has not reached; `hurry` (a process being stopped): not, and
+        the fused mesh alone, as it stands."""
+        return self._save_meshes(output_dir, hurry=hurry)[0]
 
-    def _save_meshes(self, output_dir: str | Path | None = None, *, judge: bool = True) -> tuple[list[Path], str]:
+    def _save_meshes(self, output_dir: str | Path | None = None, *, hurry: bool = False) -> tuple[list[Path], str]:
         """`save_meshes`, and a note when output_dir holds a mesh file of an earlier map that this map
         does not replace (a TSDF Fusion mesh, from a map that kept the baseline)."""
         s = self.settings()
         # absolute: the replies name the files for clients in other processes (other working directories)
         out = Path(output_dir or s.output_dir).expanduser().absolute()
-        tsdf_fusion = self.pipeline.engine.config.tsdf_fusion
+        tsdf_fusion = self.pipeline.engine.config.tsdf_fusion and not hurry
+        sensors = () if hurry else s.sensor_names
         _refuse_file_in_the_way(out, out)
-        self._keep_earlier_files(list(mesh_paths(out, sensors=s.sensor_names, tsdf_fusion=tsdf_fusion).values()))
-        saved = self.pipeline.save_meshes(out, sensors=s.sensor_names, tsdf_fusion=tsdf_fusion, judge=judge)
+        self._keep_earlier_files(list(mesh_paths(out, sensors=sensors, tsdf_fusion=tsdf_fusion).values()))
+        saved = self.pipeline.save_meshes(out, sensors=sensors, tsdf_fusion=tsdf_fusion, judge=not hurry)
         baseline = mesh_paths(out, sensors=(), tsdf_fusion=True)["tsdf_fusion"]
         note = (f" ({baseline} is an earlier map's: this map keeps no TSDF Fusion baseline)"
                 if not tsdf_fusion and baseline.exists() else "")

@@ -156,7 +156,8 @@ class MeshPublisher:
         self.lock = threading.Lock()  # one publication at a time (timer vs. reset and load_map services)
         self.updates = UpdateSignal()  # each publication's end (one that fails: a waiter's timeout)
         # called on the mesh thread with (engine, update, whole) as each update is published, `whole` when it
-        # sends the whole map instead of the update's changes (a reader joined): what a subscriber holds
+        # sends the whole map instead of the update's changes (a reader joined, a map loaded): what a
+        # subscriber holds
         self.taps: list[Callable[[Any, Any, bool], None]] = []
         self._matched = 0  # mesh readers matched so far (written by the matched event's callback only)
         try:
@@ -219,7 +220,8 @@ class MeshPublisher:
             update = engine.update(alpha_budget_s=0.0,
                                    mesh_threads=1 if self._frame_waiting() else engine.config.alpha_threads,
                                    mesh_budget_s=MESH_BUDGET_SHARE * mesh_period_s(s.mesh_rate_hz))
-            if self._resend.is_set():  # cleared before the map is read: a later request gets the next one
+            replaced = self._resend.is_set()  # cleared before the map is read: a later request gets the next one
+            if replaced:
                 self._resend.clear()
                 served = (0, 0)
             t_update = time.perf_counter()
@@ -233,8 +235,8 @@ class MeshPublisher:
             readers = (self.mesh_pub.get_subscription_count(), self._matched)
             caught_up = self._parts_unacknowledged and wait_for_all_acked(self.mesh_pub, 0.0)
             whole = readers[0] > served[0] or readers[1] > served[1] or caught_up
-            for tap in self.taps:
-                tap(engine, update, whole)
+            for tap in self.taps:  # a map replaced (a load) is whole for them, readers or not
+                tap(engine, update, whole or replaced)
             messages = self._mesh_messages(engine, update, s, stamp_ns, whole=whole)
             # the net's turn ends with this mesh period (less a margin for the updates' jitter): the next
             # update is not to wait for it

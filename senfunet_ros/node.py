@@ -980,26 +980,27 @@ def _signals_as_interrupt() -> None:
 def _judge_before_saving(engine: Any, hurry: threading.Event) -> None:
     """The weighting net's backlog judged in short turns until none is left or `hurry` is set (then said,
     with what is left: the meshes show it as it stands)."""
-    engine.refresh_alpha(0.25)  # its first turn also counts the blocks that integration left to judge
-    if engine.counters["alpha_backlog_blocks"]:
-        print(f"senfunet: saving on shutdown: the weighting net first judges the "
-              f"{engine.counters['alpha_backlog_blocks']} blocks it has not reached (Ctrl-C: write the meshes as "
-              "they stand)", flush=True)
-    while engine.counters["alpha_backlog_blocks"] and not hurry.is_set():
+    if not hurry.is_set():
+        engine.refresh_alpha(0.25)  # its first turn also counts the blocks that integration left to judge
+        if engine.counters["alpha_backlog_blocks"]:
+            print(f"senfunet: saving on shutdown: the weighting net first judges the "
+                  f"{engine.counters['alpha_backlog_blocks']} blocks it has not reached (Ctrl-C: write the fused "
+                  "mesh as it stands)", flush=True)
+    while engine.counters.get("alpha_backlog_blocks") and not hurry.is_set():
         engine.refresh_alpha(0.25)
-    if engine.counters["alpha_backlog_blocks"]:
-        print(f"senfunet: {engine.counters['alpha_backlog_blocks']} blocks not judged: the meshes leave out the "
-              "surface one sensor alone saw there", flush=True)
+    if engine.counters.get("alpha_backlog_blocks"):
+        print(f"senfunet: {engine.counters['alpha_backlog_blocks']} blocks not judged: the fused mesh leaves out "
+              "the surface one sensor alone saw there", flush=True)
 
 
 def stop_node(node: FusionNode) -> None:
     """What `main` does once the executor stopped: integrate the ready frames (`finish`), save the
     meshes (parameter save_on_shutdown: the weighting net first judges what it has not reached),
     destroy the node. Ctrl-C or SIGTERM meanwhile (someone in a hurry, or ros2 launch's SIGTERM after
-    its sigterm_timeout) shortens it without losing the map: while frames are integrated, the ones not
-    started yet are dropped; while the net judges, it stops and the meshes are written as they stand;
-    while they are written, the writing stops (each file is written whole or not at all, see
-    `write_ply`); the node is destroyed either way."""
+    its sigterm_timeout) shortens it without losing the map: the frames not started yet are dropped, the
+    net does not judge any further and the fused mesh alone is written, as it stands; while the files are
+    written, the writing stops (each file is written whole or not at all, see `write_ply`); the node is
+    destroyed either way."""
     import signal
     import tempfile
 
@@ -1010,13 +1011,14 @@ def stop_node(node: FusionNode) -> None:
     def interrupted(signum: int, frame: Any) -> None:
         if phase == "write":
             raise KeyboardInterrupt
+        hurried = "the weighting net stops judging; the fused mesh alone is written, as it stands"
+        hurry.set()
         if phase == "judge":
-            hurry.set()
-            print("senfunet: interrupted again: the weighting net stops judging; the meshes are written as they "
-                  "stand", flush=True)
+            print(f"senfunet: interrupted again: {hurried}", flush=True)
             return
         abandon.set()
-        print("senfunet: interrupted again: the frames not integrated yet are dropped", flush=True)
+        print("senfunet: interrupted again: the frames not integrated yet are dropped" +
+              (f"; {hurried}" if node.settings.save_on_shutdown else ""), flush=True)
 
     try:
         previous = {sig: signal.signal(sig, interrupted) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -1038,7 +1040,7 @@ def stop_node(node: FusionNode) -> None:
             phase = "write"
             try:
                 try:
-                    paths, saved = node.map_services.save_meshes(judge=not hurry.is_set()), "saved"
+                    paths, saved = node.map_services.save_meshes(hurry=hurry.is_set()), "saved"
                 except NothingToSave as err:  # the files of an earlier run stay
                     print(f"senfunet: not saved on shutdown: {err}", flush=True)
                     paths = []
@@ -1047,7 +1049,7 @@ def stop_node(node: FusionNode) -> None:
                     print(f"senfunet: saving on shutdown into output_dir failed: {err}; check parameter output_dir; "
                           "saving into a new temporary folder instead", file=sys.stderr, flush=True)
                     paths = node.map_services.save_meshes(tempfile.mkdtemp(prefix="senfunet_output_"),
-                                                          judge=not hurry.is_set())
+                                                          hurry=hurry.is_set())
                     saved = "saved instead"
                 if paths:
                     print(f"senfunet: {saved} " + ", ".join(str(p) for p in paths), flush=True)

@@ -243,7 +243,8 @@ class Pipeline:
             if then_reset:
                 self._new_map()
         saved = {}
-        for name, (mesh, seconds) in meshes.items():
+        # the fused mesh written first: a save cut short (a process killed) keeps the one that matters most
+        for name, (mesh, seconds) in sorted(meshes.items(), key=lambda item: item[0] != "fused"):
             path = paths[name]
             write_ply(path, mesh)
             os.chmod(path, FILE_MODE)

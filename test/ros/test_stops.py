@@ -110,9 +110,10 @@ def test_a_node_fusing_a_stream_stops_cleanly(prefix: Path, tmp_path: Path, ros_
 
 def test_a_second_signal_while_the_net_judges_for_the_shutdown_save_writes_the_meshes_as_they_stand(
         tmp_path: Path, ros_domain_id: int) -> None:
-    """ros2 launch stops a node with SIGINT, then SIGTERM after its sigterm_timeout: a node saving on
-    shutdown with the weighting net's backlog to judge first (seconds, on a room) took the SIGTERM for
-    "stop saving" and wrote nothing. The net now stops judging and the meshes are written as they stand."""
+    """ros2 launch stops a node with SIGINT, then SIGTERM after its sigterm_timeout (and SIGKILL after its
+    sigkill_timeout): a node saving on shutdown with the weighting net's backlog to judge first (seconds,
+    on a room) took the SIGTERM for "stop saving" and wrote nothing. The net now stops judging and the
+    fused mesh alone is written, as it stands."""
     log = tmp_path / "node.log"
     node = _start([*CLI, "node", "--use-sim-time", "--", "-p", "save_on_shutdown:=true",
                    "-p", f"output_dir:={tmp_path / 'out'}"], log)
@@ -131,8 +132,9 @@ def test_a_second_signal_while_the_net_judges_for_the_shutdown_save_writes_the_m
             if proc is not None and proc.poll() is None:
                 proc.kill()
     text = log.read_text(errors="replace")
-    assert "the weighting net stops judging; the meshes are written as they stand" in text, text[-3000:]
+    assert "the weighting net stops judging; the fused mesh alone is written, as it stands" in text, text[-3000:]
     assert "blocks not judged" in text and (tmp_path / "out" / "mesh.ply").is_file(), text[-3000:]
+    assert not (tmp_path / "out" / "tof.ply").exists()  # the per-sensor meshes would keep SIGKILL waiting
     # the frames set aside while the node was behind are in the saved map, not dropped at the stop
     assert "0 still waiting" in text, text[-3000:]
 
@@ -162,8 +164,9 @@ def test_node_saving_on_shutdown_into_an_unusable_output_dir_saves_elsewhere_and
     assert "saving on shutdown into output_dir failed" in text and "check parameter output_dir" in text
     saved = [line for line in text.splitlines() if line.startswith("senfunet: saved instead ")]
     assert saved, text
-    mesh = Path(saved[0].removeprefix("senfunet: saved instead ").split(", ")[-1])
-    assert mesh.name == "mesh.ply" and mesh.is_file()
+    paths = [Path(path) for path in saved[0].removeprefix("senfunet: saved instead ").split(", ")]
+    mesh = paths[0]  # written first
+    assert mesh.name == "mesh.ply" and all(path.is_file() for path in paths)
     shutil.rmtree(mesh.parent)
 
 
