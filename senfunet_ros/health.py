@@ -18,8 +18,6 @@ from typing import Any
 __all__ = ["HealthMonitor", "Level", "SensorReport", "StreamReport"]
 
 
-# depth images received before its rate is held against camera_info's (a stream that just began is no loss)
-_SHORT_AFTER = 10
 _OPTIONAL = ("color",)  # a colour topic nobody publishes is logged once, it does not hold the sensor at WARN
 
 
@@ -39,6 +37,7 @@ class StreamReport:
     silent_s: float  # seconds since the last message (since subscribing if none came)
     stale: bool  # it spoke, then stopped for stale_after_s
     never: bool  # subscribed for a window and nothing came
+    live_s: float = 0.0  # seconds since its first message (0: none yet)
 
 
 @dataclass
@@ -55,6 +54,7 @@ class _Stream:
         self.subscribed_s = now
         self.arrivals: deque[float] = deque()
         self.received = 0
+        self.first_s: float | None = None
         self.last_s: float | None = None
 
 
@@ -98,6 +98,7 @@ class HealthMonitor:
                 return
             state.arrivals.append(now)
             state.received += 1
+            state.first_s = now if state.first_s is None else state.first_s
             state.last_s = now
             self._expire(state.arrivals, now)
 
@@ -157,12 +158,14 @@ class HealthMonitor:
                     streams[stream] = StreamReport(
                         rate_hz=len(state.arrivals) / span, received=state.received, silent_s=silent,
                         stale=state.last_s is not None and silent > self.stale_after_s,
-                        never=state.last_s is None and silent > self.window_s)
-                out[sensor] = self._judge(streams, recent, missing)
+                        never=state.last_s is None and silent > self.window_s,
+                        live_s=0.0 if state.first_s is None else now - state.first_s)
+                out[sensor] = self._judge(streams, recent, missing, window_s=self.window_s)
         return out
 
     @staticmethod
-    def _judge(streams: dict[str, StreamReport], recent: dict[str, int], missing: int) -> SensorReport:
+    def _judge(streams: dict[str, StreamReport], recent: dict[str, int], missing: int, *, window_s: float
+               ) -> SensorReport:
         # camera_info may come once (a latched publisher): its silence while depth comes is no stop
         depth_live = "depth" in streams and not streams["depth"].stale and not streams["depth"].never
         stale = sorted(name for name, r in streams.items() if r.stale and not (name == "camera_info" and depth_live))
@@ -170,14 +173,14 @@ class HealthMonitor:
         if stale:
             level = Level.STALE
             message = f"no messages on {', '.join(stale)} for {max(streams[n].silent_s for n in stale):.1f} s"
-        elif never or recent or missing or _depth_short(streams):
+        elif never or recent or missing or _depth_short(streams, window_s):
             level = Level.WARN
             parts = []
             if never:
                 parts.append(f"nothing received yet on {', '.join(never)}")
             if recent:
                 parts.append("recently dropped: " + ", ".join(f"{n} {r}" for r, n in sorted(recent.items())))
-            if _depth_short(streams):
+            if _depth_short(streams, window_s):
                 parts.append(f"depth {streams['depth'].rate_hz:.1f} Hz against camera_info "
                              f"{streams['camera_info'].rate_hz:.1f} Hz: most depth images are lost on the way (large "
                              "images over best-effort QoS, or the transport's shared memory too small?)")
@@ -190,9 +193,11 @@ class HealthMonitor:
         return SensorReport(level, message, streams, recent, missing)
 
 
-def _depth_short(streams: dict[str, StreamReport]) -> bool:
+def _depth_short(streams: dict[str, StreamReport], window_s: float) -> bool:
     """Depth arriving at under half the rate of its camera_info (which drivers publish with every image,
-    a small message the transport rarely loses), both live."""
+    a small message the transport rarely loses), both live for the whole window (a stream that began
+    within it has its rate taken over time it was not there)."""
     depth, info = streams.get("depth"), streams.get("camera_info")
     return (depth is not None and info is not None and not depth.stale and not info.stale
-            and depth.received >= _SHORT_AFTER and info.rate_hz >= 1.0 and depth.rate_hz < 0.5 * info.rate_hz)
+            and min(depth.live_s, info.live_s) >= window_s and info.rate_hz >= 1.0
+            and depth.rate_hz < 0.5 * info.rate_hz)
