@@ -605,7 +605,9 @@ class _StreamTime:
         strays and stay counted."""
         jump_ns = int(self.config.time_jump_s * 1e9)
         now_ns = self.timelines.now_ns()
-        latest_ns = None if now_ns is None else max(now_ns, to_ns) + jump_ns
+        if now_ns is None:  # the new time not known yet (a restart known from outside without its time)
+            return
+        latest_ns = max(now_ns, to_ns) + jump_ns
         new = [tf for tf in self.tf_held if conv.stamp_to_ns(tf.header.stamp) >= to_ns - jump_ns]
         self.tf_held.clear()
         if not new or self.config.tf is None or not hasattr(self.config.tf, "add_message"):
