@@ -50,6 +50,7 @@ __all__ = [
     "open_bag",
     "bag_storage_file",
     "message_class",
+    "absolute_topic",
     "normalize_msgtype",
     "is_cdr",
     "write_sequence_bag",
@@ -141,6 +142,12 @@ def _payload(data: bytes) -> bytes:
 # the DDS or C++ type name a writer may record instead of the ROS one: sensor_msgs::msg::dds_::Image_,
 # sensor_msgs::msg::Image
 _DDS_TYPE_NAME = re.compile(r"^(\w+)::(\w+)::(?:dds_::)?([A-Za-z0-9]+)_?$")
+
+
+def absolute_topic(topic: str) -> str:
+    """A topic as the bag names it, absolute: a recorder may write 'tof/depth' for /tof/depth (relative
+    names are in the root namespace, as the node's and play's)."""
+    return topic if topic.startswith("/") else f"/{topic}"
 
 
 def normalize_msgtype(msgtype: str) -> str:

@@ -59,7 +59,6 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from types import SimpleNamespace
 from typing import Any
 from collections.abc import Callable, Iterable
 
@@ -563,7 +562,7 @@ class _SensorInput:
         return out
 
 
-# transforms held while a clock that stepped ahead is confirmed (`_StreamTime.tf_held`): seconds of a robot's tree
+# transforms held while a clock that stepped is confirmed (`_StreamTime.tf_held`): seconds of a robot's tree
 _TF_HELD = 10_000
 
 
@@ -578,9 +577,9 @@ class _StreamTime:
         self.jumps: list[TimeJump] = []  # seen since the last pop_ready
         self._sensors = sensors
         self.set_aside = set_aside
-        # dynamic transforms left out as stamped ahead of the timelines (`Ingest.add_tf`), the newest
-        # _TF_HELD: a clock that stepped ahead sends them before the images confirm the new timeline, which
-        # takes them then
+        # dynamic transforms left out as stamped ahead of the timelines or behind their link (`Ingest.add_tf`),
+        # the newest _TF_HELD: a clock that stepped sends them before the images confirm the new timeline,
+        # which takes them then
         self.tf_held: deque[Any] = deque(maxlen=_TF_HELD)
 
     def configure(self, config: IngestConfig) -> None:
@@ -610,10 +609,9 @@ class _StreamTime:
         latest_ns = max(now_ns, to_ns) + jump_ns
         new = [tf for tf in self.tf_held if conv.stamp_to_ns(tf.header.stamp) >= to_ns - jump_ns]
         self.tf_held.clear()
-        if not new or self.config.tf is None or not hasattr(self.config.tf, "add_message"):
+        if not new or self.config.tf is None or not hasattr(self.config.tf, "add_transforms"):
             return
-        added = self.config.tf.add_message(SimpleNamespace(transforms=new), static=False, latest_ns=latest_ns,
-                                           behind_ns=jump_ns)
+        added = self.config.tf.add_transforms(new, static=False, latest_ns=latest_ns, behind_ns=jump_ns)
         self.tf_held.extend(added.ahead)
         taken = len(new) - len(added.ahead) - len(added.behind)
         self._sensors[self.config.sensors[0]].drop("bad_stamp", n=-taken)
@@ -755,17 +753,18 @@ class Ingest:
         tf_newest_ns = getattr(self.config.tf, "newest_ns", None)
         if now_ns is not None and tf_newest_ns is not None:
             now_ns = max(now_ns, tf_newest_ns)
-        latest_ns = None if now_ns is None else now_ns + int(self.config.time_jump_s * 1e9)
+        jump_ns = int(self.config.time_jump_s * 1e9)
+        latest_ns = None if now_ns is None else now_ns + jump_ns
         try:
-            added = self.config.tf.add_message(msg, static=static, latest_ns=latest_ns,
-                                               behind_ns=int(self.config.time_jump_s * 1e9))
+            added = self.config.tf.add_message(msg, static=static, latest_ns=latest_ns, behind_ns=jump_ns)
         except AttributeError as err:  # not a TFMessage
             added = TfAdded(refused=[str(err)])
         drops = []
-        if added.left_out:
+        if added.ahead:
             assert now_ns is not None
-            drops.append(("bad_stamp", len(added.left_out), (
-                f"tf: a transform stamped {added.left_out[0] * 1e-9:.3f} s, {(added.left_out[0] - now_ns) * 1e-9:.3f} "
+            ahead_ns = conv.stamp_to_ns(added.ahead[0].header.stamp)
+            drops.append(("bad_stamp", len(added.ahead), (
+                f"tf: a transform stamped {ahead_ns * 1e-9:.3f} s, {(ahead_ns - now_ns) * 1e-9:.3f} "
                 "s ahead of the newest stamp of the streams and /tf, was left out; check the clock of its publisher (a "
                 "localiser that stamps ahead, nav2's amcl by its transform_tolerance, needs time_jump_s above that)")))
         if added.behind:

@@ -978,16 +978,19 @@ def _signals_as_interrupt() -> None:
 
 
 def _judge_before_saving(engine: Any, hurry: threading.Event) -> None:
-    """The weighting net's backlog judged in short turns until none is left or `hurry` is set (then said,
-    with what is left: the meshes show it as it stands)."""
-    if not hurry.is_set():
+    """The weighting net's backlog judged in short turns until none is left, a turn leaves no fewer (as
+    `MapServices._judge_between_updates` stops; the save's own judging finishes it), or `hurry` is set
+    (then said, with what is left: the fused mesh shows it as it stands)."""
+    left_before = None
+    while not hurry.is_set():
         engine.refresh_alpha(0.25)  # its first turn also counts the blocks that integration left to judge
-        if engine.counters["alpha_backlog_blocks"]:
-            print(f"senfunet: saving on shutdown: the weighting net first judges the "
-                  f"{engine.counters['alpha_backlog_blocks']} blocks it has not reached (Ctrl-C: write the fused "
-                  "mesh as it stands)", flush=True)
-    while engine.counters.get("alpha_backlog_blocks") and not hurry.is_set():
-        engine.refresh_alpha(0.25)
+        left = engine.counters["alpha_backlog_blocks"]
+        if left == 0 or (left_before is not None and left >= left_before):
+            return
+        if left_before is None:
+            print(f"senfunet: saving on shutdown: the weighting net first judges the {left} blocks it has not "
+                  "reached (Ctrl-C: write the fused mesh as it stands)", flush=True)
+        left_before = left
     if engine.counters.get("alpha_backlog_blocks"):
         print(f"senfunet: {engine.counters['alpha_backlog_blocks']} blocks not judged: the fused mesh leaves out "
               "the surface one sensor alone saw there", flush=True)
@@ -1005,7 +1008,7 @@ def stop_node(node: FusionNode) -> None:
     import tempfile
 
     abandon = threading.Event()  # drop the frames not integrated yet
-    hurry = threading.Event()  # the net stops judging; the meshes are written as they stand
+    hurry = threading.Event()  # the net stops judging; the fused mesh alone is written, as it stands
     phase = "finish"  # then "judge", then "write"
 
     def interrupted(signum: int, frame: Any) -> None:

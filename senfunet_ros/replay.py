@@ -27,8 +27,8 @@ import numpy as np
 from senfunet_core.files import atomic_file
 from senfunet_ros import params as P
 from senfunet_ros.params import engine_config, engine_weights, ingest_config
-from senfunet_ros.bagio import (BagBrokenError, BagError, BagMessage, TopicInfo, is_cdr, message_class,
-                                normalize_msgtype, open_bag)
+from senfunet_ros.bagio import (BagBrokenError, BagError, BagMessage, TopicInfo, absolute_topic, is_cdr,
+                                message_class, normalize_msgtype, open_bag)
 from senfunet_ros.conversions import PoseType
 from senfunet_ros.ingest import Frame, Ingest
 from senfunet_ros.params_file import load_settings
@@ -97,7 +97,7 @@ class TopicRouter:
             if pose_type is not PoseType.TF:
                 wanted.append((sensor.name, Stream.POSE, sensor.pose_topic, (pose_type.msgtype,), True))
         # the bag's topics by their absolute names: a recorder may have written 'tof/depth' for /tof/depth
-        recorded_as = {(t if t.startswith("/") else f"/{t}"): t for t in topics}
+        recorded_as = {absolute_topic(t): t for t in topics}
         if pose_type is PoseType.TF:  # a fixed rig's whole tree may be static (/tf_static alone)
             static = topics.get(recorded_as.get("/tf_static", ""))
             wanted += [("", Stream.TF, "/tf", (_TF_MSGTYPE,), static is None or static.count == 0),
@@ -105,7 +105,7 @@ class TopicRouter:
         for sensor_name, stream, topic, expected, required in wanted:
             if not topic:
                 continue
-            topic = topic if topic.startswith("/") else f"/{topic}"  # relative: in the root namespace, as the node's
+            topic = absolute_topic(topic)
             info = topics.get(recorded_as.get(topic, topic))
             if info is None or info.count == 0:  # an optional topic recorded empty is absent too (colour: said)
                 if required:

@@ -25,6 +25,7 @@ import bisect
 import math
 import threading
 from dataclasses import dataclass, field
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -79,11 +80,12 @@ class _Link:
 
 @dataclass(frozen=True)
 class TfAdded:
-    """What `TfBuffer.add_message` left out: dynamic stamps too far ahead or unset, the transforms it refused,
-    each with the reason, and those that gave a stamp already given another value."""
+    """What `TfBuffer.add_message` left out: dynamic transforms stamped too far ahead, behind their link or
+    unset, the transforms it refused, each with the reason, and those that gave a stamp already given
+    another value."""
 
-    left_out: list[int] = field(default_factory=list)
-    ahead: list[Any] = field(default_factory=list)  # those transforms (geometry_msgs/TransformStamped), as sent
+    # dynamic transforms stamped after `latest_ns` (geometry_msgs/TransformStamped), as sent
+    ahead: list[Any] = field(default_factory=list)
     # dynamic transforms stamped more than `behind_ns` before their link's newest (time went back?), as sent
     behind: list[Any] = field(default_factory=list)
     unstamped: list[str] = field(default_factory=list)  # dynamic transforms stamped 0 (unset): which link
@@ -110,18 +112,22 @@ class TfBuffer:
 
     def add_message(self, msg: Any, *, static: bool, latest_ns: int | None = None,
                     behind_ns: int | None = None) -> TfAdded:
-        """Every transform of a tf2_msgs/TFMessage (duck-typed) that `add` takes, but dynamic ones
-        stamped after `latest_ns` (a stamp far in the future would stay its link's newest, and every
-        lookup until then would find a gap) or more than `behind_ns` before their link's newest (a
-        clock that went back: mixed into the old time's transforms, they would be cleared with them)."""
+        """Every transform of a tf2_msgs/TFMessage (duck-typed) that `add` takes (`add_transforms`)."""
+        return self.add_transforms(msg.transforms, static=static, latest_ns=latest_ns, behind_ns=behind_ns)
+
+    def add_transforms(self, transforms: Iterable[Any], *, static: bool, latest_ns: int | None = None,
+                       behind_ns: int | None = None) -> TfAdded:
+        """Every geometry_msgs/TransformStamped (duck-typed) that `add` takes, but dynamic ones stamped
+        after `latest_ns` (a stamp far in the future would stay its link's newest, and every lookup until
+        then would find a gap) or more than `behind_ns` before their link's newest (a clock that went
+        back: mixed into the old time's transforms, they would be cleared with them)."""
         added = TfAdded()
-        for tf in msg.transforms:
+        for tf in transforms:
             try:
                 what = f"transform {tf.header.frame_id} -> {tf.child_frame_id}"
                 T = transform_from_msg(tf.transform.translation, tf.transform.rotation, what)
                 stamp_ns = stamp_to_ns(tf.header.stamp)
                 if not static and latest_ns is not None and stamp_ns > latest_ns:
-                    added.left_out.append(stamp_ns)
                     added.ahead.append(tf)
                     continue
                 if not static and stamp_ns == 0:  # kept, every one would be "another value for the same stamp"

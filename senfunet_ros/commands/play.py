@@ -60,7 +60,7 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
     from rclpy.exceptions import InvalidTopicNameException
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from senfunet_ros.bagio import BagError
+    from senfunet_ros.bagio import BagError, absolute_topic
 
     say = (lambda text: None) if args.quiet else (lambda text: print(f"senfunet play: {text}", file=sys.stderr))
     if reader.note:
@@ -86,11 +86,11 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
             if _is_clock(t) and args.no_clock:  # a recorded clock too
                 del classes[t]
                 continue
+            latched = topics[t].latched or absolute_topic(t) == "/tf_static"
             try:
                 publishers[t] = node.create_publisher(cls, t, QoSProfile(
                     history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                    durability=DurabilityPolicy.TRANSIENT_LOCAL if topics[t].latched or t == "/tf_static"
-                    else DurabilityPolicy.VOLATILE))
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE))
             except InvalidTopicNameException as err:  # a name another middleware allowed ('color-raw')
                 del classes[t]
                 reason = str(err).strip().splitlines()[0]
@@ -164,8 +164,10 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
 
 
 def _is_clock(topic: str) -> bool:
-    """/clock, or `clock` as a recorder may name it (relative: the same topic)."""
-    return topic.lstrip("/") == "clock"
+    """/clock, or `clock` as a recorder may name it (`bagio.absolute_topic`)."""
+    from senfunet_ros.bagio import absolute_topic
+
+    return absolute_topic(topic) == "/clock"
 
 
 def _message_classes(reader, topics: list[str] | None, say) -> dict[str, type]:  # noqa: ANN001
