@@ -19,6 +19,7 @@ __all__ = ["HealthMonitor", "Level", "SensorReport", "StreamReport"]
 
 
 _OPTIONAL = ("color",)  # a colour topic nobody publishes is logged once, it does not hold the sensor at WARN
+_PAIRING_STAMPS = 64  # a depth image and its camera_info arrive within this many messages of each other
 
 
 class Level(enum.IntEnum):
@@ -76,6 +77,11 @@ class HealthMonitor:
         self._last_dropped: dict[str, dict[str, int]] = {s: {} for s in sensors}
         self._missing: dict[str, deque[tuple[float, int]]] = {s: deque() for s in sensors}
         self._last_missing: dict[str, int] = {s: 0 for s in sensors}
+        # recent header stamps of depth and camera_info, to learn whether the driver sends a camera_info
+        # with every image (`_depth_short` judges only such pairs)
+        self._stamps: dict[tuple[str, str], deque[int]] = {
+            key: deque(maxlen=_PAIRING_STAMPS) for key in self._streams if key[1] in ("depth", "camera_info")}
+        self._paired: set[str] = set()
 
     @property
     def window_s(self) -> float:
@@ -90,12 +96,18 @@ class HealthMonitor:
                 self._kept_since_s = max(self._kept_since_s, self._clock() - self._window_s)
             self._window_s = value
 
-    def received(self, sensor: str, stream: str) -> None:
+    def received(self, sensor: str, stream: str, stamp_ns: int | None = None) -> None:
+        """A message arrived; stamp_ns: its header stamp (depth and camera_info)."""
         now = self._clock()
         with self._lock:
             state = self._streams.get((sensor, stream))
             if state is None:
                 return
+            if stamp_ns is not None and (sensor, stream) in self._stamps and sensor not in self._paired:
+                other = self._stamps.get((sensor, "camera_info" if stream == "depth" else "depth"))
+                if other is not None and stamp_ns in other:
+                    self._paired.add(sensor)
+                self._stamps[(sensor, stream)].append(stamp_ns)
             state.arrivals.append(now)
             state.received += 1
             state.first_s = now if state.first_s is None else state.first_s
@@ -160,27 +172,29 @@ class HealthMonitor:
                         stale=state.last_s is not None and silent > self.stale_after_s,
                         never=state.last_s is None and silent > self.window_s,
                         live_s=0.0 if state.first_s is None else now - state.first_s)
-                out[sensor] = self._judge(streams, recent, missing, window_s=self.window_s)
+                out[sensor] = self._judge(streams, recent, missing, window_s=self.window_s,
+                                          paired=sensor in self._paired)
         return out
 
     @staticmethod
-    def _judge(streams: dict[str, StreamReport], recent: dict[str, int], missing: int, *, window_s: float
-               ) -> SensorReport:
+    def _judge(streams: dict[str, StreamReport], recent: dict[str, int], missing: int, *, window_s: float,
+               paired: bool) -> SensorReport:
         # camera_info may come once (a latched publisher): its silence while depth comes is no stop
         depth_live = "depth" in streams and not streams["depth"].stale and not streams["depth"].never
         stale = sorted(name for name, r in streams.items() if r.stale and not (name == "camera_info" and depth_live))
         never = sorted(name for name, r in streams.items() if r.never and name not in _OPTIONAL)
+        short = paired and _depth_short(streams, window_s)
         if stale:
             level = Level.STALE
             message = f"no messages on {', '.join(stale)} for {max(streams[n].silent_s for n in stale):.1f} s"
-        elif never or recent or missing or _depth_short(streams, window_s):
+        elif never or recent or missing or short:
             level = Level.WARN
             parts = []
             if never:
                 parts.append(f"nothing received yet on {', '.join(never)}")
             if recent:
                 parts.append("recently dropped: " + ", ".join(f"{n} {r}" for r, n in sorted(recent.items())))
-            if _depth_short(streams, window_s):
+            if short:
                 parts.append(f"depth {streams['depth'].rate_hz:.1f} Hz against camera_info "
                              f"{streams['camera_info'].rate_hz:.1f} Hz: most depth images are lost on the way (large "
                              "images over best-effort QoS, or the transport's shared memory too small?)")
@@ -194,9 +208,10 @@ class HealthMonitor:
 
 
 def _depth_short(streams: dict[str, StreamReport], window_s: float) -> bool:
-    """Depth arriving at under half the rate of its camera_info (which drivers publish with every image,
-    a small message the transport rarely loses), both live for the whole window (a stream that began
-    within it has its rate taken over time it was not there)."""
+    """Depth arriving at under half the rate of its camera_info (judged where the driver publishes a
+    camera_info with every image, stamped as the image: a small message the transport rarely loses),
+    both live for the whole window (a stream that began within it has its rate taken over time it was
+    not there)."""
     depth, info = streams.get("depth"), streams.get("camera_info")
     return (depth is not None and info is not None and not depth.stale and not info.stale
             and min(depth.live_s, info.live_s) >= window_s and info.rate_hz >= 1.0

@@ -122,6 +122,9 @@ class IngestConfig:
     voxel_size_m: float = 0.0
     # sensor -> (depth_min_m, depth_max_m) of what is fused: the pixels that check counts (absent: every depth > 0)
     depth_range_m: dict[str, tuple[float, float]] = field(default_factory=dict)
+    # sensors whose depth topic names unrectified images (`image_raw`): their camera_info's K holds even
+    # where its P would describe rectified ones (conversions.rectified_matrix)
+    raw_depth: frozenset[str] = frozenset()
     pose_parser: Callable[[Any], tuple[int, np.ndarray]] = conv.pose_from_msg
     # sensor -> the camera in the frame its pose topic gives (an Odometry's base_link), or with tf in its depth
     # images' frame_id (a driver that names camera_link, x forward, not the optical frame); absent = identity
@@ -332,8 +335,9 @@ class _SensorInput:
         """Cache K and the image size of sensor `name`. Returns the drop reason (or None when it was
         cached) and the depth images that waited for it, to decode outside Ingest's lock and queue."""
         try:
-            intrinsics = conv.intrinsics_from_camera_info(msg)
-            rectified = conv.rectified_matrix(msg) is not None
+            raw = name in config.raw_depth
+            intrinsics = conv.intrinsics_from_camera_info(msg, raw=raw)
+            rectified = conv.rectified_matrix(msg, raw=raw) is not None
             self.counters.distorted = not rectified and bool(np.any(np.asarray(getattr(msg, "d", ()), np.float64) != 0))
             if rectified:
                 self.counters.notes.setdefault("rectified_p", (

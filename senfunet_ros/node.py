@@ -411,9 +411,11 @@ class FusionNode(Node):
     def _guard(self, sensor: str, stream: Stream) -> Callable[[Any], None]:
         """A subscription callback that enqueues and never raises."""
 
+        paired = stream in (Stream.DEPTH, Stream.CAMERA_INFO)  # health pairs their stamps
+
         def callback(msg: Any) -> None:
             try:
-                self.health.received(sensor, stream.value)
+                self.health.received(sensor, stream.value, _header_stamp_ns(msg) if paired else None)
                 self.pipeline.dispatch(sensor, stream, msg)
             except Exception as err:  # a malformed message must not kill the executor thread
                 self._warn((sensor, stream.value, "exception"), f"{sensor} {stream.value}: message ignored: {err!r}")
@@ -691,6 +693,14 @@ class TakingQueued:
         except Exception:  # noqa: BLE001 (destroyed under a stop, ...): the executor's next round takes it
             return None
         return None if taken is None else taken[0]
+
+
+def _header_stamp_ns(msg: Any) -> int | None:
+    """The message's header stamp in ns, None where it has none or a malformed one (Ingest says so)."""
+    try:
+        return conv.stamp_to_ns(msg.header.stamp)
+    except (AttributeError, TypeError, ValueError):
+        return None
 
 
 def _after(first: Callable[[], None], callback: Callable[[Any], None]) -> Callable[[Any], None]:

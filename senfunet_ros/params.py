@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Iterable, Sequence
 
+from senfunet_ros.conversions.images import names_raw_image
 from senfunet_ros.conversions.poses import PoseType
 
 __all__ = ["Param", "GLOBAL_PARAMS", "SENSOR_PARAMS", "NODE_NAME", "expanded_defaults", "Settings", "declare",
@@ -521,6 +522,7 @@ def ingest_config(settings: Settings, **overrides: Any) -> Any:  # senfunet_ros.
         reset_on_time_jump=s.on_time_jump == "reset",
         voxel_size_m=s.voxel_size_m,  # a sensor's pixels further apart than 1.5 voxels are said (holes)
         depth_range_m={sensor.name: (sensor.depth_min_m, sensor.depth_max_m) for sensor in s.sensors},
+        raw_depth=frozenset(sensor.name for sensor in s.sensors if names_raw_image(sensor.depth_topic)),
     )
     if PoseType(s.pose_type) is PoseType.TF and "tf" not in overrides:  # replay: /tf and /tf_static from the bag
         from senfunet_ros.tf import TfBuffer

@@ -264,11 +264,28 @@ def _row_major(matrix: np.ndarray) -> str:
     return ", ".join(" ".join(f"{value:g}" for value in row) for row in matrix)
 
 
-def rectified_matrix(msg: Any) -> np.ndarray | None:
+# image_transport's topics of a transported image: its base topic then one of these
+TRANSPORT_SUFFIXES = ("compressed", "compressedDepth", "theora", "zstd", "ffmpeg", "foxglove")
+
+
+def names_raw_image(topic: str) -> bool:
+    """Whether an image topic's name says its images are unrectified, as ROS names them (`image_raw`,
+    `depth/image_raw`; not `image_rect_raw` or `image_rect`), after any image_transport suffix."""
+    parts = [part for part in topic.split("/") if part]
+    while parts and parts[-1] in TRANSPORT_SUFFIXES:
+        parts.pop()
+    name = parts[-1].lower() if parts else ""
+    return "raw" in name and "rect" not in name
+
+
+def rectified_matrix(msg: Any, *, raw: bool = False) -> np.ndarray | None:
     """The intrinsics (3x3) of P, the projection matrix, when a camera_info describes rectified images
     with them: its distortion coefficients are not all zero and P's left 3x3 is a camera matrix other
     than K (image_proc's and stereo_image_proc's rectified images carry their raw camera's K and D,
-    and P for themselves, which image_geometry and depth_image_proc read). Else None: K holds."""
+    and P for themselves, which image_geometry and depth_image_proc read). Else None: K holds, as it
+    does for images their topic names raw (`raw`, `names_raw_image`)."""
+    if raw:
+        return None
     d = np.asarray(getattr(msg, "d", ()), np.float64)
     p = np.asarray(getattr(msg, "p", ()), np.float64)
     k = np.asarray(getattr(msg, "k", ()), np.float64)
@@ -285,9 +302,9 @@ def rectified_matrix(msg: Any) -> np.ndarray | None:
     return P if np.all((MIN_FOV_DEG <= fovs_deg) & (fovs_deg <= MAX_FOV_DEG)) else None
 
 
-def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
+def intrinsics_from_camera_info(msg: Any, *, raw: bool = False) -> tuple[np.ndarray, tuple[int, int]]:
     """sensor_msgs/CameraInfo -> (K 3x3 float64, (width, height)) of the images it describes: K, or P's
-    intrinsics for rectified images (`rectified_matrix`).
+    intrinsics for rectified images (`rectified_matrix`; raw: the images are unrectified, K holds).
 
     K, width and height are the calibrated (full, unbinned) camera's; a region of interest (`roi`,
     in full-resolution pixels; all zero = the whole image) and binning (`binning_x`, `binning_y`;
@@ -311,7 +328,7 @@ def intrinsics_from_camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
         raise ValueError(f"camera_info K is not a camera matrix: its last row is {_row_major(K[2:])}, not 0 0 1 "
                          f"(K = {_row_major(K)}; row-major: fx 0 cx, 0 fy cy, 0 0 1); was it written "
                          "column-major? fix the driver's camera_info")
-    rectified = rectified_matrix(msg)
+    rectified = rectified_matrix(msg, raw=raw)
     K = K if rectified is None else rectified
     roi = getattr(msg, "roi", None)
     x0, y0, roi_width, roi_height = (int(getattr(roi, name, 0)) for name in ("x_offset", "y_offset", "width",

@@ -963,6 +963,29 @@ def test_a_rectified_images_camera_info_gives_the_projection_matrix_intrinsics()
         np.testing.assert_array_equal(conv.intrinsics_from_camera_info(other)[0], np.reshape(info_msg().k, (3, 3)))
 
 
+def test_a_depth_topic_named_raw_keeps_k_with_a_rectified_projection_matrix() -> None:
+    """A driver's unrectified depth (`depth/image_raw`) with a full camera_info (K, D, and P for the
+    rectified images image_proc would make): K is the raw image's, and the distortion is said; the
+    names ROS gives rectified images keep P."""
+    info = info_msg()
+    info.distortion_model, info.d = "plumb_bob", [0.1, -0.05, 0.0, 0.0, 0.0]
+    info.p = [12.0, 0.0, 4.0, 0.0, 0.0, 12.5, 3.5, 0.0, 0.0, 0.0, 1.0, 0.0]
+    ingest = make(raw_depth=frozenset({"tof"}))
+    assert ingest.add_camera_info("tof", info) is None
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["distorted"] is True and "rectified_p" not in counters["notes"]
+    np.testing.assert_array_equal(conv.intrinsics_from_camera_info(info, raw=True)[0], np.reshape(info.k, (3, 3)))
+    raw = ("/cam/depth/image_raw", "/k4a/depth/image_raw/compressedDepth", "image_raw", "/cam/ir/image_raw/zstd")
+    rectified = ("/cam/depth/image_rect_raw", "/cam/depth/image_rect", "/tof/depth", "/stereo/depth_registered/image",
+                 "/cam/aligned_depth_to_color/image_rect_raw/compressedDepth", "/raw_camera/depth")
+    assert [conv.names_raw_image(topic) for topic in raw + rectified] == [True] * len(raw) + [False] * len(rectified)
+    from senfunet_ros import params as P
+
+    defaults = {name: default for name, (default, _) in P.expanded_defaults().items()}
+    settings = P.Settings.from_values({**defaults, "tof.depth_topic": raw[0]})
+    assert P.ingest_config(settings).raw_depth == {"tof"}
+
+
 def test_colour_matched_by_nearest_stamp_and_resized() -> None:
     ingest = make(color_tolerance_s=0.02, working_size=(5, 0))
     ingest.add_pose("stereo", pose_msg(0))

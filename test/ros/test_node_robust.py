@@ -383,32 +383,47 @@ def test_depth_images_lost_on_the_way_warn() -> None:
 
     now = [0.0]
     health = HealthMonitor({"tof": ("camera_info", "depth")}, window_s=1.0, stale_after_s=2.0, clock=lambda: now[0])
+
+    def image(k: int, *, depth: bool) -> None:  # the driver's image k: its camera_info, then (if it came) depth
+        now[0] += 0.1
+        health.received("tof", "camera_info", 10**9 + k * 10**8)
+        if depth:
+            health.received("tof", "depth", 10**9 + k * 10**8)
+
     for k in range(40):  # camera_info at 10 Hz, depth starting 0.5 s later (no loss: no warning)
-        now[0] += 0.1
-        health.received("tof", "camera_info")
-        if k >= 5:
-            health.received("tof", "depth")
+        image(k, depth=k >= 5)
         assert health.report()["tof"].level == Level.OK, (k, health.report()["tof"])
-    for k in range(40):  # every fourth depth image
-        now[0] += 0.1
-        health.received("tof", "camera_info")
-        if k % 4 == 0:
-            health.received("tof", "depth")
+    for k in range(40, 80):  # every fourth depth image
+        image(k, depth=k % 4 == 0)
     report = health.report()["tof"]
     assert report.level == Level.WARN and "depth 2.0 Hz against camera_info" in report.message, report
     assert "most depth images are lost on the way" in report.message
-    for _ in range(20):  # all of them again
-        now[0] += 0.1
-        health.received("tof", "camera_info")
-        health.received("tof", "depth")
+    for k in range(80, 100):  # all of them again
+        image(k, depth=True)
     assert health.report()["tof"].level == Level.OK
     health.counters({"tof": {"dropped": {}, "missing_depth": 3}})
     report = health.report()["tof"]
     assert report.level == Level.WARN and "recently missing: 3 depth image(s)" in report.message
     now[0] += 1.5
-    health.received("tof", "camera_info")
-    health.received("tof", "depth")
+    image(100, depth=True)
     assert health.report()["tof"].level == Level.OK
+
+
+def test_a_camera_info_sent_at_its_own_rate_does_not_warn_of_lost_depth() -> None:
+    """A driver that publishes camera_info on its own timer (30 Hz, its own stamps) beside depth at
+    5 Hz loses no image: the rate of a camera_info not stamped as the images says nothing of loss."""
+    from senfunet_ros.health import HealthMonitor, Level
+
+    now = [0.0]
+    health = HealthMonitor({"tof": ("camera_info", "depth")}, window_s=1.0, stale_after_s=2.0, clock=lambda: now[0])
+    for k in range(180):  # 6 s
+        now[0] += 1 / 30
+        health.received("tof", "camera_info", 5 * 10**8 + k * 33_333_333)
+        if k % 6 == 0:
+            health.received("tof", "depth", 10**9 + k * 33_333_400)
+    report = health.report()["tof"]
+    assert report.level == Level.OK and report.streams["depth"].rate_hz < 0.5 * report.streams["camera_info"].rate_hz, \
+        report
 
 
 def test_a_stalled_mesh_update_says_where_its_time_went(ros, tmp_path: Path, monkeypatch) -> None:
