@@ -60,7 +60,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Collection, Iterable
 
 import numpy as np
 
@@ -673,7 +673,8 @@ class Ingest:
         self._sensors = {name: _SensorInput(config) for name in config.sensors}
         self._set_aside = SetAside(config.sensors)
         self._time = _StreamTime(config, self._sensors, self._set_aside)
-        self._last_depth_arrival_s = -float("inf")  # time.monotonic() of the newest depth image
+        # sensor -> time.monotonic() of its newest depth image
+        self._last_depth_arrival_s = {name: -float("inf") for name in config.sensors}
         self._served_ns: dict[str, int] = {}  # sensor -> stamp of its last frame handed out (pop_ready)
         self.ledger = IngestLedger(self._lock, self._sensors, self._set_aside)
         self.stream_ends = StreamEnds(self._lock, self._sensors)
@@ -722,7 +723,7 @@ class Ingest:
             state.ended = False
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
-            self._last_depth_arrival_s = arrival_s = time.monotonic()
+            self._last_depth_arrival_s[sensor] = arrival_s = time.monotonic()
             reason, held = self._time.on_time(sensor, "depth", stamp_ns, (msg, arrival_s))
             taken = reason or state.accept(sensor, "depth", stamp_ns, (msg, arrival_s), self.config)
         return self._decode_and_put(held, taken)
@@ -860,9 +861,10 @@ class Ingest:
         rest stay queued, where a full queue drops the oldest: a consumer that falls behind sees
         bounded latency, not a growing backlog, and every sensor's frames). Frames
         the consumer fell behind on (more than max_lag_s) are set aside while set_aside_bytes has
-        room, and handed out, oldest first, once no other frame is ready and no depth image arrived
-        for max_lag_s (wall time: the sensors paused or stopped; while they stream, a set-aside
-        frame would only push a newer one behind) unless `set_aside` is False; beyond that room
+        room, and handed out, oldest first, once no other frame is ready and no depth image of their
+        sensor arrived for max_lag_s (wall time: the sensor paused or stopped; while it streams, a
+        set-aside frame would only push a newer one behind; a sensor that stopped while another
+        streams has its frames taken in the gaps) unless `set_aside` is False; beyond that room
         they are dropped as "behind".
 
         Frames still waiting for a pose, a colour image or a camera_info stay queued; frames that
@@ -877,9 +879,11 @@ class Ingest:
                                         newest_depth_ns=timelines.last_ns(name, "depth"),
                                         last_color_ns=timelines.last_ns(name, "color"),
                                         set_aside=self._set_aside))
-            quiet = time.monotonic() - self._last_depth_arrival_s >= self.config.max_lag_s
-            if not frames and set_aside and quiet:
-                frames = self._set_aside.take_oldest(1 if max_frames is None else max_frames)
+            if not frames and set_aside:
+                now_s = time.monotonic()
+                quiet = {name for name, arrival_s in self._last_depth_arrival_s.items()
+                         if now_s - arrival_s >= self.config.max_lag_s}
+                frames = self._set_aside.take_oldest(1 if max_frames is None else max_frames, of=quiet)
             order = {name: i for i, name in enumerate(self.config.sensors)}
             frames.sort(key=lambda f: (f.stamp_ns, order[f.sensor]))
             if jumps:  # a new timeline: stamps of the old one say nothing about whom to serve
@@ -1244,11 +1248,11 @@ class SetAside:
         self._nbytes += size
         return True
 
-    def take_oldest(self, n: int) -> list[Frame]:
-        """The n oldest frames, all sensors."""
+    def take_oldest(self, n: int, *, of: Collection[str] | None = None) -> list[Frame]:
+        """The n oldest frames of these sensors (None: all)."""
         out: list[Frame] = []
         while len(out) < n:
-            waiting = [frames for frames in self._frames.values() if frames]
+            waiting = [frames for name, frames in self._frames.items() if frames and (of is None or name in of)]
             if not waiting:
                 break
             frame = min(waiting, key=lambda frames: frames[0].stamp_ns).popleft()

@@ -1242,6 +1242,37 @@ def test_frames_behind_are_set_aside_and_handed_out_when_nothing_newer_waits() -
     assert ingest.ledger.counters()["tof"]["dropped"]["shutdown"] == 4
 
 
+def test_frames_set_aside_of_a_sensor_that_stopped_go_while_the_other_streams() -> None:
+    """The ToF stops (its driver died) with frames set aside while the stereo camera streams on: its
+    frames waited for a pause of every sensor, which a robot streaming for hours never makes. They are
+    handed out in the gaps between the stereo frames once the ToF was silent for max_lag_s; the
+    stereo camera's own set-aside frames wait while it streams."""
+    frame_bytes = 8 * 10 * 4
+    ingest = make(max_lag_s=0.25, set_aside_bytes=20 * frame_bytes)
+    for t in range(0, 1050, 50):
+        ingest.add_pose("tof", pose_msg(t * MS, x=t / 1000))
+        ingest.add_pose("stereo", pose_msg(t * MS, x=t / 1000))
+    for t in range(0, 1000, 100):
+        assert ingest.add_depth("tof", depth_msg(t * MS)) is None
+        assert ingest.add_depth("stereo", depth_msg(t * MS)) is None
+    for _ in range(3):  # the consumer was behind: the frames more than max_lag_s older than the newest set aside
+        frames(ingest.pop_ready(max_frames=2))
+    assert {name: c["set_aside_now"] for name, c in ingest.ledger.counters().items()} == {"tof": 6, "stereo": 6}
+    t_ms, handed = 1000, []
+    deadline = time.monotonic() + 0.6
+    while time.monotonic() < deadline:  # the stereo camera streams at 20 Hz, each frame taken at once
+        ingest.add_pose("stereo", pose_msg((t_ms + 50) * MS, x=t_ms / 1000))
+        assert ingest.add_depth("stereo", depth_msg(t_ms * MS)) is None
+        handed += frames(ingest.pop_ready(max_frames=1))
+        handed += frames(ingest.pop_ready(max_frames=1))  # a gap: nothing new is ready
+        t_ms += 50
+        time.sleep(0.05)
+    late_tof = [f.stamp_ns // MS for f in handed if f.set_aside]
+    assert late_tof and {f.sensor for f in handed if f.set_aside} == {"tof"}, handed
+    assert late_tof == sorted(late_tof) and late_tof[0] == 100  # oldest first
+    assert ingest.ledger.counters()["stereo"]["set_aside_now"] == 6
+
+
 def test_integrate_ready_keeps_order_isolates_errors_and_flushes_before_a_time_jump() -> None:
     from senfunet_core.engine import EngineConfig, SenFuNet
     from senfunet_core.errors import InputError
