@@ -8,6 +8,8 @@ import time
 HELP = "publish a recorded bag on its topics with /clock (for nodes using use_sim_time), at a chosen rate"
 
 _CLOCK_PERIOD_S = 0.01  # /clock keeps ticking at this (wall) period while waiting for the next message
+# a recorded /clock this long (log time) behind the other messages, and 5 of its own intervals, stopped
+_CLOCK_SILENT_NS = 500_000_000
 _SKIPPED_GAP_NS = 86_400 * 10**9  # log times a day apart: a recorder's clock error (log time 0), no pause to wait
 # Our writers matching a subscriber (what --wait-subscribers sees) does not mean that its reader has
 # matched our writers yet, and a best-effort reader drops whatever arrives before it has. The other
@@ -126,14 +128,21 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
         total, passes, broken = 0, 0, None
         while True:
             gaps: list[tuple[int, int]] = []
+            clock_stops: list[tuple[int, int]] = []
             published, broken, not_cdr = _play_once(reader, publishers, publish_clock, rate=args.rate,
-                                                    types={t: topics[t].msgtype for t in publishers}, gaps=gaps)
+                                                    types={t: topics[t].msgtype for t in publishers}, gaps=gaps,
+                                                    clock_stops=clock_stops)
             total += published
             passes += 1
             if passes == 1:
                 for before_ns, after_ns in gaps:
                     say(f"the log times jump from {before_ns * 1e-9:.3f} s to {after_ns * 1e-9:.3f} s (a recorder's "
                         "clock error, such as messages logged at 0?): played without waiting for the gap")
+                for last_clock_ns, log_ns in clock_stops:
+                    say(f"the recorded clock stopped at log time {last_clock_ns * 1e-9:.3f} s while the other "
+                        f"topics went on (to {log_ns * 1e-9:.3f} s at least): nodes with use_sim_time see their time "
+                        "stand still from there; play with --no-clock (and those nodes without use_sim_time), or "
+                        "record the clock to the end")
                 for topic, n in sorted(not_cdr.items()):
                     say(f"{n} message(s) on {topic} are not ROS 2 serialised messages (CDR): ROS 1 or JSON data? "
                         "They were not published; convert the bag (rosbags-convert) or record it with ros2 bag")
@@ -213,11 +222,14 @@ def _wait_for_subscribers(publishers: dict, timeout_s: float, say) -> None:  # n
 
 
 def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa: ANN001
-               types: dict[str, str], gaps: list[tuple[int, int]]) -> tuple[int, str | None, dict[str, int]]:
+               types: dict[str, str], gaps: list[tuple[int, int]], clock_stops: list[tuple[int, int]]
+               ) -> tuple[int, str | None, dict[str, int]]:
     """One pass through the bag at `rate`, ticking /clock while it waits: the messages published
     (of each topic, those of its type in `types`), where the bag broke (None if it did not), and per
     topic the messages left out because they are not CDR (a subscriber could not read them). A gap
-    of log times longer than _SKIPPED_GAP_NS is not waited through; `gaps` gets its ends.
+    of log times longer than _SKIPPED_GAP_NS is not waited through; `gaps` gets its ends. A recorded
+    clock that falls _CLOCK_SILENT_NS and 5 of its intervals behind the other topics gets (its last log time, the other
+    message's) in `clock_stops`, once.
     ExternalShutdownException when Ctrl-C or SIGTERM shut rclpy down."""
     from senfunet_ros.bagio import is_cdr, normalize_msgtype
 
@@ -232,6 +244,7 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa:
     published = 0
     not_cdr: dict[str, int] = {}
     last_ns = start_ns
+    last_clock_ns, clock_interval_ns = None, 0  # log time of the recorded clock's last message, its last interval
     try:
         for msg in reader.messages(publishers.keys()):
             if normalize_msgtype(msg.msgtype) != types[msg.topic]:
@@ -243,6 +256,12 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa:
                 gaps.append((last_ns, msg.log_time_ns))
                 start_ns += msg.log_time_ns - last_ns
             last_ns = max(last_ns, msg.log_time_ns)
+            if _is_clock(msg.topic):
+                clock_interval_ns = 0 if last_clock_ns is None else msg.log_time_ns - last_clock_ns
+                last_clock_ns = msg.log_time_ns
+            elif (last_clock_ns is not None and not clock_stops
+                  and msg.log_time_ns - last_clock_ns > max(_CLOCK_SILENT_NS, 5 * clock_interval_ns)):
+                clock_stops.append((last_clock_ns, msg.log_time_ns))
             due = wall0 + (msg.log_time_ns - start_ns) * 1e-9 / rate
             while True:  # sleep until due, ticking /clock meanwhile
                 wait = due - time.monotonic()

@@ -134,10 +134,11 @@ def clock_error_and_bad_name(src: Path, dst: Path) -> Path:
     return dst
 
 
-def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int, topic: str = "/clock") -> Path:
+def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int, topic: str = "/clock",
+                        clock_for_ns: int | None = None) -> Path:
     """`src` as a simulation's recording: a /clock topic (named `topic`; every 10 ms of log time) of the
     simulated time, which starts at sim_start_ns where the log times start (a Gazebo run recorded with its
-    clock)."""
+    clock); clock_for_ns: the clock's publisher stops this long after the start."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -148,7 +149,8 @@ def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int, topic: str =
         clock = writer.add_connection(topic, "rosgraph_msgs/msg/Clock", typestore=store)
         next_tick_ns = reader.start_ns
         for msg in reader.messages():
-            while next_tick_ns <= msg.log_time_ns:
+            while next_tick_ns <= msg.log_time_ns and (clock_for_ns is None
+                                                       or next_tick_ns < reader.start_ns + clock_for_ns):
                 sec, nanosec = divmod(sim_start_ns + next_tick_ns - reader.start_ns, 1_000_000_000)
                 writer.write(clock, next_tick_ns, store.serialize_cdr(Clock(clock=Time(sec=sec, nanosec=nanosec)),
                                                                      "rosgraph_msgs/msg/Clock"))

@@ -112,10 +112,12 @@ def test_a_bags_recorded_clock_is_the_only_clock_play_publishes(prefix: Path, tm
                                                                  clock_topic: str):
     """A simulation's recording holds /clock (or `clock`, the same topic): play published it and a /clock
     of its own from the log times, and every use_sim_time subscriber saw time jump to and fro (400 times
-    a pass)."""
+    a pass). A recorded clock that stops early (here `clock`'s, after 0.2 s of 1 s) is said."""
     import odd_bags
 
-    bag = odd_bags.with_recorded_clock(prefix, tmp_path / "bag", sim_start_ns=100_000_000_000, topic=clock_topic)
+    stops = clock_topic == "clock"
+    bag = odd_bags.with_recorded_clock(prefix, tmp_path / "bag", sim_start_ns=100_000_000_000, topic=clock_topic,
+                                       clock_for_ns=200_000_000 if stops else None)
     with open_bag(bag) as reader:
         topics = {t: i.msgtype for t, i in reader.topics.items() if t != clock_topic}
         counts = {t: i.count for t, i in reader.topics.items() if t != clock_topic}
@@ -125,8 +127,9 @@ def test_a_bags_recorded_clock_is_the_only_clock_play_publishes(prefix: Path, tm
     assert returncode == 0, stderr
     clock = listener.clock_ns
     assert len(clock) == recorded and clock == sorted(clock), (len(clock), recorded)
-    assert 100_000_000_000 <= clock[0] and clock[-1] < 102_000_000_000
+    assert 100_000_000_000 <= clock[0] and clock[-1] < (100_200_000_000 if stops else 102_000_000_000)
     assert "the bag has /clock" in stderr
+    assert ("the recorded clock stopped at log time" in stderr) == stops, stderr
 
 
 def test_play_publishes_every_message_with_clock(prefix: Path, ros_domain_id: int):
