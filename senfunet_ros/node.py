@@ -523,6 +523,11 @@ class FusionNode(Node):
             msg = self.status()
             self.status_pub.publish(msg)
             self.diagnostics_pub.publish(msg)
+            if (same := namesakes(self)) > 1:
+                self._warn(("namesakes",), f"{same} nodes named {self.get_fully_qualified_name()} are in the ROS "
+                           "graph (a second launch?): their ~/mesh, services and parameters clash, and a client "
+                           "reaches either; stop the other, or start this one under another name (--ros-args -r "
+                           "__node:=NAME) or namespace")
         except Exception as err:
             if self.context.ok():  # else the node is stopping: its publishers may be gone under this tick
                 self._warn(("status_tick",), f"status failed: {err!r}")
@@ -607,6 +612,16 @@ def shared_file_parameters(argv: Sequence[str], node_fqn: str) -> set[str]:
         except ValueError:  # unreadable: unread_params_files says so
             pass
     return shared
+
+
+def namesakes(node: Node) -> int:
+    """How many nodes of this node's name and namespace the ROS graph holds (itself included; ROS
+    does not warn of two across processes)."""
+    try:
+        graph = node.get_node_names_and_namespaces()
+    except Exception:  # noqa: BLE001 (a graph query failing under a stop)
+        return 1
+    return sum(1 for name, namespace in graph if (name, namespace) == (node.get_name(), node.get_namespace()))
 
 
 def set_timer_period(timer: Any, period_s: float) -> None:

@@ -358,6 +358,25 @@ def test_a_silent_topic_published_under_another_type_is_named_with_that_type(ros
     assert "nobody publishes /othertype/tof/depth now" in depth, log[-3000:]
 
 
+def test_a_second_node_of_the_same_name_is_warned_about(ros, tmp_path: Path, monkeypatch) -> None:
+    """A second launch of the node (same name and namespace, another process) clashes on every service
+    and parameter, and ROS says nothing across processes: the node says so."""
+    run = Running("namesake", {**topic_params("namesake"), **SMALL, "status_rate_hz": 10.0}, tmp_path)
+    warned: list[str] = []
+    monkeypatch.setattr(run.node, "_warn", lambda key, text: warned.append(text) if key == ("namesakes",) else None)
+    try:
+        time.sleep(1.0)
+        assert warned == []  # alone
+        other = Node("senfunet", namespace="namesake")
+        try:
+            wait_for(lambda: warned, 20, "the namesake warning")
+        finally:
+            other.destroy_node()
+    finally:
+        run.close()
+    assert "2 nodes named /namesake/senfunet are in the ROS graph" in warned[0], warned
+
+
 def test_a_camera_info_that_came_once_is_not_stale_while_its_depth_comes() -> None:
     """A driver that publishes camera_info once (latched): its K is cached and the sensor fuses, so
     the sensor is not STALE for that silence; once its depth stops too, both are named."""
