@@ -22,7 +22,10 @@ messages before the break have been yielded). A truncated `.mcap` without its su
 sequentially up to the break. Compressed storage is read as rosbags and the mcap library read it
 (mcap chunks in zstd or lz4; rosbag2's zstd file and message modes; file-compressed `.mcap.zstd` and
 `.db3.zstd` files without their metadata.yaml are decompressed into a temporary folder first);
-another compression is a BagError that says to convert the bag.
+another compression is a BagError that says to convert the bag. A folder that is not whole as its
+metadata.yaml says (no or an unreadable metadata.yaml, files it lacks or does not list, an empty
+file, an sqlite3 write-ahead log, an MCAP without its index) is read file by file (`_open_parts`);
+damage read past midway is in `BagReader.read_notes`.
 """
 from __future__ import annotations
 
@@ -207,6 +210,10 @@ class _Source:
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
         raise NotImplementedError
 
+    def read_notes(self) -> list[str]:
+        """What reading the messages found not as it should be, yet read past (so far)."""
+        return []
+
     def close(self) -> None:
         pass
 
@@ -235,6 +242,7 @@ class _RosbagsSource(_Source):
         # a folder's storage files (rosbags' DirectoryReader), or the one file
         self._files: list[Any] = list(getattr(reader.storage, "storages", None) or [reader.storage])
         self._unzip = _zstd_decompress if reader.compression_mode == "message" else None
+        self._read_notes: list[str] = []
         listed, in_files = list(reader.connections), [conn for file in self._files for conn in file.connections]
         self.topics = _topic_infos(_connection_rows(listed, in_files))
         disagree = _disagreements(listed, in_files)
@@ -249,15 +257,40 @@ class _RosbagsSource(_Source):
             yield from heapq.merge(*streams, key=lambda msg: msg.log_time_ns)
 
     def _file_messages(self, file: Any, topics: Collection[str] | None) -> Iterator[BagMessage]:
+        """One file's messages through its index; an MCAP file whose index or one of its chunks is
+        damaged goes on in file order from where the index failed (`_McapStreamSource`), said in
+        `read_notes`."""
         conns = [c for c in file.connections if topics is None or c.topic in topics]
         if not conns:
             return
-        for conn, timestamp, data in file.messages(conns):
-            data = _payload(data) if self._unzip is None else self._unzip(data)
-            yield BagMessage(conn.topic, normalize_msgtype(conn.msgtype), int(timestamp), bytes(data))
+        last_ns, at_last = -1, set[tuple[str, bytes]]()  # the last log time yielded, and the messages yielded at it
+        try:
+            for conn, timestamp, data in file.messages(conns):
+                data = _payload(data) if self._unzip is None else self._unzip(data)
+                msg = BagMessage(conn.topic, normalize_msgtype(conn.msgtype), int(timestamp), bytes(data))
+                if msg.log_time_ns != last_ns:
+                    last_ns, at_last = msg.log_time_ns, set()
+                at_last.add((msg.topic, msg.data))
+                yield msg
+        except Exception as err:
+            path = Path(str(getattr(file, "path", "")))
+            if path.suffix != ".mcap" or not path.is_file():
+                raise
+            self._read_notes.append(f"{path}: its index broke ({_describe(err)}) after {_ns_text(last_ns)}: read on "
+                                    "in file order from there")
+            for msg in _McapStreamSource(path).messages(topics):
+                if msg.log_time_ns > last_ns or (msg.log_time_ns == last_ns and (msg.topic, msg.data) not in at_last):
+                    yield msg
+
+    def read_notes(self) -> list[str]:
+        return list(self._read_notes)
 
     def close(self) -> None:
         self._reader.close()
+
+
+def _ns_text(log_time_ns: int) -> str:
+    return "its first message" if log_time_ns < 0 else f"log time {log_time_ns * 1e-9:.3f} s"
 
 
 def _zstd_decompress(data: bytes) -> bytes:
@@ -332,20 +365,26 @@ class _McapStreamSource(_Source):
                         furthest_back_ns = max(furthest_back_ns, self.end_ns - record.log_time)
                     self.end_ns = max(self.end_ns, record.log_time)
         except Exception as err:  # the break: remember it, messages() raises it in order
-            self.break_error = _describe(err)
+            if self._data_ended:  # past the messages: only the summary (the index) is cut
+                self.note = (f"{path}: its summary (the index after the messages) is cut short "
+                             f"({_describe(err)}): every message was read, in file order")
+            else:
+                self.break_error = _describe(err)
         if backwards:  # no index to sort them by: said, not sorted behind the reader's back
-            self.note = (f"{path}: its messages' log times go back {backwards} time(s) in file order (by up to "
-                         f"{furthest_back_ns * 1e-9:.3f} s); without an index they are read in file order, as "
-                         "written (sort the file, e.g. with the mcap CLI's mcap sort, to read them in time order)")
+            order = (f"{path}: its messages' log times go back {backwards} time(s) in file order (by up to "
+                     f"{furthest_back_ns * 1e-9:.3f} s); without an index they are read in file order, as written "
+                     "(sort the file, e.g. with the mcap CLI's mcap sort, to read them in time order)")
+            self.note = f"{self.note}; {order}" if self.note else order
         self.message_count = sum(counts.values())
         self.topics = _topic_infos((topic, msgtype, counts.get(cid, 0), self._schema_text.get(cid, ""), "",
                                     _latched(self._qos.get(cid, "")))
                                    for cid, (topic, msgtype) in self._channels.items())
 
     def _records(self) -> Iterator[Any]:
-        from mcap.records import Channel, Schema
+        from mcap.records import Channel, DataEnd, Schema
         from mcap.stream_reader import StreamReader
 
+        self._data_ended = False  # past the data section (a DataEnd record): what follows is the summary
         schemas: dict[int, tuple[str, str]] = {}
         self._schema_text: dict[int, str] = {}
         self._qos: dict[int, str] = {}
@@ -358,6 +397,8 @@ class _McapStreamSource(_Source):
                     self._channels[record.id] = (record.topic, normalize_msgtype(msgtype))
                     self._schema_text[record.id] = text
                     self._qos[record.id] = str((record.metadata or {}).get("offered_qos_profiles", ""))
+                elif isinstance(record, DataEnd):
+                    self._data_ended = True
                 yield record
 
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
@@ -371,6 +412,8 @@ class _McapStreamSource(_Source):
                 if topics is None or topic in topics:
                     yield BagMessage(topic, msgtype, int(record.log_time), _payload(bytes(record.data)))
         except Exception as err:
+            if self._data_ended:  # the summary is cut, not the messages (said in the note)
+                return
             raise BagBrokenError(f"{self.path}: the file breaks after {read} messages ({_describe(err)}); "
                                  "it was truncated or damaged, e.g. a recording that was killed", read) from None
         if self.break_error is not None:  # pragma: no cover - the first pass saw it, so the second does too
@@ -404,27 +447,59 @@ class _MergedSource(_Source):
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
         yield from heapq.merge(*(source.messages(topics) for source in self._sources), key=lambda msg: msg.log_time_ns)
 
+    def read_notes(self) -> list[str]:
+        return [note for source in self._sources for note in source.read_notes()]
+
     def close(self) -> None:
         for source in self._sources:
             source.close()
 
 
-def _split_files(folder: Path) -> tuple[list[Path], list[Path]]:
-    """The storage files (.mcap or .db3) of a rosbag2 folder in recording order: as metadata.yaml lists
-    them, then (by name) those it does not list, which a recorder killed after a split leaves out;
-    without a usable metadata.yaml, all by name. Returns (all, the unlisted ones)."""
-    files = sorted([*folder.glob("*.mcap"), *folder.glob("*.db3")])
+@dataclass
+class _FolderFiles:
+    """A rosbag2 folder's storage files as found, against what its metadata.yaml says."""
+
+    files: list[Path]  # .mcap, .db3 and their file-compressed .zstd forms, in recording order
+    unlisted: list[Path]  # of them, those metadata.yaml does not list (a recorder killed after a split)
+    missing: list[str]  # names metadata.yaml lists that are not in the folder
+    metadata_problem: str | None  # a metadata.yaml that cannot be read: why
+    has_metadata: bool
+
+
+_STORAGE_SUFFIXES = (".mcap", ".db3")
+_ZIPPED = (".mcap.zstd", ".db3.zstd")  # rosbag2's file compression: each storage file in one zstd frame
+
+
+def _folder_files(folder: Path) -> _FolderFiles:
+    """The storage files of a rosbag2 folder in recording order: as metadata.yaml lists them, then (by
+    name) those it does not list; without a usable metadata.yaml, all by name."""
+    present = sorted(part for part in folder.iterdir()
+                     if part.is_file() and part.name.endswith(_STORAGE_SUFFIXES + _ZIPPED))
+    meta_path = folder / "metadata.yaml"
+    if not meta_path.is_file():
+        return _FolderFiles(present, [], [], None, False)
     try:
         from ruamel.yaml import YAML
 
-        meta = YAML(typ="safe").load((folder / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-        listed = [folder / Path(name).name for name in meta.get("relative_file_paths") or []]
-        if listed and all(part.is_file() for part in listed):
-            unlisted = [file for file in files if file not in listed]
-            return listed + unlisted, unlisted
-    except Exception:  # noqa: BLE001 (no or unreadable metadata: by name)
-        pass
-    return files, []
+        meta = YAML(typ="safe").load(meta_path.read_text())
+        names = [Path(str(name)).name for name in meta["rosbag2_bagfile_information"].get("relative_file_paths") or []]
+        if not names:
+            raise ValueError("it lists no storage file: cut short?")
+    except Exception as err:  # noqa: BLE001 (empty, cut short, not YAML, not rosbag2's)
+        problem = "it is empty" if not meta_path.read_bytes().strip() else _describe(err)
+        return _FolderFiles(present, [], [], f"its metadata.yaml cannot be read ({problem})", True)
+    by_name = {part.name: part for part in present}
+    listed = [by_name[name] for name in names if name in by_name]
+    unlisted = [part for part in present if part.name not in names]
+    return _FolderFiles(listed + unlisted, unlisted, [name for name in names if name not in by_name], None, True)
+
+
+def _wal_file(db3: Path) -> Path | None:
+    """The write-ahead log beside an sqlite3 file, if it holds anything: rosbag2's resilient preset
+    writes in WAL mode, and a recorder killed then leaves committed messages in it, which a reader
+    opening the file immutable (as rosbags does) never sees."""
+    wal = db3.with_name(db3.name + "-wal")
+    return wal if db3.suffix == ".db3" and wal.is_file() and wal.stat().st_size > 0 else None
 
 
 def _describe(err: BaseException) -> str:
@@ -473,50 +548,67 @@ def _open_source(path: Path) -> _Source:
     if not path.exists():
         raise BagError(f"{path}: no such bag; pass a rosbag2 folder (with metadata.yaml) or a .mcap file")
     if path.is_dir():
-        parts, unlisted = _split_files(path)
-        if len(parts) > 1 and (not (path / "metadata.yaml").is_file() or unlisted
-                               or any(map(_mcap_is_unindexed, parts))):
-            # a split recording rosbags cannot take whole (no metadata.yaml, files it does not list, or a
-            # part cut short by a killed recorder): its files together, each as it can be read
-            source: _Source = _MergedSource([_open_rosbags(part) for part in parts])
-            names = ", ".join(part.name for part in parts)
-            source.note = f"{path}: reading its {len(parts)} files together, in time order ({names})" + (
-                f"; its metadata.yaml does not list {', '.join(part.name for part in unlisted)} (a recording cut "
-                "short after a split? `ros2 bag reindex` rewrites it)" if unlisted else "")
-            return source
-        if (path / "metadata.yaml").is_file():
-            return _open_rosbags(path)
-        zipped = sorted(part for part in path.iterdir() if part.name.endswith(_ZIPPED))
-        if zipped and not parts:
-            return _decompressed(zipped, f"{path} has no metadata.yaml")
-        storage = bag_storage_file(path) if any(path.glob("*.mcap")) or any(path.glob("*.db3")) else None
-        if storage is None:
-            raise BagError(f"{path}: not a rosbag2 folder (no metadata.yaml and no .mcap, .db3, .mcap.zstd or "
-                           ".db3.zstd file)")
-        source = _open_rosbags(storage)
-        source.note = f"{path} has no metadata.yaml; reading {storage.name} directly"
-        return source
-    if path.suffix in (".mcap", ".db3"):
+        return _open_folder(path)
+    if path.suffix in _STORAGE_SUFFIXES:
+        if _wal_file(path) is not None:
+            return _open_parts([path], [])
         return _open_rosbags(path)
     if path.name.endswith(_ZIPPED):
-        return _decompressed([path], f"{path} is compressed")
+        return _open_parts([path], [f"{path} is compressed"])
     if _is_ros1_bag(path):
         raise BagError(f"{path}: a ROS 1 bag; convert it to rosbag2 first: "
                        f"rosbags-convert --src {path} --dst {path.with_suffix('')}")
     raise BagError(f"{path}: not a bag; pass a rosbag2 folder or a .mcap file")
 
 
-_ZIPPED = (".mcap.zstd", ".db3.zstd")  # rosbag2's file compression: each storage file in one zstd frame
+def _open_folder(path: Path) -> _Source:
+    """A rosbag2 folder through rosbags when it is whole and as its metadata.yaml says; else its
+    storage files one by one, together (`_open_parts`), with a note on what was not as it should be."""
+    found = _folder_files(path)
+    if not found.files:
+        if found.has_metadata and found.missing:
+            raise BagError(f"{path}: its metadata.yaml lists {', '.join(found.missing)}, and the folder holds none of "
+                           "them; copy the recording's files into it")
+        raise BagError(f"{path}: not a rosbag2 folder (no .mcap, .db3, .mcap.zstd or .db3.zstd file)")
+    plain = [part for part in found.files if part.suffix in _STORAGE_SUFFIXES]
+    whole = (found.has_metadata and found.metadata_problem is None and not found.missing and not found.unlisted
+             and len(plain) in (0, len(found.files))  # all plain, or all file-compressed (rosbags decompresses)
+             and not any(part.stat().st_size == 0 or _wal_file(part) or _mcap_is_unindexed(part) for part in plain))
+    if whole:
+        try:
+            return _open_rosbags(path)
+        except BagError as err:  # a metadata.yaml rosbags cannot take (keys missing): the files without it
+            detail = str(err).removeprefix(f"{path}: ")
+            if not re.search(r"metadata|yaml", detail, re.IGNORECASE):
+                raise
+            found.metadata_problem = f"its metadata.yaml cannot be read ({detail})"
+    why = []
+    if not found.has_metadata:
+        why.append(f"{path} has no metadata.yaml")
+    elif found.metadata_problem is not None:
+        why.append(f"{path}: {found.metadata_problem}; reading its files without it (`ros2 bag reindex` rewrites it)")
+    if found.missing:
+        they = "it" if len(found.missing) == 1 else "they"
+        why.append(f"{path}: its metadata.yaml lists {', '.join(found.missing)}, not in the folder: the recording "
+                   f"lacks what {they} held (copy {they if they == 'it' else 'them'} into the folder to read it whole)")
+    if found.unlisted and found.has_metadata and found.metadata_problem is None:
+        why.append(f"{path}: its metadata.yaml does not list {', '.join(part.name for part in found.unlisted)} (a "
+                   "recording cut short after a split? `ros2 bag reindex` rewrites it)")
+    return _open_parts(found.files, why)
 
 
-class _DecompressedSource(_Source):
-    """A source read from storage files decompressed into a temporary folder, which goes on close."""
+class _TemporarySource(_Source):
+    """A source read (in part) from files made in a temporary folder (decompressed, or copied with their
+    write-ahead log applied), which goes on close."""
 
-    def __init__(self, inner: _Source, folder: tempfile.TemporaryDirectory, note: str) -> None:
+    def __init__(self, inner: _Source, folder: tempfile.TemporaryDirectory, note: str | None) -> None:
         self._inner, self._folder = inner, folder
         self.storage, self.topics, self.message_count = inner.storage, inner.topics, inner.message_count
         self.start_ns, self.end_ns = inner.start_ns, inner.end_ns
-        self.note = f"{note}; {inner.note}" if inner.note else note
+        self.note = note
+
+    def read_notes(self) -> list[str]:
+        return self._inner.read_notes()
 
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
         return self._inner.messages(topics)
@@ -528,32 +620,95 @@ class _DecompressedSource(_Source):
             self._folder.cleanup()
 
 
-def _decompressed(files: list[Path], why: str) -> _Source:
-    """Storage files compressed whole with zstd (rosbag2's file mode), without the metadata.yaml that
-    says so to rosbags: each decompressed into a temporary folder, then read from there."""
+def _open_parts(files: list[Path], why: list[str]) -> _Source:
+    """Storage files read one by one and together in time order: each file-compressed one decompressed
+    and each sqlite3 one with a write-ahead log copied with the log applied (both into a temporary
+    folder), an empty or unreadable one left out (unless it is the only one), said in the note after
+    `why` (the folder's problems). BagError when none can be read."""
+    temporary: tempfile.TemporaryDirectory | None = None
+    sources: list[_Source] = []
+    notes = list(why)
+    read: list[str] = []  # the files read
+    left_out: list[str] = []
+    unzipped: list[str] = []  # decompressed (file compression)
+    logged: list[str] = []  # sqlite3 files with a write-ahead log
+    try:
+        for part in files:
+            if part.stat().st_size == 0 and len(files) > 1:
+                left_out.append(f"{part.name} (empty: a recorder killed as it began the file?)")
+                continue
+            readable = part
+            if part.name.endswith(_ZIPPED) or _wal_file(part) is not None:
+                temporary = temporary or tempfile.TemporaryDirectory(prefix="senfunet-bag-")
+                readable = _readable_copy(part, Path(temporary.name))
+                (unzipped if part.name.endswith(_ZIPPED) else logged).append(part.name)
+            try:
+                sources.append(_open_rosbags(readable))
+                read.append(part.name)
+            except BagError as err:
+                if len(files) == 1:
+                    raise
+                left_out.append(f"{part.name} ({str(err).removeprefix(f'{readable}: ')})")
+        if not sources:
+            raise BagError(f"{files[0].parent}: none of its files can be read: {'; '.join(left_out)}")
+    except BaseException:
+        if temporary is not None:
+            temporary.cleanup()
+        raise
+    inner = sources[0] if len(sources) == 1 else _MergedSource(sources)
+    if unzipped:
+        notes.append(f"reading {', '.join(unzipped)} decompressed into a temporary folder")
+    for name in logged:
+        notes.append(f"{name}-wal holds messages its database has not taken in yet (a recording killed in WAL mode, "
+                     "as rosbag2's resilient preset writes): reading a copy with them")
+    if len(sources) > 1:
+        notes.append(f"{'' if notes else f'{files[0].parent}: '}reading its {len(sources)} files together, in time "
+                     f"order ({', '.join(read)})")
+    elif len(files) == 1 and why and temporary is None:
+        notes.append(f"reading {files[0].name} directly")
+    if left_out:
+        notes.append(f"left out, unreadable: {'; '.join(left_out)}")
+    notes += [inner.note] if inner.note else []
+    note = "; ".join(notes) or None
+    if temporary is None:
+        inner.note = note
+        return inner
+    return _TemporarySource(inner, temporary, note)
+
+
+def _readable_copy(part: Path, folder: Path) -> Path:
+    """A storage file as rosbags can read it, in `folder`: decompressed (a .zstd file), or an sqlite3
+    file copied with its write-ahead log, which opening it applies."""
+    import shutil
+    import sqlite3
+
     import zstandard
 
-    folder = tempfile.TemporaryDirectory(prefix="senfunet-bag-")
+    out = folder / part.name.removesuffix(".zstd")
     try:
-        plain = []
-        for file in files:
-            out = Path(folder.name) / file.name.removesuffix(".zstd")
+        if part.name.endswith(_ZIPPED):
             try:
-                with file.open("rb") as source, out.open("wb") as target:
+                with part.open("rb") as source, out.open("wb") as target:
                     zstandard.ZstdDecompressor().copy_stream(source, target)
             except zstandard.ZstdError as err:
-                raise BagError(f"{file}: cannot decompress it as zstd ({err}); is it a rosbag2 file-compressed "
+                raise BagError(f"{part}: cannot decompress it as zstd ({err}); is it a rosbag2 file-compressed "
                                "storage file?") from err
-            except OSError as err:
-                raise BagError(f"{file}: cannot decompress it into {folder.name} ({err}); free some space "
-                               "there, or decompress it yourself (zstd -d) and pass the result") from err
-            plain.append(out)
-        inner = _open_rosbags(plain[0]) if len(plain) == 1 else _MergedSource([_open_rosbags(p) for p in plain])
-    except BaseException:
-        folder.cleanup()
-        raise
-    names = ", ".join(file.name for file in files)
-    return _DecompressedSource(inner, folder, f"{why}; reading {names} decompressed into a temporary folder")
+        else:
+            shutil.copyfile(part, out)
+        wal = _wal_file(part)
+        if wal is not None:
+            shutil.copyfile(wal, out.with_name(out.name + "-wal"))
+            db = sqlite3.connect(out)  # opening takes in the log; the checkpoint writes it into the file
+            try:
+                db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            finally:
+                db.close()
+    except OSError as err:
+        raise BagError(f"{part}: cannot make a readable copy in {folder} ({err}); free some space there, or "
+                       "decompress it yourself (zstd -d) and pass the result") from err
+    except sqlite3.Error as err:
+        raise BagError(f"{part}: its write-ahead log cannot be applied ({err}); try `sqlite3 {part} .recover`") from err
+    return out
 
 
 def _open_rosbags(path: Path) -> _Source:
@@ -594,8 +749,10 @@ def _open_rosbags(path: Path) -> _Source:
                        "rosbag2 first (ros2 bag convert, or rosbags-convert)") from None
     if isinstance(refusal, (ReaderError, sqlite3.Error, OSError, KeyError, ValueError, TypeError)):
         what = "an sqlite3 database" if path.suffix == ".db3" else "a readable bag"
+        salvage = (f" (sqlite3's `sqlite3 {path} .recover | sqlite3 recovered.db3` salvages what a cut or damaged "
+                   "database still holds)" if path.suffix == ".db3" else "")
         raise BagError(f"{path}: not {what}: {_describe(refusal)}; "
-                       "the file is damaged or not a rosbag2 recording") from None
+                       f"the file is damaged or not a rosbag2 recording{salvage}") from None
     raise BagError(f"{path}: cannot read the bag: {_describe(refusal)}") from None
 
 
@@ -641,6 +798,11 @@ class BagReader:
     @property
     def duration_s(self) -> float:
         return max(0, self.end_ns - self.start_ns) * 1e-9
+
+    def read_notes(self) -> list[str]:
+        """What reading the messages so far found damaged yet read past (an MCAP index that broke
+        midway: the rest read in file order)."""
+        return [] if self._source is None else self._source.read_notes()
 
     def messages(self, topics: Collection[str] | None = None) -> Iterator[BagMessage]:
         """Messages of `topics` (all if None) in recorded order. BagBrokenError where the bag breaks."""

@@ -486,6 +486,9 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
             except KeyboardInterrupt:
                 run.interrupted = True
             end_streams(None)  # the bag ended (or the replay was stopped): no pose will come for what waits
+        for note in reader.read_notes():  # damage read past (an MCAP index that broke midway)
+            log(f"note: {note}")
+        bag_info["read_notes"] = reader.read_notes()
         run.read_s = time.perf_counter() - t_loop
         for topic, n in router.undecodable.items():
             why = (" (they are not ROS 2 serialised messages, CDR: ROS 1 or JSON data? convert the bag with "

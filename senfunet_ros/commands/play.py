@@ -135,6 +135,8 @@ def _play(reader, args: argparse.Namespace) -> int:  # noqa: ANN001 - BagReader,
             total += published
             passes += 1
             if passes == 1:
+                for note in reader.read_notes():
+                    say(f"note: {note}")
                 for before_ns, after_ns in gaps:
                     say(f"the log times jump from {before_ns * 1e-9:.3f} s to {after_ns * 1e-9:.3f} s (a recorder's "
                         "clock error, such as messages logged at 0?): played without waiting for the gap")

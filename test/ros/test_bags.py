@@ -657,3 +657,117 @@ def test_the_router_says_what_an_engineers_bag_and_parameters_lack(prefix: Path,
     without_poses = {t: info for t, info in topics.items() if not t.endswith("/pose")} | {"/tf": tf}
     with pytest.raises(BagError, match="the bag has /tf: for poses from TF, set pose_type: tf"):
         TopicRouter(settings, without_poses, prefix)
+
+
+# -- recordings as recorders leave them when killed, and files damaged in place ---------------------------------
+
+
+def test_a_db3_recorded_in_wal_mode_and_killed_is_read_with_its_log(prefix: Path, tmp_path: Path):
+    """rosbag2's resilient preset writes sqlite3 in WAL mode; a recorder killed then leaves committed
+    messages in x.db3-wal. Read immutable, as rosbags opens it, half the bag was gone without a word
+    (or, with metadata.yaml, refused as damaged). A copy with the log applied is read; the bag's own
+    files stay as they are."""
+    import shutil
+    import sqlite3
+
+    db3 = copy_bag(prefix, tmp_path / "full", storage="sqlite3", compress=False)
+    bag = tmp_path / "killed"
+    shutil.copytree(db3, bag)
+    (db,) = bag.glob("*.db3")
+    with sqlite3.connect(db) as conn:  # the first half in the file, the rest committed to the log only
+        stamps = sorted(t for (t,) in conn.execute("select timestamp from messages"))
+        middle = stamps[len(stamps) // 2]
+        conn.execute("delete from messages where timestamp >= ?", (middle,))
+    conn.close()
+    conn = sqlite3.connect(db)
+    conn.execute("vacuum")
+    conn.execute("pragma journal_mode=WAL")
+    conn.close()
+    subprocess.run([sys.executable, "-c", f"""
+import os, sqlite3
+conn = sqlite3.connect({str(db)!r})
+conn.execute('pragma wal_autocheckpoint=0')
+conn.execute("attach {str(next(db3.glob('*.db3')))!r} as full")
+conn.execute('insert into messages select * from full.messages where timestamp >= {middle}')
+conn.commit()
+os._exit(0)  # killed: no checkpoint
+"""], check=True)
+    wal = db.with_name(db.name + "-wal")
+    assert wal.stat().st_size > 0
+    before = {part.name: part.read_bytes() for part in bag.iterdir()}
+    for path in (bag, db):
+        with open_bag(path) as reader:
+            assert reader.note and f"{db.name}-wal holds messages" in reader.note, reader.note
+        assert _digest(path) == _digest(prefix), path
+    assert {part.name: part.read_bytes() for part in bag.iterdir()} == before
+
+
+def test_a_split_recording_with_an_empty_or_missing_part_or_a_broken_metadata_reads_what_is_there(prefix: Path,
+                                                                                                    tmp_path: Path):
+    """A recorder killed right after a split leaves an empty newest file; an empty or half-written
+    metadata.yaml; a part not copied with the rest: each refused the whole bag as damaged. The
+    files that can be read are, and the note names what was not."""
+    import shutil
+
+    from odd_bags import _metadata, split_overlapping
+
+    whole = split_overlapping(prefix, tmp_path / "split")
+    first, second = _metadata(whole)["rosbag2_bagfile_information"]["relative_file_paths"]
+    reference = _digest(whole)
+    assert reference == _digest(prefix)
+
+    empty_part = tmp_path / "empty_part"
+    shutil.copytree(whole, empty_part)
+    (empty_part / "split_2.mcap").write_bytes(b"")
+    empty_meta, half_meta = tmp_path / "empty_meta", tmp_path / "half_meta"
+    for bag, text in ((empty_meta, ""), (half_meta, (whole / "metadata.yaml").read_text()[:300])):
+        shutil.copytree(whole, bag)
+        (bag / "metadata.yaml").write_text(text)
+    for bag, said in ((empty_part, "split_2.mcap (empty"), (empty_meta, "metadata.yaml cannot be read (it is empty)"),
+                      (half_meta, "metadata.yaml cannot be read")):
+        with open_bag(bag) as reader:
+            assert reader.note and said in reader.note, reader.note
+        assert _digest(bag) == reference, bag
+
+    missing = tmp_path / "missing"
+    shutil.copytree(whole, missing)
+    (missing / second).unlink()
+    with open_bag(missing) as reader:
+        assert reader.note and f"lists {second}, not in the folder" in reader.note, reader.note
+    with open_bag(whole / first) as reader:
+        only_first = [(m.topic, m.log_time_ns, hashlib.sha1(m.data).hexdigest()) for m in reader.messages()]
+    assert _digest(missing) == only_first and 0 < len(only_first) < len(reference)
+
+
+def test_an_mcap_whose_index_is_damaged_or_cut_reads_every_message(prefix: Path, tmp_path: Path):
+    """An indexed MCAP whose chunk index points wrong (the data intact) broke the read at that chunk,
+    and one cut inside its summary (every message and the data end present: a recorder killed while
+    closing) was called broken: both are read whole, in file order where the index fails, and said."""
+    import shutil
+    import struct
+
+    from mcap.reader import make_reader
+
+    (mcap,) = prefix.glob("*.mcap")
+    data = mcap.read_bytes()
+    with mcap.open("rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    assert len(chunks) >= 3
+    offset = struct.pack("<Q", chunks[2].chunk_start_offset)
+    field_at = data.rfind(offset)
+    assert field_at > chunks[-1].chunk_start_offset  # in the summary
+    bad_index = tmp_path / "bad_index"
+    shutil.copytree(prefix, bad_index)
+    (bad_index / mcap.name).write_bytes(data[:field_at] + struct.pack("<Q", chunks[2].chunk_start_offset + 12345)
+                                        + data[field_at + 8:])
+    with open_bag(bad_index) as reader:
+        assert _digest(bad_index) == _digest(prefix)
+        read = list(reader.messages())
+        assert len(read) == reader.message_count
+        (note,) = reader.read_notes()
+        assert "its index broke" in note and "read on in file order" in note, note
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) - 100])
+    with open_bag(cut) as reader:
+        assert reader.note and "its summary (the index after the messages) is cut short" in reader.note
+    assert _digest(cut) == _digest(prefix)
