@@ -184,10 +184,25 @@ class MapBound:
                  time.perf_counter() - t0, slices, self._judged, self._judge_s)
         return eviction
 
+    def _abandon(self, count: int, err: OSError) -> None:
+        """An eviction whose spill cannot be written: the blocks stay in memory (nothing is lost, nothing
+        archived); tried again once the map grew by a tenth of the bound, not at every frame and update."""
+        self.spill_failures += 1
+        self._retry_at_blocks = self.store.n_blocks + max(1, self.max_blocks // 10)
+        log.error("map bound: eviction of %d blocks abandoned, they stay in memory (the map now exceeds max_blocks "
+                  "%d): %s. Tried again when the map holds %d blocks; counted as spill_failures", count,
+                  self.max_blocks, err, self._retry_at_blocks)
+
     def _evict_slice(self, count: int, *, side_by_side: Callable[[], bool]) -> Eviction | None:
         """Evict the `count` blocks farthest from the camera (`evict`'s slice); None when the spill
         could not be written (the blocks stay)."""
         store = self.store
+        if store.grid.spill is not None:
+            try:  # a spill that cannot take them: known before the victims are judged and meshed (seconds)
+                store.grid.spill.check_room(count, store.grid.bytes_per_block())
+            except OSError as err:
+                self._abandon(count, err)
+                return None
         with self._data_lock:
             victims = store.farthest(self.camera_m, keep=store.n_blocks - count, voxel_size_m=self.voxel_size_m,
                                      touched_since_s=self._recent_frames_s[0] if self._recent_frames_s else np.inf)
@@ -227,13 +242,7 @@ class MapBound:
             try:  # first: a spill that cannot be written leaves the store as it was
                 eviction = store.remove(victims)
             except OSError as err:
-                # the blocks stay in memory (nothing is lost, nothing archived); tried again once the map
-                # grew by a tenth of the bound, not at every frame and update
-                self.spill_failures += 1
-                self._retry_at_blocks = store.n_blocks + max(1, self.max_blocks // 10)
-                log.error("map bound: eviction of %d blocks abandoned, they stay in memory (the map now exceeds "
-                          "max_blocks %d): %s. Tried again when the map holds %d blocks; counted as "
-                          "spill_failures", len(victim_coords), self.max_blocks, err, self._retry_at_blocks)
+                self._abandon(len(victim_coords), err)
                 return None
             self._retry_at_blocks = 0
         # The archive is the update lock's (held): changed without the data lock, so that integration goes on

@@ -96,10 +96,25 @@ class BlobFile:
 
     def _open(self) -> IO[bytes]:
         if self._file is None:
+            # a temporary folder a cleaner removed while the node ran: made again, as it was
+            os.makedirs(self.directory or tempfile.gettempdir(), exist_ok=True)
             # unbuffered: a write that fails (a full disk) fails in `append`, which undoes it; a buffered
             # one failed at a later flush, in `read` under a frame's block allocation, the blobs unreadable
             self._file = tempfile.TemporaryFile(buffering=0, prefix="senfunet-spill-", dir=self.directory)
         return self._file
+
+    def check_room(self, nbytes: int) -> None:
+        """OSError unless the file can be opened and its disk has `nbytes` free (what a write of that
+        much would need), so that a caller learns it before the work whose result it would write."""
+        file = self._open()
+        try:
+            descriptor = file.fileno()
+        except (OSError, ValueError):  # not a file of the operating system's: its room is unknown
+            return
+        free = os.statvfs(descriptor)
+        if free.f_bavail * free.f_frsize < nbytes:
+            raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({free.f_bavail * free.f_frsize / 1e6:.0f} MB "
+                          f"free, {nbytes / 1e6:.0f} MB needed)")
 
     def _compact(self) -> None:
         """Copy the blobs still held into a fresh file (dropped ones leave holes), one at a time. When the
@@ -159,6 +174,20 @@ class BlockSpill:
         index = self._blobs.index
         return np.fromiter((key in index for key in keys.tolist()), np.bool_, len(keys))
 
+    def check_room(self, n_blocks: int, block_nbytes: int) -> None:
+        """OSError (as `put` raises it) unless `n_blocks` blocks of `block_nbytes` each, uncompressed (the
+        most they take), can be spilled now: checked before an eviction judges and meshes them."""
+        try:
+            self._blobs.check_room(n_blocks * block_nbytes)
+        except OSError as err:
+            raise self._cannot_write(err) from err
+
+    def _cannot_write(self, err: OSError) -> OSError:
+        where = self._blobs.directory or tempfile.gettempdir()
+        return OSError(f"cannot write evicted blocks to the spill file in {where}: {err}; free disk space there, "
+                       "point TMPDIR at a disk with room (read when the node starts), or raise the map bound "
+                       "(max_map_blocks)")
+
     def put(self, keys: np.ndarray, rows: list[np.ndarray]) -> None:
         """Spill blocks: keys (N int64) and, per channel, its N rows (any dtype, N first)."""
         if len(keys) == 0:
@@ -168,9 +197,7 @@ class BlockSpill:
             self._blobs.append((key, self._compressor.compress(b"".join(channel[n].tobytes() for channel in flat)))
                                for n, key in enumerate(keys.tolist()))
         except OSError as err:  # none of them spilled: the caller keeps the blocks in memory
-            where = self._blobs.directory or tempfile.gettempdir()
-            raise OSError(f"cannot write evicted blocks to the spill file in {where}: {err}; free disk space "
-                          "there, point TMPDIR at a disk with room, or raise the map bound (max_map_blocks)") from err
+            raise self._cannot_write(err) from err
 
     def take(self, keys: np.ndarray, rows: list[np.ndarray]) -> np.ndarray:
         """Restore the spilled blocks among `keys` into `rows` (per channel, N rows each, written in

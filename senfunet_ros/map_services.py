@@ -209,7 +209,10 @@ class MapServices:
             P.configure_engine(engine, self.settings())
             self.mesh_publisher.resend_all()
         notes = _loaded_map_notes(engine, want, P.engine_weights(self.settings()))
-        return (f"loaded {path}: {sum(engine.frames_integrated.values())} frames, {engine.grid.n_blocks} blocks"
+        spilled = len(engine.grid.spill) if engine.grid.spill is not None else 0
+        on_disk = f" in memory and {spilled} on disk (evicted before the save; back when seen again)" if spilled else ""
+        frames = sum(engine.frames_integrated.values())
+        return (f"loaded {path}: {frames} frames, {engine.grid.n_blocks} blocks{on_disk}"
                 + "".join(f"; {note}" for note in notes))
 
     def _reply(self, response: Any, action: Callable[[], str], failure: str, log: str | None = None) -> Any:

@@ -278,9 +278,16 @@ class StatusReport:
         values += [KeyValue(key=f"engine.counters.{k}", value=str(v)) for k, v in counters_engine.items()]
         values += [KeyValue(key=f"engine.{k}_ms", value=f"{v * 1e3:.1f}")
                    for k, v in dict(getattr(engine, "timings_s", {})).items()]
-        values += [KeyValue(key=k, value=v) for k, v in _flat("engine.stats.", self._engine_stats())]
-        msg.status.append(DiagnosticStatus(level=DiagnosticStatus.OK, name=f"{self.name}: pipeline",
-                                           message=f"{counters_engine.get('meshed_blocks', 0)} mesh blocks",
+        stats = self._engine_stats()
+        values += [KeyValue(key=k, value=v) for k, v in _flat("engine.stats.", stats)]
+        level, message = DiagnosticStatus.OK, f"{counters_engine.get('meshed_blocks', 0)} mesh blocks"
+        blocks, max_blocks = stats.get("blocks", 0), stats.get("max_blocks") or 0
+        if counters_engine.get("spill_failures") and 0 < max_blocks < blocks:  # the bound given up for now
+            level = DiagnosticStatus.WARN
+            message += (f"; the map holds {blocks} blocks, over its bound max_map_blocks {max_blocks}: its evictions "
+                        f"were abandoned ({counters_engine['spill_failures']} so far), the spill file cannot be "
+                        "written (see the log)")
+        msg.status.append(DiagnosticStatus(level=level, name=f"{self.name}: pipeline", message=message,
                                            hardware_id=self.hardware_id, values=values))
         return msg
 

@@ -269,6 +269,31 @@ class _FillingDisk(io.RawIOBase):
         super().close()
 
 
+def test_a_spill_without_room_is_known_before_the_victims_are_judged(monkeypatch, tmp_path):
+    """A full spill disk: each retry judged and meshed thousands of victims (seconds, integration
+    waiting) before the write failed. The room is checked first; nothing is judged for an eviction
+    that cannot be written. A spill folder removed while the node runs (a temp cleaner) is made again."""
+    class NoRoom:
+        f_bavail, f_frsize = 1, 4096
+
+    folder = tmp_path / "tmp"
+    monkeypatch.setattr(spill_module.tempfile, "tempdir", str(folder))  # TMPDIR, gone before the first spill
+    for room in (False, True):
+        engine = engine_for_tests(max_blocks=165)
+        integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]])
+        engine.update()
+        with monkeypatch.context() as patch:
+            if not room:
+                patch.setattr(spill_module.os, "statvfs", lambda fd: NoRoom())
+            integrate_views(engine, far_views(2))
+            engine.update()
+        if room:
+            assert folder.is_dir() and engine.grid.n_blocks <= 165 and engine.stats()["evicted_blocks"] > 0
+        else:
+            assert engine.counters["spill_failures"] >= 1 and engine.stats()["evicted_blocks"] == 0
+            assert engine.bound._judged == 0 and engine.grid.n_blocks > 165
+
+
 def test_a_disk_that_fills_after_an_eviction_keeps_the_spilled_blocks_readable(monkeypatch):
     """The spill file was buffered: an eviction's last blobs stayed in the buffer after `put` returned, and
     a disk that filled then failed their flush at the next read, when a frame reached a spilled block

@@ -53,6 +53,11 @@ def test_load_map_keeps_the_nodes_map_bound(tmp_path):
     integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[1:3]] + far_views(3))
     engine.update()
     assert engine.grid.n_blocks <= 165 and engine.stats()["evicted_blocks"] > 0
+    # saved with blocks on disk, and loaded again: the reply counts them (it gave the blocks in memory alone)
+    spilled = len(engine.grid.spill)
+    assert spilled > 0 and services.save_map(None, SimpleNamespace(success=None, message=None)).success
+    reply = services.load_map(None, SimpleNamespace(success=None, message=None))
+    assert reply.success and f"blocks in memory and {spilled} on disk" in reply.message, reply.message
 
 
 def test_a_loaded_map_runs_as_the_nodes_parameters_say_and_what_it_cannot_take_is_said(tmp_path):
@@ -384,3 +389,43 @@ def test_save_mesh_into_a_file_and_save_map_onto_a_pipe_say_what_is_in_the_way(t
     reply = _call(services.save_map)
     assert not reply.success and "no regular file" in reply.message, reply.message
     assert stat.S_ISFIFO((tmp_path / "pipe.pt").lstat().st_mode)
+
+
+def test_a_bound_given_up_for_a_spill_that_cannot_be_written_warns_on_the_status(tmp_path, monkeypatch):
+    """Every eviction abandoned (a full spill disk) let the map grow to twice its bound while /diagnostics
+    stayed OK: the only signs were ERROR lines in the log. The pipeline's status now warns while the map
+    is over its bound for that reason, and clears once an eviction goes through."""
+    import senfunet_core.spill as spill_module
+    from senfunet_ros.health import HealthMonitor
+    from senfunet_ros.node import LatencyStats
+    from senfunet_ros.status import StatusReport
+
+    class NoRoom:
+        f_bavail, f_frsize = 1, 4096
+
+    params = tmp_path / "p.yaml"
+    params.write_text("senfunet:\n  ros__parameters:\n    max_map_blocks: 165\n    weights: none\n"
+                      f"    output_dir: {tmp_path}\n    rgb_sensors: []\n")
+    settings = load_settings(params)
+    engine = SenFuNet(P.engine_config(settings), weights=None)
+    sensors = {"tof": ("depth",), "stereo": ("depth",)}
+    report = StatusReport(Pipeline(engine, Ingest(ingest_config(settings))),
+                          HealthMonitor(sensors, window_s=60.0, stale_after_s=60.0), {}, LatencyStats(),
+                          topics={s: {"depth": f"/{s}/depth"} for s in sensors}, hardware_id="/senfunet",
+                          warn=lambda key, text: None, logger=None)
+    monkeypatch.setattr("senfunet_ros.status.ENGINE_STATS_PERIOD_S", 0.0)
+
+    def pipeline_status() -> Any:
+        return next(s for s in report.message("map").status if s.name.endswith("pipeline"))
+
+    integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]])
+    engine.update()
+    with monkeypatch.context() as patch:
+        patch.setattr(spill_module.os, "statvfs", lambda fd: NoRoom())
+        integrate_views(engine, far_views(2))
+        engine.update()
+    status = pipeline_status()
+    assert status.level == b"\x01" and "over its bound max_map_blocks 165" in status.message, status.message
+    integrate_views(engine, far_views(4)[2:])
+    engine.update()
+    assert engine.grid.n_blocks <= 165 and pipeline_status().level == b"\x00"
