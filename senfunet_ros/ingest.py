@@ -83,7 +83,7 @@ DROP_REASONS: tuple[str, ...] = (
     "pose_conflict",  # a pose (or dynamic TF transform) for a stamp already given, another value: the first is kept
     "pose_timeout",  # no pose after the frame arrived within pose_max_wait_s of stream time
     "pose_gap",  # the poses around the frame are further than pose_tolerance_s from it
-    "queue_full",  # the frame queue overflowed; the oldest frame goes
+    "queue_full",  # the frame queue overflowed; the oldest frame goes (set aside instead if posed and it fits)
     "behind",  # more than max_lag_s older than its sensor's newest (the consumer fell behind), no room to set it aside
     "out_of_order",  # depth stamp older than the two newest of the same sensor
     "duplicate",  # depth stamp equal to one of the latest of the same sensor
@@ -418,10 +418,12 @@ class _SensorInput:
         depth_min_m, depth_max_m = config.depth_range_m.get(name, (0.0, math.inf))
         return 0.0 if self.spacing_checked else config.voxel_size_m, depth_min_m, depth_max_m
 
-    def enqueue(self, decoded: _Pending | tuple[str, str], config: IngestConfig, *, cleared: int) -> str | None:
-        """Queue a decoded depth image (`_decode_depth`), in stamp order, unless its decoding failed or
-        the queue was cleared since `cleared` (then it belonged to what was cleared). Returns the drop
-        reason or None."""
+    def enqueue(self, decoded: _Pending | tuple[str, str], config: IngestConfig, *, cleared: int, name: str,
+                set_aside: SetAside) -> str | None:
+        """Queue a decoded depth image (`_decode_depth`) of sensor `name`, in stamp order, unless its
+        decoding failed or the queue was cleared since `cleared` (then it belonged to what was cleared).
+        A full queue's oldest frame is set aside where it can be (`_set_aside_instead`), else dropped.
+        Returns the drop reason or None."""
         if not isinstance(decoded, _Pending):
             return self.drop(*decoded)
         for key, text in decoded.notes:
@@ -431,19 +433,20 @@ class _SensorInput:
             return self.drop(self.cleared_by)
         if len(self.queue) >= config.queue_size:
             oldest = self.queue.popleft()  # the oldest frame is the stalest: keep latency bounded
-            self.drop("queue_full")
-            # what it waited for decides what to do: the consumer (integration is behind), or a pose (the
-            # reason's hint names the pose topic)
-            newest_pose_ns = self.poses.newest_ns()
-            if oldest.T is not None or (config.tf is None and newest_pose_ns is not None
-                                        and newest_pose_ns >= oldest.stamp_ns):
-                self.counters.errors["queue_full"] = (
-                    "integration is behind: the oldest of queue_size images that had their poses and waited to "
-                    "be integrated went; raise queue_size, so that the frames integration falls behind on are "
-                    "set aside (max_lag_s, behind_buffer_mb) and integrated when the sensors pause, or lower the "
-                    "sensors' rates or working_width")
-            else:
-                self.counters.errors.pop("queue_full", None)
+            if not self._set_aside_instead(name, oldest, config, set_aside):
+                self.drop("queue_full")
+                # what it waited for decides what to do: the consumer (integration is behind), or a pose (the
+                # reason's hint names the pose topic)
+                newest_pose_ns = self.poses.newest_ns()
+                if oldest.T is not None or (config.tf is None and newest_pose_ns is not None
+                                            and newest_pose_ns >= oldest.stamp_ns):
+                    self.counters.errors["queue_full"] = (
+                        "integration is behind: the oldest of queue_size images that had their poses and waited to "
+                        "be integrated went; raise queue_size or behind_buffer_mb, so that the frames integration "
+                        "falls behind on are set aside (max_lag_s) and integrated when the sensors pause, or lower "
+                        "the sensors' rates or working_width")
+                else:
+                    self.counters.errors.pop("queue_full", None)
         if self.queue and self.queue[-1].stamp_ns > decoded.stamp_ns:  # two threads added this sensor's depth
             bisect.insort(self.queue, decoded, key=lambda pending: pending.stamp_ns)
         else:
@@ -527,16 +530,11 @@ class _SensorInput:
                 continue
             # the streams ended: nothing more will come for it, a pose nor a colour image
             waited_too_long = self.ended or (now_ns is not None and now_ns - t > max_wait_ns)
-            if config.tf is not None:
-                T, reason, error = _tf_pose(config, pending, waited_too_long=waited_too_long)
-            else:
-                T, reason = self.poses.at(t, tolerance_ns=int(config.pose_tolerance_s * 1e9),
-                                          waited_too_long=waited_too_long)
-                error = "" if reason is None else _pose_drop_error(reason, t, now_ns, self.poses, config)
+            T, reason, error = self._pose(name, pending, config, now_ns=now_ns, waited_too_long=waited_too_long)
             if self.ended and reason == "pose_timeout":  # no pose at or after it, and none will come
                 T, reason, error = self.pose_at_end(pending, config)
-            if T is not None and config.tf is not None and name in config.T_body_camera:
-                T = T @ config.T_body_camera[name]  # the image's frame_id is not the optical frame
+                if T is not None and config.tf is not None and name in config.T_body_camera:
+                    T = T @ config.T_body_camera[name]
             if T is None:
                 if reason is None:
                     break  # not yet: later frames are newer, they wait too
@@ -551,19 +549,54 @@ class _SensorInput:
             crowded = 2 * len(self.queue) >= config.queue_size
             if not self.colors.ready(t, last_color_ns, waited_too_long or colour_gone or crowded):
                 break
-            rgb = self.colors.match(t, tolerance_ns=int(config.color_tolerance_s * 1e9))
-            if rgb is not None:
-                try:
-                    rgb = conv.color_for_depth(rgb, depth_size=pending.source_size, shape=pending.depth_m.shape)
-                except ValueError as err:  # not registered to the depth: fused without colour, said once
-                    rgb = None
-                    self.counters.color_refused += 1
-                    self.counters.notes.setdefault("color_size", str(err))
-            elif self.colors.seen:
-                self.counters.without_color += 1
             self.queue.popleft()
-            out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
+            out.append(Frame(name, t, pending.depth_m, self._colour(pending, config), pending.K, T, pending.arrival_s))
         return out
+
+    def _pose(self, name: str, pending: _Pending, config: IngestConfig, *, now_ns: int | None,
+              waited_too_long: bool) -> tuple[np.ndarray | None, str | None, str]:
+        """T_world_camera of a queued frame from its pose stream or TF, or why not (None: not yet)."""
+        if config.tf is not None:
+            T, reason, error = _tf_pose(config, pending, waited_too_long=waited_too_long)
+        else:
+            T, reason = self.poses.at(pending.stamp_ns, tolerance_ns=int(config.pose_tolerance_s * 1e9),
+                                      waited_too_long=waited_too_long)
+            error = "" if reason is None else _pose_drop_error(reason, pending.stamp_ns, now_ns, self.poses, config)
+        if T is not None and config.tf is not None and name in config.T_body_camera:
+            T = T @ config.T_body_camera[name]  # the image's frame_id is not the optical frame
+        return T, reason, error
+
+    def _colour(self, pending: _Pending, config: IngestConfig) -> np.ndarray | None:
+        """A frame's colour image from the buffer (None without one), counted where it lacks one."""
+        rgb = self.colors.match(pending.stamp_ns, tolerance_ns=int(config.color_tolerance_s * 1e9))
+        if rgb is not None:
+            try:
+                return conv.color_for_depth(rgb, depth_size=pending.source_size, shape=pending.depth_m.shape)
+            except ValueError as err:  # not registered to the depth: fused without colour, said once
+                self.counters.color_refused += 1
+                self.counters.notes.setdefault("color_size", str(err))
+                return None
+        if self.colors.seen:
+            self.counters.without_color += 1
+        return None
+
+    def _set_aside_instead(self, name: str, pending: _Pending, config: IngestConfig, set_aside: SetAside) -> bool:
+        """The oldest frame of a full queue, set aside rather than dropped where it can be posed now and
+        set-aside memory has room: the queue fills while the consumer is held (an eviction, a save), when
+        no one takes frames to set them aside (`pop`)."""
+        if config.max_lag_s <= 0 or config.set_aside_bytes <= 0:
+            return False
+        T, rgb = pending.T, pending.rgb
+        if T is None:
+            T, _, _ = self._pose(name, pending, config, now_ns=None, waited_too_long=False)
+            if T is None:
+                return False
+            rgb = self._colour(pending, config)
+        frame = Frame(name, pending.stamp_ns, pending.depth_m, rgb, pending.K, T, pending.arrival_s)
+        if not set_aside.put(frame, budget_bytes=config.set_aside_bytes):
+            return False
+        self.counters.set_aside += 1
+        return True
 
 
 # transforms held while a clock that stepped is confirmed (`_StreamTime.tf_held`): seconds of a robot's tree
@@ -841,7 +874,8 @@ class Ingest:
         # other streams' messages and the integration go on meanwhile
         decoded = [_decode(image) for image in images]
         with self._lock:  # queued (depth) or buffered (colour) unless decoding failed or what it was for was cleared
-            reasons = [self._sensors[image.sensor].enqueue(result, self.config, cleared=image.cleared)
+            reasons = [self._sensors[image.sensor].enqueue(result, self.config, cleared=image.cleared,
+                                                           name=image.sensor, set_aside=self._set_aside)
                        if image.stream == "depth" else
                        self._sensors[image.sensor].take_color(image.stamp_ns, result, cleared=image.cleared)
                        for image, result in zip(images, decoded)]

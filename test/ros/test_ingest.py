@@ -1273,6 +1273,31 @@ def test_frames_set_aside_of_a_sensor_that_stopped_go_while_the_other_streams() 
     assert ingest.ledger.counters()["stereo"]["set_aside_now"] == 6
 
 
+def test_a_queue_that_fills_while_the_consumer_is_held_sets_its_oldest_frames_aside() -> None:
+    """Frames are set aside when the consumer takes them (pop_ready); while it was held (an eviction of
+    thousands of blocks, a save) nobody took any, the queue filled and its oldest frames were dropped as
+    queue_full, with room to set them aside. They are set aside as the queue overflows; frames that
+    cannot be posed yet still go as queue_full."""
+    frame_bytes = 8 * 10 * 4
+    ingest = make(max_lag_s=0.25, set_aside_bytes=4 * frame_bytes, queue_size=3)
+    for t in range(0, 1050, 50):
+        ingest.add_pose("tof", pose_msg(t * MS, x=t / 1000))
+    for t in range(0, 800, 100):  # 8 frames, nobody taking them: 5 over the queue, room for 4
+        assert ingest.add_depth("tof", depth_msg(t * MS)) is None
+    c = ingest.ledger.counters()["tof"]
+    assert (c["set_aside"], c["dropped"]["queue_full"]) == (4, 1), c
+    assert [f.stamp_ns // MS for f in frames(ingest.pop_ready())] == [500, 600, 700]
+    time.sleep(0.3)  # the sensor paused
+    late = [f for _ in range(5) for f in frames(ingest.pop_ready())]  # one at a time
+    assert [f.stamp_ns // MS for f in late] == [0, 100, 200, 300] and all(f.set_aside for f in late)
+    np.testing.assert_allclose(late[2].T_world_camera[:3, 3], [0.2, 0, 0])
+    unposed = make(max_lag_s=0.25, set_aside_bytes=4 * frame_bytes, queue_size=3)
+    for t in range(0, 400, 100):  # no pose yet: nothing to set aside with
+        assert unposed.add_depth("tof", depth_msg(t * MS)) is None
+    c = unposed.ledger.counters()["tof"]
+    assert (c["set_aside"], c["dropped"]["queue_full"]) == (0, 1), c
+
+
 def test_integrate_ready_keeps_order_isolates_errors_and_flushes_before_a_time_jump() -> None:
     from senfunet_core.engine import EngineConfig, SenFuNet
     from senfunet_core.errors import InputError
