@@ -402,10 +402,11 @@ class SenFuNet:
         mesh_budget_s: re-mesh about as many blocks as take this long (judged by the last updates'
         time per block); the others stay due (`BlockStore.mesh_due`) and go first in the next updates,
         the longest-waiting first, so nothing is lost and, once they are all meshed, the mesh is what
-        unbudgeted updates give. None: every block due (exact); `mesh_backlog_blocks` counts the rest."""
+        unbudgeted updates give. None: every block due (exact); `mesh_backlog_blocks` counts the rest.
+        A budgeted update's eviction also stops taking slices once the budget is spent (`MapBound.evict`)."""
         with self.update_lock.held():
             t0 = time.perf_counter()
-            self._evict()
+            self._evict(budget_s=mesh_budget_s)  # a budgeted update evicts in turns too
             if alpha_budget_s != 0:
                 self._refresh_alpha(alpha_budget_s)
             t1 = time.perf_counter()
@@ -629,11 +630,13 @@ class SenFuNet:
         self.counters["alpha_flops"] = self.alpha.flops
         self.counters["alpha_backlog_blocks"] = refresh.backlog
 
-    def _evict(self, *, integration_waits: bool = False) -> Eviction | None:
+    def _evict(self, *, integration_waits: bool = False, budget_s: float | None = None) -> Eviction | None:
         """`MapBound.evict` (call with the update lock held; `integration_waits`: by the integrating
-        thread); the evicted blocks are no longer shown as live meshes (the archive shows them), and
-        an integration waiting for it goes on after its first slice."""
-        eviction = self.bound.evict(integration_waits=integration_waits, removed=self.update_lock.evicted)
+        thread; `budget_s`: its slices stop after about this long); the evicted blocks are no longer
+        shown as live meshes (the archive shows them), and an integration waiting for it goes on
+        after its first slice."""
+        eviction = self.bound.evict(integration_waits=integration_waits, removed=self.update_lock.evicted,
+                                    budget_s=budget_s)
         if self.bound.spill_failures:
             self.counters["spill_failures"] = self.bound.spill_failures
         if eviction is not None:

@@ -130,8 +130,8 @@ class MapBound:
         self.newly_archived = []
         return archived
 
-    def evict(self, *, integration_waits: bool = False, removed: Callable[[], None] | None = None
-              ) -> Eviction | None:
+    def evict(self, *, integration_waits: bool = False, removed: Callable[[], None] | None = None,
+              budget_s: float | None = None) -> Eviction | None:
         """Evict the blocks farthest from the camera if the map holds more than `max_blocks` (see
         the module docstring); None when it does not. Their neighbours' cells that reached into them
         are re-meshed without them by the next update (so a snapshot equals what the updates sent).
@@ -141,7 +141,10 @@ class MapBound:
         goes on after the first slice, not after the whole eviction (in one slice when the caller is
         the integrating thread itself). The net judges on the alpha
         threads side by side while integration waits for it (`integration_waits`: the caller is
-        the integrating thread; or the map is past the hard bound), else on this thread alone."""
+        the integrating thread; or the map is past the hard bound), else on this thread alone.
+        `budget_s`: no further slice once this long has passed, unless the map is past the hard bound
+        (a live mesh update: its refresh waits for about one slice past it, not the whole eviction;
+        the next update goes on)."""
         store = self.store
         if self.unarchived:  # final meshes an earlier eviction could not archive (`_archive`), less the
             # cells of blocks that came back since (the live mesh has them); theirs counted as in memory, as
@@ -172,6 +175,8 @@ class MapBound:
             slices += 1
             if removed is not None:
                 removed()
+            if budget_s is not None and time.perf_counter() - t0 >= budget_s and not self.over_hard_bound():
+                break
         if eviction is None:
             return None
         self.evictions += 1

@@ -357,3 +357,24 @@ def test_a_spill_that_fails_a_read_keeps_the_grid_whole(monkeypatch):
     monkeypatch.setattr(BlockSpill, "take", take)
     integrate_views(engine, [(SPHERE_C, SPHERE_VIEWS[0])])
     assert spill.restored > 0 and engine.frames_integrated == {"tof": 5, "stereo": 5}
+
+
+def test_a_budgeted_update_evicts_in_turns_and_reaches_the_bound():
+    """A live mesh update evicted down to the bound in one go: on a room-sized map the refresh waited for
+    the whole eviction (30-40 s on ~/mesh). With the update's mesh budget, it evicts a slice at a time
+    until the budget is spent; the next updates go on, until the map is within the bound."""
+    whole = engine_for_tests(max_blocks=180, alpha_batch_blocks=8)
+    in_turns = engine_for_tests(max_blocks=180, alpha_batch_blocks=8)
+    for engine in (whole, in_turns):
+        integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:5]])  # past the bound, not the hard bound
+    before = in_turns.grid.n_blocks
+    assert 180 < before < 225
+    whole.update()
+    assert whole.grid.n_blocks <= 180 and whole.bound.evictions == 1
+    in_turns.update(mesh_budget_s=0.0)
+    assert whole.grid.n_blocks < in_turns.grid.n_blocks < before and in_turns.bound.evictions == 1  # one slice
+    updates = 1
+    while in_turns.grid.n_blocks > 180 and updates < 20:
+        in_turns.update(mesh_budget_s=0.0)
+        updates += 1
+    assert in_turns.grid.n_blocks <= 180 and updates > 1 and in_turns.bound.evictions == updates
