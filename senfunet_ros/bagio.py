@@ -638,17 +638,17 @@ def _open_parts(files: list[Path], why: list[str]) -> _Source:
                 left_out.append(f"{part.name} (empty: a recorder killed as it began the file?)")
                 continue
             readable = part
-            if part.name.endswith(_ZIPPED) or _wal_file(part) is not None:
-                temporary = temporary or tempfile.TemporaryDirectory(prefix="senfunet-bag-")
-                readable = _readable_copy(part, Path(temporary.name))
-                (unzipped if part.name.endswith(_ZIPPED) else logged).append(part.name)
             try:
+                if part.name.endswith(_ZIPPED) or _wal_file(part) is not None:
+                    temporary = temporary or tempfile.TemporaryDirectory(prefix="senfunet-bag-")
+                    readable = _readable_copy(part, Path(temporary.name))
+                    (unzipped if part.name.endswith(_ZIPPED) else logged).append(part.name)
                 sources.append(_open_rosbags(readable))
                 read.append(part.name)
-            except BagError as err:
+            except BagError as err:  # one damaged file among several: the others are read
                 if len(files) == 1:
                     raise
-                left_out.append(f"{part.name} ({str(err).removeprefix(f'{readable}: ')})")
+                left_out.append(f"{part.name} ({str(err).removeprefix(f'{readable}: ').removeprefix(f'{part}: ')})")
         if not sources:
             raise BagError(f"{files[0].parent}: none of its files can be read: {'; '.join(left_out)}")
     except BaseException:

@@ -884,8 +884,8 @@ def test_integration_past_the_hard_bound_during_an_update_is_served_between_batc
                 time.sleep(0.01)  # until the worker outgrew the bound (it now waits for a safe point)
         return mesh_batch(slots, which, filtered)
 
-    def recorded_eviction():
-        eviction = evict()
+    def recorded_eviction(**options):
+        eviction = evict(**options)
         if eviction is not None:
             dropped_mid_update.append(eviction.dropped_keys)
         return eviction
