@@ -69,6 +69,20 @@ class Route:
 _TF_MSGTYPE = "tf2_msgs/msg/TFMessage"
 
 
+def _merged_info(topic: str, infos: list[TopicInfo]) -> TopicInfo:
+    """One topic recorded under several spellings ('tof/depth' and '/tof/depth': `bagio.absolute_topic`) as
+    one TopicInfo named `topic`: counts and types summed; the first spelling's definition."""
+    if len(infos) == 1:
+        return infos[0]
+    types: dict[str, int] = {}
+    for info in infos:
+        for msgtype, n in (info.types or {normalize_msgtype(info.msgtype): info.count}).items():
+            types[msgtype] = types.get(msgtype, 0) + n
+    main = max(types, key=lambda t: types[t])
+    return TopicInfo(topic, main, sum(info.count for info in infos), infos[0].msgdef, infos[0].digest, types,
+                     any(info.latched for info in infos))
+
+
 class TopicRouter:
     """Which bag topic feeds which sensor stream; checks the bag has what the node needs.
 
@@ -96,17 +110,21 @@ class TopicRouter:
                        (sensor.name, Stream.COLOR, sensor.color_topic, _IMAGES, False)]
             if pose_type is not PoseType.TF:
                 wanted.append((sensor.name, Stream.POSE, sensor.pose_topic, (pose_type.msgtype,), True))
-        # the bag's topics by their absolute names: a recorder may have written 'tof/depth' for /tof/depth
-        recorded_as = {absolute_topic(t): t for t in topics}
+        # the bag's topics by their absolute names: a recorder may have written 'tof/depth' for /tof/depth, and
+        # two recordings merged may hold both spellings, one topic whose messages are under either name
+        spellings: dict[str, list[str]] = {}
+        for recorded in topics:
+            spellings.setdefault(absolute_topic(recorded), []).append(recorded)
+        by_name = {name: _merged_info(name, [topics[t] for t in recorded]) for name, recorded in spellings.items()}
         if pose_type is PoseType.TF:  # a fixed rig's whole tree may be static (/tf_static alone)
-            static = topics.get(recorded_as.get("/tf_static", ""))
+            static = by_name.get("/tf_static")
             wanted += [("", Stream.TF, "/tf", (_TF_MSGTYPE,), static is None or static.count == 0),
                        ("", Stream.TF_STATIC, "/tf_static", (_TF_MSGTYPE,), False)]
         for sensor_name, stream, topic, expected, required in wanted:
             if not topic:
                 continue
             topic = absolute_topic(topic)
-            info = topics.get(recorded_as.get(topic, topic))
+            info = by_name.get(topic)
             if info is None or info.count == 0:  # an optional topic recorded empty is absent too (colour: said)
                 if required:
                     missing.append(topic)
@@ -132,7 +150,7 @@ class TopicRouter:
                                "each its own topic with --params")
             msg_class = None if msgtype == _TF_MSGTYPE else message_class(msgtype)
             self.routes[topic] = Route(topic, (*route.targets, target) if route else (target,), msgtype, msg_class)
-            self._recorded[recorded_as.get(topic, topic)] = topic
+            self._recorded.update(dict.fromkeys(spellings[topic], topic))
         if missing:
             have = sorted(topics)
             shown = ", ".join(have[:12]) + (f" (+{len(have) - 12} more)" if len(have) > 12 else "")

@@ -161,3 +161,20 @@ def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int, topic: str =
                                                          rihs01=info.digest)
             writer.write(conns[msg.topic], msg.log_time_ns, msg.data)
     return dst
+
+
+def spelled_both_ways(src: Path, dst: Path) -> Path:
+    """Two recordings merged (as `mcap merge` or a converter leaves them): the first half of `src`'s
+    time written by a tool that names topics without their leading '/' ('tof/depth'), the rest with it."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    with open_bag(src) as reader, Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        middle_ns = reader.start_ns + int(reader.duration_s * 1e9) // 2
+        infos, conns = reader.topics, {}
+        for msg in reader.messages():
+            topic = msg.topic.lstrip("/") if msg.log_time_ns < middle_ns else msg.topic
+            if topic not in conns:
+                info = infos[msg.topic]
+                conns[topic] = writer.add_connection(topic, msg.msgtype, msgdef=info.msgdef, rihs01=info.digest)
+            writer.write(conns[topic], msg.log_time_ns, msg.data)
+    return dst

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from senfunet_ros.bagio import open_bag
+from odd_bags import spelled_both_ways
 from replays import replay_in_process
 from sensor_bags import Camera, params_file, surface_distance_m, two, write_bag
 
@@ -292,3 +294,23 @@ def test_the_live_node_warns_once_per_sensor_about_its_set_up(ros, tmp_path: Pat
     assert said.count("tof: the camera_info says 192x144 but the depth images are 96x72") == 1, said
     for sensor in ("tof", "stereo"):
         assert said.count(f"{sensor}: its pixels lie 33.3 mm apart") == 1, said
+
+
+def test_topics_recorded_with_and_without_their_leading_slash_are_one_topic(tmp_path: Path):
+    """Two recordings merged, one naming its topics 'tof/depth', the other '/tof/depth': one topic
+    (`bagio.absolute_topic`). Replay fused only one spelling's messages, without a word; the other's were
+    listed under ignored_topics."""
+    recording = two(duration_s=0.6)
+    bag = spelled_both_ways(write_bag(recording, tmp_path / "plain"), tmp_path / "bag")
+    with open_bag(bag) as reader:
+        depth_counts = {topic: info.count for topic, info in reader.topics.items() if topic.endswith("depth")}
+    assert set(depth_counts) == {"tof/depth", "/tof/depth", "stereo/depth", "/stereo/depth"}, depth_counts
+    proc = replay_in_process(bag, tmp_path / "out", params_file(tmp_path / "params.yaml", recording))
+    assert proc.returncode == 0, proc.stderr
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert stats["ignored_topics"] == {}, stats["ignored_topics"]
+    for sensor in ("tof", "stereo"):
+        received = depth_counts[f"{sensor}/depth"] + depth_counts[f"/{sensor}/depth"]
+        assert stats["sensors"][sensor]["received"] == received, (sensor, stats["sensors"][sensor])
+        assert stats["sensors"][sensor]["integrated"] >= received - 1, (sensor, stats["sensors"][sensor])
+    assert stats["topics"]["/tof/depth"]["sensor"] == "tof"
