@@ -87,7 +87,7 @@ DROP_REASONS: tuple[str, ...] = (
     "behind",  # more than max_lag_s older than its sensor's newest (the consumer fell behind), no room to set it aside
     "out_of_order",  # depth stamp older than the two newest of the same sensor
     "duplicate",  # depth stamp equal to one of the latest of the same sensor
-    "bad_stamp",  # stamp 0, or far from its stream's timeline (past or future): the timeline does not move
+    "bad_stamp",  # stamp 0 (unset), or far from its stream's timeline (past or future): the timeline does not move
     "time_jump",  # frames flushed because time went back, and a new timeline's first messages not held
     "engine_error",  # the engine rejected the frame (reported by the caller)
     "shutdown",  # taken for integration when the process stopped (reported by the caller), or set aside then
@@ -297,6 +297,8 @@ class _SensorInput:
         self.ended = False
         self.end = StreamEnd()  # what the end did, since the last Ingest.stream_ends.take
         self.depth_gaps = StreamGaps()
+        self.unset_stamps: set[str] = set()  # its streams seen with header.stamp 0 (`unset_stamp`)
+        self._latest_zero: set[str] = set()  # its streams whose latest message was stamped 0 (`stamped_zero_again`)
 
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
@@ -307,6 +309,31 @@ class _SensorInput:
         if error:
             self.counters.errors[reason] = _with_other_stream(self.counters.errors.get(reason, ""), error)
         return reason
+
+    def stamped_zero_again(self, stream: str, stamp_ns: int) -> bool:
+        """Whether a message of `stream` is stamped 0 right after another stamped 0: a driver that sets no
+        stamps (`unset_stamp`). One 0 is taken: a simulation's clock starts there."""
+        again = stamp_ns == 0 and stream in self._latest_zero
+        if stamp_ns == 0:
+            self._latest_zero.add(stream)
+        else:
+            self._latest_zero.discard(stream)
+        return again
+
+    def unset_stamp(self, stream: str) -> str:
+        """Drop a depth, colour or pose message stamped 0 (again, or off the stream's timeline) as bad_stamp,
+        saying the driver sets no stamps: a frame is posed and coloured at its stamp, and stamps of 0 would
+        read as one instant (poses in conflict, images duplicates) or far off the other streams' time. A
+        camera_info's stamp is used for nothing (a driver may fill it once): it is only named beside them."""
+        self.unset_stamps.add(stream)
+        if stream == "color":  # said beside the depth's or poses' error, which names every stream stamped 0
+            return self.drop("bad_stamp", f"{_COLOUR}header.stamp is 0 (unset): its driver does not set stamps")
+        *others, last = [label for key, label in _STREAM_LABELS.items() if key in self.unset_stamps]
+        named = f"{', '.join(others)} and {last}" if others else last
+        return self.drop("bad_stamp", (
+            f"{stream}: header.stamp is 0 (unset), on its {named} messages: their driver does not set stamps, and a "
+            "frame is posed and coloured at its stamp; fix the driver to stamp each message with the time it was "
+            "taken"))
 
     def discard(self, reason: str) -> int:
         """Drop every frame waiting (counted as `reason`) and the colour images; poses and camera_info
@@ -598,6 +625,8 @@ class _StreamTime:
         (it is held until that is confirmed, then accepted)."""
         verdict = self.timelines.check(sensor, stream, stamp_ns, message)
         images = [] if verdict.restart is None else self.restarted(sensor, stream, verdict.restart)
+        if verdict.reason == "bad_stamp" and stamp_ns == 0:  # not far off the timeline: unset
+            return self._sensors[sensor].unset_stamp(stream), images
         if verdict.reason is not None:
             return self._sensors[sensor].drop(verdict.reason, verdict.error), images
         return None, images
@@ -709,8 +738,12 @@ class Ingest:
     def add_camera_info(self, sensor: str, msg: Any) -> str | None:
         """Cache K and the image size, and queue the depth images that waited for it. Returns the
         drop reason, or None when it was cached."""
+        stamp_ns, _ = _header_stamp(msg, "camera_info")
         with self._lock:
-            reason, waited = _sensor_input(self._sensors, sensor).set_camera_info(sensor, msg, self.config)
+            state = _sensor_input(self._sensors, sensor)
+            if stamp_ns == 0:  # used for nothing (K is cached): only named if the depth or poses are stamped 0 too
+                state.unset_stamps.add("camera_info")
+            reason, waited = state.set_camera_info(sensor, msg, self.config)
         return self._decode_and_put(waited, reason)
 
     def add_depth(self, sensor: str, msg: Any) -> str | None:
@@ -723,6 +756,8 @@ class Ingest:
             state.ended = False
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
+            if state.stamped_zero_again("depth", stamp_ns):
+                return state.unset_stamp("depth")
             self._last_depth_arrival_s[sensor] = arrival_s = time.monotonic()
             reason, held = self._time.on_time(sensor, "depth", stamp_ns, (msg, arrival_s))
             taken = reason or state.accept(sensor, "depth", stamp_ns, (msg, arrival_s), self.config)
@@ -737,6 +772,8 @@ class Ingest:
             state.ended = False
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
+            if state.stamped_zero_again("color", stamp_ns):
+                return state.unset_stamp("color")
             reason, held = self._time.on_time(sensor, "color", stamp_ns, msg)
             taken = reason or state.accept(sensor, "color", stamp_ns, msg, self.config)
         return self._decode_and_put(held, taken)
@@ -807,6 +844,8 @@ class Ingest:
             stamp_ns, stamp_error = _header_stamp(msg, "pose")  # before the parser, whose error says bad_pose
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
+            if state.stamped_zero_again("pose", stamp_ns):
+                return state.unset_stamp("pose")
             try:
                 stamp_ns, T = self.config.pose_parser(msg)
                 if sensor in self.config.T_body_camera:
@@ -1164,6 +1203,7 @@ def _same_intrinsics(a: tuple[np.ndarray, tuple[int, int]], b: tuple[np.ndarray,
 
 
 _COLOUR = "colour: "  # how a colour image's error starts (the others are of depth, pose, camera_info messages)
+_STREAM_LABELS = {"depth": "depth", "color": "colour", "pose": "pose", "camera_info": "camera_info"}  # in texts
 
 
 def split_stream_errors(text: str) -> tuple[str, str]:
