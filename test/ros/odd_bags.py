@@ -178,3 +178,23 @@ def spelled_both_ways(src: Path, dst: Path) -> Path:
                 conns[topic] = writer.add_connection(topic, msg.msgtype, msgdef=info.msgdef, rihs01=info.digest)
             writer.write(conns[topic], msg.log_time_ns, msg.data)
     return dst
+
+
+def cut_short(src: Path, dst: Path, *, share: float = 0.7) -> Path:
+    """`src` as a killed recording leaves it: an unchunked mcap (rosbag2's fastwrite preset) in a folder
+    without metadata.yaml, cut after `share` of its bytes."""
+    from mcap.writer import Writer
+
+    dst.mkdir()
+    file = dst / f"{dst.name}_0.mcap"
+    with open_bag(src) as reader, file.open("wb") as out:
+        writer = Writer(out, use_chunking=False)
+        writer.start(profile="ros2", library="rosbag2 fastwrite imitation")
+        channels = {topic: writer.register_channel(topic, "cdr", writer.register_schema(
+            info.msgtype, "ros2msg", info.msgdef.encode()), metadata={"offered_qos_profiles": ""})
+            for topic, info in reader.topics.items()}
+        for sequence, msg in enumerate(reader.messages()):
+            writer.add_message(channels[msg.topic], msg.log_time_ns, msg.data, msg.log_time_ns, sequence)
+        writer.finish()
+    file.write_bytes(file.read_bytes()[:int(file.stat().st_size * share)])
+    return dst
