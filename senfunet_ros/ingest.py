@@ -429,6 +429,9 @@ class _SensorInput:
             self.counters.missing_depth_gap = (f"{gap.from_ns * 1e-9:.3f} s to {gap.to_ns * 1e-9:.3f} s, "
                                                f"{gap.missing + 1} of the stream's {gap.period_ns * 1e-6:.0f} ms "
                                                "periods")
+            self.depth_gaps.count(gap)
+        elif stream == "depth":
+            self.late_depth(stamp_ns)
         if stream == "depth" and self.camera_info is None:
             if len(self.awaiting_info) >= config.queue_size:
                 self.awaiting_info.popleft()
@@ -437,6 +440,12 @@ class _SensorInput:
             return None
         return _Undecoded(name, stream, stamp_ns, msg, arrival_s, self.camera_info, config.working_size,
                           self.spacing_check(config, name), self.cleared)
+
+    def late_depth(self, stamp_ns: int) -> None:
+        """A depth image older than the stream's newest came (taken between the two newest, or dropped as
+        out of order): if a gap counted it as missing, it is not."""
+        if self.depth_gaps.came_late(stamp_ns):
+            self.counters.missing_depth -= 1
 
     def spacing_check(self, config: IngestConfig, name: str) -> tuple[float, float, float]:
         """The voxel size to check a depth image's pixel spacing against (0 once a frame was checked: a
@@ -527,10 +536,11 @@ class _SensorInput:
                                       f"waiting for a pose: {why}")
 
     def pop(self, name: str, config: IngestConfig, *, now_ns: int | None, newest_depth_ns: int | None,
-            last_color_ns: int | None, set_aside: SetAside) -> list[Frame]:
+            depth_floor_ns: int | None, last_color_ns: int | None, set_aside: SetAside) -> list[Frame]:
         """The queued frames that can be posed (and coloured) now, oldest first; those that waited too
         long for a pose or a camera_info are dropped, those the consumer fell behind on (more than
-        max_lag_s behind `newest_depth_ns`) set aside or dropped. `now_ns`: the sensor's stream time."""
+        max_lag_s behind `newest_depth_ns`) set aside or dropped. `now_ns`: the sensor's stream time;
+        `depth_floor_ns`: what a depth image yet to come must be newer than (its colour is kept)."""
         max_wait_ns = int(config.pose_max_wait_s * 1e9)
         lag_ns = int(config.max_lag_s * 1e9)
         while self.awaiting_info and now_ns is not None and now_ns - self.awaiting_info[0][1] > max_wait_ns:
@@ -578,7 +588,7 @@ class _SensorInput:
             crowded = 2 * len(self.queue) >= config.queue_size
             if not self.colors.ready(t, last_color_ns, waited_too_long or colour_gone or crowded):
                 break
-            rgb = self.colors.match(t, tolerance_ns=int(config.color_tolerance_s * 1e9))
+            rgb = self.colors.match(t, tolerance_ns=int(config.color_tolerance_s * 1e9), floor_ns=depth_floor_ns)
             if rgb is not None:
                 try:
                     rgb = conv.color_for_depth(rgb, depth_size=pending.source_size, shape=pending.depth_m.shape)
@@ -760,6 +770,8 @@ class Ingest:
                 return state.unset_stamp("depth")
             self._last_depth_arrival_s[sensor] = arrival_s = time.monotonic()
             reason, held = self._time.on_time(sensor, "depth", stamp_ns, (msg, arrival_s))
+            if reason == "out_of_order":  # it came, late: not missing
+                state.late_depth(stamp_ns)
             taken = reason or state.accept(sensor, "depth", stamp_ns, (msg, arrival_s), self.config)
         return self._decode_and_put(held, taken)
 
@@ -916,6 +928,7 @@ class Ingest:
             for name, state in self._sensors.items():
                 frames.extend(state.pop(name, self.config, now_ns=timelines.sensor_now_ns(name),
                                         newest_depth_ns=timelines.last_ns(name, "depth"),
+                                        depth_floor_ns=timelines.depth_floor_ns(name),
                                         last_color_ns=timelines.last_ns(name, "color"),
                                         set_aside=self._set_aside))
             if not frames and set_aside:

@@ -530,8 +530,8 @@ def test_out_of_order_duplicate_and_queue_full() -> None:
     ingest = make(queue_size=2)
     assert ingest.add_depth("tof", depth_msg(100 * MS)) is None
     assert ingest.add_depth("tof", depth_msg(100 * MS)) == "duplicate"
-    assert ingest.add_depth("tof", depth_msg(50 * MS)) == "out_of_order"
     ingest.add_depth("tof", depth_msg(150 * MS))
+    assert ingest.add_depth("tof", depth_msg(50 * MS)) == "out_of_order"  # older than the two newest
     assert ingest.add_depth("tof", depth_msg(100 * MS)) == "duplicate"  # not the newest, still seen
     ingest.add_depth("tof", depth_msg(200 * MS))  # third in a queue of two: the oldest goes
     dropped = ingest.ledger.counters()["tof"]["dropped"]
@@ -1721,3 +1721,28 @@ def test_messages_stamped_0_are_a_driver_that_sets_no_stamps_and_a_camera_info_s
     assert stereo["errors"]["bad_stamp"].startswith("depth: header.stamp is 0 (unset), on its depth and camera_info "
                                                     "messages"), stereo["errors"]
     assert [(f.sensor, f.stamp_ns) for f in frames(ingest.pop_ready())] == [("stereo", 1000_050 * MS)]
+
+
+def test_depth_frames_that_cross_keep_their_colour_and_are_no_missing_images() -> None:
+    """Depth images logged or delivered slightly out of order (two frames crossed): the stream's first
+    frame, coming after its second, was dropped as out_of_order; a frame taken between the two newest
+    lost its colour (the colour buffer forgot images older than the newest frame matched); and the images
+    that came late were counted as missing from the stream's regular stamps, even those dropped."""
+    ingest = make(time_jump_s=5.0)  # every pose first
+    period = 50 * MS
+    for k in range(52):  # poses twice as often: a gap in the images is no pause of the sensor
+        ingest.add_pose("stereo", pose_msg(k * period // 2))
+    # 17 and 18 never come; 21 and 22 come after 23 and 24, older than both: out of order
+    order = [1, 0, 2, 3, 5, 4, 6, 7, 8, 9, 10, 11, 14, 12, 13, 15, 16, 19, 20, 23, 24, 21, 22]
+    reasons, fused = {}, []
+    for k in order:
+        ingest.add_color("stereo", color_msg(k * period, value=k))
+        reasons[k] = ingest.add_depth("stereo", depth_msg(k * period))
+        fused += frames(ingest.pop_ready())
+    assert {k: r for k, r in reasons.items() if r is not None} == {21: "out_of_order", 22: "out_of_order"}, reasons
+    counters = ingest.ledger.counters()["stereo"]
+    assert counters["missing_depth"] == 2, counters  # 17 and 18
+    assert counters["without_color"] == 0, counters
+    assert sorted(f.stamp_ns // period for f in fused) == sorted(set(order) - {21, 22})
+    for frame in fused:  # each with its own colour image
+        assert frame.rgb is not None and int(frame.rgb[0, 0, 0]) == frame.stamp_ns // period, frame.stamp_ns
