@@ -179,8 +179,12 @@ class SensorCounters:
     set_aside: int = 0  # frames set aside because the consumer fell behind (integrated later, or dropped)
     # frames newer than the newest pose when the sensor's streams ended, posed by extrapolating (Ingest.stream_ends.end)
     extrapolated: int = 0
-    # frames handed out without colour although the sensor's colour stream spoke: none within color_tolerance_s
+    # frames handed out without colour although the sensor's colour stream spoke: none within color_tolerance_s,
+    # or none of its images could be decoded
     without_color: int = 0
+    color_usable: int = 0  # colour images decoded and buffered for matching
+    # messages whose bytes do not deserialise, per stream (a bag's damaged messages: `Ingest.add_undecodable`)
+    undecodable: dict[str, int] = field(default_factory=dict)
     # depth images missing from the stream's regular stamps (`timeline.StreamGaps`), and where the latest gap was
     missing_depth: int = 0
     missing_depth_gap: str = ""
@@ -210,6 +214,8 @@ class SensorCounters:
             "set_aside": self.set_aside,
             "extrapolated": self.extrapolated,
             "without_color": self.without_color,
+            "color_usable": self.color_usable,
+            "undecodable": dict(self.undecodable),
             "missing_depth": self.missing_depth,
             "missing_depth_gap": self.missing_depth_gap,
             "distorted": self.distorted,
@@ -287,6 +293,7 @@ class _SensorInput:
         self.queue: deque[_Pending] = deque()
         self.awaiting_info: deque[tuple[Any, int, float]] = deque()  # (depth msg, stamp_ns, arrival_s)
         self.colors = ColorBuffer(max(4, config.queue_size))
+        self.color_failed = False  # colour came that could not be decoded: frames without colour are counted
         self.poses = PoseBuffer()
         # how often the frames and colours were cleared, and why the last time: an image decoded outside
         # Ingest's lock across a clear belonged to what was cleared
@@ -490,10 +497,12 @@ class _SensorInput:
         """Buffer a decoded colour image (`_decode_color`: RGB, or what was wrong) for matching, unless
         the colours were cleared since `cleared`. Returns the drop reason or None."""
         if isinstance(decoded, str):
+            self.color_failed = True
             return self.drop("bad_encoding", _COLOUR + decoded)
         if cleared != self.cleared:
             return self.drop(self.cleared_by)
         self.colors.add(stamp_ns, decoded)
+        self.counters.color_usable += 1
         return None
 
     def pose_at_end(self, pending: _Pending, config: IngestConfig) -> tuple[np.ndarray | None, str | None, str]:
@@ -596,7 +605,7 @@ class _SensorInput:
                     rgb = None
                     self.counters.color_refused += 1
                     self.counters.notes.setdefault("color_size", str(err))
-            elif self.colors.seen:
+            elif self.colors.seen or self.color_failed:
                 self.counters.without_color += 1
             self.queue.popleft()
             out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
@@ -789,6 +798,16 @@ class Ingest:
             reason, held = self._time.on_time(sensor, "color", stamp_ns, msg)
             taken = reason or state.accept(sensor, "color", stamp_ns, msg, self.config)
         return self._decode_and_put(held, taken)
+
+    def add_undecodable(self, sensor: str, stream: str) -> None:
+        """A message of the sensor's `stream` ("depth", "color", ...) whose bytes do not deserialise: a bag's
+        damaged message (replay reads it; a live subscription never delivers one). Counted per stream
+        (`undecodable`); colour that came but cannot be decoded makes the frames without colour count as
+        `without_color`."""
+        with self._lock:
+            state = _sensor_input(self._sensors, sensor)
+            state.counters.undecodable[stream] = state.counters.undecodable.get(stream, 0) + 1
+            state.color_failed = state.color_failed or stream == "color"
 
     def add_tf(self, msg: Any, *, static: bool) -> str | None:
         """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).

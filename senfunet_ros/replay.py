@@ -229,6 +229,14 @@ class TopicRouter:
                 self.not_cdr.add(route.topic)
             return None
 
+    def failed(self, msg: BagMessage) -> tuple[tuple[str, str], ...]:
+        """The (sensor, stream) inputs of a message that `decode` could not deserialise (of a routed topic and
+        type); () for others."""
+        route = self.routes.get(self._recorded.get(msg.topic, ""))
+        if route is None or normalize_msgtype(msg.msgtype) != route.msgtype:
+            return ()
+        return tuple(target for target in route.targets if target[0])
+
     @staticmethod
     def dispatch(ingest: Ingest, route: Route, message: Any) -> str | None:
         """Hand one message to Ingest for each input its topic feeds, as the node's subscription callbacks
@@ -481,6 +489,8 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                     bar.update(1)
                     decoded = router.decode(msg)
                     if decoded is None:
+                        for name, stream in router.failed(msg):  # a damaged message: counted for its sensor
+                            ingest.add_undecodable(name, stream)
                         continue
                     route, message = decoded
                     quiet = [name for name, t_ns in spoke_ns.items() if msg.log_time_ns - t_ns >= quiet_ns]
@@ -496,6 +506,9 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                             pipeline.dispatch(name, stream, message)
                     except ValueError:  # a malformed message: Ingest refuses it like the node's callback
                         router.undecodable[route.topic] = router.undecodable.get(route.topic, 0) + 1
+                        for name, stream in route.targets:
+                            if name:
+                                ingest.add_undecodable(name, stream)
                         continue
                     if route.targets[0][1] != "camera_info" and pipeline.drain(ingest.pop_ready()):
                         bar.set_postfix(frames=pipeline.frames_integrated, refresh=False)
@@ -510,6 +523,13 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                    "rosbags-convert or record it with ros2 bag)" if topic in router.not_cdr else "")
             log(f"{n} message(s) on {topic} could not be decoded as {router.routes[topic].msgtype} and were left "
                 f"out{why}")
+        counters = ingest.ledger.counters()
+        for sensor in settings.sensors:  # colour in the bag, but not one image of it could be used
+            c = counters[sensor.name]
+            topic = absolute_topic(sensor.color_topic) if sensor.color_topic else ""
+            if sensor.name in settings.rgb_sensors and topic in router.routes and c["integrated"] and not (
+                    c["color_usable"]):
+                log(f"note: {P.colourless_note(sensor, f'none of the colour images on {topic} could be decoded')}")
     return run
 
 
@@ -562,6 +582,9 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
             # and a camera_info whose distortion replay does not apply
             "errors": dict(c["errors"]),
             "without_color": c["without_color"],
+            "color_usable": c["color_usable"],  # colour images decoded for matching
+            # messages of its topics that could not be deserialised, per stream (depth: not in `received`)
+            "undecodable": c["undecodable"],
             "distorted": c["distorted"],
             "color_refused": c["color_refused"],  # fused without colour: colour of another aspect ratio
             # depth images missing from the stream's regular stamps (the recorder or the driver lost them)

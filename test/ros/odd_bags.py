@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -197,4 +198,21 @@ def cut_short(src: Path, dst: Path, *, share: float = 0.7) -> Path:
             writer.add_message(channels[msg.topic], msg.log_time_ns, msg.data, msg.log_time_ns, sequence)
         writer.finish()
     file.write_bytes(file.read_bytes()[:int(file.stat().st_size * share)])
+    return dst
+
+
+def with_damaged_messages(src: Path, dst: Path, damage: Callable[[str, int, bytes], bytes]) -> Path:
+    """`src` with each message's bytes as `damage(topic, n, data)` gives them back (n: the message's index on
+    its topic, from 0): a recorder or a disk that damaged some."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    with open_bag(src) as reader, Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        infos, conns, counts = reader.topics, {}, {}
+        for msg in reader.messages():
+            if msg.topic not in conns:
+                info = infos[msg.topic]
+                conns[msg.topic] = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef,
+                                                         rihs01=info.digest)
+            n = counts[msg.topic] = counts.get(msg.topic, -1) + 1
+            writer.write(conns[msg.topic], msg.log_time_ns, damage(msg.topic, n, msg.data))
     return dst

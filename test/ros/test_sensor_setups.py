@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from senfunet_ros.bagio import open_bag
-from odd_bags import spelled_both_ways
+from odd_bags import spelled_both_ways, with_damaged_messages
 from replays import replay_in_process
 from sensor_bags import Camera, params_file, surface_distance_m, two, write_bag
 
@@ -314,3 +314,19 @@ def test_topics_recorded_with_and_without_their_leading_slash_are_one_topic(tmp_
         assert stats["sensors"][sensor]["received"] == received, (sensor, stats["sensors"][sensor])
         assert stats["sensors"][sensor]["integrated"] >= received - 1, (sensor, stats["sensors"][sensor])
     assert stats["topics"]["/tof/depth"]["sensor"] == "tof"
+
+
+def test_colour_that_cannot_be_decoded_at_all_is_said_as_no_colour_and_counted(tmp_path: Path):
+    """Every colour message of the colour sensor damaged (cut short): its frames were fused with black colour,
+    without_color 0 and no note, only the count of undecodable messages. Now the note a bag without colour
+    gets, and every frame counted as fused without colour."""
+    recording = two()
+    bag = with_damaged_messages(write_bag(recording, tmp_path / "plain"), tmp_path / "bag",
+                                lambda topic, n, data: data[:100] if topic == "/stereo/color" else data)
+    proc = replay_in_process(bag, tmp_path / "out", params_file(tmp_path / "params.yaml", recording))
+    assert proc.returncode == 0, proc.stderr
+    stereo = json.loads((tmp_path / "out" / "stats.json").read_text())["sensors"]["stereo"]
+    assert stereo["integrated"] > 0 and stereo["without_color"] == stereo["integrated"], stereo
+    assert stereo["color_usable"] == 0 and stereo["undecodable"]["color"] > 0, stereo
+    assert ("note: stereo's feature net takes colour (rgb_sensors) but none of the colour images on /stereo/color "
+            "could be decoded: its frames are fused with black colour") in proc.stderr, proc.stderr
