@@ -97,6 +97,8 @@ class TopicRouter:
         self._recorded: dict[str, str] = {}  # a routed topic as the bag names it -> its absolute name
         self.undecodable: dict[str, int] = {}
         self.not_cdr: set[str] = set()  # topics with undecodable messages that are not CDR at all
+        self.not_cdr_count: dict[str, int] = {}  # ... how many
+        self.recorded: dict[str, int] = {}  # routed topic -> messages recorded on it (every spelling and type)
         self.other_types: dict[str, dict[str, int]] = {}  # routed topic -> its other recorded types (left out)
         pose_type = PoseType(settings.pose_type)
         missing: list[str] = []
@@ -151,6 +153,7 @@ class TopicRouter:
             msg_class = None if msgtype == _TF_MSGTYPE else message_class(msgtype)
             self.routes[topic] = Route(topic, (*route.targets, target) if route else (target,), msgtype, msg_class)
             self._recorded.update(dict.fromkeys(spellings[topic], topic))
+            self.recorded[topic] = info.count
         if missing:
             have = sorted(topics)
             shown = ", ".join(have[:12]) + (f" (+{len(have) - 12} more)" if len(have) > 12 else "")
@@ -227,6 +230,7 @@ class TopicRouter:
             self.undecodable[route.topic] = self.undecodable.get(route.topic, 0) + 1
             if not is_cdr(msg.data):
                 self.not_cdr.add(route.topic)
+                self.not_cdr_count[route.topic] = self.not_cdr_count.get(route.topic, 0) + 1
             return None
 
     def failed(self, msg: BagMessage) -> tuple[tuple[str, str], ...]:
@@ -518,11 +522,16 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                 run.interrupted = True
             end_streams(None)  # the bag ended (or the replay was stopped): no pose will come for what waits
         run.read_s = time.perf_counter() - t_loop
+        damaged = False
         for topic, n in router.undecodable.items():
-            why = (" (they are not ROS 2 serialised messages, CDR: ROS 1 or JSON data? convert the bag with "
-                   "rosbags-convert or record it with ros2 bag)" if topic in router.not_cdr else "")
-            log(f"{n} message(s) on {topic} could not be decoded as {router.routes[topic].msgtype} and were left "
-                f"out{why}")
+            line, not_cdr = _undecodable_line(topic, n, recorded=router.recorded.get(topic, n),
+                                              not_cdr=router.not_cdr_count.get(topic, 0),
+                                              msgtype=router.routes[topic].msgtype)
+            log(line)
+            damaged = damaged or not not_cdr
+        if damaged:  # rclpy's C deserialiser prints a line of its own for some, naming no topic
+            log("(lines such as 'sequence size exceeds remaining buffer' above came from deserialising those damaged "
+                "messages)")
         counters = ingest.ledger.counters()
         for sensor in settings.sensors:  # colour in the bag, but not one image of it could be used
             c = counters[sensor.name]
@@ -531,6 +540,17 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                     c["color_usable"]):
                 log(f"note: {P.colourless_note(sensor, f'none of the colour images on {topic} could be decoded')}")
     return run
+
+
+def _undecodable_line(topic: str, n: int, *, recorded: int, not_cdr: int, msgtype: str) -> tuple[str, bool]:
+    """What replay says of a topic's n messages that could not be deserialised, of `recorded`, and whether they
+    are of a bag of another kind: most of them not CDR at all (ROS 1, JSON); else, among good ones, damaged."""
+    if 2 * not_cdr > recorded:
+        return (f"{n} of the {recorded} message(s) on {topic} could not be decoded as {msgtype} and were left out "
+                "(they are not ROS 2 serialised messages, CDR: ROS 1 or JSON data? convert the bag with "
+                "rosbags-convert or record it with ros2 bag)"), True
+    return (f"{n} of the {recorded} message(s) on {topic} are damaged (could not be deserialised as {msgtype}): "
+            "skipped"), False
 
 
 def _observed_gt(engine: Any, gt_mesh: Any) -> Any:

@@ -330,3 +330,26 @@ def test_colour_that_cannot_be_decoded_at_all_is_said_as_no_colour_and_counted(t
     assert stereo["color_usable"] == 0 and stereo["undecodable"]["color"] > 0, stereo
     assert ("note: stereo's feature net takes colour (rgb_sensors) but none of the colour images on /stereo/color "
             "could be decoded: its frames are fused with black colour") in proc.stderr, proc.stderr
+
+
+def test_a_few_damaged_messages_among_good_ones_are_said_as_damaged_and_counted_in_the_frames(tmp_path: Path):
+    """Three damaged depth images (empty, cut short, random bytes) among good ones: replay hinted at a bag of
+    another kind ("ROS 1 or JSON data? convert the bag"), because one empty payload is no CDR, and said
+    "tof: N of N frames fused", the damaged ones left out of the count."""
+    import re
+
+    rng = np.random.default_rng(1)
+    damaged = {2: lambda data: b"", 4: lambda data: data[:len(data) // 2], 6: lambda data: rng.bytes(len(data))}
+    recording = two()
+    bag = with_damaged_messages(write_bag(recording, tmp_path / "plain"), tmp_path / "bag",
+                                lambda topic, n, data: damaged[n](data) if topic == "/tof/depth" and n in damaged
+                                else data)
+    with open_bag(bag) as reader:
+        in_bag = reader.topics["/tof/depth"].count
+    proc = replay_in_process(bag, tmp_path / "out", params_file(tmp_path / "params.yaml", recording))
+    assert proc.returncode == 0, proc.stderr
+    assert re.search(rf"^tof: {in_bag - 3} of {in_bag} frames fused; 3 undecodable$", proc.stdout, re.M), proc.stdout
+    assert f"3 of the {in_bag} message(s) on /tof/depth are damaged (could not be deserialised" in proc.stderr
+    assert "ROS 1 or JSON" not in proc.stderr, proc.stderr
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert stats["sensors"]["tof"]["undecodable"] == {"depth": 3} and stats["topics"]["/tof/depth"]["undecodable"] == 3
