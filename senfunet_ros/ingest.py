@@ -87,7 +87,7 @@ DROP_REASONS: tuple[str, ...] = (
     "behind",  # more than max_lag_s older than its sensor's newest (the consumer fell behind), no room to set it aside
     "out_of_order",  # depth stamp older than the two newest of the same sensor
     "duplicate",  # depth stamp equal to one of the latest of the same sensor
-    "bad_stamp",  # stamp 0, or far from its stream's timeline (past or future): the timeline does not move
+    "bad_stamp",  # stamp 0 (unset), or far from its stream's timeline (past or future): the timeline does not move
     "time_jump",  # frames flushed because time went back, and a new timeline's first messages not held
     "engine_error",  # the engine rejected the frame (reported by the caller)
     "shutdown",  # taken for integration when the process stopped (reported by the caller), or set aside then
@@ -179,8 +179,12 @@ class SensorCounters:
     set_aside: int = 0  # frames set aside because the consumer fell behind (integrated later, or dropped)
     # frames newer than the newest pose when the sensor's streams ended, posed by extrapolating (Ingest.stream_ends.end)
     extrapolated: int = 0
-    # frames handed out without colour although the sensor's colour stream spoke: none within color_tolerance_s
+    # frames handed out without colour although the sensor's colour stream spoke: none within color_tolerance_s,
+    # or none of its images could be decoded
     without_color: int = 0
+    color_usable: int = 0  # colour images decoded and buffered for matching
+    # messages whose bytes do not deserialise, per stream (a bag's damaged messages: `Ingest.add_undecodable`)
+    undecodable: dict[str, int] = field(default_factory=dict)
     # depth images missing from the stream's regular stamps (`timeline.StreamGaps`), and where the latest gap was
     missing_depth: int = 0
     missing_depth_gap: str = ""
@@ -210,6 +214,8 @@ class SensorCounters:
             "set_aside": self.set_aside,
             "extrapolated": self.extrapolated,
             "without_color": self.without_color,
+            "color_usable": self.color_usable,
+            "undecodable": dict(self.undecodable),
             "missing_depth": self.missing_depth,
             "missing_depth_gap": self.missing_depth_gap,
             "distorted": self.distorted,
@@ -287,6 +293,7 @@ class _SensorInput:
         self.queue: deque[_Pending] = deque()
         self.awaiting_info: deque[tuple[Any, int, float]] = deque()  # (depth msg, stamp_ns, arrival_s)
         self.colors = ColorBuffer(max(4, config.queue_size))
+        self.color_failed = False  # colour came that could not be decoded: frames without colour are counted
         self.poses = PoseBuffer()
         # how often the frames and colours were cleared, and why the last time: an image decoded outside
         # Ingest's lock across a clear belonged to what was cleared
@@ -297,6 +304,8 @@ class _SensorInput:
         self.ended = False
         self.end = StreamEnd()  # what the end did, since the last Ingest.stream_ends.take
         self.depth_gaps = StreamGaps()
+        self.unset_stamps: set[str] = set()  # its streams seen with header.stamp 0 (`unset_stamp`)
+        self._latest_zero: set[str] = set()  # its streams whose latest message was stamped 0 (`stamped_zero_again`)
 
     def waiting(self) -> int:
         return len(self.queue) + len(self.awaiting_info)
@@ -307,6 +316,31 @@ class _SensorInput:
         if error:
             self.counters.errors[reason] = _with_other_stream(self.counters.errors.get(reason, ""), error)
         return reason
+
+    def stamped_zero_again(self, stream: str, stamp_ns: int) -> bool:
+        """Whether a message of `stream` is stamped 0 right after another stamped 0: a driver that sets no
+        stamps (`unset_stamp`). One 0 is taken: a simulation's clock starts there."""
+        again = stamp_ns == 0 and stream in self._latest_zero
+        if stamp_ns == 0:
+            self._latest_zero.add(stream)
+        else:
+            self._latest_zero.discard(stream)
+        return again
+
+    def unset_stamp(self, stream: str) -> str:
+        """Drop a depth, colour or pose message stamped 0 (again, or off the stream's timeline) as bad_stamp,
+        saying the driver sets no stamps: a frame is posed and coloured at its stamp, and stamps of 0 would
+        read as one instant (poses in conflict, images duplicates) or far off the other streams' time. A
+        camera_info's stamp is used for nothing (a driver may fill it once): it is only named beside them."""
+        self.unset_stamps.add(stream)
+        if stream == "color":  # said beside the depth's or poses' error, which names every stream stamped 0
+            return self.drop("bad_stamp", f"{_COLOUR}header.stamp is 0 (unset): its driver does not set stamps")
+        *others, last = [label for key, label in _STREAM_LABELS.items() if key in self.unset_stamps]
+        named = f"{', '.join(others)} and {last}" if others else last
+        return self.drop("bad_stamp", (
+            f"{stream}: header.stamp is 0 (unset), on its {named} messages: their driver does not set stamps, and a "
+            "frame is posed and coloured at its stamp; fix the driver to stamp each message with the time it was "
+            "taken"))
 
     def discard(self, reason: str) -> int:
         """Drop every frame waiting (counted as `reason`) and the colour images; poses and camera_info
@@ -402,6 +436,9 @@ class _SensorInput:
             self.counters.missing_depth_gap = (f"{gap.from_ns * 1e-9:.3f} s to {gap.to_ns * 1e-9:.3f} s, "
                                                f"{gap.missing + 1} of the stream's {gap.period_ns * 1e-6:.0f} ms "
                                                "periods")
+            self.depth_gaps.count(gap)
+        elif stream == "depth":
+            self.late_depth(stamp_ns)
         if stream == "depth" and self.camera_info is None:
             if len(self.awaiting_info) >= config.queue_size:
                 self.awaiting_info.popleft()
@@ -410,6 +447,12 @@ class _SensorInput:
             return None
         return _Undecoded(name, stream, stamp_ns, msg, arrival_s, self.camera_info, config.working_size,
                           self.spacing_check(config, name), self.cleared)
+
+    def late_depth(self, stamp_ns: int) -> None:
+        """A depth image older than the stream's newest came (taken between the two newest, or dropped as
+        out of order): if a gap counted it as missing, it is not."""
+        if self.depth_gaps.came_late(stamp_ns):
+            self.counters.missing_depth -= 1
 
     def spacing_check(self, config: IngestConfig, name: str) -> tuple[float, float, float]:
         """The voxel size to check a depth image's pixel spacing against (0 once a frame was checked: a
@@ -457,10 +500,12 @@ class _SensorInput:
         """Buffer a decoded colour image (`_decode_color`: RGB, or what was wrong) for matching, unless
         the colours were cleared since `cleared`. Returns the drop reason or None."""
         if isinstance(decoded, str):
+            self.color_failed = True
             return self.drop("bad_encoding", _COLOUR + decoded)
         if cleared != self.cleared:
             return self.drop(self.cleared_by)
         self.colors.add(stamp_ns, decoded)
+        self.counters.color_usable += 1
         return None
 
     def pose_at_end(self, pending: _Pending, config: IngestConfig) -> tuple[np.ndarray | None, str | None, str]:
@@ -503,10 +548,11 @@ class _SensorInput:
                                       f"waiting for a pose: {why}")
 
     def pop(self, name: str, config: IngestConfig, *, now_ns: int | None, newest_depth_ns: int | None,
-            last_color_ns: int | None, set_aside: SetAside) -> list[Frame]:
+            depth_floor_ns: int | None, last_color_ns: int | None, set_aside: SetAside) -> list[Frame]:
         """The queued frames that can be posed (and coloured) now, oldest first; those that waited too
         long for a pose or a camera_info are dropped, those the consumer fell behind on (more than
-        max_lag_s behind `newest_depth_ns`) set aside or dropped. `now_ns`: the sensor's stream time."""
+        max_lag_s behind `newest_depth_ns`) set aside or dropped. `now_ns`: the sensor's stream time;
+        `depth_floor_ns`: what a depth image yet to come must be newer than (its colour is kept)."""
         max_wait_ns = int(config.pose_max_wait_s * 1e9)
         lag_ns = int(config.max_lag_s * 1e9)
         while self.awaiting_info and now_ns is not None and now_ns - self.awaiting_info[0][1] > max_wait_ns:
@@ -550,7 +596,8 @@ class _SensorInput:
             if not self.colors.ready(t, last_color_ns, waited_too_long or colour_gone or crowded):
                 break
             self.queue.popleft()
-            out.append(Frame(name, t, pending.depth_m, self._colour(pending, config), pending.K, T, pending.arrival_s))
+            rgb = self._colour(pending, config, floor_ns=depth_floor_ns)
+            out.append(Frame(name, t, pending.depth_m, rgb, pending.K, T, pending.arrival_s))
         return out
 
     def _pose(self, name: str, pending: _Pending, config: IngestConfig, *, now_ns: int | None,
@@ -566,9 +613,10 @@ class _SensorInput:
             T = T @ config.T_body_camera[name]  # the image's frame_id is not the optical frame
         return T, reason, error
 
-    def _colour(self, pending: _Pending, config: IngestConfig) -> np.ndarray | None:
-        """A frame's colour image from the buffer (None without one), counted where it lacks one."""
-        rgb = self.colors.match(pending.stamp_ns, tolerance_ns=int(config.color_tolerance_s * 1e9))
+    def _colour(self, pending: _Pending, config: IngestConfig, *, floor_ns: int | None) -> np.ndarray | None:
+        """A frame's colour image from the buffer (None without one), counted where it lacks one;
+        `floor_ns`: as `ColorBuffer.match` takes it."""
+        rgb = self.colors.match(pending.stamp_ns, tolerance_ns=int(config.color_tolerance_s * 1e9), floor_ns=floor_ns)
         if rgb is not None:
             try:
                 return conv.color_for_depth(rgb, depth_size=pending.source_size, shape=pending.depth_m.shape)
@@ -576,7 +624,7 @@ class _SensorInput:
                 self.counters.color_refused += 1
                 self.counters.notes.setdefault("color_size", str(err))
                 return None
-        if self.colors.seen:
+        if self.colors.seen or self.color_failed:
             self.counters.without_color += 1
         return None
 
@@ -591,7 +639,7 @@ class _SensorInput:
             T, _, _ = self._pose(name, pending, config, now_ns=None, waited_too_long=False)
             if T is None:
                 return False
-            rgb = self._colour(pending, config)
+            rgb = self._colour(pending, config, floor_ns=None)  # the floor is the consumer's to judge
         frame = Frame(name, pending.stamp_ns, pending.depth_m, rgb, pending.K, T, pending.arrival_s)
         if not set_aside.put(frame, budget_bytes=config.set_aside_bytes):
             return False
@@ -631,6 +679,8 @@ class _StreamTime:
         (it is held until that is confirmed, then accepted)."""
         verdict = self.timelines.check(sensor, stream, stamp_ns, message)
         images = [] if verdict.restart is None else self.restarted(sensor, stream, verdict.restart)
+        if verdict.reason == "bad_stamp" and stamp_ns == 0:  # not far off the timeline: unset
+            return self._sensors[sensor].unset_stamp(stream), images
         if verdict.reason is not None:
             return self._sensors[sensor].drop(verdict.reason, verdict.error), images
         return None, images
@@ -742,8 +792,12 @@ class Ingest:
     def add_camera_info(self, sensor: str, msg: Any) -> str | None:
         """Cache K and the image size, and queue the depth images that waited for it. Returns the
         drop reason, or None when it was cached."""
+        stamp_ns, _ = _header_stamp(msg, "camera_info")
         with self._lock:
-            reason, waited = _sensor_input(self._sensors, sensor).set_camera_info(sensor, msg, self.config)
+            state = _sensor_input(self._sensors, sensor)
+            if stamp_ns == 0:  # used for nothing (K is cached): only named if the depth or poses are stamped 0 too
+                state.unset_stamps.add("camera_info")
+            reason, waited = state.set_camera_info(sensor, msg, self.config)
         return self._decode_and_put(waited, reason)
 
     def add_depth(self, sensor: str, msg: Any) -> str | None:
@@ -756,8 +810,12 @@ class Ingest:
             state.ended = False
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
+            if state.stamped_zero_again("depth", stamp_ns):
+                return state.unset_stamp("depth")
             self._last_depth_arrival_s[sensor] = arrival_s = time.monotonic()
             reason, held = self._time.on_time(sensor, "depth", stamp_ns, (msg, arrival_s))
+            if reason == "out_of_order":  # it came, late: not missing
+                state.late_depth(stamp_ns)
             taken = reason or state.accept(sensor, "depth", stamp_ns, (msg, arrival_s), self.config)
         return self._decode_and_put(held, taken)
 
@@ -770,9 +828,21 @@ class Ingest:
             state.ended = False
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
+            if state.stamped_zero_again("color", stamp_ns):
+                return state.unset_stamp("color")
             reason, held = self._time.on_time(sensor, "color", stamp_ns, msg)
             taken = reason or state.accept(sensor, "color", stamp_ns, msg, self.config)
         return self._decode_and_put(held, taken)
+
+    def add_undecodable(self, sensor: str, stream: str) -> None:
+        """A message of the sensor's `stream` ("depth", "color", ...) whose bytes do not deserialise: a bag's
+        damaged message (replay reads it; a live subscription never delivers one). Counted per stream
+        (`undecodable`); colour that came but cannot be decoded makes the frames without colour count as
+        `without_color`."""
+        with self._lock:
+            state = _sensor_input(self._sensors, sensor)
+            state.counters.undecodable[stream] = state.counters.undecodable.get(stream, 0) + 1
+            state.color_failed = state.color_failed or stream == "color"
 
     def add_tf(self, msg: Any, *, static: bool) -> str | None:
         """A tf2_msgs/TFMessage from /tf or /tf_static into config.tf (a senfunet_ros.tf.TfBuffer).
@@ -840,6 +910,8 @@ class Ingest:
             stamp_ns, stamp_error = _header_stamp(msg, "pose")  # before the parser, whose error says bad_pose
             if stamp_ns is None:
                 return state.drop("bad_stamp", stamp_error)
+            if state.stamped_zero_again("pose", stamp_ns):
+                return state.unset_stamp("pose")
             try:
                 stamp_ns, T = self.config.pose_parser(msg)
                 if sensor in self.config.T_body_camera:
@@ -911,6 +983,7 @@ class Ingest:
             for name, state in self._sensors.items():
                 frames.extend(state.pop(name, self.config, now_ns=timelines.sensor_now_ns(name),
                                         newest_depth_ns=timelines.last_ns(name, "depth"),
+                                        depth_floor_ns=timelines.depth_floor_ns(name),
                                         last_color_ns=timelines.last_ns(name, "color"),
                                         set_aside=self._set_aside))
             if not frames and set_aside:
@@ -1198,6 +1271,7 @@ def _same_intrinsics(a: tuple[np.ndarray, tuple[int, int]], b: tuple[np.ndarray,
 
 
 _COLOUR = "colour: "  # how a colour image's error starts (the others are of depth, pose, camera_info messages)
+_STREAM_LABELS = {"depth": "depth", "color": "colour", "pose": "pose", "camera_info": "camera_info"}  # in texts
 
 
 def split_stream_errors(text: str) -> tuple[str, str]:

@@ -169,17 +169,19 @@ class ColorBuffer:
             return newest_ns is not None and newest_ns >= stamp_ns
         return True
 
-    def match(self, stamp_ns: int, *, tolerance_ns: int) -> np.ndarray | None:
+    def match(self, stamp_ns: int, *, tolerance_ns: int, floor_ns: int | None) -> np.ndarray | None:
         """The colour image nearest the depth stamp within tolerance_ns, as it came (the caller lays
         it on the depth: `conversions.color_for_depth`); None if there is none. Images too old for
-        any later frame are forgotten."""
+        any later frame are forgotten: a later frame may be older than this one (two frames crossed),
+        but newer than `floor_ns` (None: any may come; `timeline.Timelines.depth_floor_ns`)."""
         best: tuple[int, np.ndarray] | None = None
         for stamp, rgb in self._images:
             gap = abs(stamp - stamp_ns)
             if gap <= tolerance_ns and (best is None or gap < abs(best[0] - stamp_ns)):
                 best = (stamp, rgb)
-        while self._images and self._images[0][0] < stamp_ns - tolerance_ns:
-            self._images.popleft()
+        if floor_ns is not None:
+            while self._images and self._images[0][0] < min(stamp_ns, floor_ns) - tolerance_ns:
+                self._images.popleft()
         return None if best is None else best[1]
 
     def clear(self) -> None:

@@ -69,6 +69,20 @@ class Route:
 _TF_MSGTYPE = "tf2_msgs/msg/TFMessage"
 
 
+def _merged_info(topic: str, infos: list[TopicInfo]) -> TopicInfo:
+    """One topic recorded under several spellings ('tof/depth' and '/tof/depth': `bagio.absolute_topic`) as
+    one TopicInfo named `topic`: counts and types summed; the first spelling's definition."""
+    if len(infos) == 1:
+        return infos[0]
+    types: dict[str, int] = {}
+    for info in infos:
+        for msgtype, n in (info.types or {normalize_msgtype(info.msgtype): info.count}).items():
+            types[msgtype] = types.get(msgtype, 0) + n
+    main = max(types, key=lambda t: types[t])
+    return TopicInfo(topic, main, sum(info.count for info in infos), infos[0].msgdef, infos[0].digest, types,
+                     any(info.latched for info in infos))
+
+
 class TopicRouter:
     """Which bag topic feeds which sensor stream; checks the bag has what the node needs.
 
@@ -83,6 +97,8 @@ class TopicRouter:
         self._recorded: dict[str, str] = {}  # a routed topic as the bag names it -> its absolute name
         self.undecodable: dict[str, int] = {}
         self.not_cdr: set[str] = set()  # topics with undecodable messages that are not CDR at all
+        self.not_cdr_count: dict[str, int] = {}  # ... how many
+        self.recorded: dict[str, int] = {}  # routed topic -> messages recorded on it (every spelling and type)
         self.other_types: dict[str, dict[str, int]] = {}  # routed topic -> its other recorded types (left out)
         pose_type = PoseType(settings.pose_type)
         missing: list[str] = []
@@ -96,17 +112,21 @@ class TopicRouter:
                        (sensor.name, Stream.COLOR, sensor.color_topic, _IMAGES, False)]
             if pose_type is not PoseType.TF:
                 wanted.append((sensor.name, Stream.POSE, sensor.pose_topic, (pose_type.msgtype,), True))
-        # the bag's topics by their absolute names: a recorder may have written 'tof/depth' for /tof/depth
-        recorded_as = {absolute_topic(t): t for t in topics}
+        # the bag's topics by their absolute names: a recorder may have written 'tof/depth' for /tof/depth, and
+        # two recordings merged may hold both spellings, one topic whose messages are under either name
+        spellings: dict[str, list[str]] = {}
+        for recorded in topics:
+            spellings.setdefault(absolute_topic(recorded), []).append(recorded)
+        by_name = {name: _merged_info(name, [topics[t] for t in recorded]) for name, recorded in spellings.items()}
         if pose_type is PoseType.TF:  # a fixed rig's whole tree may be static (/tf_static alone)
-            static = topics.get(recorded_as.get("/tf_static", ""))
+            static = by_name.get("/tf_static")
             wanted += [("", Stream.TF, "/tf", (_TF_MSGTYPE,), static is None or static.count == 0),
                        ("", Stream.TF_STATIC, "/tf_static", (_TF_MSGTYPE,), False)]
         for sensor_name, stream, topic, expected, required in wanted:
             if not topic:
                 continue
             topic = absolute_topic(topic)
-            info = topics.get(recorded_as.get(topic, topic))
+            info = by_name.get(topic)
             if info is None or info.count == 0:  # an optional topic recorded empty is absent too (colour: said)
                 if required:
                     missing.append(topic)
@@ -132,7 +152,8 @@ class TopicRouter:
                                "each its own topic with --params")
             msg_class = None if msgtype == _TF_MSGTYPE else message_class(msgtype)
             self.routes[topic] = Route(topic, (*route.targets, target) if route else (target,), msgtype, msg_class)
-            self._recorded[recorded_as.get(topic, topic)] = topic
+            self._recorded.update(dict.fromkeys(spellings[topic], topic))
+            self.recorded[topic] = info.count
         if missing:
             have = sorted(topics)
             shown = ", ".join(have[:12]) + (f" (+{len(have) - 12} more)" if len(have) > 12 else "")
@@ -209,7 +230,16 @@ class TopicRouter:
             self.undecodable[route.topic] = self.undecodable.get(route.topic, 0) + 1
             if not is_cdr(msg.data):
                 self.not_cdr.add(route.topic)
+                self.not_cdr_count[route.topic] = self.not_cdr_count.get(route.topic, 0) + 1
             return None
+
+    def failed(self, msg: BagMessage) -> tuple[tuple[str, str], ...]:
+        """The (sensor, stream) inputs of a message that `decode` could not deserialise (of a routed topic and
+        type); () for others."""
+        route = self.routes.get(self._recorded.get(msg.topic, ""))
+        if route is None or normalize_msgtype(msg.msgtype) != route.msgtype:
+            return ()
+        return tuple(target for target in route.targets if target[0])
 
     @staticmethod
     def dispatch(ingest: Ingest, route: Route, message: Any) -> str | None:
@@ -463,6 +493,8 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                     bar.update(1)
                     decoded = router.decode(msg)
                     if decoded is None:
+                        for name, stream in router.failed(msg):  # a damaged message: counted for its sensor
+                            ingest.add_undecodable(name, stream)
                         continue
                     route, message = decoded
                     quiet = [name for name, t_ns in spoke_ns.items() if msg.log_time_ns - t_ns >= quiet_ns]
@@ -478,6 +510,9 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                             pipeline.dispatch(name, stream, message)
                     except ValueError:  # a malformed message: Ingest refuses it like the node's callback
                         router.undecodable[route.topic] = router.undecodable.get(route.topic, 0) + 1
+                        for name, stream in route.targets:
+                            if name:
+                                ingest.add_undecodable(name, stream)
                         continue
                     if route.targets[0][1] != "camera_info" and pipeline.drain(ingest.pop_ready()):
                         bar.set_postfix(frames=pipeline.frames_integrated, refresh=False)
@@ -490,12 +525,35 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
             log(f"note: {note}")
         bag_info["read_notes"] = reader.read_notes()
         run.read_s = time.perf_counter() - t_loop
+        damaged = False
         for topic, n in router.undecodable.items():
-            why = (" (they are not ROS 2 serialised messages, CDR: ROS 1 or JSON data? convert the bag with "
-                   "rosbags-convert or record it with ros2 bag)" if topic in router.not_cdr else "")
-            log(f"{n} message(s) on {topic} could not be decoded as {router.routes[topic].msgtype} and were left "
-                f"out{why}")
+            line, not_cdr = _undecodable_line(topic, n, recorded=router.recorded.get(topic, n),
+                                              not_cdr=router.not_cdr_count.get(topic, 0),
+                                              msgtype=router.routes[topic].msgtype)
+            log(line)
+            damaged = damaged or not not_cdr
+        if damaged:  # rclpy's C deserialiser prints a line of its own for some, naming no topic
+            log("(lines such as 'sequence size exceeds remaining buffer' above came from deserialising those damaged "
+                "messages)")
+        counters = ingest.ledger.counters()
+        for sensor in settings.sensors:  # colour in the bag, but not one image of it could be used
+            c = counters[sensor.name]
+            topic = absolute_topic(sensor.color_topic) if sensor.color_topic else ""
+            if sensor.name in settings.rgb_sensors and topic in router.routes and c["integrated"] and not (
+                    c["color_usable"]):
+                log(f"note: {P.colourless_note(sensor, f'none of the colour images on {topic} could be decoded')}")
     return run
+
+
+def _undecodable_line(topic: str, n: int, *, recorded: int, not_cdr: int, msgtype: str) -> tuple[str, bool]:
+    """What replay says of a topic's n messages that could not be deserialised, of `recorded`, and whether they
+    are of a bag of another kind: most of them not CDR at all (ROS 1, JSON); else, among good ones, damaged."""
+    if 2 * not_cdr > recorded:
+        return (f"{n} of the {recorded} message(s) on {topic} could not be decoded as {msgtype} and were left out "
+                "(they are not ROS 2 serialised messages, CDR: ROS 1 or JSON data? convert the bag with "
+                "rosbags-convert or record it with ros2 bag)"), True
+    return (f"{n} of the {recorded} message(s) on {topic} are damaged (could not be deserialised as {msgtype}): "
+            "skipped"), False
 
 
 def _observed_gt(engine: Any, gt_mesh: Any) -> Any:
@@ -547,6 +605,9 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
             # and a camera_info whose distortion replay does not apply
             "errors": dict(c["errors"]),
             "without_color": c["without_color"],
+            "color_usable": c["color_usable"],  # colour images decoded for matching
+            # messages of its topics that could not be deserialised, per stream (depth: not in `received`)
+            "undecodable": c["undecodable"],
             "distorted": c["distorted"],
             "color_refused": c["color_refused"],  # fused without colour: colour of another aspect ratio
             # depth images missing from the stream's regular stamps (the recorder or the driver lost them)

@@ -19,8 +19,9 @@ again from its time, so that old messages still in flight are off it; the new ti
 came before the news are handed back with it. After either, a message of
 the old time that was still in flight (until the new timeline has gone on for `time_jump_s`) is
 rejected as `time_jump`, the restart's loss, not as a bad stamp. A depth stamp must be new
-(not among the stream's latest) and move forward, except one between the stream's two newest: that
-newest was stamped ahead of its place (or two frames crossed), and the stream's time goes back.
+(not among the stream's latest) and move forward, except one between the stream's two newest (or older
+than its only one): that newest was stamped ahead of its place (or two frames crossed), and the
+stream's time goes back.
 Decisions depend on stamps and their order alone, never on the wall clock.
 
 `Timelines` is not thread-safe: its owner (`ingest.Ingest`) calls it under its lock.
@@ -43,6 +44,7 @@ _RECENT_DEPTH_STAMPS = 16  # a depth stamp among this many taken lately is a dup
 _GAP_PERIODS = 1.8
 _PERIOD_INTERVALS = 16
 _MIN_INTERVALS = 8
+_COUNTED_GAPS = 4  # StreamGaps: the latest gaps into which images may still come late (out of order)
 
 
 @dataclass(frozen=True)
@@ -129,6 +131,11 @@ class Timelines:
         """The stream's newest accepted stamp."""
         return self._last_ns[(sensor, stream)]
 
+    def depth_floor_ns(self, sensor: str) -> int | None:
+        """The stamp the sensor's next depth image must be newer than to be taken (the stream's second
+        newest: `_depth_order`), or None when any may be."""
+        return self._previous_depth_ns.get((sensor, "depth"))
+
     def sensor_now_ns(self, sensor: str) -> int | None:
         """The sensor's stream time: the newest stamp accepted on any of its streams."""
         stamps = [t for (s, _), t in self._last_ns.items() if s == sensor and t is not None]
@@ -179,11 +186,12 @@ class Timelines:
         """A depth stamp on its stream's timeline must be new and move forward. One that falls between
         the two newest is taken, and the stream's time goes back to it: the newest was stamped ahead
         of its place (a glitching driver) or two frames crossed, and the frames after it would
-        otherwise all be out of order until the stream caught up with it."""
+        otherwise all be out of order until the stream caught up with it. Before a second newest, any
+        older one is between (the stream's first two frames crossed)."""
         recent, previous = self._recent_depth_ns[key], self._previous_depth_ns.get(key)
         if stamp_ns in recent:
             return Verdict("duplicate")
-        if last is not None and stamp_ns < last and (previous is None or stamp_ns < previous):
+        if last is not None and stamp_ns < last and previous is not None and stamp_ns < previous:
             return Verdict("out_of_order")
         if last is not None and stamp_ns > last:
             self._previous_depth_ns[key] = last
@@ -345,10 +353,27 @@ class StreamGaps:
     def __init__(self) -> None:
         self._last_ns: int | None = None
         self._intervals: deque[int] = deque(maxlen=_PERIOD_INTERVALS)
+        # the latest gaps the caller counted (`count`), and the stamps that came late into each (`came_late`)
+        self._counted: deque[tuple[Gap, set[int]]] = deque(maxlen=_COUNTED_GAPS)
 
     def restart(self) -> None:
         """Time restarted, or every stream paused: the next stamp starts anew (the period stays)."""
         self._last_ns = None
+        self._counted.clear()
+
+    def count(self, gap: Gap) -> None:
+        """The caller counted this gap's images as missing: one that still comes is taken back (`came_late`)."""
+        self._counted.append((gap, set()))
+
+    def came_late(self, stamp_ns: int) -> bool:
+        """Whether a stamp older than the newest lies in a gap counted lately, one of its images that came
+        late (frames logged or delivered out of order), once each: it is not missing, whether the caller
+        took it or dropped it."""
+        for gap, late in self._counted:
+            if gap.from_ns < stamp_ns < gap.to_ns and stamp_ns not in late and len(late) < gap.missing:
+                late.add(stamp_ns)
+                return True
+        return False
 
     def add(self, stamp_ns: int) -> Gap | None:
         """The gap before this stamp, if it ends one; a stamp older than the newest is ignored."""

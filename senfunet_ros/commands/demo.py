@@ -3,7 +3,8 @@
 Starts `senfunet node --use-sim-time` and `senfunet play BAG` as two processes on a private
 ROS_DOMAIN_ID, follows the node's ~/status until the bag is played and every queued frame is
 fused, calls ~/save_mesh, renders the fused mesh (next to TSDF Fusion) to a PNG and prints where
-both are.
+both are. A bag that breaks midway (play exits with an error) still gets the mesh of what was played,
+said with play's error, and exit code 1.
 """
 from __future__ import annotations
 
@@ -131,6 +132,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"fused mesh: {mesh_path}")
     if png is not None:
         print(f"rendering:  {png}")
+    if demo.play_failed:  # said again last: the mesh holds only what was played before play broke
+        _say(f"{demo.play_failed} (see above): {mesh_path} holds what the node fused of the bag up to where play "
+             f"stopped; play's log: {demo.play_log}")
+        return 1
     return 0
 
 
@@ -147,6 +152,7 @@ class _Demo:
         self.status: dict[str, dict[str, int]] = {}  # latest per-sensor counters from ~/status
         self.status_count = 0
         self.pipeline_values: dict[str, str] = {}  # the node's "senfunet: pipeline" status
+        self.play_failed = ""  # why play exited with an error (a bag that breaks midway), or ""
 
     def _spawn(self, cmd: list[str], log_path: Path) -> subprocess.Popen:
         with log_path.open("w") as log:
@@ -241,9 +247,12 @@ class _Demo:
                 if time.monotonic() - last_print > 10.0 and self.status:
                     last_print = time.monotonic()
                     _say("  " + self._progress())
-            if self.play_proc.returncode != 0:
-                raise DemoError(f"play failed (code {self.play_proc.returncode}):\n{_tail(self.play_log)}")
-            _say("bag played; waiting for the node to fuse its queued frames...")
+            if self.play_proc.returncode != 0:  # what the node fused of what was played is still saved
+                self.play_failed = f"play failed (code {self.play_proc.returncode})"
+                _say(f"{self.play_failed}:\n{_tail(self.play_log)}")
+                _say("saving what the node fused of the bag up to there; waiting for its queued frames...")
+            else:
+                _say("bag played; waiting for the node to fuse its queued frames...")
             tick_clock = self._clock_after_bag(node)
             stable, previous = 0, None
             while stable < 2:  # two status reports in a row: queues empty, counters unchanged
@@ -269,7 +278,8 @@ class _Demo:
                 self._check("while saving")
             response = future.result()
             if not response.success:
-                raise DemoError(f"~/save_mesh failed: {response.message}")
+                raise DemoError(f"{self.play_failed} (see above), and " * bool(self.play_failed)
+                                + f"~/save_mesh failed: {response.message}")
             for sensor, c in sorted(self.status.items()):
                 dropped = {k[len("dropped."):]: v for k, v in c.items() if k.startswith("dropped.") and v}
                 line = f"{sensor}: {c.get('integrated', 0)} of {c.get('received', 0)} frames fused"

@@ -87,7 +87,10 @@ def run(args: argparse.Namespace) -> int:
     stats = result.stats
     for sensor, c in stats["sensors"].items():
         reasons = drop_summary(c)
-        line = f"{sensor}: {c['integrated']} of {c['received']} frames fused"
+        undecodable = c["undecodable"].get("depth", 0)  # depth messages the bag holds that could not be read
+        line = f"{sensor}: {c['integrated']} of {c['received'] + undecodable} frames fused"
+        if undecodable:
+            line += f"; {undecodable} undecodable"
         if reasons:
             line += f"; dropped: {reasons}"
         if c["pending_at_end"]:

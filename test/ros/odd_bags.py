@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -160,4 +161,58 @@ def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int, topic: str =
                 conns[msg.topic] = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef,
                                                          rihs01=info.digest)
             writer.write(conns[msg.topic], msg.log_time_ns, msg.data)
+    return dst
+
+
+def spelled_both_ways(src: Path, dst: Path) -> Path:
+    """Two recordings merged (as `mcap merge` or a converter leaves them): the first half of `src`'s
+    time written by a tool that names topics without their leading '/' ('tof/depth'), the rest with it."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    with open_bag(src) as reader, Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        middle_ns = reader.start_ns + int(reader.duration_s * 1e9) // 2
+        infos, conns = reader.topics, {}
+        for msg in reader.messages():
+            topic = msg.topic.lstrip("/") if msg.log_time_ns < middle_ns else msg.topic
+            if topic not in conns:
+                info = infos[msg.topic]
+                conns[topic] = writer.add_connection(topic, msg.msgtype, msgdef=info.msgdef, rihs01=info.digest)
+            writer.write(conns[topic], msg.log_time_ns, msg.data)
+    return dst
+
+
+def cut_short(src: Path, dst: Path, *, share: float = 0.7) -> Path:
+    """`src` as a killed recording leaves it: an unchunked mcap (rosbag2's fastwrite preset) in a folder
+    without metadata.yaml, cut after `share` of its bytes."""
+    from mcap.writer import Writer
+
+    dst.mkdir()
+    file = dst / f"{dst.name}_0.mcap"
+    with open_bag(src) as reader, file.open("wb") as out:
+        writer = Writer(out, use_chunking=False)
+        writer.start(profile="ros2", library="rosbag2 fastwrite imitation")
+        channels = {topic: writer.register_channel(topic, "cdr", writer.register_schema(
+            info.msgtype, "ros2msg", info.msgdef.encode()), metadata={"offered_qos_profiles": ""})
+            for topic, info in reader.topics.items()}
+        for sequence, msg in enumerate(reader.messages()):
+            writer.add_message(channels[msg.topic], msg.log_time_ns, msg.data, msg.log_time_ns, sequence)
+        writer.finish()
+    file.write_bytes(file.read_bytes()[:int(file.stat().st_size * share)])
+    return dst
+
+
+def with_damaged_messages(src: Path, dst: Path, damage: Callable[[str, int, bytes], bytes]) -> Path:
+    """`src` with each message's bytes as `damage(topic, n, data)` gives them back (n: the message's index on
+    its topic, from 0): a recorder or a disk that damaged some."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    with open_bag(src) as reader, Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        infos, conns, counts = reader.topics, {}, {}
+        for msg in reader.messages():
+            if msg.topic not in conns:
+                info = infos[msg.topic]
+                conns[msg.topic] = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef,
+                                                         rihs01=info.digest)
+            n = counts[msg.topic] = counts.get(msg.topic, -1) + 1
+            writer.write(conns[msg.topic], msg.log_time_ns, damage(msg.topic, n, msg.data))
     return dst

@@ -257,7 +257,7 @@ def test_depth_and_colour_that_both_fail_to_decode_are_both_named() -> None:
 
     ingest = make()
     before = ingest.ledger.counters()
-    for k in range(3):
+    for k in range(1, 4):
         ingest.add_color("tof", color_msg(k * 10 * MS))
         ingest.add_depth("tof", depth_msg(k * 10 * MS, encoding="32fc1"))
         bad_colour = color_msg(k * 10 * MS)
@@ -530,8 +530,8 @@ def test_out_of_order_duplicate_and_queue_full() -> None:
     ingest = make(queue_size=2)
     assert ingest.add_depth("tof", depth_msg(100 * MS)) is None
     assert ingest.add_depth("tof", depth_msg(100 * MS)) == "duplicate"
-    assert ingest.add_depth("tof", depth_msg(50 * MS)) == "out_of_order"
     ingest.add_depth("tof", depth_msg(150 * MS))
+    assert ingest.add_depth("tof", depth_msg(50 * MS)) == "out_of_order"  # older than the two newest
     assert ingest.add_depth("tof", depth_msg(100 * MS)) == "duplicate"  # not the newest, still seen
     ingest.add_depth("tof", depth_msg(200 * MS))  # third in a queue of two: the oldest goes
     dropped = ingest.ledger.counters()["tof"]["dropped"]
@@ -861,7 +861,7 @@ def test_a_sensor_whose_clock_differs_from_the_others_is_told_so() -> None:
     assert not any(isinstance(i, TimeJump) for i in ingest.pop_ready())
     error = ingest.ledger.counters()["stereo"]["errors"]["bad_stamp"]
     assert "3.000 s behind the other sensors' time" in error and "stereo's clock differs" in error, error
-    assert ingest.add_depth("tof", depth_msg(0)) == "bad_stamp"
+    assert ingest.add_depth("tof", depth_msg(1000 * MS)) == "bad_stamp"
     error = ingest.ledger.counters()["tof"]["errors"]["bad_stamp"]
     assert "behind the stream's timeline" in error and "clock differs" not in error, error
 
@@ -1711,3 +1711,63 @@ def test_poses_of_two_publishers_interleaved_on_one_topic_are_noted() -> None:
     assert re.search(r"about (29|30|31) cm", note) and "two publishers" in note, note
     assert "pose_alternates" not in notes_after([0.05 * i for i in range(40)])  # 5 cm a pose: fast, one stream
     assert "pose_alternates" not in notes_after(list(rng.normal(0, 0.005, 40)))  # still, 5 mm noise
+
+
+def test_messages_stamped_0_are_a_driver_that_sets_no_stamps_and_a_camera_info_stamped_0_still_serves() -> None:
+    """A driver that never sets header.stamp: every depth image and pose at 0 was diagnosed as two publishers
+    on one topic (pose_conflict), duplicates, or a stamp far behind the stream's timeline. Now each is a
+    bad_stamp saying the stamp is unset and which of the sensor's streams carry 0 (one 0 per stream is
+    taken: a simulation's clock starts there); a camera_info stamped 0 (its stamp is used for nothing)
+    beside stamped images is still taken."""
+    ingest = make()  # info_msg() is stamped 0
+    assert ingest.add_pose("tof", pose_msg(0)) is None
+    assert ingest.add_depth("tof", depth_msg(0)) is None
+    assert ingest.add_color("tof", color_msg(0)) is None
+    for i in range(1, 4):
+        assert ingest.add_pose("tof", pose_msg(0, x=0.1 * i)) == "bad_stamp"
+        assert ingest.add_color("tof", color_msg(0)) == "bad_stamp"
+        assert ingest.add_depth("tof", depth_msg(0, value=1.0 + i)) == "bad_stamp"
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["dropped"]["bad_stamp"] == 9, counters["dropped"]
+    assert counters["dropped"]["pose_conflict"] == counters["dropped"]["duplicate"] == 0, counters["dropped"]
+    error = counters["errors"]["bad_stamp"]
+    assert error.startswith("depth: header.stamp is 0 (unset), on its depth, colour, pose and camera_info messages: "
+                            "their driver does not set stamps"), error
+    assert error.endswith("; colour: header.stamp is 0 (unset): its driver does not set stamps"), error
+    assert [(f.sensor, f.stamp_ns) for f in frames(ingest.pop_ready())] == [("tof", 0)]
+    # images and poses stamped (far from 0), the camera_info not: fused; a depth image stamped 0 among them is
+    # unset, not 1000 s behind the stream's timeline
+    ingest = make()
+    for t in (1000_000, 1000_100):
+        assert ingest.add_pose("stereo", pose_msg(t * MS)) is None
+    assert ingest.add_depth("stereo", depth_msg(1000_050 * MS)) is None
+    assert ingest.add_depth("stereo", depth_msg(0)) == "bad_stamp"
+    stereo = ingest.ledger.counters()["stereo"]
+    assert stereo["errors"]["bad_stamp"].startswith("depth: header.stamp is 0 (unset), on its depth and camera_info "
+                                                    "messages"), stereo["errors"]
+    assert [(f.sensor, f.stamp_ns) for f in frames(ingest.pop_ready())] == [("stereo", 1000_050 * MS)]
+
+
+def test_depth_frames_that_cross_keep_their_colour_and_are_no_missing_images() -> None:
+    """Depth images logged or delivered slightly out of order (two frames crossed): the stream's first
+    frame, coming after its second, was dropped as out_of_order; a frame taken between the two newest
+    lost its colour (the colour buffer forgot images older than the newest frame matched); and the images
+    that came late were counted as missing from the stream's regular stamps, even those dropped."""
+    ingest = make(time_jump_s=5.0)  # every pose first
+    period = 50 * MS
+    for k in range(52):  # poses twice as often: a gap in the images is no pause of the sensor
+        ingest.add_pose("stereo", pose_msg(k * period // 2))
+    # 17 and 18 never come; 21 and 22 come after 23 and 24, older than both: out of order
+    order = [1, 0, 2, 3, 5, 4, 6, 7, 8, 9, 10, 11, 14, 12, 13, 15, 16, 19, 20, 23, 24, 21, 22]
+    reasons, fused = {}, []
+    for k in order:
+        ingest.add_color("stereo", color_msg(k * period, value=k))
+        reasons[k] = ingest.add_depth("stereo", depth_msg(k * period))
+        fused += frames(ingest.pop_ready())
+    assert {k: r for k, r in reasons.items() if r is not None} == {21: "out_of_order", 22: "out_of_order"}, reasons
+    counters = ingest.ledger.counters()["stereo"]
+    assert counters["missing_depth"] == 2, counters  # 17 and 18
+    assert counters["without_color"] == 0, counters
+    assert sorted(f.stamp_ns // period for f in fused) == sorted(set(order) - {21, 22})
+    for frame in fused:  # each with its own colour image
+        assert frame.rgb is not None and int(frame.rgb[0, 0, 0]) == frame.stamp_ns // period, frame.stamp_ns

@@ -277,6 +277,29 @@ def test_demo_fuses_every_frame_of_the_sample_bag(tmp_path: Path, ros_domain_id:
     assert {s: int(n) for s, n in fused.items()} == dict(in_bag), proc.stdout
 
 
+def test_demo_saves_what_the_node_fused_when_play_breaks_on_a_damaged_bag(tmp_path: Path, ros_domain_id: int):
+    """A bag cut short (a killed recording): play publishes what it can read and exits 2 where it breaks. The
+    demo then stopped at `play failed`, leaving node.log and play.log: what the node fused was thrown away.
+    Now the node still fuses its queue and saves the mesh, and the demo names it beside play's error (exit 1)."""
+    from odd_bags import cut_short
+    from sensor_bags import params_file, two, write_bag
+
+    recording = two(duration_s=1.0)
+    bag = cut_short(write_bag(recording, tmp_path / "plain"), tmp_path / "cut")
+    params = params_file(tmp_path / "params.yaml", recording, weights="none", voxel_size_m=0.04, working_width=48)
+    out = tmp_path / "demo"
+    proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "demo", "--bag", str(bag), "--out", str(out),
+                           "--params", str(params), "--domain-id", str(ros_domain_id), "--no-render", "--rate", "1",
+                           "--timeout", "200"], capture_output=True, text=True, timeout=300)
+    said = proc.stdout + proc.stderr
+    assert proc.returncode == 1, said + (out / "node.log").read_text(errors="replace")
+    assert "play failed (code 2)" in said and "the file breaks after" in said, said
+    assert f"{out / 'mesh.ply'} holds what the node fused of the bag up to where play stopped" in said, said
+    fused = dict(re.findall(r"^senfunet demo: (\w+): (\d+) of \d+ frames fused\b", proc.stdout, re.MULTILINE))
+    assert set(fused) == {"tof", "stereo"} and min(map(int, fused.values())) > 0, said
+    assert (out / "mesh.ply").stat().st_size > 0
+
+
 def test_large_shm_profile_unless_fast_dds_is_configured(tmp_path: Path, monkeypatch):
     """Play, the node and the tests give their participants the packaged large shared-memory
     profile, and leave a user's own Fast DDS setup (or another RMW) alone."""

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from senfunet_ros.bagio import open_bag
+from odd_bags import spelled_both_ways, with_damaged_messages
 from replays import replay_in_process
 from sensor_bags import Camera, params_file, surface_distance_m, two, write_bag
 
@@ -292,3 +294,62 @@ def test_the_live_node_warns_once_per_sensor_about_its_set_up(ros, tmp_path: Pat
     assert said.count("tof: the camera_info says 192x144 but the depth images are 96x72") == 1, said
     for sensor in ("tof", "stereo"):
         assert said.count(f"{sensor}: its pixels lie 33.3 mm apart") == 1, said
+
+
+def test_topics_recorded_with_and_without_their_leading_slash_are_one_topic(tmp_path: Path):
+    """Two recordings merged, one naming its topics 'tof/depth', the other '/tof/depth': one topic
+    (`bagio.absolute_topic`). Replay fused only one spelling's messages, without a word; the other's were
+    listed under ignored_topics."""
+    recording = two(duration_s=0.6)
+    bag = spelled_both_ways(write_bag(recording, tmp_path / "plain"), tmp_path / "bag")
+    with open_bag(bag) as reader:
+        depth_counts = {topic: info.count for topic, info in reader.topics.items() if topic.endswith("depth")}
+    assert set(depth_counts) == {"tof/depth", "/tof/depth", "stereo/depth", "/stereo/depth"}, depth_counts
+    proc = replay_in_process(bag, tmp_path / "out", params_file(tmp_path / "params.yaml", recording))
+    assert proc.returncode == 0, proc.stderr
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert stats["ignored_topics"] == {}, stats["ignored_topics"]
+    for sensor in ("tof", "stereo"):
+        received = depth_counts[f"{sensor}/depth"] + depth_counts[f"/{sensor}/depth"]
+        assert stats["sensors"][sensor]["received"] == received, (sensor, stats["sensors"][sensor])
+        assert stats["sensors"][sensor]["integrated"] >= received - 1, (sensor, stats["sensors"][sensor])
+    assert stats["topics"]["/tof/depth"]["sensor"] == "tof"
+
+
+def test_colour_that_cannot_be_decoded_at_all_is_said_as_no_colour_and_counted(tmp_path: Path):
+    """Every colour message of the colour sensor damaged (cut short): its frames were fused with black colour,
+    without_color 0 and no note, only the count of undecodable messages. Now the note a bag without colour
+    gets, and every frame counted as fused without colour."""
+    recording = two()
+    bag = with_damaged_messages(write_bag(recording, tmp_path / "plain"), tmp_path / "bag",
+                                lambda topic, n, data: data[:100] if topic == "/stereo/color" else data)
+    proc = replay_in_process(bag, tmp_path / "out", params_file(tmp_path / "params.yaml", recording))
+    assert proc.returncode == 0, proc.stderr
+    stereo = json.loads((tmp_path / "out" / "stats.json").read_text())["sensors"]["stereo"]
+    assert stereo["integrated"] > 0 and stereo["without_color"] == stereo["integrated"], stereo
+    assert stereo["color_usable"] == 0 and stereo["undecodable"]["color"] > 0, stereo
+    assert ("note: stereo's feature net takes colour (rgb_sensors) but none of the colour images on /stereo/color "
+            "could be decoded: its frames are fused with black colour") in proc.stderr, proc.stderr
+
+
+def test_a_few_damaged_messages_among_good_ones_are_said_as_damaged_and_counted_in_the_frames(tmp_path: Path):
+    """Three damaged depth images (empty, cut short, random bytes) among good ones: replay hinted at a bag of
+    another kind ("ROS 1 or JSON data? convert the bag"), because one empty payload is no CDR, and said
+    "tof: N of N frames fused", the damaged ones left out of the count."""
+    import re
+
+    rng = np.random.default_rng(1)
+    damaged = {2: lambda data: b"", 4: lambda data: data[:len(data) // 2], 6: lambda data: rng.bytes(len(data))}
+    recording = two()
+    bag = with_damaged_messages(write_bag(recording, tmp_path / "plain"), tmp_path / "bag",
+                                lambda topic, n, data: damaged[n](data) if topic == "/tof/depth" and n in damaged
+                                else data)
+    with open_bag(bag) as reader:
+        in_bag = reader.topics["/tof/depth"].count
+    proc = replay_in_process(bag, tmp_path / "out", params_file(tmp_path / "params.yaml", recording))
+    assert proc.returncode == 0, proc.stderr
+    assert re.search(rf"^tof: {in_bag - 3} of {in_bag} frames fused; 3 undecodable$", proc.stdout, re.M), proc.stdout
+    assert f"3 of the {in_bag} message(s) on /tof/depth are damaged (could not be deserialised" in proc.stderr
+    assert "ROS 1 or JSON" not in proc.stderr, proc.stderr
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert stats["sensors"]["tof"]["undecodable"] == {"depth": 3} and stats["topics"]["/tof/depth"]["undecodable"] == 3
