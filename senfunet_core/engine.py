@@ -639,6 +639,7 @@ class SenFuNet:
                                     budget_s=budget_s)
         if self.bound.spill_failures:
             self.counters["spill_failures"] = self.bound.spill_failures
+            self.counters["spill_failing"] = int(self.bound.spill_failing)
         if eviction is not None:
             self.counters["evicted_blocks"] = self.bound.evicted_blocks
             self.counters["evictions"] = self.bound.evictions

@@ -189,6 +189,11 @@ class MapBound:
                  time.perf_counter() - t0, slices, self._judged, self._judge_s)
         return eviction
 
+    @property
+    def spill_failing(self) -> bool:
+        """Whether the latest eviction was abandoned for its spill (until one goes through)."""
+        return self._retry_at_blocks > 0
+
     def _abandon(self, count: int, err: OSError) -> None:
         """An eviction whose spill cannot be written: the blocks stay in memory (nothing is lost, nothing
         archived); tried again once the map grew by a tenth of the bound, not at every frame and update."""

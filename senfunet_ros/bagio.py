@@ -276,8 +276,10 @@ class _RosbagsSource(_Source):
             path = Path(str(getattr(file, "path", "")))
             if path.suffix != ".mcap" or not path.is_file():
                 raise
-            self._read_notes.append(f"{path}: its index broke ({_describe(err)}) after {_ns_text(last_ns)}: read on "
-                                    "in file order from there")
+            note = (f"{path}: its index broke ({_describe(err)}) after {_ns_text(last_ns)}: read on in file order "
+                    "from there")
+            if note not in self._read_notes:  # said once, however often the bag is read
+                self._read_notes.append(note)
             for msg in _McapStreamSource(path).messages(topics):
                 if msg.log_time_ns > last_ns or (msg.log_time_ns == last_ns and (msg.topic, msg.data) not in at_last):
                     yield msg
@@ -475,6 +477,10 @@ def _folder_files(folder: Path) -> _FolderFiles:
     name) those it does not list; without a usable metadata.yaml, all by name."""
     present = sorted(part for part in folder.iterdir()
                      if part.is_file() and part.name.endswith(_STORAGE_SUFFIXES + _ZIPPED))
+    # a file-compressed part beside its decompressed copy (`zstd -d` keeps the .zstd): one file, read once
+    plain_names = {part.name for part in present}
+    present = [part for part in present if part.name.removesuffix(".zstd") == part.name
+               or part.name.removesuffix(".zstd") not in plain_names]
     meta_path = folder / "metadata.yaml"
     if not meta_path.is_file():
         return _FolderFiles(present, [], [], None, False)
@@ -489,6 +495,7 @@ def _folder_files(folder: Path) -> _FolderFiles:
         problem = "it is empty" if not meta_path.read_bytes().strip() else _describe(err)
         return _FolderFiles(present, [], [], f"its metadata.yaml cannot be read ({problem})", True)
     by_name = {part.name: part for part in present}
+    names = [name.removesuffix(".zstd") if name.removesuffix(".zstd") in by_name else name for name in names]
     listed = [by_name[name] for name in names if name in by_name]
     unlisted = [part for part in present if part.name not in names]
     return _FolderFiles(listed + unlisted, unlisted, [name for name in names if name not in by_name], None, True)
@@ -642,13 +649,17 @@ def _open_parts(files: list[Path], why: list[str]) -> _Source:
                 if part.name.endswith(_ZIPPED) or _wal_file(part) is not None:
                     temporary = temporary or tempfile.TemporaryDirectory(prefix="senfunet-bag-")
                     readable = _readable_copy(part, Path(temporary.name))
-                    (unzipped if part.name.endswith(_ZIPPED) else logged).append(part.name)
                 sources.append(_open_rosbags(readable))
-                read.append(part.name)
             except BagError as err:  # one damaged file among several: the others are read
+                # (named as the bag's file: the temporary copy is gone once the bag closes)
+                error = BagError(str(err).replace(str(readable), str(part)))
                 if len(files) == 1:
-                    raise
-                left_out.append(f"{part.name} ({str(err).removeprefix(f'{readable}: ').removeprefix(f'{part}: ')})")
+                    raise error from None
+                left_out.append(f"{part.name} ({str(error).removeprefix(f'{part}: ')})")
+                continue
+            read.append(part.name)
+            if readable is not part:
+                (unzipped if part.name.endswith(_ZIPPED) else logged).append(part.name)
         if not sources:
             raise BagError(f"{files[0].parent}: none of its files can be read: {'; '.join(left_out)}")
     except BaseException:

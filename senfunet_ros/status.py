@@ -282,7 +282,7 @@ class StatusReport:
         values += [KeyValue(key=k, value=v) for k, v in _flat("engine.stats.", stats)]
         level, message = DiagnosticStatus.OK, f"{counters_engine.get('meshed_blocks', 0)} mesh blocks"
         blocks, max_blocks = stats.get("blocks", 0), stats.get("max_blocks") or 0
-        if counters_engine.get("spill_failures") and 0 < max_blocks < blocks:  # the bound given up for now
+        if counters_engine.get("spill_failing") and 0 < max_blocks < blocks:  # the bound given up for now
             level = DiagnosticStatus.WARN
             message += (f"; the map holds {blocks} blocks, over its bound max_map_blocks {max_blocks}: its evictions "
                         f"were abandoned ({counters_engine['spill_failures']} so far), the spill file cannot be "

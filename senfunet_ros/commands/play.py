@@ -36,15 +36,29 @@ def _error(text: str) -> int:
     return 2
 
 
+def _stop(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def run(args: argparse.Namespace) -> int:
+    import signal
+
     from senfunet_ros.bagio import BagError, open_bag
 
+    # a stop while the bag is opened (a copy or decompression, seconds on a large bag; rclpy's handler
+    # comes later) or played (SIGHUP: the terminal closed) ends play cleanly: its temporary files go
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, _stop)
     if not args.rate > 0:
         return _error(f"--rate must be > 0, got {args.rate}")
     try:
         reader = open_bag(args.bag)
     except BagError as err:
         return _error(str(err))
+    except KeyboardInterrupt:
+        if not args.quiet:
+            print("senfunet play: stopped", file=sys.stderr)
+        return 0
     with reader:
         try:
             return _play(reader, args)
@@ -230,8 +244,8 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa:
     (of each topic, those of its type in `types`), where the bag broke (None if it did not), and per
     topic the messages left out because they are not CDR (a subscriber could not read them). A gap
     of log times longer than _SKIPPED_GAP_NS is not waited through; `gaps` gets its ends. A recorded
-    clock that falls _CLOCK_SILENT_NS and 5 of its intervals behind the other topics gets (its last log time, the other
-    message's) in `clock_stops`, once.
+    clock silent for _CLOCK_SILENT_NS (and 5 of its intervals) while the other topics went on for 5 of
+    its intervals gets (its last log time, the other topics' last then) in `clock_stops`, once.
     ExternalShutdownException when Ctrl-C or SIGTERM shut rclpy down."""
     from senfunet_ros.bagio import is_cdr, normalize_msgtype
 
@@ -247,6 +261,14 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa:
     not_cdr: dict[str, int] = {}
     last_ns = start_ns
     last_clock_ns, clock_interval_ns = None, 0  # log time of the recorded clock's last message, its last interval
+    # log times of the other topics' first and last messages since the clock fell silent: a pause of every
+    # topic (the clock resuming with them) is no stop, other topics going on while it is silent are
+    silent_from_ns, silent_to_ns = None, None
+
+    def silence_ends() -> None:
+        if (silent_from_ns is not None and silent_to_ns is not None and not clock_stops
+                and silent_to_ns - silent_from_ns >= 5 * clock_interval_ns):
+            clock_stops.append((last_clock_ns, silent_to_ns))
     try:
         for msg in reader.messages(publishers.keys()):
             if normalize_msgtype(msg.msgtype) != types[msg.topic]:
@@ -259,11 +281,14 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa:
                 start_ns += msg.log_time_ns - last_ns
             last_ns = max(last_ns, msg.log_time_ns)
             if _is_clock(msg.topic):
+                silence_ends()
+                silent_from_ns = silent_to_ns = None
                 clock_interval_ns = 0 if last_clock_ns is None else msg.log_time_ns - last_clock_ns
                 last_clock_ns = msg.log_time_ns
-            elif (last_clock_ns is not None and not clock_stops
-                  and msg.log_time_ns - last_clock_ns > max(_CLOCK_SILENT_NS, 5 * clock_interval_ns)):
-                clock_stops.append((last_clock_ns, msg.log_time_ns))
+            elif last_clock_ns is not None and msg.log_time_ns - last_clock_ns > max(_CLOCK_SILENT_NS,
+                                                                                   5 * clock_interval_ns):
+                silent_from_ns = msg.log_time_ns if silent_from_ns is None else silent_from_ns
+                silent_to_ns = msg.log_time_ns
             due = wall0 + (msg.log_time_ns - start_ns) * 1e-9 / rate
             while True:  # sleep until due, ticking /clock meanwhile
                 wait = due - time.monotonic()
@@ -279,5 +304,7 @@ def _play_once(reader, publishers: dict, publish_clock, *, rate: float,  # noqa:
             publishers[msg.topic].publish(msg.data)  # raw CDR straight from the bag
             published += 1
     except BagBrokenError as err:
+        silence_ends()
         return published, str(err), not_cdr
+    silence_ends()
     return published, None, not_cdr

@@ -53,7 +53,7 @@ def _error(text: str) -> int:
     return 2
 
 
-# Set by Ctrl-C and SIGTERM: the reading loop stops at its next message, and what was fused is saved.
+# Set by Ctrl-C, SIGTERM and SIGHUP: the reading loop stops at its next message, and what was fused is saved.
 # Not a KeyboardInterrupt at once: raised wherever the main thread is, it could cut the engine's work
 # on a frame in half (and one raised in Python code that a C extension calls never reaches the loop).
 _STOP = threading.Event()
@@ -71,7 +71,8 @@ def run(args: argparse.Namespace) -> int:
 
     from senfunet_ros.bagio import BagError
 
-    for sig in (signal.SIGINT, signal.SIGTERM):  # they stop a replay: what was fused is saved
+    # they stop a replay: what was fused is saved (SIGHUP: the terminal or ssh session closed)
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, _interrupt)
     from senfunet_ros.replay import DISTORTED_NOTE, drop_summary, replay_bag
 

@@ -136,10 +136,11 @@ def clock_error_and_bad_name(src: Path, dst: Path) -> Path:
 
 
 def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int, topic: str = "/clock",
-                        clock_for_ns: int | None = None) -> Path:
+                        clock_for_ns: int | None = None, pause_ns: int = 0) -> Path:
     """`src` as a simulation's recording: a /clock topic (named `topic`; every 10 ms of log time) of the
     simulated time, which starts at sim_start_ns where the log times start (a Gazebo run recorded with its
-    clock); clock_for_ns: the clock's publisher stops this long after the start."""
+    clock); clock_for_ns: the clock's publisher stops this long after the start; pause_ns: every topic,
+    the clock too, pauses this long halfway (the simulation paused), the messages after it logged later."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -149,18 +150,25 @@ def with_recorded_clock(src: Path, dst: Path, *, sim_start_ns: int, topic: str =
         infos, conns = reader.topics, {}
         clock = writer.add_connection(topic, "rosgraph_msgs/msg/Clock", typestore=store)
         next_tick_ns = reader.start_ns
+        halfway_ns = (reader.start_ns + reader.end_ns) // 2
+
+        def logged(log_ns: int) -> int:
+            return log_ns + (pause_ns if log_ns >= halfway_ns else 0)
+
         for msg in reader.messages():
             while next_tick_ns <= msg.log_time_ns and (clock_for_ns is None
                                                        or next_tick_ns < reader.start_ns + clock_for_ns):
                 sec, nanosec = divmod(sim_start_ns + next_tick_ns - reader.start_ns, 1_000_000_000)
-                writer.write(clock, next_tick_ns, store.serialize_cdr(Clock(clock=Time(sec=sec, nanosec=nanosec)),
-                                                                     "rosgraph_msgs/msg/Clock"))
+                # (after the pause the clock resumes 5 ms after the other topics, as a restarted simulation's may)
+                writer.write(clock, logged(next_tick_ns) + (5_000_000 if pause_ns and next_tick_ns >= halfway_ns
+                                                            else 0), store.serialize_cdr(
+                    Clock(clock=Time(sec=sec, nanosec=nanosec)), "rosgraph_msgs/msg/Clock"))
                 next_tick_ns += 10_000_000
             if msg.topic not in conns:
                 info = infos[msg.topic]
                 conns[msg.topic] = writer.add_connection(msg.topic, msg.msgtype, msgdef=info.msgdef,
                                                          rihs01=info.digest)
-            writer.write(conns[msg.topic], msg.log_time_ns, msg.data)
+            writer.write(conns[msg.topic], logged(msg.log_time_ns), msg.data)
     return dst
 
 

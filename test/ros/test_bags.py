@@ -771,3 +771,37 @@ def test_an_mcap_whose_index_is_damaged_or_cut_reads_every_message(prefix: Path,
     with open_bag(cut) as reader:
         assert reader.note and "its summary (the index after the messages) is cut short" in reader.note
     assert _digest(cut) == _digest(prefix)
+
+
+def test_a_file_compressed_part_beside_its_decompressed_copy_is_read_once(prefix: Path, tmp_path: Path):
+    """`zstd -d x.db3.zstd` keeps the .zstd file: the folder held the part twice, read as two files of a
+    split recording, and every frame after the first came twice (half dropped as duplicates)."""
+    import zstandard
+    from odd_bags import compressed
+
+    bag = compressed(prefix, tmp_path / "db3", "db3-file")
+    (zipped,) = bag.glob("*.db3.zstd")
+    zipped.with_suffix("").write_bytes(zstandard.ZstdDecompressor().decompress(zipped.read_bytes(),
+                                                                               max_output_size=1 << 30))
+    assert _digest(bag) == _digest(prefix)
+    (bag / "metadata.yaml").unlink()
+    assert _digest(bag) == _digest(prefix)
+
+
+def test_an_unreadable_compressed_part_is_named_as_the_bags_file(prefix: Path, tmp_path: Path):
+    """A file-compressed part that decompresses into a damaged database is left out, the other part read;
+    the note named the temporary copy (gone once the bag closed) in the sqlite3 command it advised."""
+    import zstandard
+    from odd_bags import split_overlapping
+
+    bag = split_overlapping(prefix, tmp_path / "split", storage="sqlite3", metadata=False)
+    first, second = sorted(bag.glob("*.db3"))
+    data = second.read_bytes()
+    (bag / f"{second.name}.zstd").write_bytes(zstandard.ZstdCompressor().compress(data[: len(data) // 2]))
+    second.unlink()
+    with open_bag(bag) as reader:
+        note = reader.note or ""
+        read = [(m.topic, m.log_time_ns, hashlib.sha1(m.data).hexdigest()) for m in reader.messages()]
+    assert f"left out, unreadable: {second.name}.zstd" in note and "senfunet-bag-" not in note, note
+    assert f"{second.name}.zstd decompressed" not in note and f"{bag / second.name}.zstd" in note, note
+    assert read == _digest(first) and read

@@ -112,12 +112,14 @@ def test_a_bags_recorded_clock_is_the_only_clock_play_publishes(prefix: Path, tm
                                                                  clock_topic: str):
     """A simulation's recording holds /clock (or `clock`, the same topic): play published it and a /clock
     of its own from the log times, and every use_sim_time subscriber saw time jump to and fro (400 times
-    a pass). A recorded clock that stops early (here `clock`'s, after 0.2 s of 1 s) is said."""
+    a pass). A recorded clock that stops early while the other topics go on (here `clock`'s, after 0.2 s
+    of 1 s) is said; one that pauses with every topic (here `/clock`'s, 1 s halfway) is not."""
     import odd_bags
 
     stops = clock_topic == "clock"
     bag = odd_bags.with_recorded_clock(prefix, tmp_path / "bag", sim_start_ns=100_000_000_000, topic=clock_topic,
-                                       clock_for_ns=200_000_000 if stops else None)
+                                       clock_for_ns=200_000_000 if stops else None,
+                                       pause_ns=0 if stops else 1_000_000_000)
     with open_bag(bag) as reader:
         topics = {t: i.msgtype for t, i in reader.topics.items() if t != clock_topic}
         counts = {t: i.count for t, i in reader.topics.items() if t != clock_topic}
