@@ -447,7 +447,23 @@ class _MergedSource(_Source):
                                    for msgtype, n in info.types.items())
 
     def messages(self, topics: Collection[str] | None) -> Iterator[BagMessage]:
-        yield from heapq.merge(*(source.messages(topics) for source in self._sources), key=lambda msg: msg.log_time_ns)
+        """In log-time order; a file that breaks midway ends its own messages, not the others': they are
+        read to their ends, then its BagBrokenError is raised."""
+        breaks: list[BagBrokenError] = []
+
+        def until_broken(source: _Source) -> Iterator[BagMessage]:
+            try:
+                yield from source.messages(topics)
+            except BagBrokenError as err:
+                breaks.append(err)
+
+        read = 0
+        for msg in heapq.merge(*map(until_broken, self._sources), key=lambda msg: msg.log_time_ns):
+            read += 1
+            yield msg
+        if breaks:
+            raise BagBrokenError(f"{'; '.join(map(str, breaks))} (its recording's other files were read to their ends)",
+                                 read)
 
     def read_notes(self) -> list[str]:
         return [note for source in self._sources for note in source.read_notes()]

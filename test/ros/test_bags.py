@@ -805,3 +805,21 @@ def test_an_unreadable_compressed_part_is_named_as_the_bags_file(prefix: Path, t
     assert f"left out, unreadable: {second.name}.zstd" in note and "senfunet-bag-" not in note, note
     assert f"{second.name}.zstd decompressed" not in note and f"{bag / second.name}.zstd" in note, note
     assert read == _digest(first) and read
+
+
+def test_a_split_recordings_file_that_breaks_midway_ends_only_its_own_messages(prefix: Path, tmp_path: Path):
+    """Two files of interleaved times, the first cut short (damaged): the read ended at its break for
+    both, although the second held the rest of the recording. The second is read to its end, then the
+    break is raised, naming the file."""
+    from odd_bags import split_overlapping
+
+    bag = split_overlapping(prefix, tmp_path / "split", metadata=False)
+    first, second = sorted(bag.glob("*.mcap"))
+    with open_bag(second) as reader:
+        of_second = [(m.topic, m.log_time_ns) for m in reader.messages()]
+    first.write_bytes(first.read_bytes()[: first.stat().st_size // 2])
+    read = []
+    with open_bag(bag) as reader, pytest.raises(BagBrokenError, match=f"{first.name}.*other files were read") as info:
+        for m in reader.messages():
+            read.append((m.topic, m.log_time_ns))
+    assert set(of_second) <= set(read) and info.value.messages_read == len(read) > len(of_second)
