@@ -263,32 +263,96 @@ class _RosbagsSource(_Source):
         conns = [c for c in file.connections if topics is None or c.topic in topics]
         if not conns:
             return
-        last_ns, at_last = -1, set[tuple[str, bytes]]()  # the last log time yielded, and the messages yielded at it
+        yielded = _Yielded()
         try:
             for conn, timestamp, data in file.messages(conns):
                 data = _payload(data) if self._unzip is None else self._unzip(data)
                 msg = BagMessage(conn.topic, normalize_msgtype(conn.msgtype), int(timestamp), bytes(data))
-                if msg.log_time_ns != last_ns:
-                    last_ns, at_last = msg.log_time_ns, set()
-                at_last.add((msg.topic, msg.data))
+                yielded.add(msg)
                 yield msg
         except Exception as err:
             path = Path(str(getattr(file, "path", "")))
             if path.suffix != ".mcap" or not path.is_file():
                 raise
-            note = (f"{path}: its index broke ({_describe(err)}) after {_ns_text(last_ns)}: read on in file order "
-                    "from there")
-            if note not in self._read_notes:  # said once, however often the bag is read
-                self._read_notes.append(note)
-            for msg in _McapStreamSource(path).messages(topics):
-                if msg.log_time_ns > last_ns or (msg.log_time_ns == last_ns and (msg.topic, msg.data) not in at_last):
-                    yield msg
+            self._note(f"{path}: its index broke ({_describe(err)}) after {_ns_text(yielded.last_ns)}: read on in "
+                       "file order from there")
+            try:
+                for msg in _McapStreamSource(path).messages(topics):
+                    if yielded.new(msg):
+                        yield msg
+            except BagBrokenError as broken:  # a damaged chunk: the chunks after it, through the index
+                damaged: list[str] = []
+                try:
+                    for msg in _mcap_chunk_messages(path, topics, after_ns=yielded.last_ns, damaged=damaged):
+                        if yielded.new(msg):
+                            yield msg
+                except Exception:  # noqa: BLE001 (no usable index either): the break as file order met it
+                    raise broken from None
+                self._note(f"{path}: damaged chunks left out, the others read: {'; '.join(damaged)}"
+                           if damaged else str(broken))
+
+    def _note(self, note: str) -> None:
+        if note not in self._read_notes:  # said once, however often the bag is read
+            self._read_notes.append(note)
 
     def read_notes(self) -> list[str]:
         return list(self._read_notes)
 
     def close(self) -> None:
         self._reader.close()
+
+
+class _Yielded:
+    """The messages a read has yielded, as far as a second read of the same file, from where the first
+    broke, must know them: the last log time, and the messages at it."""
+
+    def __init__(self) -> None:
+        self.last_ns = -1
+        self._at_last: set[tuple[str, bytes]] = set()
+
+    def add(self, msg: BagMessage) -> None:
+        if msg.log_time_ns != self.last_ns:
+            self.last_ns, self._at_last = msg.log_time_ns, set()
+        self._at_last.add((msg.topic, msg.data))
+
+    def new(self, msg: BagMessage) -> bool:
+        """Whether the read has not yielded it (it is now counted as yielded)."""
+        seen = msg.log_time_ns == self.last_ns and (msg.topic, msg.data) in self._at_last
+        if msg.log_time_ns < self.last_ns or seen:
+            return False
+        self.add(msg)
+        return True
+
+
+def _mcap_chunk_messages(path: Path, topics: Collection[str] | None, *, after_ns: int, damaged: list[str]
+                         ) -> Iterator[BagMessage]:
+    """An indexed MCAP's messages chunk by chunk through its index, each chunk's in log-time order, from
+    the chunks that end at or after `after_ns`; a chunk that cannot be read or fails its checksum (damaged)
+    is left out and named in `damaged`. Raises when the file has no usable index."""
+    from mcap.reader import ReadDataStream, breakup_chunk, make_reader
+    from mcap.records import Chunk, Message
+
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+        if summary is None or not summary.chunk_indexes:
+            raise BagError(f"{path}: no chunk index")
+        for index in sorted(summary.chunk_indexes, key=lambda c: (c.message_start_time, c.chunk_start_offset)):
+            if index.message_end_time < after_ns:
+                continue
+            try:
+                f.seek(index.chunk_start_offset + 1 + 8)  # past the record's opcode and length
+                records = breakup_chunk(Chunk.read(ReadDataStream(f)), validate_crc=True)
+            except Exception as err:  # noqa: BLE001 (a damaged chunk: decompression, checksum, framing)
+                damaged.append(f"log times {index.message_start_time * 1e-9:.3f} s to "
+                               f"{index.message_end_time * 1e-9:.3f} s ({_describe(err)})")
+                continue
+            for record in sorted((r for r in records if isinstance(r, Message)), key=lambda r: r.log_time):
+                channel = summary.channels.get(record.channel_id)
+                if channel is None or (topics is not None and channel.topic not in topics):
+                    continue
+                schema = summary.schemas.get(channel.schema_id)
+                yield BagMessage(channel.topic, normalize_msgtype(schema.name if schema else ""), int(record.log_time),
+                                 _payload(bytes(record.data)))
 
 
 def _ns_text(log_time_ns: int) -> str:
@@ -391,7 +455,7 @@ class _McapStreamSource(_Source):
         self._schema_text: dict[int, str] = {}
         self._qos: dict[int, str] = {}
         with self.path.open("rb") as stream:
-            for record in StreamReader(stream, record_size_limit=2**31).records:
+            for record in StreamReader(stream, record_size_limit=2**31, validate_crcs=True).records:
                 if isinstance(record, Schema):
                     schemas[record.id] = (record.name, record.data.decode("utf-8", "replace"))
                 elif isinstance(record, Channel):

@@ -823,3 +823,30 @@ def test_a_split_recordings_file_that_breaks_midway_ends_only_its_own_messages(p
         for m in reader.messages():
             read.append((m.topic, m.log_time_ns))
     assert set(of_second) <= set(read) and info.value.messages_read == len(read) > len(of_second)
+
+
+def test_an_mcap_with_a_damaged_chunk_reads_the_chunks_after_it(prefix: Path, tmp_path: Path):
+    """A chunk of an indexed MCAP damaged in place (its compressed data's header overwritten): the read
+    broke there, through the index and in file order alike, and the chunks after it were lost. They are
+    read through the index, the damaged chunk left out and named."""
+    import shutil
+
+    from mcap.reader import make_reader
+
+    (mcap,) = prefix.glob("*.mcap")
+    data = bytearray(mcap.read_bytes())
+    with mcap.open("rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    damaged = chunks[2]
+    at = data.index(b"\x28\xb5\x2f\xfd", damaged.chunk_start_offset)  # the chunk's zstd frame
+    assert len(chunks) >= 4 and at < damaged.chunk_start_offset + damaged.chunk_length
+    data[at:at + 4] = bytes(4)
+    bag = tmp_path / "damaged"
+    shutil.copytree(prefix, bag)
+    (bag / mcap.name).write_bytes(bytes(data))
+    with open_bag(bag) as reader:
+        read = [(m.topic, m.log_time_ns, hashlib.sha1(m.data).hexdigest()) for m in reader.messages()]
+        notes = reader.read_notes()
+    assert any("damaged chunks left out, the others read: log times" in note for note in notes), notes
+    kept = [m for m in _digest(prefix) if not damaged.message_start_time <= m[1] <= damaged.message_end_time]
+    assert read == kept and read[-1] == _digest(prefix)[-1]
