@@ -257,9 +257,9 @@ class _RosbagsSource(_Source):
             yield from heapq.merge(*streams, key=lambda msg: msg.log_time_ns)
 
     def _file_messages(self, file: Any, topics: Collection[str] | None) -> Iterator[BagMessage]:
-        """One file's messages through its index; an MCAP file whose index or one of its chunks is
-        damaged goes on in file order from where the index failed (`_McapStreamSource`), said in
-        `read_notes`."""
+        """One file's messages through its index; an MCAP file whose index is damaged goes on in file
+        order from where the index failed (`_McapStreamSource`), and one with a damaged chunk with the
+        chunks after it, through the index (`_mcap_chunk_messages`), each said in `read_notes`."""
         conns = [c for c in file.connections if topics is None or c.topic in topics]
         if not conns:
             return
