@@ -15,13 +15,14 @@ echo "senfunet: pytest"
 if [ "$#" -gt 0 ]; then
   exec .venv/bin/python -m pytest -q "$@"
 fi
-# The core tests, and the ROS tests that run no DDS (bag files, packaging, conversions, ingest, replay, TF, mesh size on
-# the wire, map services), side by side, one file per worker (each is CPU work on one thread; up to 4 workers); then
+# The core tests, and the ROS tests that exchange no DDS messages (bag files, packaging, conversions, ingest, replay,
+# sensor set-ups, TF, mesh size on the wire, map services), side by side, one file per worker (each is CPU work on one
+# thread; up to 4 workers); then
 # the other ROS tests one at a time: they run live nodes, DDS and processes against the clock. Each run lists its
 # slowest tests (--durations): the suite should stay under 10 minutes.
 offline=(test/ros/test_bags.py test/ros/test_sample_bag.py test/ros/test_packaging.py test/ros/test_conversions.py
          test/ros/test_ingest.py test/ros/test_compressed.py test/ros/test_replay.py test/ros/test_tf.py
-         test/ros/test_mesh_wire.py test/ros/test_map_bound_services.py)
+         test/ros/test_mesh_wire.py test/ros/test_map_bound_services.py test/ros/test_sensor_setups.py)
 workers=$(nproc 2>/dev/null || echo 2)
 workers=$(( workers < 2 ? 2 : (workers > 4 ? 4 : workers) ))
 status=0
