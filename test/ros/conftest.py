@@ -24,9 +24,16 @@ sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
 @pytest.fixture(scope="session")
 def ros_domain_id() -> int:
     """A ROS_DOMAIN_ID in 1..101 from the pid, or SENFUNET_TEST_DOMAIN_ID when set (a shared machine
-    that hands each run its own); exported so child processes inherit it."""
+    that hands each run its own); exported so child processes inherit it. Under pytest-xdist each
+    worker takes its own: the run's id (or the parent's pid) plus the worker's number, so that the
+    live nodes of two workers never hear each other."""
     chosen = os.environ.get("SENFUNET_TEST_DOMAIN_ID", "").strip()
-    domain = int(chosen) if chosen else 1 + os.getpid() % 101
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    if worker:
+        index = int(worker.removeprefix("gw"))
+        domain = int(chosen) + index if chosen else 1 + (os.getppid() + index) % 101
+    else:
+        domain = int(chosen) if chosen else 1 + os.getpid() % 101
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # keep test traffic off the network
     return domain
