@@ -131,6 +131,25 @@ class HealthMonitor:
         while arrivals and (arrivals[0] if isinstance(arrivals[0], float) else arrivals[0][0]) < now - self.window_s:
             arrivals.popleft()
 
+    def _rate_hz(self, state: _Stream, now: float) -> float:
+        """Messages per second over the window, or since the stream's first message while that is
+        shorter (its intervals over their span: a 10 Hz camera that started 1 s ago is 10 Hz, not
+        2 Hz over a 5 s window)."""
+        if state.first_s is not None and now - state.first_s < self.window_s and state.first_s >= self._kept_since_s:
+            return (len(state.arrivals) - 1) / (now - state.first_s) if now > state.first_s else 0.0
+        span = min(self.window_s, now - max(state.subscribed_s, self._kept_since_s))
+        return len(state.arrivals) / span if span > 0 else 0.0
+
+    @staticmethod
+    def _take_back(missing: deque, n: int) -> None:
+        """Images counted missing that were not (they came late, or the stream's rate changed): the
+        newest counts in the window shrink by n."""
+        while n > 0 and missing:
+            when, count = missing.pop()
+            if count > n:
+                missing.append((when, count - n))
+            n -= count
+
     def counters(self, counters: dict[str, dict[str, Any]]) -> None:
         """Ingest's counters (sensor -> {"dropped": {reason: n}, "missing_depth": n}): new drops and depth
         images found missing enter the window."""
@@ -147,6 +166,7 @@ class HealthMonitor:
                 missing = int(c.get("missing_depth", 0))
                 if missing > self._last_missing[sensor]:
                     self._missing[sensor].append((now, missing - self._last_missing[sensor]))
+                self._take_back(self._missing[sensor], self._last_missing[sensor] - missing)
                 self._last_missing[sensor] = missing
 
     def report(self) -> dict[str, SensorReport]:
@@ -165,10 +185,9 @@ class HealthMonitor:
                     if s != sensor:
                         continue
                     self._expire(state.arrivals, now)
-                    span = min(self.window_s, max(now - max(state.subscribed_s, self._kept_since_s), 1e-9))
                     silent = now - (state.last_s if state.last_s is not None else state.subscribed_s)
                     streams[stream] = StreamReport(
-                        rate_hz=len(state.arrivals) / span, received=state.received, silent_s=silent,
+                        rate_hz=self._rate_hz(state, now), received=state.received, silent_s=silent,
                         stale=state.last_s is not None and silent > self.stale_after_s,
                         never=state.last_s is None and silent > self.window_s,
                         live_s=0.0 if state.first_s is None else now - state.first_s)

@@ -67,7 +67,7 @@ import numpy as np
 from senfunet_ros import conversions as conv
 from senfunet_ros.matching import ALTERNATION_CHECK_EVERY, ColorBuffer, PoseBuffer
 from senfunet_ros.tf import TfAdded, TfNotConnected, TfWait, extrapolate_tf
-from senfunet_ros.timeline import Restart, StreamGaps, Timelines
+from senfunet_ros.timeline import RateChange, Restart, StreamGaps, Timelines
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "StreamEnd", "Ingest",
            "IngestLedger", "NoDepthInRange", "integrate_ready", "split_stream_errors"]
@@ -290,6 +290,7 @@ class _SensorInput:
         self.camera_info: tuple[np.ndarray, tuple[int, int]] | None = None
         self.camera_info_before: tuple[np.ndarray, tuple[int, int]] | None = None  # the one before the last change
         self.camera_info_returns = 0  # changes in a row back to the one before the last change
+        self.camera_info_refused = ""  # why the newest camera_info was refused ("": it was taken)
         self.queue: deque[_Pending] = deque()
         self.awaiting_info: deque[tuple[Any, int, float]] = deque()  # (depth msg, stamp_ns, arrival_s)
         self.colors = ColorBuffer(max(4, config.queue_size))
@@ -380,7 +381,9 @@ class _SensorInput:
                     "intrinsics (as image_geometry and depth_image_proc read them)"))
         except (ValueError, AttributeError) as err:
             kept = "" if self.camera_info is None else "; the depth images go on with the last good camera_info's K"
+            self.camera_info_refused = str(err)
             return self.drop("bad_camera_info", f"{err}{kept}"), []
+        self.camera_info_refused = ""
         self._note_camera_info_change(intrinsics)
         self.camera_info = intrinsics
         K, (_, height) = intrinsics
@@ -428,10 +431,19 @@ class _SensorInput:
                                                            f"pose: stamp {stamp_ns * 1e-9:.3f} s: {conflict}")
         msg, arrival_s = message if stream == "depth" else (message, 0.0)
         gap = self.depth_gaps.add(stamp_ns) if stream == "depth" else None
-        # poses that paused over the gap too (all but an image period at either end) are a sensor that paused (a
-        # driver restarting): no image went missing
+        if isinstance(gap, RateChange):
+            self.counters.missing_depth -= gap.taken_back
+            to_ms = gap.to_period_ns * 1e-6
+            self.counters.notes.setdefault(f"depth_period_{to_ms:.0f}ms", (
+                f"its depth images now come every {to_ms:.0f} ms (they came every {gap.from_period_ns * 1e-6:.0f} "
+                "ms): the driver's rate changed, or it skips images steadily"
+                + (f"; the {gap.taken_back} image(s) counted missing on the way are taken back" if gap.taken_back
+                   else "")))
+            gap = None
+        # poses that paused over the gap too (all but an image period at either end; over a gap of one image,
+        # for a period or more) are a sensor that paused (a driver restarting): no image went missing
         if gap is not None and (not self.counters.pose_received or self.poses.longest_pause_ns(gap.from_ns, gap.to_ns)
-                                < gap.to_ns - gap.from_ns - 2 * gap.period_ns):
+                                < max(gap.to_ns - gap.from_ns - 2 * gap.period_ns, gap.period_ns)):
             self.counters.missing_depth += gap.missing
             self.counters.missing_depth_gap = (f"{gap.from_ns * 1e-9:.3f} s to {gap.to_ns * 1e-9:.3f} s, "
                                                f"{gap.missing + 1} of the stream's {gap.period_ns * 1e-6:.0f} ms "
@@ -468,7 +480,10 @@ class _SensorInput:
         A full queue's oldest frame is set aside where it can be (`_set_aside_instead`), else dropped.
         Returns the drop reason or None."""
         if not isinstance(decoded, _Pending):
-            return self.drop(*decoded)
+            reason, error = decoded
+            if reason == "size_mismatch" and self.camera_info_refused:  # the image may match the refused one
+                error += f" (the newest camera_info was refused: {self.camera_info_refused})"
+            return self.drop(reason, error)
         for key, text in decoded.notes:
             self.counters.notes.setdefault(key, text)
         self.spacing_checked = self.spacing_checked or decoded.spacing_checked

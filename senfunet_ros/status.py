@@ -150,6 +150,8 @@ class CounterWarnings:
         if jumps != self._time_jumps_seen:
             self._time_jumps_seen, self._time_jump_at_s = jumps, now_s
         restarting = now_s - self._time_jump_at_s < self._hold_s
+        if not pending:  # the holds of a restart that was confirmed or ended: the next restart's start afresh
+            self._held_since.clear()
         due = []
         for key, message in counter_warnings(self._last, counters, settings, resolved):
             if key[-1] == "bad_stamp" and pending:

@@ -5,6 +5,7 @@ Every failure is a ValueError saying what was wrong and what to do about it.
 """
 from __future__ import annotations
 
+import math
 import re
 import warnings
 from typing import Any
@@ -157,6 +158,10 @@ def depth_from_compressed(msg: Any) -> np.ndarray:
                              "expected a 16-bit single-channel png")
     if encoding == "32FC1":
         a, b = float(header["depth_a"]), float(header["depth_b"])
+        if not (math.isfinite(a) and math.isfinite(b) and a > 0.0):
+            raise ValueError(f"compressedDepth 32FC1 header's quantisation (depthParam {a:g}, {b:g}) gives no depth: "
+                             "depthParam[0] must be positive and both finite; check the publisher's "
+                             "compressed_depth_image_transport")
         with np.errstate(divide="ignore", invalid="ignore"):
             depth_m = (a / (raw.astype(np.float32) - b)).astype(np.float32)
         depth_m[raw == 0] = 0.0
@@ -207,7 +212,8 @@ def depth_units_note(msg: Any, depth_m: np.ndarray) -> str | None:
     if not (msg.is_bigendian or millimetres):  # little-endian metres, the usual: no pass over the image
         return None
     deepest_m = float(depth_m.max(initial=0.0))  # invalid pixels are 0
-    if msg.is_bigendian and deepest_m > 1000.0:
+    # byte-swapped floats are absurdly far, or (a smooth surface: the low mantissa bytes zero) denormals
+    if msg.is_bigendian and (deepest_m > 1000.0 or (not millimetres and 0.0 < deepest_m < 1e-6)):
         return (f"its {encoding} depth images have is_bigendian set and decode to depths up to {deepest_m:.3g} m: if "
                 "the driver writes little-endian values (as x86 and ARM machines do), the flag is wrong; fix the "
                 "driver's is_bigendian")

@@ -474,6 +474,10 @@ def test_compressed_depth_rvl_16uc1_and_32fc1() -> None:
     want = np.where(mm > 0, np.float32(a) / (mm.astype(np.float32) - np.float32(b)), 0).astype(np.float32)
     np.testing.assert_allclose(got, want, rtol=1e-6)
     assert (got[mm == 0] == 0).all()
+    # a header whose quantisation gives no depth (every pixel NaN or negative): said, not "all invalid"
+    for bad_a, bad_b in ((float("nan"), b), (-a, b), (a, float("inf"))):
+        with pytest.raises(ValueError, match=r"header's quantisation \(depthParam"):
+            conv.depth_from_image(_compressed_depth("32FC1; compressedDepth rvl", rvl_payload(mm), bad_a, bad_b))
 
 
 def test_malformed_rvl_depth_raises_saying_what_is_wrong() -> None:

@@ -247,6 +247,17 @@ def test_bad_inputs_are_counted(case: str) -> None:
     assert sum(counters["dropped"].values()) == 1 and counters["queue_depth"] == 0
     if case != "all_invalid":  # the others say what was wrong with the message
         assert len(counters["errors"][case]) > 20
+    if case == "bad_camera_info":
+        # a depth image of the refused camera_info's size is dropped for not matching the last good one, and
+        # its error names the refusal, the cause to fix (it named the good one's size alone)
+        refused = CameraInfo(width=7, height=3, k=[10.0, 0, 3, 0, float("nan"), 1, 0, 0, 1])
+        assert ingest.add_camera_info("tof", refused) == "bad_camera_info"
+        assert ingest.add_depth("tof", depth_msg(10 * MS, shape=(3, 7))) == "size_mismatch"
+        error = ingest.ledger.counters()["tof"]["errors"]["size_mismatch"]
+        assert "the newest camera_info was refused: " in error, error
+        assert ingest.add_camera_info("tof", info_msg()) is None
+        assert ingest.add_depth("tof", depth_msg(20 * MS, shape=(3, 7))) == "size_mismatch"
+        assert "refused" not in ingest.ledger.counters()["tof"]["errors"]["size_mismatch"]
 
 
 def test_depth_and_colour_that_both_fail_to_decode_are_both_named() -> None:
@@ -377,6 +388,10 @@ def test_depth_images_whose_units_or_byte_order_look_wrong_are_said_once() -> No
     ingest2 = make()
     assert ingest2.add_depth("tof", depth_msg(0, value=2.5)) is None
     assert "depth_units" not in ingest2.ledger.counters()["tof"]["notes"]
+    flat = depth_msg(10 * MS, value=1.5)  # a flat wall with the flag wrong: denormals of 1e-40 m, out of range
+    flat.is_bigendian = 1
+    ingest2.add_depth("tof", flat)
+    assert "is_bigendian set" in ingest2.ledger.counters()["tof"]["notes"].get("depth_units", "")
     # millimetres with the flag wrong: byte-swapped, 0.8-2.8 m read as noise up to 65 m, fused without a word
     ramp_mm = np.linspace(800, 2800, 48 * 64).reshape(48, 64)
     for flag_wrong, order in ((True, "<u2"), (False, ">u2")):
@@ -477,6 +492,29 @@ def test_depth_images_missing_from_a_regular_stream_are_counted_and_warned() -> 
         if not 3300 < t < 3600:  # the images alone: lost
             ingest.add_depth("stereo", depth_msg(t * MS))
     assert ingest.ledger.counters()["stereo"]["missing_depth"] == 4
+
+
+def test_a_depth_stream_whose_rate_goes_down_for_good_is_a_new_period_not_images_missing_forever() -> None:
+    """A driver reconfigured from 30 Hz to 10 Hz (every image arriving): each 100 ms interval was a gap of
+    3 periods of the old rate, never learnt as the new one, so two images were counted missing on every
+    frame and ~/status warned for as long as the stream ran. A few such intervals in a row are now the
+    stream's new period, said once, and the images counted on the way are taken back; a gap at the new
+    rate is still counted."""
+    ingest = make(queue_size=500)
+    stamps = [1000 + 33 * i for i in range(30)] + [2000 + 100 * i for i in range(60)]
+    stamps.remove(5000)  # one image lost at the new rate
+    poses = iter(range(995, 8000, 10))  # poses at 100 Hz, each image's after it
+    pose_ms = next(poses)
+    for t in stamps:
+        while pose_ms < t:
+            ingest.add_pose("tof", pose_msg(pose_ms * MS))
+            pose_ms = next(poses)
+        assert ingest.add_depth("tof", depth_msg(t * MS)) is None
+    counters = ingest.ledger.counters()["tof"]
+    assert counters["missing_depth"] == 1, counters
+    assert counters["missing_depth_gap"].startswith("4.900 s to 5.100 s, 2 of the stream's 100 ms periods"), counters
+    (note,) = [text for key, text in counters["notes"].items() if key.startswith("depth_period")]
+    assert "now come every 100 ms (they came every 33 ms)" in note and "taken back" in note, note
 
 
 def test_a_camera_info_that_changes_is_said_and_one_that_alternates_is_two_publishers() -> None:
@@ -629,6 +667,31 @@ def test_a_restart_warns_none_of_what_it_cost_but_an_unset_stamp_right_after_it(
     assert ingest.add_depth("tof", depth_msg(100_050 * MS)) is None  # the stream goes on: it was a stray
     (warning,) = stamp_warnings()
     assert warning[0] == ("tof", "bad_stamp") and "dropped 1 message(s): bad_stamp" in warning[1], warning
+
+
+def test_every_resume_ahead_after_a_pause_is_taken_without_a_bad_stamp_warning() -> None:
+    """The sensors paused and resumed ahead (a driver restarted), twice. Each resume's first messages are
+    held as candidates, then taken back once the restart is confirmed: no warning. The second resume
+    warned "bad_stamp ... check the driver's clock": the first resume's hold was remembered, so the
+    second's counted as held for the whole time since."""
+    from senfunet_ros import params as P
+    from senfunet_ros.status import CounterWarnings
+
+    settings = P.Settings.from_values({name: default for name, (default, _) in P.expanded_defaults().items()})
+    ingest = make(time_jump_s=1.0, restart_confirm_msgs=3, restart_confirm_s=0.02)
+    warnings = CounterWarnings(ingest, hold_s=0.05)
+    said: list[tuple[str, ...]] = []
+    for start in (1000, 9000, 17000):  # ms: a stream, then two resumes 8 s later
+        ingest.add_pose("tof", pose_msg(start * MS))
+        said += [key for key, _ in warnings.since_last(settings)]  # the first held while a restart is pending
+        time.sleep(0.1)  # past hold_s: only a hold of this resume may count
+        for t in range(start + 10, start + 60, 10):
+            ingest.add_pose("tof", pose_msg(t * MS))
+            ingest.add_depth("tof", depth_msg(t * MS + 5 * MS))
+        said += [key for key, _ in warnings.since_last(settings)]
+        ingest.pop_ready()
+    assert ingest.ledger.counters()["tof"]["dropped"]["bad_stamp"] == 0
+    assert ("tof", "bad_stamp") not in said, said
 
 
 def test_a_stray_first_stamp_is_said_to_be_one_not_a_restart_of_a_bag() -> None:

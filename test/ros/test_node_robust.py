@@ -428,6 +428,27 @@ def test_depth_images_lost_on_the_way_warn() -> None:
     assert health.report()["tof"].level == Level.OK
 
 
+def test_a_stream_that_started_lately_has_its_rate_and_images_taken_back_leave_the_warning() -> None:
+    """A 10 Hz camera that started 1 s ago read 2 Hz on /diagnostics (its 10 messages over the 5 s window,
+    not over the second it has run). Images counted missing and then taken back (they came late, or the
+    stream's rate changed) kept the sensor at WARN until the window passed."""
+    from senfunet_ros.health import HealthMonitor, Level
+
+    now = [0.0]
+    health = HealthMonitor({"tof": ("depth",)}, window_s=5.0, stale_after_s=2.0, clock=lambda: now[0])
+    now[0] = 3.0  # subscribed 3 s before the camera starts
+    for _ in range(11):
+        health.received("tof", "depth")
+        now[0] += 0.1
+    assert health.report()["tof"].streams["depth"].rate_hz == pytest.approx(10.0, rel=0.15)
+    health.counters({"tof": {"dropped": {}, "missing_depth": 4}})
+    assert health.report()["tof"].level == Level.WARN
+    health.counters({"tof": {"dropped": {}, "missing_depth": 1}})
+    assert health.report()["tof"].recent_missing == 1
+    health.counters({"tof": {"dropped": {}, "missing_depth": 0}})
+    assert health.report()["tof"].level == Level.OK, health.report()["tof"]
+
+
 def test_a_camera_info_sent_at_its_own_rate_does_not_warn_of_lost_depth() -> None:
     """A driver that publishes camera_info on its own timer (30 Hz, its own stamps) beside depth at
     5 Hz loses no image: the rate of a camera_info not stamped as the images says nothing of loss."""
