@@ -536,30 +536,32 @@ class FusionNode(Node):
         """~/status and /diagnostics now (`senfunet_ros.status.StatusReport`)."""
         return self.status_report.message(self.settings.fixed_frame)
 
-    def _silent_topic_hint(self, topic: str) -> str:
+    def _silent_topic_hint(self, topic: str) -> tuple[str, bool]:
         """What the ROS graph says of a subscribed topic nothing came on: nobody publishes it, or its
-        publishers' type is not the one subscribed (an amcl pose, a CompressedImage under a raw name)."""
+        publishers' type is not the one subscribed (an amcl pose, a CompressedImage under a raw name);
+        and whether its publishers are all of the subscribed type (they may not have begun yet)."""
         wanted = next((sub.msg_type for sub in self._subscriptions_keep if sub.topic_name == topic), None)
         if wanted is None:
-            return ""
+            return "", False
         try:
             types = {info.topic_type for info in self.get_publishers_info_by_topic(topic)}
         except Exception:  # noqa: BLE001 (a graph query failing under a stop): the warning stands without it
-            return ""
+            return "", False
         wanted_type = f"{wanted.__module__.split('.')[0]}/msg/{wanted.__name__}"
         if not types:
-            return f"; nobody publishes {topic} now"
+            return f"; nobody publishes {topic} now", False
         other = sorted(types - {wanted_type})
-        if not other:
-            return (f"; it has publishers of {wanted_type}, yet nothing came: check that they share the node's "
-                    "ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE")
+        if not other:  # the graph shows them, so they share the node's domain: silent, or QoS that does not match
+            return (f"; it has publishers of {wanted_type}, which sent nothing the node took: they have published "
+                    f"nothing yet, or their QoS does not match the subscription's (`ros2 topic info -v {topic}`)"
+                    ), True
         hint = f"; it is published as {', '.join(other)}, the node subscribes {wanted_type}"
         if any(streams.get("pose") == topic for streams in self._topics.values()):
             matching = [t.value for t in PoseType if t.msgtype in other]
             hint += (f": set pose_type to {matching[0]}" if matching else
                      ": pose_type takes " + ", ".join(f"{t.value} ({t.msgtype or '/tf'})" for t in PoseType)
                      + "; republish the poses as one of those")
-        return hint
+        return hint, False
 
     def destroy_node(self) -> None:
         self._mesh_timer.cancel()

@@ -24,6 +24,9 @@ from senfunet_ros.pipeline import Pipeline
 
 
 ENGINE_STATS_PERIOD_S = 5.0  # engine.stats() takes the engine's locks and sums the grid: at most this often
+# a silent topic whose publishers are of the subscribed type is warned about after this many diagnostics windows,
+# not one: a player waits for every topic's subscriber, then a moment, before it publishes (no false alarm)
+SILENT_WITH_PUBLISHERS_WINDOWS = 4
 
 
 # What a drop usually means and what to check, for the reasons whose message gives no detail of
@@ -211,11 +214,12 @@ class StatusReport:
     here): `health`, `timings` (stage -> an object with last_ms, mean_ms) and `latency` (with
     summary()). topics: sensor -> stream -> topic, for the warnings; warn(key, text): the node's
     throttled warning; graph_hint(topic): what the ROS graph says of a topic nothing came on (its
-    publishers), to add to that warning."""
+    publishers), to add to that warning, and whether it has publishers of the subscribed type."""
 
     def __init__(self, pipeline: Pipeline, health: HealthMonitor, timings: dict[str, Any], latency: Any, *,
                  topics: dict[str, dict[str, str]], hardware_id: str, warn: Callable[[tuple[str, ...], str], None],
-                 logger: Any, name: str = P.NODE_NAME, graph_hint: Callable[[str], str] = lambda topic: "") -> None:
+                 logger: Any, name: str = P.NODE_NAME,
+                 graph_hint: Callable[[str], tuple[str, bool]] = lambda topic: ("", False)) -> None:
         self.pipeline = pipeline
         # each status is named "<node name>: <part>", as diagnostic_updater does: two fusion nodes (`-r __node:=front`)
         # must not share names, which the aggregator and rqt_robot_monitor key their entries by
@@ -299,8 +303,11 @@ class StatusReport:
         for sensor, report in reports.items():
             for stream, r in report.streams.items():
                 if r.never and (sensor, stream) not in self._silent_warned:
-                    self._silent_warned.add((sensor, stream))
                     topic = self.topics[sensor][stream]
+                    hint, publishers = self._graph_hint(topic)
+                    if publishers and r.silent_s < SILENT_WITH_PUBLISHERS_WINDOWS * self.health.window_s:
+                        continue  # judged again on the next report
+                    self._silent_warned.add((sensor, stream))
                     config = self.pipeline.engine.config
                     if stream == "color" and not dict(zip(config.sensors, config.sensor_uses_rgb)).get(sensor, True):
                         # nothing is missing
@@ -311,7 +318,7 @@ class StatusReport:
                         f"{sensor}: nothing received on {topic} for {r.silent_s:.0f} s; check "
                         f"the topic name (parameter {sensor}.{stream}_topic), its message type and QoS"
                         + (" (colour is optional: set it to '' if there is none)" if stream == "color" else "")
-                        + self._graph_hint(topic))
+                        + hint)
 
     def refresh_engine_stats(self) -> None:
         """engine.stats() when the last are due, waiting for the map: for the mesh thread, after each

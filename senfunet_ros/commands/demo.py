@@ -52,6 +52,18 @@ def _say(text: str) -> None:
     print(f"senfunet demo: {text}", flush=True)
 
 
+def _node_topics_in(bag: Path, params: str | None) -> list[str]:
+    """The bag's topics the node takes, as the bag names them; BagError (replay's) when the bag lacks
+    one the node needs, naming what it has and what to set."""
+    from senfunet_ros.bagio import open_bag
+    from senfunet_ros.params_file import load_settings
+    from senfunet_ros.replay import TopicRouter
+
+    settings = load_settings(params)
+    with open_bag(bag) as reader:
+        return sorted(TopicRouter(settings, reader.topics, bag).topics)
+
+
 def _tail(path: Path, lines: int = 15) -> str:
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
@@ -105,6 +117,11 @@ def run(args: argparse.Namespace) -> int:
     if not args.rate > 0:
         _say(f"--rate must be > 0, got {args.rate}")
         return 2
+    try:  # replay's check: a bag without the node's topics is said now, not after a run that fuses nothing
+        topics = _node_topics_in(bag, args.params)
+    except (ValueError, OSError) as err:  # BagError and InputError are ValueErrors
+        _say(str(err))
+        return 2
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     for stale in ("mesh.ply", "mesh.png"):
@@ -113,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     _say(f"ROS_DOMAIN_ID={domain}; logs in {out}")
-    demo = _Demo(args, bag, out)
+    demo = _Demo(args, bag, out, topics)
     signal.signal(signal.SIGTERM, _interrupt)  # rclpy takes over SIGINT/SIGTERM while it is initialised
     try:
         mesh_path = demo.run()
@@ -125,6 +142,16 @@ def run(args: argparse.Namespace) -> int:
         return 0
     finally:
         demo.stop()
+    if demo.unfused and len(demo.unfused) == len(demo.status):
+        warnings = sorted({line.split("]: ", 1)[-1] for line in _tail(demo.node_log, 400).splitlines()
+                           if "[WARN]" in line or "[ERROR]" in line})
+        _say(f"the node fused no frame of {bag}, so {mesh_path} is empty; what the node said:\n"
+             + "\n".join(f"  {w}" for w in warnings[:10])
+             + f"\n(the node's whole log: {demo.node_log})")
+        return 2
+    if demo.unfused:
+        _say(f"note: {', '.join(demo.unfused)} fused no frame (see above and {demo.node_log}), so the mesh holds "
+             "only the surface the other sensor saw alone and the weighting net trusts")
     png = None
     if not args.no_render:
         png = out / "mesh.png"
@@ -142,8 +169,9 @@ def run(args: argparse.Namespace) -> int:
 class _Demo:
     """The two child processes and a small rclpy node that watches ~/status and calls ~/save_mesh."""
 
-    def __init__(self, args: argparse.Namespace, bag: Path, out: Path) -> None:
+    def __init__(self, args: argparse.Namespace, bag: Path, out: Path, topics: list[str]) -> None:
         self.args, self.bag, self.out = args, bag, out
+        self.topics = topics  # the bag's topics the node takes: play waits for the node's subscriptions to them
         self.deadline = time.monotonic() + args.timeout
         self.cli = [sys.executable, "-m", "senfunet_ros.cli"]
         self.node_log, self.play_log = out / "node.log", out / "play.log"
@@ -153,6 +181,7 @@ class _Demo:
         self.status_count = 0
         self.pipeline_values: dict[str, str] = {}  # the node's "senfunet: pipeline" status
         self.play_failed = ""  # why play exited with an error (a bag that breaks midway), or ""
+        self.unfused: list[str] = []  # the sensors that fused no frame
 
     def _spawn(self, cmd: list[str], log_path: Path) -> subprocess.Popen:
         with log_path.open("w") as log:
@@ -238,7 +267,8 @@ class _Demo:
             while not save.wait_for_service(timeout_sec=0.5):
                 self._check("while starting")
             _say(f"node up; playing {self.bag} at rate {args.rate:g}")
-            self.play_proc = self._spawn([*self.cli, "play", str(self.bag), "--rate", str(args.rate),
+            self.play_proc = self._spawn([*self.cli, "play", str(self.bag), "--rate", str(args.rate), "--topics",
+                                          *self.topics,
                                           "--wait-subscribers", "20"], self.play_log)
             last_print = time.monotonic()
             while self.play_proc.poll() is None:
@@ -286,6 +316,7 @@ class _Demo:
                 if dropped:
                     line += "; dropped: " + ", ".join(f"{v} {k}" for k, v in dropped.items())
                 _say(line)
+            self.unfused = sorted(sensor for sensor, c in self.status.items() if not int(c.get("integrated", 0)))
         except Exception:
             if not rclpy.ok():  # the context went away under a spin or a call: Ctrl-C or SIGTERM
                 raise KeyboardInterrupt from None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import threading
 import time
 from collections.abc import Iterator
@@ -332,7 +333,8 @@ def test_a_silent_topic_published_under_another_type_is_named_with_that_type(ros
     import rclpy
     from geometry_msgs.msg import PoseWithCovarianceStamped
 
-    run = Running("othertype", {**topic_params("othertype"), **SMALL, "diagnostics_window_s": 0.5,
+    # a window of 2 s: the other participant's publisher is in the node's graph by then, on a loaded machine too
+    run = Running("othertype", {**topic_params("othertype"), **SMALL, "diagnostics_window_s": 2.0,
                                 "status_rate_hz": 10.0}, tmp_path)
     # another participant, as another process would be (DDS refuses a second type for a topic in one)
     context = rclpy.Context()
@@ -356,6 +358,44 @@ def test_a_silent_topic_published_under_another_type_is_named_with_that_type(ros
             "geometry_msgs/msg/PoseStamped: pose_type takes pose_stamped" in line), line
     depth = next((x for x in log.splitlines() if "tof: nothing received on /othertype/tof/depth" in x), "")
     assert "nobody publishes /othertype/tof/depth now" in depth, log[-3000:]
+
+
+def test_a_silent_topic_with_publishers_of_its_type_is_warned_about_later_and_not_blamed_on_the_domain(
+        ros, tmp_path: Path, capfd) -> None:
+    """`senfunet demo`: play waits until every topic has a subscriber before it publishes, and the node
+    warned a window after it subscribed that the topic "has publishers, yet nothing came: check that they
+    share the node's ROS_DOMAIN_ID" (the graph showing them proves they do). A topic whose publishers are
+    of the subscribed type is now warned about after SILENT_WITH_PUBLISHERS_WINDOWS windows, naming what
+    can be wrong: they have not published yet, or their QoS does not match."""
+    import rclpy
+
+    from senfunet_ros.status import SILENT_WITH_PUBLISHERS_WINDOWS
+
+    window_s = 1.0
+    run = Running("quiet", {**topic_params("quiet"), **SMALL, "diagnostics_window_s": window_s,
+                            "status_rate_hz": 10.0}, tmp_path)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    player = Node("waiting_player", context=context)
+    player.create_publisher(PoseStamped, "/quiet/tof/pose", 10)  # never publishes
+    log, depth_seen_s = "", None
+    start = time.monotonic()
+    try:
+        while time.monotonic() - start < 30.0 and "tof: nothing received on /quiet/tof/pose" not in log:
+            time.sleep(0.1)
+            log += capfd.readouterr().err
+            if depth_seen_s is None and "tof: nothing received on /quiet/tof/depth" in log:
+                depth_seen_s = time.monotonic() - start
+                assert "nothing received on /quiet/tof/pose" not in log, log[-3000:]  # a window: not yet
+    finally:
+        run.close()
+        player.destroy_node()
+        rclpy.shutdown(context=context)
+    assert depth_seen_s is not None, log[-3000:]
+    line = next((x for x in log.splitlines() if "tof: nothing received on /quiet/tof/pose" in x), "")
+    assert "which sent nothing the node took" in line and "ROS_DOMAIN_ID" not in line, log[-3000:]
+    silent_s = float(re.search(r"/quiet/tof/pose for (\d+) s", line).group(1))
+    assert silent_s >= SILENT_WITH_PUBLISHERS_WINDOWS * window_s - 0.5, line
 
 
 def test_a_second_node_of_the_same_name_is_warned_about(ros, tmp_path: Path, monkeypatch) -> None:
@@ -470,7 +510,6 @@ def test_a_stalled_mesh_update_says_where_its_time_went(ros, tmp_path: Path, mon
     """A mesh update that takes over twice the mesh period (here the map is held by another thread for a
     second, as an eviction or a save can hold it) is warned about with the time of each of its stages,
     so that a stalled refresh tells whether the map, the publication or the weighting net held it."""
-    import re
 
     # a short net's turn: a turn that waited for the map then works at most the rest of its period, not 0.5 s
     run = Running("slow_update", {**topic_params("slow_update"), **SMALL, "mesh_rate_hz": 5.0, "alpha_budget_s": 0.05},
@@ -1168,7 +1207,6 @@ def test_a_map_file_named_like_a_mesh_or_an_empty_output_dir_is_refused(name: st
 def test_service_replies_name_absolute_paths(ros, tmp_path: Path, monkeypatch) -> None:
     """A client in another process (another working directory) must find the files a reply names:
     with the default, relative output_dir they were named relative to the node's working directory."""
-    import re
 
     monkeypatch.chdir(tmp_path)
     run = Running("abs_paths", {**topic_params("abs_paths"), **SMALL, "output_dir": "rel out"}, tmp_path)

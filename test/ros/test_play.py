@@ -302,6 +302,33 @@ def test_demo_saves_what_the_node_fused_when_play_breaks_on_a_damaged_bag(tmp_pa
     assert (out / "mesh.ply").stat().st_size > 0
 
 
+def test_a_demo_that_can_fuse_nothing_fails_saying_why(tmp_path: Path, ros_domain_id: int):
+    """A bag whose topics are not the node's: the demo said "0 of 0 frames fused", wrote empty meshes and
+    exited 0, the cause only in node.log. It now refuses such a bag at once, as replay does (exit 2, the
+    bag's topics and the parameters to set). A bag whose every frame the node drops (negative depths)
+    now exits 2 after the run, naming the node's warnings."""
+    from sensor_bags import Camera, params_file, two, write_bag
+
+    def demo(recording, name: str, **params) -> tuple[int, str]:  # noqa: ANN001
+        bag = write_bag(recording, tmp_path / name)
+        values = {"weights": "none", "voxel_size_m": 0.04, "working_width": 48, **params}
+        out = tmp_path / f"{name}_demo"
+        proc = subprocess.run([sys.executable, "-m", "senfunet_ros.cli", "demo", "--bag", str(bag), "--out", str(out),
+                               "--params", str(params_file(tmp_path / f"{name}.yaml", recording, **values)),
+                               "--domain-id", str(ros_domain_id), "--no-render", "--rate", "2", "--timeout", "200"],
+                              capture_output=True, text=True, timeout=300)
+        return proc.returncode, proc.stdout + proc.stderr
+
+    code, said = demo(two(duration_s=0.5), "elsewhere", **{"tof.depth_topic": "/elsewhere/depth"})
+    assert code == 2 and "no messages on /elsewhere/depth" in said and "tof.depth_topic" in said, said
+    assert "starting the node" not in said, said
+    negative = two(Camera("tof", depth_offset_m=-5.0), Camera("stereo", x_m=0.05, depth_offset_m=-5.0),
+                   duration_s=0.5)
+    code, said = demo(negative, "negative")
+    assert code == 2 and "the node fused no frame of" in said and "is empty" in said, said
+    assert "all_invalid" in said, said  # the node's warning, quoted
+
+
 def test_large_shm_profile_unless_fast_dds_is_configured(tmp_path: Path, monkeypatch):
     """Play, the node and the tests give their participants the packaged large shared-memory
     profile, and leave a user's own Fast DDS setup (or another RMW) alone."""
