@@ -12,10 +12,11 @@ from .errors import InputError
 
 
 @contextlib.contextmanager
-def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
+def atomic_file(path: str | Path, *, mode: int = 0o644) -> Iterator[BinaryIO]:
     """A binary file to write `path` through: a temporary file in the same folder (so that the
     final rename stays on one file system) that replaces `path` when the block ends, once its data is
-    on disk (fsync), and is removed when it raises. A symbolic link's target is written (the link
+    on disk (fsync), and is removed when it raises; the file gets `mode` (a temporary file's 0600 would
+    keep meshes and maps from other users and tools). A symbolic link's target is written (the link
     stays). InputError when `path` is a folder, or exists and is no regular file (a pipe, a device:
     the rename would put a file in its place)."""
     path = Path(path)
@@ -32,6 +33,7 @@ def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
     directory.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
     try:
+        os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as file:
             yield file
             # on disk before its name: a robot switched off after a save (save_on_shutdown) could find the

@@ -937,6 +937,16 @@ class Ingest:
             # '/map' is 'map' (a ROS 1 habit; tf2 strips the '/' too)
             if frame.strip().lstrip("/") != self.config.fixed_frame and "pose_frame" not in state.counters.notes:
                 state.counters.notes["pose_frame"] = _pose_frame_note(frame, self.config.fixed_frame)
+            child = str(getattr(msg, "child_frame_id", "")).strip()  # Odometry's, TransformStamped's
+            if (child and "optical" not in child.lower() and sensor not in self.config.T_body_camera
+                    and "pose_child_frame" not in state.counters.notes):
+                state.counters.notes["pose_child_frame"] = (
+                    f"its poses are of frame '{child}' (their child_frame_id), which does not look like the camera's "
+                    f"optical frame (z forward, x right, y down; REP 103 names them '*_optical_frame'), and "
+                    f"{sensor}.T_body_camera is not set: the camera is posed as '{child}' itself. If '{child}' is the "
+                    f"robot's body (base_link), set {sensor}.T_body_camera to the optical frame's pose in it (x y z qx "
+                    "qy qz qw), or the map is built from the wrong viewpoints; if it is the optical frame by another "
+                    "name, nothing to do")
             reason, held = self._time.on_time(sensor, "pose", stamp_ns, T)
             taken = reason or state.accept(sensor, "pose", stamp_ns, T, self.config)
             if (state.counters.pose_received % ALTERNATION_CHECK_EVERY == 0

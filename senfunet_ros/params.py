@@ -385,6 +385,16 @@ def _check_topics(values: dict[str, Any]) -> None:
             except Exception as err:  # noqa: BLE001 (rclpy's InvalidTopicNameException, not a ValueError)
                 why = str(err).splitlines()[0].removeprefix("Invalid topic name: ")
                 raise ValueError(f"parameter '{name}' = {topic!r} is not a topic name: {why}") from None
+    # one depth stream fused as two sensors (a parameter file's copy-paste slip) is no second sensor; a pose or
+    # colour topic may serve both (one odometry for a rig, with each sensor's T_body_camera)
+    depth_of: dict[str, str] = {}
+    for sensor in values["sensors"]:
+        topic = values[f"{sensor}.depth_topic"].lstrip("/")
+        if topic in depth_of:
+            raise ValueError(f"parameters '{depth_of[topic]}.depth_topic' and '{sensor}.depth_topic' name the same "
+                             f"topic {values[f'{sensor}.depth_topic']!r}: one depth stream would be fused as two "
+                             "sensors; give each sensor its own depth topic")
+        depth_of[topic] = sensor
 
 
 def validate(current: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:

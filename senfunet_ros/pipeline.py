@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import enum
-import os
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -28,11 +27,10 @@ from typing import Any
 
 from senfunet_ros.ingest import Frame, Ingest, IngestConfig, NoDepthInRange, TimeJump, integrate_ready
 
-__all__ = ["FILE_MODE", "MESH_FILES", "Pipeline", "SavedMesh", "Stream", "TimeJumpAction", "mesh_paths",
+__all__ = ["MESH_FILES", "Pipeline", "SavedMesh", "Stream", "TimeJumpAction", "mesh_paths",
            "optical_frame_advice"]
 
 MESH_FILES = {"fused": "mesh"}  # engine mesh name -> file stem (sensors and tsdf_fusion keep their names)
-FILE_MODE = 0o644  # maps and meshes are for other users and tools too (a temporary file would be 0600)
 
 
 class Stream(str, enum.Enum):
@@ -246,8 +244,7 @@ class Pipeline:
         # the fused mesh written first: a save cut short (a process killed) keeps the one that matters most
         for name, (mesh, seconds) in sorted(meshes.items(), key=lambda item: item[0] != "fused"):
             path = paths[name]
-            write_ply(path, mesh)
-            os.chmod(path, FILE_MODE)
+            write_ply(path, mesh)  # mode 0644
             saved[path.stem] = SavedMesh(path, mesh, seconds)
         partial = [paths[name].name for name in which if name != "fused"]
         if on_disk and partial:
@@ -262,7 +259,6 @@ class Pipeline:
         from senfunet_core.map_file import save_map
 
         save_map(self.engine, path)  # thread-safe, as frames keep being integrated (see save_meshes)
-        os.chmod(path, FILE_MODE)
         return path
 
     def load_map(self, path: str | Path, *, run_config: Any = None, configure: Callable[[Any], None] | None = None

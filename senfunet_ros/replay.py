@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import json
+import logging
 import os
 import threading
 import time
@@ -32,7 +33,7 @@ from senfunet_ros.bagio import (BagBrokenError, BagError, BagMessage, TopicInfo,
 from senfunet_ros.conversions import PoseType
 from senfunet_ros.ingest import Frame, Ingest
 from senfunet_ros.params_file import load_settings
-from senfunet_ros.pipeline import FILE_MODE, MESH_FILES, Pipeline, Stream
+from senfunet_ros.pipeline import MESH_FILES, Pipeline, Stream
 
 __all__ = [
     "bag_frames",
@@ -277,6 +278,8 @@ class _Run:
     error: str | None = None
     interrupted: bool = False
     read_s: float = 0.0
+    # colour sensors whose colour topic the bag lacks: their note (every frame is fused without colour)
+    colourless: dict[str, str] = field(default_factory=dict)
 
 
 def replay_bag(bag: str | Path, out_dir: str | Path, *, params: str | Path | None = None,
@@ -311,8 +314,14 @@ def _replay(bag: str | Path, out: Path, settings: P.Settings, *, gt: str | Path 
             progress: bool, threads: int, compare: bool, params: str | Path | None, log: Callable[[str], None],
             stop: threading.Event | None, t_start: float) -> ReplayResult:
     """`replay_bag` once its bag, settings and output folder are known to be usable."""
+    warnings: list[str] = []  # every note and warning the run says as it goes (stats.json), besides printing it
+
+    def say(text: str) -> None:
+        warnings.append(text)
+        log(text)
+
     if settings.tsdf_fusion and not compare:  # the node's switch; replay's is --compare
-        log("note: parameter tsdf_fusion is for the node (~/save_mesh); replay writes tsdf_fusion.ply and each "
+        say("note: parameter tsdf_fusion is for the node (~/save_mesh); replay writes tsdf_fusion.ply and each "
             "sensor's mesh with --compare")
     import torch  # heavy: only once the bag is known to be usable
 
@@ -320,7 +329,7 @@ def _replay(bag: str | Path, out: Path, settings: P.Settings, *, gt: str | Path 
 
     fallback = P.device_fallback(settings)
     if fallback:  # the parameter's promise: the fall back is said, as the live node says it
-        log(f"note: {fallback}")
+        say(f"note: {fallback}")
 
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))
@@ -332,16 +341,20 @@ def _replay(bag: str | Path, out: Path, settings: P.Settings, *, gt: str | Path 
         engine = SenFuNet(engine_config(settings, tsdf_fusion=compare, alpha_dtype="float32",
                                         feature_dtype="float32", **bound),
                           weights=engine_weights(settings))
-        warnings: list[str] = []  # the pipeline's (a camera frame_id that is no optical frame, a restart...)
-
-        def pipeline_log(level: str, text: str) -> None:
-            if level != "error":
-                warnings.append(text)
-            log(text if level == "error" else f"{level}: {text}")
+        def pipeline_log(level: str, text: str) -> None:  # a camera frame_id that is no optical frame, a restart...
+            if level == "error":
+                log(text)
+            else:
+                say(f"{level}: {text}")
 
         pipeline = Pipeline(engine, Ingest(ingest_config(settings)), on_time_jump=settings.on_time_jump,
                             log=pipeline_log)
-        run = _fuse(bag, settings, pipeline, progress=progress, log=log, stop=stop)
+        engine_log = _EngineLog(say)  # the engine's own warnings (a map bound below what a frame sees)
+        logging.getLogger("senfunet").addHandler(engine_log)
+        try:
+            run = _fuse(bag, settings, pipeline, progress=progress, log=say, stop=stop)
+        finally:
+            logging.getLogger("senfunet").removeHandler(engine_log)
     finally:
         torch.set_num_threads(previous_threads)
 
@@ -383,7 +396,6 @@ def _replay(bag: str | Path, out: Path, settings: P.Settings, *, gt: str | Path 
                           warnings=warnings)
     with atomic_file(out / "stats.json") as file:  # whole or not at all (a full disk), as the meshes
         file.write((json.dumps(result.stats, indent=2, default=_json_default) + "\n").encode())
-    os.chmod(out / "stats.json", FILE_MODE)
     result.files["stats"] = out / "stats.json"
     return result
 
@@ -466,7 +478,8 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
             if sensor.name in settings.rgb_sensors and sensor.color_topic not in router.routes:
                 why = (f"the bag has no messages on {sensor.color_topic}" if sensor.color_topic else
                        f"{sensor.name}.color_topic is empty")
-                log(f"note: {P.colourless_note(sensor, why)}")
+                run.colourless[sensor.name] = P.colourless_note(sensor, why)
+                log(f"note: {run.colourless[sensor.name]}")
         for topic, others in router.other_types.items():
             left_out = ", ".join(f"{n} {t}" for t, n in others.items())
             log(f"topic {topic} was recorded with several types: its {router.routes[topic].msgtype} messages are "
@@ -541,8 +554,21 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
             topic = absolute_topic(sensor.color_topic) if sensor.color_topic else ""
             if sensor.name in settings.rgb_sensors and topic in router.routes and c["integrated"] and not (
                     c["color_usable"]):
-                log(f"note: {P.colourless_note(sensor, f'none of the colour images on {topic} could be decoded')}")
+                run.colourless[sensor.name] = P.colourless_note(
+                    sensor, f"none of the colour images on {topic} could be decoded")
+                log(f"note: {run.colourless[sensor.name]}")
     return run
+
+
+class _EngineLog(logging.Handler):
+    """The engine's log records of WARNING and above, said as the run's own lines."""
+
+    def __init__(self, say: Callable[[str], None]) -> None:
+        super().__init__(logging.WARNING)
+        self._say = say
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self._say(f"{record.levelname.lower()}: {record.getMessage()}")
 
 
 def _undecodable_line(topic: str, n: int, *, recorded: int, not_cdr: int, msgtype: str) -> tuple[str, bool]:
@@ -604,7 +630,7 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
             # camera_info without K, an image too small for the border...), frames fused without their colour,
             # and a camera_info whose distortion replay does not apply
             "errors": dict(c["errors"]),
-            "without_color": c["without_color"],
+            "without_color": c["integrated"] if name in run.colourless else c["without_color"],
             "color_usable": c["color_usable"],  # colour images decoded for matching
             # messages of its topics that could not be deserialised, per stream (depth: not in `received`)
             "undecodable": c["undecodable"],
@@ -612,7 +638,8 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
             "color_refused": c["color_refused"],  # fused without colour: colour of another aspect ratio
             # depth images missing from the stream's regular stamps (the recorder or the driver lost them)
             "missing_depth": c["missing_depth"], "missing_depth_gap": c["missing_depth_gap"],
-            "notes": dict(c["notes"]),  # what about the sensor's set-up to know (see SensorCounters.notes)
+            # what about the sensor's set-up to know (see SensorCounters.notes)
+            "notes": {**c["notes"], **({"colourless": run.colourless[name]} if name in run.colourless else {})},
         }
     router = run.router
     return {
@@ -632,7 +659,7 @@ def _stats(result: ReplayResult, run: _Run, pipeline: Pipeline, settings: P.Sett
                    for t, r in sorted(router.routes.items())},
         "ignored_topics": dict(sorted(router.ignored.items())),
         "time_jumps": pipeline.time_jumps,
-        "warnings": warnings,  # what the run warned about (also printed as it came)
+        "warnings": warnings,  # every note and warning the run said as it went (also printed)
         "engine_errors": pipeline.engine_errors,
         "engine": engine_stats,
         "meshes": {stem: {"file": str(result.files[stem]), "vertices": m.n_vertices, "faces": m.n_faces}

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from senfunet_core.errors import InputError
@@ -24,6 +25,20 @@ def test_atomic_file_replaces_the_file_whole_or_leaves_it_and_no_trace(tmp_path:
     with atomic_file(tmp_path / "new" / "mesh.ply") as file:  # missing folders are made
         file.write(b"ply")
     assert (tmp_path / "new" / "mesh.ply").read_bytes() == b"ply"
+
+
+def test_files_written_whole_are_readable_by_other_users(tmp_path: Path) -> None:
+    """`demo --live-mesh`'s live_mesh.ply and `simulate --gt`'s mesh were 0600 (the temporary file's mode):
+    every file written through atomic_file is 0644 now, as the meshes, maps and stats are."""
+    from senfunet_core.mesher import Mesh
+    from senfunet_core.ply import write_ply
+
+    with atomic_file(tmp_path / "stats.json") as file:
+        file.write(b"{}")
+    triangle = Mesh(np.eye(3, dtype=np.float32), np.array([[0, 1, 2]], np.int32))
+    write_ply(tmp_path / "live_mesh.ply", triangle)
+    assert {p.name: p.stat().st_mode & 0o777 for p in tmp_path.iterdir()} == {"stats.json": 0o644,
+                                                                              "live_mesh.ply": 0o644}
 
 
 

@@ -318,6 +318,34 @@ def test_a_stamp_whose_nanosec_is_not_below_one_second_is_a_bad_stamp(stream: st
     assert [f.stamp_ns for f in frames(ingest.pop_ready())] == [10 * MS]
 
 
+def test_odometry_of_a_body_frame_without_an_extrinsic_is_said_once() -> None:
+    """nav_msgs/Odometry of base_link with T_body_camera left at identity: the camera was posed as the
+    robot's body (a map from the wrong viewpoints, F 10 where 67 with the extrinsic), without a word.
+    A child frame that does not look optical is now said once, unless the sensor has its extrinsic."""
+    from nav_msgs.msg import Odometry
+
+    def odometry(t_ns: int, child: str) -> Odometry:
+        odom = Odometry(child_frame_id=child)
+        odom.header = pose_msg(t_ns).header
+        odom.header.frame_id = "map"
+        odom.pose.pose.orientation.w = 1.0
+        return odom
+
+    body = np.eye(4)
+    body[:3, 3] = (0.1, 0.0, 0.2)
+    ingest = make(fixed_frame="map", T_body_camera={"stereo": body})
+    for t_ns in (0, 10 * MS):
+        assert ingest.add_pose("tof", odometry(t_ns, "base_link")) is None
+        assert ingest.add_pose("stereo", odometry(t_ns, "base_link")) is None
+    notes = ingest.ledger.counters()
+    note = notes["tof"]["notes"]["pose_child_frame"]
+    assert "poses are of frame 'base_link'" in note and "set tof.T_body_camera" in note, note
+    assert "pose_child_frame" not in notes["stereo"]["notes"]  # it has its extrinsic
+    optical = make(fixed_frame="map")
+    assert optical.add_pose("tof", odometry(0, "tof_depth_optical_frame")) is None
+    assert "pose_child_frame" not in optical.ledger.counters()["tof"]["notes"]
+
+
 def test_poses_that_are_not_in_the_fixed_frame_are_fused_as_given_and_said_once() -> None:
     """A pose source in another frame (odom) or in none: its poses are taken as given, as the contract
     says, and the sensor's notes (logged once, in ~/status and replay's stats) say so, naming both
