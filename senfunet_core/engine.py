@@ -334,7 +334,7 @@ class SenFuNet:
                               voxel_size_m=config.voxel_size_m, alpha_batch_blocks=config.alpha_batch_blocks)
         self.archive: MeshArchive = self.bound.archive  # final meshes of evicted blocks (owned by the update lock)
         self.counters = {"alpha_voxels": 0, "alpha_blocks": 0, "mesh_blocks": 0, "sparse_dropped_samples": 0,
-                         "sparse_dropped_blocks": 0, "mesh_backlog_blocks": 0}
+                         "sparse_dropped_blocks": 0, "mesh_backlog_blocks": 0, "spill_failures": 0, "spill_failing": 0}
         self.frames_integrated = {name: 0 for name in config.sensors}
         self._meshed = np.zeros(0, np.int64)  # sorted block keys of the blocks with a live mesh
         self._evicted_shown: list[np.ndarray] = []  # keys of evicted blocks that had a live mesh (see _evict)
@@ -637,9 +637,8 @@ class SenFuNet:
         after its first slice."""
         eviction = self.bound.evict(integration_waits=integration_waits, removed=self.update_lock.evicted,
                                     budget_s=budget_s)
-        if self.bound.spill_failures:
-            self.counters["spill_failures"] = self.bound.spill_failures
-            self.counters["spill_failing"] = int(self.bound.spill_failing)
+        self.counters["spill_failures"] = self.bound.spill_failures
+        self.counters["spill_failing"] = int(self.bound.spill_failing)
         if eviction is not None:
             self.counters["evicted_blocks"] = self.bound.evicted_blocks
             self.counters["evictions"] = self.bound.evictions

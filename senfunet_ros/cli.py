@@ -36,6 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if "--ros-args" in argv and "--" not in argv[:argv.index("--ros-args")]:
+        # `senfunet node --ros-args -p ...`, as ros2 run takes it: the ROS arguments follow a '--' for argparse
+        argv.insert(argv.index("--ros-args"), "--")
     args = build_parser().parse_args(argv)
     try:
         return int(args._run(args) or 0)

@@ -174,11 +174,21 @@ class TopicRouter:
         hints = []
         other_images = [t for t, i in topics.items() if t not in routed and normalize_msgtype(i.msgtype) in _IMAGES]
         depthless = [param.removesuffix(".depth_topic") for param in params if param.endswith(".depth_topic")]
+        infoless = [param.removesuffix(".camera_info_topic") for param in params
+                    if param.endswith(".camera_info_topic")]
+        other_infos = [t for t, i in topics.items() if t not in routed and normalize_msgtype(i.msgtype) == _CAMERA_INFO]
+        unexplained = list(params)
         if depthless and not other_images:
             hints.append(f"the bag holds no other image topic to take as {' and '.join(depthless)}'s depth: "
                          "SenFuNet fuses the depth of two sensors; record both sensors' depth images")
-        elif params:
-            hints.append(f"set {', '.join(params)} to the bag's topics with --params")
+            unexplained = []  # a bag of one sensor: its other topics are missing too
+        elif infoless and not other_infos:
+            hints.append(f"the bag holds no other {_CAMERA_INFO} topic to take as {' and '.join(infoless)}'s: the "
+                         "node takes each sensor's intrinsics (K) from its camera_info; record the camera_info topics "
+                         "with the depth images")
+            unexplained = [param for param in unexplained if not param.endswith(".camera_info_topic")]
+        if unexplained:
+            hints.append(f"set {', '.join(unexplained)} to the bag's topics with --params")
         if "/tf" in topics and any(param.endswith(".pose_topic") for param in params):
             hints.append("the bag has /tf: for poses from TF, set pose_type: tf with --params")
         if no_tf:

@@ -23,6 +23,8 @@ def test_a_spill_that_cannot_be_written_keeps_the_blocks_and_the_updates_going(m
     engine = engine_for_tests(max_blocks=165)
     integrate_views(engine, [(SPHERE_C, T) for T in SPHERE_VIEWS[:2]])
     engine.update()
+    # on ~/status from the start, as the README names it (it appeared with the first failure)
+    assert engine.counters["spill_failures"] == 0 and engine.counters["spill_failing"] == 0
     put = BlockSpill.put
 
     def full(self, keys, rows):

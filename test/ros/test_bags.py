@@ -388,6 +388,12 @@ def test_missing_topics_name_the_parameters_to_set(prefix: Path):
         TopicRouter(load_settings(overrides={"tof.depth_topic": "/camera/depth"}), topics, prefix)
     assert "no messages on /camera/depth" in str(info.value)
     assert "set tof.depth_topic to the bag's topics with --params" in str(info.value)
+    # a bag without any camera_info: naming the parameters to set sent the user after topics it does not have
+    without_info = {t: i for t, i in topics.items() if not t.endswith("camera_info")}
+    with pytest.raises(BagError) as info:
+        TopicRouter(load_settings(), without_info, prefix)
+    assert ("no other sensor_msgs/msg/CameraInfo topic to take as tof and stereo's: the node takes each sensor's "
+            "intrinsics (K) from its camera_info" in str(info.value)) and "--params" not in str(info.value)
     with pytest.raises(BagError) as info:
         TopicRouter(load_settings(overrides={"pose_type": "tf"}), topics, prefix)
     assert "no messages on /tf" in str(info.value)

@@ -101,13 +101,15 @@ def test_top_level_help_is_for_users():
 
 def test_every_command_reports_its_errors_on_stderr(tmp_path: Path, ros_domain_id: int) -> None:
     """node, train and evaluate as replay and play do: the error on stderr, nothing on stdout, exit code
-    2; the node's own refusal to start too (a parameter out of range)."""
+    2; the node's own refusal to start too (a parameter out of range, given after '--' or not)."""
     unknown = tmp_path / "unknown.yaml"
     unknown.write_text("senfunet:\n  ros__parameters:\n    voxel_size: 0.02\n")
     cases = [
         (["node", "--params", str(tmp_path / "missing.yaml")], "senfunet node: parameter file"),
         (["node", "--params", str(unknown)], "senfunet node: "),
         (["node", "--", "--ros-args", "-p", "voxel_size_m:=-1.0"], "senfunet: cannot start: "),
+        # as ros2 run takes them, without the '--' (argparse refused them: "unrecognized arguments")
+        (["node", "--ros-args", "-p", "voxel_size_m:=-1.0"], "senfunet: cannot start: "),
         (["train", "--config", str(tmp_path / "missing.yaml")], "senfunet train: config"),
         (["evaluate", "--scenes", "999", "--out", str(tmp_path / "eval")], "senfunet evaluate: --scenes"),
         (["simulate", "--seed", "1"], "senfunet simulate: nothing to write"),
