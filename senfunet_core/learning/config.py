@@ -85,7 +85,12 @@ class TrainConfig:
         known = {f.name: f for f in fields(cls)}
         unknown = sorted(set(values) - set(known))
         if unknown:
-            raise ValueError(f"unknown training config keys: {unknown}; known: {sorted(known)}")
+            import difflib
+
+            named = [key + "".join(f" (did you mean '{close}'?)" for close in difflib.get_close_matches(key, known, 1))
+                     for key in unknown]
+            raise ValueError(f"unknown training config key(s): {', '.join(named)}; the keys are the fields of "
+                             f"TrainConfig in senfunet_core/learning/config.py: {', '.join(sorted(known))}")
         out = {}
         for k, v in values.items():
             if isinstance(v, list):

@@ -198,15 +198,16 @@ def _is_clock(topic: str) -> bool:
 def _message_classes(reader, topics: list[str] | None, say) -> dict[str, type]:  # noqa: ANN001
     """Topic -> message class of the topics to play (all, or `topics`); topics whose type is not
     installed here are skipped with a note. BagError when a topic is missing or none can be played."""
-    from senfunet_ros.bagio import BagError, message_class
+    from senfunet_ros.bagio import BagError, absolute_topic, message_class
 
     infos = reader.topics
-    if topics:
-        missing = [t for t in topics if t not in infos]
+    if topics:  # 'tof/pose' is '/tof/pose', as everywhere else: the bag's spellings of each are played
+        chosen = {absolute_topic(t) for t in topics}
+        missing = sorted(chosen - {absolute_topic(t) for t in infos})
         if missing:
             raise BagError(f"{reader.path}: no topic {', '.join(missing)}; the bag has {', '.join(sorted(infos))}")
         # a recorded clock is the time of the topics chosen (a simulation's stamps): it goes with them
-        infos = {t: info for t, info in infos.items() if t in topics or _is_clock(t)}
+        infos = {t: info for t, info in infos.items() if absolute_topic(t) in chosen or _is_clock(t)}
     classes: dict[str, type] = {}
     unknown: dict[str, str] = {}
     for topic, info in sorted(infos.items()):

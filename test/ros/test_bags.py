@@ -856,3 +856,15 @@ def test_an_mcap_with_a_damaged_chunk_reads_the_chunks_after_it(prefix: Path, tm
     assert any("damaged chunks left out, the others read: log times" in note for note in notes), notes
     kept = [m for m in _digest(prefix) if not damaged.message_start_time <= m[1] <= damaged.message_end_time]
     assert read == kept and read[-1] == _digest(prefix)[-1]
+
+
+def test_play_takes_topics_with_or_without_their_leading_slash(prefix: Path):
+    """`senfunet play --topics tof/pose` was refused ("no topic tof/pose"), though everywhere else
+    'tof/pose' is '/tof/pose'; a topic the bag lacks is still refused, named as a topic."""
+    from senfunet_ros.commands.play import _message_classes
+
+    said: list[str] = []
+    with open_bag(prefix) as reader:
+        assert set(_message_classes(reader, ["tof/pose", "/tof/depth"], said.append)) == {"/tof/pose", "/tof/depth"}
+        with pytest.raises(BagError, match="no topic /tof/colour"):
+            _message_classes(reader, ["tof/colour"], said.append)

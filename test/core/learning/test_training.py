@@ -501,6 +501,7 @@ def test_train_command_from_init_weights_skips_the_pretraining_the_config_asks_f
 @pytest.mark.parametrize("text, expected", [
     ("steps: [1, 2\n", r"not valid YAML \(line \d+, column \d+\)"),
     ("- steps\n- 3\n", "expected a mapping of training settings"),
+    ("stepz: 3\n", r"unknown training config key\(s\): stepz \(did you mean 'steps'\?\)"),  # a typo: the key named
 ])
 def test_bad_yaml_is_a_value_error(tmp_path, text, expected):
     path = tmp_path / "train.yaml"
