@@ -4,9 +4,9 @@ replay and the first test session each pay for it.
 
 Runs the engine's warm-up as the node and replay configure it (and with the weighting net's other
 evaluation scheme), with a map bound of a few blocks so that eviction and the spill run too (else
-they compile at a live node's first eviction); then the mesh decimation, the renderer, the ~/mesh
-wire codec and the rvl depth codec, all on tiny inputs. Kernels the cache already holds load in a
-fraction of a second, so running it again costs little.
+they compile at a live node's first eviction) and the weight cloud's kernel for each; then the mesh
+decimation, the renderer, the ~/mesh wire codec and the rvl depth codec, all on tiny inputs. Kernels
+the cache already holds load in a fraction of a second, so running it again costs little.
 
 numba renews a cached kernel only when its own file changes, yet kernels inline functions of other
 modules (integration's kernels inline the grid's): after any change of the sources (a `git pull`),
@@ -56,7 +56,7 @@ def main() -> None:
 
     roots = [Path(package.__file__).parent for package in (senfunet_core, senfunet_ros)]
     digest = drop_stale_caches(roots)
-    from senfunet_core import decimate
+    from senfunet_core import decimate, readout
     from senfunet_core.engine import SenFuNet, warm_up
     from senfunet_core.mesher import Mesh
     from senfunet_core.render import default_camera, rasterize
@@ -73,6 +73,7 @@ def main() -> None:
                       {"alpha_dtype": "float32", "feature_dtype": "float32", "alpha_voxels": "surface_voxels"}):
         engine = SenFuNet(engine_config(settings, max_blocks=4, **overrides), weights=engine_weights(settings))
         warm_up(engine)
+        readout.warm_up(engine)
     decimate.warm_up()
     triangle = Mesh(np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], np.float32), np.array([[0, 1, 2]], np.int32),
                     np.full((3, 3), 0.5, np.float32))

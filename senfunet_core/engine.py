@@ -31,8 +31,10 @@ Threading model (the one place it is described):
   the hard bound), while the updating (or evicting) thread waits for them in order and writes their
   results; they also mesh the batches of an `update(mesh_threads=...)` (no frame waiting) and, in an
   idle catch-up, count the voxels near a surface that order it (`AlphaScheduler.order`), reading the
-  grid as the updating thread does. Several threads may integrate, and several may update: the locks
-  serialise them. The alpha threads start at the priority of the
+  grid as the updating thread does. A reading thread (the live node's weights thread) may call
+  `readout.weight_cloud`, which takes no update lock and holds the data lock a slice of blocks at a
+  time, found by key (so an eviction or a frame between two slices goes on). Several threads may
+  integrate, and several may update: the locks serialise them. The alpha threads start at the priority of the
   thread that first needs them and then run the constructor's `worker_setup` (the live node's
   lowers them to its mesh thread's). The engine's parts (`AlphaScheduler`,
   `BlockMesher`, `MapBound`) start no thread of their own besides those alpha threads, and take only

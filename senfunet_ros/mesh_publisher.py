@@ -2,12 +2,18 @@
 
 One `publish` at a time (`lock`, shared with the map services that replace or empty the map):
 update the engine's meshes (on every core when no frame waits), encode and publish the changed
-blocks (or the whole map for a subscriber that just joined) and, when due, the weight cloud; then
-give the weighting net its turn (when no frame waits, on a thread of its own while the update is
+blocks (or the whole map for a subscriber that just joined) and, when due, start the weight cloud;
+then give the weighting net its turn (when no frame waits, on a thread of its own while the update is
 encoded). The node calls `publish` from its mesh thread (`MeshWorker`: the mesh timer's ticks run
 there, one update at a time), at a lower priority than integration's (see
-`node.lower_thread_priority`; the turn thread is set to it too); the engine is thread-safe:
-integration goes on meanwhile.
+`node.lower_thread_priority`; the turn thread and the weights thread are set to it too); the engine
+is thread-safe: integration goes on meanwhile.
+
+The weight cloud reads the whole map (seconds on a room, with its encoding and publication): it is
+built, encoded and published on a thread of its own (`CloudWorker`, "senfunet-weights"), not under
+`lock` and not on the mesh thread, so a ~/weights subscriber never holds the mesh refresh back; a
+cloud due while the previous one is still being built is skipped. It reads the engine as any
+reader does (`readout.weight_cloud`: the data lock a slice at a time, never the update lock).
 """
 from __future__ import annotations
 
@@ -113,6 +119,62 @@ class MeshWorker:
         self._pool.shutdown(wait=True)
 
 
+class CloudWorker:
+    """~/weights clouds on a thread of their own, off the mesh update's path (see the module
+    docstring). `request` (from the mesh thread) starts `build(job)` on the worker thread unless one
+    is under way, and returns at once: a due cloud is then skipped (counted in `skipped`; the next is
+    due a period later), a forced one (`force`: ~/weights asked for now) follows the one under way.
+    A build that fails is warned about (`warn(key, message)`), unless the node is shutting down."""
+
+    def __init__(self, build: Callable[[Any], None], *, keep_going: Callable[[], bool],
+                 thread_setup: Callable[[], Any] | None, warn: Callable[[tuple[str, ...], str], None]) -> None:
+        self._build = build
+        self._keep_going = keep_going
+        self._warn = warn
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="senfunet-weights", initializer=thread_setup)
+        self._lock = threading.Lock()  # guards the three fields below (mesh thread vs. worker thread)
+        self._running = False  # a build is under way on the worker thread
+        self._forced: Any = None  # the job of a forced request made meanwhile: built next
+        self.skipped = 0  # due clouds skipped because the previous one was still being built
+
+    def request(self, job: Any, *, force: bool = False) -> bool:
+        """Start building `job`'s cloud now (True), or not (False: one is under way; a forced job
+        is built once it ends)."""
+        with self._lock:
+            if self._running:
+                if force:
+                    self._forced = job
+                else:
+                    self.skipped += 1
+                return False
+            self._running = True
+        try:
+            self._pool.submit(self._builds, job)
+        except RuntimeError:  # shut down under this last request
+            with self._lock:
+                self._running = False
+            return False
+        return True
+
+    def _builds(self, job: Any) -> None:
+        """Builds, as long as forced requests came during the last one."""
+        while True:
+            try:
+                self._build(job)
+            except Exception as err:
+                if self._keep_going():
+                    self._warn(("weights_cloud",), f"~/weights cloud failed: {err!r}")
+            with self._lock:
+                job, self._forced = self._forced, None
+                if job is None:
+                    self._running = False
+                    return
+
+    def shutdown(self) -> None:
+        """No build starts any more; the one under way (and a forced one after it) finishes first."""
+        self._pool.shutdown(wait=True)
+
+
 class UpdateSignal:
     """Mesh updates as they end, for a thread that waits for the next one (`~/save_mesh` lets them
     come between its turns of the weighting net): `ended` from the publishing thread, `wait_next`
@@ -183,6 +245,9 @@ class MeshPublisher:
         # how far the last turn while frames came ran past its budget (its first batch always runs): the next
         # turn ends that much sooner, so that update, publication and turn end within the mesh period
         self._turn_overrun_s = 0.0
+        # ~/weights clouds, built, encoded and published off the mesh thread (one at a time)
+        self.clouds = CloudWorker(self._publish_cloud, keep_going=node.context.ok, thread_setup=thread_setup,
+                                  warn=warn)
 
     def resend_all(self) -> None:
         """The next publication sends the whole map (a loaded map replaced what readers hold, or they
@@ -195,17 +260,20 @@ class MeshPublisher:
     def publish(self, weights: bool | None = None) -> None:
         """engine.update() -> ~/mesh (changed blocks, or a full snapshot for new subscribers), and
         ~/weights when it is due (every 1 / weights_rate_hz s; `weights` forces or skips it) and
-        somebody listens; then the weighting net's turn (engine.refresh_alpha, within
-        alpha_budget_s), after publishing: a frame's geometry is shown one alpha phase sooner
-        (the net's budget no longer sits between integration and the mesh subscribers), and the
-        alpha it changed comes with the next update. When idle (`weighting_net_turn`), the turn
-        starts once the update is meshed, on the turn thread, while this thread encodes and
-        publishes (on one core: the turn gets the other), and ends before this call returns."""
+        somebody listens (started on the weights thread, `CloudWorker`: this call does not wait for
+        it; a due cloud is skipped while the previous one is still being built); then the weighting
+        net's turn (engine.refresh_alpha, within alpha_budget_s), after publishing: a frame's
+        geometry is shown one alpha phase sooner (the net's budget no longer sits between
+        integration and the mesh subscribers), and the alpha it changed comes with the next update.
+        When idle (`weighting_net_turn`), the turn starts once the update is meshed, on the turn
+        thread, while this thread encodes and publishes (on one core: the turn gets the other), and
+        ends before this call returns."""
         s = self._settings()
         with self.lock:
             engine = self.pipeline.engine  # under the lock: ~/load_map replaces it under the same lock
             start = time.perf_counter()
             now = time.monotonic()
+            forced = weights is True
             if weights is None:
                 weights = now >= self._next_weights_s
             weights = weights and self.weights_pub.get_subscription_count() > 0
@@ -226,11 +294,9 @@ class MeshPublisher:
                 served = (0, 0)
             t_update = time.perf_counter()
             self._timings["update"].add(t_update - start)
-            cloud = None
-            if weights:
+            if weights:  # built on the weights thread, from the map as it is then (this update's meshes or later)
                 self._next_weights_s = next_due_s(self._next_weights_s, now, 1.0 / s.weights_rate_hz)
-                cloud = self._weight_cloud(engine, s)
-                self._timings["weights"].add(time.perf_counter() - t_update)
+                self.clouds.request((engine, s, stamp_ns), force=forced)
             t_cloud = time.perf_counter()
             readers = (self.mesh_pub.get_subscription_count(), self._matched)
             caught_up = self._parts_unacknowledged and wait_for_all_acked(self.mesh_pub, 0.0)
@@ -251,7 +317,7 @@ class MeshPublisher:
                     if idle else None)
             t_sent = t_cloud
             try:
-                unacknowledged = self._send(messages, cloud, s, stamp_ns, t_cloud=t_cloud)
+                unacknowledged = self._send(messages, s, t_cloud=t_cloud)
                 t_sent = time.perf_counter()
                 self._latency.published(contained)
                 self._parts_unacknowledged = unacknowledged or (self._parts_unacknowledged and not caught_up)
@@ -269,20 +335,28 @@ class MeshPublisher:
             if end - start > 2.0 * mesh_period_s(s.mesh_rate_hz):  # the refresh stalls: say where the time went
                 self._warn(("mesh_update_slow",), f"a mesh update took {end - start:.2f} s, over twice the mesh period "
                            f"(mesh_rate_hz {s.mesh_rate_hz:g}): engine.update {t_update - start:.2f} s "
-                           f"({len(update.meshes)} block meshes), weights cloud {t_cloud - t_update:.2f} s, encoding "
-                           f"and publishing {'the whole map' if whole else 'the changed blocks'} "
-                           f"{t_sent - t_cloud:.2f} s, then the weighting net's turn {end - t_sent:.2f} s "
+                           f"({len(update.meshes)} block meshes), encoding and publishing "
+                           f"{'the whole map' if whole else 'the changed blocks'} {t_sent - t_cloud:.2f} s, "
+                           f"then the weighting net's turn {end - t_sent:.2f} s "
                            f"({'idle, beside the publication' if turn is not None else 'frames coming'}); if this "
                            "recurs, a lower mesh_rate_hz gives each update more time")
         self.updates.ended()
 
-    @staticmethod
-    def _weight_cloud(engine: Any, s: P.Settings) -> Any:
-        """~/weights' points: alpha as the budgeted updates left it (NaN: not evaluated yet), not a full
-        refresh, within weights_band_m of the surface (0: everywhere observed)."""
+    def _publish_cloud(self, job: tuple[Any, P.Settings, int]) -> None:
+        """Build, encode and publish one ~/weights cloud (on the weights thread; timed as "weights"):
+        alpha as the budgeted updates left it (not a full refresh: voxels the net has not judged yet
+        are left out), within weights_band_m of the surface (0: everywhere observed), stamped as the
+        mesh update that asked for it."""
         from senfunet_core.readout import weight_cloud
 
-        return weight_cloud(engine, s.weights_band_m if s.weights_band_m > 0 else None, refresh_alpha=False)
+        engine, s, stamp_ns = job
+        start = time.perf_counter()
+        cloud = weight_cloud(engine, s.weights_band_m if s.weights_band_m > 0 else None, refresh_alpha=False)
+        data = conv.point_cloud2_cdr(cloud.positions_m, cloud.alpha, cloud.weights, s.sensor_names,
+                                     stamp_ns=stamp_ns, frame_id=s.fixed_frame)
+        del cloud
+        publish_serialized(self.weights_pub, np.frombuffer(data, np.uint8))
+        self._timings["weights"].add(time.perf_counter() - start)
 
     def _mesh_messages(self, engine: Any, update: Any, s: P.Settings, stamp_ns: int, *, whole: bool) -> Any:
         """The update's ~/mesh parts (encoded as they are taken), or None when nothing changed; the
@@ -298,17 +372,11 @@ class MeshPublisher:
                                               max_bytes=max_bytes)
         return None
 
-    def _send(self, messages: Any, cloud: Any, s: P.Settings, stamp_ns: int, *, t_cloud: float) -> bool:
-        """Publish the weight cloud and the mesh parts, each part once the readers took the one before,
+    def _send(self, messages: Any, s: P.Settings, *, t_cloud: float) -> bool:
+        """Publish the mesh parts, each part once the readers took the one before,
         within _PARTS_ACK_TIMEOUT_S for all. Returns whether a part went out before a reader took the
         one before (warned about: the whole map goes out again once every reader has caught up)."""
         publish_s = 0.0  # the rest, from t_cloud on, is encoding (the parts are encoded as they are taken)
-        if cloud is not None:
-            cloud_data = conv.point_cloud2_cdr(cloud.positions_m, cloud.alpha, cloud.weights, s.sensor_names,
-                                               stamp_ns=stamp_ns, frame_id=s.fixed_frame)
-            t_encoded = time.perf_counter()
-            publish_serialized(self.weights_pub, np.frombuffer(cloud_data, np.uint8))
-            publish_s += time.perf_counter() - t_encoded
         ack_deadline = time.monotonic() + _PARTS_ACK_TIMEOUT_S
         unacknowledged = 0  # parts published while a reader had not taken the one before
         parts = 0
@@ -319,7 +387,7 @@ class MeshPublisher:
                 unacknowledged += 1
             publish_serialized(self.mesh_pub, data)  # large: without holding the GIL
             publish_s += time.perf_counter() - t_encoded
-        if messages is not None or cloud is not None:
+        if messages is not None:
             self._timings["encode"].add(time.perf_counter() - t_cloud - publish_s)
             self._timings["publish"].add(publish_s)
         if parts > self._most_parts:
@@ -334,8 +402,10 @@ class MeshPublisher:
         return bool(unacknowledged)
 
     def close(self) -> None:
-        """End the net's turn thread (after the last `publish`)."""
+        """End the net's turn thread and the weights thread (after the last `publish`; a cloud under way
+        is published first)."""
         self._turns.shutdown(wait=True)
+        self.clouds.shutdown()
 
     def _no_frame_waiting(self) -> bool:
         """No frame queued in Ingest and none integrated since the last mesh update began."""

@@ -9,7 +9,9 @@ into the engine, oldest first; the slower mesh timer runs `engine.update()`, pub
 changed blocks, then gives the weighting net its time budget (`engine.refresh_alpha`; all three
 in `senfunet_ros.mesh_publisher`). Each timer has its own callback group under a
 MultiThreadedExecutor; the mesh timer hands its work to a thread of its own at a lower priority
-(`lower_thread_priority`), so that frames come first where the cores are short. The engine is
+(`lower_thread_priority`), so that frames come first where the cores are short; the ~/weights cloud is
+built and published on another thread at that priority (`mesh_publisher.CloudWorker`), never on the
+mesh thread. The engine is
 thread-safe, so integration and mesh updates run at the same time on two cores. No callback
 raises: failures are counted and logged, throttled per cause.
 

@@ -6,6 +6,7 @@ import logging
 import math
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import replace
 
@@ -634,6 +635,133 @@ def test_weight_cloud_reports_each_voxel_where_it_is_with_its_own_alpha_and_weig
     radius_m = np.linalg.norm(near.positions_m - SPHERE_C, axis=1)
     assert np.abs(radius_m - SPHERE_R).max() < 1.5 * VOXEL  # voxel centres in metres, in the world frame
 
+
+
+def whole_map_weight_rows(engine: SenFuNet, max_abs_tsdf_m: float | None) -> dict[int, np.ndarray]:
+    """Per block key, its weight-cloud rows (x, y, z, alpha, weights) as the whole map reads them with
+    torch under both locks (what `weight_cloud` returned before it read the map in slices)."""
+    with engine.update_lock.held(), engine.data_lock:
+        slots = torch.arange(engine.grid.n_blocks)
+        blocks = engine.mesher.whole_blocks(slots, engine.mesher.channels("fused"))
+        coords = engine.grid.coords[slots].clone()
+    centres = voxel_centres(coords, engine.config.voxel_size_m)
+    weights = torch.stack([blocks["weight0"], blocks["weight1"]], dim=-1)
+    keep = (weights > 0).any(dim=-1) & torch.isfinite(blocks["alpha"])
+    if max_abs_tsdf_m is not None:
+        keep &= engine.mesher.values(blocks, "fused", filtered=False)[0].abs() <= max_abs_tsdf_m
+    rows = torch.cat([centres, blocks["alpha"].unsqueeze(-1), weights], dim=-1)
+    return {key: rows[b][keep[b]].numpy() for b, key in enumerate(block_keys(coords).tolist())}
+
+
+def cloud_rows(cloud) -> np.ndarray:
+    return np.concatenate([cloud.positions_m, cloud.alpha[:, None], cloud.weights], axis=1)
+
+
+def cloud_blocks(cloud, voxel_m: float) -> np.ndarray:
+    """The block key of each point of a weight cloud."""
+    voxels = torch.from_numpy(np.rint(cloud.positions_m / voxel_m).astype(np.int64))
+    return block_keys(torch.div(voxels, BLOCK, rounding_mode="floor")).numpy()
+
+
+class ReleaseHook:
+    """Stands in for an engine's data lock: the same lock, and `between()` is called in the thread
+    that lets it go, each time it does (while that thread holds nothing of the engine)."""
+
+    def __init__(self, lock, between) -> None:
+        self._lock = lock
+        self._between = between
+
+    def __enter__(self):
+        self._lock.acquire()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._lock.release()
+        self._between()
+
+    def acquire(self, *args, **kwargs):
+        return self._lock.acquire(*args, **kwargs)
+
+    def release(self) -> None:
+        self._lock.release()
+
+
+def test_weight_cloud_equals_the_whole_map_read_under_both_locks_slice_by_slice():
+    """Judged blocks and blocks the net has not judged yet (left out); every slice size gives the
+    rows of the whole-map read, in its order, bit for bit."""
+    engine = engine_for_tests()
+    K = SPHERE_K
+    for i, T in enumerate(SPHERE_VIEWS[:8]):
+        depth = render_sphere(SPHERE_C, SPHERE_R, K, T)
+        engine.integrate("tof", depth, K, T)
+        if i % 2:
+            engine.integrate("stereo", depth * np.float32(1.01), K, T)
+        if i == 4:
+            engine.update()  # the later frames' new voxels wait for the net: alpha NaN
+    for band in (None, 0.02, VOXEL):
+        expected = np.concatenate(list(whole_map_weight_rows(engine, band).values()))
+        assert len(expected) > 1000 and np.any(expected[:, 4] != expected[:, 5])
+        for slice_blocks in (1, 7, 100_000):
+            cloud = weight_cloud(engine, band, refresh_alpha=False, slice_blocks=slice_blocks)
+            assert cloud.positions_m.dtype == cloud.alpha.dtype == cloud.weights.dtype == np.float32
+            np.testing.assert_array_equal(cloud_rows(cloud), expected)
+    with engine.data_lock:
+        assert np.isnan(decode_alpha(engine.grid.pools["alpha"][: engine.grid.n_blocks]).numpy()).any()
+
+
+def test_weight_cloud_lets_integration_and_updates_in_between_its_slices():
+    """While a cloud is being built, another thread takes the update lock and integrates a frame into
+    the blocks it reads: the cloud holds each block as one of the two maps has it, those read before
+    the frame as before, those after as after."""
+    engine = engine_for_tests()
+    K = SPHERE_K
+    for T in SPHERE_VIEWS[:4]:
+        for sensor in engine.config.sensors:
+            engine.integrate(sensor, render_sphere(SPHERE_C, SPHERE_R, K, T), K, T)
+    engine.update()
+    before = whole_map_weight_rows(engine, None)
+    other: dict[str, object] = {}
+    builder = threading.current_thread()
+    releases = []
+
+    def meanwhile() -> None:  # another thread's update lock and frame
+        with engine.update_lock.held(wait=False) as held:
+            other["update_lock"] = held
+            T = SPHERE_VIEWS[0]
+            other["voxels"] = engine.integrate("tof", render_sphere(SPHERE_C, SPHERE_R, K, T) * np.float32(0.99), K, T)
+
+    def between() -> None:
+        if threading.current_thread() is not builder:
+            return
+        releases.append(len(releases))
+        if len(releases) == 3:  # the keys, then two slices read
+            thread = threading.Thread(target=meanwhile)
+            thread.start()
+            thread.join(timeout=120)  # a guard against a deadlock (the builder holding a lock), not a timing
+            other["finished"] = not thread.is_alive()
+
+    snapshot = block_keys(engine.grid.coords[: engine.grid.n_blocks]).tolist()  # the blocks in slot order
+    engine.data_lock = ReleaseHook(engine.data_lock, between)
+    cloud = weight_cloud(engine, refresh_alpha=False, slice_blocks=5)
+    engine.data_lock = engine.data_lock._lock
+    assert other.get("finished") and other["update_lock"] is True and other["voxels"] > 0
+    assert len(releases) > 3  # slices were read after the frame
+    after = whole_map_weight_rows(engine, None)
+    keys = cloud_blocks(cloud, VOXEL)
+    rows = cloud_rows(cloud)
+    order = list(dict.fromkeys(keys.tolist()))  # the blocks in the order read
+    assert order == [key for key in snapshot if len(before[key])]  # in slot order; none lost
+    read_before = set(snapshot[:10])  # the first two slices' blocks
+    as_before = as_after = 0
+    for key in order:
+        block = rows[keys == key]
+        if key in read_before:
+            np.testing.assert_array_equal(block, before[key])
+        else:
+            np.testing.assert_array_equal(block, after[key])
+        as_before += np.array_equal(block, before[key]) and not np.array_equal(block, after[key])
+        as_after += np.array_equal(block, after[key]) and not np.array_equal(block, before[key])
+    assert as_before and as_after  # the frame changed blocks on both sides of the hold it came in
 
 def test_reset_empties_the_map(tmp_path):
     engine = engine_for_tests()

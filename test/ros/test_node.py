@@ -968,3 +968,69 @@ def test_status_shows_a_reset_or_loaded_maps_statistics_at_once(tmp_path: Path, 
     finally:
         node.destroy_node()
         rclpy.shutdown(context=context)
+
+
+def test_a_due_weights_cloud_is_skipped_while_the_previous_one_is_built() -> None:
+    """`CloudWorker`: a request returns at once while the cloud is built on the weights thread; a due
+    request meanwhile is skipped, a forced one is built once the one under way ends."""
+    from senfunet_ros.mesh_publisher import CloudWorker
+
+    started, release = threading.Event(), threading.Event()
+    built: list[tuple[str, int]] = []
+
+    def build(job: str) -> None:
+        built.append((job, threading.get_ident()))
+        started.set()
+        release.wait(30)
+
+    worker = CloudWorker(build, keep_going=lambda: True, thread_setup=None, warn=lambda key, text: None)
+    try:
+        assert worker.request("first")
+        assert started.wait(30)  # building, and request returned without waiting for it
+        assert not worker.request("due")
+        assert not worker.request("forced", force=True)
+        assert worker.skipped == 1
+        release.set()
+    finally:
+        release.set()
+        worker.shutdown()
+    assert [job for job, _ in built] == ["first", "forced"]
+    assert all(ident != threading.get_ident() for _, ident in built)
+
+
+def test_mesh_updates_go_on_while_a_weights_cloud_is_built(ros, tmp_path: Path, monkeypatch) -> None:
+    """With a ~/weights subscriber, a mesh update does not wait for the cloud: it is built (the readout
+    held here until the test lets it go) on the weights thread while updates are published."""
+    from senfunet_core import readout
+
+    run = Running("wstall", {**E2E_PARAMS, **topic_params("wstall")}, tmp_path)
+    try:
+        clouds: list[PointCloud2] = []
+        run.helper.create_subscription(PointCloud2, f"{run.prefix}/weights", clouds.append,
+                                       QoSProfile(depth=2, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        wait_for(lambda: run.node.mesh_publisher.weights_pub.get_subscription_count() > 0, 30,
+                 "the weights subscriber to match")
+        started, release = threading.Event(), threading.Event()
+        real = readout.weight_cloud
+
+        def held_cloud(*args: Any, **kwargs: Any) -> Any:
+            started.set()
+            release.wait(60)
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(readout, "weight_cloud", held_cloud)
+        updates_before = run.node.timings["update"].count
+        updater = threading.Thread(target=lambda: [run.node.publish_mesh(weights=True) for _ in range(2)])
+        updater.start()
+        try:
+            assert started.wait(60), "no weights cloud was started"
+            updater.join(timeout=120)  # a guard against a deadlock, not a timing
+            assert not updater.is_alive(), "the mesh updates waited for the weights cloud"
+        finally:
+            release.set()
+            updater.join(timeout=120)
+        assert run.node.timings["update"].count >= updates_before + 2
+        wait_for(lambda: len(clouds) >= 2, 60, "the held cloud and the forced one after it")
+        assert [f.name for f in clouds[-1].fields] == ["x", "y", "z", "alpha", "weight_tof", "weight_stereo"]
+    finally:
+        run.close()
