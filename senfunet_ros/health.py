@@ -133,10 +133,10 @@ class HealthMonitor:
 
     def _rate_hz(self, state: _Stream, now: float) -> float:
         """Messages per second over the window, or since the stream's first message while that is
-        shorter (its intervals over their span: a 10 Hz camera that started 1 s ago is 10 Hz, not
-        2 Hz over a 5 s window)."""
+        shorter (its intervals over their span, of a second at least: a 10 Hz camera that started 2 s
+        ago is 10 Hz, not 4 Hz over a 5 s window, and a burst of its first frames is no 100 Hz)."""
         if state.first_s is not None and now - state.first_s < self.window_s and state.first_s >= self._kept_since_s:
-            return (len(state.arrivals) - 1) / (now - state.first_s) if now > state.first_s else 0.0
+            return (len(state.arrivals) - 1) / max(now - state.first_s, min(1.0, self.window_s))
         span = min(self.window_s, now - max(state.subscribed_s, self._kept_since_s))
         return len(state.arrivals) / span if span > 0 else 0.0
 

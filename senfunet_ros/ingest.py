@@ -67,7 +67,7 @@ import numpy as np
 from senfunet_ros import conversions as conv
 from senfunet_ros.matching import ALTERNATION_CHECK_EVERY, ColorBuffer, PoseBuffer
 from senfunet_ros.tf import TfAdded, TfNotConnected, TfWait, extrapolate_tf
-from senfunet_ros.timeline import RateChange, Restart, StreamGaps, Timelines
+from senfunet_ros.timeline import Restart, StreamGaps, Timelines
 
 __all__ = ["DROP_REASONS", "IngestConfig", "Frame", "TimeJump", "SensorCounters", "StreamEnd", "Ingest",
            "IngestLedger", "NoDepthInRange", "integrate_ready", "split_stream_errors"]
@@ -431,15 +431,12 @@ class _SensorInput:
                                                            f"pose: stamp {stamp_ns * 1e-9:.3f} s: {conflict}")
         msg, arrival_s = message if stream == "depth" else (message, 0.0)
         gap = self.depth_gaps.add(stamp_ns) if stream == "depth" else None
-        if isinstance(gap, RateChange):
-            self.counters.missing_depth -= gap.taken_back
-            to_ms = gap.to_period_ns * 1e-6
+        if gap is not None and gap.new_period_ns:
+            to_ms = gap.new_period_ns * 1e-6
             self.counters.notes.setdefault(f"depth_period_{to_ms:.0f}ms", (
-                f"its depth images now come every {to_ms:.0f} ms (they came every {gap.from_period_ns * 1e-6:.0f} "
-                "ms): the driver's rate changed, or it skips images steadily"
-                + (f"; the {gap.taken_back} image(s) counted missing on the way are taken back" if gap.taken_back
-                   else "")))
-            gap = None
+                f"its depth images came every {to_ms:.0f} ms for a while (every {gap.period_ns * 1e-6:.0f} ms "
+                f"before), which is now taken as the stream's period: the driver's rate went down, or images are "
+                "lost steadily on the way (the missing images counted until now stay counted; see ~/status)"))
         # poses that paused over the gap too (all but an image period at either end; over a gap of one image,
         # for a period or more) are a sensor that paused (a driver restarting): no image went missing
         if gap is not None and (not self.counters.pose_received or self.poses.longest_pause_ns(gap.from_ns, gap.to_ns)

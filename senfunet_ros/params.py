@@ -388,8 +388,8 @@ def _check_topics(values: dict[str, Any]) -> None:
     # one depth stream fused as two sensors (a parameter file's copy-paste slip) is no second sensor; a pose or
     # colour topic may serve both (one odometry for a rig, with each sensor's T_body_camera)
     depth_of: dict[str, str] = {}
-    for sensor in values["sensors"]:
-        topic = values[f"{sensor}.depth_topic"].lstrip("/")
+    for sensor in values["sensors"]:  # as given: 'depth' and '/depth' differ in a namespace
+        topic = values[f"{sensor}.depth_topic"]
         if topic in depth_of:
             raise ValueError(f"parameters '{depth_of[topic]}.depth_topic' and '{sensor}.depth_topic' name the same "
                              f"topic {values[f'{sensor}.depth_topic']!r}: one depth stream would be fused as two "

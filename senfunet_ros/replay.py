@@ -176,16 +176,16 @@ class TopicRouter:
         depthless = [param.removesuffix(".depth_topic") for param in params if param.endswith(".depth_topic")]
         infoless = [param.removesuffix(".camera_info_topic") for param in params
                     if param.endswith(".camera_info_topic")]
-        other_infos = [t for t, i in topics.items() if t not in routed and normalize_msgtype(i.msgtype) == _CAMERA_INFO]
+        any_info = any(normalize_msgtype(i.msgtype) == _CAMERA_INFO for i in topics.values())
         unexplained = list(params)
         if depthless and not other_images:
             hints.append(f"the bag holds no other image topic to take as {' and '.join(depthless)}'s depth: "
                          "SenFuNet fuses the depth of two sensors; record both sensors' depth images")
             unexplained = []  # a bag of one sensor: its other topics are missing too
-        elif infoless and not other_infos:
-            hints.append(f"the bag holds no other {_CAMERA_INFO} topic to take as {' and '.join(infoless)}'s: the "
-                         "node takes each sensor's intrinsics (K) from its camera_info; record the camera_info topics "
-                         "with the depth images")
+        elif infoless and not any_info:
+            hints.append(f"the bag holds no {_CAMERA_INFO} topic to take as {' and '.join(infoless)}'s: the node "
+                         "takes each sensor's intrinsics (K) from its camera_info; record the camera_info topics with "
+                         "the depth images")
             unexplained = [param for param in unexplained if not param.endswith(".camera_info_topic")]
         if unexplained:
             hints.append(f"set {', '.join(unexplained)} to the bag's topics with --params")
@@ -485,11 +485,11 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                     "duration_s": round(reader.duration_s, 6), "start_ns": reader.start_ns, "note": reader.note}
         run = _Run(bag_info, router, total=sum(reader.topics[t].count for t in router.topics))
         for sensor in settings.sensors:  # a colour net without colour: fused, but not as the weights were trained
-            if sensor.name in settings.rgb_sensors and sensor.color_topic not in router.routes:
-                why = (f"the bag has no messages on {sensor.color_topic}" if sensor.color_topic else
-                       f"{sensor.name}.color_topic is empty")
-                run.colourless[sensor.name] = P.colourless_note(sensor, why)
-                log(f"note: {run.colourless[sensor.name]}")
+            colour = absolute_topic(sensor.color_topic) if sensor.color_topic else ""
+            if sensor.name in settings.rgb_sensors and colour not in router.routes:
+                why = f"the bag has no messages on {colour}" if colour else f"{sensor.name}.color_topic is empty"
+                run.colourless[sensor.name] = P.colourless_note(sensor, why)  # a sensor note: said with the others'
+
         for topic, others in router.other_types.items():
             left_out = ", ".join(f"{n} {t}" for t, n in others.items())
             log(f"topic {topic} was recorded with several types: its {router.routes[topic].msgtype} messages are "
@@ -566,7 +566,6 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
                     c["color_usable"]):
                 run.colourless[sensor.name] = P.colourless_note(
                     sensor, f"none of the colour images on {topic} could be decoded")
-                log(f"note: {run.colourless[sensor.name]}")
     return run
 
 

@@ -35,8 +35,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["STREAMS", "ClockTimeline", "Gap", "Held", "RateChange", "Restart", "StreamGaps", "Timelines",
-           "Verdict"]
+__all__ = ["STREAMS", "ClockTimeline", "Gap", "Held", "Restart", "StreamGaps", "Timelines", "Verdict"]
 
 STREAMS: tuple[str, ...] = ("depth", "color", "pose")
 _RECENT_DEPTH_STAMPS = 16  # a depth stamp among this many taken lately is a duplicate
@@ -46,8 +45,9 @@ _GAP_PERIODS = 1.8
 _PERIOD_INTERVALS = 16
 _MIN_INTERVALS = 8
 _COUNTED_GAPS = 4  # StreamGaps: the latest gaps into which images may still come late (out of order)
-# StreamGaps: this many gaps in a row, each within _STEADY_RATIO of the others, are a stream whose rate changed
-_RATE_CHANGE_GAPS = 4
+# StreamGaps: this many gaps in a row, each within _STEADY_RATIO of the others and none filled by a late image,
+# are a stream whose rate went down
+_RATE_CHANGE_GAPS = 16
 _STEADY_RATIO = 1.25
 
 
@@ -345,16 +345,8 @@ class Gap:
     to_ns: int
     period_ns: int  # the stream's period before it
     missing: int  # images the gap would have held
-
-
-@dataclass(frozen=True)
-class RateChange:
-    """A stream whose intervals settled at a longer period (`StreamGaps`): the gaps on the way were no
-    lost images."""
-
-    from_period_ns: int
-    to_period_ns: int
-    taken_back: int  # images the gaps on the way had counted missing (those the caller counted)
+    # > 0: this gap ended a run of gaps of about this length, which is the stream's period from now on
+    new_period_ns: int = 0
 
 
 class StreamGaps:
@@ -362,15 +354,17 @@ class StreamGaps:
     `_GAP_PERIODS` or more of the stream's period (the median of its recent intervals) held
     round(interval / period) - 1 images that never came on time (lost before they reached the
     node: a burst overflowing a subscription's queue, a recorder that dropped them; or the driver
-    skipped them). `_RATE_CHANGE_GAPS` such intervals in a row of about the same length are a
-    stream whose rate went down (a driver reconfigured, or one that drops images steadily): that
-    is its period from then on. Stamps only: the caller feeds the stamps it took on time, in order."""
+    skipped them). `_RATE_CHANGE_GAPS` such intervals in a row of about the same length, none of them
+    filled by an image that came late, are a stream whose rate went down (a driver reconfigured, or
+    images lost steadily): their length is its period from then on, so that it is not found to lose
+    images for as long as it runs (the gaps up to then stay counted: stamps cannot tell the two apart).
+    Stamps only: the caller feeds the stamps it took on time, in order."""
 
     def __init__(self) -> None:
         self._last_ns: int | None = None
         self._intervals: deque[int] = deque(maxlen=_PERIOD_INTERVALS)
-        # the gaps in a row since the last regular interval: (its start, its length)
-        self._long: deque[tuple[int, int]] = deque(maxlen=_RATE_CHANGE_GAPS)
+        # the lengths of the gaps in a row since the last regular interval or late image
+        self._long: deque[int] = deque(maxlen=_RATE_CHANGE_GAPS)
         # the latest gaps the caller counted (`count`), and the stamps that came late into each (`came_late`)
         self._counted: deque[tuple[Gap, set[int]]] = deque(maxlen=_COUNTED_GAPS)
 
@@ -388,15 +382,17 @@ class StreamGaps:
         """Whether a stamp older than the newest lies in a gap counted lately, one of its images that came
         late (frames logged or delivered out of order), once each: it is not missing, whether the caller
         took it or dropped it."""
+        if self._last_ns is not None and stamp_ns < self._last_ns:
+            self._long.clear()  # images in the wrong order: the gaps are no steady new rate
         for gap, late in self._counted:
             if gap.from_ns < stamp_ns < gap.to_ns and stamp_ns not in late and len(late) < gap.missing:
                 late.add(stamp_ns)
                 return True
         return False
 
-    def add(self, stamp_ns: int) -> Gap | RateChange | None:
-        """The gap before this stamp, if it ends one, or the rate change it completes; a stamp older than
-        the newest is ignored."""
+    def add(self, stamp_ns: int) -> Gap | None:
+        """The gap before this stamp, if it ends one; a stamp older than the newest is ignored (the
+        caller tells `came_late`)."""
         last = self._last_ns
         if last is not None and stamp_ns <= last:
             return None
@@ -407,24 +403,17 @@ class StreamGaps:
         if len(self._intervals) >= _MIN_INTERVALS:
             period_ns = int(statistics.median(self._intervals))
             if interval >= _GAP_PERIODS * period_ns:  # kept out of the period
-                self._long.append((last, interval))
-                lengths = [n for _, n in self._long]
-                if len(lengths) == _RATE_CHANGE_GAPS and max(lengths) <= _STEADY_RATIO * min(lengths):
-                    return self._rate_changed(period_ns)
-                return Gap(last, stamp_ns, period_ns, round(interval / period_ns) - 1)
+                self._long.append(interval)
+                new_period_ns = 0
+                if len(self._long) == _RATE_CHANGE_GAPS and max(self._long) <= _STEADY_RATIO * min(self._long):
+                    self._intervals.clear()
+                    self._intervals.extend(self._long)
+                    self._long.clear()
+                    new_period_ns = int(statistics.median(self._intervals))
+                return Gap(last, stamp_ns, period_ns, round(interval / period_ns) - 1, new_period_ns)
         self._long.clear()
         self._intervals.append(interval)
         return None
-
-    def _rate_changed(self, period_ns: int) -> RateChange:
-        """The gaps in a row became the stream's intervals: those counted are taken back."""
-        since_ns = self._long[0][0]
-        taken_back = sum(gap.missing - len(late) for gap, late in self._counted if gap.from_ns >= since_ns)
-        self._counted = deque(((g, late) for g, late in self._counted if g.from_ns < since_ns), maxlen=_COUNTED_GAPS)
-        self._intervals.clear()
-        self._intervals.extend(n for _, n in self._long)
-        self._long.clear()
-        return RateChange(period_ns, int(statistics.median(self._intervals)), taken_back)
 
 
 class ClockTimeline:

@@ -145,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
     if demo.unfused and len(demo.unfused) == len(demo.status):
         warnings = sorted({line.split("]: ", 1)[-1] for line in _tail(demo.node_log, 400).splitlines()
                            if "[WARN]" in line or "[ERROR]" in line})
-        _say(f"the node fused no frame of {bag}, so {mesh_path} is empty; what the node said:\n"
+        played = f" ({demo.play_failed}: see above)" if demo.play_failed else ""
+        _say(f"the node fused no frame of {bag}{played}, so {mesh_path} is empty; what the node said:\n"
              + "\n".join(f"  {w}" for w in warnings[:10])
              + f"\n(the node's whole log: {demo.node_log})")
         return 2

@@ -392,8 +392,12 @@ def test_missing_topics_name_the_parameters_to_set(prefix: Path):
     without_info = {t: i for t, i in topics.items() if not t.endswith("camera_info")}
     with pytest.raises(BagError) as info:
         TopicRouter(load_settings(), without_info, prefix)
-    assert ("no other sensor_msgs/msg/CameraInfo topic to take as tof and stereo's: the node takes each sensor's "
+    assert ("no sensor_msgs/msg/CameraInfo topic to take as tof and stereo's: the node takes each sensor's "
             "intrinsics (K) from its camera_info" in str(info.value)) and "--params" not in str(info.value)
+    without_stereo_info = {t: i for t, i in topics.items() if t != "/stereo/camera_info"}
+    with pytest.raises(BagError) as info:  # one missing: another sensor's may be meant
+        TopicRouter(load_settings(), without_stereo_info, prefix)
+    assert "set stereo.camera_info_topic to the bag's topics with --params" in str(info.value)
     with pytest.raises(BagError) as info:
         TopicRouter(load_settings(overrides={"pose_type": "tf"}), topics, prefix)
     assert "no messages on /tf" in str(info.value)
