@@ -326,6 +326,24 @@ def test_a_silent_colour_topic_is_a_warning_only_for_a_sensor_whose_net_takes_co
     assert [level for level, text in logged if "/stereo/color" in text] == ["warning"]
 
 
+def _running_once_it_sees(publisher: Any, name: str, tmp_path: Path, *, window_s: float) -> Running:
+    """A node whose silent-topic warnings come once its graph holds `publisher` (another participant's):
+    started with a long diagnostics window, narrowed to `window_s` once discovery is done, so that a
+    loaded machine's slow discovery cannot make the warning say that nobody publishes."""
+    from rclpy.parameter import Parameter
+
+    run = Running(name, {**topic_params(name), **SMALL, "diagnostics_window_s": 600.0, "status_rate_hz": 10.0},
+                  tmp_path)
+    try:
+        wait_for(lambda: run.node.get_publishers_info_by_topic(publisher.topic_name), 30, "discovery")
+        assert all(r.successful for r in run.node.set_parameters([Parameter("diagnostics_window_s",
+                                                                            value=window_s)]))
+    except BaseException:
+        run.close()
+        raise
+    return run
+
+
 def test_a_silent_topic_published_under_another_type_is_named_with_that_type(ros, tmp_path: Path, capfd) -> None:
     """amcl's PoseWithCovarianceStamped on the pose topic, where the node subscribes PoseStamped: nothing
     arrives, and the warning said only "check the topic name, its message type and QoS". It now names
@@ -333,14 +351,12 @@ def test_a_silent_topic_published_under_another_type_is_named_with_that_type(ros
     import rclpy
     from geometry_msgs.msg import PoseWithCovarianceStamped
 
-    # a window of 2 s: the other participant's publisher is in the node's graph by then, on a loaded machine too
-    run = Running("othertype", {**topic_params("othertype"), **SMALL, "diagnostics_window_s": 2.0,
-                                "status_rate_hz": 10.0}, tmp_path)
     # another participant, as another process would be (DDS refuses a second type for a topic in one)
     context = rclpy.Context()
     rclpy.init(context=context)
     amcl = Node("amcl_like", context=context)
     publisher = amcl.create_publisher(PoseWithCovarianceStamped, "/othertype/tof/pose", 10)
+    run = _running_once_it_sees(publisher, "othertype", tmp_path, window_s=0.5)
     log = ""
     try:
         deadline = time.monotonic() + 20.0
@@ -372,12 +388,11 @@ def test_a_silent_topic_with_publishers_of_its_type_is_warned_about_later_and_no
     from senfunet_ros.status import SILENT_WITH_PUBLISHERS_WINDOWS
 
     window_s = 1.0
-    run = Running("quiet", {**topic_params("quiet"), **SMALL, "diagnostics_window_s": window_s,
-                            "status_rate_hz": 10.0}, tmp_path)
     context = rclpy.Context()
     rclpy.init(context=context)
     player = Node("waiting_player", context=context)
-    player.create_publisher(PoseStamped, "/quiet/tof/pose", 10)  # never publishes
+    publisher = player.create_publisher(PoseStamped, "/quiet/tof/pose", 10)  # never publishes
+    run = _running_once_it_sees(publisher, "quiet", tmp_path, window_s=window_s)
     log, depth_seen_s = "", None
     start = time.monotonic()
     try:
