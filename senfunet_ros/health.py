@@ -142,8 +142,8 @@ class HealthMonitor:
 
     @staticmethod
     def _take_back(missing: deque, n: int) -> None:
-        """Images counted missing that were not (they came late, or the stream's rate changed): the
-        newest counts in the window shrink by n."""
+        """Images counted missing that were not (they came late, out of order): the newest counts in the
+        window shrink by n."""
         while n > 0 and missing:
             when, count = missing.pop()
             if count > n:

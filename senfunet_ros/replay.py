@@ -489,7 +489,6 @@ def _fuse(bag: str | Path, settings: P.Settings, pipeline: Pipeline, *, progress
             if sensor.name in settings.rgb_sensors and colour not in router.routes:
                 why = f"the bag has no messages on {colour}" if colour else f"{sensor.name}.color_topic is empty"
                 run.colourless[sensor.name] = P.colourless_note(sensor, why)  # a sensor note: said with the others'
-
         for topic, others in router.other_types.items():
             left_out = ", ".join(f"{n} {t}" for t, n in others.items())
             log(f"topic {topic} was recorded with several types: its {router.routes[topic].msgtype} messages are "
