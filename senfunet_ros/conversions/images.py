@@ -193,6 +193,10 @@ def depth_from_image(msg: Any) -> np.ndarray:
     kind, scale = _DEPTH_ENCODINGS[encoding]
     itemsize = int(kind[1])
     rows = _image_rows(msg, itemsize)
+    if msg.is_bigendian and itemsize == 2 and _smoother_swapped(rows):  # refused: fused, it would be noise
+        raise ValueError(f"{encoding} depth with is_bigendian set reads far smoother as little-endian (neighbouring "
+                         "pixels closer): the flag is wrong, and read as it says the image is noise; fix the "
+                         "driver's is_bigendian")
     dtype = np.dtype((">" if msg.is_bigendian else "<") + kind)
     raw = np.ascontiguousarray(rows).view(dtype)  # HxW
     depth_m = raw.astype(np.float32) * np.float32(scale)
@@ -202,9 +206,10 @@ def depth_from_image(msg: Any) -> np.ndarray:
 
 def depth_units_note(msg: Any, depth_m: np.ndarray) -> str | None:
     """What a decoded depth image's deepest value says of its encoding, when it looks wrong: float
-    depths beyond 1 km with is_bigendian set (a little-endian driver that sets the flag), or a
-    millimetre encoding whose values stay below 2 cm (metres written as whole numbers). None when
-    nothing looks wrong (or for compressedDepth, whose codec fixes the units)."""
+    depths beyond 1 km or denormal with is_bigendian set (a little-endian driver that sets the flag;
+    16-bit depth with the flag wrong is refused by `depth_from_image`), or a millimetre encoding whose
+    values stay below 2 cm (metres written as whole numbers). None when nothing looks wrong (or for
+    compressedDepth, whose codec fixes the units)."""
     if _is_compressed(msg):
         return None
     encoding = str(msg.encoding)
@@ -216,10 +221,6 @@ def depth_units_note(msg: Any, depth_m: np.ndarray) -> str | None:
     if msg.is_bigendian and (deepest_m > 1000.0 or (not millimetres and 0.0 < deepest_m < 1e-6)):
         return (f"its {encoding} depth images have is_bigendian set and decode to depths up to {deepest_m:.3g} m: if "
                 "the driver writes little-endian values (as x86 and ARM machines do), the flag is wrong; fix the "
-                "driver's is_bigendian")
-    if msg.is_bigendian and millimetres and _smoother_swapped(_image_rows(msg, 2)):
-        return (f"its {encoding} depth images have is_bigendian set, and read as little-endian they are far smoother "
-                "(neighbouring pixels closer): the flag looks wrong, and the frames are fused as noise; fix the "
                 "driver's is_bigendian")
     if millimetres and 0.0 < deepest_m < 0.02:
         return (f"its {encoding} depth images hold at most {deepest_m * 1000:.0f}, read as millimetres (REP 118): "

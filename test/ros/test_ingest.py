@@ -420,7 +420,8 @@ def test_depth_images_whose_units_or_byte_order_look_wrong_are_said_once() -> No
     flat.is_bigendian = 1
     ingest2.add_depth("tof", flat)
     assert "is_bigendian set" in ingest2.ledger.counters()["tof"]["notes"].get("depth_units", "")
-    # millimetres with the flag wrong: byte-swapped, 0.8-2.8 m read as noise up to 65 m, fused without a word
+    # millimetres with the flag wrong: byte-swapped, 0.8-2.8 m read as noise up to 65 m, fused without a word;
+    # then said and still fused as noise; now refused, the flag named (a big-endian driver's images are fused)
     ramp_mm = np.linspace(800, 2800, 48 * 64).reshape(48, 64)
     for flag_wrong, order in ((True, "<u2"), (False, ">u2")):
         millimetres = Image(height=48, width=64, encoding="16UC1", step=128, is_bigendian=1)
@@ -428,9 +429,10 @@ def test_depth_images_whose_units_or_byte_order_look_wrong_are_said_once() -> No
         _stamp(millimetres, 0)
         ingest3 = Ingest(IngestConfig(sensors=("tof", "stereo")))
         ingest3.add_camera_info("tof", info_msg((48, 64)))
-        ingest3.add_depth("tof", millimetres)
-        note = ingest3.ledger.counters()["tof"]["notes"].get("depth_units", "")
-        assert ("read as little-endian they are far smoother" in note) == flag_wrong, note
+        assert ingest3.add_depth("tof", millimetres) == ("bad_encoding" if flag_wrong else None)
+        error = ingest3.ledger.counters()["tof"]["errors"].get("bad_encoding", "")
+        assert ("reads far smoother as little-endian" in error and "fix the driver's is_bigendian" in error) \
+            == flag_wrong, error
 
 
 def test_a_warning_whose_cause_keeps_coming_is_said_less_and_less_often() -> None:
