@@ -11,11 +11,14 @@ from typing import BinaryIO
 from .errors import InputError
 
 
+FILE_MODE = 0o644  # files written whole: maps, meshes, statistics
+
+
 @contextlib.contextmanager
-def atomic_file(path: str | Path, *, mode: int = 0o644) -> Iterator[BinaryIO]:
+def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
     """A binary file to write `path` through: a temporary file in the same folder (so that the
     final rename stays on one file system) that replaces `path` when the block ends, once its data is
-    on disk (fsync), and is removed when it raises; the file gets `mode` (a temporary file's 0600 would
+    on disk (fsync), and is removed when it raises; the file is FILE_MODE (a temporary file's 0600 would
     keep meshes and maps from other users and tools). A symbolic link's target is written (the link
     stays). InputError when `path` is a folder, or exists and is no regular file (a pipe, a device:
     the rename would put a file in its place)."""
@@ -33,7 +36,7 @@ def atomic_file(path: str | Path, *, mode: int = 0o644) -> Iterator[BinaryIO]:
     directory.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
     try:
-        os.fchmod(fd, mode)
+        os.fchmod(fd, FILE_MODE)
         with os.fdopen(fd, "wb") as file:
             yield file
             # on disk before its name: a robot switched off after a save (save_on_shutdown) could find the

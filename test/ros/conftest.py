@@ -25,8 +25,8 @@ sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
 def ros_domain_id() -> int:
     """A ROS_DOMAIN_ID in 1..101 from the pid, or SENFUNET_TEST_DOMAIN_ID when set (a shared machine
     that hands each run its own); exported so child processes inherit it. Under pytest-xdist each
-    worker takes its own: the run's id (or the parent's pid) plus the worker's number, so that the
-    live nodes of two workers never hear each other."""
+    worker takes its own: SENFUNET_TEST_DOMAIN_ID (or one from the parent's pid) plus the worker's
+    number, so that the live nodes of two workers never hear each other."""
     chosen = os.environ.get("SENFUNET_TEST_DOMAIN_ID", "").strip()
     worker = os.environ.get("PYTEST_XDIST_WORKER", "")
     if worker:
